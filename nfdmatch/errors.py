@@ -1,0 +1,80 @@
+"""The exception hierarchy: every error nfdmatch raises derives from :class:`NfdError`.
+
+Each subclass also derives from the builtin a caller would naturally catch
+(``ValueError`` for bad data, ``OSError`` for I/O), so ``except ValueError``
+keeps working for code that does not know about nfdmatch.
+
+Messages name where the problem is: ``"<path>: line <n>: <what>"`` or
+``"<path>#<curve>: <what>"``. The CLI prints them as ``Error: <message>``.
+"""
+
+from __future__ import annotations
+
+
+class NfdError(Exception):
+    """Base of every nfdmatch error.
+
+    Parameters
+    ----------
+    message : what is wrong, without the location.
+    path : the file concerned, if any.
+    line : 1-based line number in that file, if known.
+    curve : 0-based curve number within a multi-curve file, if known.
+    """
+
+    def __init__(self, message: str, *, path: str | None = None,
+                 line: int | None = None, curve: int | None = None):
+        self.message = message
+        self.path = None if path is None else str(path)
+        self.line = line
+        self.curve = curve
+        super().__init__(self._format())
+
+    def _format(self) -> str:
+        where = ""
+        if self.path is not None:
+            where = self.path
+            if self.curve is not None:
+                where += f"#{self.curve}"
+        parts = [p for p in (where, f"line {self.line}" if self.line is not None else "") if p]
+        parts.append(self.message)
+        return ": ".join(parts)
+
+    def __reduce__(self):  # keep picklable across process pools
+        return (_rebuild, (type(self), self.message, self.path, self.line, self.curve))
+
+
+def _rebuild(cls, message, path, line, curve):
+    return cls(message, path=path, line=line, curve=curve)
+
+
+class InputError(NfdError, ValueError):
+    """Input data that cannot be used: a malformed file or an invalid curve."""
+
+
+class ParseError(InputError):
+    """A file whose contents do not follow its format (bad rows, bad indices, garbage)."""
+
+
+class CurveError(InputError):
+    """A curve that is not a usable closed contour (NaN, too few points, zero length)."""
+
+
+class UnknownFormatError(InputError):
+    """A file extension or ``format=`` name that no reader is registered for."""
+
+
+class NoCurvesError(InputError):
+    """A file that parsed but holds no closed polyline (e.g. an OBJ with only faces)."""
+
+
+class CurveSelectionError(InputError):
+    """A ``file#i`` selector out of range, or a multi-curve file where one curve is needed."""
+
+
+class ReadError(NfdError, OSError):
+    """A file that cannot be opened or read (missing, a directory, no permission)."""
+
+
+class ParameterError(NfdError, ValueError):
+    """An invalid parameter value (samples, harmonics, scale, method, ...)."""

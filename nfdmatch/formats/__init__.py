@@ -1,0 +1,209 @@
+"""Reading and writing closed curves: one module per file format, one registry.
+
+Formats (name: extensions)
+
+* ``csv``: ``.csv .tsv .txt .xyz`` -- one curve per file (:mod:`.csv`)
+* ``obj``: ``.obj`` -- Wavefront ``l`` polylines, any number (:mod:`.obj`)
+* ``vtk``: ``.vtk`` -- legacy VTK, line cells (:mod:`.vtk`)
+* ``vtp``: ``.vtp`` -- XML PolyData, line cells
+* ``vtu``: ``.vtu`` -- XML UnstructuredGrid, line cells
+
+Every format module has ``read(path) -> list[Curve]``, ``read_points(path) ->
+list[ndarray]`` and ``write(path, curves) -> None``. The format is chosen from
+the file extension (case-insensitive) unless ``format=`` names one.
+
+Curve ids: ``str(path)`` for a file holding exactly one curve (then
+``index`` is None), ``f"{path}#{i}"`` with ``index=i`` (0-based, file order)
+otherwise; ``source`` is always ``str(path)``.
+
+Importing this package does not import pyvista, VTK or trimesh.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable
+from functools import partial
+
+import numpy as np
+
+from ..curve import Curve
+from ..errors import CurveSelectionError, NfdError, NoCurvesError, ParseError, UnknownFormatError
+from . import csv as _csv
+from . import obj as _obj
+from . import vtk as _vtk
+from ._chain import check_readable, make_curve, make_curves
+
+__all__ = ["FORMATS", "supported_extensions", "format_of", "split_selector", "read_curves",
+           "read_curve", "write_curves"]
+
+#: format name -> file extensions (lower case, with the dot)
+FORMATS: dict[str, tuple[str, ...]] = {
+    "csv": (".csv", ".tsv", ".txt", ".xyz"),
+    "obj": (".obj",),
+    "vtk": (".vtk",),
+    "vtp": (".vtp",),
+    "vtu": (".vtu",),
+}
+
+_BY_EXTENSION: dict[str, str] = {ext: name for name, exts in FORMATS.items() for ext in exts}
+
+_READERS: dict[str, Callable[[str], list[np.ndarray]]] = {
+    "csv": _csv.read_points,
+    "obj": _obj.read_points,
+    "vtk": partial(_vtk.read_points, format="vtk"),
+    "vtp": partial(_vtk.read_points, format="vtp"),
+    "vtu": partial(_vtk.read_points, format="vtu"),
+}
+
+_WRITERS: dict[str, Callable[..., None]] = {
+    "csv": _csv.write,
+    "obj": _obj.write,
+    "vtk": partial(_vtk.write, format="vtk"),
+    "vtp": partial(_vtk.write, format="vtp"),
+    "vtu": partial(_vtk.write, format="vtu"),
+}
+
+_SELECTOR = re.compile(r"-?[0-9]+")
+
+
+def supported_extensions() -> list[str]:
+    """All extensions a format is registered for, e.g. ``['.csv', '.tsv', ..., '.vtu']``."""
+    return list(_BY_EXTENSION)
+
+
+def format_of(path, format: str | None = None) -> str:
+    """The format name used for ``path``: ``format`` if given, else from the extension.
+
+    ``format`` may be a format name (``"vtp"``) or an extension (``"tsv"``,
+    ``".TSV"``), case-insensitive.
+
+    Raises
+    ------
+    UnknownFormatError : an unknown ``format`` or extension.
+    """
+    p = os.fspath(path) if not isinstance(path, str) else path
+    p = str(p)
+    if format is not None:
+        name = str(format).strip().lower()
+        if name in FORMATS:
+            return name
+        ext = name if name.startswith(".") else "." + name
+        if ext in _BY_EXTENSION:
+            return _BY_EXTENSION[ext]
+        raise UnknownFormatError(f"unknown format {format!r}; choose one of "
+                                 f"{', '.join(FORMATS)}", path=p)
+    ext = os.path.splitext(p)[1].lower()
+    if ext in _BY_EXTENSION:
+        return _BY_EXTENSION[ext]
+    what = f"unknown file extension {ext!r}" if ext else "no file extension"
+    raise UnknownFormatError(
+        f"{what}; supported extensions: {', '.join(supported_extensions())}; "
+        f"use --format (format=) to choose one of {', '.join(FORMATS)}", path=p)
+
+
+def split_selector(spec) -> tuple[str, int | None]:
+    """Split ``"file.obj#2"`` into ``("file.obj", 2)``; no selector gives ``(spec, None)``.
+
+    Only the part after the last ``#`` can be a selector, and only when it is an
+    integer (possibly negative, which :func:`read_curve` rejects) and either the
+    path before it exists or the whole ``spec`` does not (so a file really named
+    ``a#1`` is still found).
+    """
+    s = str(os.fspath(spec))
+    head, sep, tail = s.rpartition("#")
+    if sep and head and _SELECTOR.fullmatch(tail) and (os.path.exists(head)
+                                                        or not os.path.exists(s)):
+        return head, int(tail)
+    return s, None
+
+
+def _read_arrays(path: str, format: str | None) -> list[np.ndarray]:
+    check_readable(path)
+    reader = _READERS[format_of(path, format)]
+    try:
+        arrays = reader(path)
+    except NfdError:
+        raise
+    except Exception as exc:  # a reader bug must still name the file, not leak as IndexError
+        raise ParseError(f"could not be read: {type(exc).__name__}: {exc}", path=path) from exc
+    if not arrays:  # the readers raise first; kept as a guard
+        raise NoCurvesError("no curves in the file", path=path)
+    return arrays
+
+
+def read_curves(path, format: str | None = None) -> list[Curve]:
+    """All curves of one file.
+
+    Parameters
+    ----------
+    path : str or PathLike (no ``#`` selector; see :func:`read_curve`).
+    format : format name or extension overriding the file's extension.
+
+    Returns
+    -------
+    list of :class:`Curve`, file order; each ``points`` (n, 3) float64. Ids
+    ``str(path)`` (one curve, ``index`` None) or ``f"{path}#{i}"`` (``index`` i).
+
+    Raises
+    ------
+    ReadError : missing, a directory, unreadable.
+    UnknownFormatError : unknown extension / format name.
+    ParseError, CurveError, NoCurvesError : bad contents (see the format modules).
+    """
+    p = str(os.fspath(path))
+    return make_curves(p, _read_arrays(p, format))
+
+
+def read_curve(spec, format: str | None = None) -> Curve:
+    """One curve: ``spec`` is a file holding one curve, or ``"file#i"`` to pick curve ``i``.
+
+    A single-curve file also accepts ``#0``. The returned curve's id is
+    ``str(path)`` for a single-curve file, else ``f"{path}#{i}"``.
+
+    Raises
+    ------
+    CurveSelectionError : a multi-curve file without selector (the message
+        gives the count and how to pick one), or a selector out of range.
+    and everything :func:`read_curves` raises.
+    """
+    path, sel = split_selector(spec)
+    arrays = _read_arrays(path, format)
+    n = len(arrays)
+    if sel is None:
+        if n != 1:
+            raise CurveSelectionError(
+                f"holds {n} curves; pick one by appending #0 ... #{n - 1} to the file name "
+                f"(e.g. {path}#0)", path=path)
+        return make_curve(path, arrays[0], 0, 1)
+    if not 0 <= sel < n:
+        valid = "#0" if n == 1 else f"#0 ... #{n - 1}"
+        raise CurveSelectionError(
+            f"no curve #{sel}: the file holds {n} curve{'s' if n != 1 else ''} ({valid})",
+            path=path)
+    return make_curve(path, arrays[sel], sel, n)
+
+
+def write_curves(path, curves, format: str | None = None) -> None:
+    """Write curves to one file.
+
+    Parameters
+    ----------
+    path : target file (overwritten).
+    curves : list of :class:`Curve` or (n, 3) / (n, 2) float arrays; a bare
+        Curve or 2-D array counts as one curve. Vertices are cleaned first.
+    format : format name or extension overriding the file's extension.
+
+    CSV holds exactly one curve (header ``x,y,z``, ``repr`` precision); OBJ
+    writes ``v`` lines then ``l 1 2 ... n 1`` per curve; VTK/VTP/VTU write
+    float64 points and one closed poly-line cell per curve. Reading a written
+    file back gives the same vertices exactly.
+
+    Raises
+    ------
+    UnknownFormatError, ParameterError (no curves, or several for CSV),
+    CurveError (an invalid curve), ReadError (cannot write).
+    """
+    p = str(os.fspath(path))
+    _WRITERS[format_of(p, format)](p, curves)

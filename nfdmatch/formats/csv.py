@@ -1,0 +1,199 @@
+"""Delimited text: one closed curve per file, one vertex per row.
+
+Layout accepted by :func:`read`:
+
+* an optional header line (the first non-blank, non-comment line if any of
+  its tokens is not a number);
+* 3 columns ``x, y, z`` or 2 columns ``x, y`` (then z = 0); with a header
+  naming ``x``, ``y`` (and ``z``) case-insensitively, those columns are used
+  among any number of others (which may hold text);
+* delimiter comma, semicolon, tab or runs of whitespace, detected from the
+  first data row; whitespace around delimiters is allowed;
+* ``#`` starts a comment (whole line or trailing); blank lines are ignored;
+  UTF-8, a leading byte-order mark is dropped.
+
+:func:`write` writes a header ``x,y,z`` and every coordinate with ``repr``
+(shortest string that round-trips exactly), comma separated (tab for ``.tsv``,
+space for ``.txt`` / ``.xyz``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+import numpy as np
+
+from ..curve import Curve
+from ..errors import CurveError, ParameterError, ParseError
+from ._chain import make_curves, points_list, read_text, write_text
+
+__all__ = ["read", "read_points", "write"]
+
+_ANY_DELIMITER = re.compile(r"\s*[,;\t]\s*|\s+")
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _unquote(token: str) -> str:
+    return token.strip().strip("\"'").strip()
+
+
+def read_points(path) -> list[np.ndarray]:
+    """The vertices of the one curve in a delimited text file.
+
+    Returns
+    -------
+    list with one (n, 3) float64 array, rows in file order, not yet cleaned
+    (duplicates and the closing vertex are removed when the Curve is built).
+
+    Raises
+    ------
+    ReadError : missing file, a directory, unreadable.
+    ParseError : empty, binary, header only, non-numeric cell, ragged rows,
+        wrong column count (all with the 1-based line number where relevant).
+    CurveError : NaN or Inf in a row (with its line number).
+    """
+    p = str(path)
+    text = read_text(p)
+    content: list[tuple[int, str]] = []
+    for lineno, raw in enumerate(text.split("\n"), 1):
+        cut = raw.find("#")
+        if cut >= 0:
+            raw = raw[:cut]
+        s = raw.strip()
+        if s:
+            content.append((lineno, s))
+    if not content:
+        raise ParseError("no data rows (only comments and blank lines)", path=p)
+
+    first_line, first = content[0]
+    has_header = not all(_is_number(t) for t in _ANY_DELIMITER.split(first) if t)
+    data = content[1:] if has_header else content
+    if not data:
+        raise ParseError("no data rows: the file holds only a header line", path=p,
+                         line=first_line)
+
+    sample = data[0][1]
+    delim: str | None
+    if ";" in sample:
+        delim = ";"
+    elif "," in sample:
+        delim = ","
+    elif "\t" in sample:
+        delim = "\t"
+    else:
+        delim = None
+    if delim is None:
+        rows = [s.split() for _, s in data]
+    else:
+        rows = [s.split(delim) for _, s in data]
+    ncol = len(rows[0])
+
+    cols: list[int]
+    if has_header:
+        names = [_unquote(t) for t in (first.split(delim) if delim else first.split())]
+        if len(names) != ncol:
+            names = [_unquote(t) for t in _ANY_DELIMITER.split(first) if t]
+        if len(names) != ncol:
+            raise ParseError(f"the header (line {first_line}) names {len(names)} columns but "
+                             f"line {data[0][0]} holds {ncol} values", path=p, line=data[0][0])
+        lower = [n.lower() for n in names]
+        if "x" in lower and "y" in lower:
+            cols = [lower.index("x"), lower.index("y")]
+            if "z" in lower:
+                cols.append(lower.index("z"))
+        else:
+            cols = []
+    else:
+        cols = []
+    if not cols:
+        if ncol not in (2, 3):
+            raise ParseError(f"{ncol} columns; expected 3 (x, y, z) or 2 (x, y), or a header "
+                             "line naming the x, y, z columns", path=p, line=data[0][0])
+        cols = list(range(ncol))
+
+    lengths = np.fromiter((len(r) for r in rows), dtype=np.int64, count=len(rows))
+    ragged = np.flatnonzero(lengths != ncol)
+    if len(ragged):
+        k = int(ragged[0])
+        raise ParseError(f"expected {ncol} values (as on line {data[0][0]}), got {lengths[k]}",
+                         path=p, line=data[k][0])
+
+    table = rows if cols == list(range(ncol)) else [[r[c] for c in cols] for r in rows]
+    try:
+        arr = np.array(table, dtype=np.float64)
+    except ValueError:
+        arr = None
+    if arr is None or arr.shape != (len(rows), len(cols)):
+        _raise_first_bad_cell(p, data, table, delim)
+        raise ParseError("could not read the values as numbers", path=p)  # pragma: no cover
+
+    finite = np.isfinite(arr).all(axis=1)
+    if not finite.all():
+        k = int(np.flatnonzero(~finite)[0])
+        raise CurveError(f"value is not finite (NaN or Inf): {data[k][1]!r}", path=p,
+                         line=data[k][0])
+    if arr.shape[1] == 2:
+        arr = np.column_stack([arr, np.zeros(len(arr))])
+    return [arr]
+
+
+def _raise_first_bad_cell(path, data, table, delim) -> None:
+    for (lineno, _), row in zip(data, table):
+        for token in row:
+            try:
+                float(token)
+            except ValueError:
+                tok = token.strip()
+                if not tok:
+                    raise ParseError("empty value", path=path, line=lineno) from None
+                hint = ""
+                if delim == ";" and re.fullmatch(r"[-+]?\d+,\d*([eE][-+]?\d+)?", tok):
+                    hint = " (decimal commas are not supported; use a point)"
+                raise ParseError(f"not a number: {tok!r}{hint}", path=path,
+                                 line=lineno) from None
+
+
+def read(path) -> list[Curve]:
+    """The one curve of a delimited text file, as a one-element list.
+
+    The curve's id is ``str(path)``, ``source`` is ``str(path)``, ``index`` is None.
+    See :func:`read_points` for the errors.
+    """
+    return make_curves(path, read_points(path))
+
+
+def write(path, curves) -> None:
+    """Write exactly one curve: header ``x,y,z`` then one row per vertex.
+
+    Parameters
+    ----------
+    path : target file; ``.tsv`` is tab separated, ``.txt`` / ``.xyz`` space
+        separated, anything else comma separated.
+    curves : a list holding one :class:`Curve` or one (n, 3) / (n, 2) array
+        (a bare Curve or 2-D array is accepted too). Vertices are cleaned
+        (duplicates, repeated closing vertex) before writing.
+
+    Raises
+    ------
+    ParameterError : not exactly one curve.
+    CurveError : an invalid curve.
+    ReadError : the file cannot be written.
+    """
+    p = str(path)
+    arrays = points_list(curves, path=p)
+    if len(arrays) != 1:
+        raise ParameterError(f"a CSV file holds exactly one curve, got {len(arrays)}; write "
+                             "one file per curve, or use OBJ / VTP for several curves", path=p)
+    ext = os.path.splitext(p)[1].lower()
+    d = {".tsv": "\t", ".txt": " ", ".xyz": " "}.get(ext, ",")
+    out = [d.join("xyz")]
+    out.extend(f"{x!r}{d}{y!r}{d}{z!r}" for x, y, z in arrays[0].tolist())
+    write_text(p, "\n".join(out) + "\n")

@@ -1,0 +1,206 @@
+"""Wavefront OBJ polylines (``l`` elements); a small parser of its own.
+
+Reading (:func:`read`):
+
+* ``v x y z [w]`` vertices (``w`` ignored; ``v x y z r g b`` vertex colours
+  are accepted too, the colours ignored);
+* every ``l`` element with 3 or more indices is one curve, as given (closing
+  index repeated or not);
+* ``l a b`` elements with 2 indices are segments: they are chained into loops
+  (each connected component of segments is one curve, see
+  :func:`nfdmatch.formats._chain.chain_segments`);
+* indices are 1-based; negative indices count back from the last vertex
+  defined so far; ``v/vt`` forms (``l 1/1 2/2``) use the vertex part;
+* ``\\`` at the end of a line continues it; ``#`` starts a comment; every other
+  statement (``vt``, ``vn``, ``f``, ``o``, ``g``, ``usemtl``, ``s``, ...) is ignored.
+
+Writing (:func:`write`): all vertices as ``v`` lines (``repr`` precision,
+exact round trip), then one ``l`` element per curve with the closing index
+repeated (``l 1 2 3 ... n 1``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..curve import Curve
+from ..errors import CurveError, NoCurvesError, ParseError
+from ._chain import chain_segments, make_curves, ordered_curves, points_list, read_text, write_text
+
+__all__ = ["read", "read_points", "write"]
+
+
+def _logical_lines(text: str):
+    """Yield ``(first_line_number, statement)``: comments cut, ``\\`` continuations joined."""
+    lines = text.split("\n")
+    i, n = 0, len(lines)
+    while i < n:
+        start = i + 1
+        line = lines[i]
+        i += 1
+        while True:
+            stripped = line.rstrip()
+            if not stripped.endswith("\\") or "#" in stripped:
+                break
+            line = stripped[:-1] + " " + (lines[i] if i < n else "")
+            i += 1
+        cut = line.find("#")
+        if cut >= 0:
+            line = line[:cut]
+        if line.strip():
+            yield start, line
+
+
+def read_points(path) -> list[np.ndarray]:
+    """The vertices of every curve of an OBJ file, in file order.
+
+    Returns
+    -------
+    list of (n_i, 3) float64 arrays, not yet cleaned. Curves are ordered by
+    their first ``l`` element (for chained segments: the earliest segment).
+
+    Raises
+    ------
+    ReadError : missing file, a directory, unreadable.
+    ParseError : empty, binary, bad ``v`` (coordinate count or non-numeric),
+        bad ``l`` index (non-numeric, 0, out of range), fewer than 2 indices in
+        an ``l``, a branching vertex among 2-point segments (line numbers given).
+    CurveError : NaN / Inf in a ``v`` (with its line number).
+    NoCurvesError : no ``l`` elements (a mesh with faces, or nothing at all).
+    """
+    p = str(path)
+    text = read_text(p)
+    coords: list[tuple[float, float, float]] = []
+    v_lines: list[int] = []
+    elements: list[tuple[int, list[int]]] = []   # (line, 0-based indices)
+    checks: list[tuple[int, int]] = []           # (line, largest positive 1-based index)
+    n_faces = 0
+
+    for lineno, line in _logical_lines(text):
+        tokens = line.split()
+        kw = tokens[0]
+        if kw == "v":
+            vals = tokens[1:]
+            if len(vals) not in (3, 4, 6):
+                raise ParseError(f"a vertex (`v`) needs 3 coordinates x y z (optionally w), "
+                                 f"got {len(vals)}", path=p, line=lineno)
+            try:
+                coords.append((float(vals[0]), float(vals[1]), float(vals[2])))
+            except ValueError:
+                bad = next(t for t in vals[:3] if not _is_float(t))
+                raise ParseError(f"vertex coordinate is not a number: {bad!r}", path=p,
+                                 line=lineno) from None
+            v_lines.append(lineno)
+        elif kw == "l":
+            refs = tokens[1:]
+            if len(refs) < 2:
+                raise ParseError(f"an `l` element needs at least 2 vertex indices, got "
+                                 f"{len(refs)}", path=p, line=lineno)
+            nv = len(coords)
+            idx: list[int] = []
+            largest = 0
+            for ref in refs:
+                head = ref.split("/", 1)[0]
+                try:
+                    k = int(head)
+                except ValueError:
+                    raise ParseError(f"bad vertex index {ref!r} in `l` element", path=p,
+                                     line=lineno) from None
+                if k == 0:
+                    raise ParseError("vertex index 0 is invalid (OBJ indices start at 1)",
+                                     path=p, line=lineno)
+                if k < 0:
+                    if nv + k < 0:
+                        raise ParseError(f"relative vertex index {k} points before the first "
+                                         f"vertex ({nv} vertices defined so far)", path=p,
+                                         line=lineno)
+                    idx.append(nv + k)
+                else:
+                    idx.append(k - 1)
+                    largest = max(largest, k)
+            elements.append((lineno, idx))
+            checks.append((lineno, largest))
+        elif kw == "f":
+            n_faces += 1
+
+    if not elements:
+        if n_faces:
+            raise NoCurvesError(
+                f"holds {n_faces} faces but no polylines (`l` elements): it is a mesh; "
+                "extract contours from it first (sections or boundary loops)", path=p)
+        raise NoCurvesError("no polylines (`l` elements) in the file", path=p)
+
+    nv = len(coords)
+    for lineno, largest in checks:
+        if largest > nv:
+            raise ParseError(f"vertex index {largest} is out of range: the file defines {nv} "
+                             "vertices", path=p, line=lineno)
+
+    V = np.array(coords, dtype=np.float64).reshape(-1, 3)
+    finite = np.isfinite(V).all(axis=1)
+    if not finite.all():
+        k = int(np.flatnonzero(~finite)[0])
+        raise CurveError(f"vertex {k + 1} is not finite (NaN or Inf): {V[k].tolist()}",
+                         path=p, line=v_lines[k])
+
+    polylines: list[tuple[int, np.ndarray]] = []
+    segments: list[list[int]] = []
+    seg_pos: list[int] = []
+    for pos, (_, idx) in enumerate(elements):
+        if len(idx) == 2:
+            segments.append(idx)
+            seg_pos.append(pos)
+        else:
+            polylines.append((pos, np.array(idx, dtype=np.int64)))
+    loops = chain_segments(
+        np.array(segments, dtype=np.int64).reshape(-1, 2), path=p,
+        vertex_label=lambda v: str(v + 1),
+        segment_where=lambda s: f"line {elements[seg_pos[s]][0]}")
+    loops = [(seg_pos[s], verts) for s, verts in loops]
+    return [V[idx] for idx in ordered_curves(polylines, loops)]
+
+
+def _is_float(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def read(path) -> list[Curve]:
+    """Every curve of an OBJ file as :class:`Curve` records.
+
+    Ids: ``str(path)`` if the file holds one curve, else ``f"{path}#{i}"``
+    (0-based, file order); ``source=str(path)``, ``index`` = i (None for a
+    single-curve file). See :func:`read_points` for the errors.
+    """
+    return make_curves(path, read_points(path))
+
+
+def write(path, curves) -> None:
+    """Write curves as ``v`` lines then one closed ``l`` element per curve.
+
+    Parameters
+    ----------
+    path : target file.
+    curves : list of :class:`Curve` or (n, 3) / (n, 2) arrays (a bare Curve or
+        2-D array is one curve). Vertices are cleaned before writing.
+
+    Raises
+    ------
+    ParameterError : no curves. CurveError : an invalid curve.
+    ReadError : the file cannot be written.
+    """
+    p = str(path)
+    arrays = points_list(curves, path=p)
+    out = [f"# nfdmatch: {len(arrays)} closed curve{'s' if len(arrays) != 1 else ''}"]
+    for pts in arrays:
+        out.extend(f"v {x!r} {y!r} {z!r}" for x, y, z in pts.tolist())
+    offset = 1
+    for pts in arrays:
+        n = len(pts)
+        out.append("l " + " ".join(map(str, range(offset, offset + n))) + f" {offset}")
+        offset += n
+    write_text(p, "\n".join(out) + "\n")
+

@@ -1,0 +1,39 @@
+"""Shared test fixtures; curve generators re-exported from ``oracle``.
+
+Tests can use ``from oracle import random_smooth_curve, oracle_integer, ...``
+(or ``from conftest import ...``): tests/ is on sys.path.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import zlib
+
+import numpy as np
+import pytest
+
+_HERE = os.path.dirname(os.path.abspath(__file__))
+if _HERE not in sys.path:
+    sys.path.insert(0, _HERE)
+
+from oracle import (  # noqa: E402,F401  (re-exports)
+    collinear_back_and_forth,
+    ellipse,
+    figure_eight_planar,
+    lemniscate_planar,
+    lissajous,
+    random_rigid_motion,
+    random_rotation,
+    random_smooth_curve,
+    resample_polyline,
+    reverse,
+    start_shift,
+    torus_knot,
+)
+
+
+@pytest.fixture
+def rng(request):
+    """``np.random.default_rng`` seeded deterministically from the test id."""
+    seed = zlib.crc32(request.node.nodeid.encode("utf-8"))
+    return np.random.default_rng(seed)
