@@ -21,7 +21,7 @@ test: $(STAMP)
 
 demo: $(STAMP)
 	@echo "== rank every sample curve against a re-posed, resampled, reversed trefoil ==" >&2
-	$(BIN)/nfdmatch rank sample_curves/demo-query/trefoil-posed.obj sample_curves --top 8
+	$(BIN)/nfdmatch rank sample_curves/queries/trefoil-posed.obj sample_curves/library --top 8
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_distance.py

@@ -76,5 +76,9 @@ class ReadError(NfdError, OSError):
     """A file that cannot be opened or read (missing, a directory, no permission)."""
 
 
+class WriteError(NfdError, OSError):
+    """A file that cannot be written (missing folder, a directory in the way, no permission)."""
+
+
 class ParameterError(NfdError, ValueError):
     """An invalid parameter value (samples, harmonics, scale, method, ...)."""

@@ -22,6 +22,7 @@ For a fixed shift, ``max_R Re sum A_k^H R B_k = max_R tr(R M)`` with
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -90,16 +91,17 @@ def _weights(weights, harmonics: int) -> np.ndarray:
     return w
 
 
+_TINY = np.finfo(np.float64).tiny
+
+
 def _lmax_soa(s00, s11, s22, s01, s02, s12):
     """Largest eigenvalue of symmetric PSD 3x3 matrices given entry-wise (trigonometric formula)."""
     q = (s00 + s11 + s22) * (1.0 / 3.0)
     d0, d1, d2 = s00 - q, s11 - q, s22 - q
-    off = s01 * s01 + s02 * s02 + s12 * s12
-    p = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * off) * (1.0 / 6.0))
+    p = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (s01 * s01 + s02 * s02 + s12 * s12)) * (1.0 / 6.0))
     det = d0 * (d1 * d2 - s12 * s12) - s01 * (s01 * d2 - s12 * s02) + s02 * (s01 * s12 - d1 * s02)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = det / (2.0 * p * p * p)
-    r = np.clip(np.nan_to_num(r, nan=0.0, posinf=1.0, neginf=-1.0), -1.0, 1.0)
+    # p == 0 means three equal eigenvalues; then det == 0 and any r gives q
+    r = np.minimum(np.maximum(det / np.maximum(2.0 * p * p * p, _TINY), -1.0), 1.0)
     return np.maximum(q + 2.0 * p * np.cos(np.arccos(r) * (1.0 / 3.0)), 0.0)
 
 
@@ -123,13 +125,21 @@ def _trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:
                     c00 * c02 + c10 * c12 + c20 * c22, c01 * c02 + c11 * c12 + c21 * c22)
     s1 = np.sqrt(l1)
     s12 = np.sqrt(l12)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s2 = np.where(s1 > 0, s12 / s1, 0.0)
-        third = np.where(s12 > 0, det / s12, 0.0)
-    third = np.clip(third, -s2, s2)
+    s2 = s12 / np.maximum(s1, _TINY)
+    third = np.minimum(np.maximum(det / np.maximum(s12, _TINY), -s2), s2)
     if mirror:
         third = np.abs(third)
     return s1 + s2 + third
+
+
+_SMALL_BATCH = 32
+
+
+def _trace_svd(M: np.ndarray, mirror: bool) -> np.ndarray:
+    """Same as :func:`_trace_soa` for (..., 3, 3) matrices through LAPACK (faster for a few)."""
+    sv = np.linalg.svd(M, compute_uv=False)
+    third = sv[..., 2] if mirror else np.copysign(sv[..., 2], np.linalg.det(M))
+    return sv[..., 0] + sv[..., 1] + third
 
 
 def kabsch_trace(M: np.ndarray, mirror: bool = False) -> np.ndarray:
@@ -171,6 +181,14 @@ def _direction_variants(B: np.ndarray, direction: str) -> list[tuple[np.ndarray,
     return variants
 
 
+@lru_cache(maxsize=32)
+def _integer_shift_basis(K: int, n: int) -> np.ndarray:
+    """(2K, n) basis for the integer shifts 0..n-1 (cached: the same for every query)."""
+    basis = _shift_basis(np.arange(n, dtype=np.float64), K, n)
+    basis.setflags(write=False)
+    return basis
+
+
 def _shift_basis(shifts: np.ndarray, K: int, n: int) -> np.ndarray:
     """(..., 2K, m) real basis: [2 cos(2 pi k s / n); -2 sin(2 pi k s / n)] for shifts (..., m).
 
@@ -182,47 +200,57 @@ def _shift_basis(shifts: np.ndarray, K: int, n: int) -> np.ndarray:
 
 # --------------------------------------------------------------------------- exact
 
-_REFINE_GRID = np.linspace(-1.0, 1.0, 33)      # 1/16-sample grid around an integer maximum
-_REFINE_FINE_STEP = 1e-3                       # spacing of the final parabolic fit
+_REFINE_MID_OFFSETS = np.array([-2.0, -1.0, 0.0, 1.0, 2.0]) / 16.0   # around the first estimate
+_REFINE_FINE_STEP = 1e-3                                           # spacing of the last parabola
 
 
 def _parabola(x, h, f_minus, f_0, f_plus):
-    """Vertex (location, value) of the parabola through (x-h, x, x+h); x itself if not concave."""
+    """Maximum of the parabola through (x-h, x, x+h) within [x-h, x+h]: (location, value, concave).
+
+    Not concave: x itself. The value is the parabola's at the (clipped) location, a
+    model estimate that callers trust only at spacings where the model is exact to rounding.
+    """
     curvature = f_plus - 2.0 * f_0 + f_minus
+    slope = 0.5 * (f_plus - f_minus)
     concave = curvature < 0
     safe = np.where(concave, curvature, -1.0)
-    step = np.where(concave, np.clip(0.5 * h * (f_minus - f_plus) / safe, -h, h), 0.0)
-    value = np.where(concave, f_0 - (f_plus - f_minus) ** 2 / (8.0 * safe), f_0)
-    return x + step, np.maximum(value, f_0)
+    t = np.where(concave, np.clip(-slope / safe, -1.0, 1.0), 0.0)
+    value = f_0 + t * slope + 0.5 * t * t * np.where(concave, curvature, 0.0)
+    return x + t * h, value, concave
 
 
-def _refine_shifts(Pc, s0, n, mirror):
-    """Continuous start shift around integer local maxima s0 (C,), products Pc (C, 9, 2K).
+def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
+    """Continuous start shift around integer local maxima s0 (C,) with integer-shift values
+    f(s0-1), f(s0), f(s0+1) (C,) each; products Pc (C, 9, 2K).
 
-    The objective is smooth with its maximum within one sample of s0: a 1/16-sample grid
-    brackets it, a parabola through the best grid point and its neighbours lands within
-    ~1e-4 samples, and a second parabola 1e-3 wide lands within ~1e-9 (the error of a
-    parabolic vertex is cubic in the spacing and offset). Returns (shift (C,), value (C,)).
+    The objective is smooth with its maximum within one sample of s0. Three parabolic
+    steps with shrinking spacing (1 sample, 1/16, 1e-3) land within ~1e-9 samples: the
+    error of a parabolic vertex is cubic in spacing and offset. Every evaluated point
+    competes, so the result is never worse than s0. Returns (shift (C,), value (C,)).
     """
     C = len(s0)
     K = Pc.shape[2] // 2
+    rows = np.arange(C)
 
     def evaluate(points):                                   # (C, m) -> (C, m)
         M = np.matmul(Pc, _shift_basis(points, K, n))       # (C, 9, m)
+        if M.shape[0] * M.shape[2] <= _SMALL_BATCH:         # LAPACK beats ~100 numpy calls here
+            return _trace_svd(M.transpose(0, 2, 1).reshape(*points.shape, 3, 3), mirror)
         return _trace_soa(np.moveaxis(M, 1, 0), mirror)
 
-    rows = np.arange(C)
-    grid = s0[:, None] + _REFINE_GRID[None, :]
-    fg = evaluate(grid)
-    j = np.clip(np.argmax(fg, axis=1), 1, len(_REFINE_GRID) - 2)
-    h1 = _REFINE_GRID[1] - _REFINE_GRID[0]
-    x1, _ = _parabola(grid[rows, j], h1, fg[rows, j - 1], fg[rows, j], fg[rows, j + 1])
-    h2 = _REFINE_FINE_STEP
-    f = evaluate(x1[:, None] + np.array([-h2, 0.0, h2]))
-    x2, _ = _parabola(x1, h2, f[:, 0], f[:, 1], f[:, 2])
-    # every evaluated point competes (the grid contains s0 itself): never worse than s0
-    points = np.concatenate([grid, x1[:, None] + np.array([-h2, 0.0, h2]), x2[:, None]], axis=1)
-    values = np.concatenate([fg, f, evaluate(x2[:, None])], axis=1)
+    x1, _, _ = _parabola(s0, 1.0, f_minus, f_0, f_plus)
+    mid = x1[:, None] + _REFINE_MID_OFFSETS
+    fm = evaluate(mid)
+    j = np.clip(np.argmax(fm, axis=1), 1, len(_REFINE_MID_OFFSETS) - 2)
+    x2, _, _ = _parabola(mid[rows, j], _REFINE_MID_OFFSETS[1] - _REFINE_MID_OFFSETS[0],
+                         fm[rows, j - 1], fm[rows, j], fm[rows, j + 1])
+    h = _REFINE_FINE_STEP
+    fine = x2[:, None] + np.array([-h, 0.0, h])
+    ff = evaluate(fine)
+    x3, f3, concave = _parabola(x2, h, ff[:, 0], ff[:, 1], ff[:, 2])
+    # at this spacing the parabola is exact to rounding; where it is not concave, x3 = x2
+    points = np.concatenate([s0[:, None], mid, fine, x3[:, None]], axis=1)
+    values = np.concatenate([f_0[:, None], fm, ff, np.where(concave, f3, -np.inf)[:, None]], axis=1)
     best = np.argmax(values, axis=1)
     return points[rows, best], values[rows, best]
 
@@ -265,7 +293,7 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     # P[j, i, d, r, k] = 2 w_k B_k[j] conj(A_k[i]): M(s)[j, i] = Re sum_k P e^{2 pi i k s / n}
     P = np.einsum("drkj,ki->jidrk", Bv, np.conj(A) * w[:, None])
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
-    F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _shift_basis(np.arange(n, dtype=float), K, n))
+    F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, n))
                    .reshape(9, D, N, n), mirror)                               # (D, N, n)
     F = F.transpose(1, 0, 2)                                                  # (N, D, n)
 
@@ -275,11 +303,15 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     cand = np.argpartition(-Fm, C - 1, axis=1)[:, :C]
     dirs = (cand // n).reshape(-1)
     rows = np.repeat(np.arange(N), C)
-    shifts = (cand % n).astype(np.float64).reshape(-1)
+    s_int = (cand % n).reshape(-1)
+    shifts = s_int.astype(np.float64)
     values = np.take_along_axis(Fm, cand, axis=1).reshape(-1)
     if refine:
         Pc = Pcat[:, dirs, rows, :].transpose(1, 0, 2)                        # (N*C, 9, 2K)
-        shifts, values = _refine_shifts(Pc, shifts, n, mirror)
+        Fr = F.reshape(N, D * n)
+        base = cand.reshape(-1) - s_int
+        shifts, values = _refine_shifts(Pc, shifts, Fr[rows, base + (s_int - 1) % n], values,
+                                        Fr[rows, base + (s_int + 1) % n], n, mirror)
     values = np.where(np.isfinite(Fm.max(axis=1)).repeat(C), values, -np.inf).reshape(N, C)
     pick = np.arange(N) * C + np.argmax(values, axis=1)
     shift, direction_idx = shifts[pick], dirs[pick]

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from nfdmatch.curve import Curve
 from nfdmatch.errors import (
     CurveError,
+    WriteError,
     CurveSelectionError,
     NfdError,
     NoCurvesError,
@@ -780,10 +781,10 @@ def test_write_errors(tmp_path):
     expect(CurveError, p, lambda: write_curves(p, [[[0, 0, 0], [1, 0, 0]]]))
     for ext in (".csv", ".obj", ".vtp"):
         q = str(tmp_path / "missing_dir" / f"x{ext}")
-        expect(ReadError, q, lambda: write_curves(q, [SQUARE]), contains=("cannot write",))
+        expect(WriteError, q, lambda: write_curves(q, [SQUARE]), contains=("cannot write",))
     d = tmp_path / "adir.vtp"
     d.mkdir()
-    expect(ReadError, str(d), lambda: write_curves(d, [SQUARE]))
+    expect(WriteError, str(d), lambda: write_curves(d, [SQUARE]))
     assert not [f for f in os.listdir(tmp_path) if ".tmp" in f]
 
 

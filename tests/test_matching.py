@@ -238,3 +238,16 @@ def test_weights_change_the_distance(rng):
     B, _ = oracle.descriptors(b, N, K, "rms")
     o = oracle.oracle_fractional(A, B, freqs, N, weights=np.concatenate([w, w[::-1]]))[0]
     assert only_first <= o * (1 + 1e-3) + 1e-12
+
+
+@pytest.mark.parametrize("ext", ["obj", "vtk", "vtp", "vtu"])
+def test_same_vertices_in_every_format_give_the_same_distance(tmp_path, rng, ext):
+    from nfdmatch import read_curve, write_curves
+
+    a = random_smooth_curve(rng, n_vertices=700)
+    other = random_smooth_curve(rng, n_vertices=500)
+    write_curves(tmp_path / "a.csv", a)
+    write_curves(tmp_path / f"a.{ext}", a)
+    from_csv, from_other = read_curve(tmp_path / "a.csv"), read_curve(tmp_path / f"a.{ext}")
+    assert distance(from_csv, from_other).distance <= 1e-6
+    assert distance(from_csv, other).distance == pytest.approx(distance(from_other, other).distance, abs=1e-6)

@@ -203,7 +203,7 @@ def write_curves(path, curves, format: str | None = None) -> None:
     Raises
     ------
     UnknownFormatError, ParameterError (no curves, or several for CSV),
-    CurveError (an invalid curve), ReadError (cannot write).
+    CurveError (an invalid curve), WriteError (cannot write).
     """
     p = str(os.fspath(path))
     _WRITERS[format_of(p, format)](p, curves)

@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..curve import Curve, clean_points
-from ..errors import ParameterError, ParseError, ReadError
+from ..errors import ParameterError, ParseError, ReadError, WriteError
 
 __all__ = ["chain_segments", "ordered_curves", "read_bytes", "read_text", "check_readable",
            "write_text", "curve_id", "make_curve", "make_curves", "points_list"]
@@ -261,10 +261,10 @@ def write_text(path, text: str) -> None:
         with open(p, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)
     except IsADirectoryError:
-        raise ReadError("cannot write: is a directory", path=p) from None
+        raise WriteError("cannot write: is a directory", path=p) from None
     except FileNotFoundError:
-        raise ReadError("cannot write: the folder does not exist", path=p) from None
+        raise WriteError("cannot write: the folder does not exist", path=p) from None
     except PermissionError:
-        raise ReadError("cannot write: permission denied", path=p) from None
+        raise WriteError("cannot write: permission denied", path=p) from None
     except OSError as exc:
-        raise ReadError(f"cannot write the file ({exc.strerror or exc})", path=p) from None
+        raise WriteError(f"cannot write the file ({exc.strerror or exc})", path=p) from None

@@ -26,7 +26,7 @@ from contextlib import ExitStack
 import numpy as np
 
 from ..curve import Curve
-from ..errors import NfdError, NoCurvesError, ParseError, ReadError, UnknownFormatError
+from ..errors import NfdError, NoCurvesError, ParseError, ReadError, UnknownFormatError, WriteError
 from ._chain import chain_segments, check_readable, make_curves, ordered_curves, points_list
 
 __all__ = ["read", "read_points", "write", "KINDS"]
@@ -257,9 +257,9 @@ def write(path, curves, format: str | None = None) -> None:
     arrays = points_list(curves, path=p)
     folder = os.path.dirname(os.path.abspath(p))
     if os.path.isdir(p):
-        raise ReadError("cannot write: is a directory", path=p)
+        raise WriteError("cannot write: is a directory", path=p)
     if not os.path.isdir(folder):
-        raise ReadError("cannot write: the folder does not exist", path=p)
+        raise WriteError("cannot write: the folder does not exist", path=p)
     pts = np.ascontiguousarray(np.concatenate(arrays), dtype=np.float64)
     cells, offset = [], 0
     for a in arrays:
@@ -290,4 +290,4 @@ def write(path, curves, format: str | None = None) -> None:
             os.remove(tmp)
         except OSError:
             pass
-        raise ReadError(f"cannot write the file ({exc})", path=p) from None
+        raise WriteError(f"cannot write the file ({exc})", path=p) from None
