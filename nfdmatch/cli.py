@@ -170,7 +170,7 @@ def distance(curve_a, curve_b, method, strict_direction, mirror, samples, harmon
 
     \b
     Example:
-      nfdmatch distance sample_curves/trefoil.csv sample_curves/trefoil-posed.obj --format json
+      nfdmatch distance sample_curves/library/trefoil.csv sample_curves/queries/trefoil-posed.obj --format json
     """
     from .formats import read_curve
     from .matching import distance as match_distance
@@ -211,7 +211,7 @@ def describe(files, samples, harmonics, scale, input_format, output_format):
 
     \b
     Example:
-      nfdmatch describe sample_curves/*.csv --harmonics 8 > descriptors.csv
+      nfdmatch describe sample_curves/library/*.csv --harmonics 8 > descriptors.csv
     """
     from .descriptors import descriptors, validate_parameters
     from .formats import read_curve, read_curves, split_selector

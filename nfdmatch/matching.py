@@ -322,9 +322,11 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     R = _kabsch_rotation(Mbest, mirror)
     resid = A[None] - np.einsum("nij,nkj->nki", R, Bs)
     dist = np.sqrt(2.0 * np.einsum("k,nk->n", w, np.sum(resid.real ** 2 + resid.imag ** 2, axis=2)))
+    shift = np.mod(shift, n)
+    shift = np.where(np.abs(shift - np.round(shift)) < 1e-9, np.round(shift), shift) % n  # 127.99999.. -> 0
     return {
         "distance": dist,
-        "shift": np.mod(shift, n),
+        "shift": shift,
         "rotation": R,
         "reversed": np.array([variants[d][1] for d in direction_idx], dtype=bool),
         "mirrored": np.linalg.det(R) < 0,
