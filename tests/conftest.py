@@ -11,6 +11,7 @@ import zlib
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
 if _HERE not in sys.path:
@@ -30,6 +31,13 @@ from oracle import (  # noqa: E402,F401  (re-exports)
     start_shift,
     torus_knot,
 )
+
+
+# CI must be reproducible: hypothesis draws the same examples on every run unless
+# NFDMATCH_HYPOTHESIS=explore asks for fresh ones.
+settings.register_profile("reproducible", derandomize=True, print_blob=True)
+settings.register_profile("explore", derandomize=False, print_blob=True)
+settings.load_profile("explore" if os.environ.get("NFDMATCH_HYPOTHESIS") == "explore" else "reproducible")
 
 
 @pytest.fixture

@@ -277,20 +277,30 @@ def random_smooth_curve(rng, n_vertices=2000, n_harmonics=6, decay=1.5):
     uniform parameters (so vertices are not uniform in arc length).  The
     closing vertex is not repeated.
     """
+    return smooth_curve_samplings(rng, [n_vertices], n_harmonics, decay)[0]
+
+
+def smooth_curve_samplings(rng, counts, n_harmonics=6, decay=1.5):
+    """One random smooth closed curve sampled several times: a list of (count, 3) float64,
+    each at its own random monotone warp of the parameter (different vertex positions
+    along the same curve, not a re-cut of a polyline)."""
     k = np.arange(1, n_harmonics + 1)
     amp = (k ** -float(decay))[:, None]
     a = rng.standard_normal((n_harmonics, 3)) * amp
     b = rng.standard_normal((n_harmonics, 3)) * amp
-    u = np.arange(n_vertices) / n_vertices
-    # monotone warp: derivative 1 + sum c_l cos(...) with sum |c_l| <= 0.6
-    c = rng.uniform(-1, 1, 3)
-    c *= 0.6 / max(np.sum(np.abs(c)), 1e-12)
-    ph = rng.uniform(0, 2 * np.pi, 3)
-    t = u.copy()
-    for l_, (cl, pl) in enumerate(zip(c, ph), start=1):
-        t += cl * (np.sin(2 * np.pi * l_ * u + pl) - np.sin(pl)) / (2 * np.pi * l_)
-    arg = 2 * np.pi * np.outer(t, k)
-    return np.cos(arg) @ a + np.sin(arg) @ b
+    out = []
+    for n_vertices in counts:
+        u = np.arange(n_vertices) / n_vertices
+        # monotone warp: derivative 1 + sum c_l cos(...) with sum |c_l| <= 0.6
+        c = rng.uniform(-1, 1, 3)
+        c *= 0.6 / max(np.sum(np.abs(c)), 1e-12)
+        ph = rng.uniform(0, 2 * np.pi, 3)
+        t = u.copy()
+        for l_, (cl, pl) in enumerate(zip(c, ph), start=1):
+            t += cl * (np.sin(2 * np.pi * l_ * u + pl) - np.sin(pl)) / (2 * np.pi * l_)
+        arg = 2 * np.pi * np.outer(t, k)
+        out.append(np.cos(arg) @ a + np.sin(arg) @ b)
+    return out
 
 
 def random_rotation(rng):
