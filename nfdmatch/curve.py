@@ -83,7 +83,7 @@ def clean_points(points, *, path: str | None = None, curve: int | None = None) -
         pts = pts[keep]
         while len(pts) > 1 and np.array_equal(pts[-1], pts[0]):
             pts = pts[:-1]
-    distinct = len(np.unique(pts, axis=0)) if len(pts) else 0
+    distinct = _distinct_up_to_three(pts)
     if distinct < 3:
         raise CurveError(f"a closed curve needs at least 3 distinct points, got {distinct}",
                          path=path, curve=curve)
@@ -94,6 +94,18 @@ def clean_points(points, *, path: str | None = None, curve: int | None = None) -
         raise CurveError(f"the curve has no usable length (perimeter {perimeter})",
                          path=path, curve=curve)
     return pts
+
+
+def _distinct_up_to_three(pts: np.ndarray) -> int:
+    """Number of distinct rows of (n, 3) pts, counted up to 3 (O(n), no sorting)."""
+    if len(pts) == 0:
+        return 0
+    differs_from_first = np.any(pts != pts[0], axis=1)
+    if not differs_from_first.any():
+        return 1
+    second = pts[np.argmax(differs_from_first)]
+    third = differs_from_first & np.any(pts != second, axis=1)
+    return 3 if third.any() else 2
 
 
 def as_points(curve) -> np.ndarray:

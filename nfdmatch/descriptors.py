@@ -170,3 +170,108 @@ def descriptors(curve, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAU
         scale_mode=scale,
         id=curve_id,
     )
+
+
+@dataclass(frozen=True)
+class DescriptorBatch:
+    """Normalized descriptors of many curves, as arrays (row i = curve i).
+
+    Attributes
+    ----------
+    coefficients : (N, K, 3) complex128, as :attr:`Descriptors.coefficients`.
+    rotation : (N, 3, 3) float64.
+    centroid : (N, 3) float64.
+    scale : (N,) float64.
+    plane_degenerate : (N,) bool.
+    samples, harmonics : int; scale_mode : str.
+    """
+
+    coefficients: np.ndarray
+    rotation: np.ndarray
+    centroid: np.ndarray
+    scale: np.ndarray
+    plane_degenerate: np.ndarray
+    samples: int
+    harmonics: int
+    scale_mode: str
+
+    def __len__(self) -> int:
+        return int(self.coefficients.shape[0])
+
+
+def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vectorized :func:`_plane_rotation`: a1 (N, 3) complex, rms (N,) -> ((N, 3, 3), (N,) bool)."""
+    p, q = a1.real, -a1.imag
+    sv = np.linalg.svd(np.stack([p, q], axis=-1), compute_uv=False)          # (N, 2)
+    degenerate = (sv[:, 0] == 0) | (sv[:, 1] < PLANE_DEGENERACY * sv[:, 0]) \
+        | (np.linalg.norm(a1, axis=1) < rms * PLANE_DEGENERACY)
+    normal = np.cross(p, q)
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = normal / np.where(length > 0, length, 1.0)
+    c = normal[:, 2]
+    v = np.stack([normal[:, 1], -normal[:, 0], np.zeros(len(c))], axis=1)    # normal x z
+    vx = np.zeros((len(c), 3, 3))
+    vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 0] = -v[:, 2], v[:, 1], v[:, 2]
+    vx[:, 1, 2], vx[:, 2, 0], vx[:, 2, 1] = -v[:, 0], -v[:, 1], v[:, 0]
+    antiparallel = c < -1 + 1e-12
+    factor = 1.0 / np.where(antiparallel, 1.0, 1.0 + c)
+    R = np.eye(3) + vx + (vx @ vx) * factor[:, None, None]
+    R[antiparallel] = np.diag([1.0, -1.0, -1.0])
+    R[degenerate] = np.eye(3)
+    return R, degenerate
+
+
+def descriptors_batch(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
+                      scale: str = DEFAULT_SCALE) -> DescriptorBatch:
+    """:func:`descriptors` of many curves at once, vectorized (no Python loop over vertices).
+
+    Parameters
+    ----------
+    curves : sequence of :class:`~nfdmatch.curve.Curve` or cleaned (n_i, 3) float64 arrays.
+    samples, harmonics, scale : as in :func:`descriptors`.
+
+    Returns
+    -------
+    :class:`DescriptorBatch`; row i equals ``descriptors(curves[i])`` to rounding.
+    """
+    validate_parameters(samples, harmonics, scale)
+    pts_list = [as_points(c) for c in curves]
+    N = len(pts_list)
+    if N == 0:
+        return DescriptorBatch(np.zeros((0, harmonics, 3), complex), np.zeros((0, 3, 3)), np.zeros((0, 3)),
+                               np.zeros(0), np.zeros(0, bool), samples, harmonics, scale)
+    counts = np.array([len(p) for p in pts_list])
+    # each curve closed explicitly (first vertex repeated), then all concatenated
+    closed = np.concatenate([np.vstack([p, p[:1]]) for p in pts_list])
+    curve_of = np.repeat(np.arange(N), counts + 1)
+    offset = np.add.reduceat(closed, np.concatenate([[0], np.cumsum(counts + 1)[:-1]]), axis=0)
+    offset = (offset - np.array([p[0] for p in pts_list])) / counts[:, None]          # vertex mean
+    centred = closed - offset[curve_of]
+    extent = np.maximum.reduceat(np.abs(centred).max(axis=1), np.concatenate([[0], np.cumsum(counts + 1)[:-1]]))
+    unit = centred / extent[curve_of, None]
+    seg = np.linalg.norm(np.diff(unit, axis=0), axis=1)
+    starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])      # index of each curve's first vertex
+    seg[starts[1:] - 1] = 0.0                                        # no segment between curves
+    cum = np.concatenate([[0.0], np.cumsum(seg)])                    # global arc length, monotone
+    lengths = cum[starts + counts] - cum[starts]
+    targets = cum[starts][:, None] + np.arange(samples)[None, :] * (lengths / samples)[:, None]
+    idx = np.searchsorted(cum, targets.ravel(), side="right") - 1
+    last = (starts + counts - 1).repeat(samples)                     # last segment of each curve
+    idx = np.clip(idx, starts.repeat(samples), last)
+    seglen = cum[idx + 1] - cum[idx]
+    t = (targets.ravel() - cum[idx]) / np.where(seglen > 0, seglen, 1.0)
+    sampled = (unit[idx] + t[:, None] * (unit[idx + 1] - unit[idx])).reshape(N, samples, 3)
+    fd = np.fft.fft(sampled, axis=1) / samples
+    rms = np.sqrt(np.sum(np.abs(fd[:, 1:]) ** 2, axis=(1, 2)))
+    a1 = np.linalg.norm(fd[:, 1], axis=1)
+    divisor = rms if scale == "rms" else np.maximum(a1, rms * 1e-15)
+    coeffs = fd[:, 1:harmonics + 1] / divisor[:, None, None]
+    R, degenerate = _plane_rotations(fd[:, 1], rms)
+    return DescriptorBatch(
+        coefficients=np.einsum("nij,nkj->nki", R, coeffs),
+        rotation=R,
+        centroid=offset + fd[:, 0].real * extent[:, None],
+        scale=divisor * extent,
+        plane_degenerate=degenerate,
+        samples=int(samples), harmonics=int(harmonics), scale_mode=scale,
+    )

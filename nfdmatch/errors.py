@@ -80,5 +80,13 @@ class WriteError(NfdError, OSError):
     """A file that cannot be written (missing folder, a directory in the way, no permission)."""
 
 
+class IndexFormatError(NfdError, ValueError):
+    """A file that is not a readable nfdmatch index: another kind, a newer format, corrupted."""
+
+
+class IndexLockedError(NfdError, OSError):
+    """Another build holds the index lock."""
+
+
 class ParameterError(NfdError, ValueError):
     """An invalid parameter value (samples, harmonics, scale, method, ...)."""

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, descriptors
 from .errors import ParameterError
 from .matching import exact_search, paper_search
 
-__all__ = ["rank_curves", "BATCH_ROWS"]
+__all__ = ["rank_curves", "search_index", "SearchStats", "BATCH_ROWS", "CHUNK_ROWS"]
 
 #: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
 BATCH_ROWS = 2048
@@ -33,29 +35,207 @@ def rank_curves(query, curves, *, top: int | None = None, max_distance: float | 
     list of dicts ``{rank, match, distance, shift, reversed, mirrored}`` sorted by
     distance, ties broken by id so the order is deterministic; ``rank`` is 1-based.
     """
+    from .curve import Curve
+
+    if not isinstance(query, Curve):
+        query = Curve(query, id="<query>")
+    if not curves:
+        if top is not None and top < 1:
+            raise ParameterError(f"top must be at least 1, got {top}")
+        descriptors(query, samples=samples, harmonics=harmonics, scale=scale)   # validates
+        return []
+    memory = MemoryIndex(curves, samples=samples, harmonics=harmonics, scale=scale)
+    results, _ = search_index(memory, [query], top=top if top is not None or max_distance is not None
+                              else len(curves), max_distance=max_distance, method=method,
+                              direction=direction, mirror=mirror, weights=weights, prune=weights is None)
+    return results[0]
+
+
+# --------------------------------------------------------------------------- index search
+
+#: rows read from the index at a time: bounds memory for indexes larger than RAM
+CHUNK_ROWS = 65536
+#: queries whose bounds are computed together (one GEMM per feature); bounds the (Q x rows) matrix
+QUERY_GROUP = 64
+#: a bound prunes a row only when it exceeds the k-th distance by this much: the features
+#: are stored as float32 and the squared distances come from a GEMM
+_PRUNE_RELATIVE, _PRUNE_ABSOLUTE = 1e-5, 1e-6
+_FEATURES = ("inv_norm", "inv_sv", "inv_block")
+#: distances closer than this are ties, ordered by id (below the pipeline's numerical noise)
+_TIE = 1e-9
+
+
+@dataclass
+class SearchStats:
+    """What a search did: ``queries``, ``rows`` (index rows per query), ``exact`` (exact
+    distances computed, all queries), ``seconds``."""
+
+    queries: int = 0
+    rows: int = 0
+    exact: int = 0
+    seconds: float = 0.0
+
+    @property
+    def exact_fraction(self) -> float:
+        """Fraction of (query, row) pairs that needed an exact distance."""
+        total = self.queries * self.rows
+        return self.exact / total if total else 0.0
+
+
+def _lower_bounds(qf: dict, rf: dict) -> np.ndarray:
+    """(Q, m) max of the three invariant lower bounds; features (Q, d_t) and (m, d_t) per type."""
+    best = None
+    for key in _FEATURES:
+        q, r = qf[key], rf[key]
+        d2 = (np.einsum("ij,ij->i", q, q)[:, None] + np.einsum("ij,ij->i", r, r)[None, :] - 2.0 * (q @ r.T))
+        best = d2 if best is None else np.maximum(best, d2)
+    return np.sqrt(np.maximum(best, 0.0))
+
+
+class _TopK:
+    """The best rows seen so far for one query: every row within the k-th distance (ties kept)."""
+
+    def __init__(self, k: int | None, max_distance: float | None):
+        self.k, self.max_distance = k, max_distance
+        self.dist = np.zeros(0)
+        self.rows = np.zeros(0, dtype=np.int64)
+        self.extra = {key: np.zeros(0, dtype=t) for key, t in
+                      (("shift", float), ("reversed", bool), ("mirrored", bool))}
+
+    def threshold(self) -> float:
+        limit = np.inf if self.max_distance is None else self.max_distance
+        if self.k is not None and len(self.dist) >= self.k:
+            limit = min(limit, float(np.partition(self.dist, self.k - 1)[self.k - 1]))
+        return limit
+
+    def add(self, dist, rows, result):
+        keep = dist <= (np.inf if self.max_distance is None else self.max_distance)
+        self.dist = np.concatenate([self.dist, dist[keep]])
+        self.rows = np.concatenate([self.rows, rows[keep]])
+        for key in self.extra:
+            self.extra[key] = np.concatenate([self.extra[key], result[key][keep]])
+        t = self.threshold()
+        if np.isfinite(t):
+            inside = self.dist <= t + _TIE
+            self.dist, self.rows = self.dist[inside], self.rows[inside]
+            self.extra = {key: v[inside] for key, v in self.extra.items()}
+
+
+def search_index(index, queries, *, top: int | None = 10, max_distance: float | None = None,
+                 method: str = "exact", direction: str = "invariant", mirror: bool = False,
+                 prune: bool = True, chunk_rows: int = CHUNK_ROWS, progress=None, weights=None):
+    """k nearest curves of an index for each query curve, exactly.
+
+    Parameters
+    ----------
+    index : an open :class:`nfdmatch.index.Index`.
+    queries : sequence of :class:`~nfdmatch.curve.Curve`; descriptors are computed with the
+        index's own samples, harmonics and scale.
+    top : k (None: every row within ``max_distance``).
+    max_distance : only matches at most this far.
+    method, direction, mirror : as in :func:`nfdmatch.distance`.
+    prune : False computes every exact distance (the reference the pruned search must equal).
+    chunk_rows : index rows held in memory at a time.
+    progress : optional callable ``progress(rows_done, rows_total)``.
+
+    Returns
+    -------
+    ``(results, stats)``: ``results[i]`` lists query i's matches as dicts ``{rank, match,
+    distance, shift, reversed, mirrored}`` sorted by distance then id; ``stats`` a
+    :class:`SearchStats`.
+
+    Per query and chunk: the lower bound of every row at once (three small GEMMs over the
+    invariant features), then exact distances in vectorized batches in bound order,
+    stopping when the next bound exceeds the current k-th distance. No false dismissals:
+    the bounds never exceed the exact distance.
+    """
+    import time
+
+    from .descriptors import descriptors_batch
+    from .matching import invariants
+
+    if top is None and max_distance is None:
+        raise ParameterError("give top or max_distance (or both)")
     if top is not None and top < 1:
         raise ParameterError(f"top must be at least 1, got {top}")
     if method not in ("exact", "paper"):
         raise ParameterError(f"method must be exact or paper, got {method!r}")
-    dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
-    if not curves:
-        return []
-    rows = np.stack([descriptors(c, samples=samples, harmonics=harmonics, scale=scale).coefficients
-                     for c in curves])
+    t0 = time.perf_counter()
+    batch = descriptors_batch(queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale)
+    qcoef = batch.coefficients
+    if weights is not None and prune:
+        raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
+    qfeat = {f"inv_{k}": v.reshape(len(queries), -1) for k, v in invariants(qcoef).items()}
+    tops = [_TopK(top, max_distance) for _ in queries]
     search = exact_search if method == "exact" else paper_search
-    parts = [search(dq.coefficients, rows[i:i + BATCH_ROWS], samples, weights=weights,
-                    direction=direction, mirror=mirror) for i in range(0, len(rows), BATCH_ROWS)]
-    result = {key: np.concatenate([p[key] for p in parts]) for key in ("distance", "shift", "reversed", "mirrored")}
-    ids = [c.id for c in curves]
-    order = sorted(range(len(curves)), key=lambda i: (result["distance"][i], ids[i]))
-    out = []
-    for i in order:
-        d = float(result["distance"][i])
-        if max_distance is not None and d > max_distance:
-            break
-        out.append({"rank": len(out) + 1, "match": ids[i], "distance": d,
-                    "shift": float(result["shift"][i]), "reversed": bool(result["reversed"][i]),
-                    "mirrored": bool(result["mirrored"][i])})
-        if top is not None and len(out) >= top:
-            break
-    return out
+    stats = SearchStats(queries=len(queries), rows=index.n_curves)
+    n = index.samples
+    done = 0
+    for start, chunk in index.iter_chunks(chunk_rows):
+        m = len(chunk["coefficients"])
+        rfeat = {k: chunk[k].reshape(m, -1) for k in _FEATURES}
+        rows_global = np.arange(start, start + m)
+        for g in range(0, len(queries), QUERY_GROUP):
+            group = range(g, min(g + QUERY_GROUP, len(queries)))
+            lb = _lower_bounds({k: v[group.start:group.stop] for k, v in qfeat.items()}, rfeat) \
+                if prune else np.zeros((len(group), m))
+            for qi, bounds in zip(group, lb):
+                tk = tops[qi]
+                margin = lambda t: t * (1 + _PRUNE_RELATIVE) + _PRUNE_ABSOLUTE  # noqa: E731
+                limit = margin(tk.threshold())
+                cand = np.flatnonzero(bounds <= limit)
+                cand = cand[np.argsort(bounds[cand], kind="stable")]
+                pos, size = 0, max(32, 2 * (top or 16))
+                while pos < len(cand):
+                    take = cand[pos:pos + size]
+                    if prune:
+                        take = take[bounds[take] <= margin(tk.threshold())]
+                        if len(take) == 0:
+                            break
+                    r = search(qcoef[qi], chunk["coefficients"][take], n, direction=direction, mirror=mirror,
+                               weights=weights)
+                    stats.exact += len(take)
+                    tk.add(r["distance"], rows_global[take], r)
+                    pos += size
+                    size = min(size * 2, BATCH_ROWS)
+        done += m
+        if progress is not None:
+            progress(done, index.n_curves)
+
+    results = []
+    for tk in tops:
+        ids = index.ids_at(tk.rows) if len(tk.rows) else []
+        # distances equal to 1e-9 are ties (below the numerical noise of the pipeline): by id
+        order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / _TIE), ids[i]))
+        if top is not None:
+            order = order[:top]
+        results.append([{"rank": rank, "match": ids[i], "distance": float(tk.dist[i]),
+                         "shift": float(tk.extra["shift"][i]), "reversed": bool(tk.extra["reversed"][i]),
+                         "mirrored": bool(tk.extra["mirrored"][i])} for rank, i in enumerate(order, start=1)])
+    stats.seconds = time.perf_counter() - t0
+    return results, stats
+
+
+class MemoryIndex:
+    """Curves held in memory with the same reading interface as :class:`nfdmatch.index.Index`
+    (``samples``, ``harmonics``, ``scale``, ``n_curves``, ``iter_chunks``, ``ids_at``), so
+    that :func:`search_index` serves both ``rank`` (no index file) and ``query``."""
+
+    def __init__(self, curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
+                 scale: str = DEFAULT_SCALE):
+        from .descriptors import descriptors_batch
+        from .matching import invariants
+
+        self.samples, self.harmonics, self.scale = samples, harmonics, scale
+        batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
+        self._ids = [c.id for c in curves]
+        self._rows = {"coefficients": batch.coefficients,
+                      **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()}}
+        self.n_curves = len(curves)
+
+    def iter_chunks(self, rows: int = CHUNK_ROWS):
+        for start in range(0, self.n_curves, rows):
+            yield start, {k: v[start:start + rows] for k, v in self._rows.items()}
+
+    def ids_at(self, rows) -> list[str]:
+        return [self._ids[int(r)] for r in rows]
