@@ -36,6 +36,17 @@ class Curve:
                                                         curve=self.index))
         self.points.setflags(write=False)
 
+    @classmethod
+    def trusted(cls, points: np.ndarray, id: str, source: str | None = None, index: int | None = None) -> "Curve":
+        """A Curve from vertices already cleaned by :func:`clean_points` / :func:`clean_many`
+        (no second validation pass: readers of large multi-curve files use this)."""
+        obj = object.__new__(cls)
+        points = np.asarray(points, dtype=np.float64)
+        points.setflags(write=False)
+        for name, value in (("points", points), ("id", id), ("source", source), ("index", index)):
+            object.__setattr__(obj, name, value)
+        return obj
+
     @property
     def n_vertices(self) -> int:
         return int(self.points.shape[0])
@@ -94,6 +105,51 @@ def clean_points(points, *, path: str | None = None, curve: int | None = None) -
         raise CurveError(f"the curve has no usable length (perimeter {perimeter})",
                          path=path, curve=curve)
     return pts
+
+
+def clean_many(arrays, *, path: str | None = None) -> list[np.ndarray]:
+    """:func:`clean_points` for many curves at once, vectorized over their vertices.
+
+    Parameters
+    ----------
+    arrays : sequence of (n_i, 3) float64 arrays (curve i of file ``path``).
+
+    Returns
+    -------
+    list of cleaned (m_i, 3) float64 arrays (views into one new array).
+
+    Raises
+    ------
+    CurveError : naming ``path#i`` for the first invalid curve (the message
+        :func:`clean_points` gives for it).
+    """
+    if len(arrays) < 8 or any(np.ndim(a) != 2 or np.shape(a)[1] != 3 for a in arrays):
+        return [clean_points(a, path=path, curve=i if len(arrays) > 1 else None) for i, a in enumerate(arrays)]
+    counts = np.array([len(a) for a in arrays])
+    pts = np.concatenate(arrays).astype(np.float64, copy=False)
+    curve_of = np.repeat(np.arange(len(arrays)), counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    magnitude = np.abs(pts).max(axis=1) if len(pts) else np.zeros(0)
+    suspicious = ~np.isfinite(magnitude) | (magnitude > 1e150) | ((magnitude < 1e-150) & (magnitude > 0))
+    if (counts < 3).any() or suspicious.any():
+        bad = np.unique(np.concatenate([np.flatnonzero(counts < 3), curve_of[suspicious]]))
+        for i in bad:           # the careful path raises with the exact message, or passes
+            clean_points(arrays[i], path=path, curve=int(i))
+    keep = np.ones(len(pts), dtype=bool)
+    keep[1:] = np.any(pts[1:] != pts[:-1], axis=1)
+    keep[starts] = True
+    last_kept = np.maximum.reduceat(np.where(keep, np.arange(len(pts)), -1), starts)
+    closing = np.all(pts[last_kept] == pts[starts], axis=1) & (last_kept != starts)
+    keep[last_kept[closing]] = False
+    new_counts = np.add.reduceat(keep, starts)
+    pts, curve_of = pts[keep], curve_of[keep]
+    new_starts = np.concatenate([[0], np.cumsum(new_counts)[:-1]])
+    second = np.minimum(new_starts + 1, len(pts) - 1)
+    third = np.any(pts != pts[new_starts][curve_of], axis=1) & np.any(pts != pts[second][curve_of], axis=1)
+    distinct3 = np.logical_or.reduceat(third, new_starts) & (new_counts >= 3)
+    for i in np.flatnonzero(~distinct3):
+        clean_points(arrays[i], path=path, curve=int(i))      # raises the precise error
+    return np.split(pts, np.cumsum(new_counts)[:-1])
 
 
 def _distinct_up_to_three(pts: np.ndarray) -> int:

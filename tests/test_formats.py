@@ -843,3 +843,48 @@ def test_chain_empty_and_degenerate():
     assert chain_segments([[4, 4]]) == []
     (first, verts), = chain_segments([[0, 1], [1, 0], [1, 2], [2, 0]])
     assert sorted(verts.tolist()) == [0, 1, 2]
+
+
+def test_obj_bulk_path_equals_the_careful_parser(tmp_path, monkeypatch):
+    """Large plain OBJ files take a numpy bulk path; it must read exactly what the parser reads."""
+    from nfdmatch.formats import obj as obj_module
+
+    rng = np.random.default_rng(3)
+    curves = [rng.normal(size=(int(rng.integers(3, 40)), 3)) for _ in range(30)]
+    path = tmp_path / "many.obj"
+    write_curves(path, curves)
+    with open(path, "a") as fh:                       # plus a polyline without the closing index
+        fh.write("l 1 2 3\n")
+    bulk = obj_module.read_points(path)
+    assert obj_module._read_points_fast(path.read_text(), str(path)) is not None
+    monkeypatch.setattr(obj_module, "_read_points_fast", lambda text, p: None)
+    careful = obj_module.read_points(path)
+    assert len(bulk) == len(careful) == 31
+    assert all(np.array_equal(a, b) for a, b in zip(bulk, careful))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_vectorized_cleaning_equals_one_by_one(seed):
+    from nfdmatch.curve import clean_many, clean_points
+
+    rng = np.random.default_rng(seed)
+    for _ in range(60):
+        arrays = []
+        for _ in range(int(rng.integers(8, 20))):
+            a = rng.integers(0, 3, size=(int(rng.integers(3, 12)), 3)).astype(float)
+            if rng.random() < 0.3:
+                a = np.vstack([a, a[:1]])
+            if rng.random() < 0.3:
+                a = np.repeat(a, 2, axis=0)
+            arrays.append(a)
+        try:
+            expected, error = [clean_points(a, path="f", curve=i) for i, a in enumerate(arrays)], None
+        except CurveError as exc:
+            expected, error = None, str(exc)
+        try:
+            got, got_error = clean_many(arrays, path="f"), None
+        except CurveError as exc:
+            got, got_error = None, str(exc)
+        assert error == got_error
+        if error is None:
+            assert all(np.array_equal(a, b) for a, b in zip(expected, got))

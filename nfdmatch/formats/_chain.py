@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ..curve import Curve, clean_points
+from ..curve import Curve, clean_many, clean_points
 from ..errors import ParameterError, ParseError, ReadError, WriteError
 
 __all__ = ["chain_segments", "ordered_curves", "read_bytes", "read_text", "check_readable",
@@ -218,9 +218,15 @@ def make_curve(path, points: np.ndarray, index: int, count: int) -> Curve:
 
 
 def make_curves(path, point_arrays: Sequence[np.ndarray]) -> list[Curve]:
-    """Curves with ids ``path`` (one curve) or ``path#i`` (several); see :func:`make_curve`."""
+    """Curves with ids ``path`` (one curve) or ``path#i`` (several); see :func:`make_curve`.
+
+    Many curves are cleaned in one vectorized pass (:func:`~nfdmatch.curve.clean_many`)."""
     n = len(point_arrays)
-    return [make_curve(path, pts, i, n) for i, pts in enumerate(point_arrays)]
+    if n < 8:
+        return [make_curve(path, pts, i, n) for i, pts in enumerate(point_arrays)]
+    p = str(path)
+    cleaned = clean_many(point_arrays, path=p)
+    return [Curve.trusted(pts, curve_id(p, i, n), p, i) for i, pts in enumerate(cleaned)]
 
 
 def points_list(curves, *, path=None) -> list[np.ndarray]:

@@ -21,6 +21,8 @@ repeated (``l 1 2 3 ... n 1``).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from ..curve import Curve
@@ -70,6 +72,9 @@ def read_points(path) -> list[np.ndarray]:
     """
     p = str(path)
     text = read_text(p)
+    fast = _read_points_fast(text, p)
+    if fast is not None:
+        return fast
     coords: list[tuple[float, float, float]] = []
     v_lines: list[int] = []
     elements: list[tuple[int, list[int]]] = []   # (line, 0-based indices)
@@ -158,6 +163,46 @@ def read_points(path) -> list[np.ndarray]:
         segment_where=lambda s: f"line {elements[seg_pos[s]][0]}")
     loops = [(seg_pos[s], verts) for s, verts in loops]
     return [V[idx] for idx in ordered_curves(polylines, loops)]
+
+
+def _read_points_fast(text: str, p: str):
+    """The common case (``v x y z``, ``l`` with positive plain indices, 3 or more each,
+    whole-line comments, no continuations) parsed in bulk by numpy. Returns the curves, or
+    None whenever anything falls outside that case (including any error): the careful
+    parser then reads the file and reports problems with line numbers.
+    """
+    if "\\" in text or "/" in text or "\r" in text or "\t" in text:
+        return None
+    v_rows, l_rows = [], []
+    comments = 0
+    for line in text.split("\n"):
+        head = line[:2]
+        if head == "v ":
+            v_rows.append(line[2:])
+        elif head == "l ":
+            l_rows.append(line[2:])
+        elif head[:1] == "#":
+            comments += 1
+        elif head[:1] in ("v", "l") and (head == "v" or head == "l"):
+            return None                                   # a bare `v` / `l`: let the parser say so
+    if not v_rows or not l_rows or text.count("#") != comments:
+        return None
+    l_text = " ".join(l_rows)
+    if "-" in l_text:
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            V = np.loadtxt(v_rows, dtype=np.float64, ndmin=2)
+        flat = np.array(l_text.split(), dtype=np.int64)
+    except ValueError:
+        return None
+    counts = np.array([len(row.split()) for row in l_rows])
+    if V.shape != (len(v_rows), 3) or len(flat) != counts.sum() or counts.min() < 3:
+        return None
+    if not np.isfinite(V).all() or flat.min() < 1 or flat.max() > len(V):
+        return None
+    return np.split(V[flat - 1], np.cumsum(counts)[:-1])
 
 
 def _is_float(token: str) -> bool:
