@@ -256,7 +256,8 @@ def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
 
 
 def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
-                 direction: str = "invariant", mirror: bool = False, refine: bool = True):
+                 direction: str = "invariant", mirror: bool = False, refine: bool = True,
+                 refine_below: float | None = None):
     """The global optimum over start shift x rotation for one query against many rows.
 
     Parameters
@@ -268,6 +269,10 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     direction : ``"invariant"`` (also score reversed traversal) or ``"strict"``.
     mirror : allow reflections.
     refine : refine the best integer shifts continuously (sub-sample start point).
+    refine_below : only refine rows whose refined distance could be at most this (a search's
+        current k-th distance); the others keep their integer-shift distance, which is then
+        known to stay above ``refine_below``. The bound: refining gains at most C2/8 on the
+        objective, C2 = sum_k 2 w_k (2 pi k / n)^2 |A_k| |B_k| bounding |F''(s)|.
 
     Returns
     -------
@@ -307,11 +312,23 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     shifts = s_int.astype(np.float64)
     values = np.take_along_axis(Fm, cand, axis=1).reshape(-1)
     if refine:
-        Pc = Pcat[:, dirs, rows, :].transpose(1, 0, 2)                        # (N*C, 9, 2K)
-        Fr = F.reshape(N, D * n)
-        base = cand.reshape(-1) - s_int
-        shifts, values = _refine_shifts(Pc, shifts, Fr[rows, base + (s_int - 1) % n], values,
-                                        Fr[rows, base + (s_int + 1) % n], n, mirror)
+        todo = np.ones(N * C, dtype=bool)
+        if refine_below is not None and np.isfinite(refine_below):
+            k = np.arange(1, K + 1)
+            norm_a = np.linalg.norm(A, axis=1)
+            norm_b = np.linalg.norm(B, axis=2)                                  # (N, K)
+            curvature = (2.0 * w * (2.0 * np.pi * k / n) ** 2 * norm_a * norm_b).sum(axis=1)
+            squared = 2.0 * (w * norm_a ** 2).sum() + 2.0 * (w * norm_b ** 2).sum(axis=1)
+            lower2 = squared - 2.0 * (Fm.max(axis=1) + curvature / 8.0)
+            todo = np.repeat(lower2 <= refine_below ** 2 * (1 + 1e-9) + 1e-12, C)
+        if todo.any():
+            sel = np.flatnonzero(todo)
+            Pc = Pcat[:, dirs[sel], rows[sel], :].transpose(1, 0, 2)            # (m, 9, 2K)
+            Fr = F.reshape(N, D * n)
+            base = cand.reshape(-1)[sel] - s_int[sel]
+            shifts[sel], values[sel] = _refine_shifts(
+                Pc, shifts[sel], Fr[rows[sel], base + (s_int[sel] - 1) % n], values[sel],
+                Fr[rows[sel], base + (s_int[sel] + 1) % n], n, mirror)
     values = np.where(np.isfinite(Fm.max(axis=1)).repeat(C), values, -np.inf).reshape(N, C)
     pick = np.arange(N) * C + np.argmax(values, axis=1)
     shift, direction_idx = shifts[pick], dirs[pick]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +67,11 @@ _FEATURES = ("inv_norm", "inv_sv", "inv_block")
 _TIE = 1e-9
 
 
+def _margin(threshold: float) -> float:
+    """The distance a bound must exceed to prune against ``threshold`` (rounding slack)."""
+    return threshold * (1 + _PRUNE_RELATIVE) + _PRUNE_ABSOLUTE
+
+
 @dataclass
 class SearchStats:
     """What a search did: ``queries``, ``rows`` (index rows per query), ``exact`` (exact
@@ -123,7 +130,8 @@ class _TopK:
 
 def search_index(index, queries, *, top: int | None = 10, max_distance: float | None = None,
                  method: str = "exact", direction: str = "invariant", mirror: bool = False,
-                 prune: bool = True, chunk_rows: int = CHUNK_ROWS, progress=None, weights=None):
+                 prune: bool = True, chunk_rows: int = CHUNK_ROWS, progress=None, weights=None,
+                 threads: int | None = None):
     """k nearest curves of an index for each query curve, exactly.
 
     Parameters
@@ -160,6 +168,7 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
         raise ParameterError(f"top must be at least 1, got {top}")
     if method not in ("exact", "paper"):
         raise ParameterError(f"method must be exact or paper, got {method!r}")
+    threads = threads or min(os.cpu_count() or 1, 4)
     t0 = time.perf_counter()
     batch = descriptors_batch(queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale)
     qcoef = batch.coefficients
@@ -179,25 +188,36 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
             group = range(g, min(g + QUERY_GROUP, len(queries)))
             lb = _lower_bounds({k: v[group.start:group.stop] for k, v in qfeat.items()}, rfeat) \
                 if prune else np.zeros((len(group), m))
-            for qi, bounds in zip(group, lb):
+            def _answer(qi, bounds):
+                n_exact = 0
                 tk = tops[qi]
-                margin = lambda t: t * (1 + _PRUNE_RELATIVE) + _PRUNE_ABSOLUTE  # noqa: E731
-                limit = margin(tk.threshold())
+                limit = _margin(tk.threshold())
                 cand = np.flatnonzero(bounds <= limit)
                 cand = cand[np.argsort(bounds[cand], kind="stable")]
                 pos, size = 0, max(32, 2 * (top or 16))
                 while pos < len(cand):
                     take = cand[pos:pos + size]
                     if prune:
-                        take = take[bounds[take] <= margin(tk.threshold())]
+                        take = take[bounds[take] <= _margin(tk.threshold())]
                         if len(take) == 0:
                             break
+                    extra = {"refine_below": _margin(tk.threshold())} if method == "exact" and prune else {}
                     r = search(qcoef[qi], chunk["coefficients"][take], n, direction=direction, mirror=mirror,
-                               weights=weights)
-                    stats.exact += len(take)
+                               weights=weights, **extra)
+                    n_exact += len(take)
                     tk.add(r["distance"], rows_global[take], r)
                     pos += size
                     size = min(size * 2, BATCH_ROWS)
+                return n_exact
+
+            work = list(zip(group, lb))
+            if threads > 1 and len(work) > 1:
+                with ThreadPoolExecutor(threads) as pool:        # numpy releases the GIL in big kernels
+                    for n_exact in pool.map(lambda item: _answer(item[0], item[1]), work):
+                        stats.exact += n_exact
+            else:
+                for qi, bounds in work:
+                    stats.exact += _answer(qi, bounds)
         done += m
         if progress is not None:
             progress(done, index.n_curves)

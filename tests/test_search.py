@@ -41,7 +41,7 @@ def test_pruned_search_equals_exhaustive_ranking(seed, top, families, members, n
     assert stats.exact <= full_stats.exact
     for p, f in zip(pruned, full):
         assert [r["match"] for r in p] == [r["match"] for r in f]
-        assert np.allclose([r["distance"] for r in p], [r["distance"] for r in f], rtol=1e-12, atol=1e-15)
+        assert np.allclose([r["distance"] for r in p], [r["distance"] for r in f], rtol=1e-12, atol=1e-12)
         assert [r["rank"] for r in p] == list(range(1, len(p) + 1))
 
 
