@@ -467,13 +467,15 @@ def _progress_bar(description: str):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
     from rich.console import Console
 
+    # no auto-refresh thread: a running thread would force the build's workers off fork
     bar = Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                   console=Console(stderr=True), transient=True)
+                   console=Console(stderr=True), transient=True, auto_refresh=False)
     task = bar.add_task(description, total=None)
     bar.start()
 
     def update(done, total):
         bar.update(task, completed=done, total=total)
+        bar.refresh()
 
     return update, bar.stop
 

@@ -18,7 +18,7 @@ def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
     Parameters
     ----------
     sources : iterable of paths. A file is taken as given (whatever its extension, so
-        that ``--input-format`` can apply); a folder is walked recursively, keeping
+        that ``--input-format`` can apply), ``file#i`` too; a folder is walked recursively, keeping
         files with a supported extension, skipping hidden files and folders.
     glob : optional fnmatch pattern on the file name (``"*.csv"``) for files found in folders.
 
@@ -40,9 +40,14 @@ def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
             seen.add(key)
             found.append(path)
 
+    from .formats import split_selector
+
     for source in sources:
         source = str(source)
-        if os.path.isdir(source):
+        path, selected = split_selector(source)
+        if selected is not None and os.path.isfile(path):
+            add(source)                        # file#i: one curve of a multi-curve file
+        elif os.path.isdir(source):
             for root, dirs, files in os.walk(source):
                 dirs[:] = sorted(d for d in dirs if not d.startswith("."))
                 for name in sorted(files):

@@ -1,0 +1,50 @@
+"""How ``tests/data/index/v1-sample.h5`` was made: a frozen format-1 index.
+
+Run from the repository root (paths in the index are as given here, relative)::
+
+    .venv/bin/python tests/data/index/make_frozen.py
+
+It indexes four sample curve files (1 + 1 + 2 + 3 curves) and one bad file
+(``bad.csv``, recorded as failed) with samples=32, harmonics=4, scale=rms, in one
+process, with the clock fixed at 2026-01-01T00:00:00Z. The build runs in a temporary
+folder (so no lock file is left here) and the result is copied next to this script.
+
+The file is FROZEN: ``tests/test_index.py`` reads it with exact expected ids,
+parameters and values, forever. Do not re-run this script to make a failing test
+pass: a reader that cannot read this file is a format break (bump ``format_version``
+and keep reading format 1 instead).
+"""
+
+import os
+import shutil
+import sys
+import tempfile
+
+from nfdmatch import index
+
+SOURCES = [
+    "sample_curves/library/circle.tsv",
+    "sample_curves/library/trefoil.csv",
+    "sample_curves/library/superellipses.vtp",
+    "sample_curves/library/lissajous-family.obj",
+    "tests/data/index/bad.csv",
+]
+TARGET = os.path.join(os.path.dirname(os.path.abspath(__file__)), "v1-sample.h5")
+
+
+def main() -> int:
+    if not os.path.isdir("sample_curves/library"):
+        print("run from the repository root", file=sys.stderr)
+        return 1
+    index._utcnow = lambda: "2026-01-01T00:00:00Z"
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "v1-sample.h5")
+        report = index.build_index(SOURCES, path, samples=32, harmonics=4, scale="rms", jobs=1)
+        print(report.curves, "curves;", report.failed, "failed:", report.failures, file=sys.stderr)
+        shutil.copyfile(path, TARGET)
+    print(TARGET)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
