@@ -20,14 +20,18 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 demo: $(STAMP)
-	@echo "== rank every sample curve against a re-posed, resampled, reversed trefoil ==" >&2
-	$(BIN)/nfdmatch rank sample_curves/queries/trefoil-posed.obj sample_curves/library --top 8
+	@echo "== index the sample curves (incremental: a second run recomputes nothing) ==" >&2
+	@mkdir -p demo-out
+	$(BIN)/nfdmatch index build sample_curves/library --index demo-out/demo.h5
+	@echo "== query with a re-posed, resampled, reversed trefoil ==" >&2
+	$(BIN)/nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo-out/demo.h5 --top 8 --format table
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_distance.py
+	$(BIN)/python benchmarks/bench_index.py
 
 devdata: $(STAMP)
 	$(BIN)/python benchmarks/eval_devdata.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache demo-out

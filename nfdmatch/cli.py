@@ -373,7 +373,8 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
             summary["changes"] = [{"action": a, "path": p} for a, p in report.changes if a != "unchanged"]
         click.echo(json.dumps(summary))
     else:
-        verb = "would change" if dry_run else f"indexed into {index_path}"
+        verb = "would change" if dry_run else (f"indexed into {index_path}" if report.written
+                                                 else f"{index_path} is up to date")
         click.echo(f"{verb}: {report.added} added, {report.updated} updated, {report.removed} removed, "
                    f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
                    f"{report.seconds:.2f} s", err=True)

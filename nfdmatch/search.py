@@ -191,12 +191,16 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
             def _answer(qi, bounds):
                 n_exact = 0
                 tk = tops[qi]
-                limit = _margin(tk.threshold())
-                cand = np.flatnonzero(bounds <= limit)
-                cand = cand[np.argsort(bounds[cand], kind="stable")]
-                pos, size = 0, max(32, 2 * (top or 16))
-                while pos < len(cand):
-                    take = cand[pos:pos + size]
+                cand = np.flatnonzero(bounds <= _margin(tk.threshold()))
+                size = max(32, 2 * (top or 16))
+                while len(cand):
+                    if len(cand) > size:       # the `size` lowest bounds, without sorting them all
+                        first = np.argpartition(bounds[cand], size - 1)[:size]
+                        rest = np.ones(len(cand), dtype=bool)
+                        rest[first] = False
+                        take, cand = cand[first], cand[rest]
+                    else:
+                        take, cand = cand, cand[:0]
                     if prune:
                         take = take[bounds[take] <= _margin(tk.threshold())]
                         if len(take) == 0:
@@ -206,7 +210,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                                weights=weights, **extra)
                     n_exact += len(take)
                     tk.add(r["distance"], rows_global[take], r)
-                    pos += size
+                    if prune:
+                        cand = cand[bounds[cand] <= _margin(tk.threshold())]
                     size = min(size * 2, BATCH_ROWS)
                 return n_exact
 
