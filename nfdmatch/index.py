@@ -380,31 +380,45 @@ class Index:
             got = np.asarray(self._read(lambda: self._ds["id"].asstr()[uniq]), dtype=object)
         return got[inverse].tolist()
 
-    def read_rows(self, start: int, stop: int) -> dict:
+    _ALL_COLUMNS = ("coefficients", "inv_norm", "inv_sv", "inv_block", "centroid", "scale", "rotation",
+                    "plane_degenerate", "file")
+
+    def read_rows(self, start: int, stop: int, columns=None, *, upcast: bool = True) -> dict:
         """Rows ``[start, stop)`` as float64/complex128 arrays.
 
-        Keys: ``coefficients`` (m, K, 3) complex128; ``inv_norm`` (m, K), ``inv_sv`` (m, 2K),
-        ``inv_block`` (m, 3) float64; ``centroid`` (m, 3) float64; ``scale`` (m,) float64;
-        ``rotation`` (m, 3, 3) float64; ``plane_degenerate`` (m,) bool; ``file`` (m,) int64
-        (row in :meth:`files`).
+        Keys (all by default, or those in ``columns``): ``coefficients`` (m, K, 3) complex128;
+        ``inv_norm`` (m, K), ``inv_sv`` (m, 2K), ``inv_block`` (m, 3) float64; ``centroid``
+        (m, 3) float64; ``scale`` (m,) float64; ``rotation`` (m, 3, 3) float64;
+        ``plane_degenerate`` (m,) bool; ``file`` (m,) int64 (row in :meth:`files`).
+        ``upcast=False`` keeps the stored complex64/float32 (a search upcasts only the rows it
+        needs, which matters for large indexes).
         """
         a, b = self._range(start, stop)
-        raw = self._read(lambda: {name: self._ds[name][a:b] for name in
-                                  ("coefficients", "inv_norm", "inv_sv", "inv_block", "centroid", "scale",
-                                   "rotation", "plane_degenerate", "file")})
-        out = {"coefficients": raw["coefficients"].astype(np.complex128)}
-        for name in ("inv_norm", "inv_sv", "inv_block", "centroid", "scale", "rotation"):
-            out[name] = raw[name].astype(np.float64)
-        out["plane_degenerate"] = raw["plane_degenerate"].astype(bool)
-        out["file"] = raw["file"].astype(np.int64)
+        names = self._ALL_COLUMNS if columns is None else tuple(columns)
+        unknown = set(names) - set(self._ALL_COLUMNS)
+        if unknown:
+            raise ParameterError(f"unknown index columns: {', '.join(sorted(unknown))}")
+        raw = self._read(lambda: {name: self._ds[name][a:b] for name in names})
+        if not upcast:
+            return raw
+        out = {}
+        for name, value in raw.items():
+            if name == "coefficients":
+                out[name] = value.astype(np.complex128)
+            elif name == "plane_degenerate":
+                out[name] = value.astype(bool)
+            elif name == "file":
+                out[name] = value.astype(np.int64)
+            else:
+                out[name] = value.astype(np.float64)
         return out
 
-    def iter_chunks(self, rows: int = 65536):
-        """Yield ``(start, read_rows(start, start + rows))`` covering every row in order."""
+    def iter_chunks(self, rows: int = 65536, columns=None, *, upcast: bool = True):
+        """Yield ``(start, read_rows(start, start + rows, columns))`` covering every row in order."""
         if rows < 1:
             raise ParameterError(f"rows must be at least 1, got {rows}")
         for start in range(0, self.n_curves, rows):
-            yield start, self.read_rows(start, min(self.n_curves, start + rows))
+            yield start, self.read_rows(start, min(self.n_curves, start + rows), columns, upcast=upcast)
 
     def _raw_rows(self, a: int, b: int) -> dict:
         """Rows [a, b) in storage dtypes, ids as str (for copying into a new index)."""

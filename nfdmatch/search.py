@@ -180,9 +180,9 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     stats = SearchStats(queries=len(queries), rows=index.n_curves)
     n = index.samples
     done = 0
-    for start, chunk in index.iter_chunks(chunk_rows):
+    for start, chunk in index.iter_chunks(chunk_rows, ("coefficients",) + _FEATURES, upcast=False):
         m = len(chunk["coefficients"])
-        rfeat = {k: chunk[k].reshape(m, -1) for k in _FEATURES}
+        rfeat = {k: chunk[k].reshape(m, -1).astype(np.float64) for k in _FEATURES}
         rows_global = np.arange(start, start + m)
         for g in range(0, len(queries), QUERY_GROUP):
             group = range(g, min(g + QUERY_GROUP, len(queries)))
@@ -258,9 +258,10 @@ class MemoryIndex:
                       **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()}}
         self.n_curves = len(curves)
 
-    def iter_chunks(self, rows: int = CHUNK_ROWS):
+    def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True):
         for start in range(0, self.n_curves, rows):
-            yield start, {k: v[start:start + rows] for k, v in self._rows.items()}
+            yield start, {k: v[start:start + rows] for k, v in self._rows.items()
+                          if columns is None or k in columns}
 
     def ids_at(self, rows) -> list[str]:
         return [self._ids[int(r)] for r in rows]
