@@ -19,17 +19,12 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import hashlib
-import multiprocessing
 import os
 import re
-import secrets
 import stat as _stat
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 
 import h5py
 import numpy as np
@@ -86,7 +81,7 @@ def default_index_path() -> str:
 
 
 def _utcnow() -> str:
-    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
 @dataclass(frozen=True)
@@ -494,6 +489,8 @@ class _Lock:
 # --------------------------------------------------------------------------- per-file work
 
 def _sha256(path: str) -> str:
+    import hashlib
+
     h = hashlib.sha256()
     buf = bytearray(1 << 20)
     view = memoryview(buf)
@@ -595,6 +592,9 @@ def _run_tasks(tasks: list[tuple], jobs: int, lock_fd):
         for i, t in enumerate(tasks):
             yield i, _compute_file(*t)
         return
+    import multiprocessing  # build-only imports: kept out of query start-up
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
     if "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1:
         ctx, fd = multiprocessing.get_context("fork"), lock_fd      # fast, and safe without threads
         if _needs_pyvista(tasks):           # imported once here rather than once per worker
@@ -969,6 +969,8 @@ def _dry_run_report(report: BuildReport, items, removed, old, progress) -> None:
 def _write(report: BuildReport, index_path: str, items, tasks, removed, old, params, jobs, lock, progress):
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
+    import secrets
+
     tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}-{secrets.token_hex(4)}.h5")
     K = params["harmonics"]
     results: dict[int, dict] = {}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -217,6 +216,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
 
             work = list(zip(group, lb))
             if threads > 1 and len(work) > 1:
+                from concurrent.futures import ThreadPoolExecutor
+
                 with ThreadPoolExecutor(threads) as pool:        # numpy releases the GIL in big kernels
                     for n_exact in pool.map(lambda item: _answer(item[0], item[1]), work):
                         stats.exact += n_exact
