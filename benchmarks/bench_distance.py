@@ -7,6 +7,11 @@ K = 16, scale a1, direction-invariant), in the same process, so the ratios hold 
 noisy machine. Oracles (tests/oracle.py): (1) every integer shift x Kabsch (SVD) with
 the distance computed directly per shift; (1v) the same fully vectorized (batched SVD
 over all shifts, no Python loop), a stronger baseline; (2) a 1/32-sample shift grid.
+
+The exact rows are the numpy path (NFDMATCH_NUMBA=0); the compiled kernels
+(nfdmatch/_kernels.py, numba) are timed separately when numba is installed: one call per
+pair and batched, on one thread and with the rows split over threads (what a call from the
+main thread does), with their agreement with the numpy path.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import time
 
 import numpy as np
 
+os.environ["NFDMATCH_NUMBA"] = "0"          # the exact rows below: numpy path; numba: see numba_rows()
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 import oracle  # noqa: E402
 
@@ -106,6 +112,79 @@ def main():
     within = np.mean(res["exact"] <= res["o2"] * 1.001) * 100
     print(f"\nexact within 0.1% of oracle (2) on {within:.1f}% of pairs; "
           f"above oracle (1) beyond 1e-9 relative on {np.sum(res['exact'] > res['o1'] * (1 + 1e-9))} pairs")
+    numba_rows(pairs, rows, q, per, res["exact"])
+
+
+def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
+    """The same exact search through the numba kernels, next to the numpy figures above."""
+    from nfdmatch import matching
+
+    import importlib.util
+
+    if importlib.util.find_spec("numba") is None:
+        print("\nnumba kernels: numba is not installed (pip install numba)")
+        return
+    fresh = "numba" not in sys.modules
+    os.environ["NFDMATCH_NUMBA"] = "1"
+    matching._kernel_state.update(module=None, failed=None, work=0)
+    t0 = time.perf_counter()
+    matching._compiled_kernels(0)
+    load = time.perf_counter() - t0
+    if matching._kernel_state["module"] is None:
+        print(f"\nnumba kernels unavailable: {matching._kernel_state['failed']!r}")
+        return
+    import numba
+    half = lambda X: X[:K]  # noqa: E731
+    got, dt = [], 0.0
+    for A, B in pairs:
+        r, t = timed(lambda: exact_search(half(A), half(B)[None], N)["distance"][0])
+        got.append(r)
+        dt += t
+    per_numba = dt / len(pairs) * 1e3
+    workers = min(os.cpu_count() or 1, matching._MAX_THREADS)
+    saved = matching._THREAD_ROWS
+
+    def run(mode, threshold=saved, **kw):
+        os.environ["NFDMATCH_NUMBA"] = mode
+        matching._THREAD_ROWS = threshold
+        dt = timed(lambda: exact_search(q, rows, N, **kw))[1]
+        if mode == "0":
+            time.sleep(0.3)         # OpenBLAS worker threads spin for a while after a GEMM
+        return dt
+
+    # numpy and numba interleaved, medians of `repeat` runs each (the machine may be shared)
+    labels = {"numpy": ("0", saved), "numba, 1 thread": ("1", 10 ** 12), f"numba, {workers} threads": ("1", saved)}
+    figures = {label: ([], []) for label in labels}
+    for label, (mode, threshold) in labels.items():
+        run(mode, threshold)                                                 # warm
+    for _ in range(repeat):
+        for label, (mode, threshold) in labels.items():
+            figures[label][0].append(run(mode, threshold))
+            figures[label][1].append(run(mode, threshold, refine=False))
+    figures = {label: (float(np.median(a)), float(np.median(b))) for label, (a, b) in figures.items()}
+    matching._THREAD_ROWS = saved
+    os.environ["NFDMATCH_NUMBA"] = "1"
+    batch = exact_search(q, rows, N)
+    os.environ["NFDMATCH_NUMBA"] = "0"
+    reference = exact_search(q, rows, N)
+    got = np.array(got)
+    agree = max(np.max(np.abs(got - exact_numpy) / exact_numpy),
+                np.max(np.abs(batch["distance"] - reference["distance"]) / reference["distance"]))
+    same_shift = np.mean(np.abs((batch["shift"] - reference["shift"] + N / 2) % N - N / 2) < 1e-7) * 100
+    n = len(rows)
+    t_np, t_np_int = figures.pop("numpy")
+    print(f"\nnumba kernels (numba {numba.__version__}; {'import numba + ' if fresh else ''}load of the kernels "
+          f"{load:.2f} s in this process); batched: medians of {repeat} interleaved runs")
+    print("| exact search | numpy | numba | speed-up |")
+    print("|---|---:|---:|---:|")
+    print(f"| one call per pair, ms per pair | {per['exact']:.3f} | {per_numba:.3f} | {per['exact'] / per_numba:.1f}x |")
+    for label, (t_all, t_int) in figures.items():
+        print(f"| batched ({n} rows), {label}, us per pair | {t_np / n * 1e6:.1f} | {t_all / n * 1e6:.1f} | "
+              f"{t_np / t_all:.1f}x |")
+        print(f"| batched, integer shifts only, {label}, us per pair | {t_np_int / n * 1e6:.1f} | "
+              f"{t_int / n * 1e6:.1f} | {t_np_int / t_int:.1f}x |")
+    print(f"\nnumba vs numpy: max relative distance difference {agree:.1e}; same shift on {same_shift:.1f}% of "
+          f"the batched rows")
 
 
 def _aligned(C):

@@ -21,6 +21,8 @@ For a fixed shift, ``max_R Re sum A_k^H R B_k = max_R tr(R M)`` with
 
 from __future__ import annotations
 
+import os
+import threading
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -255,6 +257,100 @@ def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
     return points[rows, best], values[rows, best]
 
 
+# --------------------------------------------------------------------------- compiled kernels
+#
+# exact_search also exists as one numba kernel (nfdmatch/_kernels.py): ~7x faster per row
+# batched, ~13x per single-pair call, same results (distances to ~1e-15, same shifts where
+# the optimum is unique). numba is imported lazily, inside the exact path, once the process
+# has done enough exact work to amortize importing it (~0.3 s with loading the cached
+# machine code): a ski-rental rule -- switch once the numpy work done so far would have
+# paid for the import -- keeps `import nfdmatch`, the CLI start-up and small queries free of
+# numba, and costs a long run at most that one import. The very first use after an install
+# or an edit of _kernels.py compiles (~10-15 s, once; cached next to the module or in
+# numba's user cache). NFDMATCH_NUMBA=0 never uses numba, =1 uses it at once.
+
+_NUMBA_ENV = "NFDMATCH_NUMBA"
+#: numpy exact work (rows x directions x shifts, plus _CALL_WORK per call) worth one numba
+#: import: the numpy path costs ~0.5 us per unit (~1 ms per call), importing numba and
+#: loading the cached kernels ~0.4 s
+_NUMBA_AMORTIZE = 800_000
+_CALL_WORK = 2_000
+#: rows from which a call made on the main thread splits the rows over threads (a call
+#: made on another thread, e.g. from search_index's pool over queries, never does)
+_THREAD_ROWS = 256
+_MAX_THREADS = 4
+_kernel_state = {"module": None, "failed": None, "work": 0}
+_kernel_lock = threading.Lock()
+
+
+def _numba_mode() -> str:
+    mode = os.environ.get(_NUMBA_ENV, "auto").strip().lower()
+    if mode in ("0", "off", "no", "false", "numpy"):
+        return "off"
+    if mode in ("1", "on", "yes", "true", "numba"):
+        return "on"
+    return "auto"
+
+
+def _compiled_kernels(work: int):
+    """nfdmatch._kernels when it is (or has just become) worth using, else None (numpy path).
+
+    ``work`` is this call's rows x directions x shifts (+ _CALL_WORK). Any failure to import
+    numba or to load / compile the kernels (e.g. no writable cache directory: compiling in
+    every process would cost more than it saves) falls back to numpy for the rest of the
+    process; with NFDMATCH_NUMBA=1 that also warns.
+    """
+    state = _kernel_state
+    mode = _numba_mode()
+    if mode == "off":
+        return None
+    if state["module"] is not None or state["failed"] is not None:
+        return state["module"]
+    state["work"] += work
+    if mode == "auto" and state["work"] < _NUMBA_AMORTIZE:
+        return None
+    with _kernel_lock:
+        if state["module"] is None and state["failed"] is None:
+            try:
+                from . import _kernels
+                _warm_up(_kernels)
+            except Exception as exc:             # ImportError, numba errors: numpy it is
+                state["failed"] = exc
+                if mode == "on":
+                    import warnings
+                    warnings.warn(f"nfdmatch: numba kernels unavailable, using numpy ({exc!r})",
+                                  RuntimeWarning, stacklevel=3)
+            else:
+                state["module"] = _kernels
+    return state["module"]
+
+
+def _warm_up(kernels) -> None:
+    """Compile (or load from numba's cache) the kernel on a tiny input with the argument
+    types exact_search passes, so that a failure shows here, once."""
+    A = np.ones((2, 3), dtype=np.complex128)
+    B = np.ones((1, 2, 3), dtype=np.complex128)
+    basis, quarter = _folded_basis(2, 8)
+    kernels.exact_rows(A, A, np.ones(2), B, 1, basis, quarter, 8, False, 1, True, 1.0)
+
+
+@lru_cache(maxsize=32)
+def _folded_basis(K: int, n: int) -> tuple[np.ndarray, bool]:
+    """The integer-shift basis for the kernels: (2K, width) columns s = 0..n/4 (when n is
+    divisible by 4, ``quarter``) or 0..n/2 of [2 cos(2 pi k s / n); -2 sin(2 pi k s / n)], the
+    angle reduced exactly ((k s) mod n), zero-padded to a multiple of 8 columns."""
+    quarter = n % 4 == 0
+    count = n // 4 + 1 if quarter else n // 2 + 1
+    width = -(-count // 8) * 8
+    s = np.arange(count)
+    theta = (2.0 * np.pi / n) * ((np.arange(1, K + 1)[:, None] * s[None, :]) % n)
+    basis = np.zeros((2 * K, width))
+    basis[:K, :count] = 2.0 * np.cos(theta)
+    basis[K:, :count] = -2.0 * np.sin(theta)
+    basis.setflags(write=False)
+    return basis, quarter
+
+
 def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
                  direction: str = "invariant", mirror: bool = False, refine: bool = True,
                  refine_below: float | None = None):
@@ -292,11 +388,27 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     N, K, _ = B.shape
     n = int(samples)
     w = _weights(weights, K)
-    variants = _direction_variants(B, direction)
-    D = len(variants)
-    Bv = np.stack([v for v, _ in variants])                                   # (D, N, K, 3)
+    if direction not in DIRECTIONS:
+        raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
+    D = 2 if direction == "invariant" else 1
+    C = min(_REFINE_CANDIDATES if refine else 1, D * n)
+    Aw = np.conj(A) * w[:, None]
+    kernels = _compiled_kernels(N * D * n + _CALL_WORK) if N else None
+    if kernels is not None:
+        # compiled: every stage per row in one call (F per row stays in cache)
+        workers = (min(os.cpu_count() or 1, _MAX_THREADS)
+                   if N >= _THREAD_ROWS and threading.current_thread() is threading.main_thread() else 1)
+        limit = np.inf
+        if refine and refine_below is not None and np.isfinite(refine_below):
+            limit = refine_below ** 2 * (1 + 1e-9) + 1e-12
+        basis, quarter = _folded_basis(K, n)
+        dist, shift, R, reversed_, mirrored = kernels.exact_rows(
+            np.ascontiguousarray(A), np.ascontiguousarray(Aw), np.ascontiguousarray(w, dtype=np.float64),
+            np.ascontiguousarray(B), D, basis, quarter, n, bool(mirror), C, bool(refine), float(limit), workers)
+        return {"distance": dist, "shift": shift, "rotation": R, "reversed": reversed_, "mirrored": mirrored}
+    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])          # (D, N, K, 3)
     # P[j, i, d, r, k] = 2 w_k B_k[j] conj(A_k[i]): M(s)[j, i] = Re sum_k P e^{2 pi i k s / n}
-    P = np.einsum("drkj,ki->jidrk", Bv, np.conj(A) * w[:, None])
+    P = np.einsum("drkj,ki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
     F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, n))
                    .reshape(9, D, N, n), mirror)                               # (D, N, n)
@@ -304,13 +416,14 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
 
     local_max = (F >= np.roll(F, 1, axis=2)) & (F >= np.roll(F, -1, axis=2))
     Fm = np.where(local_max, F, -np.inf).reshape(N, D * n)
-    C = min(_REFINE_CANDIDATES if refine else 1, D * n)
     cand = np.argpartition(-Fm, C - 1, axis=1)[:, :C]
+    values = np.take_along_axis(Fm, cand, axis=1)
+    Fmax = Fm.max(axis=1)
     dirs = (cand // n).reshape(-1)
     rows = np.repeat(np.arange(N), C)
     s_int = (cand % n).reshape(-1)
     shifts = s_int.astype(np.float64)
-    values = np.take_along_axis(Fm, cand, axis=1).reshape(-1)
+    values = values.reshape(-1)
     if refine:
         todo = np.ones(N * C, dtype=bool)
         if refine_below is not None and np.isfinite(refine_below):
@@ -319,7 +432,7 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
             norm_b = np.linalg.norm(B, axis=2)                                  # (N, K)
             curvature = (2.0 * w * (2.0 * np.pi * k / n) ** 2 * norm_a * norm_b).sum(axis=1)
             squared = 2.0 * (w * norm_a ** 2).sum() + 2.0 * (w * norm_b ** 2).sum(axis=1)
-            lower2 = squared - 2.0 * (Fm.max(axis=1) + curvature / 8.0)
+            lower2 = squared - 2.0 * (Fmax + curvature / 8.0)
             todo = np.repeat(lower2 <= refine_below ** 2 * (1 + 1e-9) + 1e-12, C)
         if todo.any():
             sel = np.flatnonzero(todo)
@@ -329,24 +442,25 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
             shifts[sel], values[sel] = _refine_shifts(
                 Pc, shifts[sel], Fr[rows[sel], base + (s_int[sel] - 1) % n], values[sel],
                 Fr[rows[sel], base + (s_int[sel] + 1) % n], n, mirror)
-    values = np.where(np.isfinite(Fm.max(axis=1)).repeat(C), values, -np.inf).reshape(N, C)
+    values = np.where(np.isfinite(Fmax).repeat(C), values, -np.inf).reshape(N, C)
     pick = np.arange(N) * C + np.argmax(values, axis=1)
     shift, direction_idx = shifts[pick], dirs[pick]
 
-    Bsel = Bv[direction_idx, np.arange(N)]                                    # (N, K, 3)
+    Bsel = np.where((direction_idx == 1)[:, None, None], np.conj(B), B)       # (N, K, 3)
     Bs = Bsel * np.exp((2j * np.pi / n) * np.outer(shift, np.arange(1, K + 1)))[:, :, None]
-    Mbest = 2.0 * np.einsum("nkj,ki->nji", Bs, np.conj(A) * w[:, None]).real
+    Mbest = 2.0 * np.einsum("nkj,ki->nji", Bs, Aw).real
     R = _kabsch_rotation(Mbest, mirror)
     resid = A[None] - np.einsum("nij,nkj->nki", R, Bs)
     dist = np.sqrt(2.0 * np.einsum("k,nk->n", w, np.sum(resid.real ** 2 + resid.imag ** 2, axis=2)))
+    mirrored = np.linalg.det(R) < 0
     shift = np.mod(shift, n)
     shift = np.where(np.abs(shift - np.round(shift)) < 1e-9, np.round(shift), shift) % n  # 127.99999.. -> 0
     return {
         "distance": dist,
         "shift": shift,
         "rotation": R,
-        "reversed": np.array([variants[d][1] for d in direction_idx], dtype=bool),
-        "mirrored": np.linalg.det(R) < 0,
+        "reversed": direction_idx == 1,        # variants: (B, False), (conj(B), True)
+        "mirrored": mirrored,
     }
 
 

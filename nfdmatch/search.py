@@ -218,7 +218,10 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
             if threads > 1 and len(work) > 1:
                 from concurrent.futures import ThreadPoolExecutor
 
-                with ThreadPoolExecutor(threads) as pool:        # numpy releases the GIL in big kernels
+                from threadpoolctl import threadpool_limits
+
+                # one BLAS thread per query thread: idle OpenBLAS workers spin and steal the cores
+                with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(threads) as pool:        # numpy releases the GIL in big kernels
                     for n_exact in pool.map(lambda item: _answer(item[0], item[1]), work):
                         stats.exact += n_exact
             else:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -249,3 +251,167 @@ def test_same_vertices_in_every_format_give_the_same_distance(tmp_path, rng, ext
     from_csv, from_other = read_curve(tmp_path / "a.csv"), read_curve(tmp_path / f"a.{ext}")
     assert distance(from_csv, from_other).distance <= 1e-6
     assert distance(from_csv, other).distance == pytest.approx(distance(from_other, other).distance, abs=1e-6)
+
+
+# --------------------------------------------------------------------------- compiled kernels
+# nfdmatch/_kernels.py (numba, optional) must give what the numpy path gives.
+
+def _exact_with(monkeypatch, mode, *args, **kwargs):
+    """exact_search with NFDMATCH_NUMBA=mode in a fresh kernel state; returns (result, state)."""
+    from nfdmatch import matching
+
+    monkeypatch.setenv("NFDMATCH_NUMBA", mode)
+    state = {"module": None, "failed": None, "work": 0}
+    monkeypatch.setattr(matching, "_kernel_state", state)
+    return exact_search(*args, **kwargs), state
+
+
+def _kernel_rows(rng, samples, harmonics):
+    """(rows, generic): 10 random 3-D curves, then degenerate rows: collinear (twice),
+    |A_1| ~ 0 (torus knot, planar five-fold figure), planar ellipse, all-zero, a copy of row 0."""
+    generic = [random_smooth_curve(rng, n_vertices=400, n_harmonics=int(rng.integers(2, 9))) for _ in range(10)]
+    degenerate = [oracle.collinear_back_and_forth(50), oracle.collinear_back_and_forth(80, (1.0, 2.0, -0.5)),
+                  oracle.torus_knot(2, 9, 900), oracle.figure_eight_planar(1000), oracle.ellipse(2.0, 1.0, 300)]
+    rows = [descriptors(c, samples=samples, harmonics=harmonics).coefficients for c in generic + degenerate]
+    rows += [np.zeros((harmonics, 3), complex), rows[0].copy()]
+    return np.stack(rows), len(generic)
+
+
+@pytest.mark.parametrize("samples, harmonics", [(128, 16), (64, 8), (30, 7), (127, 16), (12, 3)])
+@pytest.mark.parametrize("options", [{}, {"mirror": True}, {"direction": "strict"}, {"refine": False},
+                                     {"refine_below": 0.5}, {"weights": "random"}, {"mirror": True, "direction": "strict"}])
+def test_numba_path_equals_numpy_path(monkeypatch, rng, samples, harmonics, options):
+    pytest.importorskip("numba")
+    rows, generic = _kernel_rows(rng, samples, harmonics)
+    if options.get("weights") == "random":
+        options = {"weights": rng.uniform(0.0, 2.0, harmonics)}
+    for query in (0, 3, generic, generic + 2):          # random curves, collinear, |A_1| ~ 0
+        ref, ref_state = _exact_with(monkeypatch, "0", rows[query], rows, samples, **options)
+        got, state = _exact_with(monkeypatch, "1", rows[query], rows, samples, **options)
+        assert ref_state["module"] is None and state["module"] is not None, state["failed"]
+        assert np.all(np.isfinite(got["distance"])) and np.all(np.isfinite(got["rotation"]))
+        np.testing.assert_allclose(got["distance"], ref["distance"], rtol=1e-12, atol=1e-13)
+        assert np.allclose(got["rotation"] @ np.swapaxes(got["rotation"], 1, 2), np.eye(3), atol=1e-12)
+        assert np.array_equal(np.linalg.det(got["rotation"]) < 0, got["mirrored"])
+        assert not got["mirrored"].any() or options.get("mirror")
+        assert not got["reversed"].any() or options.get("direction") != "strict"
+        if query < generic:
+            # generic pairs have one optimum; degenerate ones (symmetric, collinear, planar
+            # with mirror) have several equivalent ones, either path may pick any
+            g = slice(0, generic)
+            delta = (got["shift"][g] - ref["shift"][g] + samples / 2) % samples - samples / 2
+            assert np.all(np.abs(delta) < 1e-7), (got["shift"][g], ref["shift"][g])
+            assert np.array_equal(got["reversed"][g], ref["reversed"][g])
+            assert np.array_equal(got["mirrored"][g], ref["mirrored"][g])
+            np.testing.assert_allclose(got["rotation"][g], ref["rotation"][g], atol=1e-8)
+
+
+def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
+    pytest.importorskip("numba")
+    from nfdmatch import _kernels
+    from nfdmatch.matching import _folded_basis
+
+    rows, _ = _kernel_rows(rng, 128, 16)
+    rows = np.ascontiguousarray(np.concatenate([rows] * 4))
+    A = np.ascontiguousarray(rows[1])
+    basis, quarter = _folded_basis(16, 128)
+    for limit in (np.inf, 0.3):
+        one = _kernels.exact_rows(A, np.conj(A), np.ones(16), rows, 2, basis, quarter, 128, False, 3, True, limit)
+        three = _kernels.exact_rows(A, np.conj(A), np.ones(16), rows, 2, basis, quarter, 128, False, 3, True, limit,
+                                    workers=3)
+        assert all(np.array_equal(a, b) for a, b in zip(one, three))
+
+
+def test_numba_cos_third_arccos_is_within_a_few_ulps(rng):
+    numba = pytest.importorskip("numba")
+    from nfdmatch._kernels import cos_third_acos
+
+    @numba.njit
+    def evaluate(r, out):
+        for i in range(r.shape[0]):
+            out[i] = cos_third_acos(r[i])
+
+    r = np.concatenate([rng.uniform(-1, 1, 200_000), -1 + rng.uniform(0, 1e-5, 20_000) ** 2,
+                        1 - rng.uniform(0, 1e-5, 20_000) ** 2, 0.5 + rng.uniform(-1e-6, 1e-6, 20_000),
+                        -0.5 + rng.uniform(-1e-6, 1e-6, 20_000), [-1.0, 1.0, 0.0, 0.5, -0.5, -0.0]])
+    out = np.empty_like(r)
+    evaluate(r, out)
+    expect = np.cos(np.arccos(r) / 3)
+    assert np.max(np.abs(out - expect) / np.spacing(expect)) <= 4
+    evaluate(np.array([np.nan]), out[:1])
+    assert np.isnan(out[0])
+
+
+def test_numba_fallback_when_numba_cannot_be_imported(monkeypatch, rng):
+    import sys
+
+    import nfdmatch
+    from nfdmatch import matching
+
+    rows, _ = _kernel_rows(rng, 128, 16)
+    ref, _ = _exact_with(monkeypatch, "0", rows[0], rows, 128)
+    monkeypatch.setitem(sys.modules, "numba", None)               # import numba -> ImportError
+    monkeypatch.delitem(sys.modules, "nfdmatch._kernels", raising=False)
+    monkeypatch.delattr(nfdmatch, "_kernels", raising=False)
+    with pytest.warns(RuntimeWarning, match="numba kernels unavailable"):
+        got, state = _exact_with(monkeypatch, "1", rows[0], rows, 128)
+    assert isinstance(state["failed"], ImportError) and state["module"] is None
+    assert np.array_equal(got["distance"], ref["distance"]) and np.array_equal(got["shift"], ref["shift"])
+    # automatic mode: past the threshold it tries once, silently, and stays on numpy
+    monkeypatch.setattr(matching, "_NUMBA_AMORTIZE", 1)
+    got, state = _exact_with(monkeypatch, "auto", rows[0], rows, 128)
+    again = exact_search(rows[0], rows, 128)
+    assert isinstance(state["failed"], ImportError)
+    assert np.array_equal(got["distance"], ref["distance"]) and np.array_equal(again["distance"], ref["distance"])
+
+
+def test_numba_is_used_only_once_the_work_amortizes_its_import(monkeypatch, rng):
+    pytest.importorskip("numba")
+    from nfdmatch import matching
+
+    rows, _ = _kernel_rows(rng, 128, 16)
+    monkeypatch.setattr(matching, "_NUMBA_AMORTIZE", 3 * (len(rows) * 2 * 128 + matching._CALL_WORK))
+    _, state = _exact_with(monkeypatch, "auto", rows[0], rows, 128)
+    exact_search(rows[0], rows, 128)
+    assert state["module"] is None                     # two calls: below the threshold
+    exact_search(rows[0], rows, 128)
+    assert state["module"] is not None                 # the third reaches it
+    _, state = _exact_with(monkeypatch, "0", rows[0], rows, 128)
+    exact_search(rows[0], rows, 128)
+    assert state["module"] is None and state["work"] == 0
+
+
+def test_importing_and_a_small_distance_do_not_import_numba():
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np\n"
+            "import nfdmatch, nfdmatch.cli, nfdmatch.search\n"
+            "from nfdmatch import distance\n"
+            "t = np.linspace(0, 2 * np.pi, 200, endpoint=False)\n"
+            "a = np.c_[np.cos(t), np.sin(2 * t), np.sin(3 * t)]\n"
+            "distance(a, a[::-1] * 2)\n"
+            "print(sys.modules.get('numba') is not None)\n")
+    env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_NUMBA"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
+    """numba raises when no cache directory is usable (read-only install, no writable home):
+    exact_search must not fail, it stays on numpy."""
+    pytest.importorskip("numba")
+    import subprocess
+    import sys
+
+    code = ("import numba.core.caching as caching, numpy as np, sys\n"
+            "caching.CacheImpl._locator_classes = []\n"
+            "from nfdmatch import matching\n"
+            "B = np.random.default_rng(0).normal(size=(5, 16, 3)) * (1 + 1j)\n"
+            "d = matching.exact_search(B[0], B, 128)['distance']\n"
+            "print(repr(matching._kernel_state['failed'])[:40], d[0] < 1e-9)\n")
+    env = dict(os.environ, NFDMATCH_NUMBA="auto")
+    code = code.replace("from nfdmatch import matching\n", "from nfdmatch import matching\nmatching._NUMBA_AMORTIZE = 1\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[0].startswith("RuntimeError") and out.stdout.split()[-1] == "True", out.stdout
