@@ -375,6 +375,19 @@ class Index:
             got = np.asarray(self._read(lambda: self._ds["id"].asstr()[uniq]), dtype=object)
         return got[inverse].tolist()
 
+    def coefficients_at(self, rows) -> np.ndarray:
+        """(m, K, 3) complex64 descriptors of the given rows (any order, repeats allowed): a
+        search reads only the rows that need an exact distance."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        K = self.harmonics
+        if len(rows) == 0:
+            return np.zeros((0, K, 3), np.complex64)
+        if rows.min() < 0 or rows.max() >= self.n_curves:
+            raise IndexError(f"row out of range 0..{self.n_curves - 1}")
+        uniq, inverse = np.unique(rows, return_inverse=True)
+        got = np.asarray(self._read(lambda: self._ds["coefficients"][uniq]))
+        return got[inverse]
+
     _ALL_COLUMNS = ("coefficients", "inv_norm", "inv_sv", "inv_block", "centroid", "scale", "rotation",
                     "plane_degenerate", "file")
 

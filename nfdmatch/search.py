@@ -64,6 +64,8 @@ _PRUNE_RELATIVE, _PRUNE_ABSOLUTE = 1e-5, 1e-6
 _FEATURES = ("inv_norm", "inv_sv", "inv_block")
 #: distances closer than this are ties, ordered by id (below the pipeline's numerical noise)
 _TIE = 1e-9
+#: up to this many queries, descriptors are read row by row as needed instead of by chunk
+_LAZY_QUERIES = 4
 
 
 def _margin(threshold: float) -> float:
@@ -179,8 +181,11 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     stats = SearchStats(queries=len(queries), rows=index.n_curves)
     n = index.samples
     done = 0
-    for start, chunk in index.iter_chunks(chunk_rows, ("coefficients",) + _FEATURES, upcast=False):
-        m = len(chunk["coefficients"])
+    # few queries touch few rows: read descriptors only for the rows that need an exact distance
+    lazy = len(queries) <= _LAZY_QUERIES and hasattr(index, "coefficients_at")
+    columns = _FEATURES if lazy else ("coefficients",) + _FEATURES
+    for start, chunk in index.iter_chunks(chunk_rows, columns, upcast=False):
+        m = len(chunk[_FEATURES[0]])
         rfeat = {k: chunk[k].reshape(m, -1).astype(np.float64) for k in _FEATURES}
         rows_global = np.arange(start, start + m)
         for g in range(0, len(queries), QUERY_GROUP):
@@ -205,7 +210,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                         if len(take) == 0:
                             break
                     extra = {"refine_below": _margin(tk.threshold())} if method == "exact" and prune else {}
-                    r = search(qcoef[qi], chunk["coefficients"][take], n, direction=direction, mirror=mirror,
+                    rows_b = index.coefficients_at(rows_global[take]) if lazy else chunk["coefficients"][take]
+                    r = search(qcoef[qi], rows_b, n, direction=direction, mirror=mirror,
                                weights=weights, **extra)
                     n_exact += len(take)
                     tk.add(r["distance"], rows_global[take], r)
@@ -269,3 +275,6 @@ class MemoryIndex:
 
     def ids_at(self, rows) -> list[str]:
         return [self._ids[int(r)] for r in rows]
+
+    def coefficients_at(self, rows) -> np.ndarray:
+        return self._rows["coefficients"][np.asarray(rows, dtype=np.int64)]
