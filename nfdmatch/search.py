@@ -1,4 +1,5 @@
-"""Ranking curves by similarity to a query: in memory now, over an index later."""
+"""Exact k nearest curves: lower-bound pruning, then exact distances in batches, over an
+index file or curves held in memory."""
 
 from __future__ import annotations
 
