@@ -91,14 +91,26 @@ class SearchStats:
         return self.exact / total if total else 0.0
 
 
-def _lower_bounds(qf: dict, rf: dict) -> np.ndarray:
-    """(Q, m) max of the three invariant lower bounds; features (Q, d_t) and (m, d_t) per type."""
+def _lower_bounds(qf: dict, rf: dict, r_norms: dict | None = None) -> np.ndarray:
+    """(Q, m) max of the three invariant lower bounds; features (Q, d_t) and (m, d_t) per type.
+
+    Squared distances as |q|^2 + |r|^2 - 2 q.r (one GEMM each), accumulated in place: the
+    (Q, m) matrices are the memory traffic of this step. ``r_norms`` caches |r|^2 per type.
+    """
     best = None
     for key in _FEATURES:
         q, r = qf[key], rf[key]
-        d2 = (np.einsum("ij,ij->i", q, q)[:, None] + np.einsum("ij,ij->i", r, r)[None, :] - 2.0 * (q @ r.T))
-        best = d2 if best is None else np.maximum(best, d2)
-    return np.sqrt(np.maximum(best, 0.0))
+        rn = r_norms[key] if r_norms is not None else np.einsum("ij,ij->i", r, r)
+        d2 = q @ r.T
+        d2 *= -2.0
+        d2 += rn[None, :]
+        d2 += np.einsum("ij,ij->i", q, q)[:, None]
+        if best is None:
+            best = d2
+        else:
+            np.maximum(best, d2, out=best)
+    np.maximum(best, 0.0, out=best)
+    return np.sqrt(best, out=best)
 
 
 class _TopK:
@@ -189,15 +201,27 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
         m = len(chunk[_FEATURES[0]])
         rfeat = {k: chunk[k].reshape(m, -1).astype(np.float64) for k in _FEATURES}
         rows_global = np.arange(start, start + m)
+        r_norms = {k: np.einsum("ij,ij->i", v, v) for k, v in rfeat.items()}
         for g in range(0, len(queries), QUERY_GROUP):
             group = range(g, min(g + QUERY_GROUP, len(queries)))
-            lb = _lower_bounds({k: v[group.start:group.stop] for k, v in qfeat.items()}, rfeat) \
+            lb = _lower_bounds({k: v[group.start:group.stop] for k, v in qfeat.items()}, rfeat, r_norms) \
                 if prune else np.zeros((len(group), m))
+            # each query's `first` lowest bounds, for all queries of the group in one call
+            first = min(max(32, 2 * (top or 16)), m)
+            lowest = np.argpartition(lb, first - 1, axis=1)[:, :first] if first < m else None
+
             def _answer(qi, bounds):
                 n_exact = 0
                 tk = tops[qi]
-                cand = np.flatnonzero(bounds <= _margin(tk.threshold()))
                 size = max(32, 2 * (top or 16))
+                pending = None
+                if lowest is not None and not np.isfinite(tk.threshold()):
+                    # start from the precomputed lowest bounds; the rest is filtered once the
+                    # first batch has set a k-th distance
+                    pending = lowest[qi - group.start]
+                    cand = pending
+                else:
+                    cand = np.flatnonzero(bounds <= _margin(tk.threshold()))
                 while len(cand):
                     if len(cand) > size:       # the `size` lowest bounds, without sorting them all
                         first = np.argpartition(bounds[cand], size - 1)[:size]
@@ -216,7 +240,12 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                                weights=weights, **extra)
                     n_exact += len(take)
                     tk.add(r["distance"], rows_global[take], r)
-                    if prune:
+                    if pending is not None:       # first batch done: now every other row
+                        seen = np.zeros(len(bounds), dtype=bool)
+                        seen[pending] = True
+                        cand = np.flatnonzero((bounds <= _margin(tk.threshold())) & ~seen)
+                        pending = None
+                    elif prune:
                         cand = cand[bounds[cand] <= _margin(tk.threshold())]
                     size = min(size * 2, BATCH_ROWS)
                 return n_exact
