@@ -709,8 +709,8 @@ def _children(pid):
     for task in os.listdir(f"/proc/{pid}/task"):
         try:
             out += [int(x) for x in open(f"/proc/{pid}/task/{task}/children").read().split()]
-        except OSError:
-            pass
+        except OSError:      # the thread ended while we looked
+            continue
     return out
 
 
