@@ -115,6 +115,17 @@ def matching_options(f):
     return f
 
 
+def _report_errors(errors) -> None:
+    """Name every input that failed on stderr (the messages name the file and line)."""
+    for exc in errors:
+        click.echo(f"Error: {exc}", err=True)
+
+
+def _match_columns(details: bool) -> list[str]:
+    """Columns of the rows `rank` and `query` print."""
+    return ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
+
+
 def handle_errors(func):
     """Map NfdError to 'Error: <message>' on stderr and exit code 1, never a traceback."""
 
@@ -214,21 +225,13 @@ def describe(files, samples, harmonics, scale, input_format, output_format):
       nfdmatch describe sample_curves/library/*.csv --harmonics 8 > descriptors.csv
     """
     from .descriptors import descriptors, validate_parameters
-    from .formats import read_curve, read_curves, split_selector
+    from .sources import read_all
 
     validate_parameters(samples, harmonics, scale)
-    rows, failed = [], 0
-    for spec in files:
-        try:
-            path, index = split_selector(spec)
-            curves = [read_curve(spec, format=input_format)] if index is not None \
-                else read_curves(path, format=input_format)
-            for curve in curves:
-                d = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
-                rows.append(_descriptor_row(d))
-        except NfdError as exc:
-            failed += 1
-            click.echo(f"Error: {exc}", err=True)
+    curves, errors = read_all(files, format=input_format)
+    _report_errors(errors)
+    failed = len(errors)
+    rows = [_descriptor_row(descriptors(c, samples=samples, harmonics=harmonics, scale=scale)) for c in curves]
     if not rows and failed:
         sys.exit(EXIT_ERROR)
     if output_format in ("json", "jsonl"):
@@ -277,14 +280,13 @@ def rank(query_spec, sources, top, max_distance, glob_pattern, details, method, 
     query = read_curve(query_spec, format=input_format)
     files = find_curve_files(sources, glob=glob_pattern)
     curves, errors = read_all(files, format=input_format)
-    for exc in errors:
-        click.echo(f"Error: {exc}", err=True)
+    _report_errors(errors)
     if not curves and errors:
         sys.exit(EXIT_ERROR)
     ranked = rank_curves(query, curves, top=top, max_distance=max_distance, samples=samples,
                          harmonics=harmonics, scale=scale, method=method,
                          direction="strict" if strict_direction else "invariant", mirror=mirror)
-    columns = ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
+    columns = _match_columns(details)
     write_rows([{"query": query.id, **row} for row in ranked], columns, output_format)
     if errors:
         click.echo(f"{len(errors)} of {len(files)} files could not be read", err=True)
@@ -445,13 +447,12 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, show_st
     files = find_curve_files(queries, glob=glob_pattern)
     with open_index(index_path) as idx:
         curves, errors = read_all(files, format=input_format)
-        for exc in errors:
-            click.echo(f"Error: {exc}", err=True)
+        _report_errors(errors)
         if not curves:
             sys.exit(EXIT_ERROR)
         results, stats = search_index(idx, curves, top=top, max_distance=max_distance, method=method,
                                       direction="strict" if strict_direction else "invariant", mirror=mirror)
-    columns = ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
+    columns = _match_columns(details)
     write_rows([{"query": q.id, **row} for q, res in zip(curves, results) for row in res], columns, output_format)
     if show_stats:
         click.echo(f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
