@@ -504,5 +504,14 @@ def _flatten_descriptor_row(row: dict) -> dict:
     return flat
 
 
+
+# --------------------------------------------------------------------------- pictures and reconstruction
+# (show, matrix, reconstruct)
+
+
+# --------------------------------------------------------------------------- meshes -> contours
+# (extract)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -90,3 +90,11 @@ class IndexLockedError(NfdError, OSError):
 
 class ParameterError(NfdError, ValueError):
     """An invalid parameter value (samples, harmonics, scale, method, ...)."""
+
+
+class MeshError(InputError):
+    """A file that is not a readable triangle mesh, or a mesh with nothing to extract."""
+
+
+class RenderError(NfdError, RuntimeError):
+    """A picture that cannot be drawn: no usable renderer on this machine, or it failed."""
