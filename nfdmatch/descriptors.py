@@ -24,7 +24,8 @@ from .curve import Curve, as_points
 from .errors import ParameterError
 
 __all__ = ["Descriptors", "descriptors", "resample", "SCALES", "DEFAULT_SAMPLES",
-           "DEFAULT_HARMONICS", "DEFAULT_SCALE", "validate_parameters"]
+           "DEFAULT_HARMONICS", "DEFAULT_SCALE", "validate_parameters", "descriptors_batch",
+           "DescriptorBatch", "points_at", "reconstruct"]
 
 SCALES = ("rms", "a1")
 DEFAULT_SAMPLES = 128
@@ -85,6 +86,29 @@ def validate_parameters(samples: int, harmonics: int, scale: str) -> None:
         raise ParameterError(f"scale must be one of {', '.join(SCALES)}, got {scale!r}")
 
 
+def points_at(points: np.ndarray, fractions) -> np.ndarray:
+    """Points of a closed polyline at given fractions of its length.
+
+    Parameters
+    ----------
+    points : (n, 3) float64, a cleaned closed polyline (closing edge implicit).
+    fractions : (m,) float, arc length from ``points[0]`` over the total length; taken
+        modulo 1, so negative values walk backwards from the start.
+
+    Returns
+    -------
+    (m, 3) float64.
+    """
+    closed = np.vstack([points, points[:1]])
+    seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    targets = np.mod(np.asarray(fractions, dtype=np.float64), 1.0) * cum[-1]
+    # searchsorted over the cumulative length; zero-length segments were removed by cleaning
+    idx = np.clip(np.searchsorted(cum, targets, side="right") - 1, 0, len(seg) - 1)
+    t = (targets - cum[idx]) / np.where(seg[idx] > 0, seg[idx], 1.0)
+    return closed[idx] + t[:, None] * (closed[idx + 1] - closed[idx])
+
+
 def resample(points: np.ndarray, samples: int) -> np.ndarray:
     """Uniform arc-length resampling of a closed polyline.
 
@@ -98,34 +122,7 @@ def resample(points: np.ndarray, samples: int) -> np.ndarray:
     (samples, 3) float64: sample ``j`` lies at arc length ``j * L / samples`` from
     ``points[0]`` along ``points[0] -> points[1] -> ... -> points[0]``.
     """
-    closed = np.vstack([points, points[:1]])
-    seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    targets = np.arange(samples) * (cum[-1] / samples)
-    # searchsorted over the cumulative length; zero-length segments were removed by cleaning
-    idx = np.clip(np.searchsorted(cum, targets, side="right") - 1, 0, len(seg) - 1)
-    t = (targets - cum[idx]) / np.where(seg[idx] > 0, seg[idx], 1.0)
-    return closed[idx] + t[:, None] * (closed[idx + 1] - closed[idx])
-
-
-def _plane_rotation(a1: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Rotation taking the limit-plane normal of ``a1`` ((3,) complex) onto +z.
-
-    Returns ``((3, 3) float64, degenerate)``; identity when the plane is undefined.
-    """
-    p, q = a1.real, -a1.imag
-    sv = np.linalg.svd(np.column_stack([p, q]), compute_uv=False)
-    if sv[0] == 0 or sv[1] / sv[0] < PLANE_DEGENERACY:
-        return np.eye(3), True
-    normal = np.cross(p, q)
-    normal /= np.linalg.norm(normal)
-    z = np.array([0.0, 0.0, 1.0])
-    c = float(normal @ z)
-    if c < -1 + 1e-12:  # antiparallel: half-turn about x
-        return np.diag([1.0, -1.0, -1.0]), False
-    v = np.cross(normal, z)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1 + c), False
+    return points_at(points, np.arange(samples) / samples)
 
 
 def descriptors(curve, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
@@ -141,35 +138,48 @@ def descriptors(curve, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAU
 
     Returns
     -------
-    :class:`Descriptors` with ``coefficients`` (K, 3) complex128.
+    :class:`Descriptors` with ``coefficients`` (K, 3) complex128: row 0 of
+    :func:`descriptors_batch` of this one curve (one implementation of the normalization).
     """
     validate_parameters(samples, harmonics, scale)
     points = as_points(curve)
-    curve_id = curve.id if isinstance(curve, Curve) else "<array>"
-    # Work on a centred, rescaled copy so that huge or tiny coordinates stay in range.
-    offset = points.mean(axis=0)
-    extent = float(np.abs(points - offset).max())
-    unit = (points - offset) / extent
-    pts = resample(unit, samples)
-    fd = np.fft.fft(pts, axis=0) / samples
-    rms = float(np.sqrt(np.sum(np.abs(fd[1:]) ** 2)))
-    a1 = float(np.linalg.norm(fd[1]))
-    divisor = rms if scale == "rms" else max(a1, rms * 1e-15)
-    coeffs = fd[1:harmonics + 1] / divisor
-    rotation, degenerate = _plane_rotation(fd[1])
-    if a1 < rms * PLANE_DEGENERACY:
-        rotation, degenerate = np.eye(3), True
-    return Descriptors(
-        coefficients=coeffs @ rotation.T,
-        rotation=rotation,
-        centroid=offset + fd[0].real * extent,
-        scale=divisor * extent,
-        plane_degenerate=degenerate,
-        samples=int(samples),
-        harmonics=int(harmonics),
-        scale_mode=scale,
-        id=curve_id,
-    )
+    return descriptors_batch([points], samples=samples, harmonics=harmonics, scale=scale).row(
+        0, curve.id if isinstance(curve, Curve) else "<array>")
+
+
+def reconstruct(d: "Descriptors", *, harmonics: int | None = None, points: int | None = None,
+                normalized: bool = False) -> np.ndarray:
+    """The curve rebuilt from its first harmonics: what the descriptor sees.
+
+    ``x(t) = A_0 + 2 Re sum_{k=1..K} A_k exp(2 pi i k t)`` at ``t = j / points``, with the
+    raw coefficients ``A_k = scale * rotation^T @ coefficients_k`` (input units and
+    orientation) and ``A_0 = centroid``; ``normalized=True`` gives the normalized curve
+    instead (centred, unit scale, limit plane on z = 0).
+
+    Parameters
+    ----------
+    d : :class:`Descriptors`.
+    harmonics : K, at most ``d.harmonics`` (default: all of them).
+    points : vertices of the output (default ``d.samples``); sample ``j`` sits at the
+        parameter of the descriptor's sample ``j * d.samples / points``.
+    normalized : output in the normalized frame.
+
+    Returns
+    -------
+    (points, 3) float64, a closed polyline (closing edge implicit).
+    """
+    K = d.harmonics if harmonics is None else int(harmonics)
+    if not 1 <= K <= d.harmonics:
+        raise ParameterError(f"harmonics must be between 1 and {d.harmonics} (the descriptor's), got {harmonics!r}")
+    m = d.samples if points is None else int(points)
+    if m < 3:
+        raise ParameterError(f"points must be at least 3, got {points!r}")
+    coeffs = d.coefficients[:K]                                      # (K, 3)
+    if not normalized:
+        coeffs = d.scale * coeffs @ d.rotation                       # rotation^T applied to each row
+    phase = np.exp(2j * np.pi * np.outer(np.arange(m) / m, np.arange(1, K + 1)))   # (m, K)
+    curve = 2.0 * (phase @ coeffs).real
+    return curve if normalized else curve + d.centroid
 
 
 @dataclass(frozen=True)
@@ -198,9 +208,19 @@ class DescriptorBatch:
     def __len__(self) -> int:
         return int(self.coefficients.shape[0])
 
+    def row(self, i: int, id: str = "<array>") -> Descriptors:
+        """Row ``i`` as a :class:`Descriptors` (arrays copied)."""
+        return Descriptors(coefficients=self.coefficients[i].copy(), rotation=self.rotation[i].copy(),
+                           centroid=self.centroid[i].copy(), scale=float(self.scale[i]),
+                           plane_degenerate=bool(self.plane_degenerate[i]), samples=self.samples,
+                           harmonics=self.harmonics, scale_mode=self.scale_mode, id=id)
+
 
 def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vectorized :func:`_plane_rotation`: a1 (N, 3) complex, rms (N,) -> ((N, 3, 3), (N,) bool)."""
+    """Rotations taking each limit-plane normal ``Re a1 x (-Im a1)`` onto +z.
+
+    a1 (N, 3) complex, rms (N,) -> ((N, 3, 3) float64, (N,) bool degenerate); the identity
+    where the plane is undefined (``p``, ``q`` nearly parallel or ``|a1|`` nearly zero)."""
     p, q = a1.real, -a1.imag
     sv = np.linalg.svd(np.stack([p, q], axis=-1), compute_uv=False)          # (N, 2)
     degenerate = (sv[:, 0] == 0) | (sv[:, 1] < PLANE_DEGENERACY * sv[:, 0]) \

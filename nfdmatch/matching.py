@@ -79,6 +79,23 @@ class Match:
             "translation": np.asarray(self.translation, dtype=float).tolist(),
         }
 
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Map points of curve b into a's coordinates: ``scale * rotation @ p + translation``.
+
+        points : (m, 3) float64 -> (m, 3) float64.
+        """
+        return self.scale * np.asarray(points, dtype=np.float64) @ self.rotation.T + self.translation
+
+    def partner_fractions(self, fractions_a, samples: int) -> np.ndarray:
+        """Where on b (fraction of b's length from its first vertex, in [0, 1)) the points of a
+        at ``fractions_a`` ((m,) float, fractions of a's length) land under this match.
+
+        Sample ``j`` of a corresponds to sample ``j + shift`` of b, or ``-(j + shift)`` when
+        reversed; ``samples`` is the n the descriptors were computed with.
+        """
+        t = (np.asarray(fractions_a, dtype=np.float64) * samples + self.shift) / samples
+        return np.mod(-t if self.reversed else t, 1.0)
+
 
 # --------------------------------------------------------------------------- helpers
 

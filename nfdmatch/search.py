@@ -12,7 +12,7 @@ from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, desc
 from .errors import ParameterError
 from .matching import exact_search, paper_search
 
-__all__ = ["rank_curves", "search_index", "SearchStats", "BATCH_ROWS", "CHUNK_ROWS"]
+__all__ = ["rank_curves", "search_index", "distance_matrix", "SearchStats", "BATCH_ROWS", "CHUNK_ROWS"]
 
 #: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
 BATCH_ROWS = 2048
@@ -51,6 +51,45 @@ def rank_curves(query, curves, *, top: int | None = None, max_distance: float | 
                               else len(curves), max_distance=max_distance, method=method,
                               direction=direction, mirror=mirror, weights=weights, prune=weights is None)
     return results[0]
+
+
+def distance_matrix(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
+                    scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
+                    mirror: bool = False, weights=None, progress=None) -> np.ndarray:
+    """All-pairs distances of ``curves``.
+
+    Parameters
+    ----------
+    curves : sequence of N :class:`~nfdmatch.curve.Curve` or (n_i, 3) arrays.
+    progress : optional callable ``progress(pairs_done, pairs_total)``.
+    Other parameters as in :func:`nfdmatch.distance`.
+
+    Returns
+    -------
+    (N, N) float64, symmetric with a zero diagonal: entry ``(i, j)`` for ``i < j`` is
+    ``distance(curves[i], curves[j])`` and is mirrored below the diagonal. The exact
+    distance is symmetric in itself (to ~1e-9); the paper's step is not, and its matrix
+    takes the row curve as the reference.
+
+    One vectorized call per row against all later rows (N - 1 calls, N (N - 1) / 2 pairs).
+    """
+    from .descriptors import descriptors_batch
+
+    if method not in ("exact", "paper"):
+        raise ParameterError(f"method must be exact or paper, got {method!r}")
+    batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
+    N = len(batch)
+    matrix = np.zeros((N, N))
+    search = exact_search if method == "exact" else paper_search
+    total, done = N * (N - 1) // 2, 0
+    for i in range(N - 1):
+        r = search(batch.coefficients[i], batch.coefficients[i + 1:], samples, weights=weights,
+                   direction=direction, mirror=mirror)
+        matrix[i, i + 1:] = r["distance"]
+        done += N - 1 - i
+        if progress is not None:
+            progress(done, total)
+    return matrix + matrix.T
 
 
 # --------------------------------------------------------------------------- index search

@@ -1,0 +1,156 @@
+"""Matches put into the query's frame, for pictures: the data behind ``nfdmatch show``.
+
+Each match is re-matched against the query (one exact search per match, so only the top
+few) to get the rotation, scale, translation, start shift and direction that the search
+found, and its vertices are mapped into the query's coordinates with them. A match is
+drawn from its source file when that file still holds the indexed curve, otherwise from
+the harmonics stored in the index (true size and pose: the index keeps each curve's
+centroid, scale and rotation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .curve import Curve
+from .descriptors import Descriptors, descriptors, reconstruct
+from .errors import NfdError
+from .matching import match_descriptors
+
+__all__ = ["ShownMatch", "align_match", "matches_from_curves", "matches_from_index", "START_STEP"]
+
+#: fraction of the query's length between its start marker and the direction marker
+START_STEP = 0.04
+#: a file whose re-matched distance differs from the indexed one by more than this (relative
+#: to 1 + distance) no longer holds the indexed curve: draw from the index instead
+_CHANGED = 1e-3
+
+
+@dataclass(frozen=True)
+class ShownMatch:
+    """One match ready to draw.
+
+    Attributes
+    ----------
+    rank : int, 1-based.
+    id : str, the match's curve id.
+    distance : float, the distance the search reported.
+    points : (m, 3) float64, the match's vertices in the query's coordinates.
+    start : (3,) float64, the point of the match that corresponds to the query's first vertex.
+    forward : (3,) float64, the point that corresponds to the query a little further on
+        (``START_STEP`` of its length): together with ``start``, the direction of travel.
+    reversed, mirrored : bool, as in :class:`~nfdmatch.matching.Match`.
+    source : ``"file"`` (drawn from the curve file) or ``"index"`` (from stored harmonics).
+    """
+
+    rank: int
+    id: str
+    distance: float
+    points: np.ndarray
+    start: np.ndarray
+    forward: np.ndarray
+    reversed: bool
+    mirrored: bool
+    source: str
+
+
+def align_match(dq: Descriptors, db: Descriptors, points_b: np.ndarray, *, rank: int, distance: float,
+                source: str, method: str = "exact", direction: str = "invariant",
+                mirror: bool = False, match=None) -> ShownMatch:
+    """Map ``points_b`` ((m, 3) float64, the curve behind ``db``) into the frame of the query
+    behind ``dq`` with the alignment of their match (``match``, computed when None)."""
+    m = match if match is not None else match_descriptors(dq, db, method=method, direction=direction,
+                                                          mirror=mirror)
+    fractions = m.partner_fractions(np.array([0.0, START_STEP]), dq.samples)
+    from .descriptors import points_at
+
+    marks = m.apply(points_at(points_b, fractions))
+    return ShownMatch(rank=rank, id=db.id, distance=float(distance), points=m.apply(points_b),
+                      start=marks[0], forward=marks[1], reversed=m.reversed, mirrored=m.mirrored,
+                      source=source)
+
+
+def matches_from_curves(query: Curve, results: list[dict], curves: dict, *, samples: int, harmonics: int,
+                        scale: str, method: str = "exact", direction: str = "invariant",
+                        mirror: bool = False) -> list[ShownMatch]:
+    """Matches of a ranking over curves held in memory.
+
+    results : rows of :func:`~nfdmatch.search.rank_curves` (``rank``, ``match``, ``distance``).
+    curves : id -> :class:`~nfdmatch.curve.Curve`, holding every ``match`` id.
+    """
+    dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
+    shown = []
+    for row in results:
+        curve = curves[row["match"]]
+        db = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
+        shown.append(align_match(dq, db, curve.points, rank=row["rank"], distance=row["distance"],
+                                 source="file", method=method, direction=direction, mirror=mirror))
+    return shown
+
+
+def _index_descriptors(index, rows: list[int], ids: list[str]) -> list[Descriptors]:
+    out = []
+    for row, curve_id in zip(rows, ids):
+        r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
+        out.append(Descriptors(coefficients=r["coefficients"][0], rotation=r["rotation"][0],
+                               centroid=r["centroid"][0], scale=float(r["scale"][0]),
+                               plane_degenerate=bool(r["plane_degenerate"][0]), samples=index.samples,
+                               harmonics=index.harmonics, scale_mode=index.scale, id=curve_id))
+    return out
+
+
+def matches_from_index(query: Curve, results: list[dict], index, *, method: str = "exact",
+                       direction: str = "invariant", mirror: bool = False, read_curve=None,
+                       points: int = 256) -> tuple[list[ShownMatch], list[str]]:
+    """Matches of an index search, drawn from their files when those still hold the curve.
+
+    results : one query's rows of :func:`~nfdmatch.search.search_index`.
+    index : the open :class:`~nfdmatch.index.Index` searched.
+    read_curve : ``spec -> Curve`` (default :func:`nfdmatch.formats.read_curve`).
+    points : vertices of a curve drawn from its stored harmonics.
+
+    Returns ``(matches, notes)``; a note says which match was drawn from the index and why.
+    """
+    if read_curve is None:
+        from .formats import read_curve
+    samples, harmonics, scale = index.samples, index.harmonics, index.scale
+    dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
+    wanted = {row["match"] for row in results}
+    row_of = {}
+    for start, chunk in _id_chunks(index):
+        for offset, curve_id in enumerate(chunk):
+            if curve_id in wanted:
+                row_of[curve_id] = start + offset
+    stored = dict(zip([r["match"] for r in results],
+                      _index_descriptors(index, [row_of[r["match"]] for r in results],
+                                         [r["match"] for r in results])))
+    shown, notes = [], []
+    for row in results:
+        curve_id = row["match"]
+        reason = None
+        try:
+            curve = read_curve(curve_id)
+        except NfdError as exc:
+            reason = f"cannot read it ({exc})"
+        else:
+            db = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
+            m = match_descriptors(dq, db, method=method, direction=direction, mirror=mirror)
+            recomputed = m.distance
+            if abs(recomputed - row["distance"]) <= _CHANGED * (1.0 + row["distance"]):
+                shown.append(align_match(dq, db, curve.points, rank=row["rank"], distance=row["distance"],
+                                         source="file", match=m))
+                continue
+            reason = f"the file changed since it was indexed (distance now {recomputed:.4g})"
+        db = stored[curve_id]
+        shown.append(align_match(dq, db, reconstruct(db, points=points), rank=row["rank"],
+                                 distance=row["distance"], source="index", method=method,
+                                 direction=direction, mirror=mirror))
+        notes.append(f"{curve_id}: drawn from its {harmonics} indexed harmonics: {reason}")
+    return shown, notes
+
+
+def _id_chunks(index, rows: int = 65536):
+    for start in range(0, index.n_curves, rows):
+        yield start, index.ids(start, min(start + rows, index.n_curves))
