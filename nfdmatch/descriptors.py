@@ -233,8 +233,12 @@ def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.nd
     vx = np.zeros((len(c), 3, 3))
     vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 0] = -v[:, 2], v[:, 1], v[:, 2]
     vx[:, 1, 2], vx[:, 2, 0], vx[:, 2, 1] = -v[:, 0], -v[:, 1], v[:, 0]
-    antiparallel = c < -1 + 1e-12
-    factor = 1.0 / np.where(antiparallel, 1.0, 1.0 + c)
+    # 1 + c cancels for normals near -z; for a unit normal 1 + c = (nx^2 + ny^2) / (1 - c)
+    # exactly, which keeps the rotation orthonormal to rounding however close to -z
+    off_axis = normal[:, 0] ** 2 + normal[:, 1] ** 2
+    antiparallel = (c < 0) & (off_axis < 1e-300)
+    one_plus_c = np.where(c >= 0, 1.0 + c, off_axis / (1.0 - c))
+    factor = 1.0 / np.where(antiparallel, 1.0, one_plus_c)
     R = np.eye(3) + vx + (vx @ vx) * factor[:, None, None]
     R[antiparallel] = np.diag([1.0, -1.0, -1.0])
     R[degenerate] = np.eye(3)

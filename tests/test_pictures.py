@@ -34,6 +34,22 @@ def test_single_descriptors_are_row_of_batch(rng):
         assert d.scale == pytest.approx(batch.scale[i], rel=1e-12)
 
 
+@pytest.mark.parametrize("tilt", [0.0, 1e-9, 1e-6, 1e-3])
+def test_plane_rotation_stays_orthonormal_for_normals_near_minus_z(tilt):
+    """A clockwise planar curve has its limit-plane normal at -z; a tiny tilt once made
+    1 + cos(angle) cancel and the rotation lose orthonormality (1e-5): found by the matrix
+    test disagreeing with `distance` by 3e-6."""
+    t = np.arange(400) / 400
+    pts = np.c_[3 * np.cos(-2 * np.pi * t), np.sin(-2 * np.pi * t), np.zeros(400)]
+    c, s = np.cos(tilt), np.sin(tilt)
+    pts = pts @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T
+    d = descriptors(pts)
+    R = d.rotation
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-13)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-13)
+    assert np.abs(d.coefficients[:, 2]).max() < 1e-9          # the curve lies in z = 0 after rotation
+
+
 def test_points_at_walks_the_polyline():
     square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     got = points_at(square, [0.0, 0.125, 0.25, 0.5, 0.875, -0.125, 1.0])
