@@ -237,7 +237,7 @@ def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.nd
     # exactly, which keeps the rotation orthonormal to rounding however close to -z
     off_axis = normal[:, 0] ** 2 + normal[:, 1] ** 2
     antiparallel = (c < 0) & (off_axis < 1e-300)
-    one_plus_c = np.where(c >= 0, 1.0 + c, off_axis / (1.0 - c))
+    one_plus_c = np.where(c >= 0, 1.0 + c, off_axis / (1.0 - np.minimum(c, 0.0)))
     factor = 1.0 / np.where(antiparallel, 1.0, one_plus_c)
     R = np.eye(3) + vx + (vx @ vx) * factor[:, None, None]
     R[antiparallel] = np.diag([1.0, -1.0, -1.0])
