@@ -174,7 +174,27 @@ def short_labels(ids: Sequence[str], width: int = LABEL_WIDTH) -> list[str]:
         for k in clash:
             m = _SELECTOR.search(ids[k])
             labels[k] = "/".join(parts[k][-depth:]) + (m.group(0) if m and m.start() > 0 else "")
+    if len(labels) > 1 and max(len(label) for label in labels) > width:
+        labels = _without_common_affixes(labels)
     return [_ellipsize(label, width) for label in labels]
+
+
+_CUT = "_-. /"
+
+
+def _without_common_affixes(labels: list[str]) -> list[str]:
+    """Drop the prefix and suffix all labels share (cut at a separator, so words stay
+    whole), marked by an ellipsis: the part that tells long similar names apart stays
+    visible (``column_section-z05_at1.83333_loop0.obj`` -> ``…z05_at1.83333…``)."""
+    prefix = os.path.commonprefix(labels)
+    suffix = os.path.commonprefix([label[::-1] for label in labels])[::-1]
+    shortest = min(len(label) for label in labels)
+    cut_start = max((i + 1 for i, ch in enumerate(prefix) if ch in _CUT), default=0)
+    cut_end = max((i + 1 for i, ch in enumerate(suffix[::-1]) if ch in _CUT), default=0)
+    if cut_start + cut_end >= shortest:                     # nothing distinctive would be left
+        return labels
+    return [("\u2026" if cut_start else "") + label[cut_start:len(label) - cut_end]
+            + ("\u2026" if cut_end else "") for label in labels]
 
 
 def _ellipsize(text: str, width: int) -> str:
@@ -424,14 +444,15 @@ def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], siz
 
     q = to_view(query)
     q_start, q_forward = q[0], to_view(_point_along(query, _QUERY_STEP))
-    qlabel = short_label(query_id)
+    # shortened together: long names that differ in the middle keep that middle
+    qlabel, *match_labels = short_labels([query_id] + [p.id for p in panels])
     scene_panels = [_Panel(title=f"query: {qlabel}",
                            subtitle=_key(planar, bool(panels)),
                            points=q, start=q_start, forward=q_forward, is_query=True)]
     for rank, p in enumerate(panels, 1):
         flags = [f for f, on in (("reversed", p.reversed), ("mirrored", p.mirrored)) if on]
         scene_panels.append(_Panel(
-            title=f"{rank}. {short_label(p.id)}",
+            title=f"{rank}. {match_labels[rank - 1]}",
             subtitle="  \u00b7  ".join([f"d = {_format_distance(p.distance)}"] + flags),
             points=to_view(p.points), start=to_view(p.start), forward=to_view(p.forward), is_query=False))
     allv = np.vstack([sp.points for sp in scene_panels]
@@ -967,8 +988,9 @@ def _draw_matrix(m: np.ndarray, labels: list[str], size, title) -> bytes:
     else:
         for axis in (ax.xaxis, ax.yaxis):
             axis.set_minor_locator(NullLocator())
-    for spine in ax.spines.values():
-        spine.set_visible(False)
+    for spine in ax.spines.values():        # a frame, so the palest (farthest) cells show
+        spine.set_color("#808080")
+        spine.set_linewidth(0.8)
     if title:
         ax.set_title(title, fontsize=12)
     bar = fig.colorbar(image, ax=ax, shrink=0.8, pad=0.02, fraction=0.05)
