@@ -25,10 +25,14 @@ demo: $(STAMP)
 	$(BIN)/nfdmatch index build sample_curves/library --index demo-out/demo.h5
 	@echo "== query with a re-posed, resampled, reversed trefoil ==" >&2
 	$(BIN)/nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo-out/demo.h5 --top 8 --format table
+	@echo "== see the best five, each aligned onto the query ==" >&2
+	$(BIN)/nfdmatch show sample_curves/queries/trefoil-posed.obj --index demo-out/demo.h5 --top 5 -o demo-out/matches.png --format table
+	@echo "== open demo-out/matches.png (the README shows the same picture: docs/images/demo-matches.png) ==" >&2
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_distance.py
 	$(BIN)/python benchmarks/bench_index.py
+	$(BIN)/python benchmarks/bench_render.py
 
 devdata: $(STAMP)
 	$(BIN)/python benchmarks/eval_devdata.py

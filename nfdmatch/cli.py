@@ -508,6 +508,240 @@ def _flatten_descriptor_row(row: dict) -> dict:
 # --------------------------------------------------------------------------- pictures and reconstruction
 # (show, matrix, reconstruct)
 
+def _parse_size(value: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels, e.g. 1600x900, got {value!r}")
+    if not (100 <= width <= 10000 and 100 <= height <= 10000):
+        raise click.BadParameter(f"width and height must be 100..10000 pixels, got {value!r}")
+    return width, height
+
+
+def _renderer_option(f):
+    return click.option("--renderer", type=click.Choice(["auto", "matplotlib", "pyvista"]), default="auto",
+                        show_default=True,
+                        help="Drawing library; auto uses the default and falls back to the other one.")(f)
+
+
+def _optional_descriptor_options(f):
+    """samples/harmonics/scale without defaults: an index fixes them, files take the defaults."""
+    from .descriptors import SCALES
+
+    f = click.option("--scale", type=click.Choice(SCALES), default=None,
+                     help="Scale normalization (with --against; default rms).")(f)
+    f = click.option("--harmonics", "-k", type=click.IntRange(min=1), default=None,
+                     help="Harmonics K (with --against; default 16).")(f)
+    f = click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
+                     help="Arc-length samples (with --against; default 128).")(f)
+    return f
+
+
+def _report_picture(result) -> None:
+    if result.note:
+        click.echo(f"Note: {result.note}", err=True)
+    click.echo(f"wrote {result.path} ({result.renderer}, {result.seconds:.2f} s)", err=True)
+
+
+@main.command()
+@click.argument("query_spec", metavar="QUERY")
+@click.argument("sources", nargs=-1, metavar="[SOURCE...]")
+@click.option("--against", is_flag=True,
+              help="Rank the files or folders SOURCE... instead of searching an index.")
+@index_option
+@click.option("--top", type=click.IntRange(min=1, max=23), default=5, show_default=True,
+              help="Matches to draw.")
+@click.option("--output", "-o", required=True, type=click.Path(dir_okay=False),
+              help="The PNG file to write.")
+@click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
+@_renderer_option
+@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches.")
+@matching_options
+@_optional_descriptor_options
+@input_format_option
+@output_option(help_extra=" for the rows drawn (default: a table on a terminal, CSV otherwise)")
+@handle_errors
+def show(query_spec, sources, against, index_path, top, output, size, renderer, glob_pattern, method,
+         strict_direction, mirror, samples, harmonics, scale, input_format, output_format):
+    """Draw QUERY and its best matches, each aligned onto the query, into one PNG.
+
+    The matches come from the index (--index, as `query` finds them) or, with --against,
+    from ranking the curves in SOURCE... . Every match is drawn in the query's frame with
+    the rotation, scale, start shift and direction of its match: the query in grey under
+    it, start points marked, direction of travel shown. Planar curves get a 2-D view.
+    The rows drawn are printed on stdout (query, rank, match, distance, source).
+
+    \b
+    Examples:
+      nfdmatch show sample_curves/queries/trefoil-posed.obj --index demo.h5 -o matches.png
+      nfdmatch show q.csv --against library/ --top 8 -o q.png
+    """
+    from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
+    from .formats import read_curve
+    from .render import MatchPanel, render_matches
+
+    width_height = _parse_size(size)
+    direction = "strict" if strict_direction else "invariant"
+    query = read_curve(query_spec, format=input_format)
+    notes: list[str] = []
+    exit_code = EXIT_OK
+    if against:
+        if not sources:
+            raise click.UsageError("--against needs at least one SOURCE file or folder")
+        from .search import rank_curves
+        from .show import matches_from_curves
+        from .sources import find_curve_files, read_all
+
+        files = find_curve_files(sources, glob=glob_pattern)
+        curves, errors = read_all(files, format=input_format)
+        _report_errors(errors)
+        if not curves:
+            sys.exit(EXIT_ERROR)
+        if errors:
+            exit_code = EXIT_PARTIAL
+        params = dict(samples=samples or DEFAULT_SAMPLES, harmonics=harmonics or DEFAULT_HARMONICS,
+                      scale=scale or DEFAULT_SCALE)
+        ranked = rank_curves(query, curves, top=top, method=method, direction=direction, mirror=mirror, **params)
+        shown = matches_from_curves(query, ranked, {c.id: c for c in curves}, method=method,
+                                    direction=direction, mirror=mirror, **params)
+    else:
+        if sources:
+            raise click.UsageError("SOURCE... is only read with --against (without it, the index is searched)")
+        if samples or harmonics or scale:
+            raise click.UsageError("--samples/--harmonics/--scale go with --against: the index fixes its own")
+        from .index import open_index
+        from .search import search_index
+        from .show import matches_from_index
+
+        with open_index(index_path) as idx:
+            results, _ = search_index(idx, [query], top=top, method=method, direction=direction, mirror=mirror)
+            shown, notes = matches_from_index(query, results[0], idx, method=method, direction=direction,
+                                              mirror=mirror)
+    for note in notes:
+        click.echo(f"Note: {note}", err=True)
+    panels = [MatchPanel(id=s.id, distance=s.distance, points=s.points, start=s.start, forward=s.forward,
+                         reversed=s.reversed, mirrored=s.mirrored) for s in shown]
+    result = render_matches(query.points, query.id, panels, output, size=width_height, renderer=renderer)
+    write_rows([{"query": query.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
+                for s in shown], ["query", "rank", "match", "distance", "source"], output_format)
+    _report_picture(result)
+    sys.exit(exit_code)
+
+
+@main.command()
+@click.argument("sources", nargs=-1, required=True, metavar="FILE_OR_FOLDER...")
+@click.option("--output", "-o", default=None, type=click.Path(dir_okay=False),
+              help="Also draw the matrix as a shaded PNG (darker = more similar).")
+@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches.")
+@matching_options
+@descriptor_options
+@input_format_option
+@click.option("--format", "output_format", type=click.Choice(["csv", "tsv", "json"]), default="csv",
+              show_default=True, help="Format of the matrix on stdout.")
+@handle_errors
+def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samples, harmonics, scale,
+           input_format, output_format):
+    """The distance between every pair of curves in FILE_OR_FOLDER... .
+
+    stdout: CSV/TSV with a header row `id,<id 1>,<id 2>,...` then one row per curve, its id
+    first; or JSON {"ids": [...], "distances": [[...], ...]}. Symmetric, zero diagonal,
+    curves in the order found (files sorted, curves in file order). With -o, also a
+    grey-level picture like the paper's Figure 7.
+
+    \b
+    Example:
+      nfdmatch matrix sample_curves/library -o matrix.png > matrix.csv
+    """
+    from .search import distance_matrix
+    from .sources import find_curve_files, read_all
+
+    files = find_curve_files(sources, glob=glob_pattern)
+    curves, errors = read_all(files, format=input_format)
+    _report_errors(errors)
+    if not curves:
+        sys.exit(EXIT_ERROR)
+    progress, finish = _progress_bar("distances")
+    try:
+        distances = distance_matrix(curves, samples=samples, harmonics=harmonics, scale=scale, method=method,
+                                    direction="strict" if strict_direction else "invariant", mirror=mirror,
+                                    progress=progress)
+    finally:
+        finish()
+    ids = [c.id for c in curves]
+    if output_format == "json":
+        click.echo(json.dumps({"ids": ids, "distances": distances.tolist()}, indent=1))
+    else:
+        buf = io.StringIO()
+        writer = csv.writer(buf, delimiter="," if output_format == "csv" else "\t", lineterminator="\n")
+        writer.writerow(["id"] + ids)
+        for curve_id, row in zip(ids, distances):
+            writer.writerow([curve_id] + [repr(float(v)) for v in row])
+        click.echo(buf.getvalue(), nl=False)
+    if output:
+        from .render import render_matrix
+
+        _report_picture(render_matrix(distances, ids, output,
+                                      title=f"{method} distance, {len(ids)} curves"))
+    if errors:
+        click.echo(f"{len(errors)} of {len(files)} files could not be read", err=True)
+        sys.exit(EXIT_PARTIAL)
+
+
+@main.command()
+@click.argument("curve_spec", metavar="FILE")
+@click.option("--harmonics", "-k", type=click.IntRange(min=1), required=True,
+              help="Harmonics K kept: frequencies +-1..+-K.")
+@click.option("--output", "-o", required=True, type=click.Path(dir_okay=False),
+              help="The curve file to write; its extension picks the format (csv, obj, vtk, vtp, vtu).")
+@click.option("--points", "-m", type=click.IntRange(min=3), default=None,
+              help="Vertices of the rebuilt curve [default: the samples].")
+@click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
+              help="Arc-length samples of the transform [default: max(128, 4K)].")
+@click.option("--normalized", is_flag=True,
+              help="Write the normalized curve (centred, unit scale, limit plane on z = 0), not the input pose.")
+@input_format_option
+@click.option("--output-format", "curve_format", default=None,
+              help="Write this curve format whatever OUT's extension (csv, obj, vtk, vtp, vtu).")
+@output_option(help_extra=" for the summary rows (default: a table on a terminal, CSV otherwise)")
+@handle_errors
+def reconstruct(curve_spec, harmonics, output, points, samples, normalized, input_format, curve_format,
+                output_format):
+    """Rebuild the curve(s) in FILE from their first K harmonics: what the descriptor sees.
+
+    The rebuilt curve keeps the input's position, size and orientation (unless
+    --normalized), and is written to OUT in the format of its extension (a multi-curve
+    FILE gives a multi-curve OUT; CSV holds one curve, so select it with FILE#I). Rows on
+    stdout: curve, harmonics, vertices, distance (from the rebuilt curve to the input,
+    default matching parameters).
+
+    \b
+    Example:
+      nfdmatch reconstruct sample_curves/library/trefoil.obj -k 3 -o trefoil-k3.vtp
+    """
+    from .curve import Curve
+    from .descriptors import descriptors, reconstruct as rebuild
+    from .formats import read_curve, read_curves, split_selector, write_curves
+    from .matching import distance
+
+    n = samples if samples is not None else max(128, 4 * harmonics)
+    if 2 * harmonics >= n:
+        raise click.BadParameter(f"harmonics ({harmonics}) must be below samples/2 ({n}/2)",
+                                 param_hint="--harmonics")
+    _, selector = split_selector(curve_spec)
+    curves = ([read_curve(curve_spec, format=input_format)] if selector is not None
+              else read_curves(curve_spec, format=input_format))
+    rebuilt, rows = [], []
+    for curve in curves:
+        d = descriptors(curve, samples=n, harmonics=harmonics)
+        pts = rebuild(d, points=points, normalized=normalized)
+        rebuilt.append(Curve(pts, id=f"{curve.id} K={harmonics}"))
+        rows.append({"curve": curve.id, "harmonics": harmonics, "vertices": len(pts),
+                     "distance": None if normalized else float(distance(curve, pts).distance)})
+    write_curves(output, rebuilt, format=curve_format)
+    columns = ["curve", "harmonics", "vertices"] + ([] if normalized else ["distance"])
+    write_rows(rows, columns, output_format)
+    click.echo(f"wrote {output}", err=True)
+
 
 # --------------------------------------------------------------------------- meshes -> contours
 # (extract)

@@ -477,3 +477,11 @@ def test_no_egl_in_a_real_process_is_an_error_or_a_fallback_never_a_crash(tmp_pa
     else:
         assert first == "drew pyvista" and second == "auto pyvista None"
     _check_picture(out, (400, 300))
+
+
+def test_short_labels_drop_the_common_affixes_of_long_similar_names():
+    ids = [f"contours/column_section-z{i:02d}_at{i / 3:g}_loop0.obj" for i in range(12)]
+    labels = short_labels(ids, 28)
+    assert labels[5] == "\u2026z05_at1.66667\u2026" and len(set(labels)) == 12
+    # short names are left whole
+    assert short_labels(["a/x.csv", "b/y.csv"]) == ["x.csv", "y.csv"]

@@ -1,0 +1,212 @@
+"""`nfdmatch reconstruct`, `matrix` and `show` end to end through CliRunner: exit codes,
+stdout (data) and stderr (messages) apart, files written and read back."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from oracle import random_rigid_motion, random_smooth_curve, reverse, start_shift, torus_knot
+
+from nfdmatch import read_curve, read_curves, write_curves
+from nfdmatch.cli import main
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SAMPLES = os.path.join(ROOT, "sample_curves")
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def run(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return result.exit_code, result.stdout, result.stderr
+
+
+def png_size(path) -> tuple[int, int]:
+    data = open(path, "rb").read(24)
+    assert data[:8] == PNG_SIGNATURE
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def png_pixels(path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+@pytest.fixture
+def folder(tmp_path, rng):
+    """Five curves: a knot, a posed/restarted/reversed copy of it, and three others."""
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    knot = torus_knot(2, 3, 600)
+    write_curves(lib / "knot.csv", knot)
+    write_curves(lib / "knot-posed.obj", random_rigid_motion(reverse(start_shift(knot, 77)), rng))
+    write_curves(lib / "other.vtp", [random_smooth_curve(rng, n_vertices=500), torus_knot(2, 5, 400)])
+    write_curves(lib / "blob.csv", random_smooth_curve(rng, n_vertices=300))
+    return lib
+
+
+# --------------------------------------------------------------------------- reconstruct
+
+def test_reconstruct_writes_the_format_of_the_extension_and_reports_the_distance(tmp_path):
+    src = os.path.join(SAMPLES, "library", "knotess", "5_2.csv")
+    dists = []
+    for k, ext in [(1, "csv"), (4, "obj"), (16, "vtp")]:
+        out = tmp_path / f"r{k}.{ext}"
+        code, stdout, stderr = run("reconstruct", src, "-k", k, "-o", out, "--format", "csv")
+        assert code == 0, stderr
+        assert f"wrote {out}" in stderr
+        rows = list(csv.DictReader(io.StringIO(stdout)))
+        assert [r["curve"] for r in rows] == [src] and rows[0]["harmonics"] == str(k)
+        curve = read_curve(out)
+        assert curve.n_vertices == 128 == int(rows[0]["vertices"])
+        dists.append(float(rows[0]["distance"]))
+    assert dists[0] > dists[1] > dists[2] and dists[2] < 2e-3
+    # what the file holds is the curve the row measured
+    code, stdout, _ = run("distance", src, tmp_path / "r16.vtp", "--format", "json")
+    assert json.loads(stdout)["distance"] == pytest.approx(dists[2], rel=1e-9)
+
+
+def test_reconstruct_multi_curve_file_points_and_normalized(folder, tmp_path):
+    out = tmp_path / "other-k8.obj"
+    code, stdout, stderr = run("reconstruct", folder / "other.vtp", "-k", 8, "-m", 300, "-o", out, "--format", "json")
+    assert code == 0, stderr
+    rows = json.loads(stdout)
+    assert [r["curve"] for r in rows] == [f"{folder / 'other.vtp'}#0", f"{folder / 'other.vtp'}#1"]
+    back = read_curves(out)
+    assert [c.n_vertices for c in back] == [300, 300]
+    code, stdout, stderr = run("reconstruct", f"{folder / 'other.vtp'}#1", "-k", 8, "--normalized",
+                               "-o", tmp_path / "n.csv", "--format", "json")
+    assert code == 0 and "distance" not in json.loads(stdout)[0]
+    pts = read_curve(tmp_path / "n.csv").points
+    assert np.abs(pts.mean(0)).max() < 1e-9
+
+
+def test_reconstruct_errors(folder, tmp_path):
+    code, out, err = run("reconstruct", folder / "other.vtp", "-k", 4, "-o", tmp_path / "x.csv")
+    assert code == 1 and out == "" and "x.csv" in err and "exactly one curve" in err
+    code, out, err = run("reconstruct", folder / "missing.csv", "-k", 4, "-o", tmp_path / "y.csv")
+    assert code == 1 and "missing.csv" in err and "Traceback" not in err
+    code, out, err = run("reconstruct", folder / "knot.csv", "-k", 70, "-n", 128, "-o", tmp_path / "z.csv")
+    assert code == 2 and "samples/2" in err
+    code, out, err = run("reconstruct", folder / "knot.csv", "-k", 4, "-o", tmp_path / "z.xyzzy")
+    assert code == 1 and "z.xyzzy" in err
+    assert not (tmp_path / "z.csv").exists()
+
+
+# --------------------------------------------------------------------------- matrix
+
+def test_matrix_csv_matches_distance_for_every_pair(folder):
+    code, out, err = run("matrix", folder)
+    assert code == 0 and err == ""
+    rows = list(csv.reader(io.StringIO(out)))
+    header, body = rows[0], rows[1:]
+    ids = header[1:]
+    assert header[0] == "id" and [r[0] for r in body] == ids and len(ids) == 5
+    M = np.array([[float(v) for v in r[1:]] for r in body])
+    np.testing.assert_array_equal(M, M.T)
+    np.testing.assert_array_equal(np.diag(M), 0)
+    for i in range(5):
+        for j in range(5):
+            if i != j:
+                code, out, _ = run("distance", ids[i], ids[j], "--format", "json")
+                assert M[i, j] == pytest.approx(json.loads(out)["distance"], rel=1e-9, abs=1e-12)
+    knot, posed = ids.index(str(folder / "knot.csv")), ids.index(str(folder / "knot-posed.obj"))
+    assert M[knot, posed] < 1e-3 and np.sort(M[knot])[1] == M[knot, posed]
+
+
+def test_matrix_json_tsv_picture_and_partial_failure(folder, tmp_path):
+    (folder / "bad.csv").write_text("x,y,z\n1,2,3\n4,five,6\n")
+    png = tmp_path / "m.png"
+    code, out, err = run("matrix", folder, "--format", "json", "-o", png)
+    assert code == 3
+    assert "bad.csv" in err and "line 3" in err and f"wrote {png}" in err
+    data = json.loads(out)
+    assert len(data["ids"]) == 5 and np.array(data["distances"]).shape == (5, 5)
+    width, height = png_size(png)
+    assert width >= 400 and height >= 400
+    assert len(np.unique(png_pixels(png).reshape(-1, 3), axis=0)) > 10
+    code, out, err = run("matrix", folder / "knot.csv", folder / "blob.csv", "--format", "tsv",
+                         "--method", "paper", "--strict-direction")
+    assert code == 0 and out.splitlines()[0].split("\t")[0] == "id"
+    code, out, err = run("matrix", folder / "bad.csv")
+    assert code == 1 and out == "" and "bad.csv" in err
+
+
+# --------------------------------------------------------------------------- show
+
+def test_show_against_files_writes_the_picture_and_lists_the_rows(folder, tmp_path):
+    png = tmp_path / "show.png"
+    query = folder / "knot.csv"
+    code, out, err = run("show", query, "--against", folder, "--top", 3, "-o", png, "--format", "csv")
+    assert code == 0, err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert [r["rank"] for r in rows] == ["1", "2", "3"]
+    assert rows[0]["match"] == str(query) and float(rows[0]["distance"]) < 1e-9
+    assert rows[1]["match"] == str(folder / "knot-posed.obj") and all(r["source"] == "file" for r in rows)
+    assert png_size(png) == (1600, 900) and f"wrote {png}" in err
+    pixels = png_pixels(png)
+    assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 10
+    # another query gives another picture
+    png2 = tmp_path / "show2.png"
+    code, out, err = run("show", folder / "blob.csv", "--against", folder, "--top", 3, "-o", png2,
+                         "--size", "800x600")
+    assert code == 0 and png_size(png2) == (800, 600)
+    code, out, err = run("show", folder / "blob.csv", "--against", folder, "--top", 3, "-o", png2,
+                         "--size", "1600x900")
+    assert not np.array_equal(png_pixels(png2), pixels)
+
+
+def test_show_from_an_index_draws_from_files_or_stored_harmonics(folder, tmp_path):
+    index = tmp_path / "i.h5"
+    code, out, err = run("index", "build", folder, "--index", index)
+    assert code == 0, err
+    png = tmp_path / "idx.png"
+    query = folder / "knot-posed.obj"
+    code, out, err = run("show", query, "--index", index, "--top", 2, "-o", png, "--format", "json")
+    assert code == 0, err
+    rows = json.loads(out)
+    assert [r["match"] for r in rows] == [str(query), str(folder / "knot.csv")]
+    assert [r["source"] for r in rows] == ["file", "file"]
+    before = png_pixels(png)
+    # the source file is gone: the match is drawn from the index's harmonics, with a note
+    os.rename(folder / "knot.csv", tmp_path / "moved.csv")
+    code, out, err = run("show", query, "--index", index, "--top", 2, "-o", png, "--format", "json")
+    assert code == 0, err
+    assert [r["source"] for r in json.loads(out)] == ["file", "index"]
+    assert "knot.csv: drawn from its 16 indexed harmonics" in err
+    assert png_size(png) == (1600, 900) and before.shape == png_pixels(png).shape
+
+
+def test_show_usage_and_input_errors(folder, tmp_path):
+    png = tmp_path / "x.png"
+    code, out, err = run("show", folder / "knot.csv", "--against", "-o", png)
+    assert code == 2 and "--against needs" in err
+    code, out, err = run("show", folder / "knot.csv", folder, "-o", png, "--index", tmp_path / "i.h5")
+    assert code == 2 and "only read with --against" in err
+    code, out, err = run("show", folder / "knot.csv", "--against", folder, "-o", png, "--size", "big")
+    assert code == 2 and "WIDTHxHEIGHT" in err
+    code, out, err = run("show", folder / "knot.csv", "--index", tmp_path / "none.h5", "-o", png)
+    assert code == 1 and "none.h5" in err and "Traceback" not in err
+    code, out, err = run("show", folder / "nope.csv", "--against", folder, "-o", png)
+    assert code == 1 and "nope.csv" in err
+    code, out, err = run("show", folder / "knot.csv", "--against", folder, "-o", tmp_path / "no" / "dir.png")
+    assert code == 1 and "dir.png" in err and "Traceback" not in err
+    assert not png.exists()
+
+
+def test_picture_commands_do_not_import_renderers_at_startup():
+    import subprocess
+    import sys
+
+    code = ("import sys, nfdmatch.cli; "
+            "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
