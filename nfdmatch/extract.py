@@ -207,31 +207,18 @@ def find_mesh_files(sources: Iterable, *, exclude: Iterable = ()) -> list[str]:
     -------
     list of str paths, sorted within each folder, without duplicates.
     """
+    from .sources import UniquePaths, walk_folder
+
     extensions = set(mesh_extensions())
-    skip = {os.path.realpath(str(e)) for e in exclude}
-    found: list[str] = []
-    seen: set[str] = set()
-
-    def add(path: str) -> None:
-        key = os.path.normpath(path)
-        if key not in seen:
-            seen.add(key)
-            found.append(path)
-
+    found = UniquePaths()
     for source in sources:
         source = str(os.fspath(source))
         if not os.path.isdir(source):
-            add(source)
+            found.add(source)
             continue
-        if os.path.realpath(source) in skip:
-            continue
-        for root, dirs, files in os.walk(source):
-            dirs[:] = sorted(d for d in dirs if not d.startswith(".")
-                             and os.path.realpath(os.path.join(root, d)) not in skip)
-            for name in sorted(files):
-                if not name.startswith(".") and os.path.splitext(name)[1].lower() in extensions:
-                    add(os.path.join(root, name))
-    return found
+        for path in walk_folder(source, extensions, exclude=exclude):
+            found.add(path)
+    return found.paths
 
 
 @contextmanager

@@ -9,7 +9,7 @@ from pathlib import Path
 from .errors import ReadError
 from .formats import supported_extensions
 
-__all__ = ["find_curve_files"]
+__all__ = ["find_curve_files", "walk_folder"]
 
 
 def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
@@ -31,14 +31,7 @@ def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
     ReadError : a source that does not exist.
     """
     extensions = {e.lower() for e in supported_extensions()}
-    found: list[str] = []
-    seen: set[str] = set()
-
-    def add(path: str) -> None:
-        key = os.path.normpath(path)
-        if key not in seen:
-            seen.add(key)
-            found.append(path)
+    found = UniquePaths()
 
     from .formats import split_selector
 
@@ -46,23 +39,47 @@ def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
         source = str(source)
         path, selected = split_selector(source)
         if selected is not None and os.path.isfile(path):
-            add(source)                        # file#i: one curve of a multi-curve file
+            found.add(source)                  # file#i: one curve of a multi-curve file
         elif os.path.isdir(source):
-            for root, dirs, files in os.walk(source):
-                dirs[:] = sorted(d for d in dirs if not d.startswith("."))
-                for name in sorted(files):
-                    if name.startswith("."):
-                        continue
-                    if Path(name).suffix.lower() not in extensions:
-                        continue
-                    if glob and not fnmatch.fnmatch(name, glob):
-                        continue
-                    add(os.path.join(root, name))
+            for file in walk_folder(source, extensions, glob=glob):
+                found.add(file)
         elif os.path.exists(source):
-            add(source)
+            found.add(source)
         else:
             raise ReadError("no such file or folder", path=source)
-    return found
+    return found.paths
+
+
+def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=()):
+    """Yield the files below ``folder`` whose extension (lower-cased, with the dot) is in
+    ``extensions`` and whose name matches ``glob``, recursively, sorted within each folder,
+    skipping hidden files and folders and the folders in ``exclude``."""
+    skip = {os.path.realpath(str(e)) for e in exclude}
+    if os.path.realpath(folder) in skip:
+        return
+    for root, dirs, files in os.walk(folder):
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".")
+                         and os.path.realpath(os.path.join(root, d)) not in skip)
+        for name in sorted(files):
+            if name.startswith(".") or Path(name).suffix.lower() not in extensions:
+                continue
+            if glob and not fnmatch.fnmatch(name, glob):
+                continue
+            yield os.path.join(root, name)
+
+
+class UniquePaths:
+    """Paths in first-seen order, a path given twice (up to normpath) kept once."""
+
+    def __init__(self):
+        self.paths: list[str] = []
+        self._seen: set[str] = set()
+
+    def add(self, path: str) -> None:
+        key = os.path.normpath(path)
+        if key not in self._seen:
+            self._seen.add(key)
+            self.paths.append(path)
 
 
 def read_all(paths, *, format: str | None = None):
