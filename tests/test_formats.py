@@ -888,3 +888,50 @@ def test_vectorized_cleaning_equals_one_by_one(seed):
         assert error == got_error
         if error is None:
             assert all(np.array_equal(a, b) for a, b in zip(expected, got))
+
+
+_OBJ_LINES = st.one_of(
+    st.tuples(st.floats(-1e3, 1e3, allow_nan=False), st.floats(-1e3, 1e3, allow_nan=False),
+              st.floats(-1e3, 1e3, allow_nan=False)).map(lambda v: "v {!r} {!r} {!r}".format(*v)),
+    st.lists(st.integers(-3, 12), min_size=1, max_size=6).map(lambda ix: "l " + " ".join(map(str, ix))),
+    st.sampled_from(["# comment", "", "o part", "vt 0.5 0.5", "f 1 2 3", "v 1 2", "v 1 2 3 4",
+                     "l", "v 1 2 x", "l 1 2.5 3", "  v 0 0 1", "\tv 0 1 0", "v\f1 1 1", "v 1  2 3",
+                     "l 1 2 3 # end", "v 1 2 3 \\", "g\xa0x", "v 1 2 3\r", "l +1 2 3", "v nan 0 0",
+                     "v 1_0 2 3", "l 1 2", "l 2 3", "l 3 1"]),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(lines=st.lists(_OBJ_LINES, min_size=1, max_size=25))
+def test_obj_bulk_path_never_disagrees_with_the_careful_parser(tmp_path_factory, lines):
+    """Whatever the text, the bulk path either declines (None) or reads exactly what the
+    careful parser reads; where the parser fails, the bulk path declines. (It once skipped
+    indented `v` lines that the parser reads.)"""
+    from nfdmatch.formats import obj as obj_module
+
+    text = "\n".join(lines) + "\n"
+    path = tmp_path_factory.mktemp("obj") / "f.obj"
+    path.write_text(text)
+    fast = obj_module._read_points_fast(text, str(path))
+    original = obj_module._read_points_fast
+    try:
+        obj_module._read_points_fast = lambda text, p: None
+        careful = obj_module.read_points(path)
+    except NfdError:
+        assert fast is None
+        return
+    finally:
+        obj_module._read_points_fast = original
+    if fast is not None:
+        assert len(fast) == len(careful)
+        assert all(np.array_equal(a, b) for a, b in zip(fast, careful))
+
+
+@pytest.mark.parametrize("odd", ["  v 9 9 9", "v\f9 9 9", "\tv 9 9 9"])
+def test_obj_indented_and_oddly_spaced_statements_are_read(tmp_path, odd):
+    """The parser reads `  v 9 9 9` as a vertex; the bulk path once skipped it silently,
+    shifting every index after it."""
+    path = tmp_path / "odd.obj"
+    path.write_text(f"{odd}\nv 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3\n")
+    (curve,) = read_curves(path)
+    np.testing.assert_array_equal(curve.points, [[9, 9, 9], [0, 0, 0], [1, 0, 0]])

@@ -167,11 +167,16 @@ def read_points(path) -> list[np.ndarray]:
 
 def _read_points_fast(text: str, p: str):
     """The common case (``v x y z``, ``l`` with positive plain indices, 3 or more each,
-    whole-line comments, no continuations) parsed in bulk by numpy. Returns the curves, or
+    whole-line comments, no continuations, ASCII, no indented statements) parsed in bulk
+    by numpy. Returns the curves, or
     None whenever anything falls outside that case (including any error): the careful
     parser then reads the file and reports problems with line numbers.
     """
-    if "\\" in text or "/" in text or "\r" in text or "\t" in text:
+    if "\\" in text or "/" in text or not text.isascii():
+        return None
+    # the parser splits statements on any whitespace and reads indented ones: here only
+    # single spaces inside lines and nothing before the keyword, else the parser decides
+    if any(ch in text for ch in "\t\r\v\f\x1c\x1d\x1e\x1f") or text.startswith(" ") or "\n " in text:
         return None
     v_rows, l_rows = [], []
     comments = 0
