@@ -620,7 +620,8 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
     for note in notes:
         click.echo(f"Note: {note}", err=True)
     panels = [MatchPanel(id=s.id, distance=s.distance, points=s.points, start=s.start, forward=s.forward,
-                         reversed=s.reversed, mirrored=s.mirrored) for s in shown]
+                         reversed=s.reversed, mirrored=s.mirrored,
+                         note="drawn from index harmonics" if s.source == "index" else None) for s in shown]
     result = render_matches(query.points, query.id, panels, output, size=width_height, renderer=renderer)
     write_rows([{"query": query.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
                 for s in shown], ["query", "rank", "match", "distance", "source"], output_format)

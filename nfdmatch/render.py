@@ -104,6 +104,7 @@ class MatchPanel:
     forward : (3,) float64, a point a little further along the match in the query's
         direction of travel.
     reversed, mirrored : shown in the panel title when set.
+    note : a short remark shown after them (e.g. ``"from index harmonics"``), or None.
     """
 
     id: str
@@ -113,6 +114,7 @@ class MatchPanel:
     forward: np.ndarray
     reversed: bool = False
     mirrored: bool = False
+    note: str | None = None
 
 
 @dataclass(frozen=True)
@@ -450,7 +452,8 @@ def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], siz
                            subtitle=_key(planar, bool(panels)),
                            points=q, start=q_start, forward=q_forward, is_query=True)]
     for rank, p in enumerate(panels, 1):
-        flags = [f for f, on in (("reversed", p.reversed), ("mirrored", p.mirrored)) if on]
+        flags = [f for f, on in (("reversed", p.reversed), ("mirrored", p.mirrored), (p.note, bool(p.note)))
+                 if on]
         scene_panels.append(_Panel(
             title=f"{rank}. {match_labels[rank - 1]}",
             subtitle="  \u00b7  ".join([f"d = {_format_distance(p.distance)}"] + flags),
@@ -540,7 +543,8 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel
         checked.append(MatchPanel(id=str(p.id), distance=d, points=_as_points(p.points, what),
                                   start=_as_vector(p.start, f"{what} start"),
                                   forward=_as_vector(p.forward, f"{what} forward"),
-                                  reversed=bool(p.reversed), mirrored=bool(p.mirrored)))
+                                  reversed=bool(p.reversed), mirrored=bool(p.mirrored),
+                                  note=None if p.note is None else str(p.note)))
     out = _check_output(path)
     scene = _build_scene(q, str(query_id), checked, size)
     order = [renderer] if renderer != "auto" else [DEFAULT_RENDERER] + [r for r in RENDERERS

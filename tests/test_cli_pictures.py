@@ -183,6 +183,17 @@ def test_show_from_an_index_draws_from_files_or_stored_harmonics(folder, tmp_pat
     assert [r["source"] for r in json.loads(out)] == ["file", "index"]
     assert "knot.csv: drawn from its 16 indexed harmonics" in err
     assert png_size(png) == (1600, 900) and before.shape == png_pixels(png).shape
+    # the panel says so too
+    from nfdmatch import render
+
+    drawn = []
+    original = render._build_scene
+    render._build_scene = lambda q, qid, panels, size: drawn.extend(panels) or original(q, qid, panels, size)
+    try:
+        run("show", query, "--index", index, "--top", 2, "-o", png)
+    finally:
+        render._build_scene = original
+    assert [p.note for p in drawn] == [None, "drawn from index harmonics"]
 
 
 def test_show_usage_and_input_errors(folder, tmp_path):

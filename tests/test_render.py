@@ -485,3 +485,19 @@ def test_short_labels_drop_the_common_affixes_of_long_similar_names():
     assert labels[5] == "\u2026z05_at1.66667\u2026" and len(set(labels)) == 12
     # short names are left whole
     assert short_labels(["a/x.csv", "b/y.csv"]) == ["x.csv", "y.csv"]
+
+
+def test_panel_subtitles_carry_distance_flags_and_note(tmp_path):
+    from nfdmatch import render
+
+    q, panels = _ellipse_scene(n_matches=2)
+    panels = [panels[0], MatchPanel(id=panels[1].id, distance=0.5, points=panels[1].points, start=panels[1].start,
+                                    forward=panels[1].forward, reversed=True, note="drawn from index harmonics")]
+    scene = render._build_scene(q, "q.csv", panels, SMALL)
+    assert scene.panels[1].subtitle == "d = 0.02"
+    assert scene.panels[2].subtitle == "d = 0.5  \u00b7  reversed  \u00b7  drawn from index harmonics"
+    plain = _read_png(render_matches(q, "q.csv", panels[:1] + [_panel(panels[1].points, panels[1].id, 0.5,
+                                                                      reversed=True)],
+                                     tmp_path / "a.png", size=SMALL).path)
+    noted = _read_png(render_matches(q, "q.csv", panels, tmp_path / "b.png", size=SMALL).path)
+    assert not np.array_equal(plain, noted)
