@@ -115,13 +115,15 @@ def test_registry():
 def test_unknown_extension_lists_extensions_and_format_option(tmp_path):
     p = write(tmp_path, "curve.dat", "0 0 0\n1 0 0\n0 1 0\n")
     err = expect(UnknownFormatError, p, lambda: read_curves(p),
-                 contains=(".csv", ".obj", ".vtp", "--format"))
+                 contains=(".csv", ".obj", ".vtp", "--input-format"))
     assert isinstance(err, ValueError)
     noext = write(tmp_path, "curve", "0 0 0\n1 0 0\n0 1 0\n")
-    expect(UnknownFormatError, noext, lambda: read_curves(noext), contains=("--format",))
+    expect(UnknownFormatError, noext, lambda: read_curves(noext), contains=("--input-format",))
     expect(UnknownFormatError, p, lambda: read_curves(p, format="stl"), contains=("csv, obj",))
     expect(UnknownFormatError, str(tmp_path / "out.stl"),
            lambda: write_curves(tmp_path / "out.stl", [SQUARE]))
+    mesh = write(tmp_path, "part.stl", "solid x\nendsolid x\n")
+    expect(UnknownFormatError, mesh, lambda: read_curves(mesh), contains=("triangle mesh", "nfdmatch extract"))
 
 
 def test_format_override(tmp_path):

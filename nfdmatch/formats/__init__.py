@@ -97,10 +97,18 @@ def format_of(path, format: str | None = None) -> str:
     ext = os.path.splitext(p)[1].lower()
     if ext in _BY_EXTENSION:
         return _BY_EXTENSION[ext]
+    if ext in _MESH_EXTENSIONS:
+        raise UnknownFormatError(
+            f"{ext!r} is a triangle mesh, not a curve file: extract its contours first "
+            f"(`nfdmatch extract`: planar sections or boundary loops)", path=p)
     what = f"unknown file extension {ext!r}" if ext else "no file extension"
     raise UnknownFormatError(
         f"{what}; supported extensions: {', '.join(supported_extensions())}; "
-        f"use --format (format=) to choose one of {', '.join(FORMATS)}", path=p)
+        f"use --input-format (format= in Python) to choose one of {', '.join(FORMATS)}", path=p)
+
+
+#: mesh formats that people hand to the curve readers by mistake
+_MESH_EXTENSIONS = {".stl", ".ply", ".off", ".glb", ".gltf", ".3mf", ".dae"}
 
 
 def split_selector(spec) -> tuple[str, int | None]:

@@ -132,7 +132,7 @@ def read_points(path) -> list[np.ndarray]:
         if n_faces:
             raise NoCurvesError(
                 f"holds {n_faces} faces but no polylines (`l` elements): it is a mesh; "
-                "extract contours from it first (sections or boundary loops)", path=p)
+                "extract contours from it first (`nfdmatch extract`: sections or boundary loops)", path=p)
         raise NoCurvesError("no polylines (`l` elements) in the file", path=p)
 
     nv = len(coords)

@@ -203,7 +203,7 @@ def read_points(path, format: str | None = None) -> list[np.ndarray]:
         if n_other:
             raise NoCurvesError(
                 f"holds {n_other} polygon/triangle cells but no line cells (polylines): it is a "
-                "mesh; extract contours from it first (sections or boundary loops)", path=p)
+                "mesh; extract contours from it first (`nfdmatch extract`: sections or boundary loops)", path=p)
         raise NoCurvesError("holds no line cells (polylines)", path=p)
     points = np.asarray(mesh.points, dtype=np.float64).reshape(-1, 3)
     n_points = len(points)
