@@ -717,7 +717,7 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
 
     \b
     Example:
-      nfdmatch reconstruct sample_curves/library/trefoil.obj -k 3 -o trefoil-k3.vtp
+      nfdmatch reconstruct sample_curves/library/knotess/5_2.csv -k 4 -o 5_2-k4.vtp
     """
     from .curve import Curve
     from .descriptors import descriptors, reconstruct as rebuild
@@ -785,7 +785,7 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, output_fo
     from .extract import extract_contours, find_mesh_files, write_contours
 
     if sections == 0 and not boundaries:
-        raise ParameterError("nothing to extract: --sections 0 needs --boundaries")
+        raise click.UsageError("nothing to extract: --sections 0 needs --boundaries")
     files = find_mesh_files(meshes, exclude=[out_dir])
     if not files:
         raise ParameterError(f"no mesh files found in {', '.join(meshes)}")

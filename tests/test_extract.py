@@ -334,7 +334,7 @@ def test_cli_one_bad_mesh_among_others_is_exit_3(meshes, bad_files, tmp_path):
 
 def test_cli_usage_errors(meshes, tmp_path):
     code, out, err = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "o", "--sections", "0")
-    assert code == 1 and out == "" and "--boundaries" in err
+    assert code == 2 and out == "" and "--boundaries" in err
     code, _, err = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "o", "--sections", "-2")
     assert code == 2 and "--sections" in err
     code, _, err = run("extract", meshes / "cylinder.stl")
