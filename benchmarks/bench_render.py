@@ -35,40 +35,22 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
-from nfdmatch import distance  # noqa: E402
-from nfdmatch.descriptors import points_at  # noqa: E402
-from nfdmatch.formats import read_curve, read_curves  # noqa: E402
+from nfdmatch.descriptors import DEFAULT_HARMONICS, DEFAULT_SCALE, points_at  # noqa: E402
+from nfdmatch.formats import read_curve  # noqa: E402
 from nfdmatch.search import distance_matrix, rank_curves  # noqa: E402
+from nfdmatch.show import matches_from_curves  # noqa: E402
+from nfdmatch.sources import find_curve_files, read_all  # noqa: E402
 
 LIB = os.path.join(ROOT, "sample_curves", "library")
 QUERIES = os.path.join(ROOT, "sample_curves", "queries")
 SAMPLES = 128
-STEP = 0.04                   # the forward marker: this fraction of the query's length on
 SIZE = (1600, 900)
 
 
 def library_curves():
-    curves = []
-    for folder, _, files in sorted(os.walk(LIB)):
-        for name in sorted(files):
-            curves.extend(read_curves(os.path.join(folder, name)))
+    curves, errors = read_all(find_curve_files([LIB]))
+    assert not errors, errors
     return curves
-
-
-def aligned(query, curve, match_row):
-    """(points, start, forward) of ``curve`` mapped onto ``query`` by their match: sample j
-    of the query corresponds to sample j + shift of the match (-(j + shift) when reversed)."""
-    m = distance(query, curve, samples=SAMPLES)
-
-    def apply(p):
-        return m.scale * np.asarray(p) @ m.rotation.T + m.translation
-
-    positions = np.array([0.0, STEP * SAMPLES]) + m.shift
-    if m.reversed:
-        positions = -positions
-    marks = apply(points_at(curve.points, positions / SAMPLES))
-    return dict(id=curve.id, distance=float(match_row["distance"]), points=apply(curve.points),
-                start=marks[0], forward=marks[1], reversed=bool(m.reversed), mirrored=bool(m.mirrored))
 
 
 def subdivide(points, n):
@@ -81,10 +63,13 @@ def subdivide(points, n):
 
 
 def scene(query_path, candidates, top=5):
+    """The data `nfdmatch show --against` draws: the query and its top matches, aligned."""
     query = read_curve(query_path)
-    by_id = {c.id: c for c in candidates}
     rows = rank_curves(query, candidates, top=top, samples=SAMPLES)
-    panels = [aligned(query, by_id[r["match"]], r) for r in rows]
+    shown = matches_from_curves(query, rows, candidates, samples=SAMPLES, harmonics=DEFAULT_HARMONICS,
+                                scale=DEFAULT_SCALE)
+    panels = [dict(id=m.id, distance=m.distance, points=m.points, start=m.start, forward=m.forward,
+                   reversed=m.reversed, mirrored=m.mirrored) for m in shown]
     return dict(query=query.points, query_id=query.id, panels=panels)
 
 

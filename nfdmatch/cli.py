@@ -54,12 +54,7 @@ def write_rows(rows: list[dict], columns: list[str], fmt: str | None) -> None:
         console.width = max(console.width, sum(widths) + 3 * len(columns) + 1)
         console.print(table)
     elif fmt in ("csv", "tsv"):
-        buf = io.StringIO()
-        writer = csv.writer(buf, delimiter="," if fmt == "csv" else "\t", lineterminator="\n")
-        writer.writerow(columns)
-        for row in rows:
-            writer.writerow([_cell_text(row.get(c)) for c in columns])
-        click.echo(buf.getvalue(), nl=False)
+        _write_delimited(columns, ([_cell_text(row.get(c)) for c in columns] for row in rows), fmt)
     elif fmt == "json":
         click.echo(json.dumps([{c: row.get(c) for c in columns} for row in rows], indent=2))
     elif fmt == "jsonl":
@@ -67,6 +62,15 @@ def write_rows(rows: list[dict], columns: list[str], fmt: str | None) -> None:
             click.echo(json.dumps({c: row.get(c) for c in columns}))
     else:  # pragma: no cover - click restricts the choices
         raise click.UsageError(f"unknown format {fmt}")
+
+
+def _write_delimited(header: list[str], rows, fmt: str) -> None:
+    """A header line then the rows (lists of str), as CSV or TSV on stdout."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, delimiter="," if fmt == "csv" else "\t", lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(rows)
+    click.echo(buf.getvalue(), nl=False)
 
 
 def _cell_text(value, pretty: bool = False) -> str:
@@ -509,13 +513,32 @@ def _flatten_descriptor_row(row: dict) -> dict:
 # (show, matrix, reconstruct)
 
 def _parse_size(value: str) -> tuple[int, int]:
+    from .render import MAX_SIDE, MIN_SIDE
+
     try:
         width, height = (int(v) for v in value.lower().split("x"))
     except ValueError:
         raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels, e.g. 1600x900, got {value!r}")
-    if not (100 <= width <= 10000 and 100 <= height <= 10000):
-        raise click.BadParameter(f"width and height must be 100..10000 pixels, got {value!r}")
+    if not (MIN_SIDE <= width <= MAX_SIDE and MIN_SIDE <= height <= MAX_SIDE):
+        raise click.BadParameter(f"width and height must be {MIN_SIDE}..{MAX_SIDE} pixels, got {value!r}")
     return width, height
+
+
+def _read_sources(sources, glob_pattern, input_format):
+    """(curves, errors, files) of the files and folders given; errors named on stderr.
+    Exits 1 when no curve could be read; no curve file at all is an error of its own."""
+    from .errors import NoCurvesError
+    from .sources import find_curve_files, read_all
+
+    files = find_curve_files(sources, glob=glob_pattern)
+    if not files:
+        raise NoCurvesError("no curve files found" + (f" matching {glob_pattern!r}" if glob_pattern else ""),
+                            path=", ".join(str(s) for s in sources))
+    curves, errors = read_all(files, format=input_format)
+    _report_errors(errors)
+    if not curves:
+        sys.exit(EXIT_ERROR)
+    return curves, errors, files
 
 
 def _renderer_option(f):
@@ -590,25 +613,23 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
             raise click.UsageError("--against needs at least one SOURCE file or folder")
         from .search import rank_curves
         from .show import matches_from_curves
-        from .sources import find_curve_files, read_all
 
-        files = find_curve_files(sources, glob=glob_pattern)
-        curves, errors = read_all(files, format=input_format)
-        _report_errors(errors)
-        if not curves:
-            sys.exit(EXIT_ERROR)
+        curves, errors, _ = _read_sources(sources, glob_pattern, input_format)
         if errors:
             exit_code = EXIT_PARTIAL
         params = dict(samples=samples or DEFAULT_SAMPLES, harmonics=harmonics or DEFAULT_HARMONICS,
                       scale=scale or DEFAULT_SCALE)
         ranked = rank_curves(query, curves, top=top, method=method, direction=direction, mirror=mirror, **params)
-        shown = matches_from_curves(query, ranked, {c.id: c for c in curves}, method=method,
+        shown = matches_from_curves(query, ranked, curves, method=method,
                                     direction=direction, mirror=mirror, **params)
     else:
         if sources:
             raise click.UsageError("SOURCE... is only read with --against (without it, the index is searched)")
-        if samples or harmonics or scale:
-            raise click.UsageError("--samples/--harmonics/--scale go with --against: the index fixes its own")
+        if samples or harmonics or scale or glob_pattern:
+            raise click.UsageError("--samples/--harmonics/--scale/--glob go with --against: "
+                                   "the index fixes its own parameters and curves")
+        from functools import partial
+
         from .index import open_index
         from .search import search_index
         from .show import matches_from_index
@@ -616,7 +637,7 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
         with open_index(index_path) as idx:
             results, _ = search_index(idx, [query], top=top, method=method, direction=direction, mirror=mirror)
             shown, notes = matches_from_index(query, results[0], idx, method=method, direction=direction,
-                                              mirror=mirror)
+                                              mirror=mirror, read_curve=partial(read_curve, format=input_format))
     for note in notes:
         click.echo(f"Note: {note}", err=True)
     panels = [MatchPanel(id=s.id, distance=s.distance, points=s.points, start=s.start, forward=s.forward,
@@ -654,13 +675,12 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
       nfdmatch matrix sample_curves/library -o matrix.png > matrix.csv
     """
     from .search import distance_matrix
-    from .sources import find_curve_files, read_all
 
-    files = find_curve_files(sources, glob=glob_pattern)
-    curves, errors = read_all(files, format=input_format)
-    _report_errors(errors)
-    if not curves:
-        sys.exit(EXIT_ERROR)
+    if output:
+        from .render import check_output
+
+        check_output(output)                  # before the O(N^2) work, not after it
+    curves, errors, files = _read_sources(sources, glob_pattern, input_format)
     progress, finish = _progress_bar("distances")
     try:
         distances = distance_matrix(curves, samples=samples, harmonics=harmonics, scale=scale, method=method,
@@ -672,12 +692,8 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
     if output_format == "json":
         click.echo(json.dumps({"ids": ids, "distances": distances.tolist()}, indent=1))
     else:
-        buf = io.StringIO()
-        writer = csv.writer(buf, delimiter="," if output_format == "csv" else "\t", lineterminator="\n")
-        writer.writerow(["id"] + ids)
-        for curve_id, row in zip(ids, distances):
-            writer.writerow([curve_id] + [repr(float(v)) for v in row])
-        click.echo(buf.getvalue(), nl=False)
+        _write_delimited(["id"] + ids, ([curve_id] + [repr(float(v)) for v in row]
+                                        for curve_id, row in zip(ids, distances)), output_format)
     if output:
         from .render import render_matrix
 
@@ -694,7 +710,7 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
               help="Harmonics K kept: frequencies +-1..+-K.")
 @click.option("--output", "-o", required=True, type=click.Path(dir_okay=False),
               help="The curve file to write; its extension picks the format (csv, obj, vtk, vtp, vtu).")
-@click.option("--points", "-m", type=click.IntRange(min=3), default=None,
+@click.option("--points", "-m", type=click.IntRange(min=3, max=10_000_000), default=None,
               help="Vertices of the rebuilt curve [default: the samples].")
 @click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
               help="Arc-length samples of the transform [default: max(128, 4K)].")

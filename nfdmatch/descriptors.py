@@ -141,9 +141,7 @@ def descriptors(curve, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAU
     :class:`Descriptors` with ``coefficients`` (K, 3) complex128: row 0 of
     :func:`descriptors_batch` of this one curve (one implementation of the normalization).
     """
-    validate_parameters(samples, harmonics, scale)
-    points = as_points(curve)
-    return descriptors_batch([points], samples=samples, harmonics=harmonics, scale=scale).row(
+    return descriptors_batch([curve], samples=samples, harmonics=harmonics, scale=scale).row(
         0, curve.id if isinstance(curve, Curve) else "<array>")
 
 

@@ -72,7 +72,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .curve import Curve, clean_points
-from .errors import (CurveError, MeshError, NfdError, ParameterError, ParseError, ReadError,
+from .errors import (CurveError, MeshError, NfdError, ParameterError, ReadError,
                      UnknownFormatError, WriteError)
 from .formats import FORMATS, format_of, write_curves
 from .formats._chain import chain_segments, check_readable
@@ -511,7 +511,9 @@ def _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a: int,
     d0, d1 = d[crossing, 0], d[crossing, 1]
     t = d0 / (d0 - d1)
     p0, p1 = vertices[edges[ids, 0]], vertices[edges[ids, 1]]
-    points = p0 + t[:, None] * (p1 - p0)                    # (c, 3)
+    # (1 - t) p0 + t p1 gives the vertex itself exactly where the plane passes through one
+    # (t = 0 or 1), so the two edges meeting there give the same point and cleaning drops it
+    points = (1.0 - t)[:, None] * p0 + t[:, None] * p1      # (c, 3)
     points[:, a] = level
     return _loops_to_points(np.searchsorted(ids, segments), points, where, notes)
 
@@ -589,11 +591,7 @@ def _chain_loops(segments) -> tuple[list[np.ndarray], int, int]:
     if branching:
         loops, open_pieces = _split_branching(seg)
         return loops, open_pieces, branching
-    try:
-        components = chain_segments(seg)
-    except ParseError:  # pragma: no cover - degree <= 2 was checked above
-        loops, open_pieces = _split_branching(seg)
-        return loops, open_pieces, branching
+    components = chain_segments(seg)          # degree <= 2 here: it cannot find a branch
     loops, open_pieces = [], 0
     for _, ids in components:
         if (degree[ids] == 2).all():

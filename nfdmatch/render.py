@@ -66,9 +66,11 @@ from typing import Sequence
 
 import numpy as np
 
+from .descriptors import points_at
 from .errors import ParameterError, RenderError, WriteError
 
-__all__ = ["RENDERERS", "DEFAULT_RENDERER", "MatchPanel", "RenderResult", "render_matches",
+__all__ = ["RENDERERS", "DEFAULT_RENDERER", "START_STEP", "MIN_SIDE", "MAX_SIDE", "MatchPanel", "RenderResult",
+           "check_output", "render_matches",
            "render_matrix", "is_planar", "short_label", "short_labels"]
 
 RENDERERS = ("matplotlib", "pyvista")
@@ -76,6 +78,9 @@ DEFAULT_RENDERER = "matplotlib"
 
 #: picture sizes accepted, pixels per side
 MIN_SIDE, MAX_SIDE = 100, 10000
+#: the direction markers: this fraction of the query's length on from its start (the
+#: query's own arrow here; :mod:`nfdmatch.show` places the matches' with it)
+START_STEP = 0.04
 #: characters of a shortened id in a panel title / on a matrix axis
 LABEL_WIDTH = 32
 MATRIX_LABEL_WIDTH = 28
@@ -86,7 +91,6 @@ _MATCH_COLOR = "#d1421b"       # a match
 _TEXT_COLOR = "#1a1a1a"
 _NOTE_COLOR = "#555555"
 _TILT = math.radians(30.0)     # 3-D view: tilt of the camera away from the smallest axis
-_QUERY_STEP = 0.04             # the query's direction marker: this fraction of its length on
 _ARROW = 0.11                  # arrow length, fraction of the larger side of the view
 
 
@@ -253,7 +257,10 @@ def _check_size(size) -> tuple[int, int]:
     return w, h
 
 
-def _check_output(path) -> str:
+def check_output(path) -> str:
+    """``path`` as a str if a PNG can be written there (a ``.png`` name or none, in an
+    existing folder, not a directory); else :class:`ParameterError` / :class:`WriteError`.
+    Cheap: callers check before long work."""
     try:
         p = os.fspath(path)
     except TypeError:
@@ -338,19 +345,6 @@ def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     e1, e3 = _canonical(vectors[:, 2]), _canonical(vectors[:, 0])
     e2 = np.cross(e3, e1)
     return np.array([e1, e2, e3]), values[::-1]
-
-
-def _point_along(points: np.ndarray, fraction: float) -> np.ndarray:
-    """The point ``fraction`` of the closed polyline's length on from its first vertex."""
-    closed = np.vstack([points, points[:1]])
-    seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    if cum[-1] == 0.0:
-        return points[0].copy()
-    target = (fraction % 1.0) * cum[-1]
-    i = int(np.clip(np.searchsorted(cum, target, side="right") - 1, 0, len(seg) - 1))
-    t = (target - cum[i]) / seg[i] if seg[i] > 0 else 0.0
-    return closed[i] + t * (closed[i + 1] - closed[i])
 
 
 @dataclass
@@ -445,7 +439,7 @@ def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], siz
         return (np.asarray(p) - centre) @ view.T
 
     q = to_view(query)
-    q_start, q_forward = q[0], to_view(_point_along(query, _QUERY_STEP))
+    q_start, q_forward = q[0], to_view(points_at(query, [START_STEP])[0])
     # shortened together: long names that differ in the middle keep that middle
     qlabel, *match_labels = short_labels([query_id] + [p.id for p in panels])
     scene_panels = [_Panel(title=f"query: {qlabel}",
@@ -545,7 +539,7 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel
                                   forward=_as_vector(p.forward, f"{what} forward"),
                                   reversed=bool(p.reversed), mirrored=bool(p.mirrored),
                                   note=None if p.note is None else str(p.note)))
-    out = _check_output(path)
+    out = check_output(path)
     scene = _build_scene(q, str(query_id), checked, size)
     order = [renderer] if renderer != "auto" else [DEFAULT_RENDERER] + [r for r in RENDERERS
                                                                          if r != DEFAULT_RENDERER]
@@ -559,7 +553,7 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel
         except Exception as exc:        # ImportError, RuntimeError from VTK/EGL, anything else
             reason = _reason(exc)
             if renderer != "auto":
-                raise RenderError(_unavailable(name, reason), path=out) from exc
+                raise RenderError(_unavailable(name, reason, exc), path=out) from exc
             failures.append((name, reason))
             continue
         _write(out, data)
@@ -589,9 +583,9 @@ def _reason(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
-def _unavailable(name: str, reason: str) -> str:
+def _unavailable(name: str, reason: str, exc: BaseException) -> str:
     other = [r for r in RENDERERS if r != name][0]
-    if name == "pyvista":
+    if name == "pyvista" and isinstance(exc, (_Unavailable, ImportError)):
         return f"pyvista cannot render off-screen on this machine ({reason}); use --renderer {other}"
     return f"{name} could not draw the picture ({reason}); use --renderer {other}"
 
@@ -945,7 +939,7 @@ def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tupl
     if not np.all(np.isfinite(m)):
         raise ParameterError("matrix: contains NaN or infinite distances")
     size = _matrix_size(m.shape[0]) if size is None else _check_size(size)
-    out = _check_output(path)
+    out = check_output(path)
     t0 = time.perf_counter()
     try:
         data = _draw_matrix(m, labels, size, title)

@@ -34,8 +34,9 @@ def rank_curves(query, curves, *, top: int | None = None, max_distance: float | 
 
     Returns
     -------
-    list of dicts ``{rank, match, distance, shift, reversed, mirrored}`` sorted by
-    distance, ties broken by id so the order is deterministic; ``rank`` is 1-based.
+    list of dicts ``{rank, match, distance, shift, reversed, mirrored, row}`` sorted by
+    distance, ties broken by id so the order is deterministic; ``rank`` is 1-based, ``row``
+    the match's position in ``curves``.
     """
     from .curve import Curve
 
@@ -71,7 +72,8 @@ def distance_matrix(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = 
     distance is symmetric in itself (to ~1e-9); the paper's step is not, and its matrix
     takes the row curve as the reference.
 
-    One vectorized call per row against all later rows (N - 1 calls, N (N - 1) / 2 pairs).
+    One vectorized call per row against all later rows (in batches of :data:`BATCH_ROWS`),
+    N (N - 1) / 2 pairs.
     """
     from .descriptors import descriptors_batch
 
@@ -83,9 +85,12 @@ def distance_matrix(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = 
     search = exact_search if method == "exact" else paper_search
     total, done = N * (N - 1) // 2, 0
     for i in range(N - 1):
-        r = search(batch.coefficients[i], batch.coefficients[i + 1:], samples, weights=weights,
-                   direction=direction, mirror=mirror)
-        matrix[i, i + 1:] = r["distance"]
+        # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
+        for start in range(i + 1, N, BATCH_ROWS):
+            stop = min(start + BATCH_ROWS, N)
+            r = search(batch.coefficients[i], batch.coefficients[start:stop], samples, weights=weights,
+                       direction=direction, mirror=mirror)
+            matrix[i, start:stop] = r["distance"]
         done += N - 1 - i
         if progress is not None:
             progress(done, total)
@@ -202,8 +207,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     Returns
     -------
     ``(results, stats)``: ``results[i]`` lists query i's matches as dicts ``{rank, match,
-    distance, shift, reversed, mirrored}`` sorted by distance then id; ``stats`` a
-    :class:`SearchStats`.
+    distance, shift, reversed, mirrored, row}`` (``row``: the match's row in the index)
+    sorted by distance then id; ``stats`` a :class:`SearchStats`.
 
     Per query and chunk: the lower bound of every row at once (three small GEMMs over the
     invariant features), then exact distances in vectorized batches in bound order,
@@ -315,7 +320,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
             order = order[:top]
         results.append([{"rank": rank, "match": ids[i], "distance": float(tk.dist[i]),
                          "shift": float(tk.extra["shift"][i]), "reversed": bool(tk.extra["reversed"][i]),
-                         "mirrored": bool(tk.extra["mirrored"][i])} for rank, i in enumerate(order, start=1)])
+                         "mirrored": bool(tk.extra["mirrored"][i]), "row": int(tk.rows[i])}
+                        for rank, i in enumerate(order, start=1)])
     stats.seconds = time.perf_counter() - t0
     return results, stats
 

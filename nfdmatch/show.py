@@ -15,14 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .curve import Curve
-from .descriptors import Descriptors, descriptors, reconstruct
+from .descriptors import DescriptorBatch, Descriptors, descriptors, points_at, reconstruct
 from .errors import NfdError
 from .matching import match_descriptors
+from .render import START_STEP
 
-__all__ = ["ShownMatch", "align_match", "matches_from_curves", "matches_from_index", "START_STEP"]
-
-#: fraction of the query's length between its start marker and the direction marker
-START_STEP = 0.04
+__all__ = ["ShownMatch", "align_match", "matches_from_curves", "matches_from_index"]
 #: a file whose re-matched distance differs from the indexed one by more than this (relative
 #: to 1 + distance) no longer holds the indexed curve: draw from the index instead
 _CHANGED = 1e-3
@@ -64,41 +62,36 @@ def align_match(dq: Descriptors, db: Descriptors, points_b: np.ndarray, *, rank:
     m = match if match is not None else match_descriptors(dq, db, method=method, direction=direction,
                                                           mirror=mirror)
     fractions = m.partner_fractions(np.array([0.0, START_STEP]), dq.samples)
-    from .descriptors import points_at
-
     marks = m.apply(points_at(points_b, fractions))
     return ShownMatch(rank=rank, id=db.id, distance=float(distance), points=m.apply(points_b),
                       start=marks[0], forward=marks[1], reversed=m.reversed, mirrored=m.mirrored,
                       source=source)
 
 
-def matches_from_curves(query: Curve, results: list[dict], curves: dict, *, samples: int, harmonics: int,
+def matches_from_curves(query: Curve, results: list[dict], curves, *, samples: int, harmonics: int,
                         scale: str, method: str = "exact", direction: str = "invariant",
                         mirror: bool = False) -> list[ShownMatch]:
     """Matches of a ranking over curves held in memory.
 
-    results : rows of :func:`~nfdmatch.search.rank_curves` (``rank``, ``match``, ``distance``).
-    curves : id -> :class:`~nfdmatch.curve.Curve`, holding every ``match`` id.
+    results : rows of :func:`~nfdmatch.search.rank_curves` over ``curves`` (``rank``,
+        ``distance``, ``row``: the match's position in ``curves``).
+    curves : the sequence of :class:`~nfdmatch.curve.Curve` that was ranked.
     """
     dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
     shown = []
     for row in results:
-        curve = curves[row["match"]]
+        curve = curves[row["row"]]
         db = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
         shown.append(align_match(dq, db, curve.points, rank=row["rank"], distance=row["distance"],
                                  source="file", method=method, direction=direction, mirror=mirror))
     return shown
 
 
-def _index_descriptors(index, rows: list[int], ids: list[str]) -> list[Descriptors]:
-    out = []
-    for row, curve_id in zip(rows, ids):
-        r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
-        out.append(Descriptors(coefficients=r["coefficients"][0], rotation=r["rotation"][0],
-                               centroid=r["centroid"][0], scale=float(r["scale"][0]),
-                               plane_degenerate=bool(r["plane_degenerate"][0]), samples=index.samples,
-                               harmonics=index.harmonics, scale_mode=index.scale, id=curve_id))
-    return out
+def _stored_descriptors(index, row: int, curve_id: str) -> Descriptors:
+    """The descriptors an index keeps for one row (true size and pose included)."""
+    r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
+    return DescriptorBatch(r["coefficients"], r["rotation"], r["centroid"], r["scale"], r["plane_degenerate"],
+                           index.samples, index.harmonics, index.scale).row(0, curve_id)
 
 
 def matches_from_index(query: Curve, results: list[dict], index, *, method: str = "exact",
@@ -106,7 +99,8 @@ def matches_from_index(query: Curve, results: list[dict], index, *, method: str 
                        points: int = 256) -> tuple[list[ShownMatch], list[str]]:
     """Matches of an index search, drawn from their files when those still hold the curve.
 
-    results : one query's rows of :func:`~nfdmatch.search.search_index`.
+    results : one query's rows of :func:`~nfdmatch.search.search_index` (``rank``, ``match``,
+        ``distance``, ``row``).
     index : the open :class:`~nfdmatch.index.Index` searched.
     read_curve : ``spec -> Curve`` (default :func:`nfdmatch.formats.read_curve`).
     points : vertices of a curve drawn from its stored harmonics.
@@ -117,19 +111,9 @@ def matches_from_index(query: Curve, results: list[dict], index, *, method: str 
         from .formats import read_curve
     samples, harmonics, scale = index.samples, index.harmonics, index.scale
     dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
-    wanted = {row["match"] for row in results}
-    row_of = {}
-    for start, chunk in _id_chunks(index):
-        for offset, curve_id in enumerate(chunk):
-            if curve_id in wanted:
-                row_of[curve_id] = start + offset
-    stored = dict(zip([r["match"] for r in results],
-                      _index_descriptors(index, [row_of[r["match"]] for r in results],
-                                         [r["match"] for r in results])))
     shown, notes = [], []
     for row in results:
         curve_id = row["match"]
-        reason = None
         try:
             curve = read_curve(curve_id)
         except NfdError as exc:
@@ -137,20 +121,14 @@ def matches_from_index(query: Curve, results: list[dict], index, *, method: str 
         else:
             db = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
             m = match_descriptors(dq, db, method=method, direction=direction, mirror=mirror)
-            recomputed = m.distance
-            if abs(recomputed - row["distance"]) <= _CHANGED * (1.0 + row["distance"]):
+            if abs(m.distance - row["distance"]) <= _CHANGED * (1.0 + row["distance"]):
                 shown.append(align_match(dq, db, curve.points, rank=row["rank"], distance=row["distance"],
                                          source="file", match=m))
                 continue
-            reason = f"the file changed since it was indexed (distance now {recomputed:.4g})"
-        db = stored[curve_id]
+            reason = f"the file changed since it was indexed (distance now {m.distance:.4g})"
+        db = _stored_descriptors(index, row["row"], curve_id)
         shown.append(align_match(dq, db, reconstruct(db, points=points), rank=row["rank"],
                                  distance=row["distance"], source="index", method=method,
                                  direction=direction, mirror=mirror))
         notes.append(f"{curve_id}: drawn from its {harmonics} indexed harmonics: {reason}")
     return shown, notes
-
-
-def _id_chunks(index, rows: int = 65536):
-    for start in range(0, index.n_curves, rows):
-        yield start, index.ids(start, min(start + rows, index.n_curves))

@@ -59,7 +59,7 @@ def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=())
         return
     for root, dirs, files in os.walk(folder):
         dirs[:] = sorted(d for d in dirs if not d.startswith(".")
-                         and os.path.realpath(os.path.join(root, d)) not in skip)
+                         and not (skip and os.path.realpath(os.path.join(root, d)) in skip))
         for name in sorted(files):
             if name.startswith(".") or Path(name).suffix.lower() not in extensions:
                 continue

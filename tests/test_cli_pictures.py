@@ -221,3 +221,34 @@ def test_picture_commands_do_not_import_renderers_at_startup():
             "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_matrix_and_show_name_an_empty_source_and_check_the_picture_path_first(folder, tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, out, err = run("matrix", empty)
+    assert code == 1 and out == "" and f"Error: {empty}: no curve files found" in err
+    code, out, err = run("matrix", folder, "--glob", "*.xyz")
+    assert code == 1 and "no curve files found matching '*.xyz'" in err
+    code, out, err = run("show", folder / "knot.csv", "--against", empty, "-o", tmp_path / "s.png")
+    assert code == 1 and "no curve files found" in err
+    # a picture that cannot be written is reported before any distance is computed or printed
+    code, out, err = run("matrix", folder, "-o", tmp_path / "missing" / "m.png")
+    assert code == 1 and out == "" and "m.png" in err and "folder does not exist" in err
+    code, out, err = run("show", folder / "knot.csv", "--glob", "*.csv", "-o", tmp_path / "s.png")
+    assert code == 2 and "--glob" in err
+
+
+def test_show_reads_match_files_with_the_input_format(tmp_path, rng):
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    knot = torus_knot(2, 3, 300)
+    for name, pts in (("a.dat", knot), ("b.dat", random_smooth_curve(rng, n_vertices=200))):
+        write_curves(lib / name, pts, format="csv")
+    index = tmp_path / "i.h5"
+    code, _, err = run("index", "build", lib / "a.dat", lib / "b.dat", "--index", index, "--input-format", "csv")
+    assert code == 0, err
+    code, out, err = run("show", lib / "a.dat", "--index", index, "--input-format", "csv", "--top", 2,
+                         "-o", tmp_path / "s.png", "--format", "json")
+    assert code == 0, err
+    assert [r["source"] for r in json.loads(out)] == ["file", "file"] and "Note" not in err

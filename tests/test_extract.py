@@ -406,3 +406,20 @@ def test_cli_import_does_not_import_trimesh():
     code = "import sys, nfdmatch.cli; print('trimesh' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_a_plane_through_vertices_gives_those_vertices_once(tmp_path):
+    """A section exactly at a ring of vertices: each vertex once, exactly (two edges meet at
+    every such vertex; their crossing points once differed by 1e-18 and both stayed)."""
+    around = 16
+    theta = np.arange(around) * 2 * np.pi / around
+    rings = np.stack([np.stack([np.cos(theta), np.sin(theta), np.full(around, z)], -1) for z in (0.0, 1.0, 2.0)])
+    idx = np.arange(3 * around).reshape(3, around)
+    a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
+    c, d = idx[1:], np.roll(idx[1:], -1, axis=1)
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    trimesh.Trimesh(rings.reshape(-1, 3), faces, process=False).export(tmp_path / "tube.ply")
+    (loop,) = extract_contours(tmp_path / "tube.ply", sections=1, axis="z").contours
+    assert loop.level == 1.0 and loop.n_vertices == around
+    stored = rings[1].astype(np.float32).astype(np.float64)          # PLY keeps float32
+    assert {tuple(p) for p in loop.points} == {tuple(p) for p in stored}

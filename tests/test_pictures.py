@@ -175,8 +175,8 @@ def test_aligned_match_lands_on_the_query(seed, shift, flip, vertices):
         copy = reverse(copy)
     copy = resample_polyline(random_rigid_motion(copy, rng), vertices, rng)
     other = Curve(random_rigid_motion(_fourier_curve(rng, 4, n=300), rng), id="other")
-    curves = {"copy": Curve(copy, id="copy"), "other": other}
-    ranked = rank_curves(query, list(curves.values()), top=2)
+    curves = [Curve(copy, id="copy"), other]
+    ranked = rank_curves(query, curves, top=2)
     shown = matches_from_curves(query, ranked, curves, samples=128, harmonics=16, scale="rms")
     assert [s.id for s in shown] == ["copy", "other"]
     best = shown[0]
@@ -190,3 +190,16 @@ def test_aligned_match_lands_on_the_query(seed, shift, flip, vertices):
     assert np.linalg.norm(best.forward - ahead) < 0.03 * size
     assert best.reversed == flip
     assert best.distance == pytest.approx(ranked[0]["distance"])
+
+
+def test_matrix_in_row_batches_equals_one_call(rng, monkeypatch):
+    import nfdmatch.search as search_module
+
+    curves = [random_smooth_curve(rng, n_vertices=int(n)) for n in rng.integers(80, 300, 9)]
+    whole = distance_matrix(curves)
+    monkeypatch.setattr(search_module, "BATCH_ROWS", 2)
+    sizes = []
+    real = search_module.exact_search
+    monkeypatch.setattr(search_module, "exact_search", lambda A, B, *a, **k: sizes.append(len(B)) or real(A, B, *a, **k))
+    np.testing.assert_allclose(distance_matrix(curves), whole, rtol=1e-12, atol=1e-15)   # BLAS rounding
+    assert max(sizes) == 2 and sum(sizes) == 9 * 8 // 2          # bounded calls, every pair once

@@ -323,7 +323,7 @@ def _tiny_png(size) -> bytes:
 def test_pyvista_unavailable_auto_falls_back_explicit_raises(tmp_path, monkeypatch):
     q, panels = _ellipse_scene(1)
     monkeypatch.setattr(render, "DEFAULT_RENDERER", "pyvista")
-    monkeypatch.setattr(render, "_draw_pyvista", _broken(RuntimeError("a test render crashed (signal 11)")))
+    monkeypatch.setattr(render, "_draw_pyvista", _broken(render._Unavailable("a test render crashed (signal 11)")))
     out = tmp_path / "x.png"
     r = render_matches(q, "e", panels, out, size=SMALL)
     assert r.renderer == "matplotlib"
@@ -336,6 +336,10 @@ def test_pyvista_unavailable_auto_falls_back_explicit_raises(tmp_path, monkeypat
     assert "pyvista cannot render off-screen on this machine" in msg
     assert "signal 11" in msg and "--renderer matplotlib" in msg and str(out) in msg
     assert isinstance(e.value, NfdError) and not out.exists()
+    # a failure while drawing (not the machine's off-screen support) is not blamed on the machine
+    monkeypatch.setattr(render, "_draw_pyvista", _broken(ValueError("bad scalars")))
+    with pytest.raises(RenderError, match=r"pyvista could not draw the picture \(ValueError: bad scalars\)"):
+        render_matches(q, "e", panels, out, size=SMALL, renderer="pyvista")
 
 
 def test_every_renderer_failing_is_a_render_error(tmp_path, monkeypatch):

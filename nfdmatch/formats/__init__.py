@@ -104,7 +104,8 @@ def format_of(path, format: str | None = None) -> str:
     what = f"unknown file extension {ext!r}" if ext else "no file extension"
     raise UnknownFormatError(
         f"{what}; supported extensions: {', '.join(supported_extensions())}; "
-        f"use --input-format (format= in Python) to choose one of {', '.join(FORMATS)}", path=p)
+        f"name the format instead (--input-format / --output-format, format= in Python): "
+        f"one of {', '.join(FORMATS)}", path=p)
 
 
 #: mesh formats that people hand to the curve readers by mistake

@@ -174,8 +174,8 @@ def _read_points_fast(text: str, p: str):
     """
     if "\\" in text or "/" in text or not text.isascii():
         return None
-    # the parser splits statements on any whitespace and reads indented ones: here only
-    # single spaces inside lines and nothing before the keyword, else the parser decides
+    # the parser splits statements on any whitespace and reads indented ones: here spaces
+    # are the only separators and no statement is indented, else the parser decides
     if any(ch in text for ch in "\t\r\v\f\x1c\x1d\x1e\x1f") or text.startswith(" ") or "\n " in text:
         return None
     v_rows, l_rows = [], []
