@@ -737,16 +737,17 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
     """
     from .curve import Curve
     from .descriptors import descriptors, reconstruct as rebuild
-    from .formats import read_curve, read_curves, split_selector, write_curves
+    from .formats import write_curves
     from .matching import distance
+    from .sources import read_all
 
     n = samples if samples is not None else max(128, 4 * harmonics)
     if 2 * harmonics >= n:
         raise click.BadParameter(f"harmonics ({harmonics}) must be below samples/2 ({n}/2)",
                                  param_hint="--harmonics")
-    _, selector = split_selector(curve_spec)
-    curves = ([read_curve(curve_spec, format=input_format)] if selector is not None
-              else read_curves(curve_spec, format=input_format))
+    curves, errors = read_all([curve_spec], format=input_format)
+    if errors:
+        raise errors[0]
     rebuilt, rows = [], []
     for curve in curves:
         d = descriptors(curve, samples=n, harmonics=harmonics)
