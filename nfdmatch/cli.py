@@ -160,7 +160,10 @@ def main():
     \b
     Examples:
       nfdmatch distance a.csv b.obj#2
-      nfdmatch describe curves/*.csv --format json
+      nfdmatch index build curves/ --index curves.h5
+      nfdmatch query q.csv --index curves.h5 --top 5
+      nfdmatch show q.csv --index curves.h5 -o matches.png
+      nfdmatch extract part.stl --sections 20 -o contours/
 
     Exit codes: 0 ok, 1 error, 2 usage error, 3 some inputs failed (the rest was output).
     """
