@@ -661,23 +661,25 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
 @matching_options
 @descriptor_options
 @input_format_option
+@click.option("--order", type=click.Choice(["input", "similar"]), default="input", show_default=True,
+              help="Row order: as found, or similar curves next to each other (average-linkage tree).")
 @click.option("--format", "output_format", type=click.Choice(["csv", "tsv", "json"]), default="csv",
               show_default=True, help="Format of the matrix on stdout.")
 @handle_errors
 def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samples, harmonics, scale,
-           input_format, output_format):
+           input_format, order, output_format):
     """The distance between every pair of curves in FILE_OR_FOLDER... .
 
     stdout: CSV/TSV with a header row `id,<id 1>,<id 2>,...` then one row per curve, its id
     first; or JSON {"ids": [...], "distances": [[...], ...]}. Symmetric, zero diagonal,
-    curves in the order found (files sorted, curves in file order). With -o, also a
-    grey-level picture like the paper's Figure 7.
+    curves in the order found (files sorted, curves in file order), or with --order similar
+    grouped by similarity. With -o, also a grey-level picture like the paper's Figure 7.
 
     \b
     Example:
       nfdmatch matrix sample_curves/library -o matrix.png > matrix.csv
     """
-    from .search import distance_matrix
+    from .search import distance_matrix, similarity_order
 
     if output:
         from .render import check_output
@@ -692,6 +694,10 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
     finally:
         finish()
     ids = [c.id for c in curves]
+    if order == "similar":
+        permutation = similarity_order(distances)
+        distances = distances[permutation][:, permutation]
+        ids = [ids[i] for i in permutation]
     if output_format == "json":
         click.echo(json.dumps({"ids": ids, "distances": distances.tolist()}, indent=1))
     else:

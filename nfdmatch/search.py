@@ -12,7 +12,7 @@ from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, desc
 from .errors import ParameterError
 from .matching import exact_search, paper_search
 
-__all__ = ["rank_curves", "search_index", "distance_matrix", "SearchStats", "BATCH_ROWS", "CHUNK_ROWS"]
+__all__ = ["rank_curves", "search_index", "distance_matrix", "similarity_order", "SearchStats", "BATCH_ROWS", "CHUNK_ROWS"]
 
 #: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
 BATCH_ROWS = 2048
@@ -95,6 +95,46 @@ def distance_matrix(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = 
         if progress is not None:
             progress(done, total)
     return matrix + matrix.T
+
+
+def similarity_order(matrix: np.ndarray) -> np.ndarray:
+    """An order of the curves that puts similar ones next to each other (for pictures).
+
+    Parameters
+    ----------
+    matrix : (N, N) float, symmetric distances.
+
+    Returns
+    -------
+    (N,) int64 permutation: the leaves of the average-linkage tree (UPGMA), each merge
+    placing the earlier cluster first; ties broken by position, so the order is
+    deterministic. O(N^2) memory, N - 1 merges of O(N^2) numpy work each.
+    """
+    D = np.array(matrix, dtype=np.float64)
+    N = len(D)
+    if D.shape != (N, N):
+        raise ParameterError(f"expected a square matrix, got shape {D.shape}")
+    if N <= 2:
+        return np.arange(N, dtype=np.int64)
+    np.fill_diagonal(D, np.inf)
+    sizes = np.ones(N)
+    members = [[i] for i in range(N)]
+    alive = np.ones(N, dtype=bool)
+    for _ in range(N - 1):
+        flat = int(np.argmin(D))
+        a, b = divmod(flat, N)
+        a, b = min(a, b), max(a, b)
+        # Lance-Williams update for the average linkage: the merged cluster lives at a
+        merged = (sizes[a] * D[a] + sizes[b] * D[b]) / (sizes[a] + sizes[b])
+        merged[~alive] = np.inf
+        D[a], D[:, a] = merged, merged
+        D[a, a] = np.inf
+        D[b], D[:, b] = np.inf, np.inf
+        alive[b] = False
+        sizes[a] += sizes[b]
+        members[a] = members[a] + members[b]
+        members[b] = []
+    return np.array(members[int(np.flatnonzero(alive)[0])], dtype=np.int64)
 
 
 # --------------------------------------------------------------------------- index search

@@ -252,3 +252,16 @@ def test_show_reads_match_files_with_the_input_format(tmp_path, rng):
                          "-o", tmp_path / "s.png", "--format", "json")
     assert code == 0, err
     assert [r["source"] for r in json.loads(out)] == ["file", "file"] and "Note" not in err
+
+
+def test_matrix_order_similar_permutes_rows_and_columns_together(folder):
+    code, out, _ = run("matrix", folder, "--format", "json")
+    plain = json.loads(out)
+    code, out, err = run("matrix", folder, "--format", "json", "--order", "similar")
+    assert code == 0, err
+    ordered = json.loads(out)
+    assert sorted(ordered["ids"]) == sorted(plain["ids"])
+    where = [plain["ids"].index(i) for i in ordered["ids"]]
+    np.testing.assert_array_equal(np.array(plain["distances"])[np.ix_(where, where)], ordered["distances"])
+    pos = {curve_id: k for k, curve_id in enumerate(ordered["ids"])}
+    assert abs(pos[str(folder / "knot.csv")] - pos[str(folder / "knot-posed.obj")]) == 1

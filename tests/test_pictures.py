@@ -203,3 +203,20 @@ def test_matrix_in_row_batches_equals_one_call(rng, monkeypatch):
     monkeypatch.setattr(search_module, "exact_search", lambda A, B, *a, **k: sizes.append(len(B)) or real(A, B, *a, **k))
     np.testing.assert_allclose(distance_matrix(curves), whole, rtol=1e-12, atol=1e-15)   # BLAS rounding
     assert max(sizes) == 2 and sum(sizes) == 9 * 8 // 2          # bounded calls, every pair once
+
+
+def test_similarity_order_groups_clusters(rng):
+    from nfdmatch.search import similarity_order
+
+    centres = rng.normal(size=(4, 3)) * 20
+    labels = rng.permutation(np.repeat(np.arange(4), 6))
+    points = centres[labels] + rng.normal(size=(24, 3))
+    D = np.linalg.norm(points[:, None] - points[None], axis=2)
+    order = similarity_order(D)
+    assert sorted(order.tolist()) == list(range(24))
+    runs = np.count_nonzero(np.diff(labels[order])) + 1
+    assert runs == 4                                        # each cluster contiguous
+    np.testing.assert_array_equal(similarity_order(D), order)   # deterministic
+    assert similarity_order(np.zeros((1, 1))).tolist() == [0]
+    with pytest.raises(ParameterError):
+        similarity_order(np.zeros((2, 3)))
