@@ -271,7 +271,8 @@ def descriptors_batch(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int 
     centred = closed - offset[curve_of]
     extent = np.maximum.reduceat(np.abs(centred).max(axis=1), np.concatenate([[0], np.cumsum(counts + 1)[:-1]]))
     unit = centred / extent[curve_of, None]
-    seg = np.linalg.norm(np.diff(unit, axis=0), axis=1)
+    step = np.diff(unit, axis=0)
+    seg = np.linalg.norm(step, axis=1)
     starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])      # index of each curve's first vertex
     seg[starts[1:] - 1] = 0.0                                        # no segment between curves
     cum = np.concatenate([[0.0], np.cumsum(seg)])                    # global arc length, monotone
@@ -282,9 +283,14 @@ def descriptors_batch(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int 
     idx = np.clip(idx, starts.repeat(samples), last)
     seglen = cum[idx + 1] - cum[idx]
     t = (targets.ravel() - cum[idx]) / np.where(seglen > 0, seglen, 1.0)
-    sampled = (unit[idx] + t[:, None] * (unit[idx + 1] - unit[idx])).reshape(N, samples, 3)
-    fd = np.fft.fft(sampled, axis=1) / samples
-    rms = np.sqrt(np.sum(np.abs(fd[:, 1:]) ** 2, axis=(1, 2)))
+    # coordinate-major (3, N * samples): contiguous gathers, and FFTs along the last axis
+    sampled = (unit.T[:, idx] + t * step.T[:, idx]).reshape(3, N, samples)
+    # real samples: rfft gives A_0 .. A_{n//2}, all that is used (A_{-k} = conj A_k)
+    fd = np.fft.rfft(sampled, axis=-1).transpose(1, 2, 0) / samples             # (N, n//2 + 1, 3)
+    # sum over k = 1 .. n-1 of |A_k|^2: twice each k < n/2, once the Nyquist term
+    twice = np.where(2 * np.arange(fd.shape[1]) < samples, 2.0, 1.0)
+    twice[0] = 0.0
+    rms = np.sqrt(np.einsum("k,nk->n", twice, np.sum(np.abs(fd) ** 2, axis=2)))
     a1 = np.linalg.norm(fd[:, 1], axis=1)
     divisor = rms if scale == "rms" else np.maximum(a1, rms * 1e-15)
     coeffs = fd[:, 1:harmonics + 1] / divisor[:, None, None]
