@@ -748,6 +748,24 @@ def _unique_stems(meshes: Sequence[str]) -> dict[str, str]:
     return stems
 
 
+def _write_if_changed(target: str, curve: Curve, fmt: str) -> None:
+    """Write ``curve`` to ``target`` through a hidden temporary file in the same folder;
+    keep the existing file (and its mtime) when the new bytes are the same."""
+    import filecmp
+
+    folder, name = os.path.split(target)
+    temp = os.path.join(folder, f".{name}.{os.getpid()}.tmp{os.path.splitext(name)[1]}")
+    try:
+        write_curves(temp, [curve], format=fmt)
+        if os.path.isfile(target) and filecmp.cmp(temp, target, shallow=False):
+            os.remove(temp)
+        else:
+            os.replace(temp, target)
+    finally:
+        if os.path.exists(temp):
+            os.remove(temp)
+
+
 def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj") -> list[str]:
     """Write each contour to its own curve file in ``out_dir`` (created if needed).
 
@@ -755,8 +773,10 @@ def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj")
     ----------
     contours : the contours of one or several meshes (e.g. of several
         :func:`extract_contours` results).
-    out_dir : the folder; existing files of the same name are overwritten,
-        other files are left alone.
+    out_dir : the folder; existing files of the same name are replaced when their
+        content changes and left untouched (mtime kept) when it would not, so that
+        make-style pipelines downstream rebuild only what changed; other files are left
+        alone. Each file is written whole to a hidden temporary file, then renamed.
     format : a curve format of :data:`nfdmatch.formats.FORMATS` (``"obj"``,
         ``"csv"``, ``"vtp"``, ...); the file extension is its first one.
 
@@ -789,7 +809,7 @@ def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj")
         name = c.name_for(stems[c.mesh])
         target = os.path.join(d, name + ext)
         try:
-            write_curves(target, [Curve.trusted(c.points, name, c.mesh)], format=fmt)
+            _write_if_changed(target, Curve.trusted(c.points, name, c.mesh), fmt)
         except WriteError:
             raise
         except NfdError as exc:

@@ -423,3 +423,27 @@ def test_a_plane_through_vertices_gives_those_vertices_once(tmp_path):
     assert loop.level == 1.0 and loop.n_vertices == around
     stored = rings[1].astype(np.float32).astype(np.float64)          # PLY keeps float32
     assert {tuple(p) for p in loop.points} == {tuple(p) for p in stored}
+
+
+@pytest.mark.parametrize("fmt", ["obj", "csv", "vtp"])
+def test_rerun_leaves_unchanged_files_untouched(meshes, tmp_path, fmt):
+    """Make-style pipelines: a second extraction rewrites nothing that did not change."""
+    out = tmp_path / "out"
+    code, _, err = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--output-format", fmt)
+    assert code == 0, err
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    for p in out.iterdir():
+        os.utime(p, ns=(1, 1))                           # as if written long ago
+    code, _, err = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--output-format", fmt)
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)     # no temporary files left
+    assert {p.stat().st_mtime_ns for p in out.iterdir()} == {1}
+    # the same mesh moved sideways: same names (same levels along z), new content, rewritten
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    trimesh.creation.cylinder(radius=R_CYL, height=H_CYL, sections=CYL_SIDES).apply_translation(
+        [5.0, 0.0, 0.0]).export(moved / "cylinder.stl")
+    code, _, err = run("extract", moved / "cylinder.stl", "-o", out, "--sections", 3, "--output-format", fmt)
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)
+    assert all(p.stat().st_mtime_ns != 1 for p in out.iterdir())
