@@ -1,7 +1,7 @@
 """Matches put into the query's frame, for pictures: the data behind ``nfdmatch show``.
 
-Each match is re-matched against the query (one exact search per match, so only the top
-few) to get the rotation, scale, translation, start shift and direction that the search
+Each match is re-matched against the query (one search per match, with the method of the
+search; only the top few) to get the rotation, scale, translation, start shift and direction that the search
 found, and its vertices are mapped into the query's coordinates with them. A match is
 drawn from its source file when that file still holds the indexed curve, otherwise from
 the harmonics stored in the index (true size and pose: the index keeps each curve's
@@ -21,6 +21,7 @@ from .matching import match_descriptors
 from .render import START_STEP
 
 __all__ = ["ShownMatch", "align_match", "matches_from_curves", "matches_from_index"]
+
 #: a file whose re-matched distance differs from the indexed one by more than this (relative
 #: to 1 + distance) no longer holds the indexed curve: draw from the index instead
 _CHANGED = 1e-3
