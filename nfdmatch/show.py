@@ -1,11 +1,11 @@
 """Matches put into the query's frame, for pictures: the data behind ``nfdmatch show``.
 
-Each match is re-matched against the query (one search per match, with the method of the
-search; only the top few) to get the rotation, scale, translation, start shift and direction that the search
-found, and its vertices are mapped into the query's coordinates with them. A match is
-drawn from its source file when that file still holds the indexed curve, otherwise from
-the harmonics stored in the index (true size and pose: the index keeps each curve's
-centroid, scale and rotation).
+Each match is re-matched against the query (one search per match, with the search's
+method; only the top few) to get the rotation, scale, translation, start shift and
+direction that the search found, and its vertices are mapped into the query's coordinates
+with them. A match is drawn from its source file when that file still holds the indexed
+curve, otherwise from the harmonics stored in the index (true size and pose: the index
+keeps each curve's centroid, scale and rotation).
 """
 
 from __future__ import annotations
