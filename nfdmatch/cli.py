@@ -581,7 +581,8 @@ def _report_picture(result) -> None:
               help="The PNG file to write.")
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches.")
+@click.option("--glob", "glob_pattern", default=None,
+              help="Only files in folders whose name matches (with --against).")
 @matching_options
 @_optional_descriptor_options
 @input_format_option
