@@ -231,14 +231,15 @@ def describe(files, samples, harmonics, scale, input_format, output_format):
     Example:
       nfdmatch describe sample_curves/library/*.csv --harmonics 8 > descriptors.csv
     """
-    from .descriptors import descriptors, validate_parameters
+    from .descriptors import descriptors_batch, validate_parameters
     from .sources import read_all
 
     validate_parameters(samples, harmonics, scale)
     curves, errors = read_all(files, format=input_format)
     _report_errors(errors)
     failed = len(errors)
-    rows = [_descriptor_row(descriptors(c, samples=samples, harmonics=harmonics, scale=scale)) for c in curves]
+    batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
+    rows = [_descriptor_row(batch.row(i, c.id)) for i, c in enumerate(curves)]
     if not rows and failed:
         sys.exit(EXIT_ERROR)
     if output_format in ("json", "jsonl"):
