@@ -75,7 +75,7 @@ from .curve import Curve, clean_points
 from .errors import (CurveError, MeshError, NfdError, ParameterError, ReadError,
                      UnknownFormatError, WriteError)
 from .formats import FORMATS, format_of, write_curves
-from .formats._chain import chain_segments, check_readable
+from .formats._chain import chain_segments, check_readable, write_if_changed
 
 __all__ = ["AXES", "DEFAULT_SECTIONS", "Contour", "ExtractResult", "mesh_extensions",
            "find_mesh_files", "load_mesh", "section_levels", "extract_contours",
@@ -748,24 +748,6 @@ def _unique_stems(meshes: Sequence[str]) -> dict[str, str]:
     return stems
 
 
-def _write_if_changed(target: str, curve: Curve, fmt: str) -> None:
-    """Write ``curve`` to ``target`` through a hidden temporary file in the same folder;
-    keep the existing file (and its mtime) when the new bytes are the same."""
-    import filecmp
-
-    folder, name = os.path.split(target)
-    temp = os.path.join(folder, f".{name}.{os.getpid()}.tmp{os.path.splitext(name)[1]}")
-    try:
-        write_curves(temp, [curve], format=fmt)
-        if os.path.isfile(target) and filecmp.cmp(temp, target, shallow=False):
-            os.remove(temp)
-        else:
-            os.replace(temp, target)
-    finally:
-        if os.path.exists(temp):
-            os.remove(temp)
-
-
 def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj") -> list[str]:
     """Write each contour to its own curve file in ``out_dir`` (created if needed).
 
@@ -809,7 +791,8 @@ def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj")
         name = c.name_for(stems[c.mesh])
         target = os.path.join(d, name + ext)
         try:
-            _write_if_changed(target, Curve.trusted(c.points, name, c.mesh), fmt)
+            curve = Curve.trusted(c.points, name, c.mesh)
+            write_if_changed(target, lambda temp: write_curves(temp, [curve], format=fmt))
         except WriteError:
             raise
         except NfdError as exc:

@@ -280,23 +280,17 @@ def check_output(path) -> str:
 
 
 def _write(path: str, data: bytes) -> None:
-    """Write the PNG whole (temporary file, then rename); an identical existing file is
-    left untouched, mtime included, so make-style pipelines see no change."""
-    folder, name = os.path.split(os.path.abspath(path))
-    temp = os.path.join(folder, f".{name}.{os.getpid()}.tmp")
-    try:
-        if os.path.isfile(path) and os.path.getsize(path) == len(data):
-            with open(path, "rb") as f:
-                if f.read() == data:
-                    return
+    """Write the PNG whole; an identical existing file is left untouched (mtime included)."""
+    from .formats._chain import write_if_changed
+
+    def produce(temp: str) -> None:
         with open(temp, "wb") as f:
             f.write(data)
-        os.replace(temp, path)
+
+    try:
+        write_if_changed(path, produce)
     except OSError as exc:
         raise WriteError(f"cannot write the picture: {exc.strerror or exc}", path=path) from None
-    finally:
-        if os.path.exists(temp):
-            os.remove(temp)
 
 
 def _check_renderer(renderer) -> str:

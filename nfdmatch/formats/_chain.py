@@ -256,6 +256,27 @@ def points_list(curves, *, path=None) -> list[np.ndarray]:
     return out
 
 
+def write_if_changed(path: str, produce) -> bool:
+    """Write a file whole: ``produce(temp)`` writes it to a hidden temporary file beside
+    ``path`` (same extension, so writers that go by it work), which then replaces ``path``
+    unless the bytes are the same; the existing file and its mtime are then kept, so
+    make-style pipelines see no change. Returns True when ``path`` was (re)written.
+    Errors of ``produce`` and OSError propagate; the temporary file never stays."""
+    import filecmp
+
+    folder, name = os.path.split(os.path.abspath(path))
+    temp = os.path.join(folder, f".{name}.{os.getpid()}.tmp{os.path.splitext(name)[1]}")
+    try:
+        produce(temp)
+        if os.path.isfile(path) and filecmp.cmp(temp, path, shallow=False):
+            return False
+        os.replace(temp, path)
+        return True
+    finally:
+        if os.path.exists(temp):
+            os.remove(temp)
+
+
 def write_text(path, text: str) -> None:
     """Write ``text`` as UTF-8 with ``\\n`` line ends; I/O problems become :class:`ReadError`.
 
