@@ -62,13 +62,13 @@ def lib(tmp_path, rng):
 def reads(monkeypatch):
     """Paths read by in-process (jobs=1) builds."""
     seen = []
-    real = nindex.read_curves
+    real = nindex.pool.read_curves
 
     def counting(path, format=None):
         seen.append(str(path))
         return real(path, format=format)
 
-    monkeypatch.setattr(nindex, "read_curves", counting)
+    monkeypatch.setattr(nindex.pool, "read_curves", counting)
     return seen
 
 
@@ -405,7 +405,7 @@ def test_bad_files_are_recorded_and_the_rest_indexed(tmp_path, rng, reads):
 
 
 def test_unexpected_worker_exception_becomes_a_failure(lib, tmp_path, monkeypatch):
-    real = nindex.read_curves
+    real = nindex.pool.read_curves
     victim = str(lib / "b.csv")
 
     def flaky(path, format=None):
@@ -413,7 +413,7 @@ def test_unexpected_worker_exception_becomes_a_failure(lib, tmp_path, monkeypatc
             raise RuntimeError("boom")
         return real(path, format=format)
 
-    monkeypatch.setattr(nindex, "read_curves", flaky)
+    monkeypatch.setattr(nindex.pool, "read_curves", flaky)
     report = build_index([str(lib)], tmp_path / "idx.h5", jobs=1)
     assert (report.added, report.failed, report.curves) == (4, 1, 7)
     assert report.failures == [(victim, f"{victim}: unexpected error: RuntimeError: boom")]
@@ -684,7 +684,7 @@ def test_lock_fails_at_once_or_waits(lib, tmp_path):
 BUILD_SCRIPT = """
 import sys
 from nfdmatch import index
-index._WRITE_ROWS = 256         # many small writes: a kill lands in the middle of writing
+index.writer._WRITE_ROWS = 256  # many small writes: a kill lands in the middle of writing
 index.build_index([sys.argv[1]], sys.argv[2], samples=int(sys.argv[3]), rebuild=True, jobs=int(sys.argv[4]))
 """
 

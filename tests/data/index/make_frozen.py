@@ -36,7 +36,7 @@ def main() -> int:
     if not os.path.isdir("sample_curves/library"):
         print("run from the repository root", file=sys.stderr)
         return 1
-    index._utcnow = lambda: "2026-01-01T00:00:00Z"
+    index.build._utcnow = lambda: "2026-01-01T00:00:00Z"
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "v1-sample.h5")
         report = index.build_index(SOURCES, path, samples=32, harmonics=4, scale="rms", jobs=1)

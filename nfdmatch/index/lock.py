@@ -1,0 +1,57 @@
+"""The build lock: one build at a time per index file."""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import time
+
+from ..errors import IndexLockedError, WriteError
+
+
+class _Lock:
+    """``flock(LOCK_EX)`` on ``INDEX.lock``; released by the kernel when the process dies."""
+
+    def __init__(self, index_path: str, wait: float):
+        self.path = index_path + ".lock"
+        try:
+            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        except OSError as exc:
+            raise WriteError(f"cannot create the lock file {self.path}: {exc.strerror or exc}",
+                             path=index_path) from None
+        deadline = time.monotonic() + max(0.0, float(wait or 0.0))
+        while True:
+            try:
+                fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError as exc:
+                if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    os.close(self.fd)
+                    raise WriteError(f"cannot lock {self.path}: {exc.strerror or exc}", path=index_path) from None
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    holder = self._holder()
+                    os.close(self.fd)
+                    waited = f" (waited {wait:g} s)" if wait else ""
+                    raise IndexLockedError(
+                        f"another build holds the lock on {self.path} (pid {holder}){waited}; "
+                        f"retry later or pass --wait SECONDS", path=index_path) from None
+                time.sleep(min(0.05, left))
+        os.ftruncate(self.fd, 0)
+        os.pwrite(self.fd, f"{os.getpid()}\n".encode(), 0)
+
+    def _holder(self) -> str:
+        try:
+            text = os.pread(self.fd, 32, 0).decode("ascii", "replace").strip()
+            return text if text.isdigit() else "unknown"
+        except OSError:
+            return "unknown"
+
+    def release(self) -> None:
+        if self.fd is not None:
+            try:
+                fcntl.flock(self.fd, fcntl.LOCK_UN)
+            finally:
+                os.close(self.fd)
+                self.fd = None
