@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 import os
 import time
 from dataclasses import dataclass, field
@@ -23,6 +24,36 @@ from .writer import _CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _w
 
 def _utcnow() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+class Action(enum.Enum):
+    """What a build does with one found file (decided from the old index's /files row)."""
+
+    #: unchanged size and mtime, indexed before: copy its rows from the old index
+    COPY = "copy"
+    #: unchanged size and mtime, failed before: keep its failure, do not read it again
+    KEEP_FAILED = "keep_failed"
+    #: same size, another mtime: hash it; same contents are kept as they were, else computed
+    HASH = "hash"
+    #: new, resized, unreadable by stat, or every file is recomputed: read and describe it
+    COMPUTE = "compute"
+
+    @property
+    def reads_file(self) -> bool:
+        """True when the file is opened (a task of the worker pool; counted in progress)."""
+        return self in (Action.HASH, Action.COMPUTE)
+
+
+@dataclass(frozen=True)
+class PlanItem:
+    """One found file in the build plan: its ``path``, the ``action``, its ``old`` /files
+    record (None for a file new to the index) and the number of its pool ``task`` (None
+    unless ``action.reads_file``)."""
+
+    path: str
+    action: Action
+    old: FileRecord | None
+    task: int | None
 
 
 @dataclass
@@ -167,7 +198,7 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
         for i, r in enumerate(old_files):
             old_rows[r.path] = (i, r)
         found_set = set(found)
-        items = []          # (path, kind, old record or None, task number or None)
+        items: list[PlanItem] = []
         tasks = []
         for path in found:
             entry = old_rows.get(path)
@@ -178,18 +209,18 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
             except OSError:
                 size = mtime = None
             if r is None or recompute_all or size is None:
-                kind, old_sha = "compute", None
+                action, old_sha = Action.COMPUTE, None
             elif size == r.size and mtime == r.mtime_ns:
-                kind, old_sha = ("reuse" if r.status == "ok" else "keepfailed"), None
+                action, old_sha = (Action.COPY if r.status == "ok" else Action.KEEP_FAILED), None
             elif size == r.size and r.sha256:
-                kind, old_sha = "check", r.sha256
+                action, old_sha = Action.HASH, r.sha256
             else:
-                kind, old_sha = "compute", None
+                action, old_sha = Action.COMPUTE, None
             task = None
-            if kind in ("compute", "check"):
+            if action.reads_file:
                 task = len(tasks)
                 tasks.append((path, input_format, params["samples"], params["harmonics"], params["scale"], old_sha))
-            items.append((path, kind, r, task))
+            items.append(PlanItem(path, action, r, task))
         removed = [r.path for r in old_files if r.path not in found_set]
 
         if dry_run:
@@ -205,14 +236,14 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
         if not needs_write:
             if progress is not None:
                 progress(0, 0)
-            for path, kind, r, _ in items:
-                if kind == "reuse":
+            for item in items:
+                if item.action is Action.COPY:
                     report.unchanged += 1
-                    report.changes.append(("unchanged", path))
+                    report.changes.append(("unchanged", item.path))
                 else:
                     report.failed += 1
-                    report.changes.append(("failed", path))
-                    report.failures.append((path, r.error))
+                    report.changes.append(("failed", item.path))
+                    report.failures.append((item.path, item.old.error))
             report.curves = old.n_curves
             report.seconds = time.perf_counter() - t0
             return report
@@ -227,22 +258,23 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     return report
 
 
-def _dry_run_report(report: BuildReport, items, removed, old, progress) -> None:
-    total = len([it for it in items if it[1] in ("check", "compute")])
+def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, progress) -> None:
+    total = len([it for it in items if it.action.reads_file])
     done = 0
     if progress is not None:
         progress(0, total)
     actions = {}
-    for path, kind, r, _ in items:
-        if kind == "reuse":
+    for item in items:
+        path, r = item.path, item.old
+        if item.action is Action.COPY:
             actions[path] = "unchanged"
-        elif kind == "keepfailed":
+        elif item.action is Action.KEEP_FAILED:
             actions[path] = "failed"
             report.failures.append((path, r.error))
-        elif kind == "compute":
+        elif item.action is Action.COMPUTE:
             actions[path] = "added" if r is None else "updated"
             done += 1
-        else:
+        else:                                   # Action.HASH
             try:
                 same = _sha256(path) == r.sha256
             except OSError:
@@ -255,7 +287,7 @@ def _dry_run_report(report: BuildReport, items, removed, old, progress) -> None:
             else:
                 actions[path] = "updated"
             done += 1
-        if progress is not None and kind in ("check", "compute"):
+        if progress is not None and item.action.reads_file:
             progress(done, total)
     for path in removed:
         actions[path] = "removed"
@@ -266,7 +298,8 @@ def _dry_run_report(report: BuildReport, items, removed, old, progress) -> None:
     report.curves = 0 if old is None else old.n_curves
 
 
-def _write(report: BuildReport, index_path: str, items, tasks, removed, old, params, jobs, lock, progress):
+def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
+           progress):
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
     import secrets
@@ -310,20 +343,21 @@ def _write(report: BuildReport, index_path: str, items, tasks, removed, old, par
             attrs["updated"] = now
             writer = _CurveWriter(h5, K)
             run = _CopyRun(old, writer)
-            for path, kind, r, task in items:
+            for item in items:
+                path, r = item.path, item.old
                 file_row = len(records)
                 start = writer.rows + writer.pending_rows + run.rows
-                if kind == "reuse":
+                if item.action is Action.COPY:
                     run.add(r.curve_start, r.curve_count, file_row)
                     records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "ok", "", start, r.curve_count))
                     actions[path] = "unchanged"
                     continue
-                if kind == "keepfailed":
+                if item.action is Action.KEEP_FAILED:
                     records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "failed", r.error, start, 0))
                     actions[path] = "failed"
                     report.failures.append((path, r.error))
                     continue
-                res = result_of(task)
+                res = result_of(item.task)
                 if res["status"] == "same":            # mtime changed, contents did not
                     if r.status == "ok":
                         run.add(r.curve_start, r.curve_count, file_row)
