@@ -193,7 +193,7 @@ def test_aligned_match_lands_on_the_query(seed, shift, flip, vertices):
 
 
 def test_matrix_in_row_batches_equals_one_call(rng, monkeypatch):
-    import nfdmatch.search as search_module
+    import nfdmatch.search.matrix as search_module
 
     curves = [random_smooth_curve(rng, n_vertices=int(n)) for n in rng.integers(80, 300, 9)]
     whole = distance_matrix(curves)

@@ -1,5 +1,4 @@
-"""Exact k nearest curves: lower-bound pruning, then exact distances in batches, over an
-index file or curves held in memory."""
+"""Exact k nearest curves of an index: invariant lower bounds prune rows, exact distances in batches."""
 
 from __future__ import annotations
 
@@ -8,136 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, descriptors
-from .errors import ParameterError
-from .matching import exact_search, paper_search
-
-__all__ = ["rank_curves", "search_index", "distance_matrix", "similarity_order", "SearchStats", "BATCH_ROWS", "CHUNK_ROWS"]
-
-#: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
-BATCH_ROWS = 2048
-
-
-def rank_curves(query, curves, *, top: int | None = None, max_distance: float | None = None,
-                samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
-                mirror: bool = False, weights=None) -> list[dict]:
-    """Rank ``curves`` by distance to ``query``.
-
-    Parameters
-    ----------
-    query : :class:`~nfdmatch.curve.Curve` (or (n, 3) array).
-    curves : sequence of :class:`~nfdmatch.curve.Curve`.
-    top : keep the best ``top`` (all when None).
-    max_distance : drop matches farther than this.
-    Other parameters as in :func:`nfdmatch.distance`.
-
-    Returns
-    -------
-    list of dicts ``{rank, match, distance, shift, reversed, mirrored, row}`` sorted by
-    distance, ties broken by id so the order is deterministic; ``rank`` is 1-based, ``row``
-    the match's position in ``curves``.
-    """
-    from .curve import Curve
-
-    if not isinstance(query, Curve):
-        query = Curve(query, id="<query>")
-    if not curves:
-        if top is not None and top < 1:
-            raise ParameterError(f"top must be at least 1, got {top}")
-        descriptors(query, samples=samples, harmonics=harmonics, scale=scale)   # validates
-        return []
-    memory = MemoryIndex(curves, samples=samples, harmonics=harmonics, scale=scale)
-    results, _ = search_index(memory, [query], top=top if top is not None or max_distance is not None
-                              else len(curves), max_distance=max_distance, method=method,
-                              direction=direction, mirror=mirror, weights=weights, prune=weights is None)
-    return results[0]
-
-
-def distance_matrix(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                    scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
-                    mirror: bool = False, weights=None, progress=None) -> np.ndarray:
-    """All-pairs distances of ``curves``.
-
-    Parameters
-    ----------
-    curves : sequence of N :class:`~nfdmatch.curve.Curve` or (n_i, 3) arrays.
-    progress : optional callable ``progress(pairs_done, pairs_total)``.
-    Other parameters as in :func:`nfdmatch.distance`.
-
-    Returns
-    -------
-    (N, N) float64, symmetric with a zero diagonal: entry ``(i, j)`` for ``i < j`` is
-    ``distance(curves[i], curves[j])`` and is mirrored below the diagonal. The exact
-    distance is symmetric in itself (to ~1e-9); the paper's step is not, and its matrix
-    takes the row curve as the reference.
-
-    One vectorized call per row against all later rows (in batches of :data:`BATCH_ROWS`),
-    N (N - 1) / 2 pairs.
-    """
-    from .descriptors import descriptors_batch
-
-    if method not in ("exact", "paper"):
-        raise ParameterError(f"method must be exact or paper, got {method!r}")
-    batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
-    N = len(batch)
-    matrix = np.zeros((N, N))
-    search = exact_search if method == "exact" else paper_search
-    total, done = N * (N - 1) // 2, 0
-    for i in range(N - 1):
-        # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
-        for start in range(i + 1, N, BATCH_ROWS):
-            stop = min(start + BATCH_ROWS, N)
-            r = search(batch.coefficients[i], batch.coefficients[start:stop], samples, weights=weights,
-                       direction=direction, mirror=mirror)
-            matrix[i, start:stop] = r["distance"]
-        done += N - 1 - i
-        if progress is not None:
-            progress(done, total)
-    return matrix + matrix.T
-
-
-def similarity_order(matrix: np.ndarray) -> np.ndarray:
-    """An order of the curves that puts similar ones next to each other (for pictures).
-
-    Parameters
-    ----------
-    matrix : (N, N) float, symmetric distances.
-
-    Returns
-    -------
-    (N,) int64 permutation: the leaves of the average-linkage tree (UPGMA), each merge
-    placing the earlier cluster first; ties broken by position, so the order is
-    deterministic. O(N^2) memory, N - 1 merges of O(N^2) numpy work each.
-    """
-    D = np.array(matrix, dtype=np.float64)
-    N = len(D)
-    if D.shape != (N, N):
-        raise ParameterError(f"expected a square matrix, got shape {D.shape}")
-    if N <= 2:
-        return np.arange(N, dtype=np.int64)
-    np.fill_diagonal(D, np.inf)
-    sizes = np.ones(N)
-    members = [[i] for i in range(N)]
-    alive = np.ones(N, dtype=bool)
-    for _ in range(N - 1):
-        flat = int(np.argmin(D))
-        a, b = divmod(flat, N)
-        a, b = min(a, b), max(a, b)
-        # Lance-Williams update for the average linkage: the merged cluster lives at a
-        merged = (sizes[a] * D[a] + sizes[b] * D[b]) / (sizes[a] + sizes[b])
-        merged[~alive] = np.inf
-        D[a], D[:, a] = merged, merged
-        D[a, a] = np.inf
-        D[b], D[:, b] = np.inf, np.inf
-        alive[b] = False
-        sizes[a] += sizes[b]
-        members[a] = members[a] + members[b]
-        members[b] = []
-    return np.array(members[int(np.flatnonzero(alive)[0])], dtype=np.int64)
-
-
-# --------------------------------------------------------------------------- index search
+from ..errors import ParameterError
+from ..matching import exact_search, paper_search
+from .matrix import BATCH_ROWS
 
 #: rows read from the index at a time: bounds memory for indexes larger than RAM
 CHUNK_ROWS = 65536
@@ -257,8 +129,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     """
     import time
 
-    from .descriptors import descriptors_batch
-    from .matching import invariants
+    from ..descriptors import descriptors_batch
+    from ..matching import invariants
 
     if top is None and max_distance is None:
         raise ParameterError("give top or max_distance (or both)")
@@ -364,32 +236,3 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                         for rank, i in enumerate(order, start=1)])
     stats.seconds = time.perf_counter() - t0
     return results, stats
-
-
-class MemoryIndex:
-    """Curves held in memory with the same reading interface as :class:`nfdmatch.index.Index`
-    (``samples``, ``harmonics``, ``scale``, ``n_curves``, ``iter_chunks``, ``ids_at``), so
-    that :func:`search_index` serves both ``rank`` (no index file) and ``query``."""
-
-    def __init__(self, curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                 scale: str = DEFAULT_SCALE):
-        from .descriptors import descriptors_batch
-        from .matching import invariants
-
-        self.samples, self.harmonics, self.scale = samples, harmonics, scale
-        batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
-        self._ids = [c.id for c in curves]
-        self._rows = {"coefficients": batch.coefficients,
-                      **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()}}
-        self.n_curves = len(curves)
-
-    def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True):
-        for start in range(0, self.n_curves, rows):
-            yield start, {k: v[start:start + rows] for k, v in self._rows.items()
-                          if columns is None or k in columns}
-
-    def ids_at(self, rows) -> list[str]:
-        return [self._ids[int(r)] for r in rows]
-
-    def coefficients_at(self, rows) -> np.ndarray:
-        return self._rows["coefficients"][np.asarray(rows, dtype=np.int64)]

@@ -1,0 +1,37 @@
+"""Curves held in memory behind the reading interface of an index."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
+from .index_search import CHUNK_ROWS
+
+
+class MemoryIndex:
+    """Curves held in memory with the same reading interface as :class:`nfdmatch.index.Index`
+    (``samples``, ``harmonics``, ``scale``, ``n_curves``, ``iter_chunks``, ``ids_at``), so
+    that :func:`search_index` serves both ``rank`` (no index file) and ``query``."""
+
+    def __init__(self, curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
+                 scale: str = DEFAULT_SCALE):
+        from ..descriptors import descriptors_batch
+        from ..matching import invariants
+
+        self.samples, self.harmonics, self.scale = samples, harmonics, scale
+        batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
+        self._ids = [c.id for c in curves]
+        self._rows = {"coefficients": batch.coefficients,
+                      **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()}}
+        self.n_curves = len(curves)
+
+    def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True):
+        for start in range(0, self.n_curves, rows):
+            yield start, {k: v[start:start + rows] for k, v in self._rows.items()
+                          if columns is None or k in columns}
+
+    def ids_at(self, rows) -> list[str]:
+        return [self._ids[int(r)] for r in rows]
+
+    def coefficients_at(self, rows) -> np.ndarray:
+        return self._rows["coefficients"][np.asarray(rows, dtype=np.int64)]

@@ -1,0 +1,44 @@
+"""Ranking curves held in memory against one query."""
+
+from __future__ import annotations
+
+from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, descriptors
+from ..errors import ParameterError
+from .index_search import search_index
+from .memory import MemoryIndex
+
+
+def rank_curves(query, curves, *, top: int | None = None, max_distance: float | None = None,
+                samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
+                scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
+                mirror: bool = False, weights=None) -> list[dict]:
+    """Rank ``curves`` by distance to ``query``.
+
+    Parameters
+    ----------
+    query : :class:`~nfdmatch.curve.Curve` (or (n, 3) array).
+    curves : sequence of :class:`~nfdmatch.curve.Curve`.
+    top : keep the best ``top`` (all when None).
+    max_distance : drop matches farther than this.
+    Other parameters as in :func:`nfdmatch.distance`.
+
+    Returns
+    -------
+    list of dicts ``{rank, match, distance, shift, reversed, mirrored, row}`` sorted by
+    distance, ties broken by id so the order is deterministic; ``rank`` is 1-based, ``row``
+    the match's position in ``curves``.
+    """
+    from ..curve import Curve
+
+    if not isinstance(query, Curve):
+        query = Curve(query, id="<query>")
+    if not curves:
+        if top is not None and top < 1:
+            raise ParameterError(f"top must be at least 1, got {top}")
+        descriptors(query, samples=samples, harmonics=harmonics, scale=scale)   # validates
+        return []
+    memory = MemoryIndex(curves, samples=samples, harmonics=harmonics, scale=scale)
+    results, _ = search_index(memory, [query], top=top if top is not None or max_distance is not None
+                              else len(curves), max_distance=max_distance, method=method,
+                              direction=direction, mirror=mirror, weights=weights, prune=weights is None)
+    return results[0]
