@@ -706,3 +706,28 @@ def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limi
     _split(lambda lo, hi: _exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit,
                                       dist, shift, rot, reversed_, mirrored, lo, hi), N, workers)
     return dist, shift, rot, reversed_, mirrored
+
+
+# ----------------------------------------------------------------------------- grid maximum
+
+@njit(cache=True, nogil=True, **_jit)
+def _grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi):
+    """max over the n grid shifts and D directions of F(s) = max_R tr(R M(s)) for rows
+    lo..hi of B (the integer stage of _exact_rows only: no refinement, no rotation)."""
+    m = hi - lo
+    cand = np.empty((m, 1), dtype=np.int64)
+    val = np.empty((m, 1))
+    fminus = np.empty((m, 1))
+    fplus = np.empty((m, 1))
+    out = np.empty(m)
+    _integer_rows(Aw, B, D, basis, quarter, n, mirror, 1, cand, val, fminus, fplus, out, lo, hi)
+    for r in range(m):
+        fmax[lo + r] = out[r]
+
+
+def grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, workers=1):
+    """matching.grid_maximum's compiled path: (N,) max of F over the grid, per row of B."""
+    N = B.shape[0]
+    fmax = np.empty(N)
+    _split(lambda lo, hi: _grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi), N, workers)
+    return fmax

@@ -31,7 +31,7 @@ import numpy as np
 from .descriptors import Descriptors, descriptors, DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
 from .errors import ParameterError
 
-__all__ = ["Match", "distance", "match_descriptors", "exact_search", "paper_search",
+__all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search",
            "invariants", "lower_bound", "METHODS", "DIRECTIONS"]
 
 METHODS = ("exact", "paper")
@@ -349,6 +349,7 @@ def _warm_up(kernels) -> None:
     B = np.ones((1, 2, 3), dtype=np.complex128)
     basis, quarter = _folded_basis(2, 8)
     kernels.exact_rows(A, A, np.ones(2), B, 1, basis, quarter, 8, False, 1, True, 1.0)
+    kernels.grid_maximum_rows(A, B, 1, basis, quarter, 8, False)
 
 
 @lru_cache(maxsize=32)
@@ -479,6 +480,45 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
         "reversed": direction_idx == 1,        # variants: (B, False), (conj(B), True)
         "mirrored": mirrored,
     }
+
+
+def grid_maximum(A: np.ndarray, B: np.ndarray, grid: int, *, direction: str = "invariant",
+                 mirror: bool = False) -> np.ndarray:
+    """max over ``grid`` equally spaced start shifts, both directions (when ``direction`` is
+    invariant) and all rotations of the correlation objective, per row.
+
+    Parameters
+    ----------
+    A : (K, 3) complex, the query's half-band; B : (N, K, 3) complex rows.
+    grid : shifts s = g n / grid, g = 0..grid-1 (the objective is evaluated as if the curves
+        had ``grid`` samples; 2K < grid).
+
+    Returns
+    -------
+    (N,) float64: max_g F(g), F = max_R tr(R M(g)) with M(g) = sum_k 2 Re(conj(A_k) B_k^T
+    e^{2 pi i k g / grid}) (the exact search's objective, unit weights):
+    ``2 |A|^2 + 2 |B|^2 - 2 max F`` is the squared distance at the best grid shift.
+    The integer stage of :func:`exact_search` alone (no refinement, no rotation).
+    """
+    A = np.asarray(A, dtype=np.complex128)
+    B = np.asarray(B, dtype=np.complex128)
+    N, K, _ = B.shape
+    if direction not in DIRECTIONS:
+        raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
+    D = 2 if direction == "invariant" else 1
+    Aw = np.conj(A)
+    kernels = _compiled_kernels(N * D * grid + _CALL_WORK) if N else None
+    if kernels is not None:
+        workers = (min(os.cpu_count() or 1, _MAX_THREADS)
+                   if N >= _THREAD_ROWS and threading.current_thread() is threading.main_thread() else 1)
+        basis, quarter = _folded_basis(K, grid)
+        return kernels.grid_maximum_rows(np.ascontiguousarray(Aw), np.ascontiguousarray(B), D, basis, quarter,
+                                         grid, bool(mirror), workers)
+    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])          # (D, N, K, 3)
+    P = np.einsum("drkj,ki->jidrk", Bv, Aw)
+    Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
+    F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, grid)).reshape(9, D, N, grid), mirror)
+    return F.max(axis=(0, 2)) if N else np.zeros(0)
 
 
 # --------------------------------------------------------------------------- paper

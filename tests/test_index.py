@@ -3,6 +3,7 @@ parameters, dry runs, crash safety (kill -9), readers during builds, the lock, b
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import random
@@ -19,7 +20,7 @@ import pytest
 from oracle import random_smooth_curve
 
 import nfdmatch.index as nindex
-from nfdmatch import descriptors, read_curves, write_curves
+from nfdmatch import Curve, descriptors, read_curves, write_curves
 from nfdmatch.errors import (IndexFormatError, IndexLockedError, InputError, NfdError, ParameterError,
                              ReadError)
 from nfdmatch.index import (FORMAT_VERSION, INDEX_FORMAT, BuildReport, FileRecord, build_index,
@@ -199,6 +200,98 @@ def test_frozen_v1_index_reads_forever():
         for key, digest in FROZEN_DIGESTS.items():
             assert _digest(f["curves"][key][...]) == digest, key
         assert f["curves/coefficients"].dtype == np.complex64
+
+
+FROZEN_V2 = os.path.join(HERE, "data", "index", "v2-sample.h5")
+
+
+def test_frozen_v2_index_reads_forever():
+    """Format 2 = format 1's tables (same sources, same values) plus /search."""
+    with open_index(FROZEN_V2) as idx, open_index(FROZEN) as v1:
+        assert (idx.format_version, idx.samples, idx.harmonics, idx.scale) == (2, 32, 4, "rms")
+        assert (idx.n_curves, idx.n_files) == (7, 5)
+        assert idx.ids() == FROZEN_IDS
+        # the same files (the modification times are the clone's that froze each file)
+        assert [dataclasses.replace(r, mtime_ns=0)
+                for r in idx.files()] == [dataclasses.replace(r, mtime_ns=0) for r in FROZEN_FILES]
+        rows, old = idx.read_rows(0, 7), v1.read_rows(0, 7)
+        for key in rows:     # v1 was written before a rounding-level fix of the plane rotation
+            np.testing.assert_allclose(rows[key], old[key], rtol=1e-5, atol=1e-5, err_msg=key)
+        table = idx.search_table()
+        assert table.n_cells == 4
+        np.testing.assert_array_equal(table.start, [0, 2, 4, 5, 7])
+        got_rows, features, sqnorm = table.cell_rows(np.arange(4))
+        np.testing.assert_array_equal(got_rows, [1, 2, 3, 6, 5, 0, 4])
+        np.testing.assert_array_equal(features, np.concatenate([rows["inv_sv"], rows["inv_block"]], axis=1)[got_rows]
+                                      .astype(np.float32))
+        # every member within its cell's radius: what the search relies on
+        for c in range(4):
+            a, b = table.start[c], table.start[c + 1]
+            X = features[a:b].astype(np.float64)
+            assert np.all(np.linalg.norm(X[:, :8] - table.centre[c, :8], axis=1) <= table.radius[c, 0])
+            assert np.all(np.linalg.norm(X[:, 8:] - table.centre[c, 8:], axis=1) <= table.radius[c, 1])
+    with h5py.File(FROZEN_V2, "r", locking=False) as f:
+        assert int(f["search"].attrs["cells"]) == 4
+        for key, digest in FROZEN_V2_SEARCH_DIGESTS.items():
+            assert _digest(f["search"][key][...]) == digest, key
+        for key, digest in FROZEN_V2_CURVE_DIGESTS.items():
+            assert _digest(f["curves"][key][...]) == digest, key
+
+
+FROZEN_V2_SEARCH_DIGESTS = {
+    "cell_start": "fa0bdd096a3862cdea58d24219e92c5271eed19b31fa1fdd93fed9987ba321e6",
+    "centre": "449ca190b5acc5f39f2ad8d6795678c309f5fcd65d10007f359e7b8d0ea9945b",
+    "features": "0fe6227676e5830f8c1745fa6b9491895212aa1301fa64a2af9ce8cf6ffb5a7f",
+    "radius": "4b5d0fb900a033448c6ae8a1cd9aa4e9473b29cbf48ed19e8c1831f4cc287cee",
+    "row": "758cc90cb2b0e29822cf95cf373e1988fb076369ee42b69421b35d602e45e18a",
+    "sqnorm": "1bd887b4fed687f562923a946adb7f2db60d87a33d606a961c492c292c94ed86",
+}
+FROZEN_V2_CURVE_DIGESTS = {
+    "centroid": "6bb5ad033de4e0a4a0c99135090b13dd867e723a270b94a2951d8c92b481951c",
+    "coefficients": "be0cf53047e6990035948a8d141f2e300705027e2df0ce3c30a4c0fe379f3b4d",
+    "file": "b2fc5b74e1d0ddd549d6a267559d30bea5146adce22d2cecea8d34e013c50cfb",
+    "inv_block": "830af7e5da18b353fdc6f1f4da0dd9983064ab808a89f8bef18f30327bd82931",
+    "inv_norm": "ff30345ea4cb7952d1fe1819ea2a2398a90b0465f1cee93b0853b65d2cacda0f",
+    "inv_sv": "6770ede567aca9b56546eee8f4335c7953895e46b120a347baf80ea2a3024c8a",
+    "plane_degenerate": "837885c8f8091aeaeb9ec3c3f85a6ff470a415e610b8ba3e49f9b33c9cf9d619",
+    "rotation": "a7281694ec5064f9ce6b93af49a7df5124176c2bdaeab008d4a6daa06caa6cf3",
+    "scale": "aee6480970e5bdc8ca659e47b3bb5893af09e4302f8937962ca2470b9b030a43",
+}
+
+
+@pytest.mark.parametrize("frozen", [FROZEN, FROZEN_V2], ids=["v1", "v2"])
+def test_frozen_indexes_answer_queries_as_the_exhaustive_search(frozen):
+    from nfdmatch.search import search_index
+
+    queries = [Curve(random_smooth_curve(np.random.default_rng(i), 100), id=f"q{i}") for i in range(3)]
+    with open_index(frozen) as idx:
+        pruned, _ = search_index(idx, queries, top=3)
+        full, _ = search_index(idx, queries, top=3, prune=False)
+    assert [[r["match"] for r in p] for p in pruned] == [[r["match"] for r in f] for f in full]
+
+
+def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
+    """Nothing changed in the sources, yet the build rewrites a format-1 index as format 2,
+    with the same rows, and says so."""
+    monkeypatch.chdir(REPO)
+    target = tmp_path / "old.h5"
+    shutil.copyfile(FROZEN, target)
+    with open_index(FROZEN) as v1:
+        sources = sorted({r.path for r in v1.files()})
+        before = v1.read_rows(0, v1.n_curves)
+        unchanged_sha = {r.path: r.sha256 for r in v1.files()}
+    for path in sources:
+        if os.path.exists(path) and nindex._sha256(path) != unchanged_sha[path]:
+            pytest.skip(f"{path} changed since the frozen index was made")
+    report = build_index(sources, str(target), jobs=1)
+    assert report.written and any("upgrading the index from format 1 to 2" in n for n in report.notices)
+    with open_index(target) as idx:
+        assert idx.format_version == 2 and idx.n_curves == 7
+        after = idx.read_rows(0, 7)
+        np.testing.assert_array_equal(after["coefficients"], before["coefficients"])
+        assert idx.search_table().n_cells >= 1
+    again = build_index(sources, str(target), jobs=1)
+    assert not again.written                          # format 2 now: nothing to do
 
 
 def test_frozen_rows_match_the_sample_curves_to_complex64():
@@ -568,7 +661,7 @@ def _make_bad(kind, path):
     elif kind == "newer":
         shutil.copyfile(FROZEN, path)
         with h5py.File(path, "r+") as f:
-            f.attrs["format_version"] = np.int64(2)
+            f.attrs["format_version"] = np.int64(3)
     elif kind == "truncated":
         data = open(FROZEN, "rb").read()
         open(path, "wb").write(data[:len(data) // 2])
@@ -591,7 +684,7 @@ def _make_bad(kind, path):
 BAD = {
     "wrong_kind": "an HDF5 file but not an nfdmatch index (format attribute 'something-else')",
     "no_format_attr": "an HDF5 file but not an nfdmatch index (no 'format' attribute)",
-    "newer": "written by a newer nfdmatch (format 2); this version reads format 1",
+    "newer": "written by a newer nfdmatch (format 3); this version reads formats 1 and 2",
     "truncated": "truncated or corrupted HDF5 file",
     "random": "not an nfdmatch index (not an HDF5 file)",
     "empty": "empty file, not an nfdmatch index",

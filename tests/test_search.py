@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from oracle import random_rigid_motion, smooth_curve_samplings, start_shift
+from oracle import random_rigid_motion, resample_polyline, smooth_curve_samplings, start_shift
 
 from nfdmatch import Curve, distance
 from nfdmatch.search import MemoryIndex, rank_curves, search_index
@@ -26,23 +26,88 @@ def _family_curves(rng, families, members, noise):
     return curves
 
 
-@settings(max_examples=12, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), top=st.integers(1, 12), families=st.integers(1, 12),
-       members=st.integers(1, 6), noise=st.sampled_from([0.0, 0.01, 0.1]), mirror=st.booleans(),
-       chunk=st.sampled_from([7, 64, 100000]))
-def test_pruned_search_equals_exhaustive_ranking(seed, top, families, members, noise, mirror, chunk):
-    rng = np.random.default_rng(seed)
-    curves = _family_curves(rng, families, members, noise)
-    queries = _family_curves(rng, 2, 1, noise) + [curves[int(rng.integers(len(curves)))]]
-    index = MemoryIndex(curves)
-    pruned, stats = search_index(index, queries, top=top, mirror=mirror, chunk_rows=chunk)
-    full, full_stats = search_index(index, queries, top=top, mirror=mirror, prune=False, chunk_rows=chunk)
-    assert full_stats.exact == len(queries) * len(curves)
-    assert stats.exact <= full_stats.exact
+def _variants(rng, curves, count):
+    """Fresh queries: stored curves re-sampled, re-posed, start-shifted, some reversed or
+    mirrored, with a little noise."""
+    out = []
+    for i in rng.choice(len(curves), min(count, len(curves)), replace=False):
+        pts = resample_polyline(curves[int(i)].points, int(rng.integers(40, 160)), rng)
+        pts = start_shift(pts, int(rng.integers(len(pts))))
+        if rng.random() < 0.5:
+            pts = pts[::-1]
+        if rng.random() < 0.25:
+            pts = pts * np.array([1.0, 1.0, -1.0])
+        pts = pts + rng.normal(scale=0.005 * np.ptp(pts), size=pts.shape)
+        out.append(Curve(random_rigid_motion(pts, rng), id=f"q{len(out)}"))
+    return out
+
+
+def _same(pruned, full):
     for p, f in zip(pruned, full):
         assert [r["match"] for r in p] == [r["match"] for r in f]
         assert np.allclose([r["distance"] for r in p], [r["distance"] for r in f], rtol=1e-12, atol=1e-12)
         assert [r["rank"] for r in p] == list(range(1, len(p) + 1))
+
+
+@settings(max_examples=14, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), top=st.integers(1, 12), families=st.integers(1, 12),
+       members=st.integers(1, 6), noise=st.sampled_from([0.0, 0.01, 0.1]), mirror=st.booleans(),
+       strict=st.booleans(), cells=st.sampled_from([None, 1, 3, 16]), truncate=st.booleans())
+def test_pruned_search_equals_exhaustive_ranking(seed, top, families, members, noise, mirror, strict, cells,
+                                                 truncate):
+    rng = np.random.default_rng(seed)
+    curves = _family_curves(rng, families, members, noise)
+    queries = (_family_curves(rng, 2, 1, noise) + _variants(rng, curves, 2)
+               + [curves[int(rng.integers(len(curves)))]])
+    index = MemoryIndex(curves, rows_per_cell=cells)
+    options = dict(top=top, mirror=mirror, direction="strict" if strict else "invariant")
+    pruned, stats = search_index(index, queries, truncate=truncate, **options)
+    full, full_stats = search_index(index, queries, prune=False, **options)
+    assert full_stats.exact == len(queries) * len(curves)
+    assert stats.exact <= full_stats.exact
+    _same(pruned, full)
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1), top=st.integers(1, 15), max_distance=st.sampled_from([None, 0.05, 0.3]))
+def test_pruned_equals_exhaustive_on_an_index_file_with_cells(seed, top, max_distance, tmp_path_factory, monkeypatch):
+    """The stored /search cells (many small ones), read cell by cell, give the exhaustive answer."""
+    from nfdmatch import write_curves
+    from nfdmatch.index import build_index, open_index
+    from nfdmatch.search import cells as cells_module
+
+    monkeypatch.setattr(cells_module, "ROWS_PER_CELL", 4)
+    rng = np.random.default_rng(seed)
+    folder = tmp_path_factory.mktemp("lib")
+    curves = _family_curves(rng, 10, 4, 0.01)
+    for a in range(0, len(curves), 8):
+        write_curves(str(folder / f"part{a:03d}.obj"), [c.points for c in curves[a:a + 8]])
+    index_path = str(folder / "idx.h5")
+    build_index([str(folder)], index_path, jobs=1)
+    queries = _variants(rng, curves, 3) + _family_curves(rng, 1, 1, 0.0)
+    with open_index(index_path) as idx:
+        assert idx.format_version == 2 and idx.search_table().n_cells >= 8
+        pruned, stats = search_index(idx, queries, top=top, max_distance=max_distance)
+        full, _ = search_index(idx, queries, top=top, max_distance=max_distance, prune=False)
+    _same(pruned, full)
+    assert stats.cells <= stats.cell_count * len(queries)
+
+
+def test_search_work_does_not_grow_with_the_index_for_a_near_duplicate(rng):
+    """One best-first order over all rows: adding unrelated rows (here, in front of the
+    query's family) changes neither the answer nor the number of exact distances much."""
+    families = _family_curves(rng, 30, 6, 0.01)
+    unrelated = [Curve(c.points, id="u" + c.id) for c in _family_curves(rng, 500, 6, 0.01)]
+    pts = start_shift(families[3].points, 17)[::-1]
+    query = [Curve(random_rigid_motion(pts + rng.normal(scale=1e-3, size=pts.shape), rng), id="q")]
+    small = MemoryIndex(families, rows_per_cell=16)
+    big = MemoryIndex(unrelated + families, rows_per_cell=16)
+    (r_small,), s_small = search_index(small, query, top=5)
+    (r_big,), s_big = search_index(big, query, top=5)
+    assert r_small[0]["match"] == families[3].id
+    assert [r["match"] for r in r_small] == [r["match"] for r in r_big]
+    assert s_big.exact <= s_small.exact + 10
+    assert s_big.scanned < big.n_curves / 2          # the cells kept most rows unread
 
 
 def test_pruning_skips_most_rows_on_clustered_data(rng):

@@ -18,6 +18,7 @@ from ..sources import find_curve_files
 from .lock import _Lock
 from .pool import _run_tasks, _sha256
 from .reader import Index
+from .search_group import write_search_group
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
 from .writer import _CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _write_files_table
 
@@ -66,7 +67,8 @@ class BuildReport:
     ``changes`` lists ``(action, path)`` for every file, in path order, with action one of
     ``added, updated, removed, unchanged, failed``; ``notices`` are messages for the user;
     ``written`` is True when a new index file was moved into place (False for a dry run and
-    for a build that found nothing to change).
+    for a build that found nothing to change); ``cells`` is the number of search cells the
+    written index holds (0 when nothing was written).
     """
 
     added: int = 0
@@ -81,6 +83,7 @@ class BuildReport:
     notices: list = field(default_factory=list)
     written: bool = False
     dry_run: bool = False
+    cells: int = 0
 
 
 def _load_old(index_path: str, rebuild: bool, notices: list):
@@ -232,7 +235,11 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
         if stale:
             report.notices.append(f"removed {len(stale)} temporary file(s) left by an interrupted build: "
                                   f"{', '.join(stale)}")
-        needs_write = old is None or recompute_all or bool(tasks) or bool(removed)
+        # a format-1 index is rewritten as format 2 (with its cells) even when nothing changed
+        upgrade = old is not None and old.format_version < FORMAT_VERSION
+        if upgrade:
+            report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
+        needs_write = old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
         if not needs_write:
             if progress is not None:
                 progress(0, 0)
@@ -387,6 +394,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             run.flush()
             writer.flush()
             _write_files_table(h5, records)
+            report.cells = write_search_group(h5, K)
             report.curves = writer.rows
         finally:
             stream.close()                          # shuts the worker pool down

@@ -11,7 +11,7 @@ from .schema import _STATUS, INDEX_FORMAT, FileRecord, _open_checked, _Problem, 
 
 
 def open_index(path=None) -> "Index":
-    """Open an index for reading (format 1; ``path`` None: :func:`default_index_path`).
+    """Open an index for reading (formats 1 and 2; ``path`` None: :func:`default_index_path`).
 
     The file is opened without HDF5 file locking, so a running build never blocks or
     breaks a reader (builds replace the file atomically, never write into it).
@@ -201,6 +201,28 @@ class Index:
             out["id"] = np.asarray(self._ds["id"].asstr()[a:b], dtype=object)
             return out
         return self._read(read)
+
+    def search_table(self):
+        """What a search reads (:class:`~nfdmatch.search.table.SearchTable`): the stored
+        cells of a format-2 index, read cell by cell as a query opens them; for format 1,
+        every row's features in one cell (read whole: slower on large indexes)."""
+        if self._h5 is None:
+            raise IndexFormatError("the index is closed", path=self.path)
+        if self.format_version >= 2:
+            from .search_group import search_table
+
+            def fail(message):
+                raise IndexFormatError(f"corrupted nfdmatch index: {message}", path=self.path)
+
+            return self._read(lambda: search_table(self._h5, self.n_curves, self.harmonics,
+                                                   self.coefficients_at, fail))
+        from ..search.table import SearchTable
+
+        def features():
+            sv, block = self._ds["inv_sv"][...], self._ds["inv_block"][...]
+            return np.concatenate([sv, block], axis=1)
+
+        return SearchTable.single_cell(self.harmonics, self._read(features), self.coefficients_at)
 
     def info(self) -> dict:
         """Summary: ``path, format, format_version, nfdmatch_version, files, curves, failed``

@@ -13,7 +13,9 @@ from ..descriptors import validate_parameters
 from ..errors import ParameterError, ReadError
 
 INDEX_FORMAT = "nfdmatch-index"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: format versions this code reads (format 1: no /search group; queries scan every row)
+READABLE_VERSIONS = (1, 2)
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 _STR = h5py.string_dtype("utf-8")
@@ -115,7 +117,7 @@ def _attr_int(attrs, name):
 
 
 def _open_checked(path: str):
-    """Open ``path`` read-only and validate it as a format-1 index.
+    """Open ``path`` read-only and validate it as a format-1 or format-2 index.
 
     Returns ``(h5py.File, meta dict, files dict of arrays)``.
     Raises ReadError (missing, directory, unreadable) or _Problem.
@@ -163,7 +165,7 @@ def _validate(h5) -> tuple[dict, dict]:
         raise _Problem("corrupt", f"corrupted nfdmatch index: bad format_version {attrs.get('format_version')!r}")
     if version > FORMAT_VERSION:
         raise _Problem("newer", f"written by a newer nfdmatch (format {version}); "
-                                f"this version reads format {FORMAT_VERSION}")
+                                f"this version reads formats {' and '.join(map(str, READABLE_VERSIONS))}")
     samples, harmonics, scale = _attr_int(attrs, "samples"), _attr_int(attrs, "harmonics"), _attr_str(attrs, "scale")
     try:
         validate_parameters(samples, harmonics, scale)
@@ -198,6 +200,12 @@ def _validate(h5) -> tuple[dict, dict]:
     if (counts < 0).any() or not np.array_equal(starts, expected) or int(counts.sum()) != N:
         raise _Problem("corrupt", "corrupted nfdmatch index: the /files curve_start/curve_count blocks "
                                   "do not tile the /curves rows")
+    if version >= 2:
+        from .search_group import check_search_group
+
+        problem = check_search_group(h5, int(N), harmonics)
+        if problem:
+            raise _Problem("corrupt", f"corrupted nfdmatch index: {problem}")
     files = {"datasets": fds, "curve_start": starts, "curve_count": counts}
     meta["datasets"] = cds
     meta["n_curves"], meta["n_files"] = int(N), int(F)

@@ -5,16 +5,20 @@ from __future__ import annotations
 import numpy as np
 
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
-from .index_search import CHUNK_ROWS
+from .table import SearchTable
+
+#: rows per chunk of iter_chunks (as an index file's reader)
+CHUNK_ROWS = 65536
 
 
 class MemoryIndex:
     """Curves held in memory with the same reading interface as :class:`nfdmatch.index.Index`
-    (``samples``, ``harmonics``, ``scale``, ``n_curves``, ``iter_chunks``, ``ids_at``), so
-    that :func:`search_index` serves both ``rank`` (no index file) and ``query``."""
+    (``samples``, ``harmonics``, ``scale``, ``n_curves``, ``iter_chunks``, ``ids_at``,
+    ``search_table``), so that :func:`search_index` serves both ``rank`` (no index file)
+    and ``query``."""
 
     def __init__(self, curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                 scale: str = DEFAULT_SCALE):
+                 scale: str = DEFAULT_SCALE, rows_per_cell: int | None = None):
         from ..descriptors import descriptors_batch
         from ..matching import invariants
 
@@ -24,6 +28,8 @@ class MemoryIndex:
         self._rows = {"coefficients": batch.coefficients,
                       **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()}}
         self.n_curves = len(curves)
+        #: None: every row in one cell; else cells of about this many rows (as an index file)
+        self.rows_per_cell = rows_per_cell
 
     def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True):
         for start in range(0, self.n_curves, rows):
@@ -35,3 +41,11 @@ class MemoryIndex:
 
     def coefficients_at(self, rows) -> np.ndarray:
         return self._rows["coefficients"][np.asarray(rows, dtype=np.int64)]
+
+    def search_table(self) -> SearchTable:
+        """Every row in one cell, or cells of ``rows_per_cell`` rows built as for an index."""
+        K = self._rows["coefficients"].shape[1]
+        features = np.concatenate([self._rows["inv_sv"], self._rows["inv_block"]], axis=1)
+        if self.rows_per_cell is None:
+            return SearchTable.single_cell(K, features, self.coefficients_at)
+        return SearchTable.from_cells(K, features, self.coefficients_at, rows_per_cell=self.rows_per_cell)

@@ -1,4 +1,4 @@
-"""How ``tests/data/index/v1-sample.h5`` was made: a frozen format-1 index.
+"""How the frozen indexes ``tests/data/index/vN-sample.h5`` are made (N = the format version).
 
 Run from the repository root (paths in the index are as given here, relative)::
 
@@ -9,10 +9,15 @@ It indexes four sample curve files (1 + 1 + 2 + 3 curves) and one bad file
 process, with the clock fixed at 2026-01-01T00:00:00Z. The build runs in a temporary
 folder (so no lock file is left here) and the result is copied next to this script.
 
-The file is FROZEN: ``tests/test_index.py`` reads it with exact expected ids,
+For format 2 the search cells are made small (2 rows per cell) so that the file holds
+several cells.
+
+Each file is FROZEN: ``tests/test_index.py`` reads it with exact expected ids,
 parameters and values, forever. Do not re-run this script to make a failing test
 pass: a reader that cannot read this file is a format break (bump ``format_version``
-and keep reading format 1 instead).
+and keep reading the old formats instead). ``v1-sample.h5`` was made by this script at
+commit 646aae6 (format 1); today's code writes format 2, so running it now makes
+``v2-sample.h5``.
 """
 
 import os
@@ -29,7 +34,7 @@ SOURCES = [
     "sample_curves/library/lissajous-family.obj",
     "tests/data/index/bad.csv",
 ]
-TARGET = os.path.join(os.path.dirname(os.path.abspath(__file__)), "v1-sample.h5")
+TARGET = os.path.join(os.path.dirname(os.path.abspath(__file__)), f"v{index.FORMAT_VERSION}-sample.h5")
 
 
 def main() -> int:
@@ -37,8 +42,11 @@ def main() -> int:
         print("run from the repository root", file=sys.stderr)
         return 1
     index.build._utcnow = lambda: "2026-01-01T00:00:00Z"
+    from nfdmatch.search import cells
+
+    cells.ROWS_PER_CELL = 2
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "v1-sample.h5")
+        path = os.path.join(tmp, os.path.basename(TARGET))
         report = index.build_index(SOURCES, path, samples=32, harmonics=4, scale="rms", jobs=1)
         print(report.curves, "curves;", report.failed, "failed:", report.failures, file=sys.stderr)
         shutil.copyfile(path, TARGET)

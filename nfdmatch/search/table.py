@@ -1,0 +1,131 @@
+"""What a search reads: rows' features grouped in cells, and their descriptors on demand.
+
+A :class:`SearchTable` hides where the rows live (an index file of format 2, read cell by
+cell as the search opens them; a format-1 file or curves in memory, one cell holding
+every row) behind the same calls, so the best-first loop has one form.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Callable
+
+import numpy as np
+
+from .bounds import feature_split, squared_norms
+
+__all__ = ["SearchTable"]
+
+#: a search that would open more than this fraction of the positions reads them all at once
+_READ_ALL_FRACTION = 0.25
+
+
+class SearchTable:
+    """Rows in cell-major order with their invariant features.
+
+    Parameters
+    ----------
+    harmonics : K.
+    start : (C + 1,) int64 cell offsets into the positions; centre : (C, D) float64;
+        radius : (C, 2) float64 (see :class:`nfdmatch.search.cells.Cells`).
+    read_positions : ``read_positions(a, b) -> (row (m,) int64, features (m, D) float32,
+        sqnorm (m, 2) float64)`` for positions [a, b).
+    read_coefficients : ``read_coefficients(rows) -> (m, K, 3)`` complex for index rows.
+
+    Thread-safe: the search answers several queries on threads over one table.
+    """
+
+    def __init__(self, harmonics: int, start, centre, radius, read_positions: Callable,
+                 read_coefficients: Callable):
+        self.harmonics = harmonics
+        self.split = feature_split(harmonics)
+        self.start = np.asarray(start, dtype=np.int64)
+        self.centre = np.asarray(centre, dtype=np.float64)
+        self.radius = np.asarray(radius, dtype=np.float64)
+        self.n_positions = int(self.start[-1]) if len(self.start) else 0
+        self._read_positions = read_positions
+        self._read_coefficients = read_coefficients
+        self._cells: dict[int, tuple] = {}
+        self._all = None
+        self._lock = threading.Lock()
+        self.bytes_read = 0
+
+    @classmethod
+    def single_cell(cls, harmonics: int, features: np.ndarray, read_coefficients: Callable) -> "SearchTable":
+        """Every row in one cell, in row order (a format-1 index, curves in memory).
+
+        harmonics : K; features : (N, 2K + 3) float features (rounded to float32 here, as an
+        index stores them); read_coefficients : as for the constructor.
+        """
+        F = np.ascontiguousarray(features, dtype=np.float32)
+        N = len(F)
+        sq = squared_norms(F, feature_split(harmonics))
+        rows = np.arange(N, dtype=np.int64)
+        # radius inf: the one cell's bound is 0, every row gets its own bound
+        return cls(harmonics, [0, N], np.zeros((1, F.shape[1])), np.full((1, 2), np.inf),
+                   lambda a, b: (rows[a:b], F[a:b], sq[a:b]), read_coefficients)
+
+    @classmethod
+    def from_cells(cls, harmonics: int, features: np.ndarray, read_coefficients: Callable, *,
+                   rows_per_cell: int) -> "SearchTable":
+        """Cells built in memory (:func:`~nfdmatch.search.cells.build_cells`), as an index
+        file stores them; arguments as :meth:`single_cell`."""
+        from .cells import build_cells
+
+        split = feature_split(harmonics)
+        F = np.ascontiguousarray(features, dtype=np.float32)
+        cells = build_cells(F, split, rows_per_cell=rows_per_cell)
+        F = F[cells.row]
+        sq = squared_norms(F, split)
+        row = cells.row
+        return cls(harmonics, cells.start, cells.centre, cells.radius,
+                   lambda a, b: (row[a:b], F[a:b], sq[a:b]), read_coefficients)
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.start) - 1
+
+    def cell_rows(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rows of the given cells, concatenated: ``(row (m,) int64, features (m, D)
+        float32, sqnorm (m, 2) float64)``."""
+        cells = np.asarray(cells, dtype=np.int64)
+        if self._all is None:
+            wanted = int((self.start[cells + 1] - self.start[cells]).sum())
+            if wanted > _READ_ALL_FRACTION * self.n_positions:
+                self._load_all()
+        if self._all is not None:
+            row, F, sq = self._all
+            if len(cells) == 1:
+                a, b = self.start[cells[0]], self.start[cells[0] + 1]
+                return row[a:b], F[a:b], sq[a:b]
+            pos = np.concatenate([np.arange(self.start[c], self.start[c + 1]) for c in cells])
+            return row[pos], F[pos], sq[pos]
+        parts = [self._cell(int(c)) for c in cells]
+        if len(parts) == 1:
+            return parts[0]
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+
+    def _cell(self, c: int):
+        got = self._cells.get(c)
+        if got is None:
+            with self._lock:
+                got = self._cells.get(c)
+                if got is None:
+                    got = self._read_positions(int(self.start[c]), int(self.start[c + 1]))
+                    self.bytes_read += sum(x.nbytes for x in got)
+                    self._cells[c] = got
+        return got
+
+    def _load_all(self) -> None:
+        with self._lock:
+            if self._all is None:
+                got = self._read_positions(0, self.n_positions)
+                self.bytes_read += sum(x.nbytes for x in got)
+                self._all = got
+                self._cells.clear()
+
+    def coefficients(self, rows: np.ndarray) -> np.ndarray:
+        """(m, K, 3) complex descriptors of index rows."""
+        got = self._read_coefficients(rows)
+        self.bytes_read += got.nbytes
+        return got

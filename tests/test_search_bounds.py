@@ -1,0 +1,135 @@
+"""The search's lower bounds and cells: each bound never exceeds what it bounds."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from oracle import random_rigid_motion, random_smooth_curve, resample_polyline, start_shift
+
+from nfdmatch import Curve
+from nfdmatch.descriptors import descriptors_batch
+from nfdmatch.matching import exact_search, grid_maximum
+from nfdmatch.search.bounds import (cell_lower_bounds, feature_split, feature_vector, row_lower_bounds,
+                                    squared_norms, truncated_lower_bounds)
+from nfdmatch.search.cells import build_cells
+
+N, K = 128, 16
+
+
+def _coefficients(curves):
+    return descriptors_batch([Curve(c) for c in curves], samples=N, harmonics=K, scale="rms").coefficients
+
+
+def _pairs(rng, count):
+    """A query and rows: unrelated curves, and re-posed, re-sampled, noisy copies of the
+    query (the hard case for a bound: distances near 0)."""
+    a = random_smooth_curve(rng, n_vertices=300, n_harmonics=int(rng.integers(2, 8)))
+    rows = []
+    for i in range(count):
+        if i % 3 == 0:
+            b = resample_polyline(a, int(rng.integers(50, 400)), rng)
+            b = start_shift(b, int(rng.integers(len(b))))
+            if rng.random() < 0.5:
+                b = b[::-1]
+            b = b + rng.normal(scale=10.0 ** rng.uniform(-6, -1), size=b.shape)
+        else:
+            b = random_smooth_curve(rng, n_vertices=200, n_harmonics=int(rng.integers(2, 8)))
+        rows.append(random_rigid_motion(b, rng))
+    A = _coefficients([a])[0]
+    # rows as an index stores them: complex64
+    B = _coefficients(rows).astype(np.complex64).astype(np.complex128)
+    return A, B
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), mirror=st.booleans(), strict=st.booleans(),
+       harmonics=st.integers(1, 6), grid=st.sampled_from([8, 12, 24, 32]))
+def test_truncated_bound_never_exceeds_the_exact_distance(seed, mirror, strict, harmonics, grid):
+    rng = np.random.default_rng(seed)
+    A, B = _pairs(rng, 24)
+    direction = "strict" if strict else "invariant"
+    exact = exact_search(A, B, N, direction=direction, mirror=mirror)["distance"]
+    bound = truncated_lower_bounds(A, B, direction=direction, mirror=mirror, harmonics=harmonics, grid=grid)
+    assert np.all(bound <= exact * (1 + 1e-9) + 1e-12), np.max(bound - exact)
+    # and it is the truncated distance up to the stated slack: never above it either
+    truncated = exact_search(A[:harmonics], B[:, :harmonics], N, direction=direction, mirror=mirror)["distance"]
+    assert np.all(bound <= truncated * (1 + 1e-9) + 1e-12)
+
+
+def test_truncated_bound_is_tight_on_unrelated_curves():
+    rng = np.random.default_rng(7)
+    A, B = _pairs(rng, 60)
+    exact = exact_search(A, B, N)["distance"]
+    bound = truncated_lower_bounds(A, B)
+    far = exact > 0.2
+    assert np.median(bound[far] / exact[far]) > 0.8
+
+
+def test_grid_maximum_compiled_equals_numpy(monkeypatch):
+    rng = np.random.default_rng(3)
+    A, B = _pairs(rng, 40)
+    from nfdmatch import _kernels
+    from nfdmatch.matching import _folded_basis
+
+    monkeypatch.setenv("NFDMATCH_NUMBA", "0")
+    for mirror in (False, True):
+        for direction, D in (("invariant", 2), ("strict", 1)):
+            reference = grid_maximum(A[:4], B[:, :4], 24, direction=direction, mirror=mirror)
+            basis, quarter = _folded_basis(4, 24)
+            compiled = _kernels.grid_maximum_rows(np.conj(A[:4]), np.ascontiguousarray(B[:, :4]), D, basis,
+                                                  quarter, 24, mirror)
+            assert np.allclose(compiled, reference, rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread=st.sampled_from([1e-7, 1e-4, 1e-2, 1.0]))
+def test_row_bound_in_float32_never_exceeds_the_feature_distance(seed, spread):
+    """The float32 pass subtracts its own rounding: even for nearly equal features (where
+    |x|^2 + |q|^2 - 2 x.q cancels) the bound stays below the float64 distance."""
+    rng = np.random.default_rng(seed)
+    D, split = 35, 32
+    q = np.abs(rng.normal(size=D)) * rng.uniform(0.1, 3)
+    X = (q[None, :] + rng.normal(scale=spread, size=(200, D))).astype(np.float32)
+    bound = row_lower_bounds(q, split, X, squared_norms(X, split))
+    X64 = X.astype(np.float64)
+    true = np.maximum(np.linalg.norm(X64[:, :split] - q[:split], axis=1),
+                      np.linalg.norm(X64[:, split:] - q[split:], axis=1))
+    assert np.all(bound <= true)
+    assert np.all(bound >= true - 2e-3 * (1 + np.linalg.norm(q)))
+
+
+def test_invariant_bound_never_exceeds_the_exact_distance():
+    rng = np.random.default_rng(11)
+    A, B = _pairs(rng, 60)
+    qf = feature_vector(A[None])[0]
+    F = feature_vector(B).astype(np.float32)
+    split = feature_split(K)
+    bound = row_lower_bounds(qf, split, F, squared_norms(F, split))
+    exact = exact_search(A, B, N, mirror=True)["distance"]
+    assert np.all(bound <= exact * (1 + 1e-5) + 1e-6)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), rows=st.integers(1, 400), per_cell=st.sampled_from([1, 3, 16, 256]))
+def test_cells_partition_the_rows_and_their_radii_hold(seed, rows, per_cell):
+    rng = np.random.default_rng(seed)
+    split = 6
+    centres = rng.normal(size=(5, 9))
+    F = (centres[rng.integers(0, 5, rows)] + rng.normal(scale=0.1, size=(rows, 9))).astype(np.float32)
+    cells = build_cells(F, split, rows_per_cell=per_cell)
+    assert sorted(cells.row.tolist()) == list(range(rows))
+    assert cells.start[0] == 0 and cells.start[-1] == rows and np.all(np.diff(cells.start) > 0)
+    q = rng.normal(size=9)
+    cb = cell_lower_bounds(q, split, cells.centre, cells.radius)
+    for c in range(cells.count):
+        members = cells.row[cells.start[c]:cells.start[c + 1]]
+        assert np.all(np.diff(members) > 0)                      # ascending within a cell
+        X = F[members].astype(np.float64)
+        assert np.all(np.linalg.norm(X[:, :split] - cells.centre[c, :split], axis=1) <= cells.radius[c, 0])
+        assert np.all(np.linalg.norm(X[:, split:] - cells.centre[c, split:], axis=1) <= cells.radius[c, 1])
+        true = np.maximum(np.linalg.norm(X[:, :split] - q[:split], axis=1), np.linalg.norm(X[:, split:] - q[split:], axis=1))
+        assert np.all(cb[c] <= true)
+    again = build_cells(F, split, rows_per_cell=per_cell)
+    assert np.array_equal(again.row, cells.row) and np.array_equal(again.centre, cells.centre)
