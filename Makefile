@@ -12,6 +12,8 @@ $(BIN)/python:
 
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@echo "compiling the numba kernels once (so that the first query does not)" >&2
+	$(BIN)/python -c "from nfdmatch.matching import compile_kernels; compile_kernels()"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -32,6 +34,7 @@ demo: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_distance.py
 	$(BIN)/python benchmarks/bench_index.py
+	$(BIN)/python benchmarks/bench_search.py
 	$(BIN)/python benchmarks/bench_render.py
 
 devdata: $(STAMP)

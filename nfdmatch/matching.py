@@ -31,7 +31,7 @@ import numpy as np
 from .descriptors import Descriptors, descriptors, DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
 from .errors import ParameterError
 
-__all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search",
+__all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search", "compile_kernels",
            "invariants", "lower_bound", "METHODS", "DIRECTIONS"]
 
 METHODS = ("exact", "paper")
@@ -350,6 +350,21 @@ def _warm_up(kernels) -> None:
     basis, quarter = _folded_basis(2, 8)
     kernels.exact_rows(A, A, np.ones(2), B, 1, basis, quarter, 8, False, 1, True, 1.0)
     kernels.grid_maximum_rows(A, B, 1, basis, quarter, 8, False)
+
+
+def compile_kernels() -> bool:
+    """Compile (or load from numba's cache) the exact-search kernels now and keep them for
+    this process. ``make install`` runs it once, so that the first query of a new install
+    does not pay the ~15-20 s compile. Returns False when numba cannot be used (the numpy
+    path then serves every search)."""
+    try:
+        from . import _kernels
+        _warm_up(_kernels)
+    except Exception:                      # ImportError, numba errors: the numpy path serves
+        return False
+    with _kernel_lock:
+        _kernel_state["module"] = _kernels
+    return True
 
 
 @lru_cache(maxsize=32)

@@ -22,11 +22,11 @@ __all__ = ["Cells", "build_cells", "ROWS_PER_CELL"]
 
 #: target rows per cell: small enough that a query near a tight family reads little, large
 #: enough that the cell centres (one distance each per query) stay a small fraction of the work
-ROWS_PER_CELL = 256
+ROWS_PER_CELL = 128
 #: rows assigned to centres per block (bounds the (rows x centres) float32 matrix)
 _ASSIGN_BLOCK = 32768
 _COARSE_ITERATIONS = 8
-_FINE_ITERATIONS = 6
+_FINE_ITERATIONS = 5
 #: rows a coarse k-means is trained on (a sample: the coarse level only has to spread rows)
 _COARSE_SAMPLE = 65536
 
@@ -80,9 +80,12 @@ def _kmeans(X: np.ndarray, k: int, rng: np.random.Generator, iterations: int,
     for _ in range(iterations):
         labels = _assign(train, centres)
         counts = np.bincount(labels, minlength=k)
-        sums = np.zeros((k, X.shape[1]), dtype=np.float64)
-        np.add.at(sums, labels, train)
+        # sums by label through one sort (np.add.at is an order of magnitude slower)
+        order = np.argsort(labels, kind="stable")
+        firsts = np.searchsorted(labels[order], np.arange(k))
         filled = counts > 0
+        sums = np.zeros((k, X.shape[1]))
+        sums[filled] = np.add.reduceat(train[order].astype(np.float64), firsts[filled], axis=0)
         centres[filled] = (sums[filled] / counts[filled, None]).astype(np.float32)
     return _assign(X, centres)
 

@@ -16,8 +16,11 @@ from .bounds import feature_split, squared_norms
 
 __all__ = ["SearchTable"]
 
-#: a search that would open more than this fraction of the positions reads them all at once
+#: once reads would pass this fraction of the positions, the table is read whole at once
 _READ_ALL_FRACTION = 0.25
+#: cells closer than this many positions are read in one call (an HDF5 read costs ~0.1 ms
+#: of overhead, about as much as reading a few thousand positions' bytes)
+_COALESCE_GAP = 2048
 
 
 class SearchTable:
@@ -47,6 +50,7 @@ class SearchTable:
         self._read_coefficients = read_coefficients
         self._cells: dict[int, tuple] = {}
         self._all = None
+        self._positions_read = 0
         self._lock = threading.Lock()
         self.bytes_read = 0
 
@@ -87,12 +91,22 @@ class SearchTable:
 
     def cell_rows(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The rows of the given cells, concatenated: ``(row (m,) int64, features (m, D)
-        float32, sqnorm (m, 2) float64)``."""
+        float32, sqnorm (m, 2) float64)``.
+
+        Cells not read yet are read in few calls: runs of cells whose positions are close
+        are read as one range (each call costs far more than the bytes between them), and
+        every cell of a range is kept for later queries. Once the reads would pass
+        :data:`_READ_ALL_FRACTION` of the table, the whole table is read at once.
+        """
         cells = np.asarray(cells, dtype=np.int64)
         if self._all is None:
-            wanted = int((self.start[cells + 1] - self.start[cells]).sum())
-            if wanted > _READ_ALL_FRACTION * self.n_positions:
-                self._load_all()
+            missing = [int(c) for c in cells if int(c) not in self._cells]
+            if missing:
+                wanted = int((self.start[np.array(missing) + 1] - self.start[np.array(missing)]).sum())
+                if self._positions_read + wanted > _READ_ALL_FRACTION * self.n_positions:
+                    self._load_all()
+                else:
+                    self._read_cells(sorted(missing))
         if self._all is not None:
             row, F, sq = self._all
             if len(cells) == 1:
@@ -100,21 +114,30 @@ class SearchTable:
                 return row[a:b], F[a:b], sq[a:b]
             pos = np.concatenate([np.arange(self.start[c], self.start[c + 1]) for c in cells])
             return row[pos], F[pos], sq[pos]
-        parts = [self._cell(int(c)) for c in cells]
+        parts = [self._cells[int(c)] for c in cells]
         if len(parts) == 1:
             return parts[0]
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
-    def _cell(self, c: int):
-        got = self._cells.get(c)
-        if got is None:
-            with self._lock:
-                got = self._cells.get(c)
-                if got is None:
-                    got = self._read_positions(int(self.start[c]), int(self.start[c + 1]))
-                    self.bytes_read += sum(x.nbytes for x in got)
-                    self._cells[c] = got
-        return got
+    def _read_cells(self, cells: list[int]) -> None:
+        """Read ``cells`` (ascending) in runs of nearby positions; cache every cell read."""
+        with self._lock:
+            runs = []
+            for c in cells:
+                a, b = int(self.start[c]), int(self.start[c + 1])
+                if runs and a - runs[-1][1] <= _COALESCE_GAP:
+                    runs[-1][1] = max(runs[-1][1], b)
+                else:
+                    runs.append([a, b])
+            for a, b in runs:
+                got = self._read_positions(a, b)
+                self.bytes_read += sum(x.nbytes for x in got)
+                self._positions_read += b - a
+                first = int(np.searchsorted(self.start, a, side="left"))
+                last = int(np.searchsorted(self.start, b, side="left"))
+                for c in range(first, last):
+                    lo, hi = int(self.start[c]) - a, int(self.start[c + 1]) - a
+                    self._cells[c] = tuple(x[lo:hi] for x in got)
 
     def _load_all(self) -> None:
         with self._lock:
@@ -122,7 +145,6 @@ class SearchTable:
                 got = self._read_positions(0, self.n_positions)
                 self.bytes_read += sum(x.nbytes for x in got)
                 self._all = got
-                self._cells.clear()
 
     def coefficients(self, rows: np.ndarray) -> np.ndarray:
         """(m, K, 3) complex descriptors of index rows."""
