@@ -349,17 +349,14 @@ def test_csv_random_binary_garbage(tmp_path):
         expect(ParseError, p, lambda: read_curves(p), contains=("not a text file",))
 
 
-def test_csv_big_file_is_fast(tmp_path):
+def test_csv_big_file_reads_exactly(tmp_path):
+    # speed is measured by benchmarks, not asserted here (a busy machine would fail it)
     rng = np.random.default_rng(1)
     pts = rng.normal(size=(100_000, 3))
     p = str(tmp_path / "big.csv")
     write_curves(p, [pts])
-    read_curves(p)  # warm-up
-    t0 = time.perf_counter()
     (c,) = read_curves(p)
-    elapsed = time.perf_counter() - t0
     assert np.array_equal(c.points, pts)
-    assert elapsed < 1.5, f"100k-row CSV took {elapsed:.2f} s"
 
 
 def test_csv_writes_exactly_one_curve(tmp_path):

@@ -11,6 +11,10 @@ from .schema import _SHA, _STR, FileRecord, _curve_layout
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
+#: smaller chunks for what a search reads row by row (descriptors of the rows that need an
+#: exact distance, ids of the answers): a scattered read then touches 96 KB per row, not
+#: 1.5 MB (16 scattered rows of 1M: 1.6 ms instead of 16 ms)
+_SCATTERED_CHUNK_ROWS = {"coefficients": 256, "id": 256}
 #: rows buffered before one write per dataset
 _WRITE_ROWS = 65536
 
@@ -30,9 +34,9 @@ class _CurveWriter:
         self.rows = 0
 
     def _create(self, first_rows: int) -> None:
-        chunk = max(1, min(CHUNK_ROWS, first_rows))
         self.ds = {}
         for name, (dtype, tail) in _curve_layout(self.K).items():
+            chunk = max(1, min(_SCATTERED_CHUNK_ROWS.get(name, CHUNK_ROWS), first_rows))
             self.ds[name] = self.group.create_dataset(name, shape=(0,) + tail, maxshape=(None,) + tail,
                                                       chunks=(chunk,) + tail, dtype=dtype)
 

@@ -62,9 +62,12 @@ def feature_vector(coefficients: np.ndarray) -> np.ndarray:
 def squared_norms(features: np.ndarray, split: int) -> np.ndarray:
     """(m, 2) float64 squared norms of the two parts of float32 features (m, D), computed in
     float64 from the float32 values (what :func:`row_lower_bounds` expects)."""
-    F = np.asarray(features, dtype=np.float64)
-    return np.stack([np.einsum("ij,ij->i", F[:, :split], F[:, :split]),
-                     np.einsum("ij,ij->i", F[:, split:], F[:, split:])], axis=1)
+    out = np.empty((len(features), 2))
+    for a in range(0, len(features), 65536):             # blocks: no (m, D) float64 copy
+        F = np.asarray(features[a:a + 65536], dtype=np.float64)
+        out[a:a + 65536, 0] = np.einsum("ij,ij->i", F[:, :split], F[:, :split])
+        out[a:a + 65536, 1] = np.einsum("ij,ij->i", F[:, split:], F[:, split:])
+    return out
 
 
 def cell_lower_bounds(query: np.ndarray, split: int, centre: np.ndarray, radius: np.ndarray) -> np.ndarray:

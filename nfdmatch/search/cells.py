@@ -131,14 +131,17 @@ def build_cells(features: np.ndarray, split: int, *, rows_per_cell: int = ROWS_P
     sizes = np.array([len(m) for m in members], dtype=np.int64)
     start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     row = np.concatenate(members).astype(np.int64)
-    F = X[row].astype(np.float64)
-    cell_of = np.repeat(np.arange(len(members)), sizes)
-    centre = np.add.reduceat(F, start[:-1], axis=0) / sizes[:, None]
-    diff = F - centre[cell_of]
-    radius = np.stack([np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", diff[:, :split], diff[:, :split]),
-                                                   start[:-1])),
-                       np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", diff[:, split:], diff[:, split:]),
-                                                   start[:-1]))], axis=1)
+    del members
+    F = X[row]
+    centre = np.add.reduceat(F, start[:-1], axis=0, dtype=np.float64) / sizes[:, None]
+    cell_of = np.repeat(np.arange(len(sizes)), sizes)
+    # squared distances to the centre per part, in blocks (no (N, D) float64 copy)
+    d2 = np.empty((N, 2))
+    for a in range(0, N, _ASSIGN_BLOCK):
+        diff = F[a:a + _ASSIGN_BLOCK].astype(np.float64) - centre[cell_of[a:a + _ASSIGN_BLOCK]]
+        d2[a:a + _ASSIGN_BLOCK, 0] = np.einsum("ij,ij->i", diff[:, :split], diff[:, :split])
+        d2[a:a + _ASSIGN_BLOCK, 1] = np.einsum("ij,ij->i", diff[:, split:], diff[:, split:])
+    radius = np.sqrt(np.maximum.reduceat(d2, start[:-1], axis=0))
     # rounded up: the float64 arithmetic above may land a few ulps below the true radius
     radius = radius * (1 + 1e-12) + 1e-12
     return Cells(row, start, centre, radius)
