@@ -127,9 +127,14 @@ def test_matrix_json_tsv_picture_and_partial_failure(folder, tmp_path):
     png = tmp_path / "m.png"
     code, out, err = run("matrix", folder, "--format", "json", "-o", png)
     assert code == 3
-    assert "bad.csv" in err and "line 3" in err and f"wrote {png}" in err
+    assert "bad.csv" in err and "line 3" in err and "1 of 5 inputs could not be read" in err
+    # the rows of what could be read are printed; the picture (a file, for Make) waits for success
+    assert f"{png} not written: some inputs could not be read" in err and not png.exists()
     data = json.loads(out)
     assert len(data["ids"]) == 5 and np.array(data["distances"]).shape == (5, 5)
+    os.remove(folder / "bad.csv")
+    code, out, err = run("matrix", folder, "--format", "json", "-o", png)
+    assert code == 0 and f"wrote {png}" in err
     width, height = png_size(png)
     assert width >= 400 and height >= 400
     assert len(np.unique(png_pixels(png).reshape(-1, 3), axis=0)) > 10

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import sys
 
 import click
 
-from .common import (EXIT_ERROR, EXIT_PARTIAL, descriptor_options, handle_errors, input_format_option,
-                     match_columns, matching_options, output_option, report_errors, write_rows)
+from .common import (deliver, descriptor_options, exclude_self, exclude_self_option, format_option,
+                     input_format_option, match_columns, matching, matching_options, output_option, read_inputs,
+                     read_one, rows_format_option, say, write_rows)
 from .group import main
 
 
@@ -18,84 +18,81 @@ from .group import main
 @matching_options
 @descriptor_options
 @input_format_option
-@click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
-              show_default=True, help="Output format on stdout.")
-@handle_errors
+@format_option(("text", "json"), default="text")
+@output_option()
 def distance(curve_a, curve_b, method, strict_direction, mirror, samples, harmonics, scale,
-             input_format, output_format):
+             input_format, output_format, output):
     """Similarity distance between two curves A and B, and the alignment of B onto A.
 
-    A and B are files (FILE#I for curve I of a multi-curve file). The distance is 0 for
-    the same shape whatever its position, size, orientation, start vertex, sampling
-    and (unless --strict-direction) traversal direction.
+    A and B are files (FILE#I for curve I of a multi-curve file; `-` for stdin). The
+    distance is 0 for the same shape whatever its position, size, orientation, start
+    vertex, sampling and (unless --strict-direction) traversal direction.
 
     \b
     Example:
       nfdmatch distance sample_curves/library/trefoil.csv sample_curves/queries/trefoil-posed.obj --format json
     """
-    from ..formats import read_curve
     from ..matching import distance as match_distance
 
-    a = read_curve(curve_a, format=input_format)
-    b = read_curve(curve_b, format=input_format)
-    m = match_distance(a, b, samples=samples, harmonics=harmonics, scale=scale, method=method,
-                       direction="strict" if strict_direction else "invariant", mirror=mirror)
+    if curve_a == "-" and curve_b == "-":
+        raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
+    a = read_one(curve_a, input_format)
+    b = read_one(curve_b, input_format)
+    m = match_distance(a, b, samples=samples, harmonics=harmonics, scale=scale,
+                       **matching(method, strict_direction, mirror))
     record = m.to_dict()
     if output_format == "json":
-        click.echo(json.dumps({"a": a.id, "b": b.id, **record}, indent=2))
+        text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
     else:
-        click.echo(f"distance\t{m.distance:.10g}")
-        click.echo(f"shift\t{m.shift:.6f}")
-        click.echo(f"reversed\t{str(m.reversed).lower()}")
-        click.echo(f"mirrored\t{str(m.mirrored).lower()}")
-        click.echo(f"scale\t{m.scale:.10g}")
-        click.echo("rotation\t" + json.dumps([[round(v, 12) for v in row] for row in record["rotation"]]))
-        click.echo("translation\t" + json.dumps([round(v, 12) for v in record["translation"]]))
-        click.echo(f"method\t{m.method}")
+        text = "".join(f"{key}\t{value}\n" for key, value in [
+            ("distance", f"{m.distance:.10g}"),
+            ("shift", f"{m.shift:.6f}"),
+            ("reversed", str(m.reversed).lower()),
+            ("mirrored", str(m.mirrored).lower()),
+            ("scale", f"{m.scale:.10g}"),
+            ("rotation", json.dumps([[round(v, 12) for v in row] for row in record["rotation"]])),
+            ("translation", json.dumps([round(v, 12) for v in record["translation"]])),
+            ("method", m.method)])
+    deliver(text, output)
 
 
 @main.command()
-@click.argument("files", nargs=-1, required=True, metavar="FILE...")
+@click.argument("files", nargs=-1, required=True, metavar="FILE_OR_FOLDER...")
+@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
 @descriptor_options
 @input_format_option
-@click.option("--format", "output_format", type=click.Choice(["csv", "tsv", "json", "jsonl"]), default="csv",
-              show_default=True, help="Output format on stdout.")
-@handle_errors
-def describe(files, samples, harmonics, scale, input_format, output_format):
-    """Print the normalized Fourier descriptors of every curve in FILE....
+@format_option(("csv", "tsv", "json", "jsonl"), help_extra=" [default: by the extension of -o, else csv]")
+@output_option()
+def describe(files, glob_pattern, samples, harmonics, scale, input_format, output_format, output):
+    """Print the normalized Fourier descriptors of every curve in FILE_OR_FOLDER....
 
     One row per curve: id, parameters, centroid and scale (input units), whether the
     limit plane is degenerate, then the normalized coefficients A_k for
     k = +1..+K, -1..-K: columns k+1_x_re, k+1_x_im, ..., k-K_z_im.
-    FILE#I describes one curve of a multi-curve file; a bad file is reported on
-    stderr and skipped (exit 3).
+    Folders are searched recursively; FILE#I describes one curve of a multi-curve file.
+    A bad input is named on stderr and skipped (exit 3; exit 1 when none could be read).
 
     \b
     Example:
-      nfdmatch describe sample_curves/library/*.csv --harmonics 8 > descriptors.csv
+      nfdmatch describe sample_curves/library/ --harmonics 8 -o descriptors.csv
     """
     from ..descriptors import descriptors_batch, validate_parameters
-    from ..sources import read_all
+    from .common import resolve_format
 
     validate_parameters(samples, harmonics, scale)
-    curves, errors = read_all(files, format=input_format)
-    report_errors(errors)
-    failed = len(errors)
-    batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
-    rows = [_descriptor_row(batch.row(i, c.id)) for i, c in enumerate(curves)]
-    if not rows and failed:
-        sys.exit(EXIT_ERROR)
-    if output_format in ("json", "jsonl"):
+    inputs = read_inputs(files, glob=glob_pattern, input_format=input_format)
+    batch = descriptors_batch(inputs.curves, samples=samples, harmonics=harmonics, scale=scale)
+    rows = [_descriptor_row(batch.row(i, c.id)) for i, c in enumerate(inputs.curves)]
+    fmt = resolve_format(output_format, output)
+    fmt = "csv" if fmt == "table" else fmt
+    if fmt in ("json", "jsonl"):
         columns = ["id", "samples", "harmonics", "scale", "scale_value", "centroid", "plane_degenerate",
                    "frequencies", "coefficients"]
-        write_rows(rows, columns, output_format)
+        write_rows(rows, columns, fmt, output)
     else:
         flat = [_flatten_descriptor_row(r) for r in rows]
-        columns = list(flat[0]) if flat else ["id"]
-        write_rows(flat, columns, output_format)
-    if failed:
-        click.echo(f"{failed} of {len(files)} inputs failed", err=True)
-        sys.exit(EXIT_PARTIAL)
+        write_rows(flat, list(flat[0]), fmt, output)
+    inputs.finish()
 
 
 @main.command()
@@ -107,42 +104,36 @@ def describe(files, samples, harmonics, scale, input_format, output_format):
               help="Only list matches at most this far.")
 @click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
 @click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
+@exclude_self_option
 @matching_options
 @descriptor_options
 @input_format_option
-@output_option(help_extra=" (default: a table on a terminal, CSV otherwise)")
-@handle_errors
-def rank(query_spec, sources, top, max_distance, glob_pattern, details, method, strict_direction, mirror,
-         samples, harmonics, scale, input_format, output_format):
+@rows_format_option
+@output_option()
+def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_self_, method, strict_direction,
+         mirror, samples, harmonics, scale, input_format, output_format, output):
     """Rank the curves in SOURCE... (files or folders) by similarity to QUERY, without an index.
 
-    QUERY is one curve (FILE or FILE#I). Folders are searched recursively for files with
-    a known extension (hidden files skipped). Files that cannot be read are named on
-    stderr and skipped (exit 3). Rows: query, rank, match, distance.
+    QUERY is one curve (FILE, FILE#I or `-`). Folders are searched recursively for files
+    with a known extension (hidden files skipped). Inputs that cannot be read are named
+    on stderr and skipped (exit 3). Rows: query, rank, match, distance.
 
     \b
     Example:
       nfdmatch rank sample_curves/queries/trefoil-posed.obj sample_curves/library --top 5
     """
-    from ..formats import read_curve
     from ..search import rank_curves
-    from ..sources import find_curve_files, read_all
 
-    query = read_curve(query_spec, format=input_format)
-    files = find_curve_files(sources, glob=glob_pattern)
-    curves, errors = read_all(files, format=input_format)
-    report_errors(errors)
-    if not curves and errors:
-        sys.exit(EXIT_ERROR)
-    ranked = rank_curves(query, curves, top=top, max_distance=max_distance, samples=samples,
-                         harmonics=harmonics, scale=scale, method=method,
-                         direction="strict" if strict_direction else "invariant", mirror=mirror)
-    columns = match_columns(details)
-    write_rows([{"query": query.id, **row} for row in ranked], columns, output_format)
-    if errors:
-        click.echo(f"{len(errors)} of {len(files)} files could not be read", err=True)
-        sys.exit(EXIT_PARTIAL)
-
+    query = read_one(query_spec, input_format)
+    inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
+    ranked = rank_curves(query, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
+                         samples=samples, harmonics=harmonics, scale=scale,
+                         **matching(method, strict_direction, mirror))
+    if exclude_self_:
+        ranked = exclude_self(query.id, ranked, top)
+    write_rows([{"query": query.id, **row} for row in ranked], match_columns(details), output_format, output,
+               group_by="query")
+    inputs.finish()
 
 
 @main.command()
@@ -160,8 +151,7 @@ def rank(query_spec, sources, top, max_distance, glob_pattern, details, method, 
 @input_format_option
 @click.option("--output-format", "curve_format", default=None,
               help="Write this curve format whatever OUT's extension (csv, obj, vtk, vtp, vtu).")
-@output_option(help_extra=" for the summary rows (default: a table on a terminal, CSV otherwise)")
-@handle_errors
+@format_option(help_extra=" of the summary rows on stdout (default: a table on a terminal, CSV otherwise)")
 def reconstruct(curve_spec, harmonics, output, points, samples, normalized, input_format, curve_format,
                 output_format):
     """Rebuild the curve(s) in FILE from their first K harmonics: what the descriptor sees.
@@ -176,30 +166,29 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
     Example:
       nfdmatch reconstruct sample_curves/library/knotess/5_2.csv -k 4 -o 5_2-k4.vtp
     """
-    from ..curve import Curve
-    from ..descriptors import descriptors, reconstruct as rebuild
+    from ..errors import ParameterError
     from ..formats import write_curves
-    from ..matching import distance
-    from ..sources import read_all
+    from ..reconstruction import reconstruct_curves, reconstruction_samples
 
-    n = samples if samples is not None else max(128, 4 * harmonics)
-    if 2 * harmonics >= n:
-        raise click.BadParameter(f"harmonics ({harmonics}) must be below samples/2 ({n}/2)",
-                                 param_hint="--harmonics")
-    curves, errors = read_all([curve_spec], format=input_format)
-    if errors:
-        raise errors[0]
-    rebuilt, rows = [], []
-    for curve in curves:
-        d = descriptors(curve, samples=n, harmonics=harmonics)
-        pts = rebuild(d, points=points, normalized=normalized)
-        rebuilt.append(Curve(pts, id=f"{curve.id} K={harmonics}"))
-        rows.append({"curve": curve.id, "harmonics": harmonics, "vertices": len(pts),
-                     "distance": None if normalized else float(distance(curve, pts).distance)})
-    write_curves(output, rebuilt, format=curve_format)
-    columns = ["curve", "harmonics", "vertices"] + ([] if normalized else ["distance"])
-    write_rows(rows, columns, output_format)
-    click.echo(f"wrote {output}", err=True)
+    try:
+        reconstruction_samples(harmonics, samples)
+    except ParameterError as exc:
+        raise click.BadParameter(exc.message, param_hint="--harmonics") from None
+    if curve_spec == "-":
+        curves = [read_one("-", input_format)]
+    else:
+        from ..formats import read_curve, read_curves, split_selector
+
+        path, selected = split_selector(curve_spec)
+        curves = ([read_curve(curve_spec, format=input_format)] if selected is not None
+                  else read_curves(path, format=input_format))
+    rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points,
+                                 normalized=normalized)
+    write_curves(output, [r.curve for r in rebuilt], format=curve_format)
+    rows = [{"curve": r.source_id, "harmonics": r.harmonics, "vertices": len(r.curve.points),
+             "distance": r.distance} for r in rebuilt]
+    write_rows(rows, ["curve", "harmonics", "vertices"] + ([] if normalized else ["distance"]), output_format)
+    say(f"wrote {output}")
 
 
 def _descriptor_row(d) -> dict:
@@ -222,4 +211,3 @@ def _flatten_descriptor_row(row: dict) -> dict:
             flat[f"k{f:+d}_{ax}_re"] = re
             flat[f"k{f:+d}_{ax}_im"] = im
     return flat
-

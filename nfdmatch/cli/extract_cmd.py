@@ -7,7 +7,7 @@ import sys
 import click
 
 from ..errors import NfdError
-from .common import EXIT_ERROR, EXIT_PARTIAL, handle_errors, output_option, report_errors, write_rows
+from .common import EXIT_ERROR, error, finish, format_option, note, report_errors, say, write_rows
 from .group import main
 
 
@@ -22,8 +22,7 @@ from .group import main
 @click.option("--boundaries", is_flag=True, help="Also extract the boundary loops of open meshes.")
 @click.option("--output-format", "curve_format", type=click.Choice(["obj", "csv", "vtp"]), default="obj",
               show_default=True, help="Curve file format of the written contours.")
-@output_option(help_extra=" for the list of written files (default: a table on a terminal, CSV otherwise)")
-@handle_errors
+@format_option(help_extra=" of the list of written files (default: a table on a terminal, CSV otherwise)")
 def extract(meshes, out_dir, sections, axis, boundaries, curve_format, output_format):
     """Write closed contours of triangle meshes (STL, PLY, OBJ, OFF, GLB/GLTF) as curve files.
 
@@ -61,22 +60,19 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, output_fo
             errors.append(exc)
     report_errors(errors)
     for result in results:
-        for note in result.notes:
-            click.echo(f"Note: {note}", err=True)
+        for message in result.notes:
+            note(message)
     contours = [c for result in results for c in result.contours]
     if not contours:
         if results:
-            click.echo(f"Error: no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; "
-                       "nothing written", err=True)
+            error(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
         sys.exit(EXIT_ERROR)
     written = write_contours(contours, out_dir, format=curve_format)
     rows = [{"file": path, "mesh": c.mesh, "kind": c.kind, "axis": c.axis, "level": c.level, "loop": c.loop,
              "vertices": c.n_vertices} for path, c in zip(written, contours)]
-    write_rows(rows, ["file", "mesh", "kind", "axis", "level", "loop", "vertices"], output_format)
+    write_rows(rows, ["file", "mesh", "kind", "axis", "level", "loop", "vertices"], output_format,
+               group_by="mesh")
     meshes_with = len({c.mesh for c in contours})
-    click.echo(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}",
-               err=True)
-    if errors:
-        click.echo(f"{len(errors)} of {len(files)} meshes could not be read", err=True)
-        sys.exit(EXIT_PARTIAL)
+    say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}")
+    finish(len(errors), len(files), "meshes")
 
