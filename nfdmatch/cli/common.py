@@ -171,7 +171,7 @@ def _stdin_curves(input_format: str | None) -> list:
 
     if input_format is None:
         raise click.UsageError("reading a curve from stdin ('-') needs --input-format")
-    data = click.get_binary_stream("stdin").read()
+    data = sys.stdin.buffer.read()
     fd, temp = tempfile.mkstemp(suffix=FORMATS[input_format][0])
     try:
         with os.fdopen(fd, "wb") as f:
