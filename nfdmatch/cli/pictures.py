@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import os
 
 import click
 
-from .common import (descriptor_options, deliver, delimited_text, error, format_option, index_option,
+from .common import (descriptor_options, deliver, delimited_text, error, finish, format_option, index_option,
                      input_format_option, matching, matching_options, note, optional_descriptor_options,
-                     output_option, progress_bar, read_inputs, read_one, say, some_failed, split_outputs,
+                     output_option, progress_bar, read_inputs, say, some_failed, split_outputs,
                      write_rows)
 from .group import main
 
@@ -52,15 +53,42 @@ def _check_pictures(pictures) -> None:
         check_output(path)
 
 
+def _stem(curve_id: str) -> str:
+    """The {stem} of a query's pictures: its file name without extension, ``-I`` for curve I."""
+    from ..formats import split_selector
+
+    path, selected = split_selector(curve_id)
+    stem = os.path.splitext(os.path.basename(path))[0].strip("<>") or "curve"
+    return stem if selected is None else f"{stem}-{selected}"
+
+
+def _picture_names(pattern: str, queries) -> list[str]:
+    """One picture file per query, from ``pattern`` with ``{stem}`` and ``{n}`` (1-based)."""
+    if "{" not in pattern:
+        if len(queries) > 1:
+            raise click.UsageError(f"{len(queries)} queries give {len(queries)} pictures: name them with a "
+                                   "pattern, e.g. -o 'matches-{stem}.png' ({stem}: the query file's name, "
+                                   "{n}: its number)")
+        return [pattern]
+    try:
+        names = [pattern.format(stem=_stem(q.id), n=n) for n, q in enumerate(queries, start=1)]
+    except (KeyError, IndexError, ValueError) as exc:
+        raise click.UsageError(f"-o {pattern!r}: the pattern may use {{stem}} and {{n}} only ({exc})") from None
+    if len(set(names)) < len(names):
+        raise click.UsageError(f"-o {pattern!r} gives two queries the same picture name; add {{n}}")
+    return names
+
+
 @main.command()
 @click.argument("query_spec", metavar="QUERY")
-@click.argument("sources", nargs=-1, metavar="[SOURCE...]")
+@click.argument("sources", nargs=-1, metavar="[QUERY...|SOURCE...]")
 @click.option("--against", is_flag=True,
-              help="Rank the files or folders SOURCE... instead of searching an index.")
+              help="Rank the files or folders SOURCE... (after the one QUERY) instead of searching an index.")
 @index_option
 @click.option("--top", type=click.IntRange(min=1, max=23), default=5, show_default=True,
               help="Matches to draw.")
-@output_option(help="The picture to write (.png); another -o FILE (not .png) gets the rows drawn.",
+@output_option(help="The picture to write (.png, .svg or .pdf); for several queries a pattern with {stem} "
+                    "or {n}, e.g. 'matches-{stem}.png'. Another -o FILE (not a picture) gets the rows drawn.",
                multiple=True, required=True)
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
@@ -73,19 +101,22 @@ def _check_pictures(pictures) -> None:
                           "terminal and CSV otherwise)")
 def show(query_spec, sources, against, index_path, top, output, size, renderer, glob_pattern, method,
          strict_direction, mirror, samples, harmonics, scale, input_format, output_format):
-    """Draw QUERY and its best matches, each aligned onto the query, into one picture.
+    """Draw each query and its best matches, aligned onto the query, into one picture per query.
 
-    The matches come from the index (--index, as `query` finds them) or, with --against,
-    from ranking the curves in SOURCE... . Every match is drawn in the query's frame with
-    the rotation, scale, start shift and direction of its match: the query in grey under
-    it, start points marked, direction of travel shown. Planar curves get a 2-D view.
+    The matches come from the index (--index, as `query` finds them; every QUERY... is a
+    query: files, FILE#I, folders) or, with --against, from ranking the curves in
+    SOURCE... (then QUERY is the first argument: a file, or a folder of queries). Every
+    match is drawn in the query's frame with the rotation, scale, start shift and
+    direction of its match: the query in grey under it, start points marked, direction
+    of travel shown. Planar curves get a 2-D view. PNG, SVG or PDF by the extension.
     The rows drawn are printed on stdout (query, rank, match, distance, source), or
     written to the -o FILE that is not a picture.
 
     \b
     Examples:
       nfdmatch show sample_curves/queries/trefoil-posed.obj --index demo.h5 -o matches.png
-      nfdmatch show q.csv --against library/ --top 8 -o q.png -o q.csv
+      nfdmatch show q.csv --against library/ --top 8 -o q.svg -o q.csv
+      nfdmatch show sample_curves/queries --index demo.h5 -o 'matches-{stem}.png'
     """
     from functools import partial
 
@@ -94,42 +125,49 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
 
     pictures, rows_output = split_outputs(output)
     if len(pictures) != 1:
-        raise click.UsageError("show draws one picture: give one -o FILE.png")
+        raise click.UsageError("show draws one picture per query: give one -o FILE.png (.svg, .pdf), "
+                               "a pattern for several queries")
     width_height = _parse_size(size)
     if against and not sources:
         raise click.UsageError("--against needs at least one SOURCE file or folder")
-    if not against and sources:
-        raise click.UsageError("SOURCE... is only read with --against (without it, the index is searched)")
     if not against and (samples or harmonics or scale or glob_pattern):
         raise click.UsageError("--samples/--harmonics/--scale/--glob go with --against: "
                                "the index fixes its own parameters and curves")
-    _check_pictures(pictures)
-    query = read_one(query_spec, input_format)
+    query_inputs = read_inputs([query_spec] + ([] if against else list(sources)), input_format=input_format)
+    queries = query_inputs.curves
+    names = _picture_names(pictures[0], queries)
+    _check_pictures(names)
+    match = matching(method, strict_direction, mirror)
     if against:
-        inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = show_ranked(query, inputs.curves, top=top, samples=samples, harmonics=harmonics, scale=scale,
-                            **matching(method, strict_direction, mirror))
+        source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
+        shown = [show_ranked(q, source_inputs.curves, top=top, samples=samples, harmonics=harmonics, scale=scale,
+                             **match) for q in queries]
     else:
-        from ..index import open_index
         from ..formats import read_curve
+        from ..index import open_index
 
-        inputs = None
+        source_inputs = None
+        shown = []
         with open_index(index_path) as idx:
-            shown, notes = show_searched(query, idx, top=top, read_curve=partial(read_curve, format=input_format),
-                                         **matching(method, strict_direction, mirror))
-        for message in notes:
-            note(message)
+            for q in queries:
+                drawn, notes = show_searched(q, idx, top=top, read_curve=partial(read_curve, format=input_format),
+                                             **match)
+                shown.append(drawn)
+                for message in notes:
+                    note(message)
+    results = []
     if some_failed():
-        pictures = _not_written(pictures)
-    result = None if not pictures else render_matches(query.points, query.id, match_panels(shown), pictures[0], size=width_height,
-                            renderer=renderer)
-    write_rows([{"query": query.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
-                for s in shown], ["query", "rank", "match", "distance", "source"], output_format, rows_output,
-               group_by="query")
-    if result is not None:
+        _not_written(names)
+    else:
+        results = [render_matches(q.points, q.id, match_panels(drawn), name, size=width_height, renderer=renderer)
+                   for q, drawn, name in zip(queries, shown, names)]
+    write_rows([{"query": q.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
+                for q, drawn in zip(queries, shown) for s in drawn],
+               ["query", "rank", "match", "distance", "source"], output_format, rows_output, group_by="query")
+    for result in results:
         _report_picture(result)
-    if inputs is not None:
-        inputs.finish()
+    failed = query_inputs.errors + (source_inputs.errors if source_inputs else [])
+    finish(len(failed), query_inputs.total + (source_inputs.total if source_inputs else 0))
 
 
 @main.command()
