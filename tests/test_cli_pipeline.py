@@ -159,7 +159,7 @@ def test_quiet_keeps_errors_only_and_verbose_says_more(index, library, tmp_path)
     code, stdout, err = run("-q", "query", TREFOIL, tmp_path / "nope.csv", "--index", index, "--stats")
     assert code == 3 and "nope.csv" in err and "exact distances" not in err and stdout
     code, stdout, err = run("query", TREFOIL, "--index", index, "-v", "--format", "csv")
-    assert code == 0 and "read 1 curves from 1 of 1 inputs" in err
+    assert code == 0 and "read 1 curve from 1 of 1 inputs" in err and re.search(r"^query: [0-9.]+ s$", err, re.M)
     code, _, err = run("query", TREFOIL, "--index", index, "-q", "-v")
     assert code == 2 and "exclude each other" in err
 

@@ -25,6 +25,7 @@ import json
 import os
 import sys
 import tempfile
+import time
 from dataclasses import dataclass, field
 
 import click
@@ -61,6 +62,7 @@ class NfdGroup(click.Group):
         super().add_command(cmd, name)
 
     def invoke(self, ctx):
+        started = time.perf_counter()
         try:
             return super().invoke(ctx)
         except NfdError as exc:
@@ -71,6 +73,9 @@ class NfdGroup(click.Group):
         except BrokenPipeError:  # e.g. `nfdmatch describe ... | head`
             sys.stderr.close()
             sys.exit(EXIT_OK)
+        finally:
+            if ctx.parent is None and ctx.invoked_subcommand:
+                detail(f"{ctx.invoked_subcommand}: {time.perf_counter() - started:.2f} s")
 
 
 def _set_verbosity(ctx, param, value):
@@ -81,17 +86,21 @@ def _set_verbosity(ctx, param, value):
         ctx.meta[_VERBOSITY] = level
 
 
+_VERBOSITY_OPTIONS = (
+    (("-q", "--quiet"), "Errors only: no notes, summaries or progress on stderr."),
+    (("-v", "--verbose"), "Also say what is read, what is written and how long it took (stderr)."),
+)
+
+
 def _verbosity_params() -> list[click.Option]:
-    return [click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, callback=_set_verbosity,
-                         help="Errors only: no notes, summaries or progress on stderr."),
-            click.Option(["-v", "--verbose"], is_flag=True, expose_value=False, callback=_set_verbosity,
-                         help="Also say what is read and how long it takes (stderr).")]
+    return [click.Option(list(names), is_flag=True, expose_value=False, callback=_set_verbosity, help=text)
+            for names, text in _VERBOSITY_OPTIONS]
 
 
 def verbosity_options(f):
     """``-q``/``-v`` on the group itself (``nfdmatch -q query ...``)."""
-    for param in reversed(_verbosity_params()):
-        click.decorators._param_memo(f, param)
+    for names, text in reversed(_VERBOSITY_OPTIONS):
+        f = click.option(*names, is_flag=True, expose_value=False, callback=_set_verbosity, help=text)(f)
     return f
 
 
@@ -241,7 +250,7 @@ def read_inputs(specs, *, glob: str | None = None, input_format: str | None = No
         _count_failures(len(errors))
     if not curves:
         raise NothingRead()
-    detail(f"read {len(curves)} curves from {total - len(errors)} of {total} inputs")
+    detail(f"read {len(curves)} curve{'' if len(curves) == 1 else 's'} from {total - len(errors)} of {total} inputs")
     return Inputs(curves, errors, total)
 
 
