@@ -174,6 +174,8 @@ def test_build_json_summary_names_the_index_start_time_and_failed_files(library,
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", summary["started"])
     assert summary["failed"] == 1 and summary["failures"][0]["path"].endswith("bad.csv")
     assert "line 3" in summary["failures"][0]["error"]
+    # the same closing line as every other command that reads several inputs
+    assert err.strip().splitlines()[-1] == "Error: 1 of 22 files could not be read"
 
 
 # --------------------------------------------------------------------------- stdin, --exclude-self

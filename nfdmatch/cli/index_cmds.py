@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import sys
 from datetime import datetime, timezone
 
 import click
 
-from .common import (EXIT_PARTIAL, deliver, error, exclude_self, exclude_self_option, format_option,
-                     index_option, input_format_option, match_columns, matching, matching_options, note,
+from .common import (deliver, error, exclude_self, exclude_self_option, format_option,
+                     finish, index_option, input_format_option, match_columns, matching, matching_options, note,
                      optional_descriptor_options, output_option, progress_bar, read_inputs, rows_format_option,
                      say, write_rows)
 from .group import main
@@ -94,8 +93,8 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
         say(f"{verb}: {report.added} added, {report.updated} updated, {report.removed} removed, "
             f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
             f"{report.seconds:.2f} s")
-    if report.failed and not dry_run:
-        sys.exit(EXIT_PARTIAL)
+    if not dry_run:
+        finish(report.failed, report.added + report.updated + report.unchanged + report.failed, "files")
 
 
 @index.command("info")
