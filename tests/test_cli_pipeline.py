@@ -258,6 +258,23 @@ def test_tables_fit_the_terminal_and_fold_the_query_column(index, library):
     assert len(stdout.splitlines()) == 10 and f"{library}/trefoil.csv" in stdout
 
 
+# --------------------------------------------------------------------------- progress
+
+def test_progress_bars_only_on_a_terminal_and_not_with_quiet(index, monkeypatch):
+    from nfdmatch.cli import common
+
+    args = ("query", QUERIES, "--index", index, "--format", "csv")
+    code, stdout, err = run(*args)
+    assert code == 0 and err == ""
+    monkeypatch.setattr(common, "stderr_is_terminal", lambda: True)
+    code, stdout_tty, err = run(*args)
+    assert code == 0 and "searching" in err and stdout_tty == stdout
+    code, _, err = run(*args, "-q")
+    assert code == 0 and err == ""
+    code, _, err = run("matrix", os.path.join(LIBRARY, "knotess"))
+    assert code == 0 and "distances" in err
+
+
 # --------------------------------------------------------------------------- the README's Makefile
 
 def readme_makefile() -> str:

@@ -571,17 +571,21 @@ def write_if_changed(path: str, data: bytes) -> bool:
     return True
 
 
+def stderr_is_terminal() -> bool:
+    return sys.stderr.isatty()
+
+
 def progress_bar(description: str):
     """(callback, finish) for a rich progress bar on stderr, only when stderr is a terminal
     and not ``-q``."""
-    if not sys.stderr.isatty() or verbosity() < NORMAL:
+    if not stderr_is_terminal() or verbosity() < NORMAL:
         return None, lambda: None
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     # no auto-refresh thread: a running thread would force the build's workers off fork
     bar = Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                   console=Console(stderr=True), transient=True, auto_refresh=False)
+                   console=Console(stderr=True, force_terminal=True), transient=True, auto_refresh=False)
     task = bar.add_task(description, total=None)
     bar.start()
 
