@@ -70,7 +70,7 @@ from .descriptors import points_at
 from .errors import ParameterError, RenderError, WriteError
 
 __all__ = ["RENDERERS", "DEFAULT_RENDERER", "START_STEP", "MIN_SIDE", "MAX_SIDE", "MatchPanel", "RenderResult",
-           "check_output", "render_matches",
+           "PICTURE_FORMATS", "check_output", "picture_format", "render_matches",
            "render_matrix", "is_planar", "short_label", "short_labels"]
 
 RENDERERS = ("matplotlib", "pyvista")
@@ -127,7 +127,7 @@ class RenderResult:
 
     Attributes
     ----------
-    path : the PNG file written.
+    path : the picture file written.
     renderer : the renderer actually used (``"matplotlib"`` or ``"pyvista"``).
     seconds : wall time of drawing and saving (including the renderer's import when it is
         the first picture of the process, and a failed attempt before a fallback).
@@ -257,10 +257,19 @@ def _check_size(size) -> tuple[int, int]:
     return w, h
 
 
+#: picture formats by file extension (no extension: PNG)
+PICTURE_FORMATS = {".png": "png", ".svg": "svg", ".pdf": "pdf", "": "png"}
+
+
+def picture_format(path) -> str:
+    """``"png"``, ``"svg"`` or ``"pdf"``: the format of a picture file, by its extension."""
+    return PICTURE_FORMATS.get(os.path.splitext(str(path))[1].lower(), "png")
+
+
 def check_output(path) -> str:
-    """``path`` as a str if a PNG can be written there (a ``.png`` name or none, in an
-    existing folder, not a directory); else :class:`ParameterError` / :class:`WriteError`.
-    Cheap: callers check before long work."""
+    """``path`` as a str if a picture can be written there (a ``.png``, ``.svg`` or ``.pdf``
+    name, or none for PNG, in an existing folder, not a directory); else
+    :class:`ParameterError` / :class:`WriteError`. Cheap: callers check before long work."""
     try:
         p = os.fspath(path)
     except TypeError:
@@ -269,8 +278,9 @@ def check_output(path) -> str:
     if not p:
         raise WriteError("cannot write the picture: empty file name", path=p)
     ext = os.path.splitext(p)[1].lower()
-    if ext not in ("", ".png"):
-        raise ParameterError(f"pictures are written as PNG; use a .png file name, not {ext!r}", path=p)
+    if ext not in PICTURE_FORMATS:
+        raise ParameterError(f"pictures are written as PNG, SVG or PDF; use a .png, .svg or .pdf file name, "
+                             f"not {ext!r}", path=p)
     if os.path.isdir(p):
         raise WriteError("cannot write the picture: it is a directory", path=p)
     folder = os.path.dirname(os.path.abspath(p))
@@ -280,7 +290,7 @@ def check_output(path) -> str:
 
 
 def _write(path: str, data: bytes) -> None:
-    """Write the PNG whole; an identical existing file is left untouched (mtime included)."""
+    """Write the picture whole; an identical existing file is left untouched (mtime included)."""
     from .formats._chain import write_if_changed
 
     def produce(temp: str) -> None:
@@ -512,7 +522,8 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel
     query : (n, 3) float, the query's vertices (closed polyline).
     query_id : the query's id (shortened for display).
     panels : the matches, best first; each already mapped into the query's coordinates.
-    path : the PNG file to write (``.png`` or no extension).
+    path : the picture file to write: ``.png`` (or no extension), ``.svg`` or ``.pdf``
+        (SVG and PDF are drawn by matplotlib whatever ``renderer`` auto picks).
     size : (width, height) of the picture in pixels, 100..10000 each; exact.
     renderer : ``"auto"`` (:data:`DEFAULT_RENDERER`, falling back to the other one when it
         is not installed or cannot draw here: see :attr:`RenderResult.note`),
@@ -546,14 +557,19 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel
                                   reversed=bool(p.reversed), mirrored=bool(p.mirrored),
                                   note=None if p.note is None else str(p.note)))
     out = check_output(path)
+    fmt = picture_format(out)
     scene = _build_scene(q, str(query_id), checked, size)
     order = [renderer] if renderer != "auto" else [DEFAULT_RENDERER] + [r for r in RENDERERS
                                                                          if r != DEFAULT_RENDERER]
+    if fmt != "png":                  # pyvista draws pixels only
+        if renderer == "pyvista":
+            raise ParameterError(f"pyvista draws PNG only; use --renderer matplotlib for .{fmt}", path=out)
+        order = ["matplotlib"]
     failures = []
     t0 = time.perf_counter()
     for name in order:
         try:
-            data = _drawer(name)(scene)
+            data = _drawer(name)(scene) if fmt == "png" else _drawer(name)(scene, fmt=fmt)
         except (WriteError, ParameterError):
             raise
         except Exception as exc:        # ImportError, RuntimeError from VTK/EGL, anything else
@@ -607,9 +623,15 @@ def _new_figure(size, **kwargs):
     return fig
 
 
-def _png_bytes(fig) -> bytes:
+def _png_bytes(fig, fmt: str = "png") -> bytes:
+    """The figure as PNG, SVG or PDF bytes; the same figure gives the same bytes (no date in
+    the metadata, fixed SVG ids), so an unchanged picture leaves its file untouched."""
+    import matplotlib
+
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, facecolor="white")
+    metadata = {"png": None, "svg": {"Date": None}, "pdf": {"CreationDate": None, "ModDate": None}}[fmt]
+    with matplotlib.rc_context({"svg.hashsalt": "nfdmatch"}):
+        fig.savefig(buf, format=fmt, dpi=100, facecolor="white", metadata=metadata)
     return buf.getvalue()
 
 
@@ -685,7 +707,7 @@ def _mark_mpl(ax, start, forward, color, arrow_len, *, filled: bool, zorder: flo
             mfc=color if filled else "white", mec="white" if filled else color)
 
 
-def _draw_matplotlib(scene: _Scene) -> bytes:
+def _draw_matplotlib(scene: _Scene, fmt: str = "png") -> bytes:
     fig = _new_figure(scene.size)
     W, H = scene.size
     cw, ch = scene.cell
@@ -723,7 +745,7 @@ def _draw_matplotlib(scene: _Scene) -> bytes:
             texts.append(fig.text(cx, top - 4 / H - line, panel.subtitle, ha="center", va="top",
                                   fontsize=scene.font_pt * 0.92, color=_NOTE_COLOR))
     _fit_texts(fig, texts, cw - 6)
-    return _png_bytes(fig)
+    return _png_bytes(fig, fmt)
 
 
 def _fit_texts(fig, texts, max_px: float) -> None:
@@ -922,7 +944,7 @@ def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tupl
     ----------
     matrix : (N, N) finite float, N = ``len(labels)``.
     labels : the N curve ids, in the matrix's order.
-    path : the PNG file to write.
+    path : the picture file to write: PNG, or SVG / PDF by the extension.
     size : (width, height) in pixels; default grows with N (about 8 px per row, 920x800 to
         3000x3000).
     title : drawn above the grid when given.
@@ -948,7 +970,7 @@ def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tupl
     out = check_output(path)
     t0 = time.perf_counter()
     try:
-        data = _draw_matrix(m, labels, size, title)
+        data = _draw_matrix(m, labels, size, title, picture_format(out))
     except (WriteError, ParameterError):
         raise
     except Exception as exc:
@@ -957,7 +979,7 @@ def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tupl
     return RenderResult(path=out, renderer="matplotlib", seconds=time.perf_counter() - t0)
 
 
-def _draw_matrix(m: np.ndarray, labels: list[str], size, title) -> bytes:
+def _draw_matrix(m: np.ndarray, labels: list[str], size, title, fmt: str = "png") -> bytes:
     from matplotlib.ticker import FixedLocator, NullLocator
 
     n = m.shape[0]
@@ -1003,4 +1025,4 @@ def _draw_matrix(m: np.ndarray, labels: list[str], size, title) -> bytes:
     if every > 1:
         fig.text(0.995, 0.005, f"one label in {every} shown", ha="right", va="bottom", fontsize=8,
                  color=_NOTE_COLOR)
-    return _png_bytes(fig)
+    return _png_bytes(fig, fmt)

@@ -20,7 +20,8 @@ from .errors import NfdError
 from .matching import match_descriptors
 from .render import START_STEP
 
-__all__ = ["ShownMatch", "align_match", "matches_from_curves", "matches_from_index"]
+__all__ = ["ShownMatch", "align_match", "match_panels", "matches_from_curves", "matches_from_index", "show_ranked",
+           "show_searched"]
 
 #: a file whose re-matched distance differs from the indexed one by more than this (relative
 #: to 1 + distance) no longer holds the indexed curve: draw from the index instead
@@ -133,3 +134,38 @@ def matches_from_index(query: Curve, results: list[dict], index, *, method: str 
                                  direction=direction, mirror=mirror))
         notes.append(f"{curve_id}: drawn from its {harmonics} indexed harmonics: {reason}")
     return shown, notes
+
+
+def show_ranked(query: Curve, curves, *, top: int, samples: int | None = None, harmonics: int | None = None,
+                scale: str | None = None, method: str = "exact", direction: str = "invariant",
+                mirror: bool = False) -> list[ShownMatch]:
+    """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
+    ``samples, harmonics, scale`` None take the library defaults."""
+    from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
+    from .search import rank_curves
+
+    params = dict(samples=samples or DEFAULT_SAMPLES, harmonics=harmonics or DEFAULT_HARMONICS,
+                  scale=scale or DEFAULT_SCALE, method=method, direction=direction, mirror=mirror)
+    ranked = rank_curves(query, curves, top=top, **params)
+    return matches_from_curves(query, ranked, curves, **params)
+
+
+def show_searched(query: Curve, index, *, top: int, method: str = "exact", direction: str = "invariant",
+                  mirror: bool = False, read_curve=None) -> tuple[list[ShownMatch], list[str]]:
+    """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
+    notes of :func:`matches_from_index`."""
+    from .search import search_index
+
+    results, _ = search_index(index, [query], top=top, method=method, direction=direction, mirror=mirror)
+    return matches_from_index(query, results[0], index, method=method, direction=direction, mirror=mirror,
+                              read_curve=read_curve)
+
+
+def match_panels(shown) -> list:
+    """:class:`~nfdmatch.render.MatchPanel` of each :class:`ShownMatch`, for
+    :func:`~nfdmatch.render.render_matches`."""
+    from .render import MatchPanel
+
+    return [MatchPanel(id=s.id, distance=s.distance, points=s.points, start=s.start, forward=s.forward,
+                       reversed=s.reversed, mirrored=s.mirrored,
+                       note="drawn from index harmonics" if s.source == "index" else None) for s in shown]

@@ -127,9 +127,14 @@ def test_matrix_json_tsv_picture_and_partial_failure(folder, tmp_path):
     png = tmp_path / "m.png"
     code, out, err = run("matrix", folder, "--format", "json", "-o", png)
     assert code == 3
-    assert "bad.csv" in err and "line 3" in err and f"wrote {png}" in err
+    assert "bad.csv" in err and "line 3" in err and "1 of 5 inputs could not be read" in err
+    # the rows of what could be read are printed; the picture (a file, for Make) waits for success
+    assert f"{png} not written: some inputs could not be read" in err and not png.exists()
     data = json.loads(out)
     assert len(data["ids"]) == 5 and np.array(data["distances"]).shape == (5, 5)
+    os.remove(folder / "bad.csv")
+    code, out, err = run("matrix", folder, "--format", "json", "-o", png)
+    assert code == 0 and f"wrote {png}" in err
     width, height = png_size(png)
     assert width >= 400 and height >= 400
     assert len(np.unique(png_pixels(png).reshape(-1, 3), axis=0)) > 10
@@ -200,8 +205,11 @@ def test_show_usage_and_input_errors(folder, tmp_path):
     png = tmp_path / "x.png"
     code, out, err = run("show", folder / "knot.csv", "--against", "-o", png)
     assert code == 2 and "--against needs" in err
+    # without --against, every argument is a query: several need a picture name pattern
     code, out, err = run("show", folder / "knot.csv", folder, "-o", png, "--index", tmp_path / "i.h5")
-    assert code == 2 and "only read with --against" in err
+    assert code == 2 and out == "" and "5 queries give 5 pictures" in err and "{stem}" in err
+    code, out, err = run("show", folder, "-o", tmp_path / "{name}.png", "--index", tmp_path / "i.h5")
+    assert code == 2 and "{stem} and {n} only" in err
     code, out, err = run("show", folder / "knot.csv", "--against", folder, "-o", png, "--size", "big")
     assert code == 2 and "WIDTHxHEIGHT" in err
     code, out, err = run("show", folder / "knot.csv", "--index", tmp_path / "none.h5", "-o", png)
@@ -218,7 +226,8 @@ def test_picture_commands_do_not_import_renderers_at_startup():
     import sys
 
     code = ("import sys, nfdmatch.cli; "
-            "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk') if m in sys.modules))")
+            "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk', 'numba', 'h5py') "
+            "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -265,3 +274,41 @@ def test_matrix_order_similar_permutes_rows_and_columns_together(folder):
     np.testing.assert_array_equal(np.array(plain["distances"])[np.ix_(where, where)], ordered["distances"])
     pos = {curve_id: k for k, curve_id in enumerate(ordered["ids"])}
     assert abs(pos[str(folder / "knot.csv")] - pos[str(folder / "knot-posed.obj")]) == 1
+
+
+def test_show_several_queries_one_picture_each_named_by_the_pattern(folder, tmp_path):
+    index = tmp_path / "i.h5"
+    assert run("index", "build", folder, "--index", index, "-q")[0] == 0
+    rows_file = tmp_path / "rows.csv"
+    code, out, err = run("show", folder / "knot.csv", folder / "other.vtp", "--index", index, "--top", 2,
+                         "-o", tmp_path / "m-{stem}.png", "-o", rows_file)
+    assert code == 0 and out == "", err
+    names = sorted(p.name for p in tmp_path.glob("m-*.png"))
+    assert names == ["m-knot.png", "m-other-0.png", "m-other-1.png"]
+    assert all(png_size(tmp_path / n) == (1600, 900) for n in names)
+    assert err.count("wrote ") == 3
+    rows = list(csv.DictReader(open(rows_file)))
+    assert [r["query"] for r in rows] == [str(folder / "knot.csv")] * 2 + [f"{folder / 'other.vtp'}#0"] * 2 \
+        + [f"{folder / 'other.vtp'}#1"] * 2
+    # a query that cannot be read: the others are answered on stdout, no picture is written (exit 3)
+    code, out, err = run("show", folder / "knot.csv", tmp_path / "nope.csv", "--index", index,
+                         "-o", tmp_path / "n-{n}.png", "--format", "csv")
+    assert code == 3 and "nope.csv" in err and "n-1.png not written" in err
+    assert not list(tmp_path.glob("n-*.png")) and len(out.splitlines()) == 6
+
+
+@pytest.mark.parametrize("ext, magic", [(".svg", b"<?xml"), (".pdf", b"%PDF")])
+def test_show_and_matrix_write_svg_and_pdf_by_extension(folder, tmp_path, ext, magic):
+    picture = tmp_path / f"show{ext}"
+    code, out, err = run("show", folder / "knot.csv", "--against", folder, "--top", 2, "-o", picture)
+    assert code == 0 and f"wrote {picture}" in err
+    assert picture.read_bytes().startswith(magic)
+    # the same picture again: identical bytes, the file is left untouched
+    os.utime(picture, ns=(10**9, 10**9))
+    assert run("show", folder / "knot.csv", "--against", folder, "--top", 2, "-o", picture)[0] == 0
+    assert os.stat(picture).st_mtime_ns == 10**9
+    matrix_picture = tmp_path / f"matrix{ext}"
+    code, out, err = run("matrix", folder, "-o", matrix_picture)
+    assert code == 0 and out.startswith("id,") and matrix_picture.read_bytes().startswith(magic)
+    code, out, err = run("show", folder / "knot.csv", "--against", folder, "-o", picture, "--renderer", "pyvista")
+    assert code == 1 and "PNG only" in err

@@ -1,0 +1,213 @@
+"""Commands on curve files, without an index: distance, describe, rank, reconstruct."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from .common import (deliver, descriptor_options, exclude_self, exclude_self_option, format_option,
+                     input_format_option, match_columns, matching, matching_options, output_option, read_inputs,
+                     read_one, rows_format_option, say, write_rows)
+from .group import main
+
+
+@main.command()
+@click.argument("curve_a", metavar="A")
+@click.argument("curve_b", metavar="B")
+@matching_options
+@descriptor_options
+@input_format_option
+@format_option(("text", "json"), default="text")
+@output_option()
+def distance(curve_a, curve_b, method, strict_direction, mirror, samples, harmonics, scale,
+             input_format, output_format, output):
+    """Similarity distance between two curves A and B, and the alignment of B onto A.
+
+    A and B are files (FILE#I for curve I of a multi-curve file; `-` for stdin). The
+    distance is 0 for the same shape whatever its position, size, orientation, start
+    vertex, sampling and (unless --strict-direction) traversal direction.
+
+    \b
+    Example:
+      nfdmatch distance sample_curves/library/trefoil.csv sample_curves/queries/trefoil-posed.obj --format json
+    """
+    from ..matching import distance as match_distance
+
+    if curve_a == "-" and curve_b == "-":
+        raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
+    a = read_one(curve_a, input_format)
+    b = read_one(curve_b, input_format)
+    m = match_distance(a, b, samples=samples, harmonics=harmonics, scale=scale,
+                       **matching(method, strict_direction, mirror))
+    record = m.to_dict()
+    if output_format == "json":
+        text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
+    else:
+        text = "".join(f"{key}\t{value}\n" for key, value in [
+            ("distance", f"{m.distance:.10g}"),
+            ("shift", f"{m.shift:.6f}"),
+            ("reversed", str(m.reversed).lower()),
+            ("mirrored", str(m.mirrored).lower()),
+            ("scale", f"{m.scale:.10g}"),
+            ("rotation", json.dumps([[round(v, 12) for v in row] for row in record["rotation"]])),
+            ("translation", json.dumps([round(v, 12) for v in record["translation"]])),
+            ("method", m.method)])
+    deliver(text, output)
+
+
+@main.command()
+@click.argument("files", nargs=-1, required=True, metavar="FILE_OR_FOLDER...")
+@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
+@descriptor_options
+@input_format_option
+@format_option(("csv", "tsv", "json", "jsonl"), help_extra=" [default: by the extension of -o, else csv]")
+@output_option()
+def describe(files, glob_pattern, samples, harmonics, scale, input_format, output_format, output):
+    """Print the normalized Fourier descriptors of every curve in FILE_OR_FOLDER....
+
+    One row per curve: id, parameters, centroid and scale (input units), whether the
+    limit plane is degenerate, then the normalized coefficients A_k for
+    k = +1..+K, -1..-K: columns k+1_x_re, k+1_x_im, ..., k-K_z_im.
+    Folders are searched recursively; FILE#I describes one curve of a multi-curve file.
+    A bad input is named on stderr and skipped (exit 3; exit 1 when none could be read).
+
+    \b
+    Example:
+      nfdmatch describe sample_curves/library/ --harmonics 8 -o descriptors.csv
+    """
+    from ..descriptors import descriptors_batch, validate_parameters
+    from .common import resolve_format
+
+    validate_parameters(samples, harmonics, scale)
+    inputs = read_inputs(files, glob=glob_pattern, input_format=input_format)
+    batch = descriptors_batch(inputs.curves, samples=samples, harmonics=harmonics, scale=scale)
+    rows = [_descriptor_row(batch.row(i, c.id)) for i, c in enumerate(inputs.curves)]
+    fmt = resolve_format(output_format, output)
+    fmt = "csv" if fmt == "table" else fmt
+    if fmt in ("json", "jsonl"):
+        columns = ["id", "samples", "harmonics", "scale", "scale_value", "centroid", "plane_degenerate",
+                   "frequencies", "coefficients"]
+        write_rows(rows, columns, fmt, output)
+    else:
+        flat = [_flatten_descriptor_row(r) for r in rows]
+        write_rows(flat, list(flat[0]), fmt, output)
+    inputs.finish()
+
+
+@main.command()
+@click.argument("query_spec", metavar="QUERY")
+@click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
+@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True,
+              help="Number of matches to list.")
+@click.option("--max-distance", type=click.FloatRange(min=0), default=None,
+              help="Only list matches at most this far.")
+@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
+@click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
+@exclude_self_option
+@matching_options
+@descriptor_options
+@input_format_option
+@rows_format_option
+@output_option()
+def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_self_, method, strict_direction,
+         mirror, samples, harmonics, scale, input_format, output_format, output):
+    """Rank the curves in SOURCE... (files or folders) by similarity to QUERY, without an index.
+
+    QUERY is one curve (FILE, FILE#I or `-`). Folders are searched recursively for files
+    with a known extension (hidden files skipped). Inputs that cannot be read are named
+    on stderr and skipped (exit 3). Rows: query, rank, match, distance.
+
+    \b
+    Example:
+      nfdmatch rank sample_curves/queries/trefoil-posed.obj sample_curves/library --top 5
+    """
+    from ..search import rank_curves
+
+    query = read_one(query_spec, input_format)
+    inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
+    ranked = rank_curves(query, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
+                         samples=samples, harmonics=harmonics, scale=scale,
+                         **matching(method, strict_direction, mirror))
+    if exclude_self_:
+        ranked = exclude_self(query.id, ranked, top)
+    write_rows([{"query": query.id, **row} for row in ranked], match_columns(details), output_format, output,
+               group_by="query")
+    inputs.finish()
+
+
+@main.command()
+@click.argument("curve_spec", metavar="FILE")
+@click.option("--harmonics", "-k", type=click.IntRange(min=1), required=True,
+              help="Harmonics K kept: frequencies +-1..+-K.")
+@click.option("--output", "-o", required=True, type=click.Path(dir_okay=False),
+              help="The curve file to write; its extension picks the format (csv, obj, vtk, vtp, vtu).")
+@click.option("--points", "-m", type=click.IntRange(min=3, max=10_000_000), default=None,
+              help="Vertices of the rebuilt curve [default: the samples].")
+@click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
+              help="Arc-length samples of the transform [default: max(128, 4K)].")
+@click.option("--normalized", is_flag=True,
+              help="Write the normalized curve (centred, unit scale, limit plane on z = 0), not the input pose.")
+@input_format_option
+@click.option("--output-format", "curve_format", default=None,
+              help="Write this curve format whatever OUT's extension (csv, obj, vtk, vtp, vtu).")
+@format_option(help_extra=" of the summary rows on stdout (default: a table on a terminal, CSV otherwise)")
+def reconstruct(curve_spec, harmonics, output, points, samples, normalized, input_format, curve_format,
+                output_format):
+    """Rebuild the curve(s) in FILE from their first K harmonics: what the descriptor sees.
+
+    The rebuilt curve keeps the input's position, size and orientation (unless
+    --normalized), and is written to OUT in the format of its extension (a multi-curve
+    FILE gives a multi-curve OUT; CSV holds one curve, so select it with FILE#I). Rows on
+    stdout: curve, harmonics, vertices, distance (from the rebuilt curve to the input,
+    default matching parameters).
+
+    \b
+    Example:
+      nfdmatch reconstruct sample_curves/library/knotess/5_2.csv -k 4 -o 5_2-k4.vtp
+    """
+    from ..errors import ParameterError
+    from ..formats import write_curves
+    from ..reconstruction import reconstruct_curves, reconstruction_samples
+
+    try:
+        reconstruction_samples(harmonics, samples)
+    except ParameterError as exc:
+        raise click.BadParameter(exc.message, param_hint="--harmonics") from None
+    if curve_spec == "-":
+        curves = [read_one("-", input_format)]
+    else:
+        from ..formats import read_curve, read_curves, split_selector
+
+        path, selected = split_selector(curve_spec)
+        curves = ([read_curve(curve_spec, format=input_format)] if selected is not None
+                  else read_curves(path, format=input_format))
+    rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points,
+                                 normalized=normalized)
+    write_curves(output, [r.curve for r in rebuilt], format=curve_format)
+    rows = [{"curve": r.source_id, "harmonics": r.harmonics, "vertices": len(r.curve.points),
+             "distance": r.distance} for r in rebuilt]
+    write_rows(rows, ["curve", "harmonics", "vertices"] + ([] if normalized else ["distance"]), output_format)
+    say(f"wrote {output}")
+
+
+def _descriptor_row(d) -> dict:
+    freqs, coeffs = d.band()
+    return {
+        "id": d.id, "samples": d.samples, "harmonics": d.harmonics, "scale": d.scale_mode,
+        "scale_value": float(d.scale), "centroid": [float(v) for v in d.centroid],
+        "plane_degenerate": bool(d.plane_degenerate),
+        "frequencies": [int(f) for f in freqs],
+        # per frequency, per axis x, y, z: [real, imaginary]
+        "coefficients": [[[float(c.real), float(c.imag)] for c in row] for row in coeffs],
+    }
+
+
+def _flatten_descriptor_row(row: dict) -> dict:
+    flat = {k: row[k] for k in ("id", "samples", "harmonics", "scale", "scale_value", "plane_degenerate")}
+    flat.update({f"centroid_{ax}": v for ax, v in zip("xyz", row["centroid"])})
+    for f, coeff in zip(row["frequencies"], row["coefficients"]):
+        for ax, (re, im) in zip("xyz", coeff):
+            flat[f"k{f:+d}_{ax}_re"] = re
+            flat[f"k{f:+d}_{ax}_im"] = im
+    return flat
