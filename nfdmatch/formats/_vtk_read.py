@@ -49,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import NoCurvesError, ParseError
+from ..errors import NoCurvesError, ParseError, excerpt
 
 __all__ = ["Dataset", "parse", "MAX_INFLATED_BYTES", "MAX_INFLATION_RATIO", "inflated_cap"]
 
@@ -120,9 +120,8 @@ def _count(text, what: str) -> int:
     return int(s)
 
 
-def _short(s, limit: int = 60):
-    s = s if isinstance(s, str) else s.decode("latin-1")
-    return s if len(s) <= limit else s[:limit] + "...[cut]"
+def _short(s, limit: int = 60) -> str:
+    return excerpt(s, limit)
 
 
 def _as_index(values: np.ndarray, what: str) -> np.ndarray:

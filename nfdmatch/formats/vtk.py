@@ -16,13 +16,16 @@ ignored; a file with polygons but no lines is reported as a mesh.
 Writing (:func:`write`): float64 points and one closed poly-line cell per
 curve, closing point index repeated; PolyData for ``.vtk`` (legacy, binary)
 and ``.vtp`` (XML), UnstructuredGrid with VTK_POLY_LINE cells for ``.vtu``.
-The file is written next to the target under a temporary name and renamed.
+The file is written to a temporary file made exclusively beside the target
+(:func:`._chain.temp_beside`, ``tempfile.mkstemp``) and renamed over it.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import shutil
+import tempfile
 import warnings
 from contextlib import ExitStack
 
@@ -32,7 +35,7 @@ from ..curve import Curve
 from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
 from . import _vtk_read
 from ._chain import (chain_segments, check_readable, make_curves, ordered_curves, points_list,
-                     read_bytes)
+                     publish, read_bytes, temp_beside)
 
 __all__ = ["read", "read_points", "write", "KINDS"]
 
@@ -194,17 +197,33 @@ def write(path, curves, format: str | None = None) -> None:
     if mesh.points.dtype != np.float64:  # pragma: no cover - pyvista keeps float64 input
         mesh.points = pts
 
-    tmp = os.path.join(folder, f".{os.path.basename(p)}.{os.getpid()}.tmp{KINDS[kind]}")
+    private = temp = None
     try:
+        temp = temp_beside(p, KINDS[kind])
+        target = temp
+        if not _utf8(temp):     # VTK takes UTF-8 names only: write elsewhere, then copy
+            private = tempfile.mkdtemp(prefix="nfdmatch-")
+            target = os.path.join(private, "curves" + KINDS[kind])
         with ExitStack() as stack:
             catcher = _silenced(pv, stack)
-            mesh.save(tmp, binary=True)
+            mesh.save(target, binary=True)
         if catcher.error_events:
             raise OSError(_first_alert(str(getattr(catcher.error_events[0], "alert", ""))))
-        os.replace(tmp, p)
+        if private is not None:
+            shutil.copyfile(target, temp)
+        publish(temp, p)
     except Exception as exc:  # noqa: BLE001
-        try:
-            os.remove(tmp)
-        except OSError:
-            pass
         raise WriteError(f"cannot write the file ({exc})", path=p) from None
+    finally:
+        if temp is not None and os.path.lexists(temp):
+            os.remove(temp)
+        if private is not None:
+            shutil.rmtree(private, ignore_errors=True)
+
+
+def _utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
