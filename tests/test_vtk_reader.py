@@ -307,3 +307,37 @@ def test_lz4_decoder_overlapping_match():
         _vtk_read._lz4_block(block, 5, "x")                        # past the stated size
     with pytest.raises(_vtk_read._Bad):
         _vtk_read._lz4_block(bytes([0x02]) + bytes([9, 0]), 9, "x")  # offset before the start
+
+
+# ---------------------------------------------------------------------------
+# garbage that would only cost time is cut short
+# ---------------------------------------------------------------------------
+
+def test_endless_sections_are_refused(tmp_path):
+    _refused(tmp_path, "meta.vtk", V51_HEAD + "METADATA\n\n" * (_vtk_read.MAX_SECTIONS + 5),
+             f"more than {_vtk_read.MAX_SECTIONS} sections")
+
+
+def test_endless_metadata_ends_at_the_end_of_the_file(tmp_path):
+    _refused(tmp_path, "meta.vtk", V51_HEAD + "METADATA\n" + "INFORMATION 1\n" * 100_000,
+             error=NoCurvesError)
+
+
+def test_a_mile_of_whitespace_is_just_whitespace(tmp_path):
+    p = tmp_path / "space.vtk"
+    p.write_text(V51_HEAD.replace("0 0 0 1", "0 0 0" + " \n" * 2_000_000 + "1")
+                 + "LINES 2 4\nOFFSETS vtktypeint64\n0 4\nCONNECTIVITY vtktypeint64\n0 1 2 3\n")
+    assert len(read_curves(str(p))[0].points) == 4
+
+
+def test_too_many_pieces_are_refused(tmp_path):
+    piece = '<Piece NumberOfPoints="0" NumberOfLines="0"/>'
+    xml = (f'<VTKFile type="PolyData" version="0.1"><PolyData>'
+           f'{piece * (_vtk_read.MAX_PIECES + 1)}</PolyData></VTKFile>')
+    _refused(tmp_path, "pieces.vtp", xml, f"more than the {_vtk_read.MAX_PIECES} accepted")
+
+
+def test_base64_in_too_many_pieces_is_refused(tmp_path):
+    xml = _vtp().replace('format="ascii">0 0 0 1 0 0 1 1 0 0 1 0',
+                         'format="binary">' + "AA==" * (_vtk_read.MAX_BASE64_PIECES + 1))
+    _refused(tmp_path, "b64.vtp", xml, "separately padded pieces")

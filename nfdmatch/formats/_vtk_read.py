@@ -60,6 +60,12 @@ __all__ = ["Dataset", "parse", "MAX_INFLATED_BYTES", "MAX_INFLATION_RATIO", "inf
 MAX_INFLATED_BYTES = 256 * 2**20
 MAX_INFLATION_RATIO = 16
 
+#: a legacy file has a handful of sections (POINTS, LINES, METADATA, ...) and an XML
+#: file a few pieces; far more is garbage that would only cost time
+MAX_SECTIONS = 10_000
+MAX_PIECES = 10_000
+MAX_BASE64_PIECES = 10_000
+
 _CHUNK_TOKENS = 1 << 20          # ASCII numbers are converted this many at a time
 
 _VTK_VERTEX, _VTK_POLY_VERTEX, _VTK_LINE, _VTK_POLY_LINE = 1, 2, 3, 4
@@ -191,6 +197,9 @@ _LEGACY_TYPES = {
     "vtktypefloat64": "f8",
 }
 
+_SPACE = re.compile(rb"[ \t\r\n\x00]*")
+_BLANK_AT = re.compile(rb"[ \t\r]*(?:\n|\Z)")
+_BLANK_LINE = re.compile(rb"\n[ \t\r]*(?:\n|\Z)")
 _KEYWORD = re.compile(rb"[ \t\r\n\x00]*([A-Za-z_]+)")
 _ATTRIBUTE_SECTIONS = {b"POINT_DATA", b"CELL_DATA", b"FIELD"}
 _POLYDATA_SECTIONS = {b"VERTICES", b"LINES", b"POLYGONS", b"TRIANGLE_STRIPS"}
@@ -208,9 +217,7 @@ class _Legacy:
     # -- low level ---------------------------------------------------------
 
     def _skip_space(self) -> None:
-        buf, n = self.buf, len(self.buf)
-        while self.pos < n and buf[self.pos] in b" \t\r\n\x00":
-            self.pos += 1
+        self.pos = _SPACE.match(self.buf, self.pos).end()
 
     def line(self, what: str, *, skip_blank: bool = True) -> bytes:
         """The next (non-blank) line, without its line end."""
@@ -301,7 +308,7 @@ class _Legacy:
         ug_cells = None
         types = None
         last = ""
-        while True:
+        for _ in range(MAX_SECTIONS + 1):
             word = self.peek_word()
             if not word:
                 rest = self.buf[self.pos:].split(None, 2)
@@ -339,6 +346,8 @@ class _Legacy:
             else:
                 raise _Bad(f"unexpected section {_short(key)!r} in a "
                            f"{dataset.decode('latin-1')} dataset")
+        else:
+            raise _Bad(f"more than {MAX_SECTIONS} sections before the attribute data")
         if points is None:
             raise _Bad("no POINTS section")
         if dataset == b"UNSTRUCTURED_GRID":
@@ -357,11 +366,9 @@ class _Legacy:
         return Dataset(points, lines[0], lines[1], n_other)
 
     def _skip_metadata(self) -> None:
-        """METADATA blocks end at the first blank line."""
-        while self.pos < len(self.buf):
-            line = self.line("metadata", skip_blank=False)
-            if not line.strip():
-                return
+        """METADATA blocks end at the first blank line (or the end of the file)."""
+        m = _BLANK_AT.match(self.buf, self.pos) or _BLANK_LINE.search(self.buf, self.pos)
+        self.pos = len(self.buf) if m is None else m.end()
 
     def _cells(self, header, what: str):
         """A cell section -> (offsets (c + 1,) int64 from 0, connectivity (m,) int64)."""
@@ -495,6 +502,8 @@ def _b64decode(text: bytes, what: str) -> bytes:
         pieces = [text]
     else:
         pieces = [p for p in _B64_CHUNK.findall(text) if p]
+        if len(pieces) > MAX_BASE64_PIECES:
+            raise _Bad(f"{what}: base64 text in {len(pieces)} separately padded pieces")
         if sum(map(len, pieces)) != len(text):
             raise _Bad(f"{what}: misplaced base64 padding")
     out = []
@@ -769,7 +778,10 @@ def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:
     n_other = 0
     base = 0
     conn_base = 0
-    for p, piece in enumerate(body.findall("Piece")):
+    pieces = body.findall("Piece")
+    if len(pieces) > MAX_PIECES:
+        raise _Bad(f"{len(pieces)} pieces, more than the {MAX_PIECES} accepted")
+    for p, piece in enumerate(pieces):
         where = f"piece {p}"
         n_points = _count(piece.get("NumberOfPoints", "0"), f"{where} NumberOfPoints")
         if n_points:
