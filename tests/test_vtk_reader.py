@@ -187,6 +187,12 @@ def _refused(tmp_path, name, content, *needles, error=ParseError):
     (LEGACY_HEAD.replace("0 1 0\n", "0 1 zero\n") + "LINES 1 6\n5 0 1 2 3 0\n",
      ("not a number", "'zero'")),
     ("# vtk DataFile Version 3.0\nx\nTEXT\n", ("ASCII or BINARY",)),
+    (V51_HEAD.replace("POINTS 4", "POINTS 1e308") + "LINES 1 6\n5 0 1 2 3 0\n",
+     ("the POINTS count is not a non-negative integer: '1e308'",)),
+    (V51_HEAD + "LINES 1e308 5\nOFFSETS vtktypeint64\n0 5\n", ("LINES cell count",)),
+    (V51_HEAD.replace("ASCII", "BINARY").replace("POINTS 4 double\n0 0 0 1 0 0 1 1 0 0 1 0\n",
+                                                 "POINTS 4 double\n" + "\0" * 10),
+     ("POINTS declares 12 values (96 bytes) but only 10 bytes follow",)),
     ("#vtk nope\n", ("# vtk DataFile Version",)),
 ])
 def test_malformed_legacy_is_refused_with_the_reason(tmp_path, content, needles):
@@ -341,3 +347,15 @@ def test_base64_in_too_many_pieces_is_refused(tmp_path):
     xml = _vtp().replace('format="ascii">0 0 0 1 0 0 1 1 0 0 1 0',
                          'format="binary">' + "AA==" * (_vtk_read.MAX_BASE64_PIECES + 1))
     _refused(tmp_path, "b64.vtp", xml, "separately padded pieces")
+
+
+def test_reading_vtk_files_never_loads_vtk(variants):
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom nfdmatch.formats import read_curves\n"
+            f"for name in {variants[::7]!r}:\n    assert read_curves(name)\n"
+            "loaded = [m for m in ('pyvista', 'vtk', 'vtkmodules') if m in sys.modules]\n"
+            "assert not loaded, loaded\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
