@@ -200,6 +200,7 @@ _LEGACY_TYPES = {
     "vtktypefloat64": "f8",
 }
 
+_NEXT_KEYWORD_LINE = re.compile(rb"\n[ \t\r\x00]*[A-Za-z_]")
 _SPACE = re.compile(rb"[ \t\r\n\x00]*")
 _BLANK_AT = re.compile(rb"[ \t\r]*(?:\n|\Z)")
 _BLANK_LINE = re.compile(rb"\n[ \t\r]*(?:\n|\Z)")
@@ -262,6 +263,16 @@ class _Legacy:
         if count > room:
             raise _Bad(f"{what} declares {count} values but the rest of the file "
                        f"({len(self.buf) - self.pos} bytes) cannot hold that many")
+        # usually the values run to the next line starting with a keyword: parse that span
+        # in one go; if it does not hold exactly `count` numbers, go token by token
+        if count:
+            m = _NEXT_KEYWORD_LINE.search(self.buf, self.pos)
+            end = len(self.buf) if m is None else m.start()
+            if end - self.pos <= 64 * count + 64:
+                fast = _fast_numbers(self.buf[self.pos:end], dtype)
+                if fast is not None and len(fast) == count:
+                    self.pos = end
+                    return fast.astype(dtype, copy=False)
         out = np.empty(count, dtype=dtype)
         done = 0
         rest = self.buf[self.pos:] if count else b""
@@ -435,9 +446,9 @@ def _walk_counts(flat: np.ndarray, n_cells: int, what: str):
 _INTEGER_CHARS = b"0123456789+- \t\r\n\x0b\x0c"
 
 
-def _numbers(span: bytes, tokens, dtype: np.dtype, what: str) -> np.ndarray:
-    """The whitespace-separated numbers of ``span`` (its tokens are ``tokens``, or None if
-    not split yet) as ``dtype``; a token that is not a number of that kind is an error."""
+def _fast_numbers(span: bytes, dtype: np.dtype) -> np.ndarray | None:
+    """All whitespace-separated numbers of ``span`` parsed in C, or None if any token is not
+    a number of that kind (or an integer may have overflowed): then parse token by token."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
@@ -452,6 +463,29 @@ def _numbers(span: bytes, tokens, dtype: np.dtype, what: str) -> np.ndarray:
                 fast = None
         except ValueError:
             fast = None
+    # numpy's separator " " also matches *no* whitespace ("5-3" reads as 5, -3): the
+    # count must equal the number of whitespace-separated tokens
+    if fast is not None and len(fast) != _token_count(span):
+        return None
+    return fast
+
+
+_WHITESPACE = np.zeros(256, dtype=bool)
+_WHITESPACE[list(b" \t\n\r\x0b\x0c")] = True
+
+
+def _token_count(span: bytes) -> int:
+    """Number of runs of non-whitespace bytes (vectorized ``len(span.split())``)."""
+    if not span:
+        return 0
+    solid = ~_WHITESPACE[np.frombuffer(span, dtype=np.uint8)]
+    return int(solid[0]) + int(np.count_nonzero(solid[1:] & ~solid[:-1]))
+
+
+def _numbers(span: bytes, tokens, dtype: np.dtype, what: str) -> np.ndarray:
+    """The whitespace-separated numbers of ``span`` (its tokens are ``tokens``, or None if
+    not split yet) as ``dtype``; a token that is not a number of that kind is an error."""
+    fast = _fast_numbers(span, dtype)
     if fast is not None and (tokens is None or len(fast) == len(tokens)):
         return fast
     if tokens is None:
