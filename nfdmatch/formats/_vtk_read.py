@@ -8,11 +8,11 @@ cannot be caught from Python. Running them in a child process with
 time and memory limits contains that but costs a process start and a pyvista
 import per file. Measured on 5,000-curve files (``benchmarks/bench_vtk_read.py``,
 median seconds, here / fresh child per file / warm pre-started child / VTK in
-process, unprotected): zlib VTP 20 MB 0.6 / 1.8 / 0.5 / 0.4; legacy binary .vtk
-21 MB 0.03 / 1.05 / 0.09 / 0.01; appended raw VTP 15 MB 0.16 / 1.3 / 0.4 / 0.15;
-ASCII VTP 45 MB 2.0 / 2.5 / 1.6 / 1.3; legacy ASCII 31 MB 1.3 / 1.5 / 0.7 / 0.8.
-Own parsing beats a child per file everywhere (30x on binary legacy), is level
-with a warm child except on ASCII (up to 1.8x slower there), needs no worker pool
+process, unprotected): zlib VTP 20 MB 0.47 / 1.22 / 0.43 / 0.29; legacy binary
+.vtk 21 MB 0.02 / 0.78 / 0.06 / 0.01; appended raw VTP 15 MB 0.11 / 0.73 / 0.14 /
+0.10; ASCII VTP 45 MB 1.49 / 1.66 / 1.01 / 1.01; legacy ASCII 31 MB 0.70 / 1.72 /
+1.00 / 0.65. Own parsing beats a child per file everywhere (35x on binary legacy),
+is level with a warm child except on ASCII XML (1.5x slower), needs no worker pool
 to restart after every crash, and gives a reason for every refusal. So this module
 parses the files itself; pyvista stays for writing and pictures.
 
