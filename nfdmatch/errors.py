@@ -6,9 +6,49 @@ keeps working for code that does not know about nfdmatch.
 
 Messages name where the problem is: ``"<path>: line <n>: <what>"`` or
 ``"<path>#<curve>: <what>"``. The CLI prints them as ``Error: <message>``.
+Messages are valid UTF-8 (a file name's undecodable bytes escaped, see
+:func:`escape_name`) and at most :data:`MAX_MESSAGE_CHARS` characters.
 """
 
 from __future__ import annotations
+
+#: Longest message an error keeps (characters); longer ones are cut with a marker. The
+#: places that build messages quote file contents through :func:`excerpt` already; this
+#: is the backstop, so that nothing from a file can make a message (or the failure
+#: record an index stores) megabytes long.
+MAX_MESSAGE_CHARS = 1000
+
+
+def escape_name(text) -> str:
+    """``text`` as valid UTF-8: the undecodable bytes of a file name, which Python's
+    ``os.fsdecode`` (surrogateescape) turns into lone surrogates ``\\udc80``-``\\udcff``,
+    are written as ``\\xNN`` (byte 0xff -> the four characters ``\\xff``); any other
+    lone surrogate as ``\\udNNN``. Valid text is returned unchanged. Curve ids and the
+    file names in messages use this form, so they can be printed and stored in HDF5
+    (whose UTF-8 strings cannot hold a lone surrogate); to open the file, use the name
+    as the operating system gave it (``Curve.source``). A name that really contains
+    the text ``\\xff`` looks the same; the escape is not meant to be undone."""
+    text = str(text)
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        pass
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def excerpt(text, limit: int = 80) -> str:
+    """``text`` (str, or bytes shown as Latin-1) cut to ``limit`` characters, marking the
+    cut with how much was left out: ``"12345...[cut: 5000000 characters in all]"``."""
+    if isinstance(text, (bytes, bytearray)):
+        text = bytes(text).decode("latin-1")
+    text = str(text)
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}...[cut: {len(text)} characters in all]"
 
 
 class NfdError(Exception):
@@ -24,6 +64,9 @@ class NfdError(Exception):
 
     def __init__(self, message: str, *, path: str | None = None,
                  line: int | None = None, curve: int | None = None):
+        message = str(message)
+        if len(message) > MAX_MESSAGE_CHARS:
+            message = excerpt(message, MAX_MESSAGE_CHARS)
         self.message = message
         self.path = None if path is None else str(path)
         self.line = line
@@ -33,7 +76,7 @@ class NfdError(Exception):
     def _format(self) -> str:
         where = ""
         if self.path is not None:
-            where = self.path
+            where = escape_name(self.path)
             if self.curve is not None:
                 where += f"#{self.curve}"
         parts = [p for p in (where, f"line {self.line}" if self.line is not None else "") if p]

@@ -1,9 +1,30 @@
-"""Finding curve files under files and folders given on the command line."""
+"""Finding curve files under files and folders given on the command line.
+
+A folder walk skips, and reports through ``problems`` (a list the caller passes), what it
+cannot or must not read, so that one such entry does not stop the others and is not
+skipped silently either:
+
+* a sub-folder that cannot be listed (no permission, an I/O error): its files are not
+  seen; ``ReadError(path=the folder, "cannot list the folder (...); its files are
+  skipped")``;
+* an entry with a curve extension that is not a regular file (a FIFO, socket, device, or
+  a symbolic link to one, e.g. to ``/dev/zero``): never opened (opening a FIFO blocks,
+  reading ``/dev/zero`` never ends); ``ReadError(path=the entry, "is a FIFO (named pipe),
+  not a regular file; skipped")``.
+
+A file named directly is taken as given; reading it then fails with a clear
+:class:`~nfdmatch.errors.ReadError` if it is not a regular file.
+
+File names that are not valid UTF-8 come back from the walk as Python ``str`` with the
+undecodable bytes as lone surrogates (``os.fsdecode``); they open fine, and the curve ids
+made from them escape those bytes (see :func:`nfdmatch.formats._chain.curve_id`).
+"""
 
 from __future__ import annotations
 
 import fnmatch
 import os
+import stat
 from pathlib import Path
 
 from .errors import ReadError
@@ -12,7 +33,8 @@ from .formats import supported_extensions
 __all__ = ["find_curve_files", "walk_folder"]
 
 
-def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
+def find_curve_files(sources, *, glob: str | None = None, problems: list | None = None
+                     ) -> list[str]:
     """Curve files named by ``sources``, in a deterministic order.
 
     Parameters
@@ -21,6 +43,9 @@ def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
         that ``--input-format`` can apply), ``file#i`` too; a folder is walked recursively, keeping
         files with a supported extension, skipping hidden files and folders.
     glob : optional fnmatch pattern on the file name (``"*.csv"``) for files found in folders.
+    problems : optional list; receives a :class:`~nfdmatch.errors.ReadError` for every
+        sub-folder that could not be listed and every non-regular file skipped in a
+        walk (see the module docstring). Without it they are skipped silently.
 
     Returns
     -------
@@ -41,7 +66,7 @@ def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
         if selected is not None and os.path.isfile(path):
             found.add(source)                  # file#i: one curve of a multi-curve file
         elif os.path.isdir(source):
-            for file in walk_folder(source, extensions, glob=glob):
+            for file in walk_folder(source, extensions, glob=glob, problems=problems):
                 found.add(file)
         elif os.path.exists(source):
             found.add(source)
@@ -50,14 +75,26 @@ def find_curve_files(sources, *, glob: str | None = None) -> list[str]:
     return found.paths
 
 
-def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=()):
+def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(),
+                problems: list | None = None):
     """Yield the files below ``folder`` whose extension (lower-cased, with the dot) is in
     ``extensions`` and whose name matches ``glob``, recursively, sorted within each folder,
-    skipping hidden files and folders and the folders in ``exclude``."""
+    skipping hidden files and folders and the folders in ``exclude``.
+
+    Sub-folders that cannot be listed and entries that are not regular files are skipped;
+    each is appended to ``problems`` (if given) as a :class:`ReadError` naming it. Symbolic
+    links to folders are not followed (no cycles); links to regular files are yielded."""
     skip = {os.path.realpath(str(e)) for e in exclude}
     if os.path.realpath(folder) in skip:
         return
-    for root, dirs, files in os.walk(folder):
+
+    def unlisted(exc: OSError) -> None:
+        if problems is not None:
+            where = exc.filename if exc.filename is not None else folder
+            problems.append(ReadError(f"cannot list the folder ({exc.strerror or exc}); its "
+                                      "files are skipped", path=str(where)))
+
+    for root, dirs, files in os.walk(folder, onerror=unlisted):
         dirs[:] = sorted(d for d in dirs if not d.startswith(".")
                          and not (skip and os.path.realpath(os.path.join(root, d)) in skip))
         for name in sorted(files):
@@ -65,7 +102,31 @@ def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=())
                 continue
             if glob and not fnmatch.fnmatch(name, glob):
                 continue
-            yield os.path.join(root, name)
+            path = os.path.join(root, name)
+            kind = _irregular(path)
+            if kind is not None:
+                if problems is not None:
+                    problems.append(ReadError(f"is {kind}, not a regular file; skipped",
+                                              path=path))
+                continue
+            yield path
+
+
+def _irregular(path: str) -> str | None:
+    """What ``path`` is when it exists but is not a regular file (following links), else None
+    (a regular file, or a broken link: reading that reports "no such file")."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    for test, kind in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISDIR, "a directory")):
+        if test(mode):
+            return kind
+    return "not a regular file"
 
 
 class UniquePaths:

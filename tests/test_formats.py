@@ -200,6 +200,7 @@ def test_permission_denied_is_read_error(tmp_path, monkeypatch):
 
     p = write(tmp_path, "locked.obj", (DATA / "two_squares.obj").read_text())
     monkeypatch.setattr(_chain, "open", denied, raising=False)
+    monkeypatch.setattr(_chain, "_os_open", denied)
     expect(ReadError, p, lambda: read_curves(p), contains=("permission denied",))
     expect(WriteError, str(tmp_path / "out.csv"), lambda: write_curves(tmp_path / "out.csv",
                                                                       [SQUARE]),

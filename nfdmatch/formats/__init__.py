@@ -14,7 +14,18 @@ the file extension (case-insensitive) unless ``format=`` names one.
 
 Curve ids: ``str(path)`` for a file holding exactly one curve (then
 ``index`` is None), ``f"{path}#{i}"`` with ``index=i`` (0-based, file order)
-otherwise; ``source`` is always ``str(path)``.
+otherwise; ``source`` is always ``str(path)``. A file name that is not valid
+UTF-8 (its undecodable bytes are lone surrogates in Python's ``str``, the
+``surrogateescape`` rule of ``os.fsdecode``) is written in the id with those
+bytes as ``\\xNN`` (byte 0xff -> ``\\xff``), so that ids are valid UTF-8 and
+can be printed and stored in HDF5; ``source`` keeps the name that opens the file
+(:func:`nfdmatch.errors.escape_name`).
+
+Reading: regular files only (a FIFO, device or socket is refused without being
+opened) of at most 1 GiB (``nfdmatch.formats._chain.MAX_FILE_BYTES``, or the
+environment variable ``NFDMATCH_MAX_FILE_BYTES``); compressed VTK XML data may
+inflate to at most ``max(256 MiB, 16 x the file size)``
+(``nfdmatch.formats._vtk_read.MAX_INFLATED_BYTES`` / ``MAX_INFLATION_RATIO``).
 
 Importing this package does not import pyvista, VTK or trimesh.
 """

@@ -4,7 +4,9 @@
   cells) into closed loops.
 * :func:`ordered_curves` merges polylines and chained loops in file order.
 * :func:`read_bytes` / :func:`read_text` / :func:`check_readable` open a file
-  and turn every I/O problem into a :class:`~nfdmatch.errors.ReadError`.
+  and turn every I/O problem into a :class:`~nfdmatch.errors.ReadError`; they
+  read regular files only (never a FIFO, device or socket) of at most
+  :data:`MAX_FILE_BYTES` (1 GiB; environment variable ``NFDMATCH_MAX_FILE_BYTES``).
 * :func:`make_curves` / :func:`points_list` convert between raw vertex arrays
   and :class:`~nfdmatch.curve.Curve` records with the library's id rules.
 
@@ -14,12 +16,15 @@ Nothing here imports pyvista or trimesh.
 from __future__ import annotations
 
 import os
+import re
+import stat
+import tempfile
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from ..curve import Curve, clean_many, clean_points
-from ..errors import ParameterError, ParseError, ReadError, WriteError
+from ..errors import ParameterError, ParseError, ReadError, WriteError, escape_name, excerpt
 
 __all__ = ["chain_segments", "ordered_curves", "read_bytes", "read_text", "check_readable",
            "write_text", "curve_id", "make_curve", "make_curves", "points_list"]
@@ -144,41 +149,125 @@ def ordered_curves(polylines: Sequence[tuple[int, np.ndarray]],
 # file access
 # ---------------------------------------------------------------------------
 
-def check_readable(path) -> str:
-    """Return ``str(path)`` if it is a readable regular file, else raise :class:`ReadError`."""
-    p = str(path)
+#: Largest file the readers read, in bytes (1 GiB). Set this module attribute, or the
+#: environment variable ``NFDMATCH_MAX_FILE_BYTES`` (read at each call, so it reaches
+#: the CLI and worker processes), to allow more.
+MAX_FILE_BYTES = 1 << 30
+
+
+def max_file_bytes() -> int:
+    """The read size cap in force: ``NFDMATCH_MAX_FILE_BYTES`` if set, else :data:`MAX_FILE_BYTES`."""
+    value = os.environ.get("NFDMATCH_MAX_FILE_BYTES", "").strip()
+    if value:
+        try:
+            limit = int(value)
+        except ValueError:
+            raise ParameterError(f"NFDMATCH_MAX_FILE_BYTES must be a number of bytes, "
+                                 f"not {excerpt(value)!r}") from None
+        if limit > 0:
+            return limit
+    return MAX_FILE_BYTES
+
+
+_os_open = os.open          # a module name, so tests can make opening fail
+
+
+def _file_kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISDIR, "a directory")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _refuse_irregular(p: str, mode: int) -> None:
+    if stat.S_ISDIR(mode):
+        raise ReadError("is a directory, not a file", path=p)
+    if not stat.S_ISREG(mode):
+        raise ReadError(f"is {_file_kind(mode)}, not a regular file; only regular files are read",
+                        path=p)
+
+
+def _io_error(p: str, exc: OSError) -> ReadError:
+    if isinstance(exc, FileNotFoundError):
+        return ReadError("no such file", path=p)
+    if isinstance(exc, PermissionError):
+        return ReadError("permission denied", path=p)
+    return ReadError(f"cannot read the file ({exc.strerror or exc})", path=p)
+
+
+def _open_regular(p: str) -> tuple[int, int]:
+    """Open a regular file for reading: ``(fd, size)``. FIFOs, devices, sockets and
+    directories are refused from ``stat`` before any ``open`` (opening a FIFO blocks,
+    reading ``/dev/zero`` never ends) and again from ``fstat`` of what was opened (the
+    name may have been replaced in between; ``O_NONBLOCK`` keeps that open from blocking)."""
     try:
-        if os.path.isdir(p):
-            raise ReadError("is a directory, not a file", path=p)
-        with open(p, "rb") as fh:
-            fh.read(1)
+        _refuse_irregular(p, os.stat(p).st_mode)
+        fd = _os_open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | getattr(os, "O_CLOEXEC", 0))
     except ReadError:
         raise
-    except FileNotFoundError:
-        raise ReadError("no such file", path=p) from None
-    except PermissionError:
-        raise ReadError("permission denied", path=p) from None
     except OSError as exc:
-        raise ReadError(f"cannot read the file ({exc.strerror or exc})", path=p) from None
+        raise _io_error(p, exc) from None
+    try:
+        info = os.fstat(fd)
+        _refuse_irregular(p, info.st_mode)
+        limit = max_file_bytes()
+        if info.st_size > limit:
+            raise ReadError(f"is {info.st_size} bytes, more than the limit of {limit} bytes "
+                            "(set the environment variable NFDMATCH_MAX_FILE_BYTES to allow more)",
+                            path=p)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, info.st_size
+
+
+def check_readable(path) -> str:
+    """Return ``str(path)`` if it is a readable regular file within the size cap, else raise
+    :class:`ReadError` (missing, a directory, a FIFO / device / socket, no permission, too
+    large). Nothing is read."""
+    p = str(path)
+    fd, _ = _open_regular(p)
+    os.close(fd)
     return p
 
 
 def read_bytes(path) -> bytes:
-    """All bytes of a file; any I/O problem becomes a :class:`ReadError`."""
-    p = check_readable(path)
+    """All bytes of a regular file of at most :func:`max_file_bytes` bytes; any I/O problem
+    becomes a :class:`ReadError` (see :func:`check_readable`)."""
+    p = str(path)
+    fd, size = _open_regular(p)
+    limit = max_file_bytes()
     try:
-        with open(p, "rb") as fh:
-            return fh.read()
+        with os.fdopen(fd, "rb") as fh:
+            # read(n) allocates n bytes up front: ask for the size fstat gave, then the rest
+            # in small pieces should the file have grown since
+            data = fh.read(size + 1)
+            if len(data) > size:
+                pieces, total = [data], len(data)
+                while piece := fh.read(1 << 20):
+                    total += len(piece)
+                    if total > limit:
+                        raise ReadError(f"is more than the limit of {limit} bytes (set the "
+                                        "environment variable NFDMATCH_MAX_FILE_BYTES to allow "
+                                        "more)", path=p)
+                    pieces.append(piece)
+                data = b"".join(pieces)
     except OSError as exc:
-        raise ReadError(f"cannot read the file ({exc.strerror or exc})", path=p) from None
+        if isinstance(exc, ReadError):
+            raise
+        raise _io_error(p, exc) from None
+    return data
 
 
-def read_text(path) -> str:
-    """The file decoded as UTF-8 (a leading BOM is dropped), line ends made ``\\n``.
+def read_text_bytes(path) -> bytes:
+    """The file's bytes, checked to be UTF-8 text: a leading BOM dropped; line ends left as
+    they are.
 
     Raises
     ------
-    ReadError : missing, a directory, unreadable.
+    ReadError : see :func:`read_bytes`.
     ParseError : empty (0 bytes or only whitespace), NUL bytes or invalid UTF-8
         ("not a text file").
     """
@@ -186,12 +275,31 @@ def read_text(path) -> str:
     data = read_bytes(p)
     if b"\x00" in data:
         raise ParseError("not a text file (it contains NUL bytes); is it a binary file?", path=p)
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ParseError(f"not a text file (invalid UTF-8 at byte {exc.start})", path=p) from None
-    if not text.strip():
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    if not data.isascii():
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ParseError(f"not a text file (invalid UTF-8 at byte {exc.start})",
+                             path=p) from None
+    if not data.strip():
         raise ParseError("the file is empty", path=p)
+    return data
+
+
+def read_text(path) -> str:
+    """The file decoded as UTF-8 (a leading BOM is dropped), line ends made ``\\n``.
+
+    Raises
+    ------
+    ReadError : see :func:`read_bytes`.
+    ParseError : empty (0 bytes or only whitespace), NUL bytes or invalid UTF-8
+        ("not a text file").
+    """
+    text = read_text_bytes(path).decode("utf-8")
+    if not text.strip():
+        raise ParseError("the file is empty", path=str(path))
     if "\r" in text:  # Windows (CRLF) and old Mac (CR) line ends
         text = text.replace("\r\n", "\n").replace("\r", "\n")
     return text
@@ -202,8 +310,10 @@ def read_text(path) -> str:
 # ---------------------------------------------------------------------------
 
 def curve_id(path: str, index: int, count: int) -> str:
-    """``path`` for a single-curve file, else ``path#index``."""
-    return path if count == 1 else f"{path}#{index}"
+    """``path`` for a single-curve file, else ``path#index``; a file name that is not valid
+    UTF-8 has its undecodable bytes escaped as ``\\xNN`` (:func:`nfdmatch.errors.escape_name`)."""
+    name = escape_name(path)
+    return name if count == 1 else f"{name}#{index}"
 
 
 def make_curve(path, points: np.ndarray, index: int, count: int) -> Curve:
@@ -256,24 +366,64 @@ def points_list(curves, *, path=None) -> list[np.ndarray]:
     return out
 
 
+def temp_beside(path: str, extension: str | None = None) -> str:
+    """Create an empty hidden temporary file in ``path``'s folder and return its name:
+    ``.<name>.<random>.tmp<ext>`` (``<name>`` with characters other than ``A-Z a-z 0-9 . _
+    -`` made ``_``, so that libraries taking only UTF-8 names can write it; the same
+    extension, or ``extension``, so writers that go by it work). Made by :func:`tempfile.mkstemp`:
+    created exclusively (``O_EXCL``: never an existing file, never through a symbolic
+    link another user planted), readable by the owner only until :func:`publish`."""
+    folder, name = os.path.split(os.path.abspath(path))
+    safe = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:80]
+    ext = os.path.splitext(name)[1] if extension is None else extension
+    fd, temp = tempfile.mkstemp(prefix=f".{safe}.", suffix=".tmp" + ext, dir=folder)
+    os.close(fd)
+    return temp
+
+
+def _umask() -> int:
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)          # no /proc: read it the only portable way
+    os.umask(mask)
+    return mask
+
+
+def publish(temp: str, path: str) -> None:
+    """Give ``temp`` (from :func:`temp_beside`) the permissions a new file would have (those
+    of the file it replaces, if any) and rename it over ``path``."""
+    try:
+        info = os.stat(path)
+        mode = stat.S_IMODE(info.st_mode) if stat.S_ISREG(info.st_mode) else None
+    except OSError:
+        mode = None
+    os.chmod(temp, mode if mode is not None else 0o666 & ~_umask())
+    os.replace(temp, path)
+
+
 def write_if_changed(path: str, produce) -> bool:
     """Write a file whole: ``produce(temp)`` writes it to a hidden temporary file beside
-    ``path`` (same extension, so writers that go by it work), which then replaces ``path``
-    unless the bytes are the same; the existing file and its mtime are then kept, so
-    make-style pipelines see no change. Returns True when ``path`` was (re)written.
-    Errors of ``produce`` and OSError propagate; the temporary file never stays."""
+    ``path`` (:func:`temp_beside`: exclusive, same extension, so writers that go by it
+    work), which then replaces ``path`` unless the bytes are the same; the existing file and
+    its mtime are then kept, so make-style pipelines see no change. Returns True when
+    ``path`` was (re)written. Errors of ``produce`` and OSError propagate; the temporary
+    file never stays."""
     import filecmp
 
-    folder, name = os.path.split(os.path.abspath(path))
-    temp = os.path.join(folder, f".{name}.{os.getpid()}.tmp{os.path.splitext(name)[1]}")
+    temp = temp_beside(path)
     try:
         produce(temp)
         if os.path.isfile(path) and filecmp.cmp(temp, path, shallow=False):
             return False
-        os.replace(temp, path)
+        publish(temp, path)
         return True
     finally:
-        if os.path.exists(temp):
+        if os.path.lexists(temp):
             os.remove(temp)
 
 

@@ -19,14 +19,16 @@ space for ``.txt`` / ``.xyz``).
 
 from __future__ import annotations
 
+import io
 import os
 import re
+import warnings
 
 import numpy as np
 
 from ..curve import Curve
-from ..errors import CurveError, ParameterError, ParseError
-from ._chain import make_curves, points_list, read_text, write_text
+from ..errors import CurveError, ParameterError, ParseError, excerpt
+from ._chain import make_curves, points_list, read_text_bytes, write_text
 
 __all__ = ["read", "read_points", "write"]
 
@@ -45,6 +47,76 @@ def _unquote(token: str) -> str:
     return token.strip().strip("\"'").strip()
 
 
+def _read_bulk(data: bytes, path: str) -> np.ndarray | None:
+    """The common case parsed in bulk by ``numpy.loadtxt`` straight from the bytes (so peak
+    memory stays a small multiple of the file, where the careful parser below holds every
+    row as Python strings: 21x the file). ASCII, no quotes, no CR line ends; the header,
+    delimiter and columns are decided from the first lines exactly as the careful parser
+    does. Returns None whenever anything is off (a bad row, NaN, ...): the careful parser
+    then reads the file and reports the problem with its line number."""
+    if not data.isascii() or b"\r" in data or b'"' in data or b"'" in data:
+        return None
+    first_rows: list[str] = []
+    pos = 0
+    body_start = None
+    while len(first_rows) < 2 and pos < len(data):
+        end = data.find(b"\n", pos)
+        end = len(data) if end < 0 else end
+        line = data[pos:end].decode("ascii").split("#", 1)[0].strip()
+        if line:
+            first_rows.append(line)
+            if len(first_rows) == 1:
+                body_start = pos
+        pos = end + 1
+    if len(first_rows) < 2:
+        return None
+    first, sample = first_rows
+    has_header = not all(_is_number(t) for t in _ANY_DELIMITER.split(first) if t)
+    delim = _delimiter(sample if has_header else first)
+    ncol = len(sample.split(delim) if delim else sample.split()) if has_header else \
+        len(first.split(delim) if delim else first.split())
+    cols = _columns(first, delim, ncol) if has_header else list(range(ncol))
+    if cols != list(range(ncol)) or ncol not in (2, 3):
+        return None                 # other columns (they may hold text): the careful parser
+    stream = io.BytesIO(data)
+    stream.seek(body_start)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            arr = np.loadtxt(stream, dtype=np.float64, delimiter=delim, comments="#",
+                             skiprows=1 if has_header else 0, ndmin=2,
+                             quotechar=None, encoding="ascii")
+    except (ValueError, IndexError):
+        return None
+    if arr.shape[0] == 0 or arr.shape[1] != len(cols) or not np.isfinite(arr).all():
+        return None
+    return arr
+
+
+def _delimiter(sample: str) -> str | None:
+    for delim in (";", ",", "\t"):
+        if delim in sample:
+            return delim
+    return None
+
+
+def _columns(header: str, delim: str | None, ncol: int) -> list[int] | None:
+    """Columns x, y(, z) named by the header line; [] if it names none; None if the header
+    does not have ``ncol`` names."""
+    names = [_unquote(t) for t in (header.split(delim) if delim else header.split())]
+    if len(names) != ncol:
+        names = [_unquote(t) for t in _ANY_DELIMITER.split(header) if t]
+    if len(names) != ncol:
+        return None
+    lower = [n.lower() for n in names]
+    if "x" in lower and "y" in lower:
+        cols = [lower.index("x"), lower.index("y")]
+        if "z" in lower:
+            cols.append(lower.index("z"))
+        return cols
+    return list(range(ncol)) if ncol in (2, 3) else None
+
+
 def read_points(path) -> list[np.ndarray]:
     """The vertices of the one curve in a delimited text file.
 
@@ -61,7 +133,16 @@ def read_points(path) -> list[np.ndarray]:
     CurveError : NaN or Inf in a row (with its line number).
     """
     p = str(path)
-    text = read_text(p)
+    data = read_text_bytes(p)
+    arr = _read_bulk(data, p)
+    if arr is not None:
+        if arr.shape[1] == 2:
+            arr = np.column_stack([arr, np.zeros(len(arr))])
+        return [arr]
+    text = data.decode("utf-8")
+    del data
+    if "\r" in text:  # Windows (CRLF) and old Mac (CR) line ends
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
     content: list[tuple[int, str]] = []
     for lineno, raw in enumerate(text.split("\n"), 1):
         cut = raw.find("#")
@@ -138,7 +219,7 @@ def read_points(path) -> list[np.ndarray]:
     finite = np.isfinite(arr).all(axis=1)
     if not finite.all():
         k = int(np.flatnonzero(~finite)[0])
-        raise CurveError(f"value is not finite (NaN or Inf): {data[k][1]!r}", path=p,
+        raise CurveError(f"value is not finite (NaN or Inf): {excerpt(data[k][1])!r}", path=p,
                          line=data[k][0])
     if arr.shape[1] == 2:
         arr = np.column_stack([arr, np.zeros(len(arr))])
@@ -157,7 +238,7 @@ def _raise_first_bad_cell(path, data, table, delim) -> None:
                 hint = ""
                 if delim == ";" and re.fullmatch(r"[-+]?\d+,\d*([eE][-+]?\d+)?", tok):
                     hint = " (decimal commas are not supported; use a point)"
-                raise ParseError(f"not a number: {tok!r}{hint}", path=path,
+                raise ParseError(f"not a number: {excerpt(tok)!r}{hint}", path=path,
                                  line=lineno) from None
 
 

@@ -26,7 +26,7 @@ import warnings
 import numpy as np
 
 from ..curve import Curve
-from ..errors import CurveError, NoCurvesError, ParseError
+from ..errors import CurveError, NoCurvesError, ParseError, excerpt
 from ._chain import chain_segments, make_curves, ordered_curves, points_list, read_text, write_text
 
 __all__ = ["read", "read_points", "write"]
@@ -93,7 +93,7 @@ def read_points(path) -> list[np.ndarray]:
                 coords.append((float(vals[0]), float(vals[1]), float(vals[2])))
             except ValueError:
                 bad = next(t for t in vals[:3] if not _is_float(t))
-                raise ParseError(f"vertex coordinate is not a number: {bad!r}", path=p,
+                raise ParseError(f"vertex coordinate is not a number: {excerpt(bad)!r}", path=p,
                                  line=lineno) from None
             v_lines.append(lineno)
         elif kw == "l":
@@ -109,7 +109,7 @@ def read_points(path) -> list[np.ndarray]:
                 try:
                     k = int(head)
                 except ValueError:
-                    raise ParseError(f"bad vertex index {ref!r} in `l` element", path=p,
+                    raise ParseError(f"bad vertex index {excerpt(ref)!r} in `l` element", path=p,
                                      line=lineno) from None
                 if k == 0:
                     raise ParseError("vertex index 0 is invalid (OBJ indices start at 1)",

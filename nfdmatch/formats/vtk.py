@@ -1,6 +1,9 @@
-"""VTK files through pyvista: legacy ``.vtk``, XML PolyData ``.vtp``, XML UnstructuredGrid ``.vtu``.
+"""VTK files: legacy ``.vtk``, XML PolyData ``.vtp``, XML UnstructuredGrid ``.vtu``.
 
-pyvista (and so VTK) is imported inside the functions only, so importing
+Reading uses nfdmatch's own strict parser (:mod:`._vtk_read`), never VTK's C++
+readers: those crash or hang the process on malformed files, which cannot be
+caught from Python (the reasons and measurements are in :mod:`._vtk_read`).
+Writing goes through pyvista, imported inside :func:`write` only, so importing
 :mod:`nfdmatch.formats` stays fast.
 
 Reading (:func:`read`): every line cell is a curve. Cells with 3 or more
@@ -13,28 +16,33 @@ ignored; a file with polygons but no lines is reported as a mesh.
 Writing (:func:`write`): float64 points and one closed poly-line cell per
 curve, closing point index repeated; PolyData for ``.vtk`` (legacy, binary)
 and ``.vtp`` (XML), UnstructuredGrid with VTK_POLY_LINE cells for ``.vtu``.
-The file is written next to the target under a temporary name and renamed.
+The file is written to a temporary file made exclusively beside the target
+(:func:`._chain.temp_beside`, ``tempfile.mkstemp``) and renamed over it.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import shutil
+import tempfile
 import warnings
 from contextlib import ExitStack
 
 import numpy as np
 
 from ..curve import Curve
-from ..errors import NfdError, NoCurvesError, ParseError, ReadError, UnknownFormatError, WriteError
-from ._chain import chain_segments, check_readable, make_curves, ordered_curves, points_list
+from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
+from . import _vtk_read
+from ._chain import (chain_segments, check_readable, make_curves, ordered_curves, points_list,
+                     publish, read_bytes, temp_beside)
 
 __all__ = ["read", "read_points", "write", "KINDS"]
 
 #: format name -> file extension pyvista uses to pick its reader / writer
 KINDS = {"vtk": ".vtk", "vtp": ".vtp", "vtu": ".vtu"}
 
-_VTK_VERTEX, _VTK_POLY_VERTEX, _VTK_LINE, _VTK_POLY_LINE = 1, 2, 3, 4
+_VTK_POLY_LINE = 4
 
 
 def _pyvista():
@@ -54,20 +62,6 @@ def _kind(path: str, format: str | None) -> str:
     return kind
 
 
-# pipeline follow-up errors that say nothing about what is wrong with the file
-_BOILERPLATE = ("No update piece number", "did not create output for port",
-                "returned failure for request", "Error parsing input file")
-
-
-_FAILURE = re.compile(r"error|premature|unexpected|unrecognized|cannot|can't|could not|"
-                      r"failed|invalid|truncat|unsupported", re.IGNORECASE)
-
-
-# metadata that VTK fails to parse without affecting the data: the XML writer
-# stores an L2-norm range of "inf" for points whose norm overflows (|p| > 1e308)
-_HARMLESS = re.compile(r"InformationKey")
-
-
 def _first_alert(message: str) -> str:
     """The readable part of a VTK message (``ERROR: In f.cxx, line n`` / ``vtkX (0x..): what``)."""
     lines = [ln.strip() for ln in str(message).strip().splitlines() if ln.strip()]
@@ -78,24 +72,6 @@ def _first_alert(message: str) -> str:
     return text if len(text) <= 240 else text[:237] + "..."
 
 
-class _Quiet:
-    """Collect VTK error events of the given objects instead of printing them."""
-
-    def __init__(self):
-        self.messages: list[str] = []
-
-    def __call__(self, _obj, _event, message=None):
-        self.messages.append(str(message))
-
-    CallDataType = "string0"
-
-    def watch(self, obj) -> None:
-        if obj is None:
-            return
-        obj.AddObserver("ErrorEvent", self)
-        obj.AddObserver("WarningEvent", self)
-
-
 def _silenced(pv, stack: ExitStack):
     """Enter contexts that keep VTK from writing to the console or to logging."""
     stack.enter_context(warnings.catch_warnings())
@@ -104,72 +80,6 @@ def _silenced(pv, stack: ExitStack):
     if verbosity is not None:
         stack.enter_context(verbosity("off"))
     return stack.enter_context(pv.VtkErrorCatcher(raise_errors=False, send_to_logging=False))
-
-
-def _load(path: str, kind: str):
-    pv = _pyvista()
-    quiet = _Quiet()
-    catcher = None
-    mesh = None
-    failure = None
-    try:
-        with ExitStack() as stack:
-            catcher = _silenced(pv, stack)
-            reader = pv.get_reader(path, force_ext=KINDS[kind])
-            alg = getattr(reader, "reader", None)
-            if alg is not None:
-                quiet.watch(alg)
-                quiet.watch(alg.GetExecutive() if hasattr(alg, "GetExecutive") else None)
-            mesh = reader.read()
-    except NfdError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - anything VTK/pyvista raises is a parse failure
-        failure = f"{type(exc).__name__}: {exc}"
-    events = [*catcher.error_events, *catcher.warning_events] if catcher else []
-    errors = [str(getattr(e, "alert", e)) for e in events] + quiet.messages
-    # warnings are failures only when they report a read error (a truncated
-    # legacy file gives just the warning "Error reading binary data!")
-    errors = [e for e in errors if _FAILURE.search(e) and not _HARMLESS.search(e)]
-    if errors:
-        useful = [e for e in errors if not any(b in e for b in _BOILERPLATE)] or errors
-        raise ParseError(f"could not be read as VTK: {_first_alert(useful[0])}", path=path)
-    if failure is not None:
-        raise ParseError(f"could not be read as VTK: {_first_alert(failure)}", path=path)
-    if mesh is None:
-        raise ParseError("could not be read as VTK: the reader returned nothing", path=path)
-    return pv, mesh
-
-
-def _line_cells(pv, mesh, path: str) -> tuple[list[np.ndarray], int]:
-    """Point-index arrays of the line cells, and the number of polygon-like cells."""
-    if isinstance(mesh, pv.PolyData):
-        n_other = int(mesh.GetNumberOfPolys()) + int(mesh.GetNumberOfStrips())
-        if mesh.n_lines == 0:
-            return [], n_other
-        if hasattr(mesh, "line_offsets"):
-            offsets = np.asarray(mesh.line_offsets, dtype=np.int64)
-            conn = np.asarray(mesh.line_connectivity, dtype=np.int64)
-            cells = [conn[a:b] for a, b in zip(offsets[:-1].tolist(), offsets[1:].tolist())]
-        else:  # older pyvista: flat [n, i0, ..., n, ...]
-            flat = np.asarray(mesh.lines, dtype=np.int64)
-            cells, k = [], 0
-            while k < len(flat):
-                n = int(flat[k])
-                cells.append(flat[k + 1:k + 1 + n])
-                k += 1 + n
-        return cells, n_other
-    if isinstance(mesh, pv.UnstructuredGrid):
-        types = np.asarray(mesh.celltypes)
-        offsets = np.asarray(mesh.cell_offsets if hasattr(mesh, "cell_offsets") else mesh.offset,
-                             dtype=np.int64)
-        conn = np.asarray(mesh.cell_connectivity, dtype=np.int64)
-        is_line = (types == _VTK_LINE) | (types == _VTK_POLY_LINE)
-        n_other = int(np.count_nonzero(~is_line & (types != _VTK_VERTEX)
-                                       & (types != _VTK_POLY_VERTEX) & (types != 0)))
-        cells = [conn[offsets[c]:offsets[c + 1]] for c in np.flatnonzero(is_line).tolist()]
-        return cells, n_other
-    raise NoCurvesError(f"holds a dataset of type {type(mesh).__name__}; curves are read from "
-                        "the line cells of PolyData or UnstructuredGrid only", path=path)
 
 
 def read_points(path, format: str | None = None) -> list[np.ndarray]:
@@ -186,43 +96,53 @@ def read_points(path, format: str | None = None) -> list[np.ndarray]:
 
     Raises
     ------
-    ReadError : missing file, a directory, unreadable.
+    ReadError : missing file, a directory, not a regular file, unreadable, too large.
     UnknownFormatError : format / extension not one of vtk, vtp, vtu.
-    ParseError : empty, garbage or truncated file ("could not be read as VTK"),
-        a line cell with one point or a point index out of range, a branching
-        point among 2-point segments.
-    NoCurvesError : no line cells (e.g. only triangles: a mesh).
+    ParseError : empty, garbage, truncated or inconsistent file ("could not be
+        read as VTK: <why>"), a line cell with one point or a point index out
+        of range, a branching point among 2-point segments.
+    NoCurvesError : no line cells (e.g. only triangles: a mesh), or a dataset
+        that is neither PolyData nor UnstructuredGrid.
     """
     p = check_readable(path)
     kind = _kind(p, format)
-    if os.path.getsize(p) == 0:
+    data = read_bytes(p)
+    if not data.strip():
         raise ParseError("the file is empty", path=p)
-    pv, mesh = _load(p, kind)
-    cells, n_other = _line_cells(pv, mesh, p)
-    if not cells:
-        if n_other:
+    dataset = _vtk_read.parse(data, kind, p)
+    del data
+    offsets, conn = dataset.line_offsets, dataset.line_connectivity
+    n_cells = len(offsets) - 1
+    if n_cells == 0:
+        if dataset.n_other:
             raise NoCurvesError(
-                f"holds {n_other} polygon/triangle cells but no line cells (polylines): it is a "
-                "mesh; extract contours from it first (`nfdmatch extract`: sections or boundary loops)", path=p)
+                f"holds {dataset.n_other} polygon/triangle cells but no line cells (polylines): "
+                "it is a mesh; extract contours from it first (`nfdmatch extract`: sections or "
+                "boundary loops)", path=p)
         raise NoCurvesError("holds no line cells (polylines)", path=p)
-    points = np.asarray(mesh.points, dtype=np.float64).reshape(-1, 3)
+    points = dataset.points
     n_points = len(points)
-    polylines, segments, seg_cell = [], [], []
-    for c, ids in enumerate(cells):
-        if len(ids) < 2:
-            raise ParseError(f"line cell {c} has {len(ids)} point(s); a line needs at least 2",
-                             path=p)
-        if ids.min() < 0 or ids.max() >= n_points:
-            raise ParseError(f"line cell {c} refers to point {int(ids.max())} but the file "
-                             f"holds {n_points} points", path=p)
-        if len(ids) == 2:
-            segments.append(ids)
-            seg_cell.append(c)
-        else:
-            polylines.append((c, ids))
-    loops = chain_segments(np.array(segments, dtype=np.int64).reshape(-1, 2), path=p,
-                           segment_where=lambda s: f"line cell {seg_cell[s]}")
-    loops = [(seg_cell[s], verts) for s, verts in loops]
+    lengths = np.diff(offsets)
+    if lengths.min() < 2:
+        c = int(np.flatnonzero(lengths < 2)[0])
+        raise ParseError(f"line cell {c} has {int(lengths[c])} point(s); a line needs at "
+                         "least 2", path=p)
+    outside = (conn < 0) | (conn >= n_points)
+    if outside.any():
+        k = int(np.flatnonzero(outside)[0])
+        c = int(np.searchsorted(offsets, k, side="right")) - 1
+        raise ParseError(f"line cell {c} refers to point {int(conn[k])} but the file holds "
+                         f"{n_points} points", path=p)
+    is_segment = lengths == 2
+    seg_cell = np.flatnonzero(is_segment)
+    segments = np.column_stack([conn[offsets[seg_cell]], conn[offsets[seg_cell] + 1]])
+    polylines = [(c, conn[a:b]) for c, a, b in zip(np.flatnonzero(~is_segment).tolist(),
+                                                    offsets[:-1][~is_segment].tolist(),
+                                                    offsets[1:][~is_segment].tolist())]
+    seg_cell_list = seg_cell.tolist()
+    loops = chain_segments(segments.reshape(-1, 2), path=p,
+                           segment_where=lambda s: f"line cell {seg_cell_list[s]}")
+    loops = [(seg_cell_list[s], verts) for s, verts in loops]
     return [points[idx] for idx in ordered_curves(polylines, loops)]
 
 
@@ -277,17 +197,33 @@ def write(path, curves, format: str | None = None) -> None:
     if mesh.points.dtype != np.float64:  # pragma: no cover - pyvista keeps float64 input
         mesh.points = pts
 
-    tmp = os.path.join(folder, f".{os.path.basename(p)}.{os.getpid()}.tmp{KINDS[kind]}")
+    private = temp = None
     try:
+        temp = temp_beside(p, KINDS[kind])
+        target = temp
+        if not _utf8(temp):     # VTK takes UTF-8 names only: write elsewhere, then copy
+            private = tempfile.mkdtemp(prefix="nfdmatch-")
+            target = os.path.join(private, "curves" + KINDS[kind])
         with ExitStack() as stack:
             catcher = _silenced(pv, stack)
-            mesh.save(tmp, binary=True)
+            mesh.save(target, binary=True)
         if catcher.error_events:
             raise OSError(_first_alert(str(getattr(catcher.error_events[0], "alert", ""))))
-        os.replace(tmp, p)
+        if private is not None:
+            shutil.copyfile(target, temp)
+        publish(temp, p)
     except Exception as exc:  # noqa: BLE001
-        try:
-            os.remove(tmp)
-        except OSError:
-            pass
         raise WriteError(f"cannot write the file ({exc})", path=p) from None
+    finally:
+        if temp is not None and os.path.lexists(temp):
+            os.remove(temp)
+        if private is not None:
+            shutil.rmtree(private, ignore_errors=True)
+
+
+def _utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
