@@ -187,3 +187,27 @@ def test_lock_held_is_exit_1(library, tmp_path):
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         code, out, err = run("index", "build", library, "--index", index)
     assert code == 1 and "lock" in err and not index.exists()
+
+
+def test_query_exhaustive_gives_the_pruned_answer_and_stats_say_what_was_done(library, tmp_path):
+    index = tmp_path / "idx.h5"
+    assert build_json(library, "--index", index)[0] == 0
+    query = library / "trefoil.csv"
+    code, pruned, err = run("query", query, "--index", index, "--top", "5", "--format", "csv", "--details", "--stats")
+    assert code == 0, err
+    assert "exact distances" in err and "rows bounded in" in err and "MiB read" in err
+    code, full, err = run("query", query, "--index", index, "--top", "5", "--format", "csv", "--details",
+                          "--exhaustive", "--stats")
+    assert code == 0 and full == pruned
+    curves = int(err.split(" rows:")[0].split(" x ")[1])
+    assert f"{curves} exact distances" in err                   # every row, for the one query
+
+
+def test_query_on_a_format_1_index_says_how_to_upgrade(tmp_path):
+    frozen = os.path.join(ROOT, "tests", "data", "index", "v1-sample.h5")
+    index = tmp_path / "old.h5"
+    shutil.copyfile(frozen, index)
+    query = os.path.join(ROOT, "sample_curves", "library", "trefoil.csv")
+    code, out, err = run("query", query, "--index", index, "--top", "2", "--format", "csv")
+    assert code == 0 and len(out.strip().splitlines()) == 3
+    assert "format 1" in err and "index build" in err

@@ -242,20 +242,25 @@ def _deliver_bytes(data: bytes, output: str) -> None:
 @click.option("--glob", "glob_pattern", default=None, help="Only query files in folders whose name matches.")
 @click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
 @exclude_self_option
+@click.option("--exhaustive", is_flag=True,
+              help="Compute every exact distance, no pruning (to check a result: the pruned search "
+                   "returns the same rows and distances).")
 @click.option("--stats", "show_stats", is_flag=True,
               help="Print on stderr how many exact distances the search needed.")
 @matching_options
 @input_format_option
 @rows_format_option
 @output_option()
-def query(queries, index_path, top, max_distance, glob_pattern, details, exclude_self_, show_stats, method,
-          strict_direction, mirror, input_format, output_format, output):
+def query(queries, index_path, top, max_distance, glob_pattern, details, exclude_self_, exhaustive, show_stats,
+          method, strict_direction, mirror, input_format, output_format, output):
     """Find the curves of the index most similar to each curve in QUERY... .
 
     QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
     every curve in them is a query, answered with the index's own samples, harmonics and
     scale. Rows: query, rank, match, distance (ties ordered by id). The search is exact:
-    lower bounds prune rows that cannot enter the top K, the rest get the exact distance.
+    rows are visited in increasing order of proven lower bounds (cells of the index, then
+    invariant features, then the first harmonics) and the search stops when the next bound
+    exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
     Inputs that cannot be read are named on stderr and the others answered (exit 3).
 
     \b
@@ -264,15 +269,20 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
     """
-    from ..index import open_index
+    from ..index import FORMAT_VERSION, open_index
     from ..search import search_index
 
     with open_index(index_path) as idx:
+        if idx.format_version < FORMAT_VERSION and not exhaustive:
+            note(f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
+                 f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
+                 f"{idx.path}` upgrades it")
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
         progress, finish_bar = progress_bar("searching")
         try:
             results, stats = search_index(idx, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
-                                          progress=progress, **matching(method, strict_direction, mirror))
+                                          progress=progress, prune=not exhaustive,
+                                          **matching(method, strict_direction, mirror))
         finally:
             finish_bar()
     if exclude_self_:
@@ -281,5 +291,11 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
                match_columns(details), output_format, output, group_by="query")
     if show_stats:
         say(f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
-            f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s")
+            f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s"
+            + ("" if not stats.pruned else
+               f"; per query: {stats.per_query(stats.scanned):.0f} rows bounded in "
+               f"{stats.per_query(stats.cells):.1f} of {stats.cell_count} cells, "
+               f"{stats.per_query(stats.truncated):.0f} truncated-harmonic bounds, "
+               f"{stats.per_query(stats.exact):.0f} exact distances, "
+               f"{stats.per_query(stats.bytes_read) / 2**20:.2f} MiB read"))
     inputs.finish()
