@@ -218,11 +218,14 @@ class Index:
                                                    self.coefficients_at, fail))
         from ..search.table import SearchTable
 
+        from ..search.bounds import head_harmonics
+
         def features():
             sv, block = self._ds["inv_sv"][...], self._ds["inv_block"][...]
-            return np.concatenate([sv, block], axis=1)
+            return np.concatenate([sv, block], axis=1), self._ds["coefficients"][:, :head_harmonics(self.harmonics)]
 
-        return SearchTable.single_cell(self.harmonics, self._read(features), self.coefficients_at)
+        F, head = self._read(features)
+        return SearchTable.single_cell(self.harmonics, F, head, self.coefficients_at)
 
     def info(self) -> dict:
         """Summary: ``path, format, format_version, nfdmatch_version, files, curves, failed``

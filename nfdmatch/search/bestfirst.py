@@ -79,12 +79,13 @@ class QueryWork:
 
 
 class _Sorted:
-    """Rows waiting in increasing order of a bound, consumed from the front."""
+    """Rows waiting in increasing order of a bound, consumed from the front, each with an
+    optional payload (its first harmonics)."""
 
     def __init__(self):
         self.bound = np.zeros(0)
         self.rows = np.zeros(0, dtype=np.int64)
-        self.coefficients = None
+        self.payload = None
         self.pos = 0
 
     def head(self) -> float:
@@ -93,14 +94,14 @@ class _Sorted:
     def __len__(self) -> int:
         return len(self.bound) - self.pos
 
-    def merge(self, bound, rows, coefficients=None) -> None:
+    def merge(self, bound, rows, payload=None) -> None:
         b = np.concatenate([self.bound[self.pos:], bound])
         order = np.argsort(b, kind="stable")
         self.bound = b[order]
         self.rows = np.concatenate([self.rows[self.pos:], rows])[order]
-        if coefficients is not None:
-            c = coefficients if self.coefficients is None else np.concatenate([self.coefficients[self.pos:], coefficients])
-            self.coefficients = c[order]
+        if payload is not None:
+            c = payload if self.payload is None else np.concatenate([self.payload[self.pos:], payload])
+            self.payload = c[order]
         self.pos = 0
 
     def take(self, count: int, limit: float):
@@ -109,7 +110,7 @@ class _Sorted:
         stop = max(stop, self.pos + 1)
         sl = slice(self.pos, stop)
         self.pos = stop
-        return self.bound[sl], self.rows[sl], (None if self.coefficients is None else self.coefficients[sl])
+        return self.bound[sl], self.rows[sl], (None if self.payload is None else self.payload[sl])
 
 
 def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table, top: "TopK", *,
@@ -139,8 +140,8 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
     sizes = (table.start[1:] - table.start[:-1])[corder]
     n_cells = len(corder)
     ci = 0
-    rows_q = _Sorted()          # opened, by invariant bound
-    tight_q = _Sorted()         # by truncated bound (rows and their descriptors)
+    rows_q = _Sorted()          # opened, by invariant bound (with their first harmonics)
+    tight_q = _Sorted()         # by truncated bound
     bound_batch, exact_batch = FIRST_BATCH, FIRST_BATCH
     while True:
         thr = margin(top.threshold())
@@ -161,31 +162,32 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
             cells = corder[ci:j]
             ci = j
             work.cells += len(cells)
-            rows, F, sq = table.cell_rows(cells)
+            rows, F, sq, head = table.cell_rows(cells)
             work.scanned += len(rows)
             b = row_lower_bounds(query_features, table.split, F, sq)
             keep = b <= thr
-            rows_q.merge(b[keep], rows[keep])
+            rows_q.merge(b[keep], rows[keep], head[keep])
             continue
         if row_head < tight_head:
             # rows by invariant bound -> truncated bound (or straight to exact when the
             # truncated bound is off or no k-th distance exists yet)
             limit = min(thr, cell_head)
-            _, rows, _ = rows_q.take(bound_batch, limit)
-            coefficients = table.coefficients(rows)
+            _, rows, head = rows_q.take(bound_batch, limit)
             if truncate and np.isfinite(thr) and len(rows) >= _TRUNCATE_FROM:
-                tb = truncated_lower_bounds(query_coefficients, coefficients, direction=direction, mirror=mirror)
+                tb = truncated_lower_bounds(query_coefficients, head, direction=direction, mirror=mirror,
+                                            harmonics=head.shape[1])
                 work.truncated += len(rows)
                 keep = tb <= thr
-                tight_q.merge(tb[keep], rows[keep], coefficients[keep])
+                tight_q.merge(tb[keep], rows[keep])
                 bound_batch = min(bound_batch * 2, MAX_BATCH)
                 continue
-            _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror,
-                   samples, thr)
+            _exact(query_coefficients, rows, table.coefficients(rows), top, work, search, method, direction,
+                   mirror, samples, thr)
             continue
         limit = min(thr, cell_head, row_head)
-        _, rows, coefficients = tight_q.take(exact_batch, limit)
-        _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr)
+        _, rows, _ = tight_q.take(exact_batch, limit)
+        _exact(query_coefficients, rows, table.coefficients(rows), top, work, search, method, direction, mirror,
+               samples, thr)
         exact_batch = min(exact_batch * 2, EXACT_BATCH)
     return work
 

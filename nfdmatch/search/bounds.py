@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["feature_vector", "feature_split", "squared_norms", "cell_lower_bounds", "row_lower_bounds",
+__all__ = ["feature_vector", "feature_split", "head_harmonics", "squared_norms", "cell_lower_bounds", "row_lower_bounds",
            "truncated_lower_bounds", "TRUNCATED_HARMONICS", "TRUNCATED_GRID"]
 
 #: harmonics kept by the truncated bound, and its shift grid (multiple of 4, > 2 K'):
@@ -33,6 +33,11 @@ TRUNCATED_HARMONICS = 4
 TRUNCATED_GRID = 24
 #: float32 unit roundoff
 _U32 = 2.0 ** -24
+
+
+def head_harmonics(harmonics: int) -> int:
+    """K': the harmonics the truncated bound uses, stored per row beside the features."""
+    return min(TRUNCATED_HARMONICS, harmonics)
 
 
 def feature_split(harmonics: int) -> int:

@@ -32,7 +32,9 @@ class SearchTable:
     start : (C + 1,) int64 cell offsets into the positions; centre : (C, D) float64;
         radius : (C, 2) float64 (see :class:`nfdmatch.search.cells.Cells`).
     read_positions : ``read_positions(a, b) -> (row (m,) int64, features (m, D) float32,
-        sqnorm (m, 2) float64)`` for positions [a, b).
+        sqnorm (m, 2) float64, head (m, K', 3) complex)`` for positions [a, b); ``head``
+        holds the first K' harmonics (the truncated bound's input, read with the cell
+        instead of row by row).
     read_coefficients : ``read_coefficients(rows) -> (m, K, 3)`` complex for index rows.
 
     Thread-safe: the search answers several queries on threads over one table.
@@ -55,11 +57,13 @@ class SearchTable:
         self.bytes_read = 0
 
     @classmethod
-    def single_cell(cls, harmonics: int, features: np.ndarray, read_coefficients: Callable) -> "SearchTable":
+    def single_cell(cls, harmonics: int, features: np.ndarray, head: np.ndarray,
+                    read_coefficients: Callable) -> "SearchTable":
         """Every row in one cell, in row order (a format-1 index, curves in memory).
 
         harmonics : K; features : (N, 2K + 3) float features (rounded to float32 here, as an
-        index stores them); read_coefficients : as for the constructor.
+        index stores them); head : (N, K', 3) complex, the rows' first harmonics;
+        read_coefficients : as for the constructor.
         """
         F = np.ascontiguousarray(features, dtype=np.float32)
         N = len(F)
@@ -67,10 +71,10 @@ class SearchTable:
         rows = np.arange(N, dtype=np.int64)
         # radius inf: the one cell's bound is 0, every row gets its own bound
         return cls(harmonics, [0, N], np.zeros((1, F.shape[1])), np.full((1, 2), np.inf),
-                   lambda a, b: (rows[a:b], F[a:b], sq[a:b]), read_coefficients)
+                   lambda a, b: (rows[a:b], F[a:b], sq[a:b], head[a:b]), read_coefficients)
 
     @classmethod
-    def from_cells(cls, harmonics: int, features: np.ndarray, read_coefficients: Callable, *,
+    def from_cells(cls, harmonics: int, features: np.ndarray, head: np.ndarray, read_coefficients: Callable, *,
                    rows_per_cell: int) -> "SearchTable":
         """Cells built in memory (:func:`~nfdmatch.search.cells.build_cells`), as an index
         file stores them; arguments as :meth:`single_cell`."""
@@ -82,16 +86,17 @@ class SearchTable:
         F = F[cells.row]
         sq = squared_norms(F, split)
         row = cells.row
+        head = np.asarray(head)[row]
         return cls(harmonics, cells.start, cells.centre, cells.radius,
-                   lambda a, b: (row[a:b], F[a:b], sq[a:b]), read_coefficients)
+                   lambda a, b: (row[a:b], F[a:b], sq[a:b], head[a:b]), read_coefficients)
 
     @property
     def n_cells(self) -> int:
         return len(self.start) - 1
 
-    def cell_rows(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def cell_rows(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The rows of the given cells, concatenated: ``(row (m,) int64, features (m, D)
-        float32, sqnorm (m, 2) float64)``.
+        float32, sqnorm (m, 2) float64, head (m, K', 3) complex)``.
 
         Cells not read yet are read in few calls: runs of cells whose positions are close
         are read as one range (each call costs far more than the bytes between them), and
@@ -108,16 +113,15 @@ class SearchTable:
                 else:
                     self._read_cells(sorted(missing))
         if self._all is not None:
-            row, F, sq = self._all
             if len(cells) == 1:
                 a, b = self.start[cells[0]], self.start[cells[0] + 1]
-                return row[a:b], F[a:b], sq[a:b]
+                return tuple(x[a:b] for x in self._all)
             pos = np.concatenate([np.arange(self.start[c], self.start[c + 1]) for c in cells])
-            return row[pos], F[pos], sq[pos]
+            return tuple(x[pos] for x in self._all)
         parts = [self._cells[int(c)] for c in cells]
         if len(parts) == 1:
             return parts[0]
-        return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
 
     def _read_cells(self, cells: list[int]) -> None:
         """Read ``cells`` (ascending) in runs of nearby positions; cache every cell read."""
