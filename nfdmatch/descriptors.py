@@ -1,6 +1,6 @@
 """Curve -> normalized Fourier descriptors (pure numpy).
 
-Conventions (``docs/method.md`` of the design, restated in README):
+Conventions (the project's ``docs/method.md``):
 
 * A curve is resampled uniformly by arc length to ``samples`` points, starting
   at its first vertex (:func:`resample`).

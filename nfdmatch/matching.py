@@ -627,7 +627,7 @@ def invariants(coefficients: np.ndarray, weights=None) -> dict[str, np.ndarray]:
     -------
     ``{"norm": (..., K), "sv": (..., 2K), "block": (..., 3)}`` float64, scaled so that
     the Euclidean distance between two curves' features is a lower bound of mu
-    (method.md section 4: norms, Mirsky on each [Re A_k, Im A_k], and on all blocks).
+    (docs/method.md, "Lower bounds": norms, Mirsky on each [Re A_k, Im A_k], and on all blocks).
     """
     C = np.asarray(coefficients, dtype=np.complex128)
     K = C.shape[-2]
