@@ -8,9 +8,9 @@ Formats (name: extensions)
 * ``vtp``: ``.vtp`` -- XML PolyData, line cells
 * ``vtu``: ``.vtu`` -- XML UnstructuredGrid, line cells
 
-Every format module has ``read(path) -> list[Curve]``, ``read_points(path) ->
-list[ndarray]`` and ``write(path, curves) -> None``. The format is chosen from
-the file extension (case-insensitive) unless ``format=`` names one.
+Every format module has ``read_points(path) -> list[ndarray]`` and ``write(path, curves)
+-> None``, registered once here with its extensions (:func:`register`). The format is
+chosen from the file extension (case-insensitive) unless ``format=`` names one.
 
 Curve ids: ``str(path)`` for a file holding exactly one curve (then
 ``index`` is None), ``f"{path}#{i}"`` with ``index=i`` (0-based, file order)
@@ -35,46 +35,56 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
 
 from ..curve import Curve
-from ..errors import CurveSelectionError, NfdError, NoCurvesError, ParseError, UnknownFormatError
+from ..errors import CurveSelectionError, NoCurvesError, UnknownFormatError
 from . import csv as _csv
 from . import obj as _obj
 from . import vtk as _vtk
 from ._chain import check_readable, make_curve, make_curves
 
-__all__ = ["FORMATS", "supported_extensions", "format_of", "split_selector", "read_curves",
+__all__ = ["FORMATS", "Format", "register", "supported_extensions", "format_of", "split_selector", "read_curves",
            "read_curve", "write_curves"]
 
-#: format name -> file extensions (lower case, with the dot)
-FORMATS: dict[str, tuple[str, ...]] = {
-    "csv": (".csv", ".tsv", ".txt", ".xyz"),
-    "obj": (".obj",),
-    "vtk": (".vtk",),
-    "vtp": (".vtp",),
-    "vtu": (".vtu",),
-}
+@dataclass(frozen=True)
+class Format:
+    """A registered curve format: its ``name``, file ``extensions`` (lower case, with the
+    dot), ``read(path) -> list of (n, 3) float64 vertex arrays`` and ``write(path, curves)``."""
 
-_BY_EXTENSION: dict[str, str] = {ext: name for name, exts in FORMATS.items() for ext in exts}
+    name: str
+    extensions: tuple[str, ...]
+    read: Callable[[str], list[np.ndarray]]
+    write: Callable[..., None]
 
-_READERS: dict[str, Callable[[str], list[np.ndarray]]] = {
-    "csv": _csv.read_points,
-    "obj": _obj.read_points,
-    "vtk": partial(_vtk.read_points, format="vtk"),
-    "vtp": partial(_vtk.read_points, format="vtp"),
-    "vtu": partial(_vtk.read_points, format="vtu"),
-}
 
-_WRITERS: dict[str, Callable[..., None]] = {
-    "csv": _csv.write,
-    "obj": _obj.write,
-    "vtk": partial(_vtk.write, format="vtk"),
-    "vtp": partial(_vtk.write, format="vtp"),
-    "vtu": partial(_vtk.write, format="vtu"),
-}
+_REGISTRY: dict[str, Format] = {}
+_BY_EXTENSION: dict[str, str] = {}
+#: format name -> file extensions (lower case, with the dot), in registration order
+FORMATS: dict[str, tuple[str, ...]] = {}
+
+
+def register(name: str, extensions, read: Callable[[str], list[np.ndarray]], write: Callable[..., None]) -> Format:
+    """Register a curve format; an extension belongs to one format only."""
+    exts = tuple(e.lower() for e in extensions)
+    taken = [e for e in exts if _BY_EXTENSION.get(e, name) != name]
+    if taken:
+        raise ValueError(f"extensions already registered: {', '.join(taken)}")
+    fmt = Format(name, exts, read, write)
+    _REGISTRY[name] = fmt
+    FORMATS[name] = exts
+    _BY_EXTENSION.update({e: name for e in exts})
+    return fmt
+
+
+register("csv", (".csv", ".tsv", ".txt", ".xyz"), _csv.read_points, _csv.write)
+register("obj", (".obj",), _obj.read_points, _obj.write)
+for _name in ("vtk", "vtp", "vtu"):
+    register(_name, ("." + _name,), partial(_vtk.read_points, format=_name), partial(_vtk.write, format=_name))
+
 
 _SELECTOR = re.compile(r"-?[0-9]+")
 
@@ -141,13 +151,8 @@ def split_selector(spec) -> tuple[str, int | None]:
 
 def _read_arrays(path: str, format: str | None) -> list[np.ndarray]:
     check_readable(path)
-    reader = _READERS[format_of(path, format)]
-    try:
-        arrays = reader(path)
-    except NfdError:
-        raise
-    except Exception as exc:  # a reader bug must still name the file, not leak as IndexError
-        raise ParseError(f"could not be read: {type(exc).__name__}: {exc}", path=path) from exc
+    # only NfdError is a bad file; anything else a reader raises is a bug, and stays one
+    arrays = _REGISTRY[format_of(path, format)].read(path)
     if not arrays:  # the readers raise first; kept as a guard
         raise NoCurvesError("no curves in the file", path=path)
     return arrays
@@ -226,4 +231,4 @@ def write_curves(path, curves, format: str | None = None) -> None:
     CurveError (an invalid curve), WriteError (cannot write).
     """
     p = str(os.fspath(path))
-    _WRITERS[format_of(p, format)](p, curves)
+    _REGISTRY[format_of(p, format)].write(p, curves)

@@ -34,6 +34,15 @@ __all__ = ["chain_segments", "ordered_curves", "read_bytes", "read_text", "check
 # segment chaining
 # ---------------------------------------------------------------------------
 
+def is_number(token: str) -> bool:
+    """True when ``float(token)`` parses (the text readers' test for a numeric field)."""
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def chain_segments(segments, *, path: str | None = None,
                    vertex_label: Callable[[int], str] | None = None,
                    segment_where: Callable[[int], str] | None = None,

@@ -26,21 +26,12 @@ import warnings
 
 import numpy as np
 
-from ..curve import Curve
 from ..errors import CurveError, ParameterError, ParseError, excerpt
-from ._chain import make_curves, points_list, read_text_bytes, write_text
+from ._chain import is_number, points_list, read_text_bytes, write_text
 
-__all__ = ["read", "read_points", "write"]
+__all__ = ["read_points", "write"]
 
 _ANY_DELIMITER = re.compile(r"\s*[,;\t]\s*|\s+")
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
 
 
 def _unquote(token: str) -> str:
@@ -71,7 +62,7 @@ def _read_bulk(data: bytes, path: str) -> np.ndarray | None:
     if len(first_rows) < 2:
         return None
     first, sample = first_rows
-    has_header = not all(_is_number(t) for t in _ANY_DELIMITER.split(first) if t)
+    has_header = not all(is_number(t) for t in _ANY_DELIMITER.split(first) if t)
     delim = _delimiter(sample if has_header else first)
     ncol = len(sample.split(delim) if delim else sample.split()) if has_header else \
         len(first.split(delim) if delim else first.split())
@@ -155,7 +146,7 @@ def read_points(path) -> list[np.ndarray]:
         raise ParseError("no data rows (only comments and blank lines)", path=p)
 
     first_line, first = content[0]
-    has_header = not all(_is_number(t) for t in _ANY_DELIMITER.split(first) if t)
+    has_header = not all(is_number(t) for t in _ANY_DELIMITER.split(first) if t)
     data = content[1:] if has_header else content
     if not data:
         raise ParseError("no data rows: the file holds only a header line", path=p,
@@ -240,15 +231,6 @@ def _raise_first_bad_cell(path, data, table, delim) -> None:
                     hint = " (decimal commas are not supported; use a point)"
                 raise ParseError(f"not a number: {excerpt(tok)!r}{hint}", path=path,
                                  line=lineno) from None
-
-
-def read(path) -> list[Curve]:
-    """The one curve of a delimited text file, as a one-element list.
-
-    The curve's id is ``str(path)``, ``source`` is ``str(path)``, ``index`` is None.
-    See :func:`read_points` for the errors.
-    """
-    return make_curves(path, read_points(path))
 
 
 def write(path, curves) -> None:

@@ -25,11 +25,10 @@ import warnings
 
 import numpy as np
 
-from ..curve import Curve
 from ..errors import CurveError, NoCurvesError, ParseError, excerpt
-from ._chain import chain_segments, make_curves, ordered_curves, points_list, read_text, write_text
+from ._chain import chain_segments, is_number, ordered_curves, points_list, read_text, write_text
 
-__all__ = ["read", "read_points", "write"]
+__all__ = ["read_points", "write"]
 
 
 def _logical_lines(text: str):
@@ -92,7 +91,7 @@ def read_points(path) -> list[np.ndarray]:
             try:
                 coords.append((float(vals[0]), float(vals[1]), float(vals[2])))
             except ValueError:
-                bad = next(t for t in vals[:3] if not _is_float(t))
+                bad = next(t for t in vals[:3] if not is_number(t))
                 raise ParseError(f"vertex coordinate is not a number: {excerpt(bad)!r}", path=p,
                                  line=lineno) from None
             v_lines.append(lineno)
@@ -200,7 +199,7 @@ def _read_points_fast(text: str, p: str):
             warnings.simplefilter("ignore")
             V = np.loadtxt(v_rows, dtype=np.float64, ndmin=2)
         flat = np.array(l_text.split(), dtype=np.int64)
-    except ValueError:
+    except (ValueError, OverflowError):     # an index past int64: the parser says which
         return None
     counts = np.array([len(row.split()) for row in l_rows])
     if V.shape != (len(v_rows), 3) or len(flat) != counts.sum() or counts.min() < 3:
@@ -208,24 +207,6 @@ def _read_points_fast(text: str, p: str):
     if not np.isfinite(V).all() or flat.min() < 1 or flat.max() > len(V):
         return None
     return np.split(V[flat - 1], np.cumsum(counts)[:-1])
-
-
-def _is_float(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
-
-
-def read(path) -> list[Curve]:
-    """Every curve of an OBJ file as :class:`Curve` records.
-
-    Ids: ``str(path)`` if the file holds one curve, else ``f"{path}#{i}"``
-    (0-based, file order); ``source=str(path)``, ``index`` = i (None for a
-    single-curve file). See :func:`read_points` for the errors.
-    """
-    return make_curves(path, read_points(path))
 
 
 def write(path, curves) -> None:

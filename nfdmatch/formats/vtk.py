@@ -31,13 +31,12 @@ from contextlib import ExitStack
 
 import numpy as np
 
-from ..curve import Curve
 from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
 from . import _vtk_read
-from ._chain import (chain_segments, check_readable, make_curves, ordered_curves, points_list,
+from ._chain import (chain_segments, check_readable, ordered_curves, points_list,
                      publish, read_bytes, temp_beside)
 
-__all__ = ["read", "read_points", "write", "KINDS"]
+__all__ = ["read_points", "write", "KINDS"]
 
 #: format name -> file extension pyvista uses to pick its reader / writer
 KINDS = {"vtk": ".vtk", "vtp": ".vtp", "vtu": ".vtu"}
@@ -144,16 +143,6 @@ def read_points(path, format: str | None = None) -> list[np.ndarray]:
                            segment_where=lambda s: f"line cell {seg_cell_list[s]}")
     loops = [(seg_cell_list[s], verts) for s, verts in loops]
     return [points[idx] for idx in ordered_curves(polylines, loops)]
-
-
-def read(path, format: str | None = None) -> list[Curve]:
-    """Every curve of a VTK file as :class:`Curve` records.
-
-    Ids: ``str(path)`` for a single-curve file, else ``f"{path}#{i}"`` (0-based,
-    cell order); ``source=str(path)``, ``index`` = i (None for one curve).
-    See :func:`read_points` for the parameters and errors.
-    """
-    return make_curves(path, read_points(path, format))
 
 
 def write(path, curves, format: str | None = None) -> None:
