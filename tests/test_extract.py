@@ -366,7 +366,9 @@ def test_cli_extract_then_index_and_query(meshes, tmp_path):
     assert [r["kind"] for r in tube_rows] == ["boundary", "boundary"]
     assert [r["axis"] for r in tube_rows] == [None, None]
     assert err.count("open pieces skipped") == 5 and "Note: " in err
-    assert sorted(os.listdir(out_dir)) == sorted(os.path.basename(r["file"]) for r in rows)
+    # the written files, and the manifest of what extract wrote (docs/extract.md)
+    assert sorted(os.listdir(out_dir)) == sorted([os.path.basename(r["file"]) for r in rows]
+                                                 + [".nfdmatch-extract.json"])
     for r in rows:
         (curve,) = read_curves(r["file"])
         assert curve.n_vertices == r["vertices"]
