@@ -118,6 +118,9 @@ def test_build_without_sources_rescans_the_recorded_ones(lib, tmp_path, monkeypa
     with open_index(index) as idx:
         assert [f.path for f in idx.files()] == ["lib/c0.csv", "lib/c2.csv", "lib/new.csv"]
         assert idx.sources() == (["lib"], "*.csv")
+    code, out, _ = run("index", "info", "--index", index)
+    assert code == 0 and "\nsources\tlib\n" in out
+    assert json.loads(run("index", "info", "--index", index, "--format", "json")[1])["sources"] == ["lib"]
     # no sources and no index, or an index that does not record them: clear errors, exit 1
     code, out, err = run("index", "build", "--index", tmp_path / "none.h5")
     assert (code, out) == (1, "") and "no SOURCE given and no index to take them from" in err

@@ -126,7 +126,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
 @format_option(("text", "json"), default="text")
 @output_option()
 def index_info(index_path, output_format, output):
-    """Describe an index: files, curves, failed files with reasons, parameters, format, times, size.
+    """Describe an index: sources, files, curves, failed files with reasons, parameters, format, times, size.
 
     \b
     Example:
@@ -139,8 +139,11 @@ def index_info(index_path, output_format, output):
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
-    lines = [f"{key}\t{info.get(key)}" for key in (
-        "path", "format", "format_version", "nfdmatch_version", "files", "curves", "samples", "harmonics",
+    sources = info.get("sources")
+    lines = [f"path\t{info.get('path')}",
+             f"sources\t{'(not recorded)' if sources is None else ' '.join(sources)}"]
+    lines += [f"{key}\t{info.get(key)}" for key in (
+        "format", "format_version", "nfdmatch_version", "files", "curves", "samples", "harmonics",
         "scale", "created", "updated", "size_bytes")]
     failed = info.get("failed", [])
     lines.append(f"failed\t{len(failed)}")
