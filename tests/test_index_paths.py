@@ -311,3 +311,30 @@ def test_rebuild_never_overwrites_a_file_that_is_not_an_index(lib, tmp_path, kin
     assert index.read_bytes() == before
     with pytest.raises(IndexFormatError):
         build_index([str(lib)], str(index), jobs=1, rebuild=True)
+
+
+# --------------------------------------------------------------------------- what a walk skips
+
+def test_an_unlistable_folder_keeps_its_rows_and_a_fifo_is_skipped(lib, tmp_path, monkeypatch):
+    index = tmp_path / "idx.h5"
+    assert run("index", "build", lib, "--index", index, "-j", 1)[0] == 0
+    with open_index(index) as idx:
+        before = idx.ids()
+    os.mkfifo(lib / "pipe.csv")                   # opening it would block the build forever
+    locked = str(lib / "sub")
+    real_scandir = os.scandir
+
+    def scandir(path="."):
+        if os.fspath(path) == locked:
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return real_scandir(path)
+
+    monkeypatch.setattr(os, "scandir", scandir)  # root reads any folder: simulate chmod 000
+    code, out, err = run("index", "build", lib, "--index", index, "-j", 1, "--format", "json")
+    assert code == 3, err
+    assert f"Error: {locked}: cannot list the folder (Permission denied); its files are skipped" in err
+    assert f"Error: {lib / 'pipe.csv'}: is a FIFO (named pipe), not a regular file; skipped" in err
+    summary = json.loads(out)
+    assert (summary["removed"], summary["unchanged"]) == (0, 5) and len(summary["skipped"]) == 2
+    with open_index(index) as idx:
+        assert idx.ids() == before                # the sub-folder's curves are still there

@@ -59,7 +59,8 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
     The JSON summary: index, started (UTC), sources, added, updated, removed, unchanged,
-    failed, failures (path and error of each failed file), curves, seconds; and shrink
+    failed, failures (path and error of each failed file), skipped (folders that could not
+    be listed, whose indexed files are kept, and non-regular files), curves, seconds; and shrink
     ({removed, of, allowed}) when the build removes (or refused to remove) more than half.
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
@@ -91,13 +92,14 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
         finish_bar()
     for notice in report.notices:
         note(notice, prefix="Notice: ")
-    for path, message in report.failures:
+    for path, message in report.skipped + report.failures:
         error(message)
     if output_format == "json":
         summary = {"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
                    "sources": report.sources, "added": report.added, "updated": report.updated, "removed": report.removed,
                    "unchanged": report.unchanged, "failed": report.failed,
                    "failures": [{"path": path, "error": message} for path, message in report.failures],
+                   "skipped": [{"path": path, "error": message} for path, message in report.skipped],
                    "curves": report.curves, "seconds": round(report.seconds, 3)}
         if report.shrink:
             summary["shrink"] = {"removed": report.shrink[0], "of": report.shrink[1], "allowed": bool(allow_shrink)}
@@ -118,7 +120,9 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
             f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
             f"{report.seconds:.2f} s{shrunk}")
     if not dry_run:
-        finish(report.failed, report.added + report.updated + report.unchanged + report.failed, "files")
+        # a skipped folder or FIFO counts as a failed input: exit 3, so cron mails it
+        finish(report.failed + len(report.skipped),
+               report.added + report.updated + report.unchanged + report.failed + len(report.skipped), "files")
 
 
 @index.command("info")

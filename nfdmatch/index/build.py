@@ -93,6 +93,9 @@ class BuildReport:
     cells: int = 0
     #: the stored sources of this build (those given, or the recorded ones re-scanned)
     sources: list = field(default_factory=list)
+    #: ``(path, message)`` of what the walk of the sources skipped: folders that could not be
+    #: listed (their files already in the index keep their rows) and non-regular files
+    skipped: list = field(default_factory=list)
     #: ``(removed, of)`` files when the build removes more than half of the index's files
     #: (or all): refused unless ``allow_shrink``; None otherwise
     shrink: tuple | None = None
@@ -213,7 +216,7 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             sources = [openable(s, base) for s in recorded[0]]
             if glob is None:
                 glob = recorded[1]
-        found, opens, stored_sources = _find(sources, glob, base)
+        found, opens, stored_sources, unseen = _find(sources, glob, base, report.skipped)
         report.sources = stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
@@ -249,11 +252,19 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             key = stored(source_location(r.path), base) if rekey else r.path
             old_rows.setdefault(key, (i, r))
         found_set = set(found)
+        # a folder that could not be listed this time (permissions, I/O) keeps its files'
+        # rows as they were: a fault of the machine must not remove curves
+        held = {key for key, (_, r) in old_rows.items() if key not in found_set and any(
+            key == u or key.startswith(u.rstrip("/") + "/") for u in unseen)}
         items: list[PlanItem] = []
         tasks = []
-        for path in found:
+        for path in sorted(found_set | held):
             entry = old_rows.get(path)
             r = entry[1] if entry else None
+            if path in held:
+                items.append(PlanItem(path, Action.COPY if r.status == "ok" else Action.KEEP_FAILED, r, None,
+                                      openable(path, base)))
+                continue
             file = opens[path]
             try:
                 st = os.stat(file)
@@ -273,7 +284,7 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
                 task = len(tasks)
                 tasks.append((file, input_format, params["samples"], params["harmonics"], params["scale"], old_sha))
             items.append(PlanItem(path, action, r, task, file))
-        removed = [r.path for key, (_, r) in old_rows.items() if key not in found_set]
+        removed = [r.path for key, (_, r) in old_rows.items() if key not in found_set and key not in held]
 
         # an empty or unmounted source folder must not wipe an index from cron
         if old_files and (len(removed) == len(old_files) or 2 * len(removed) > len(old_files)):
@@ -335,21 +346,29 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
     return report
 
 
-def _find(sources: list[str], glob, base: str):
+def _find(sources: list[str], glob, base: str, skipped: list):
     """The curve files under ``sources`` by stored path: ``(sorted stored paths, {stored path:
-    path that opens it, as found}, stored sources)``. Two spellings of one file (``lib`` and
-    ``/abs/lib``, a link to ``lib``) are one file, the first spelling opens it."""
+    path that opens it, as found}, stored sources, stored paths of folders that could not be
+    listed)``. Two spellings of one file (``lib`` and ``/abs/lib``, a link to ``lib``) are one
+    file, the first spelling opens it. What a walk skips (folders it cannot list, FIFOs and
+    other non-regular files) is appended to ``skipped`` as ``(path, message)``."""
     opens: dict[str, str] = {}
     stored_sources: list[str] = []
+    unseen: list[str] = []
     for source in sources:
         real = source_location(source)
-        files = find_curve_files([source], glob=glob)     # ReadError for a missing source
+        problems: list = []
+        files = find_curve_files([source], glob=glob, problems=problems)   # ReadError: a missing source
         key = stored(real, base)
         if key not in stored_sources:
             stored_sources.append(key)
         for file in files:
             opens.setdefault(stored(found_location(file, source, real), base), file)
-    return sorted(opens), opens, stored_sources
+        for problem in problems:
+            skipped.append((problem.path, str(problem)))
+            if problem.path and os.path.isdir(problem.path):
+                unseen.append(stored(found_location(problem.path, source, real), base))
+    return sorted(opens), opens, stored_sources, unseen
 
 
 def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, progress) -> None:
