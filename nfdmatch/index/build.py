@@ -357,17 +357,18 @@ def _find(sources: list[str], glob, base: str, skipped: list):
     unseen: list[str] = []
     for source in sources:
         real = source_location(source)
+        is_folder = os.path.isdir(source)
         problems: list = []
         files = find_curve_files([source], glob=glob, problems=problems)   # ReadError: a missing source
         key = stored(real, base)
         if key not in stored_sources:
             stored_sources.append(key)
         for file in files:
-            opens.setdefault(stored(found_location(file, source, real), base), file)
+            opens.setdefault(stored(found_location(file, source, real, is_folder), base), file)
         for problem in problems:
             skipped.append((problem.path, str(problem)))
             if problem.path and os.path.isdir(problem.path):
-                unseen.append(stored(found_location(problem.path, source, real), base))
+                unseen.append(stored(found_location(problem.path, source, real, is_folder), base))
     return sorted(opens), opens, stored_sources, unseen
 
 
@@ -512,7 +513,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             _write_files_table(h5, records, space)
             _write_sources(h5, *sources)
             # the cells: features, squared norms, row numbers and first harmonics of every row
-            space.reserve(writer.rows * (8 * (2 * K + 3) + 160))
+            space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K)
             report.curves = writer.rows
         except BaseException:
