@@ -159,7 +159,9 @@ sys.exit(code)
 
 class Version:
     """One code version of nfdmatch run as a new process: `python -m nfdmatch` with its
-    source folder first on the path."""
+    source folder first on the path. ``-P`` and the source folder as the working directory:
+    Python would otherwise put the benchmark's working directory (this checkout) before
+    PYTHONPATH, and every version would run this checkout's code."""
 
     def __init__(self, label, source):
         self.label, self.source = label, source
@@ -168,7 +170,7 @@ class Version:
         env = dict(os.environ, PYTHONPATH=self.source)
         env["NFDMATCH_BENCH_IO"] = io_file or os.devnull
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-c", _MEASURE, "x"] + list(args), env=env,
+        proc = subprocess.Popen([sys.executable, "-P", "-c", _MEASURE, "x"] + list(args), env=env, cwd=self.source,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         out, err = proc.communicate()
         dt = time.perf_counter() - t0
@@ -189,7 +191,7 @@ def _peak_rss(version, args):
     """(seconds, peak RSS bytes, stdout) of one process."""
     env = dict(os.environ, PYTHONPATH=version.source, NFDMATCH_BENCH_IO=os.devnull)
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "nfdmatch"] + list(args), env=env,
+    proc = subprocess.Popen([sys.executable, "-P", "-m", "nfdmatch"] + list(args), env=env, cwd=version.source,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out = proc.stdout.read()
     err = proc.stderr.read()
@@ -287,6 +289,7 @@ def main():
         for v in versions:
             print(f"measuring {name} with {v.label} ...", file=sys.stderr)
             results[name, v.label] = measure(v, work, name, queries, args.repeat)
+            results[name, v.label]["help"] = help_t[v.label]
 
     labels = [v.label for v in versions]
     print(f"\n`nfdmatch --help`: " + ", ".join(f"{lab} {help_t[lab] * 1e3:.0f} ms" for lab in labels))
@@ -300,11 +303,11 @@ def main():
             ("index build", lambda x: f"{x['build']:.1f} s", lambda x: x["build"]),
             ("build peak RSS", lambda x: f"{x['rss'] / 2**30:.2f} GB", lambda x: x["rss"]),
             ("single query, new process", lambda x: f"{x['single'] * 1e3:.0f} ms", lambda x: x["single"]),
-            ("single query above --help", lambda x: f"{(x['single'] - help_t['new']) * 1e3:.0f} ms", None),
+            ("single query above --help", lambda x: f"{(x['single'] - x['help']) * 1e3:.0f} ms", None),
             ("exact distances, single query", lambda x: f"{x['single_exact']:.0f}", lambda x: x["single_exact"]),
             ("bytes read, single query", lambda x: f"{x['single_bytes'] / 2**20:.1f} MiB", lambda x: x["single_bytes"]),
             (f"batch of {QUERIES}: ms/query above start-up",
-             lambda x: f"{(x['batch'] - help_t['new']) / QUERIES * 1e3:.1f} ms", lambda x: x["batch"]),
+             lambda x: f"{(x['batch'] - x['help']) / QUERIES * 1e3:.1f} ms", lambda x: x["batch"] - x["help"]),
             ("exact distances per query, batch", lambda x: f"{x['batch_exact']:.0f}", lambda x: x["batch_exact"]),
             ("bytes read per query, batch", lambda x: f"{x['batch_bytes'] / 2**20:.1f} MiB", lambda x: x["batch_bytes"]),
         ]

@@ -225,8 +225,8 @@ def test_frozen_v2_index_reads_forever():
         table = idx.search_table()
         assert table.n_cells == 4
         np.testing.assert_array_equal(table.start, [0, 2, 4, 5, 7])
-        got_rows, features, sqnorm, head = table.cell_rows(np.arange(4))
-        np.testing.assert_array_equal(head, rows["coefficients"][got_rows, :4].astype(np.complex64))
+        got_rows, features, sqnorm, coefficients = table.cell_rows(np.arange(4))
+        np.testing.assert_array_equal(coefficients, rows["coefficients"][got_rows].astype(np.complex64))
         np.testing.assert_array_equal(got_rows, [1, 2, 3, 6, 5, 0, 4])
         np.testing.assert_array_equal(features, np.concatenate([rows["inv_sv"], rows["inv_block"]], axis=1)[got_rows]
                                       .astype(np.float32))
@@ -248,7 +248,7 @@ FROZEN_V2_SEARCH_DIGESTS = {
     "cell_start": "fa0bdd096a3862cdea58d24219e92c5271eed19b31fa1fdd93fed9987ba321e6",
     "centre": "449ca190b5acc5f39f2ad8d6795678c309f5fcd65d10007f359e7b8d0ea9945b",
     "features": "0fe6227676e5830f8c1745fa6b9491895212aa1301fa64a2af9ce8cf6ffb5a7f",
-    "head": "2255ed682828107810879712c7c1c796f07b9bb88b0cddcd731e93afa8d6be78",
+    "coefficients": "2255ed682828107810879712c7c1c796f07b9bb88b0cddcd731e93afa8d6be78",
     "radius": "4b5d0fb900a033448c6ae8a1cd9aa4e9473b29cbf48ed19e8c1831f4cc287cee",
     "row": "758cc90cb2b0e29822cf95cf373e1988fb076369ee42b69421b35d602e45e18a",
     "sqnorm": "1bd887b4fed687f562923a946adb7f2db60d87a33d606a961c492c292c94ed86",

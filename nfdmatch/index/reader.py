@@ -247,6 +247,8 @@ class Index:
         from ..search.bounds import head_harmonics
 
         def features():
+            # the first harmonics only (the truncated bound's input): the exact distances
+            # read their rows' descriptors on demand
             sv, block = self._ds["inv_sv"][...], self._ds["inv_block"][...]
             return np.concatenate([sv, block], axis=1), self._ds["coefficients"][:, :head_harmonics(self.harmonics)]
 

@@ -18,7 +18,7 @@ SEARCH_DATASETS = {
     "features": (np.float32, lambda N, C, D: (N, D)),
     "sqnorm": (np.float64, lambda N, C, D: (N, 2)),
 }
-#: /search/head: (N, K', 3) complex64, checked apart (K' from the harmonics)
+#: /search/coefficients: (N, K, 3) complex64, checked apart (K from the harmonics)
 #: rows read back from /curves at a time while gathering the features
 _READ_ROWS = 1 << 18
 
@@ -28,7 +28,7 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) 
 
     Deterministic: the same curves give the same group (seeded k-means).
     """
-    from ..search.bounds import feature_split, head_harmonics, squared_norms
+    from ..search.bounds import feature_split, squared_norms
     from ..search.cells import ROWS_PER_CELL, build_cells
 
     curves = h5["curves"]
@@ -43,12 +43,14 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) 
     cells = build_cells(features, split, rows_per_cell=rows_per_cell or ROWS_PER_CELL)
     features = features[cells.row]
     sqnorm = squared_norms(features, split)
-    Kh = head_harmonics(harmonics)
-    head = np.empty((N, Kh, 3), dtype=np.complex64)
+    # one (N, K, 3) array in position order, filled block by block through the inverse
+    # permutation (no second copy of it)
+    position_of = np.empty(N, dtype=np.int64)
+    position_of[cells.row] = np.arange(N, dtype=np.int64)
+    coefficients = np.empty((N, harmonics, 3), dtype=np.complex64)
     for a in range(0, N, _READ_ROWS):
-        block = curves["coefficients"][a:a + _READ_ROWS, :Kh]
-        head[a:a + len(block)] = block
-    head = head[cells.row]
+        block = curves["coefficients"][a:a + _READ_ROWS]
+        coefficients[position_of[a:a + len(block)]] = block
     g = h5.create_group("search")
     g.attrs["cells"] = np.int64(cells.count)
     g.create_dataset("row", data=cells.row)
@@ -57,7 +59,7 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) 
     g.create_dataset("radius", data=cells.radius)
     g.create_dataset("features", data=features)
     g.create_dataset("sqnorm", data=sqnorm)
-    g.create_dataset("head", data=head)
+    g.create_dataset("coefficients", data=coefficients)
     return cells.count
 
 
@@ -77,12 +79,11 @@ def check_search_group(h5, N: int, harmonics: int) -> str | None:
             return f"missing dataset /search/{name}"
         if tuple(ds.shape) != shape(N, C, D):
             return f"/search/{name} has shape {ds.shape}, expected {shape(N, C, D)}"
-    from ..search.bounds import head_harmonics
-
-    head = g.get("head")
-    want = (N, head_harmonics(harmonics), 3)
-    if head is None or not hasattr(head, "shape") or tuple(head.shape) != want or head.dtype.kind != "c":
-        return f"missing or bad dataset /search/head (expected complex, shape {want})"
+    coefficients = g.get("coefficients")
+    want = (N, harmonics, 3)
+    if (coefficients is None or not hasattr(coefficients, "shape") or tuple(coefficients.shape) != want
+            or coefficients.dtype.kind != "c"):
+        return f"missing or bad dataset /search/coefficients (expected complex, shape {want})"
     starts = np.asarray(start[...], dtype=np.int64)
     if starts[0] != 0 or starts[-1] != N or (np.diff(starts) < 0).any():
         return "/search/cell_start does not run from 0 to the row count without decreasing"
@@ -98,14 +99,14 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail):
 
     g = h5["search"]
     start = np.asarray(g["cell_start"][...], dtype=np.int64)
-    ds_row, ds_features, ds_sqnorm, ds_head = g["row"], g["features"], g["sqnorm"], g["head"]
+    ds_row, ds_features, ds_sqnorm, ds_coefficients = g["row"], g["features"], g["sqnorm"], g["coefficients"]
 
     def read_positions(a: int, b: int):
         row = np.asarray(ds_row[a:b], dtype=np.int64)
         if len(row) and (row.min() < 0 or row.max() >= N):
             fail("/search/row holds a row outside the index")
         return (row, np.asarray(ds_features[a:b], dtype=np.float32), np.asarray(ds_sqnorm[a:b], dtype=np.float64),
-                np.asarray(ds_head[a:b]))
+                np.asarray(ds_coefficients[a:b]))
 
     return SearchTable(harmonics, start, np.asarray(g["centre"][...], dtype=np.float64),
                        np.asarray(g["radius"][...], dtype=np.float64), read_positions, read_coefficients)

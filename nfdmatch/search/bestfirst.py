@@ -78,39 +78,69 @@ class QueryWork:
     extra: dict = field(default_factory=dict)
 
 
+class _Descriptors:
+    """The descriptors of the rows a query has opened, appended block by block (amortized
+    doubling) and addressed by slot, so that the queues carry 8-byte slots and never copy
+    descriptors when they merge."""
+
+    def __init__(self):
+        self._data = None
+        self._used = 0
+
+    def append(self, block: np.ndarray) -> np.ndarray:
+        """Store ``block`` (m, K'', 3); returns its (m,) int64 slots."""
+        m = len(block)
+        if self._data is None:
+            self._data = np.empty((max(m, 1024),) + block.shape[1:], dtype=block.dtype)
+        elif self._used + m > len(self._data):
+            grown = np.empty((max(2 * len(self._data), self._used + m),) + self._data.shape[1:],
+                             dtype=self._data.dtype)
+            grown[:self._used] = self._data[:self._used]
+            self._data = grown
+        self._data[self._used:self._used + m] = block
+        slots = np.arange(self._used, self._used + m, dtype=np.int64)
+        self._used += m
+        return slots
+
+    def __getitem__(self, slots: np.ndarray) -> np.ndarray:
+        return self._data[slots]
+
+
 class _Sorted:
-    """Rows waiting in increasing order of a bound, consumed from the front, each with an
-    optional payload (its first harmonics)."""
+    """Rows waiting in increasing order of a bound, consumed from the front, each with the
+    slot of its descriptors in the query's :class:`_Descriptors`."""
 
     def __init__(self):
         self.bound = np.zeros(0)
         self.rows = np.zeros(0, dtype=np.int64)
-        self.payload = None
+        self.slots = np.zeros(0, dtype=np.int64)
         self.pos = 0
 
     def head(self) -> float:
-        return self.bound[self.pos] if self.pos < len(self.bound) else np.inf
+        return float(self.bound[self.pos]) if self.pos < len(self.bound) else np.inf
 
     def __len__(self) -> int:
         return len(self.bound) - self.pos
 
-    def merge(self, bound, rows, payload=None) -> None:
-        b = np.concatenate([self.bound[self.pos:], bound])
-        order = np.argsort(b, kind="stable")
+    def merge(self, bound, rows, slots, limit: float) -> None:
+        """Add rows; every waiting row bounded above ``limit`` (the current pruning
+        threshold, which only decreases) is dropped: it can never be needed."""
+        keep = self.bound[self.pos:] <= limit
+        b = np.concatenate([self.bound[self.pos:][keep], bound])
+        order = np.argsort(b, kind="stable")        # two sorted runs: linear
         self.bound = b[order]
-        self.rows = np.concatenate([self.rows[self.pos:], rows])[order]
-        if payload is not None:
-            c = payload if self.payload is None else np.concatenate([self.payload[self.pos:], payload])
-            self.payload = c[order]
+        self.rows = np.concatenate([self.rows[self.pos:][keep], rows])[order]
+        self.slots = np.concatenate([self.slots[self.pos:][keep], slots])[order]
         self.pos = 0
 
     def take(self, count: int, limit: float):
-        """Up to ``count`` (at least one) front rows, none with a bound above ``limit``."""
+        """Up to ``count`` rows from the front with a bound at most ``limit`` (at least one):
+        ``(bound, rows, slots)``."""
         stop = min(self.pos + count, int(np.searchsorted(self.bound, limit, side="right")))
         stop = max(stop, self.pos + 1)
         sl = slice(self.pos, stop)
         self.pos = stop
-        return self.bound[sl], self.rows[sl], (None if self.payload is None else self.payload[sl])
+        return self.bound[sl], self.rows[sl], self.slots[sl]
 
 
 def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table, top: "TopK", *,
@@ -140,8 +170,12 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
     sizes = (table.start[1:] - table.start[:-1])[corder]
     n_cells = len(corder)
     ci = 0
-    rows_q = _Sorted()          # opened, by invariant bound (with their first harmonics)
+    store = _Descriptors()      # descriptors of the opened rows
+    rows_q = _Sorted()          # opened, by invariant bound
     tight_q = _Sorted()         # by truncated bound
+    # a table that hands out every harmonic with the cell needs no other read for the exact
+    # distances (format 2, memory); else their rows' descriptors are read on demand
+    complete = None
     bound_batch, exact_batch = FIRST_BATCH, FIRST_BATCH
     while True:
         thr = margin(top.threshold())
@@ -162,32 +196,34 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
             cells = corder[ci:j]
             ci = j
             work.cells += len(cells)
-            rows, F, sq, head = table.cell_rows(cells)
+            rows, F, sq, coefficients = table.cell_rows(cells)
+            if complete is None:
+                complete = coefficients.shape[1] == query_coefficients.shape[0]
             work.scanned += len(rows)
             b = row_lower_bounds(query_features, table.split, F, sq)
-            keep = b <= thr
-            rows_q.merge(b[keep], rows[keep], head[keep])
+            keep = np.flatnonzero(b <= thr)
+            rows_q.merge(b[keep], rows[keep], store.append(coefficients[keep]), thr)
             continue
         if row_head < tight_head:
             # rows by invariant bound -> truncated bound (or straight to exact when the
             # truncated bound is off or no k-th distance exists yet)
             limit = min(thr, cell_head)
-            _, rows, head = rows_q.take(bound_batch, limit)
+            _, rows, slots = rows_q.take(bound_batch, limit)
             if truncate and np.isfinite(thr) and len(rows) >= _TRUNCATE_FROM:
-                tb = truncated_lower_bounds(query_coefficients, head, direction=direction, mirror=mirror,
-                                            harmonics=head.shape[1])
+                tb = truncated_lower_bounds(query_coefficients, store[slots], direction=direction,
+                                            mirror=mirror)
                 work.truncated += len(rows)
                 keep = tb <= thr
-                tight_q.merge(tb[keep], rows[keep])
+                tight_q.merge(tb[keep], rows[keep], slots[keep], thr)
                 bound_batch = min(bound_batch * 2, MAX_BATCH)
                 continue
-            _exact(query_coefficients, rows, table.coefficients(rows), top, work, search, method, direction,
-                   mirror, samples, thr)
+            coefficients = store[slots] if complete else table.coefficients(rows)
+            _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr)
             continue
         limit = min(thr, cell_head, row_head)
-        _, rows, _ = tight_q.take(exact_batch, limit)
-        _exact(query_coefficients, rows, table.coefficients(rows), top, work, search, method, direction, mirror,
-               samples, thr)
+        _, rows, slots = tight_q.take(exact_batch, limit)
+        coefficients = store[slots] if complete else table.coefficients(rows)
+        _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr)
         exact_batch = min(exact_batch * 2, EXACT_BATCH)
     return work
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
-from .bounds import head_harmonics
 from .table import SearchTable
 
 #: rows per chunk of iter_chunks (as an index file's reader)
@@ -47,7 +46,7 @@ class MemoryIndex:
         """Every row in one cell, or cells of ``rows_per_cell`` rows built as for an index."""
         K = self._rows["coefficients"].shape[1]
         features = np.concatenate([self._rows["inv_sv"], self._rows["inv_block"]], axis=1)
-        head = self._rows["coefficients"][:, :head_harmonics(K)]
+        coefficients = self._rows["coefficients"]
         if self.rows_per_cell is None:
-            return SearchTable.single_cell(K, features, head, self.coefficients_at)
-        return SearchTable.from_cells(K, features, head, self.coefficients_at, rows_per_cell=self.rows_per_cell)
+            return SearchTable.single_cell(K, features, coefficients, self.coefficients_at)
+        return SearchTable.from_cells(K, features, coefficients, self.coefficients_at, rows_per_cell=self.rows_per_cell)

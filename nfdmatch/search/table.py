@@ -32,9 +32,11 @@ class SearchTable:
     start : (C + 1,) int64 cell offsets into the positions; centre : (C, D) float64;
         radius : (C, 2) float64 (see :class:`nfdmatch.search.cells.Cells`).
     read_positions : ``read_positions(a, b) -> (row (m,) int64, features (m, D) float32,
-        sqnorm (m, 2) float64, head (m, K', 3) complex)`` for positions [a, b); ``head``
-        holds the first K' harmonics (the truncated bound's input, read with the cell
-        instead of row by row).
+        sqnorm (m, 2) float64, coefficients (m, K'', 3) complex)`` for positions [a, b):
+        the rows' descriptors, all K harmonics (an index of format 2, curves in memory: the
+        exact distance needs no other read) or only the first K'' <= K (a format-1 file,
+        where reading every descriptor at once would cost too much; the truncated bound
+        needs K'' >= min(4, K)).
     read_coefficients : ``read_coefficients(rows) -> (m, K, 3)`` complex for index rows.
 
     Thread-safe: the search answers several queries on threads over one table.
@@ -57,12 +59,13 @@ class SearchTable:
         self.bytes_read = 0
 
     @classmethod
-    def single_cell(cls, harmonics: int, features: np.ndarray, head: np.ndarray,
+    def single_cell(cls, harmonics: int, features: np.ndarray, coefficients: np.ndarray,
                     read_coefficients: Callable) -> "SearchTable":
         """Every row in one cell, in row order (a format-1 index, curves in memory).
 
         harmonics : K; features : (N, 2K + 3) float features (rounded to float32 here, as an
-        index stores them); head : (N, K', 3) complex, the rows' first harmonics;
+        index stores them); coefficients : (N, K'', 3) complex, the rows' descriptors (or
+        their first K'' harmonics);
         read_coefficients : as for the constructor.
         """
         F = np.ascontiguousarray(features, dtype=np.float32)
@@ -71,10 +74,10 @@ class SearchTable:
         rows = np.arange(N, dtype=np.int64)
         # radius inf: the one cell's bound is 0, every row gets its own bound
         return cls(harmonics, [0, N], np.zeros((1, F.shape[1])), np.full((1, 2), np.inf),
-                   lambda a, b: (rows[a:b], F[a:b], sq[a:b], head[a:b]), read_coefficients)
+                   lambda a, b: (rows[a:b], F[a:b], sq[a:b], coefficients[a:b]), read_coefficients)
 
     @classmethod
-    def from_cells(cls, harmonics: int, features: np.ndarray, head: np.ndarray, read_coefficients: Callable, *,
+    def from_cells(cls, harmonics: int, features: np.ndarray, coefficients: np.ndarray, read_coefficients: Callable, *,
                    rows_per_cell: int) -> "SearchTable":
         """Cells built in memory (:func:`~nfdmatch.search.cells.build_cells`), as an index
         file stores them; arguments as :meth:`single_cell`."""
@@ -86,9 +89,9 @@ class SearchTable:
         F = F[cells.row]
         sq = squared_norms(F, split)
         row = cells.row
-        head = np.asarray(head)[row]
+        coefficients = np.asarray(coefficients)[row]
         return cls(harmonics, cells.start, cells.centre, cells.radius,
-                   lambda a, b: (row[a:b], F[a:b], sq[a:b], head[a:b]), read_coefficients)
+                   lambda a, b: (row[a:b], F[a:b], sq[a:b], coefficients[a:b]), read_coefficients)
 
     @property
     def n_cells(self) -> int:
@@ -96,7 +99,7 @@ class SearchTable:
 
     def cell_rows(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The rows of the given cells, concatenated: ``(row (m,) int64, features (m, D)
-        float32, sqnorm (m, 2) float64, head (m, K', 3) complex)``.
+        float32, sqnorm (m, 2) float64, coefficients (m, K'', 3) complex)``.
 
         Cells not read yet are read in few calls: runs of cells whose positions are close
         are read as one range (each call costs far more than the bytes between them), and
