@@ -338,3 +338,16 @@ def test_an_unlistable_folder_keeps_its_rows_and_a_fifo_is_skipped(lib, tmp_path
     assert (summary["removed"], summary["unchanged"]) == (0, 5) and len(summary["skipped"]) == 2
     with open_index(index) as idx:
         assert idx.ids() == before                # the sub-folder's curves are still there
+
+
+def test_a_non_utf8_file_name_is_indexed_under_an_escaped_id(tmp_path, rng, monkeypatch):
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    write_curves(os.path.join(str(lib), os.fsdecode(b"c\xff.csv")), random_smooth_curve(rng, 40, 4))
+    write_curves(lib / "ok.csv", random_smooth_curve(rng, 40, 4))
+    monkeypatch.chdir(tmp_path)
+    assert build_index(["lib"], "i.h5", jobs=1).added == 2
+    report = build_index([str(lib)], "i.h5", jobs=1)         # the escaped id still matches its file
+    assert (report.unchanged, report.written) == (2, False)
+    with open_index(tmp_path / "i.h5") as idx:
+        assert idx.ids() == ["lib/c\\xff.csv", "lib/ok.csv"]
