@@ -124,9 +124,12 @@ class Index:
         an index that does not record them (format 1, or an earlier format-2 writer)."""
         def read():
             g = self._h5.get("sources")
-            if g is None or not isinstance(g.get("path"), h5py.Dataset):
+            ds = g.get("path") if isinstance(g, h5py.Group) else None
+            # optional and only a build's default: a malformed one counts as absent
+            if not isinstance(ds, h5py.Dataset) or len(ds.shape) != 1 or ds.dtype.kind not in "OS" \
+                    or ds.shape[0] > 100_000:
                 return None
-            paths = g["path"].asstr()[...].tolist() if g["path"].shape[0] else []
+            paths = ds.asstr()[...].tolist() if ds.shape[0] else []
             glob = g.attrs.get("glob", "")
             glob = glob.decode("utf-8", "replace") if isinstance(glob, bytes) else str(glob)
             return paths, (glob or None)
