@@ -338,6 +338,11 @@ def test_an_unlistable_folder_keeps_its_rows_and_a_fifo_is_skipped(lib, tmp_path
     assert (summary["removed"], summary["unchanged"]) == (0, 5) and len(summary["skipped"]) == 2
     with open_index(index) as idx:
         assert idx.ids() == before                # the sub-folder's curves are still there
+    # a FIFO named directly is skipped too, never opened
+    monkeypatch.setattr(os, "scandir", real_scandir)
+    code, out, err = run("index", "build", lib, lib / "pipe.csv", "--index", index, "-j", 1)
+    assert code == 3 and err.count(f"Error: {lib / 'pipe.csv'}: is a FIFO (named pipe), not a regular file; "
+                                   "skipped\n") == 1                      # named once
 
 
 def test_a_non_utf8_file_name_is_indexed_under_an_escaped_id(tmp_path, rng, monkeypatch):

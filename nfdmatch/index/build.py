@@ -14,8 +14,8 @@ from .._version import __version__
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, validate_parameters
 from ..errors import (IndexFormatError, InputError, NfdError, ParameterError, ReadError, ShrinkRefusedError,
                       WriteError)
-from ..formats import format_of
-from ..sources import find_curve_files
+from ..formats import format_of, split_selector
+from ..sources import _irregular, find_curve_files
 from .lock import _Lock
 from .paths import curve_ids, found_location, index_file, openable, source_location, stored
 from .pool import _run_tasks, _sha256
@@ -360,12 +360,20 @@ def _find(sources: list[str], glob, base: str, skipped: list):
         is_folder = os.path.isdir(source)
         problems: list = []
         files = find_curve_files([source], glob=glob, problems=problems)   # ReadError: a missing source
+        kind = None if is_folder else _irregular(split_selector(source)[0])
+        if kind is not None:                # a FIFO named directly: opening it would block the build
+            files = []
+            if any(path == source for path, _ in skipped):
+                continue
+            skipped.append((source, str(ReadError(f"is {kind}, not a regular file; skipped", path=source))))
         key = stored(real, base)
         if key not in stored_sources:
             stored_sources.append(key)
         for file in files:
             opens.setdefault(stored(found_location(file, source, real, is_folder), base), file)
         for problem in problems:
+            if any(path == problem.path for path, _ in skipped):
+                continue                     # named once, however many sources reach it
             skipped.append((problem.path, str(problem)))
             if problem.path and os.path.isdir(problem.path):
                 unseen.append(stored(found_location(problem.path, source, real, is_folder), base))
