@@ -131,6 +131,15 @@ class IndexLockedError(NfdError, OSError):
     """Another build holds the index lock."""
 
 
+class ShrinkRefusedError(NfdError, ValueError):
+    """A build that would remove more than half of an index's files (or all of them: an
+    empty or unmounted source folder) and was not allowed to (``allow_shrink``).
+    ``removed`` of ``of`` files would have gone."""
+
+    removed: int = 0
+    of: int = 0
+
+
 class ParameterError(NfdError, ValueError):
     """An invalid parameter value (samples, harmonics, scale, method, ...)."""
 

@@ -117,7 +117,11 @@ def matches_from_index(query: Curve, results: list[dict], index, *, method: str 
     for row in results:
         curve_id = row["match"]
         try:
-            curve = read_curve(curve_id)
+            # an index's ids are relative to its folder: found from any working directory
+            located = index.locate(curve_id) if hasattr(index, "locate") else curve_id
+            curve = read_curve(located)
+            if located != curve_id:                 # shown under the id the index reports
+                curve = Curve.trusted(curve.points, curve_id, curve.source, curve.index)
         except NfdError as exc:
             reason = f"cannot read it ({exc})"
         else:

@@ -178,7 +178,9 @@ def test_show_from_an_index_draws_from_files_or_stored_harmonics(folder, tmp_pat
     code, out, err = run("show", query, "--index", index, "--top", 2, "-o", png, "--format", "json")
     assert code == 0, err
     rows = json.loads(out)
-    assert [r["match"] for r in rows] == [str(query), str(folder / "knot.csv")]
+    # ids relative to the index's folder; the files are found from there, whatever the cwd
+    rel = os.path.relpath(folder, tmp_path)
+    assert [r["match"] for r in rows] == [f"{rel}/knot-posed.obj", f"{rel}/knot.csv"]
     assert [r["source"] for r in rows] == ["file", "file"]
     before = png_pixels(png)
     # the source file is gone: the match is drawn from the index's harmonics, with a note

@@ -366,7 +366,9 @@ def test_cli_extract_then_index_and_query(meshes, tmp_path):
     assert [r["kind"] for r in tube_rows] == ["boundary", "boundary"]
     assert [r["axis"] for r in tube_rows] == [None, None]
     assert err.count("open pieces skipped") == 5 and "Note: " in err
-    assert sorted(os.listdir(out_dir)) == sorted(os.path.basename(r["file"]) for r in rows)
+    # the written files, and the manifest of what extract wrote (docs/extract.md)
+    assert sorted(os.listdir(out_dir)) == sorted([os.path.basename(r["file"]) for r in rows]
+                                                 + [".nfdmatch-extract.json"])
     for r in rows:
         (curve,) = read_curves(r["file"])
         assert curve.n_vertices == r["vertices"]
@@ -383,7 +385,8 @@ def test_cli_extract_then_index_and_query(meshes, tmp_path):
     assert code == 0, err
     matches = rows_of(out)
     assert float(matches[0]["distance"]) < 1e-6
-    mine = [m for m in matches if os.path.realpath(m["match"]) == os.path.realpath(query)]
+    # ids are relative to the index's folder
+    mine = [m for m in matches if os.path.realpath(tmp_path / m["match"]) == os.path.realpath(query)]
     assert len(mine) == 1 and float(mine[0]["distance"]) < 1e-6
     # the mirror-image section at x = +2 is the same shape; a tube rim (a circle) is not
     far = [m for m in matches if "tube_boundary" in m["match"]]

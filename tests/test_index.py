@@ -22,7 +22,7 @@ from oracle import random_smooth_curve
 import nfdmatch.index as nindex
 from nfdmatch import Curve, descriptors, read_curves, write_curves
 from nfdmatch.errors import (IndexFormatError, IndexLockedError, InputError, NfdError, ParameterError,
-                             ReadError)
+                             ReadError, ShrinkRefusedError)
 from nfdmatch.index import (FORMAT_VERSION, INDEX_FORMAT, BuildReport, FileRecord, build_index,
                             default_index_path, open_index)
 from nfdmatch.matching import invariants
@@ -52,6 +52,11 @@ def _library(folder, rng):
 def _paths(folder):
     return sorted(os.path.normpath(os.path.join(folder, p)) for p in
                   ("a.csv", "b.csv", "sub/multi.obj", "sub/two.vtp", "single.obj"))
+
+
+def _keys(folder):
+    """The stored paths of the _library files for an index in the folder above it."""
+    return [os.path.relpath(p, os.path.dirname(folder)) for p in _paths(folder)]
 
 
 @pytest.fixture
@@ -322,29 +327,29 @@ def test_build_ids_file_table_and_descriptors(lib, tmp_path):
     assert isinstance(report, BuildReport)
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (5, 0, 0, 0, 0)
     assert report.curves == 8 and report.written and not report.dry_run
-    assert report.changes == [("added", p) for p in _paths(lib)]
+    assert report.changes == [("added", p) for p in _keys(lib)]      # relative to the index's folder
     with open_index(idx_path) as idx:
         assert (idx.samples, idx.harmonics, idx.scale, idx.format_version) == (128, 16, "rms", FORMAT_VERSION)
         assert idx.created == idx.updated and idx.created.endswith("Z")
         files = idx.files()
-        assert [f.path for f in files] == _paths(lib)
+        assert [f.path for f in files] == _keys(lib) and idx.sources() == (["lib"], None)
         ids = idx.ids()
         rows = idx.read_rows(0, idx.n_curves)
         expected_ids = []
         for f in files:
-            st = os.stat(f.path)
+            path = str(tmp_path / f.path)
+            st = os.stat(path)
             assert (f.size, f.mtime_ns, f.status, f.error) == (st.st_size, st.st_mtime_ns, "ok", "")
-            assert f.sha256 == hashlib.sha256(open(f.path, "rb").read()).hexdigest()
+            assert f.sha256 == hashlib.sha256(open(path, "rb").read()).hexdigest()
             assert f.curve_start == len(expected_ids)
-            curves = read_curves(f.path)
+            curves = read_curves(path)
             assert f.curve_count == len(curves)
-            for c in curves:
-                expected_ids.append(c.id)
+            expected_ids += [f.path] if len(curves) == 1 else [f"{f.path}#{i}" for i in range(len(curves))]
         assert ids == expected_ids
         assert sum(1 for i in ids if i.endswith(("multi.obj#0", "multi.obj#1", "multi.obj#2"))) == 3
-        assert os.path.join(str(lib), "single.obj") in ids and os.path.join(str(lib), "a.csv") in ids
+        assert "lib/single.obj" in ids and "lib/a.csv" in ids
         np.testing.assert_array_equal(rows["file"], np.repeat(np.arange(5), [f.curve_count for f in files]))
-        curves = [c for f in files for c in read_curves(f.path)]
+        curves = [c for f in files for c in read_curves(str(tmp_path / f.path))]
         for i, c in enumerate(curves):
             d = descriptors(c)
             scale = np.abs(d.coefficients).max()
@@ -398,7 +403,7 @@ def test_touched_file_is_hashed_not_recomputed(lib, tmp_path, reads):
     after = _snapshot(idx_path)
     _assert_rows_equal(after["rows"], before["rows"])
     assert after["ids"] == before["ids"] and after["created"] == before["created"]
-    record = next(f for f in after["files"] if f.path == str(target))
+    record = next(f for f in after["files"] if f.path == "lib/sub/multi.obj")
     assert record.mtime_ns == st.st_mtime_ns + 7_000_000_000
     reads.clear()
     assert build_index([str(lib)], idx_path, jobs=1).written is False
@@ -410,6 +415,7 @@ def test_modified_deleted_added_renamed(lib, tmp_path, reads, rng):
     build_index([str(lib)], idx_path, jobs=1)
     before = _snapshot(idx_path)
     a, b, multi = str(lib / "a.csv"), str(lib / "b.csv"), str(lib / "sub" / "multi.obj")
+    key = {p: os.path.relpath(p, tmp_path) for p in (a, b, multi)}
 
     # modified: new contents (a 4-curve file now)
     write_curves(multi, _curves(rng, 4))
@@ -417,10 +423,10 @@ def test_modified_deleted_added_renamed(lib, tmp_path, reads, rng):
     report = build_index([str(lib)], idx_path, jobs=1)
     assert reads == [multi]
     assert (report.added, report.updated, report.removed, report.unchanged) == (0, 1, 0, 4)
-    assert ("updated", multi) in report.changes and report.curves == 9
+    assert ("updated", key[multi]) in report.changes and report.curves == 9
     after = _snapshot(idx_path)
-    assert [i for i in after["ids"] if i.startswith(multi)] == [f"{multi}#{k}" for k in range(4)]
-    keep = [i for i, x in enumerate(before["ids"]) if not x.startswith(multi)]
+    assert [i for i in after["ids"] if i.startswith(key[multi])] == [f"{key[multi]}#{k}" for k in range(4)]
+    keep = [i for i, x in enumerate(before["ids"]) if not x.startswith(key[multi])]
     keep_after = [after["ids"].index(before["ids"][i]) for i in keep]
     np.testing.assert_array_equal(after["rows"]["coefficients"][keep_after], before["rows"]["coefficients"][keep])
 
@@ -429,8 +435,8 @@ def test_modified_deleted_added_renamed(lib, tmp_path, reads, rng):
     reads.clear()
     report = build_index([str(lib)], idx_path, jobs=1)
     assert reads == [] and (report.removed, report.unchanged, report.curves) == (1, 4, 8)
-    assert report.changes[1] == ("removed", b)
-    assert b not in _snapshot(idx_path)["ids"]
+    assert report.changes[1] == ("removed", key[b])
+    assert key[b] not in _snapshot(idx_path)["ids"]
 
     # added
     new = str(lib / "sub" / "new.csv")
@@ -444,9 +450,9 @@ def test_modified_deleted_added_renamed(lib, tmp_path, reads, rng):
     os.rename(a, renamed)
     report = build_index([str(lib)], idx_path, jobs=1)
     assert (report.added, report.removed, report.unchanged) == (1, 1, 4)
-    assert ("removed", a) in report.changes and ("added", renamed) in report.changes
+    assert ("removed", key[a]) in report.changes and ("added", "lib/z-renamed.csv") in report.changes
     snap = _snapshot(idx_path)
-    assert renamed in snap["ids"] and a not in snap["ids"]
+    assert "lib/z-renamed.csv" in snap["ids"] and key[a] not in snap["ids"]
     starts = [f.curve_start for f in snap["files"]]
     counts = [f.curve_count for f in snap["files"]]
     assert starts == list(np.concatenate([[0], np.cumsum(counts)[:-1]])) and sum(counts) == snap["n"]
@@ -476,13 +482,13 @@ def test_bad_files_are_recorded_and_the_rest_indexed(tmp_path, rng, reads):
         assert message.startswith(path + ":"), message
     assert "line 3" in messages[str(folder / "nan.csv")]
     assert "unknown file extension" in messages[str(explicit)]
-    with open_index(idx_path) as idx:
-        files = {f.path: f for f in idx.files()}
+    with open_index(idx_path) as idx:                   # stored relative to the index's folder
+        files = {str(tmp_path / f.path): f for f in idx.files()}
         assert set(files) == set(bad) | {str(folder / "good.csv"), str(folder / "good.obj")}
         for path in bad:
             assert (files[path].status, files[path].curve_count, files[path].error) == ("failed", 0, messages[path])
-        assert sorted(x["path"] for x in idx.info()["failed"]) == sorted(bad)
-        assert idx.ids() == [str(folder / "good.csv")] + [f"{folder / 'good.obj'}#{k}" for k in range(3)]
+        assert sorted(str(tmp_path / x["path"]) for x in idx.info()["failed"]) == sorted(bad)
+        assert idx.ids() == ["mixed/good.csv"] + [f"mixed/good.obj#{k}" for k in range(3)]
 
     # failed files unchanged since last time stay failed without being read again
     reads.clear()
@@ -572,8 +578,9 @@ def test_dry_run_writes_nothing_and_reports_the_plan(lib, tmp_path, rng, reads):
     report = build_index([str(lib)], idx_path, dry_run=True, jobs=1, progress=lambda d, t: calls.append((d, t)))
     assert reads == []                                                # planning never parses
     assert report.dry_run and not report.written
-    assert report.changes == sorted([("updated", a), ("removed", b), ("added", new), ("updated", multi),
-                                     ("unchanged", single), ("unchanged", str(lib / "sub" / "two.vtp"))],
+    k = {p: os.path.relpath(p, tmp_path) for p in (a, b, new, multi, single, str(lib / "sub" / "two.vtp"))}
+    assert report.changes == sorted([("updated", k[a]), ("removed", k[b]), ("added", k[new]), ("updated", k[multi]),
+                                     ("unchanged", k[single]), ("unchanged", "lib/sub/two.vtp")],
                                     key=lambda x: x[1])
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (1, 2, 1, 2, 0)
     assert report.curves == 8
@@ -591,10 +598,19 @@ def test_no_sources_is_an_error_without_an_index(tmp_path, lib):
     assert not (tmp_path / "idx.h5").exists()
     with pytest.raises(ReadError):
         build_index([str(tmp_path / "missing")], tmp_path / "idx.h5")
-    # with an index, an empty source empties it (every file removed), with a notice
+    # with an index, an empty source (a failed mount) is refused: the index is kept whole
     build_index([str(lib)], tmp_path / "idx.h5", jobs=1)
-    report = build_index([str(empty)], tmp_path / "idx.h5", jobs=1)
-    assert (report.removed, report.curves) == (5, 0) and report.notices
+    before = (tmp_path / "idx.h5").read_bytes()
+    with pytest.raises(ShrinkRefusedError, match=r"would remove all of the index's 5 files \(no curve files "
+                                                  r"found under .*empty; an empty or unmounted folder\?\); pass "
+                                                  r"--allow-shrink"):
+        build_index([str(empty)], tmp_path / "idx.h5", jobs=1)
+    assert (tmp_path / "idx.h5").read_bytes() == before
+    # a dry run says a build would refuse; allow_shrink empties it (every file removed), with a notice
+    report = build_index([str(empty)], tmp_path / "idx.h5", jobs=1, dry_run=True)
+    assert report.removed == 5 and report.shrink == (5, 5) and any("--allow-shrink" in n for n in report.notices)
+    report = build_index([str(empty)], tmp_path / "idx.h5", jobs=1, allow_shrink=True)
+    assert (report.removed, report.curves, report.shrink) == (5, 0, (5, 5)) and report.notices
     with open_index(tmp_path / "idx.h5") as idx:
         assert (idx.n_curves, idx.n_files, idx.ids()) == (0, 0, [])
         assert idx.read_rows(0, 0)["coefficients"].shape == (0, 16, 3)
@@ -716,8 +732,10 @@ def test_missing_index_and_directory(tmp_path):
 
 
 @pytest.mark.parametrize("kind,policy", [
+    # a truncated HDF5 file does not open: it cannot be shown to be an index, so even
+    # --rebuild leaves it (issue 9: it was overwritten)
     ("wrong_kind", "never"), ("random", "never"), ("text", "never"),
-    ("truncated", "rebuild"), ("newer", "rebuild"), ("missing_dataset", "rebuild"),
+    ("truncated", "never"), ("newer", "rebuild"), ("missing_dataset", "rebuild"),
     ("empty", "always"),
 ])
 def test_build_over_a_bad_index_file(tmp_path, lib, kind, policy):

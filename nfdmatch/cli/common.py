@@ -383,13 +383,15 @@ def curve_key(curve_id: str) -> str:
     return os.path.realpath(path) + ("" if selected is None else f"#{selected}")
 
 
-def exclude_self(query_id: str, rows: list[dict], top: int) -> list[dict]:
+def exclude_self(query_id: str, rows: list[dict], top: int, locate=None) -> list[dict]:
     """``rows`` (ranked, ``match`` ids) without those naming the query's curve, ranks
-    renumbered, at most ``top``. The caller asks the search for one row more."""
+    renumbered, at most ``top``. The caller asks the search for one row more. ``locate``:
+    id -> a path that opens it here (an index's ids are relative to its folder)."""
     if query_id == STDIN_ID:
         return rows[:top]
     key = curve_key(query_id)
-    kept = [row for row in rows if row["match"] != query_id and curve_key(row["match"]) != key]
+    where = locate or (lambda i: i)
+    kept = [row for row in rows if row["match"] != query_id and curve_key(where(row["match"])) != key]
     return [{**row, "rank": rank} for rank, row in enumerate(kept[:top], start=1)]
 
 

@@ -7,7 +7,7 @@ import sys
 import click
 
 from ..errors import NfdError
-from .common import EXIT_ERROR, error, finish, format_option, note, report_errors, say, write_rows
+from .common import EXIT_ERROR, detail, error, finish, format_option, note, report_errors, say, write_rows
 from .group import main
 
 
@@ -22,8 +22,11 @@ from .group import main
 @click.option("--boundaries", is_flag=True, help="Also extract the boundary loops of open meshes.")
 @click.option("--output-format", "curve_format", type=click.Choice(["obj", "csv", "vtp"]), default="obj",
               show_default=True, help="Curve file format of the written contours.")
+@click.option("--prune", is_flag=True,
+              help="Remove DIR's contour files written by an earlier extract that this run no longer produces "
+                   "(levels moved, mesh deleted); files extract did not write are never touched.")
 @format_option(help_extra=" of the list of written files (default: a table on a terminal, CSV otherwise)")
-def extract(meshes, out_dir, sections, axis, boundaries, curve_format, output_format):
+def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, output_format):
     """Write closed contours of triangle meshes (STL, PLY, OBJ, OFF, GLB/GLTF) as curve files.
 
     Each MESH (a file, or a folder searched recursively for mesh files) is cut by N
@@ -31,7 +34,10 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, output_fo
     box: lo + (i + 0.5) * (hi - lo) / N. Every closed loop of every section is written
     to its own file in DIR, named <mesh>_section-<axis><i>_at<level>_loop<k>; with
     --boundaries also the boundary loops of open meshes, <mesh>_boundary_loop<k>.
-    The folder is then ready for `nfdmatch index build DIR`.
+    The folder is then ready for `nfdmatch index build DIR`. DIR/.nfdmatch-extract.json
+    records the files extract wrote; with --prune, those this run does not produce
+    (stale levels, deleted meshes) are removed, unless changed since, or their mesh
+    failed to read this run.
 
     stdout lists the written files (file, mesh, kind, axis, level, loop, vertices).
     Notes on stderr: open section pieces skipped, meshes that gave nothing. A file
@@ -42,10 +48,11 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, output_fo
     Examples:
       nfdmatch extract part.stl -o contours/ --sections 20
       nfdmatch extract scans/ -o contours/ --axis z --boundaries --output-format vtp
+      nfdmatch extract parts/ -o contours/ --prune   # the folder then holds this run's contours
       nfdmatch index build contours/ --index parts.h5
     """
     from ..errors import ParameterError
-    from ..extract import extract_contours, find_mesh_files, write_contours
+    from ..extract import extract_contours, find_mesh_files, prune_contours, write_contours
 
     if sections == 0 and not boundaries:
         raise click.UsageError("nothing to extract: --sections 0 needs --boundaries")
@@ -72,7 +79,17 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, output_fo
              "vertices": c.n_vertices} for path, c in zip(written, contours)]
     write_rows(rows, ["file", "mesh", "kind", "axis", "level", "loop", "vertices"], output_format,
                group_by="mesh")
+    pruned = ""
+    if prune:
+        result = prune_contours(out_dir, written, keep_meshes=[e.path for e in errors if e.path])
+        for message in result.notes:
+            note(message)
+        for path in result.removed:
+            detail(f"removed {path}")
+        for path, why in result.kept:
+            note(f"{path}: not pruned: {why}")
+        pruned = f"; {len(result.removed)} stale contour file{'' if len(result.removed) == 1 else 's'} removed"
     meshes_with = len({c.mesh for c in contours})
-    say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}")
+    say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}{pruned}")
     finish(len(errors), len(files), "meshes")
 

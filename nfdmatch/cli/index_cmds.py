@@ -28,7 +28,7 @@ def index():
 
 
 @index.command("build")
-@click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
+@click.argument("sources", nargs=-1, required=False, metavar="[SOURCE...]")
 @index_option
 @click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.obj'.")
 @click.option("--rebuild", is_flag=True, help="Recompute every curve, even unchanged files.")
@@ -36,30 +36,43 @@ def index():
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores].")
 @click.option("--wait", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="Seconds to wait for another build's lock (0: fail at once).")
+@click.option("--allow-shrink", is_flag=True,
+              help="Allow a build that removes more than half of the index's files (or all of them).")
 @optional_descriptor_options("the index's")
 @input_format_option
 @format_option(("text", "json"), default="text",
                help_extra=": text, a summary on stderr; json, one summary object on stdout")
-def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, samples, harmonics, scale,
-                input_format, output_format):
+def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, allow_shrink, samples, harmonics,
+                scale, input_format, output_format):
     """Index the curves in SOURCE... (files or folders, recursively).
 
+    Without SOURCE, the sources (and --glob) of the index's last build are re-scanned:
+    the index records them. Files are stored relative to the index's folder (absolute
+    when outside it), so the same files are the same rows whatever the working
+    directory or the spelling of the sources.
+
     Incremental: unchanged files (same size and mtime, or same SHA-256) are not
-    recomputed, changed files are, files no longer under the sources are removed.
+    recomputed, changed files are, files no longer under the sources are removed. A
+    build that would remove more than half of the index's files, or all of them (an
+    empty or unmounted folder), refuses (exit 1) unless --allow-shrink is given.
     The index is written to a temporary file and moved into place when complete, so
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
-    The JSON summary: index, started (UTC), added, updated, removed, unchanged, failed,
-    failures (path and error of each failed file), curves, seconds.
+    The JSON summary: index, started (UTC), sources, added, updated, removed, unchanged,
+    failed, failures (path and error of each failed file), skipped (folders that could not
+    be listed, whose indexed files are kept, and non-regular files), curves, seconds; and shrink
+    ({removed, of, allowed}) when the build removes (or refused to remove) more than half.
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
-    1 nothing written (bad arguments, lock held, unreadable old index).
+    1 nothing written (bad arguments, lock held, unreadable old index, shrink refused).
 
     \b
     Examples:
       nfdmatch index build sample_curves/library --index demo.h5
+      nfdmatch index build --index demo.h5          # again, from its recorded sources
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
     """
+    from ..errors import ShrinkRefusedError
     from ..index import build_index
 
     started = datetime.now(timezone.utc)
@@ -67,19 +80,29 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     try:
         report = build_index(list(sources), index_path, samples=samples, harmonics=harmonics, scale=scale,
                              glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run,
-                             jobs=jobs, wait=wait, progress=progress)
+                             jobs=jobs, wait=wait, progress=progress, allow_shrink=allow_shrink)
+    except ShrinkRefusedError as exc:
+        if output_format == "json":             # cron logs the summary: it says what was refused
+            deliver(json.dumps({"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
+                                "refused": str(exc), "written": False,
+                                "shrink": {"removed": exc.removed, "of": exc.of, "allowed": False}}) + "\n",
+                    None)
+        raise
     finally:
         finish_bar()
     for notice in report.notices:
         note(notice, prefix="Notice: ")
-    for path, message in report.failures:
+    for path, message in report.skipped + report.failures:
         error(message)
     if output_format == "json":
         summary = {"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
-                   "added": report.added, "updated": report.updated, "removed": report.removed,
+                   "sources": report.sources, "added": report.added, "updated": report.updated, "removed": report.removed,
                    "unchanged": report.unchanged, "failed": report.failed,
                    "failures": [{"path": path, "error": message} for path, message in report.failures],
+                   "skipped": [{"path": path, "error": message} for path, message in report.skipped],
                    "curves": report.curves, "seconds": round(report.seconds, 3)}
+        if report.shrink:
+            summary["shrink"] = {"removed": report.shrink[0], "of": report.shrink[1], "allowed": bool(allow_shrink)}
         if dry_run:
             summary["dry_run"] = True
             summary["changes"] = [{"action": a, "path": p} for a, p in report.changes if a != "unchanged"]
@@ -90,11 +113,16 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
                     None)
         verb = "would change" if dry_run else (f"indexed into {index_path}" if report.written
                                                  else f"{index_path} is up to date")
+        shrunk = "" if not report.shrink else (
+            f" ({report.shrink[0]} of {report.shrink[1]} files removed: --allow-shrink)" if allow_shrink else
+            f" (a build would refuse to remove {report.shrink[0]} of {report.shrink[1]} files)")
         say(f"{verb}: {report.added} added, {report.updated} updated, {report.removed} removed, "
             f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
-            f"{report.seconds:.2f} s")
+            f"{report.seconds:.2f} s{shrunk}")
     if not dry_run:
-        finish(report.failed, report.added + report.updated + report.unchanged + report.failed, "files")
+        # a skipped folder or FIFO counts as a failed input: exit 3, so cron mails it
+        finish(report.failed + len(report.skipped),
+               report.added + report.updated + report.unchanged + report.failed + len(report.skipped), "files")
 
 
 @index.command("info")
@@ -102,7 +130,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
 @format_option(("text", "json"), default="text")
 @output_option()
 def index_info(index_path, output_format, output):
-    """Describe an index: files, curves, failed files with reasons, parameters, format, times, size.
+    """Describe an index: sources, files, curves, failed files with reasons, parameters, format, times, size.
 
     \b
     Example:
@@ -115,8 +143,11 @@ def index_info(index_path, output_format, output):
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
-    lines = [f"{key}\t{info.get(key)}" for key in (
-        "path", "format", "format_version", "nfdmatch_version", "files", "curves", "samples", "harmonics",
+    sources = info.get("sources")
+    lines = [f"path\t{info.get('path')}",
+             f"sources\t{'(not recorded)' if sources is None else ' '.join(sources)}"]
+    lines += [f"{key}\t{info.get(key)}" for key in (
+        "format", "format_version", "nfdmatch_version", "files", "curves", "samples", "harmonics",
         "scale", "created", "updated", "size_bytes")]
     failed = info.get("failed", [])
     lines.append(f"failed\t{len(failed)}")
@@ -285,8 +316,8 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
                                           **matching(method, strict_direction, mirror))
         finally:
             finish_bar()
-    if exclude_self_:
-        results = [exclude_self(q.id, res, top) for q, res in zip(inputs.curves, results)]
+        if exclude_self_:
+            results = [exclude_self(q.id, res, top, idx.locate) for q, res in zip(inputs.curves, results)]
     write_rows([{"query": q.id, **row} for q, res in zip(inputs.curves, results) for row in res],
                match_columns(details), output_format, output, group_by="query")
     if show_stats:

@@ -12,15 +12,18 @@ import numpy as np
 
 from .._version import __version__
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, validate_parameters
-from ..errors import IndexFormatError, InputError, NfdError, ParameterError, ReadError, WriteError
-from ..formats import format_of
-from ..sources import find_curve_files
+from ..errors import (IndexFormatError, InputError, NfdError, ParameterError, ReadError, ShrinkRefusedError,
+                      WriteError)
+from ..formats import format_of, split_selector
+from ..sources import _irregular, find_curve_files
 from .lock import _Lock
+from .paths import curve_ids, found_location, index_file, openable, source_location, stored
 from .pool import _run_tasks, _sha256
 from .reader import Index
 from .search_group import write_search_group
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
-from .writer import _CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _write_files_table
+from .writer import (_CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _Space, _write_files_table,
+                     _write_sources)
 
 
 def _utcnow() -> str:
@@ -47,14 +50,16 @@ class Action(enum.Enum):
 
 @dataclass(frozen=True)
 class PlanItem:
-    """One found file in the build plan: its ``path``, the ``action``, its ``old`` /files
-    record (None for a file new to the index) and the number of its pool ``task`` (None
-    unless ``action.reads_file``)."""
+    """One found file in the build plan: its stored ``path`` (docs/index-format.md, "Paths
+    and ids"), the ``action``, its ``old`` /files record (None for a file new to the index),
+    the number of its pool ``task`` (None unless ``action.reads_file``) and ``file``, the
+    path that opens it from the working directory (as the walk found it)."""
 
     path: str
     action: Action
     old: FileRecord | None
     task: int | None
+    file: str = ""
 
 
 @dataclass
@@ -63,8 +68,10 @@ class BuildReport:
 
     ``added, updated, removed, unchanged, failed`` count FILES; ``curves`` is the number of
     rows in the index after the build (dry run: in the existing index); ``failures`` lists
-    ``(path, message)`` of every failed file (new failures and files that stay failed);
-    ``changes`` lists ``(action, path)`` for every file, in path order, with action one of
+    ``(file, message)`` of every failed file (new failures and files that stay failed), the
+    file as it was opened from the working directory, as its message names it;
+    ``changes`` lists ``(action, path)`` for every file, in stored-path order (the path as
+    stored, docs/index-format.md "Paths and ids"), with action one of
     ``added, updated, removed, unchanged, failed``; ``notices`` are messages for the user;
     ``written`` is True when a new index file was moved into place (False for a dry run and
     for a build that found nothing to change); ``cells`` is the number of search cells the
@@ -84,6 +91,14 @@ class BuildReport:
     written: bool = False
     dry_run: bool = False
     cells: int = 0
+    #: the stored sources of this build (those given, or the recorded ones re-scanned)
+    sources: list = field(default_factory=list)
+    #: ``(path, message)`` of what the walk of the sources skipped: folders that could not be
+    #: listed (their files already in the index keep their rows) and non-regular files
+    skipped: list = field(default_factory=list)
+    #: ``(removed, of)`` files when the build removes more than half of the index's files
+    #: (or all): refused unless ``allow_shrink``; None otherwise
+    shrink: tuple | None = None
 
 
 def _load_old(index_path: str, rebuild: bool, notices: list):
@@ -91,14 +106,15 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
     try:
         h5, meta, files = _open_checked(index_path)
     except ReadError:
-        if not os.path.lexists(index_path):
+        if not os.path.exists(index_path):      # nothing there (or a link to a file to be made)
             return None
         raise
     except _Problem as exc:
         if exc.kind == "empty":
             notices.append(f"replacing the empty file at {index_path}")
             return None
-        if exc.kind in ("foreign", "not_hdf5"):
+        # a file that does not open as HDF5 cannot be shown to be an index: never replaced
+        if exc.kind in ("foreign", "not_hdf5", "unopenable"):
             raise IndexFormatError(f"{exc.message}; refusing to overwrite it: move it away or choose "
                                    f"another --index", path=index_path) from None
         if rebuild:
@@ -109,20 +125,23 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
     return Index(index_path, h5, meta, files)
 
 
-def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
+def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
                 input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None) -> BuildReport:
+                progress=None, allow_shrink=False) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
     ----------
     sources : path or list of paths: files (taken whatever their extension) or folders
-        (recursive; known extensions; hidden files and folders skipped).
-    index_path : the index file (None: :func:`default_index_path`). Its folder must exist.
+        (recursive; known extensions; hidden files and folders skipped). None or empty:
+        the sources the index records (its last build's), re-scanned.
+    index_path : the index file (None: :func:`default_index_path`). Its folder must exist. A
+        symbolic link is followed: its target is replaced (the link stays) and locked.
     samples, harmonics, scale : descriptor parameters; None keeps the existing index's value
         (defaults 128, 16, "rms" for a new index). An explicit value that differs from the
         index's recomputes every curve (with a notice).
-    glob : fnmatch pattern on file names found in folders.
+    glob : fnmatch pattern on file names found in folders (None with no ``sources``: the
+        recorded one).
     input_format : force this reader for every file (not recorded in the index).
     rebuild : recompute every file, even unchanged ones.
     dry_run : only plan: stat, hash files whose mtime changed, report; write nothing.
@@ -131,6 +150,11 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
         then as files finish; total counts the files that must be read or hashed (unchanged
         files are not counted).
+    allow_shrink : allow a build that removes more than half of the index's files, or all.
+
+    Files are stored, and compared with the index's, by the rule of docs/index-format.md
+    ("Paths and ids"): relative to the index's folder, whatever the working directory and
+    the spelling of the sources.
 
     Returns
     -------
@@ -139,7 +163,10 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     Raises
     ------
     ReadError : a source that does not exist; the index path is a directory.
-    InputError : no curve files under the sources and no existing index.
+    InputError : no curve files under the sources and no existing index; no sources given
+        and none recorded.
+    ShrinkRefusedError : the build would remove more than half of the index's files (or
+        all) and ``allow_shrink`` is False; nothing is written.
     ParameterError : invalid parameters or jobs.
     IndexLockedError : another build holds the lock (after ``wait`` seconds).
     IndexFormatError : the existing file is not a readable index (see docs/index-format.md for
@@ -148,9 +175,11 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
-    if isinstance(sources, (str, bytes, os.PathLike)):
+    if sources is None:
+        sources = []
+    elif isinstance(sources, (str, bytes, os.PathLike)):
         sources = [sources]
-    sources = [str(os.fspath(s)) for s in sources]
+    sources = [os.fsdecode(os.fspath(s)) for s in sources]
     if jobs is None:
         jobs = os.cpu_count() or 1
     if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
@@ -162,16 +191,33 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
             raise ParameterError(f"{name} must be an integer, got {value!r}")
     if os.path.isdir(index_path):
         raise ReadError("is a directory, not an index file", path=index_path)
+    # the real file: a link at index_path is followed, so that its target is what is locked,
+    # read and replaced (two names of one index are one index)
+    real_index = index_file(index_path)
+    base = os.path.dirname(real_index)
     folder = os.path.dirname(index_path) or "."
-    if not os.path.isdir(folder):
-        raise WriteError(f"cannot write the index: no folder {folder}", path=index_path)
+    if not os.path.isdir(folder) or not os.path.isdir(base):
+        raise WriteError(f"cannot write the index: no folder {folder if not os.path.isdir(folder) else base}",
+                         path=index_path)
 
-    found = sorted({os.path.normpath(p) for p in find_curve_files(sources, glob=glob)})
     report = BuildReport(dry_run=bool(dry_run))
-    lock = None if dry_run else _Lock(index_path, wait)
+    lock = None if dry_run else _Lock(real_index, wait, name=index_path)
     old = None
     try:
         old = _load_old(index_path, rebuild, report.notices)
+        recorded = None if old is None else old.sources()
+        if not sources:
+            if old is None:
+                raise InputError("no SOURCE given and no index to take them from; name the files or folders "
+                                 "to index", path=index_path)
+            if recorded is None:
+                raise InputError("no SOURCE given and the index does not record its sources (it was built by an "
+                                 "older nfdmatch); name them once, later builds remember them", path=index_path)
+            sources = [openable(s, base) for s in recorded[0]]
+            if glob is None:
+                glob = recorded[1]
+        found, opens, stored_sources, unseen = _find(sources, glob, base, report.skipped)
+        report.sources = stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
 
@@ -193,21 +239,35 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
         recompute_all = bool(rebuild) or bool(changed) or old is None
         if not found and old is not None:
             report.notices.append(f"no curve files found under {', '.join(sources)}: "
-                                  f"every file is removed from the index")
+                                  f"every file would be removed from the index")
 
-        # the plan
-        old_rows = {}
+        # the plan. An index that does not record its sources stored paths relative to its
+        # build's working directory: they are mapped to the stored rule from this one, so
+        # that its unchanged files keep their rows (with new ids) instead of all being
+        # removed and added again
         old_files = [] if old is None else old.files()
+        rekey = old is not None and recorded is None
+        old_rows = {}
         for i, r in enumerate(old_files):
-            old_rows[r.path] = (i, r)
+            key = stored(source_location(r.path), base) if rekey else r.path
+            old_rows.setdefault(key, (i, r))
         found_set = set(found)
+        # a folder that could not be listed this time (permissions, I/O) keeps its files'
+        # rows as they were: a fault of the machine must not remove curves
+        held = {key for key, (_, r) in old_rows.items() if key not in found_set and any(
+            key == u or key.startswith(u.rstrip("/") + "/") for u in unseen)}
         items: list[PlanItem] = []
         tasks = []
-        for path in found:
+        for path in sorted(found_set | held):
             entry = old_rows.get(path)
             r = entry[1] if entry else None
+            if path in held:
+                items.append(PlanItem(path, Action.COPY if r.status == "ok" else Action.KEEP_FAILED, r, None,
+                                      openable(path, base)))
+                continue
+            file = opens[path]
             try:
-                st = os.stat(path)
+                st = os.stat(file)
                 size, mtime = int(st.st_size), int(st.st_mtime_ns)
             except OSError:
                 size = mtime = None
@@ -222,16 +282,34 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
             task = None
             if action.reads_file:
                 task = len(tasks)
-                tasks.append((path, input_format, params["samples"], params["harmonics"], params["scale"], old_sha))
-            items.append(PlanItem(path, action, r, task))
-        removed = [r.path for r in old_files if r.path not in found_set]
+                tasks.append((file, input_format, params["samples"], params["harmonics"], params["scale"], old_sha))
+            items.append(PlanItem(path, action, r, task, file))
+        removed = [r.path for key, (_, r) in old_rows.items() if key not in found_set and key not in held]
+
+        # an empty or unmounted source folder must not wipe an index from cron
+        if old_files and (len(removed) == len(old_files) or 2 * len(removed) > len(old_files)):
+            report.shrink = (len(removed), len(old_files))
+            what = (f"would remove {'all' if len(removed) == len(old_files) else len(removed)} of the "
+                    f"index's {len(old_files)} files")
+            if dry_run and not allow_shrink:
+                report.notices.append(f"a build {what}: it will refuse unless --allow-shrink is given")
+            elif not allow_shrink:
+                cause = "no curve files found under " + ", ".join(sources) if not found else \
+                    f"{len(found)} files found under {', '.join(sources)}"
+                refused = ShrinkRefusedError(f"refusing to build: it {what} ({cause}; an empty or unmounted "
+                                             f"folder?); pass --allow-shrink to remove them", path=index_path)
+                refused.removed, refused.of = report.shrink
+                raise refused
+            else:
+                report.notices.append(f"removing {len(removed)} of the index's {len(old_files)} files "
+                                      f"(--allow-shrink)")
 
         if dry_run:
             _dry_run_report(report, items, removed, old, progress)
             report.seconds = time.perf_counter() - t0
             return report
 
-        stale = _remove_stale_temps(index_path)
+        stale = _remove_stale_temps(real_index)
         if stale:
             report.notices.append(f"removed {len(stale)} temporary file(s) left by an interrupted build: "
                                   f"{', '.join(stale)}")
@@ -239,7 +317,9 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
         upgrade = old is not None and old.format_version < FORMAT_VERSION
         if upgrade:
             report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
-        needs_write = old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
+        new_sources = (stored_sources, glob or None)
+        needs_write = (old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
+                       or recorded != new_sources or any(it.path != it.old.path for it in items if it.old))
         if not needs_write:
             if progress is not None:
                 progress(0, 0)
@@ -250,12 +330,13 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
                 else:
                     report.failed += 1
                     report.changes.append(("failed", item.path))
-                    report.failures.append((item.path, item.old.error))
+                    report.failures.append((item.file or item.path, item.old.error))
             report.curves = old.n_curves
             report.seconds = time.perf_counter() - t0
             return report
 
-        _write(report, index_path, items, tasks, removed, old, params, jobs, lock, progress)
+        _write(report, real_index, items, tasks, removed, old, params, jobs, lock, progress,
+               sources=new_sources, name=index_path)
     finally:
         if old is not None:
             old.close()
@@ -263,6 +344,40 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
             lock.release()
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _find(sources: list[str], glob, base: str, skipped: list):
+    """The curve files under ``sources`` by stored path: ``(sorted stored paths, {stored path:
+    path that opens it, as found}, stored sources, stored paths of folders that could not be
+    listed)``. Two spellings of one file (``lib`` and ``/abs/lib``, a link to ``lib``) are one
+    file, the first spelling opens it. What a walk skips (folders it cannot list, FIFOs and
+    other non-regular files) is appended to ``skipped`` as ``(path, message)``."""
+    opens: dict[str, str] = {}
+    stored_sources: list[str] = []
+    unseen: list[str] = []
+    for source in sources:
+        real = source_location(source)
+        is_folder = os.path.isdir(source)
+        problems: list = []
+        files = find_curve_files([source], glob=glob, problems=problems)   # ReadError: a missing source
+        kind = None if is_folder else _irregular(split_selector(source)[0])
+        if kind is not None:                # a FIFO named directly: opening it would block the build
+            files = []
+            if any(path == source for path, _ in skipped):
+                continue
+            skipped.append((source, str(ReadError(f"is {kind}, not a regular file; skipped", path=source))))
+        key = stored(real, base)
+        if key not in stored_sources:
+            stored_sources.append(key)
+        for file in files:
+            opens.setdefault(stored(found_location(file, source, real, is_folder), base), file)
+        for problem in problems:
+            if any(path == problem.path for path, _ in skipped):
+                continue                     # named once, however many sources reach it
+            skipped.append((problem.path, str(problem)))
+            if problem.path and os.path.isdir(problem.path):
+                unseen.append(stored(found_location(problem.path, source, real, is_folder), base))
+    return sorted(opens), opens, stored_sources, unseen
 
 
 def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, progress) -> None:
@@ -277,20 +392,20 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
             actions[path] = "unchanged"
         elif item.action is Action.KEEP_FAILED:
             actions[path] = "failed"
-            report.failures.append((path, r.error))
+            report.failures.append((item.file or path, r.error))
         elif item.action is Action.COMPUTE:
             actions[path] = "added" if r is None else "updated"
             done += 1
         else:                                   # Action.HASH
             try:
-                same = _sha256(path) == r.sha256
+                same = _sha256(item.file or path) == r.sha256
             except OSError:
                 same = False
             if same and r.status == "ok":
                 actions[path] = "unchanged"
             elif same:
                 actions[path] = "failed"
-                report.failures.append((path, r.error))
+                report.failures.append((item.file or path, r.error))
             else:
                 actions[path] = "updated"
             done += 1
@@ -306,7 +421,11 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
 
 
 def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress):
+           progress, *, sources=((), None), name=None):
+    """Write the new index beside ``index_path`` (the real file) and move it into place;
+    ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
+    it (messages)."""
+    shown = index_path if name is None else name
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
     import secrets
@@ -334,11 +453,14 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
     actions: dict[str, str] = {p: "removed" for p in removed}
     now = _utcnow()
     try:
+        space = None
         try:
             h5 = h5py.File(tmp, "w", locking=False)
         except Exception as exc:
-            raise WriteError(f"cannot write the index: {_short(exc)}", path=index_path) from None
+            raise WriteError(f"cannot write the index: {_short(exc)}", path=shown) from None
         try:
+            space = _Space(h5)
+            space.reserve(0)                        # the superblock, attributes, small tables
             attrs = h5.attrs
             attrs["format"] = INDEX_FORMAT
             attrs["format_version"] = np.int64(FORMAT_VERSION)
@@ -348,26 +470,29 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             attrs["scale"] = params["scale"]
             attrs["created"] = (old.created if old is not None and old.created else now)
             attrs["updated"] = now
-            writer = _CurveWriter(h5, K)
+            writer = _CurveWriter(h5, K, space)
             run = _CopyRun(old, writer)
             for item in items:
                 path, r = item.path, item.old
                 file_row = len(records)
                 start = writer.rows + writer.pending_rows + run.rows
+                # a file whose stored path changed (an index upgraded to recorded sources)
+                # keeps its rows under ids made from the new path
+                new_ids = None if r is None or r.path == path else curve_ids(path, r.curve_count)
                 if item.action is Action.COPY:
-                    run.add(r.curve_start, r.curve_count, file_row)
+                    run.add(r.curve_start, r.curve_count, file_row, new_ids)
                     records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "ok", "", start, r.curve_count))
                     actions[path] = "unchanged"
                     continue
                 if item.action is Action.KEEP_FAILED:
                     records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "failed", r.error, start, 0))
                     actions[path] = "failed"
-                    report.failures.append((path, r.error))
+                    report.failures.append((item.file or path, r.error))
                     continue
                 res = result_of(item.task)
                 if res["status"] == "same":            # mtime changed, contents did not
                     if r.status == "ok":
-                        run.add(r.curve_start, r.curve_count, file_row)
+                        run.add(r.curve_start, r.curve_count, file_row, new_ids)
                         records.append(FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "ok", "", start,
                                                   r.curve_count))
                         actions[path] = "unchanged"
@@ -375,13 +500,13 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
                         records.append(FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "failed", r.error,
                                                   start, 0))
                         actions[path] = "failed"
-                        report.failures.append((path, r.error))
+                        report.failures.append((item.file or path, r.error))
                     continue
                 run.flush()
                 if res["status"] == "ok":
                     n = len(res["ids"])
                     piece = dict(res["arrays"])
-                    piece["id"] = np.asarray(res["ids"], dtype=object)
+                    piece["id"] = np.asarray(curve_ids(path, n), dtype=object)
                     piece["file"] = np.full(n, file_row, dtype=np.int32)
                     writer.append(piece)
                     records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
@@ -390,16 +515,28 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
                     records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "failed",
                                               res["error"], start, 0))
                     actions[path] = "failed"
-                    report.failures.append((path, res["error"]))
+                    report.failures.append((item.file or path, res["error"]))
             run.flush()
             writer.flush()
-            _write_files_table(h5, records)
+            _write_files_table(h5, records, space)
+            _write_sources(h5, *sources)
+            # the cells: features, squared norms, row numbers and first harmonics of every row
+            space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K)
             report.curves = writer.rows
+        except BaseException:
+            if space is not None:
+                space.abandon()                     # HDF5 cannot close a file it failed to write
+            raise
         finally:
             stream.close()                          # shuts the worker pool down
-            h5.close()
-        _fsync_path(tmp)
+            try:
+                h5.close()
+            except Exception:
+                if space is None or not space.abandoned:
+                    raise
+        _Space.release(tmp)
+        _fsync_path(tmp, strict=True)       # a full disk may show only here: never replace then
         os.replace(tmp, index_path)
         _fsync_path(folder, directory=True)
     except BaseException as exc:
@@ -407,8 +544,11 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             os.unlink(tmp)
         except OSError:
             pass
-        if isinstance(exc, OSError) and not isinstance(exc, NfdError):
-            raise WriteError(f"cannot write the index: {exc.strerror or _short(exc)}", path=index_path) from exc
+        # h5py reports a failed write (disk full, quota, file-size limit) as OSError, or as
+        # RuntimeError when it surfaces while closing the file
+        if isinstance(exc, (OSError, RuntimeError)) and not isinstance(exc, NfdError):
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else _short(exc)
+            raise WriteError(f"cannot write the index: {why}", path=shown) from None
         raise
     report.written = True
     for path in sorted(actions):

@@ -11,10 +11,14 @@ from ..errors import IndexLockedError, WriteError
 
 
 class _Lock:
-    """``flock(LOCK_EX)`` on ``INDEX.lock``; released by the kernel when the process dies."""
+    """``flock(LOCK_EX)`` on ``INDEX.lock``; released by the kernel when the process dies.
 
-    def __init__(self, index_path: str, wait: float):
+    ``index_path`` should be the index's real file (symbolic links resolved), so that every
+    name of one index takes one lock; ``name`` is the index as the user named it (messages)."""
+
+    def __init__(self, index_path: str, wait: float, name: str | None = None):
         self.path = index_path + ".lock"
+        index_path = index_path if name is None else name
         try:
             self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
         except OSError as exc:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import h5py
 import numpy as np
 
 from ..errors import IndexFormatError, NfdError, ParameterError
@@ -116,6 +117,34 @@ class Index:
                                    int(counts[i])) for i in range(F)]
             self._file_records = self._read(read)
         return list(self._file_records)
+
+    # -- where the files are (docs/index-format.md, "Paths and ids")
+    def sources(self):
+        """``(paths, glob)`` of the last build, as stored (``glob`` None for none), or None for
+        an index that does not record them (format 1, or an earlier format-2 writer)."""
+        def read():
+            g = self._h5.get("sources")
+            ds = g.get("path") if isinstance(g, h5py.Group) else None
+            # optional and only a build's default: a malformed one counts as absent
+            if not isinstance(ds, h5py.Dataset) or len(ds.shape) != 1 or ds.dtype.kind not in "OS" \
+                    or ds.shape[0] > 100_000:
+                return None
+            paths = ds.asstr()[...].tolist() if ds.shape[0] else []
+            glob = g.attrs.get("glob", "")
+            glob = glob.decode("utf-8", "replace") if isinstance(glob, bytes) else str(glob)
+            return paths, (glob or None)
+        return self._read(read)
+
+    def locate(self, curve_id: str) -> str:
+        """A path (``file#i`` kept) that opens the file of a stored id from the working
+        directory: a relative stored path is relative to the index's folder. An index that does
+        not record its sources stored paths relative to its build's working directory: ids
+        are then returned as they are."""
+        from .paths import index_folder, openable
+
+        if os.path.isabs(curve_id) or self.sources() is None:
+            return curve_id
+        return openable(curve_id, index_folder(self.path))
 
     # -- curves
     def ids(self, start: int = 0, stop: int | None = None) -> list[str]:
@@ -237,7 +266,8 @@ class Index:
         except Exception:
             size = os.path.getsize(self.path) if os.path.exists(self.path) else 0
         failed = [{"path": r.path, "error": r.error} for r in self.files() if r.status != "ok"]
-        return {"path": self.path, "format": INDEX_FORMAT, "format_version": self.format_version,
+        recorded = self.sources()
+        return {"path": self.path, "sources": None if recorded is None else recorded[0], "format": INDEX_FORMAT, "format_version": self.format_version,
                 "nfdmatch_version": self.nfdmatch_version, "files": self.n_files, "curves": self.n_curves,
                 "failed": failed, "samples": self.samples, "harmonics": self.harmonics, "scale": self.scale,
                 "created": self.created, "updated": self.updated, "size_bytes": size}

@@ -68,7 +68,8 @@ class FileRecord:
 
 class _Problem(Exception):
     """Why a file is not a readable index; ``kind`` drives what a build may do with it:
-    ``empty``, ``not_hdf5``, ``foreign`` (never overwritten), ``corrupt``, ``newer``."""
+    ``empty``, ``not_hdf5``, ``foreign``, ``unopenable`` (HDF5 that does not open: never
+    overwritten), ``corrupt``, ``newer``."""
 
     def __init__(self, kind: str, message: str):
         super().__init__(message)
@@ -142,7 +143,7 @@ def _open_checked(path: str):
     except Exception as exc:  # h5py raises OSError, sometimes others, for damaged files
         if not _has_hdf5_signature(path):
             raise _Problem("not_hdf5", "not an nfdmatch index (not an HDF5 file)") from None
-        raise _Problem("corrupt", f"truncated or corrupted HDF5 file ({_short(exc)})") from None
+        raise _Problem("unopenable", f"truncated or corrupted HDF5 file ({_short(exc)})") from None
     try:
         meta, files = _validate(h5)
     except _Problem:

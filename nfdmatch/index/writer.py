@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 
@@ -19,14 +20,118 @@ _SCATTERED_CHUNK_ROWS = {"coefficients": 256, "id": 256}
 _WRITE_ROWS = 65536
 
 
+#: bytes reserved beyond each estimate (HDF5's metadata: B-trees, heaps, the superblock)
+_SLACK = 1 << 20
+
+
+class _Space:
+    """Disk space for a new index file, reserved before HDF5 writes into it.
+
+    HDF5 does not survive a failed write: after ENOSPC (or EFBIG, EIO) its file can no longer
+    be closed, the library keeps retrying the write and the process crashes at exit
+    (SIGSEGV). So the space for each large write is reserved first (``fallocate``, keeping
+    the file size; within ``ulimit -f``), and a full disk is an ``OSError`` raised here,
+    before HDF5 tries. :meth:`abandon` then points HDF5's file descriptor at memory so that
+    closing the dead file cannot fail either. File systems without ``fallocate`` are
+    written unreserved (as before)."""
+
+    def __init__(self, h5):
+        try:
+            self.fd = int(h5.id.get_vfd_handle())
+        except Exception:                       # another driver: nothing to reserve on
+            self.fd = None
+        self.reserved = 0
+        self.abandoned = False
+
+    def reserve(self, nbytes: int) -> None:
+        """Make sure twice ``nbytes`` more (plus slack) can be written; OSError when not."""
+        if self.fd is None:
+            return
+        want = max(os.fstat(self.fd).st_size, self.reserved) + 2 * int(nbytes) + _SLACK
+        if want <= self.reserved:
+            return
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if soft != resource.RLIM_INFINITY and want > soft:
+            raise OSError(errno.EFBIG, f"{os.strerror(errno.EFBIG)} (the file-size limit, ulimit -f)")
+        code = _fallocate_keep_size(self.fd, want)
+        if code in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL, errno.ENODEV):
+            self.fd = None
+            return
+        if code:
+            raise OSError(code, os.strerror(code))
+        self.reserved = want
+
+    def abandon(self) -> None:
+        """The file is given up: HDF5's later writes (while closing it) go to memory."""
+        if self.fd is None or self.abandoned:
+            return
+        self.abandoned = True
+        try:
+            mem = os.memfd_create("nfdmatch-abandoned-index")
+        except (AttributeError, OSError):
+            mem = os.open(os.devnull, os.O_RDWR)
+        try:
+            os.dup2(mem, self.fd)
+        except OSError:
+            pass
+        finally:
+            os.close(mem)
+
+    @staticmethod
+    def release(path: str) -> None:
+        """Free the reserved blocks beyond the end of the closed file."""
+        try:
+            os.truncate(path, os.path.getsize(path))
+        except OSError:
+            pass
+
+
+def _fallocate_keep_size(fd: int, length: int) -> int:
+    """``fallocate(fd, FALLOC_FL_KEEP_SIZE, 0, length)``; 0 or the errno."""
+    import ctypes
+    import ctypes.util
+
+    global _LIBC
+    if _LIBC is None:
+        try:
+            _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+            _LIBC.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_longlong, ctypes.c_longlong]
+        except (OSError, AttributeError):
+            _LIBC = False
+    if not _LIBC:
+        return errno.ENOSYS
+    if _LIBC.fallocate(fd, 1, 0, length) == 0:
+        return 0
+    return ctypes.get_errno() or errno.EIO
+
+
+_LIBC = None
+
+
+def _nbytes(piece: dict) -> int:
+    """Bytes a piece of rows takes in the file (strings: their UTF-8 length plus heap overhead)."""
+    total = 0
+    for value in piece.values():
+        value = np.asarray(value)
+        if value.dtype == object:
+            total += sum(len(str(v).encode("utf-8", "surrogateescape")) + 32 for v in value.reshape(-1))
+        else:
+            total += value.nbytes
+    return total
+
+
 class _CurveWriter:
     """Appends rows to resizable /curves datasets with few large writes.
 
     The datasets are created at the first write, chunked by ``min(CHUNK_ROWS, rows of that
-    write)`` rows, so that a small index is not padded to whole large chunks."""
+    write)`` rows, so that a small index is not padded to whole large chunks. ``space``: a
+    :class:`_Space` that each write reserves its bytes in first."""
 
-    def __init__(self, h5, K: int):
+    def __init__(self, h5, K: int, space: "_Space | None" = None):
         self.group = h5.create_group("curves")
+        self.space = space
         self.K = K
         self.ds = None
         self.pending: list[dict] = []
@@ -55,6 +160,8 @@ class _CurveWriter:
         if not self.pending:
             return
         n = self.pending_rows
+        if self.space is not None:
+            self.space.reserve(sum(_nbytes(p) for p in self.pending))
         for name, ds in self.ds.items():
             parts = [p[name] for p in self.pending]
             data = parts[0] if len(parts) == 1 else np.concatenate(parts)
@@ -64,9 +171,12 @@ class _CurveWriter:
         self.pending, self.pending_rows = [], 0
 
 
-def _write_files_table(h5, records: list[FileRecord]) -> None:
+def _write_files_table(h5, records: list[FileRecord], space: "_Space | None" = None) -> None:
     g = h5.create_group("files")
     F = len(records)
+    if space is not None:
+        space.reserve(sum(len(r.path.encode("utf-8", "surrogateescape")) + len(r.error.encode("utf-8", "replace"))
+                          + 200 for r in records))
     g.create_dataset("path", data=np.array([r.path for r in records], dtype=object), dtype=_STR, shape=(F,))
     g.create_dataset("size", data=np.array([r.size for r in records], dtype=np.int64), shape=(F,))
     g.create_dataset("mtime_ns", data=np.array([r.mtime_ns for r in records], dtype=np.int64), shape=(F,))
@@ -79,15 +189,27 @@ def _write_files_table(h5, records: list[FileRecord]) -> None:
     g.create_dataset("curve_count", data=np.array([r.curve_count for r in records], dtype=np.int64), shape=(F,))
 
 
-def _fsync_path(path: str, directory: bool = False) -> None:
+def _write_sources(h5, paths: list[str], glob: str | None) -> None:
+    """/sources: the stored sources of this build and its glob (docs/index-format.md)."""
+    g = h5.create_group("sources")
+    g.create_dataset("path", data=np.array(list(paths), dtype=object), dtype=_STR, shape=(len(paths),))
+    g.attrs["glob"] = glob or ""
+
+
+def _fsync_path(path: str, directory: bool = False, strict: bool = False) -> None:
+    """fsync ``path``. ``strict``: a failure raises (the new index's own data: a full disk
+    can surface only here); else it is ignored (a folder's fsync is best effort)."""
     try:
         fd = os.open(path, os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0))
     except OSError:
+        if strict:
+            raise
         return
     try:
         os.fsync(fd)
     except OSError:
-        pass
+        if strict:
+            raise
     finally:
         os.close(fd)
 
@@ -124,22 +246,26 @@ class _CopyRun:
         self.start = self.stop = 0
         self.file_rows: list[int] = []
         self.counts: list[int] = []
+        self.ids: list = []
 
     @property
     def rows(self) -> int:
         return self.stop - self.start
 
-    def add(self, start: int, count: int, file_row: int) -> None:
+    def add(self, start: int, count: int, file_row: int, ids: list | None = None) -> None:
+        """Copy old rows ``[start, start + count)`` as file ``file_row``; ``ids``: new ids for
+        them (a file whose stored path changed), None to keep the stored ones."""
         if count == 0:
             return
         if self.rows and start != self.stop:
             self.flush()
         if not self.rows:
             self.start = self.stop = start
-            self.file_rows, self.counts = [], []
+            self.file_rows, self.counts, self.ids = [], [], []
         self.stop += count
         self.file_rows.append(file_row)
         self.counts.append(count)
+        self.ids.append(ids)
         if self.rows >= _WRITE_ROWS:
             self.flush()
 
@@ -147,10 +273,19 @@ class _CopyRun:
         if not self.rows:
             return
         file_col = np.repeat(np.asarray(self.file_rows, dtype=np.int32), self.counts)
+        new_ids = None
+        if any(ids is not None for ids in self.ids):
+            new_ids, at = [], self.start
+            for count, ids in zip(self.counts, self.ids):
+                new_ids.extend(self.old.ids(at, at + count) if ids is None else ids)
+                at += count
+            new_ids = np.asarray(new_ids, dtype=object)
         for a in range(self.start, self.stop, _WRITE_ROWS):
             b = min(self.stop, a + _WRITE_ROWS)
             piece = self.old._raw_rows(a, b)
             piece["file"] = file_col[a - self.start:b - self.start]
+            if new_ids is not None:
+                piece["id"] = new_ids[a - self.start:b - self.start]
             self.writer.append(piece)
         self.start = self.stop = 0
-        self.file_rows, self.counts = [], []
+        self.file_rows, self.counts, self.ids = [], [], []

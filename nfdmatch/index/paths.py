@@ -1,0 +1,96 @@
+"""Where an index's files are: the stored path of a found file, and back (docs/index-format.md,
+"Paths and ids").
+
+A stored path is relative to the index's folder (the folder of its real file) when the file
+lies inside it, else absolute; it never depends on the build's working directory or on how
+the source was spelled. These functions are pure path arithmetic plus ``realpath``: they
+never open a curve file.
+"""
+
+from __future__ import annotations
+
+import os
+
+from ..errors import escape_name
+
+
+def index_file(index_path: str) -> str:
+    """The index's real file: a symbolic link at ``index_path`` resolved (the link stays a
+    link: builds replace its target, and lock it)."""
+    return os.path.realpath(index_path)
+
+
+def index_folder(index_path: str) -> str:
+    """The folder stored paths are relative to: that of the index's real file."""
+    return os.path.dirname(index_file(index_path))
+
+
+def _real_parent(path: str) -> str:
+    """``path`` with its folder resolved and its own name kept (a link to a file keeps its name)."""
+    folder, name = os.path.split(os.path.abspath(path))
+    return os.path.join(os.path.realpath(folder), name)
+
+
+def stored(location: str, base: str) -> str:
+    """The stored form of an absolute real ``location``: relative to ``base`` inside it, else
+    absolute; undecodable bytes escaped (HDF5 strings are UTF-8)."""
+    # a string prefix first: relpath costs ~70 us, and a build calls this once per file
+    prefix = base if base.endswith(os.sep) else base + os.sep
+    if location.startswith(prefix) and os.pardir not in location.split(os.sep):
+        return escape_name(location[len(prefix):])
+    rel = os.path.relpath(location, base)
+    if rel == os.pardir or rel.startswith(os.pardir + os.sep):
+        return escape_name(location)
+    return escape_name(rel)
+
+
+def source_location(source: str) -> str:
+    """The real location of a source as given: a folder resolved (``lib``, ``./lib/``,
+    ``/abs/lib`` and a link to it are one place); a file (or ``file#i``) by its folder."""
+    from ..formats import split_selector
+
+    path, selected = split_selector(source)
+    if selected is not None and os.path.isfile(path):
+        return _real_parent(path) + f"#{selected}"
+    if os.path.isdir(source):
+        return os.path.realpath(source)
+    return _real_parent(source)
+
+
+def found_location(found: str, source: str, source_real: str, is_folder: bool) -> str:
+    """The real location of ``found``, a path that a walk of ``source`` (real location
+    ``source_real``; ``is_folder``: the source is a folder) yielded: the part below the source
+    is kept as found (a walk follows no folder links below the source, and a link to a file
+    keeps its name)."""
+    if not is_folder:
+        return source_real
+    prefix = source if source.endswith(os.sep) else source + os.sep
+    if found.startswith(prefix):                  # the walk joins below the source as given
+        below = os.path.normpath(found[len(prefix):])
+        if not below.startswith(os.pardir):
+            return os.path.join(source_real, below)
+    return os.path.join(source_real, os.path.relpath(found, source))
+
+
+def curve_ids(path: str, count: int) -> list[str]:
+    """Ids of a file's ``count`` curves from its stored path: ``path`` alone, else ``path#i``
+    (the readers' rule, :func:`nfdmatch.formats._chain.curve_id`)."""
+    return [path] if count == 1 else [f"{path}#{i}" for i in range(count)]
+
+
+def openable(path: str, base: str) -> str:
+    """A path that opens the stored ``path`` (``file#i`` kept) from the working directory:
+    relative to it when the file is below it (messages stay short), else absolute."""
+    full = path if os.path.isabs(path) else os.path.join(base, path)
+    return display(full)
+
+
+def display(path: str) -> str:
+    """An absolute ``path`` as the user would type it from the working directory."""
+    try:
+        rel = os.path.relpath(path)
+    except ValueError:
+        return path
+    if rel == os.pardir or rel.startswith(os.pardir + os.sep):
+        return path
+    return rel

@@ -1,0 +1,121 @@
+"""`nfdmatch extract --prune` and the output folder's manifest (docs/extract.md, "Stale files")."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import trimesh
+from click.testing import CliRunner
+
+from nfdmatch.cli import main
+from nfdmatch.extract import MANIFEST, prune_contours, read_manifest
+
+
+def run(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return result.exit_code, result.stdout, result.stderr
+
+
+def cylinder(path, height=8.0, shift=0.0):
+    trimesh.creation.cylinder(radius=0.8, height=height, sections=32).apply_translation(
+        [0.0, 0.0, shift]).export(path)
+
+
+def names(folder) -> list[str]:
+    return sorted(os.listdir(folder))
+
+
+@pytest.fixture
+def parts(tmp_path):
+    d = tmp_path / "parts"
+    d.mkdir()
+    cylinder(d / "rod.stl")
+    trimesh.creation.torus(major_radius=2.0, minor_radius=0.5, major_sections=48,
+                           minor_sections=24).export(d / "ring.ply")
+    return d
+
+
+def contours_of(folder, stem):
+    return [n for n in names(folder) if n.startswith(stem + "_")]
+
+
+def test_a_changed_mesh_whose_levels_move_leaves_no_stale_files(parts, tmp_path):
+    out = tmp_path / "contours"
+    code, _, err = run("extract", parts, "-o", out, "--sections", 3)
+    assert code == 0, err
+    old_rod, ring = contours_of(out, "rod"), contours_of(out, "ring")
+    assert len(old_rod) == 3 and len(ring) == 4 and MANIFEST in names(out)
+    (out / "notes.obj").write_text("v 0 0 0\n")             # not extract's: never touched
+    cylinder(parts / "rod.stl", height=12.0, shift=1.0)      # the levels move: new names
+    # without --prune the old files stay (and the manifest remembers them)
+    code, _, err = run("extract", parts, "-o", out, "--sections", 3)
+    assert code == 0, err
+    assert set(old_rod) <= set(names(out)) and len(contours_of(out, "rod")) == 6
+    # a stale file the user edited since is not extract's any more: left alone, said so
+    edited = out / old_rod[0]
+    edited.write_text(edited.read_text() + "# my note\n")
+    code, stdout, err = run("extract", parts, "-o", out, "--sections", 3, "--prune", "--format", "csv", "-v")
+    assert code == 0, err
+    new_rod = contours_of(out, "rod")
+    assert sorted(set(new_rod) - {old_rod[0]}) == sorted(n for n in new_rod if n not in old_rod)
+    assert len(new_rod) == 4 and old_rod[0] in new_rod
+    assert f"{edited}: not pruned: changed since extract wrote it; left alone" in err
+    assert f"removed {out / old_rod[1]}" in err and "2 stale contour files removed" in err
+    assert "notes.obj" in names(out) and contours_of(out, "ring") == ring
+    # stdout lists exactly the written files, and the manifest exactly those
+    listed = sorted(os.path.basename(line.split(",")[0]) for line in stdout.splitlines()[1:])
+    entries, problem = read_manifest(out)
+    assert problem is None and sorted(entries) == listed
+    assert sorted(names(out)) == sorted(listed + ["notes.obj", old_rod[0], MANIFEST])
+
+
+def test_a_deleted_mesh_loses_its_contours_and_a_failed_one_keeps_them(parts, tmp_path):
+    out = tmp_path / "contours"
+    assert run("extract", parts, "-o", out, "--sections", 2)[0] == 0
+    assert len(contours_of(out, "ring")) == 4 and len(contours_of(out, "rod")) == 2
+    # the ring's file turns unreadable: this run fails it (exit 3) and keeps its contours
+    ring = (parts / "ring.ply").read_bytes()
+    (parts / "ring.ply").write_text("garbage\n")
+    code, _, err = run("extract", parts, "-o", out, "--sections", 2, "--prune")
+    assert code == 3 and len(contours_of(out, "ring")) == 4
+    assert "its mesh could not be read this run" in err
+    (parts / "ring.ply").write_bytes(ring)
+    os.remove(parts / "ring.ply")                            # deleted for good
+    code, _, err = run("extract", parts, "-o", out, "--sections", 2, "--prune")
+    assert code == 0, err
+    assert contours_of(out, "ring") == [] and len(contours_of(out, "rod")) == 2
+    assert "4 stale contour files removed" in err
+    assert not [n for n in names(out) if n.startswith(".") and n != MANIFEST]   # no temporary files
+
+
+def test_the_manifest_is_stable_json_and_an_identical_rerun_leaves_it(parts, tmp_path):
+    out = tmp_path / "contours"
+    assert run("extract", parts / "rod.stl", "-o", out, "--sections", 2)[0] == 0
+    data = json.loads((out / MANIFEST).read_text())
+    assert data["format"] == "nfdmatch-extract-manifest" and data["version"] == 1
+    assert sorted(data["files"]) == contours_of(out, "rod")
+    entry = data["files"][contours_of(out, "rod")[0]]
+    assert entry["mesh"] == os.path.realpath(parts / "rod.stl") and len(entry["sha256"]) == 64
+    os.utime(out / MANIFEST, ns=(1, 1))
+    assert run("extract", parts / "rod.stl", "-o", out, "--sections", 2, "--prune")[0] == 0
+    assert os.stat(out / MANIFEST).st_mtime_ns == 1              # nothing changed: not rewritten
+
+
+def test_prune_never_follows_a_hostile_manifest(tmp_path):
+    out = tmp_path / "contours"
+    out.mkdir()
+    victim = tmp_path / "precious.txt"
+    victim.write_text("keep me\n")
+    import hashlib
+
+    sha = hashlib.sha256(victim.read_bytes()).hexdigest()
+    (out / MANIFEST).write_text(json.dumps({"format": "nfdmatch-extract-manifest", "version": 1, "files": {
+        "../precious.txt": {"mesh": "x", "sha256": sha}, str(victim): {"mesh": "x", "sha256": sha}}}))
+    result = prune_contours(out, [])
+    assert result.removed == [] and victim.read_text() == "keep me\n"
+    (out / MANIFEST).write_text("{not json")
+    result = prune_contours(out, [])
+    assert result.removed == [] and "cannot read the manifest" in result.notes[0]
