@@ -1,7 +1,8 @@
 """Shared test fixtures; curve generators re-exported from ``oracle``.
 
 Tests can use ``from oracle import random_smooth_curve, oracle_integer, ...``
-(or ``from conftest import ...``): tests/ is on sys.path.
+(or ``from conftest import ...``): tests/ is on sys.path. ``run_cli`` runs the CLI the
+way every CLI test does; ``ROOT`` is the repository folder.
 """
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ import pytest
 from hypothesis import settings
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
+#: the repository's root folder (sample_curves/, README.md, ...)
+ROOT = os.path.dirname(_HERE)
 if _HERE not in sys.path:
     sys.path.insert(0, _HERE)
 
@@ -45,3 +48,14 @@ def rng(request):
     """``np.random.default_rng`` seeded deterministically from the test id."""
     seed = zlib.crc32(request.node.nodeid.encode("utf-8"))
     return np.random.default_rng(seed)
+
+
+def run_cli(*args, env=None, input=None):
+    """Run ``nfdmatch ARGS...`` through click's CliRunner (arguments as str): returns
+    ``(exit_code, stdout, stderr)``, separately, as a user's shell would see them."""
+    from click.testing import CliRunner
+
+    from nfdmatch.cli import main
+
+    result = CliRunner(env=env).invoke(main, [str(a) for a in args], catch_exceptions=False, input=input)
+    return result.exit_code, result.stdout, result.stderr

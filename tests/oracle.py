@@ -2,7 +2,7 @@
 
 Deliberately simple and independent of :mod:`nfdmatch` (plain numpy only).
 
-Conventions (see /work/shared/docs/method.md):
+Conventions (see docs/method.md):
 
 * ``resample(points, m)``: uniform arc-length resampling of the closed polyline
   (closing edge included), sample ``j`` at arc length ``j * L / m`` from vertex 0.

@@ -11,20 +11,13 @@ import sys
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from oracle import random_rigid_motion, random_smooth_curve, reverse, start_shift, torus_knot
 
 from nfdmatch import __version__, write_curves
-from nfdmatch.cli import main
+from conftest import ROOT, run_cli as run
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SAMPLES = os.path.join(ROOT, "sample_curves")
-
-
-def run(*args):
-    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
 
 
 @pytest.fixture

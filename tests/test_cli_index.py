@@ -10,21 +10,13 @@ import shutil
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from oracle import random_rigid_motion, smooth_curve_samplings, start_shift
 
 from nfdmatch import write_curves
-from nfdmatch.cli import main
+from conftest import ROOT, run_cli as run
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LIBRARY = os.path.join(ROOT, "sample_curves", "library")
 QUERIES = os.path.join(ROOT, "sample_curves", "queries")
-
-
-def run(*args, env=None):
-    result = CliRunner(env=env).invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
 
 
 @pytest.fixture

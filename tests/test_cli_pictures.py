@@ -10,21 +10,14 @@ import os
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from oracle import random_rigid_motion, random_smooth_curve, reverse, start_shift, torus_knot
 
 from nfdmatch import read_curve, read_curves, write_curves
-from nfdmatch.cli import main
+from conftest import ROOT, run_cli as run
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SAMPLES = os.path.join(ROOT, "sample_curves")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def run(*args):
-    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
 
 
 def png_size(path) -> tuple[int, int]:

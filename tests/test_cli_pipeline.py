@@ -15,19 +15,12 @@ import sys
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from nfdmatch.cli import main
+from conftest import ROOT, run_cli as run
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LIBRARY = os.path.join(ROOT, "sample_curves", "library")
 QUERIES = os.path.join(ROOT, "sample_curves", "queries")
 TREFOIL = os.path.join(QUERIES, "trefoil-posed.obj")
-
-
-def run(*args, env=None, input=None):
-    result = CliRunner(env=env).invoke(main, [str(a) for a in args], catch_exceptions=False, input=input)
-    return result.exit_code, result.stdout, result.stderr
 
 
 @pytest.fixture

@@ -19,14 +19,10 @@ from nfdmatch.errors import MeshError, ParameterError, ReadError, UnknownFormatE
 from nfdmatch.extract import (Contour, extract_contours, find_mesh_files, mesh_stem, section_levels,
                               write_contours)
 from nfdmatch.formats import read_curves
+from conftest import run_cli as run
 
 R_CYL, H_CYL, CYL_SIDES = 0.8, 8.0, 64          # a long cylinder along z
 R_MAJOR, R_MINOR = 2.0, 0.5                      # a torus around z
-
-
-def run(*args):
-    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
 
 
 def rows_of(out: str) -> list[dict]:

@@ -5,18 +5,11 @@ from __future__ import annotations
 import json
 import os
 
-import numpy as np
 import pytest
 import trimesh
-from click.testing import CliRunner
 
-from nfdmatch.cli import main
 from nfdmatch.extract import MANIFEST, prune_contours, read_manifest
-
-
-def run(*args):
-    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
+from conftest import run_cli as run
 
 
 def cylinder(path, height=8.0, shift=0.0):

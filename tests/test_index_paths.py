@@ -7,29 +7,20 @@ from __future__ import annotations
 import errno
 import json
 import os
-import shutil
 import subprocess
 import sys
 
 import h5py
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from oracle import random_smooth_curve
 
 import nfdmatch.index as nindex
 from nfdmatch import write_curves
-from nfdmatch.cli import main
-from nfdmatch.errors import IndexFormatError, IndexLockedError, InputError, ShrinkRefusedError, WriteError
+from nfdmatch.errors import IndexFormatError, IndexLockedError, ShrinkRefusedError, WriteError
 from nfdmatch.index import build_index, open_index
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def run(*args, env=None):
-    result = CliRunner(env=env).invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
+from conftest import ROOT, run_cli as run
 
 
 def _library(folder, rng, n=5):

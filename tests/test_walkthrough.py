@@ -11,16 +11,8 @@ import os
 import re
 
 import pytest
-from click.testing import CliRunner
 
-from nfdmatch.cli import main
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def run(*args):
-    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
+from conftest import ROOT, run_cli as run
 
 
 @pytest.fixture(scope="module")
