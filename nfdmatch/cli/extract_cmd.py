@@ -52,7 +52,7 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, ou
       nfdmatch index build contours/ --index parts.h5
     """
     from ..errors import ParameterError
-    from ..extract import extract_contours, find_mesh_files, prune_contours, write_contours
+    from ..mesh import extract_contours, find_mesh_files, prune_contours, write_contours
 
     if sections == 0 and not boundaries:
         raise click.UsageError("nothing to extract: --sections 0 needs --boundaries")

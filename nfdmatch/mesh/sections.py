@@ -1,0 +1,354 @@
+"""Planar sections and boundary loops of a triangle mesh, as closed contours (see the
+package docstring: how a section is computed, orientation, branching points)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..curve import clean_points
+from ..errors import CurveError, ParameterError
+from ..formats._chain import chain_segments
+from .contours import AXES, Contour, DEFAULT_SECTIONS, ExtractResult
+from .load import load_mesh
+
+
+def section_levels(bounds, sections: int, axis: str = "auto") -> tuple[str, np.ndarray]:
+    """The axis and levels of ``sections`` evenly spaced planes.
+
+    Parameters
+    ----------
+    bounds : (2, 3) float, ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]``.
+    sections : N >= 0.
+    axis : ``"x"``, ``"y"``, ``"z"`` or ``"auto"`` (longest extent; ties to the
+        earlier axis).
+
+    Returns
+    -------
+    ``(axis, levels)``: the axis name and (N,) float64
+    ``lo + (i + 0.5) * (hi - lo) / N``, i = 0 .. N-1 (all equal to ``lo`` when
+    the extent is 0).
+    """
+    b = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
+    if axis == "auto":
+        a = int(np.argmax(b[1] - b[0]))
+    elif axis in AXES:
+        a = AXES.index(axis)
+    else:
+        raise ParameterError(f"unknown axis {axis!r}; choose one of x, y, z, auto")
+    lo, hi = b[0, a], b[1, a]
+    levels = lo + (np.arange(sections, dtype=np.float64) + 0.5) * ((hi - lo) / max(sections, 1))
+    return AXES[a], levels
+
+
+# ---------------------------------------------------------------------------
+# extraction
+# ---------------------------------------------------------------------------
+
+def extract_contours(path, *, sections: int = DEFAULT_SECTIONS, axis: str = "auto",
+                     boundaries: bool = False) -> ExtractResult:
+    """Closed section loops (and boundary loops) of the triangle mesh in ``path``.
+
+    Parameters
+    ----------
+    path : a mesh file (see :func:`load_mesh`).
+    sections : number N >= 0 of section levels (see :func:`section_levels`);
+        0 with ``boundaries=True`` extracts only the boundary loops.
+    axis : ``"x"``, ``"y"``, ``"z"`` or ``"auto"`` (the longest extent of the
+        bounding box).
+    boundaries : also extract the boundary loops (edges used by one face).
+
+    Returns
+    -------
+    :class:`ExtractResult`. A mesh with nothing to extract is not an error: the
+    result has no contours and a note says why.
+
+    Raises
+    ------
+    ParameterError : sections < 0, an unknown axis, or nothing asked for
+        (``sections == 0`` without ``boundaries``).
+    ReadError, UnknownFormatError, MeshError : see :func:`load_mesh`.
+    """
+    if isinstance(sections, bool) or not isinstance(sections, (int, np.integer)) or sections < 0:
+        raise ParameterError(f"sections must be an integer >= 0, got {sections!r}")
+    sections = int(sections)
+    if axis != "auto" and axis not in AXES:
+        raise ParameterError(f"unknown axis {axis!r}; choose one of x, y, z, auto")
+    if sections == 0 and not boundaries:
+        raise ParameterError("nothing to extract: sections is 0 and boundaries are off")
+    p = str(os.fspath(path))
+    mesh = load_mesh(p)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    result = ExtractResult(mesh=p, axis=None, levels=np.zeros(0), vertices=len(vertices),
+                           faces=len(faces))
+    notes = result.notes
+
+    if sections:
+        axis_name, levels = section_levels(mesh.bounds, sections, axis)
+        result.axis, result.levels = axis_name, levels
+        a = AXES.index(axis_name)
+        bounds = np.asarray(mesh.bounds, dtype=np.float64)   # of the vertices used by faces
+        if not bounds[1, a] - bounds[0, a] > 0:
+            notes.append(f"{p}: the mesh is flat along {axis_name} (zero extent): no sections")
+        else:
+            edges = np.asarray(mesh.edges_unique, dtype=np.int64)
+            face_edges = np.asarray(mesh.faces_unique_edges, dtype=np.int64)
+            height = vertices[:, a]
+            face_h = height[faces]
+            face_lo, face_hi = face_h.min(axis=1), face_h.max(axis=1)
+            width = max(2, len(str(sections - 1)))
+            for i, level in enumerate(levels.tolist()):
+                where = f"{p}: section {axis_name}{i:0{width}d} at {level + 0.0:.6g}"
+                loops = _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi,
+                                       a, level, where, notes)
+                loops = _orient_ccw(loops, a)
+                result.contours.extend(
+                    Contour(points=pts, mesh=p, kind="section", axis=axis_name, level=float(level),
+                            level_index=i, loop=k, level_count=sections, loop_count=len(loops))
+                    for k, pts in enumerate(loops))
+
+    if boundaries:
+        loops = _boundary_loops(mesh, f"{p}: boundary", notes)
+        if not loops and not any(n.startswith(f"{p}: boundary") for n in notes):
+            notes.append(f"{p}: no boundary loops (the mesh is closed)")
+        result.contours.extend(
+            Contour(points=pts, mesh=p, kind="boundary", loop=k, loop_count=len(loops))
+            for k, pts in enumerate(loops))
+
+    if not result.contours:
+        asked = " or ".join(w for w, on in (("section loops", sections), ("boundary loops", boundaries))
+                            if on)
+        notes.append(f"{p}: nothing extracted (no closed {asked})")
+    return result
+
+
+def _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a: int, level: float,
+                   where: str, notes: list[str]) -> list[np.ndarray]:
+    """Closed loops of the plane ``coordinate a == level``, as cleaned (m, 3) float64 arrays.
+
+    vertices (n, 3) float64, faces (f, 3) int64, edges (e, 2) int64 unique
+    sorted edges, face_edges (f, 3) int64 into ``edges``, face_lo/face_hi (f,)
+    float64 the faces' extent along ``a``. A vertex on the plane counts as above it.
+    """
+    hit = (face_lo < level) & (face_hi >= level)
+    if not hit.any():
+        return []
+    fe = face_edges[hit]                                    # (h, 3) edge ids
+    used = np.unique(fe)
+    ends = edges[used]                                      # (u, 2)
+    d = vertices[ends, a] - level                           # (u, 2) signed heights
+    crossing = (d[:, 0] >= 0) != (d[:, 1] >= 0)
+    cross_of = np.zeros(len(edges), dtype=bool)
+    cross_of[used[crossing]] = True
+    fc = cross_of[fe]                                       # (h, 3): two True per row
+    rows, cols = np.nonzero(fc)
+    segments = fe[rows, cols].reshape(-1, 2)                # (h, 2) pairs of edge ids
+
+    # crossing points, one per crossing edge (computed once per edge, so both faces
+    # of an edge share it exactly); segments renumbered into them
+    ids = used[crossing]                                    # sorted edge ids
+    d0, d1 = d[crossing, 0], d[crossing, 1]
+    t = d0 / (d0 - d1)
+    p0, p1 = vertices[edges[ids, 0]], vertices[edges[ids, 1]]
+    # (1 - t) p0 + t p1 gives the vertex itself exactly where the plane passes through one
+    # (t = 0 or 1), so the two edges meeting there give the same point and cleaning drops it
+    points = (1.0 - t)[:, None] * p0 + t[:, None] * p1      # (c, 3)
+    points[:, a] = level
+    return _loops_to_points(np.searchsorted(ids, segments), points, where, notes)
+
+
+def _boundary_loops(mesh, where: str, notes: list[str]) -> list[np.ndarray]:
+    """Boundary loops (edges used by exactly one face) as cleaned (m, 3) float64 arrays,
+    by decreasing perimeter."""
+    from trimesh.grouping import group_rows
+
+    single = group_rows(np.asarray(mesh.edges_sorted), require_count=1)
+    if len(single) == 0:
+        return []
+    segments = np.asarray(mesh.edges, dtype=np.int64)[np.asarray(single, dtype=np.int64)]
+    order = np.argsort(single, kind="stable")               # face order: walking follows winding
+    return _loops_to_points(segments[order], np.asarray(mesh.vertices, dtype=np.float64),
+                            where, notes)
+
+
+def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str,
+                     notes: list[str]) -> list[np.ndarray]:
+    """Chain segments (m, 2) int64 of ids into ``points`` (k, 3) into closed loops.
+
+    Returns cleaned (n_i, 3) float64 loops by decreasing perimeter; open pieces,
+    branching points and degenerate loops are counted in ``notes`` (prefixed by ``where``).
+    """
+    loops, open_pieces, branching = _chain_loops(segments)
+    if branching:
+        notes.append(f"{where}: {branching} branching point{'s' if branching != 1 else ''} "
+                     "(non-manifold), loops split there")
+    if open_pieces:
+        notes.append(f"{where}: {open_pieces} open piece{'s' if open_pieces != 1 else ''} "
+                     "skipped (not closed)")
+    out, degenerate = [], 0
+    for ids in loops:
+        try:
+            out.append(clean_points(points[ids]))
+        except CurveError:
+            degenerate += 1
+    if degenerate:
+        notes.append(f"{where}: {degenerate} degenerate loop{'s' if degenerate != 1 else ''} "
+                     "skipped (fewer than 3 distinct points)")
+    lengths = [float(np.linalg.norm(np.diff(c, axis=0, append=c[:1]), axis=1).sum()) for c in out]
+    order = sorted(range(len(out)), key=lambda k: (-lengths[k], tuple(out[k].min(axis=0))))
+    result = [out[k] for k in order]
+    for c in result:
+        c.setflags(write=False)
+    return result
+
+
+def _chain_loops(segments) -> tuple[list[np.ndarray], int, int]:
+    """Closed loops of an undirected segment graph.
+
+    Parameters
+    ----------
+    segments : (m, 2) int array of vertex ids; self-segments and repeated
+        segments are ignored.
+
+    Returns
+    -------
+    ``(loops, open_pieces, branching)``: loops as (k,) int64 id arrays in walking
+    order (closing edge implicit); the number of open pieces dropped; the number
+    of ids used by more than two segments. Without branching this is
+    :func:`~nfdmatch.formats._chain.chain_segments` keeping its closed
+    components; with branching see :func:`_split_branching`.
+    """
+    seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
+    seg = seg[seg[:, 0] != seg[:, 1]]
+    if len(seg) == 0:
+        return [], 0, 0
+    key = np.sort(seg, axis=1)
+    _, first = np.unique(key, axis=0, return_index=True)
+    seg = seg[np.sort(first)]
+    degree = np.bincount(seg.ravel())
+    branching = int((degree > 2).sum())
+    if branching:
+        loops, open_pieces = _split_branching(seg)
+        return loops, open_pieces, branching
+    components = chain_segments(seg)          # degree <= 2 here: it cannot find a branch
+    loops, open_pieces = [], 0
+    for _, ids in components:
+        if (degree[ids] == 2).all():
+            loops.append(ids)
+        else:
+            open_pieces += 1
+    return loops, open_pieces, 0
+
+
+def _split_branching(seg: np.ndarray) -> tuple[list[np.ndarray], int]:
+    """Simple loops of a segment graph with branching vertices, and the number of open pieces.
+
+    ``seg`` (m, 2) int64, no self or repeated segments. Dangling branches are
+    pruned first (each connected group of pruned segments is one open piece);
+    the rest is walked edge by edge, cutting off a simple loop whenever the walk
+    comes back to a vertex already on it; a walk that gets stuck (possible with
+    odd degrees, e.g. a theta shape) leaves its unclosed part as an open piece.
+    """
+    m = len(seg)
+    adjacency: dict[int, list[tuple[int, int]]] = {}
+    for e, (u, v) in enumerate(seg.tolist()):
+        adjacency.setdefault(u, []).append((v, e))
+        adjacency.setdefault(v, []).append((u, e))
+    alive = [True] * m
+    degree = {v: len(n) for v, n in adjacency.items()}
+
+    # prune dangling branches
+    pruned: list[int] = []
+    stack = [v for v, k in degree.items() if k == 1]
+    while stack:
+        v = stack.pop()
+        if degree[v] != 1:
+            continue
+        for w, e in adjacency[v]:
+            if alive[e]:
+                alive[e] = False
+                pruned.append(e)
+                degree[v] -= 1
+                degree[w] -= 1
+                if degree[w] == 1:
+                    stack.append(w)
+                break
+    open_pieces = _count_components(seg[pruned]) if pruned else 0
+
+    loops: list[np.ndarray] = []
+    used = [not a for a in alive]
+    cursor = {v: 0 for v in adjacency}
+
+    def next_edge(v: int):
+        nbrs = adjacency[v]
+        i = cursor[v]
+        while i < len(nbrs) and used[nbrs[i][1]]:
+            i += 1
+        cursor[v] = i
+        return nbrs[i] if i < len(nbrs) else None
+
+    for e0 in range(m):
+        if used[e0]:
+            continue
+        used[e0] = True
+        u, v = int(seg[e0, 0]), int(seg[e0, 1])
+        path, position = [u, v], {u: 0, v: 1}
+        while True:
+            step = next_edge(path[-1])
+            if step is None:
+                if len(path) > 1:
+                    open_pieces += 1
+                break
+            w, e = step
+            used[e] = True
+            if w in position:
+                i = position[w]
+                loops.append(np.array(path[i:], dtype=np.int64))
+                for x in path[i + 1:]:
+                    del position[x]
+                del path[i + 1:]
+                if len(path) == 1 and next_edge(w) is None:
+                    break
+            else:
+                position[w] = len(path)
+                path.append(w)
+    return loops, open_pieces
+
+
+def _count_components(seg: np.ndarray) -> int:
+    """Number of connected components of the graph with edges ``seg`` (m, 2) int64."""
+    parent: dict[int, int] = {}
+
+    def find(x: int) -> int:
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for u, v in seg.tolist():
+        ru, rv = find(u), find(v)
+        if ru != rv:
+            parent[ru] = rv
+    return len({find(x) for x in parent})
+
+
+def _orient_ccw(loops: list[np.ndarray], a: int) -> list[np.ndarray]:
+    """Reverse the loops that run clockwise seen from the positive end of axis ``a``."""
+    i, j = (a + 1) % 3, (a + 2) % 3                        # right-handed in-plane coordinates
+    out = []
+    for c in loops:
+        x, y = c[:, i], c[:, j]
+        area2 = float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+        if area2 < 0:
+            c = c[::-1].copy()
+            c.setflags(write=False)
+        out.append(c)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------
