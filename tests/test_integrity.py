@@ -205,3 +205,219 @@ def test_a_stored_nan_is_an_index_format_error_naming_dataset_and_row(index_copy
     result = _cli("index", "verify", "--index", str(index_copy))
     assert result.exit_code == 1
     assert f"bad\t/{dataset}\t" in result.stdout and "non-finite values" in result.stdout
+
+
+# --------------------------------------------------------------------------- crafted indexes
+
+def _index_info_limited(path):
+    """`index info` in a child process with 3 GB of address space: a reader that allocated
+    what a crafted file declares (tens of GB) would die, not answer."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+    return _run(["index", "info", "--index", str(path)], preexec_fn=limit)
+
+
+def _declare(f, name, rows):
+    """Replace ``name`` by a dataset declaring ``rows`` rows whose chunks are never written."""
+    ds = f[name]
+    dtype, tail = ds.dtype, ds.shape[1:]
+    del f[name]
+    f.create_dataset(name, shape=(rows,) + tail, dtype=dtype, chunks=(4096,) + tail,
+                     fletcher32=dtype.kind != "O")
+
+
+def _craft(path, fn):
+    with h5py.File(path, "r+") as f:
+        fn(f)
+
+
+@pytest.mark.parametrize("craft, message", [
+    (lambda f: f.attrs.__setitem__("samples", np.int64(300_000_000)), "samples 300000000 above the limit"),
+    (lambda f: (f.attrs.__setitem__("samples", np.int64(1 << 20)), f.attrs.__setitem__("harmonics", np.int64(400_000))),
+     "/curves/coefficients has shape"),
+    (lambda f: [f["curves"][name].resize(100_000_000, axis=0) for name in f["curves"] if name != "id_crc32"],
+     "declares (100000000"),
+    (lambda f: [_declare(f, f"files/{name}", 50_000_000) for name in list(f["files"]) if not name.endswith("crc32")],
+     "declares (50000000"),
+    (lambda f: _declare(f, "search/features", 50_000_000), "/search/features declares (50000000"),
+])
+def test_a_crafted_index_is_refused_before_any_allocation(index_copy, craft, message):
+    _craft(index_copy, craft)
+    assert os.path.getsize(index_copy) < 1 << 20
+    with pytest.raises(IndexFormatError, match="corrupted nfdmatch index") as info:
+        open_index(index_copy)
+    assert message in str(info.value)
+    proc = _index_info_limited(index_copy)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stdout == b""
+    assert proc.stderr.decode().startswith(f"Error: {index_copy}: corrupted nfdmatch index: ")
+    assert b"Traceback" not in proc.stderr and len(proc.stderr) < 1000
+
+
+def _replace(f, name, **kwargs):
+    del f[name]
+    f.create_dataset(name, **kwargs)
+
+
+def test_external_storage_is_refused_and_its_file_never_printed(index_copy, tmp_path):
+    secret = tmp_path / "secret.txt"
+    secret.write_bytes(b"TOP-SECRET-CONTENT-" * 200)
+    with h5py.File(index_copy, "r") as f:
+        N = f["curves/id"].shape[0]
+    # fixed-length ids read the other file's bytes: exactly what a reader must never print
+    _craft(index_copy, lambda f: _replace(f, "curves/id", shape=(N,), dtype="S16",
+                                          external=[(str(secret), 0, 16 * N)]))
+    for args in (["index", "ls", "--curves"], ["query", QUERY, "--top", "3"], ["index", "info"],
+                 ["index", "verify"]):
+        result = _cli(*args, "--index", str(index_copy))
+        assert result.exit_code == 1, args
+        assert "SECRET" not in result.stdout + result.stderr
+        assert "/curves/id has external storage (data in another file): refused" in result.stderr
+
+
+def test_virtual_datasets_and_links_are_refused(index_copy, tmp_path):
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as g:
+        g["scale"] = np.ones(24)
+        g["coefficients"] = np.ones((24, 16, 3), np.complex64)
+    layout = h5py.VirtualLayout(shape=(24,), dtype="f8")
+    layout[:] = h5py.VirtualSource(str(other), "scale", shape=(24,))
+
+    def virtual(f):
+        del f["curves/scale"]
+        f["curves"].create_virtual_dataset("scale", layout)
+
+    def external_link(f):
+        del f["curves/coefficients"]
+        f["curves/coefficients"] = h5py.ExternalLink(str(other), "coefficients")
+
+    def soft_link(f):
+        f["curves/elsewhere"] = f["curves/centroid"]
+        del f["curves/centroid"]
+        f["curves/centroid"] = h5py.SoftLink("/curves/elsewhere")
+
+    for craft, message in ((virtual, "/curves/scale is a virtual dataset"),
+                           (external_link, "/curves/coefficients is a ExternalLink, not stored in the file"),
+                           (soft_link, "/curves/centroid is a SoftLink, not stored in the file")):
+        path = tmp_path / f"{craft.__name__}.h5"
+        shutil.copyfile(index_copy, path)
+        _craft(path, craft)
+        with pytest.raises(IndexFormatError, match="refused"):
+            open_index(path)
+        result = _cli("query", QUERY, "--index", str(path))
+        assert result.exit_code == 1 and message in result.stderr, result.stderr
+
+
+def test_a_checksummed_file_with_a_dataset_stripped_of_its_checksum_is_corrupt(index_copy):
+    def strip(f):
+        data = f["curves/scale"][...]
+        del f["curves/scale"]
+        f["curves"].create_dataset("scale", data=data)
+    _craft(index_copy, strip)
+    with pytest.raises(IndexFormatError, match="/curves/scale has no checksum filter"):
+        open_index(index_copy)
+
+
+def test_a_huge_error_message_is_cut_where_it_is_stored(tmp_path):
+    # a CSV whose one "number" is 5 MB: the error line, the stored record and `index info` stay short
+    bad = tmp_path / "lib" / "huge.csv"
+    bad.parent.mkdir()
+    bad.write_text("x,y,z\n1,2,3\n4,5,6\n" + "7" * 5_000_000 + "x,8,9\n")
+    index = tmp_path / "i.h5"
+    result = _cli("index", "build", str(bad.parent), "--index", str(index), "--jobs", "1")
+    assert result.exit_code == 3
+    assert max(len(line) for line in result.stderr.splitlines()) < 2000
+    result = _cli("index", "info", "--index", str(index))
+    assert result.exit_code == 0
+    assert len(result.stdout) < 4000 and "characters in all]" in result.stdout
+
+
+def test_a_crafted_huge_stored_error_is_cut_on_storing(tmp_path):
+    from nfdmatch.index.schema import FileRecord
+    from nfdmatch.index.writer import _write_files_table
+
+    path = tmp_path / "t.h5"
+    with h5py.File(path, "w") as f:
+        _write_files_table(f, [FileRecord("a.csv", 1, 1, "", "failed", "a.csv: " + "9" * 5_000_000, 0, 0)])
+    with h5py.File(path, "r") as f:
+        stored = f["files/error"].asstr()[0]
+    assert len(stored) < 1100 and stored.endswith("characters in all]")
+
+
+# --------------------------------------------------------------------------- coordinates near 1e308
+
+def _huge_curve(path, factor, offset=0.0):
+    t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    pts = np.stack([np.cos(t), 0.5 * np.sin(2 * t), np.sin(t) + 0.3 * np.cos(3 * t)], 1)
+    write_curves(path, pts * factor + offset)
+    return pts
+
+
+@pytest.mark.parametrize("factor", [1e308, 1.7e308 / 1.3])
+def test_reconstruct_and_distance_work_at_1e308_without_warnings(tmp_path, factor):
+    unit = _huge_curve(tmp_path / "huge.csv", factor)
+    write_curves(tmp_path / "unit.csv", unit)
+    with _no_warnings():
+        result = _cli("reconstruct", str(tmp_path / "huge.csv"), "-k", "6", "-o", str(tmp_path / "r.csv"))
+        assert result.exit_code == 0, result.stderr
+        assert "Traceback" not in result.stderr
+        rebuilt = np.loadtxt(tmp_path / "r.csv", delimiter=",", skiprows=1)
+        assert np.isfinite(rebuilt).all() and np.abs(rebuilt).max() > 0.5 * factor
+        # the shape at 1e308 is the shape at 1: distance 0 (scale invariant)
+        result = _cli("distance", str(tmp_path / "huge.csv"), str(tmp_path / "unit.csv"))
+        assert result.exit_code == 0, result.stderr
+        assert float(result.stdout.split()[1]) < 1e-9
+    from nfdmatch import descriptors, read_curve
+    from nfdmatch.descriptors import reconstruct
+
+    d = descriptors(read_curve(tmp_path / "huge.csv"))
+    assert np.isfinite(d.scale) and np.isfinite(d.centroid).all()
+    assert np.allclose(d.coefficients, descriptors(read_curve(tmp_path / "unit.csv")).coefficients, atol=1e-9)
+    assert np.isfinite(reconstruct(d)).all()
+
+
+def test_show_refuses_a_query_too_large_to_draw_clearly(tmp_path):
+    _huge_curve(tmp_path / "huge.csv", 1e308)
+    (tmp_path / "lib").mkdir()
+    _huge_curve(tmp_path / "lib" / "small.csv", 1.0)
+    with _no_warnings():
+        result = _cli("show", str(tmp_path / "huge.csv"), "--against", str(tmp_path / "lib"),
+                      "-o", str(tmp_path / "s.svg"))
+    assert result.exit_code == 1
+    assert result.stdout == ""
+    assert result.stderr.startswith(f"Error: {tmp_path / 'huge.csv'}: coordinates up to 1.2e+308 are too large "
+                                    "to draw")
+    assert not (tmp_path / "s.svg").exists()
+
+
+def test_a_position_beyond_float64_fails_clearly(tmp_path):
+    # every coordinate finite, but the curve's centroid plus its size is not representable
+    from nfdmatch import descriptors, read_curve
+    from nfdmatch.errors import CurveError
+
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    pts = np.stack([np.cos(t), np.sin(t), 0 * t], 1) * 1e308
+    pts[:, 0] = np.where(pts[:, 0] > 0, 1.79e308, -1.79e308) * np.abs(np.cos(t)) ** 0.01
+    write_curves(tmp_path / "edge.csv", pts)
+    try:
+        d = descriptors(read_curve(tmp_path / "edge.csv"))
+    except CurveError as exc:
+        assert "beyond float64" in str(exc) and str(tmp_path / "edge.csv") in str(exc)
+    else:
+        assert np.isfinite(d.scale) and np.isfinite(d.centroid).all()
+
+
+class _no_warnings:
+    """Within: any warning is an error (a RuntimeWarning from numpy means an overflow)."""
+
+    def __enter__(self):
+        import warnings
+
+        self.ctx = warnings.catch_warnings()
+        self.ctx.__enter__()
+        warnings.simplefilter("error")
+
+    def __exit__(self, *exc):
+        self.ctx.__exit__(*exc)
