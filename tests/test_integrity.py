@@ -421,3 +421,16 @@ class _no_warnings:
 
     def __exit__(self, *exc):
         self.ctx.__exit__(*exc)
+
+
+def test_verify_checks_the_derived_search_data_against_the_curves(index_copy):
+    # a consistent-looking edit (checksums recomputed by HDF5): only verify's cross-checks see it
+    with h5py.File(index_copy, "r") as f:
+        value = f["search/features"][4, 0]
+    _rewrite(index_copy, "search/features", (4, 0), value + 0.25)
+    _rewrite(index_copy, "curves/file", 0, 3)
+    result = _cli("index", "verify", "--index", str(index_copy))
+    assert result.exit_code == 1
+    lines = result.stdout.splitlines()
+    assert "bad\t/search/features\t4\tdiffers from what it is derived from (positions)" in lines
+    assert "bad\t/curves/file\t0\tdoes not match the /files blocks" in lines

@@ -22,6 +22,8 @@ SEARCH_DATASETS = {
 #: /search/head: (N, K', 3) complex64, checked apart (K' from the harmonics)
 #: rows read back from /curves at a time while gathering the features
 _READ_ROWS = 1 << 18
+#: positions per HDF5 chunk of the datasets a search reads cell by cell
+_POSITION_CHUNK_ROWS = 256
 
 
 def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) -> int:
@@ -52,9 +54,12 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) 
     head = head[cells.row]
     g = h5.create_group("search")
     g.attrs["cells"] = np.int64(cells.count)
-    for name, data in (("row", cells.row), ("cell_start", cells.start), ("centre", cells.centre),
-                       ("radius", cells.radius), ("features", features), ("sqnorm", sqnorm), ("head", head)):
-        create_checked(g, name, data)
+    for name, data in (("cell_start", cells.start), ("centre", cells.centre), ("radius", cells.radius)):
+        create_checked(g, name, data)                 # read whole when a search starts
+    for name, data in (("row", cells.row), ("features", features), ("sqnorm", sqnorm), ("head", head)):
+        # read cell by cell (~128 positions): small chunks, so that a query reads (and
+        # checksums) ~36 KB per cell rather than a 4096-row chunk
+        create_checked(g, name, data, chunk_rows=_POSITION_CHUNK_ROWS)
     _finish_checksums(h5)
     return cells.count
 
