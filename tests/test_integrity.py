@@ -434,3 +434,21 @@ def test_verify_checks_the_derived_search_data_against_the_curves(index_copy):
     lines = result.stdout.splitlines()
     assert "bad\t/search/features\t4\tdiffers from what it is derived from (positions)" in lines
     assert "bad\t/curves/file\t0\tdoes not match the /files blocks" in lines
+
+
+def test_a_crafted_huge_stored_error_is_cut_when_read(index_copy):
+    from nfdmatch.index.schema import block_crcs
+
+    def craft(f):
+        errors = f["files/error"].asstr()[...].tolist()
+        errors[0] = "9" * 5_000_000
+        del f["files/error"], f["files/error_crc32"]
+        f["files"].create_dataset("error", data=np.array(errors, dtype=object), dtype=h5py.string_dtype())
+        f["files"].create_dataset("error_crc32", data=block_crcs(errors), fletcher32=True, chunks=True)
+        status = f["files/status"][...]
+        status[0] = 1
+        f["files/status"][...] = status
+    _craft(index_copy, craft)
+    result = _cli("index", "info", "--index", str(index_copy))
+    assert result.exit_code == 0, result.stderr
+    assert len(result.stdout) < 5000 and "[cut: 5000000 characters in all]" in result.stdout

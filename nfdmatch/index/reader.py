@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from ..errors import IndexFormatError, NfdError, ParameterError
+from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
 from .schema import (_STATUS, CRC_ROWS, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, block_crcs,
                      default_index_path)
 
@@ -179,6 +179,8 @@ class Index:
                 size, mtime = fds["size"][...].tolist(), fds["mtime_ns"][...].tolist()
                 status = fds["status"][...].tolist()
                 starts, counts = self._files["curve_start"].tolist(), self._files["curve_count"].tolist()
+                # a crafted file's messages are cut as a build cuts them (index info prints them)
+                errors = [e if len(e) <= MAX_MESSAGE_CHARS else excerpt(e, MAX_MESSAGE_CHARS) for e in errors]
                 return [FileRecord(paths[i], int(size[i]), int(mtime[i]), shas[i],
                                    _STATUS.get(int(status[i]), "failed"), errors[i], int(starts[i]),
                                    int(counts[i])) for i in range(F)]
