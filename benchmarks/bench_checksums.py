@@ -16,7 +16,8 @@ this process, after one warm-up, the two indexes alternating) and of a batch of 
 
 ``--flips N`` then flips N random single bits in the data chunks of the checksummed index
 (each on a fresh copy) and counts by outcome: detected when opened, detected by the query,
-same answer (bit in a part the query did not read), answer changed silently (must be 0).
+same answer (bit in a part the query did not read), answer changed silently (must be 0);
+then N flips anywhere in the file (metadata, string heaps, free space included).
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ def _answer(path, curves):
     return [[(r["match"], r["distance"]) for r in res] for res in results]
 
 
-def _flips(path, query, count, workdir, seed=5):
+def _flips(path, query, count, workdir, seed=5, anywhere=False):
     import h5py
 
     rng = np.random.default_rng(seed)
@@ -97,9 +98,13 @@ def _flips(path, query, count, workdir, seed=5):
     sizes = np.array([c[2] for c in chunks], dtype=np.float64)
     outcomes = {"detected on open": 0, "detected by the query": 0, "same answer": 0, "changed silently": 0}
     copy = os.path.join(workdir, "flipped.h5")
+    file_size = os.path.getsize(path)
     for _ in range(count):
-        name, offset, size = chunks[rng.choice(len(chunks), p=sizes / sizes.sum())]
-        at = offset + int(rng.integers(size))
+        if anywhere:                               # metadata, heaps and free space too
+            at = int(rng.integers(file_size))
+        else:
+            name, offset, size = chunks[rng.choice(len(chunks), p=sizes / sizes.sum())]
+            at = offset + int(rng.integers(size))
         shutil.copyfile(path, copy)
         with open(copy, "r+b") as fh:
             fh.seek(at)
@@ -179,9 +184,10 @@ def main(argv=None) -> int:
     report = verify_index(checked)
     print(f"{'index verify (s)':24}{'':16}{time.perf_counter() - t0:16.2f}   ok={report.ok}")
     if args.flips:
-        outcomes = _flips(checked, curves[0], args.flips, args.workdir)
-        print(f"{args.flips} random bit flips in data chunks: " +
-              ", ".join(f"{k} {v}" for k, v in outcomes.items()))
+        for anywhere in (False, True):
+            outcomes = _flips(checked, curves[0], args.flips, args.workdir, anywhere=anywhere)
+            print(f"{args.flips} random bit flips {'anywhere in the file' if anywhere else 'in data chunks'}: " +
+                  ", ".join(f"{k} {v}" for k, v in outcomes.items()))
     return 0
 
 
