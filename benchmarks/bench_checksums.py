@@ -40,7 +40,7 @@ import bench_search  # noqa: E402
 import nfdmatch  # noqa: E402
 from nfdmatch.errors import NfdError  # noqa: E402
 from nfdmatch.index import build_index, open_index  # noqa: E402
-from nfdmatch.index import schema, search_group, writer  # noqa: E402
+from nfdmatch.index import schema, search_group  # noqa: E402
 from nfdmatch.search import search_index  # noqa: E402
 
 

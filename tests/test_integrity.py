@@ -3,16 +3,24 @@ indexes, `index verify`, cut error messages, huge coordinates, byte-identical qu
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import subprocess
 import sys
 
+import h5py
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 from oracle import random_smooth_curve
 
 from nfdmatch import Curve, write_curves
+from nfdmatch.cli import main
+from nfdmatch.errors import IndexFormatError
+from nfdmatch.index import build_index, open_index
+from nfdmatch.index.verify import verify_index
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
@@ -29,8 +37,6 @@ def _run(args, env=None, **kw):
 @pytest.fixture(scope="module")
 def random_index(tmp_path_factory):
     """An index of 3,000 random curves and 4 noisy re-posed queries of stored ones."""
-    from nfdmatch.index import build_index
-
     rng = np.random.default_rng(9)
     folder = tmp_path_factory.mktemp("random")
     curves = [Curve(random_smooth_curve(rng, 40, 5), id=f"c{i}") for i in range(3000)]
@@ -60,16 +66,6 @@ def test_query_output_is_byte_identical_run_to_run(random_index):
 
 
 # --------------------------------------------------------------------------- checksums
-
-import shutil  # noqa: E402
-
-import h5py  # noqa: E402
-from click.testing import CliRunner  # noqa: E402
-
-from nfdmatch.cli import main  # noqa: E402
-from nfdmatch.errors import IndexFormatError  # noqa: E402
-from nfdmatch.index import build_index, open_index  # noqa: E402
-from nfdmatch.index.verify import verify_index  # noqa: E402
 
 LIBRARY = os.path.join(REPO, "sample_curves", "library")
 QUERY = os.path.join(REPO, "sample_curves", "queries", "4_1-control.csv")
@@ -170,7 +166,6 @@ def test_verify_passes_a_sound_index_and_says_format_1_has_no_checksums(built):
     v1 = os.path.join(HERE, "data", "index", "v1-sample.h5")
     result = _cli("index", "verify", "--index", v1, "--format", "json")
     assert result.exit_code == 0
-    import json
     report = json.loads(result.stdout)
     assert report["ok"] and report["checksums"] is False and report["format_version"] == 1
     assert "has no checksums" in result.stderr

@@ -63,7 +63,8 @@ class Index:
     Attributes
     ----------
     path : str; format_version : int; nfdmatch_version : str (the writer's);
-    checksums : bool (the file carries checksums, checked as it is read); samples, harmonics : int; scale : str ("rms" or "a1"); created, updated : str (ISO-8601 UTC);
+    checksums : bool (the file carries checksums, checked as it is read);
+    samples, harmonics : int; scale : str ("rms" or "a1"); created, updated : str (ISO-8601 UTC);
     n_curves, n_files : int.
     """
 
