@@ -447,3 +447,12 @@ def test_a_crafted_huge_stored_error_is_cut_when_read(index_copy):
     result = _cli("index", "info", "--index", str(index_copy))
     assert result.exit_code == 0, result.stderr
     assert len(result.stdout) < 5000 and "[cut: 5000000 characters in all]" in result.stdout
+
+
+def test_a_flipped_bit_in_the_file_table_is_named_on_open(index_copy):
+    _flip(index_copy, "files/curve_count")
+    for args in (["index", "info"], ["index", "verify"], ["query", QUERY]):
+        result = _cli(*args, "--index", str(index_copy))
+        assert result.exit_code == 1 and result.stdout == ""
+        assert result.stderr == (f"Error: {index_copy}: corrupted nfdmatch index: checksum mismatch in the file "
+                                 "table (/files; the file is damaged)\n")

@@ -237,6 +237,9 @@ def _open_checked(path: str):
         raise
     except Exception as exc:
         h5.close()
+        if "filter returned failure" in _short(exc):          # a Fletcher-32 mismatch
+            raise _Problem("corrupt", "corrupted nfdmatch index: checksum mismatch in the file table "
+                                      "(/files; the file is damaged)") from None
         raise _Problem("corrupt", f"corrupted nfdmatch index ({_short(exc)})") from None
     return h5, meta, files
 
