@@ -63,60 +63,61 @@ def _rows_text(rows) -> str:
 
 
 def _blocks(ds):
-    """(a, b) row ranges of ``ds``: its chunks along the rows, or 64k-row blocks."""
+    """(a, b) row ranges of ``ds``: its chunks along the rows, or 64k-row blocks (always for
+    strings: a multiple of the CRC-32 blocks)."""
     n = ds.shape[0] if ds.shape else 1
-    step = ds.chunks[0] if ds.chunks else _BLOCK_ROWS
+    step = ds.chunks[0] if ds.chunks and ds.dtype.kind != "O" else _BLOCK_ROWS
     return [(a, min(n, a + step)) for a in range(0, n, step)]
 
 
-def _read_all(ds, name, report):
-    """Every row of ``ds`` read chunk by chunk, with unreadable chunks reported (and filled
-    with NaN / empty values so later checks still run); returns the values or None."""
-    if not ds.shape:
-        return ds[()]
+def _scan(ds, name, report, *, label="row", keep=None, crc=None):
+    """Read ``ds`` chunk by chunk and check each block as it comes: unreadable chunks (a
+    Fletcher-32 mismatch), non-finite rows, and, with ``crc`` (the stored CRC-32 blocks of a
+    string dataset), each 256-row block of strings. Only what a later cross-check needs is
+    kept: ``keep(block) -> array`` per block (None: nothing), concatenated; so a 1M-row
+    index is verified without holding every dataset at once."""
+    n = ds.shape[0] if ds.shape else 0
     strings = ds.dtype.kind == "O"
-    out = [None] * ds.shape[0] if strings else np.empty(ds.shape, dtype=ds.dtype)
-    bad = []
-    for a, b in _blocks(ds):
+    kept, bad, nonfinite, crc_bad = [], [], [], []
+    for a, b in _blocks(ds) if ds.shape else []:
         try:
             values = ds.asstr()[a:b].tolist() if strings else ds[a:b]
         except Exception as exc:
             bad.append((a, b, exc))
-            if not strings:
-                out[a:b] = np.nan if ds.dtype.kind in "fc" else 0
+            if keep is not None:
+                kept.append(None)
             continue
-        out[a:b] = values
+        if strings:
+            if crc is not None:
+                first = a // CRC_ROWS                          # blocks are multiples of CRC_ROWS
+                want = block_crcs(values)
+                got = np.asarray(crc[first:first + len(want)], dtype=np.uint32)
+                crc_bad += [first + i for i in np.flatnonzero(got != want[:len(got)])]
+                if len(got) < len(want):
+                    crc_bad += list(range(first + len(got), first + len(want)))
+        elif values.dtype.kind in "fc" and values.size:
+            nonfinite += (a + np.flatnonzero(~np.isfinite(values.reshape(len(values), -1)).all(axis=1))).tolist()
+        if keep is not None:
+            kept.append(keep(values))
     for a, b, exc in bad:
         text = _short(exc)
         what = "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
         report.findings.append(Finding(name, f"{a}..{b - 1}", what))
     if bad:
         report.unreadable[name] = [(a, b) for a, b, _ in bad]
-    return out
-
-
-def _check_finite(values, name, report, label="row"):
-    if values.dtype.kind not in "fc" or not values.size:
-        return
-    finite = np.isfinite(values.reshape(len(values), -1)).all(axis=1)
-    for a, b in report.unreadable.get(name, ()):
-        finite[a:b] = True                       # already reported as unreadable
-    bad = np.flatnonzero(~finite)
-    if len(bad):
-        report.findings.append(Finding(name, _rows_text(bad), f"non-finite values (NaN or Inf), {len(bad)} {label}s"))
-
-
-def _check_strings(values, crc, name, report):
-    want = block_crcs(values)
-    if crc is None:
-        return
-    if len(crc) != len(want):
-        report.findings.append(Finding(name + "_crc32", "", f"{len(crc)} blocks, expected {len(want)}"))
-        return
-    bad = np.flatnonzero(np.asarray(crc, dtype=np.uint32) != want)
-    for b in bad[:_LIST_ROWS]:
-        report.findings.append(Finding(name, f"{b * CRC_ROWS}..{min(len(values), (b + 1) * CRC_ROWS) - 1}",
+    if nonfinite:
+        report.findings.append(Finding(name, _rows_text(nonfinite),
+                                       f"non-finite values (NaN or Inf), {len(nonfinite)} {label}s"))
+    for blk in crc_bad[:_LIST_ROWS]:
+        report.findings.append(Finding(name, f"{blk * CRC_ROWS}..{min(n, (blk + 1) * CRC_ROWS) - 1}",
                                        "checksum mismatch (CRC-32 of the strings)"))
+    if keep is None or bad:
+        return None
+    if not ds.shape:
+        return ds[()]
+    if not kept:
+        return keep(ds[0:0])
+    return kept[0] if len(kept) == 1 else np.concatenate(kept)
 
 
 def verify_index(path) -> VerifyReport:
@@ -142,23 +143,33 @@ def verify_index(path) -> VerifyReport:
 def _verify(h5, meta, files, report) -> None:
     from ..search.bounds import feature_split, head_harmonics, squared_norms
 
-    values = {}
+    K = meta["harmonics"]
+    Kh = head_harmonics(K)
+    whole = np.asarray
+    # what the cross-checks below need, per dataset (the rest is checked block by block and dropped)
+    needed = {"/curves/file": whole, "/curves/inv_sv": whole, "/curves/inv_block": whole,
+              "/curves/coefficients": lambda v: np.asarray(v[:, :Kh])}
     groups = {"files": files["datasets"] | files.get("crc", {}), "curves": meta["datasets"] | meta.get("crc", {})}
     if meta["format_version"] >= 2:
         groups["search"] = {name: h5["search"][name] for name in h5["search"] if hasattr(h5["search"][name], "shape")}
-    for group, datasets in groups.items():
-        for name, ds in datasets.items():
-            full = f"/{group}/{name}"
-            values[full] = _read_all(ds, full, report)
-            report.datasets += 1
-            if isinstance(values[full], np.ndarray):
-                _check_finite(values[full], full, report, "position" if group == "search" else "row")
+        needed.update({f"/search/{name}": whole for name in groups["search"]})
+    crcs = {}
     if meta["checksums"]:
         for group, names in STRING_DATASETS.items():
             for name in names:
-                full = f"/{group}/{name}"
-                if full not in report.unreadable and full + "_crc32" not in report.unreadable:
-                    _check_strings(values[full], values.get(full + "_crc32"), full, report)
+                crc_ds = groups[group].get(f"{name}_crc32")
+                crcs[f"/{group}/{name}"] = _scan(crc_ds, f"/{group}/{name}_crc32", report, keep=whole)
+                report.datasets += 1
+    values = {}
+    for group, datasets in groups.items():
+        for name, ds in datasets.items():
+            full = f"/{group}/{name}"
+            if full[:-len("_crc32")] in crcs and full.endswith("_crc32"):
+                continue                                           # scanned above
+            crc = crcs.get(full)
+            values[full] = _scan(ds, full, report, label="position" if group == "search" else "row",
+                                 keep=needed.get(full), crc=crc)
+            report.datasets += 1
 
     N, F = meta["n_curves"], meta["n_files"]
     if report.unreadable:                 # derived data cannot be compared with unreadable rows
@@ -170,28 +181,33 @@ def _verify(h5, meta, files, report) -> None:
         report.findings.append(Finding("/curves/file", _rows_text(bad), "does not match the /files blocks"))
     if meta["format_version"] < 2 or not N:
         return
-    K = meta["harmonics"]
     split = feature_split(K)
     row = np.asarray(values["/search/row"], dtype=np.int64)
     if not np.array_equal(np.sort(row), np.arange(N)):
         report.findings.append(Finding("/search/row", "", "not a permutation of the /curves rows"))
         return
-    derived = np.concatenate([values["/curves/inv_sv"], values["/curves/inv_block"]], axis=1)[row]
     features = values["/search/features"]
-    for name, got, expected in (
-            ("/search/features", features, derived),
-            ("/search/sqnorm", values["/search/sqnorm"], squared_norms(features, split)),
-            ("/search/head", values["/search/head"], values["/curves/coefficients"][row, :head_harmonics(K)])):
-        same = (got == expected) | (np.isnan(got) & np.isnan(expected)) if got.dtype.kind != "c" else got == expected
+    derived = np.concatenate([values.pop("/curves/inv_sv"), values.pop("/curves/inv_block")], axis=1)[row]
+    checks = (("/search/features", features, derived),
+              ("/search/sqnorm", values["/search/sqnorm"], squared_norms(features, split)),
+              ("/search/head", values["/search/head"], values.pop("/curves/coefficients")[row]))
+    for name, got, expected in checks:
+        same = got == expected
+        if got.dtype.kind != "c":
+            same |= np.isnan(got) & np.isnan(expected)
         bad = np.flatnonzero(~same.reshape(len(got), -1).all(axis=1))
         if len(bad):
             report.findings.append(Finding(name, _rows_text(bad), "differs from what it is derived from (positions)"))
+    del derived, checks
     start = np.asarray(values["/search/cell_start"], dtype=np.int64)
     centre, radius = values["/search/centre"], values["/search/radius"]
     cell = np.repeat(np.arange(len(start) - 1), np.diff(start))
-    X = features.astype(np.float64) - centre[cell]
     for part, cols in ((0, slice(0, split)), (1, slice(split, None))):
-        dist = np.sqrt((X[:, cols] ** 2).sum(axis=1))
+        dist = np.empty(N)
+        for a in range(0, N, _BLOCK_ROWS):                 # blocks: no (N, D) float64 copy
+            b = min(N, a + _BLOCK_ROWS)
+            X = features[a:b, cols].astype(np.float64) - centre[cell[a:b], cols]
+            dist[a:b] = np.sqrt((X ** 2).sum(axis=1))
         bad = np.flatnonzero(dist > radius[cell, part] * (1 + _RADIUS_SLACK) + 1e-9)
         if len(bad):
             report.findings.append(Finding("/search/radius", _rows_text(np.unique(cell[bad])),
