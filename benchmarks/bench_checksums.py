@@ -4,8 +4,9 @@
                                          [--repeat 5] [--flips 200]
 
 The collection is bench_search.py's **random** one (unrelated random smooth curves, 48
-vertices, 20 OBJ files; cached in the work folder). Two indexes are built from it in this
-process, one as nfdmatch writes it (Fletcher-32 on every numeric chunk, CRC-32 per 256
+vertices, 20 OBJ files; cached in the work folder), or with ``--collection families`` its
+families of 50 noisy re-posed members (a query then reads only a few cells). Two indexes are built from it in this
+process, one as nfdmatch writes it (Fletcher-32 on every numeric chunk, CRC-32 per 32
 strings) and one with the checksums switched off (the filter dropped, no CRC datasets, no
 ``checksums`` attribute: what an older writer made). Printed: build seconds (dominated by parsing the curve
 files, which varies with the machine's load) and, for the write alone, the median time of an
@@ -133,18 +134,24 @@ def main(argv=None) -> int:
     ap.add_argument("--workdir", default="/tmp/nfdmatch-bench-checksums")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--flips", type=int, default=200)
+    ap.add_argument("--collection", choices=("random", "families"), default="random",
+                    help="bench_search.py's collection: random (loose bounds: a query reads most of the "
+                         "index) or families of 50 (tight bounds: a query reads a few cells)")
     args = ap.parse_args(argv)
-    folder = os.path.join(args.workdir, f"random-{args.curves}")
-    queries = bench_search.generate_random(folder, args.curves)
+    folder = os.path.join(args.workdir, f"{args.collection}-{args.curves}")
+    if args.collection == "random":
+        queries = bench_search.generate_random(folder, args.curves)
+    else:
+        queries = bench_search.generate_families(folder, max(1, args.curves // 50))
     sources = [os.path.join(folder, "curves")]
     curves = [nfdmatch.read_curve(q) for q in queries]
-    plain, checked = os.path.join(args.workdir, "plain.h5"), os.path.join(args.workdir, "checked.h5")
+    plain, checked = (os.path.join(args.workdir, f"{args.collection}-{kind}.h5") for kind in ("plain", "checked"))
     with _NoChecksums():
         t_plain = _build(sources, plain)
     t_checked = _build(sources, checked)
     with open_index(plain) as a, open_index(checked) as b:
         assert not a.checksums and b.checksums
-    print(f"{args.curves} curves, nfdmatch {nfdmatch.__version__}")
+    print(f"{args.curves} curves ({args.collection}), nfdmatch {nfdmatch.__version__}")
     print(f"{'':24}{'no checksums':>16}{'checksums':>16}{'ratio':>8}")
     print(f"{'build (s)':24}{t_plain:16.2f}{t_checked:16.2f}{t_checked / t_plain:8.3f}")
     # the write itself, without the parsing (which dominates a full build and varies with the

@@ -131,7 +131,7 @@ class Index:
         return values
 
     def _check_strings(self, crc_ds, name: str, blocks, values_of_block) -> None:
-        """Compare the CRC-32 of each 256-row block in ``blocks`` with ``crc_ds`` (a no-op
+        """Compare the CRC-32 of each CRC_ROWS-row block in ``blocks`` with ``crc_ds`` (a no-op
         for a file without checksums); ``values_of_block(b)`` gives that block's strings."""
         if crc_ds is None:
             return
@@ -146,7 +146,7 @@ class Index:
                 self._bad(f"checksum mismatch in {name}, rows {b * CRC_ROWS}..{b * CRC_ROWS + len(values) - 1}")
 
     def _id_blocks(self, lo: int, hi: int) -> list[str]:
-        """Ids of rows [lo, hi) read in whole 256-row blocks, each block's CRC checked."""
+        """Ids of rows [lo, hi) read in whole CRC_ROWS-row blocks, each block's CRC checked."""
         if not self.checksums:
             return self._read(lambda: self._ds["id"].asstr()[lo:hi].tolist(), "/curves/id")
         a, b = lo // CRC_ROWS * CRC_ROWS, min(self.n_curves, -(-hi // CRC_ROWS) * CRC_ROWS)
@@ -208,7 +208,7 @@ class Index:
         if hi - lo <= 4 * len(uniq) + 4096:       # one contiguous read beats scattered ones
             span = np.asarray(self._id_blocks(lo, hi), dtype=object)
             got = span[uniq - lo]
-        elif self.checksums:                      # whole 256-row blocks, to check their CRCs
+        elif self.checksums:                      # whole CRC blocks, to check them
             got = np.empty(len(uniq), dtype=object)
             blocks = uniq // CRC_ROWS
             for blk in np.unique(blocks):

@@ -28,8 +28,9 @@ _FILE_FIELDS = ("path", "size", "mtime_ns", "sha256", "status", "error", "curve_
 #: root attribute ``checksums``: every dataset has HDF5's Fletcher-32 filter, every string
 #: dataset a ``NAME_crc32`` companion (docs/index-format.md, "Checksums")
 CHECKSUMS = "fletcher32+crc32"
-#: rows per CRC-32 block of a string dataset (= the /curves/id chunk rows)
-CRC_ROWS = 256
+#: rows per CRC-32 block of a string dataset (divides the /curves/id chunk rows; small, because
+#: a query decodes whole blocks to check the ids it prints: 10 answers, ~320 strings)
+CRC_ROWS = 32
 #: string datasets with a ``NAME_crc32`` companion, per group
 STRING_DATASETS = {"curves": ("id",), "files": ("path", "error")}
 #: sane limits checked before any allocation (docs/index-format.md, "Limits")

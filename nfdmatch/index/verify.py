@@ -2,7 +2,7 @@
 
 Opening an index checks its structure (schema.py); a query then checks the checksums and
 finiteness of what it reads. This reads everything: every chunk of every dataset (each
-Fletcher-32 checksum verified by HDF5), every 256-row block of strings against its CRC-32,
+Fletcher-32 checksum verified by HDF5), every 32-row block of strings against its CRC-32,
 every stored float for finiteness, and the derived data against what it is derived from
 (``/curves/file`` against the file table, ``/search`` against ``/curves``).
 """
@@ -73,7 +73,7 @@ def _blocks(ds):
 def _scan(ds, name, report, *, label="row", keep=None, crc=None):
     """Read ``ds`` chunk by chunk and check each block as it comes: unreadable chunks (a
     Fletcher-32 mismatch), non-finite rows, and, with ``crc`` (the stored CRC-32 blocks of a
-    string dataset), each 256-row block of strings. Only what a later cross-check needs is
+    string dataset), each 32-row block of strings. Only what a later cross-check needs is
     kept: ``keep(block) -> array`` per block (None: nothing), concatenated; so a 1M-row
     index is verified without holding every dataset at once."""
     n = ds.shape[0] if ds.shape else 0
