@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .curve import Curve, as_points
-from .errors import ParameterError
+from .errors import CurveError, ParameterError
 
 __all__ = ["Descriptors", "descriptors", "resample", "SCALES", "DEFAULT_SAMPLES",
            "DEFAULT_HARMONICS", "DEFAULT_SCALE", "validate_parameters", "descriptors_batch",
@@ -99,14 +99,17 @@ def points_at(points: np.ndarray, fractions) -> np.ndarray:
     -------
     (m, 3) float64.
     """
-    closed = np.vstack([points, points[:1]])
+    # scaled by a power of two (exact): lengths of a curve near 1e308 would overflow
+    magnitude = float(np.abs(points).max()) if len(points) else 0.0
+    pre = float(np.exp2(np.floor(np.log2(magnitude)))) if magnitude > 0 else 1.0
+    closed = np.vstack([points, points[:1]]) / pre
     seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     targets = np.mod(np.asarray(fractions, dtype=np.float64), 1.0) * cum[-1]
     # searchsorted over the cumulative length; zero-length segments were removed by cleaning
     idx = np.clip(np.searchsorted(cum, targets, side="right") - 1, 0, len(seg) - 1)
     t = (targets - cum[idx]) / np.where(seg[idx] > 0, seg[idx], 1.0)
-    return closed[idx] + t[:, None] * (closed[idx + 1] - closed[idx])
+    return (closed[idx] + t[:, None] * (closed[idx + 1] - closed[idx])) * pre
 
 
 def resample(points: np.ndarray, samples: int) -> np.ndarray:
@@ -174,10 +177,18 @@ def reconstruct(d: "Descriptors", *, harmonics: int | None = None, points: int |
         raise ParameterError(f"points must be at least 3, got {points!r}")
     coeffs = d.coefficients[:K]                                      # (K, 3)
     if not normalized:
-        coeffs = d.scale * coeffs @ d.rotation                       # rotation^T applied to each row
+        coeffs = coeffs @ d.rotation                                 # rotation^T applied to each row
     phase = np.exp(2j * np.pi * np.outer(np.arange(m) / m, np.arange(1, K + 1)))   # (m, K)
     curve = 2.0 * (phase @ coeffs).real
-    return curve if normalized else curve + d.centroid
+    if normalized:
+        return curve
+    # scaled last: the sum over harmonics in input units would overflow for a curve near 1e308
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = curve * d.scale + d.centroid
+    if not np.isfinite(out).all():
+        raise CurveError("the rebuilt curve lies beyond float64 (coordinates near 1.8e308); "
+                         "use normalized=True or scale the input down")
+    return out
 
 
 @dataclass(frozen=True)
@@ -266,10 +277,16 @@ def descriptors_batch(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int 
     # each curve closed explicitly (first vertex repeated), then all concatenated
     closed = np.concatenate([np.vstack([p, p[:1]]) for p in pts_list])
     curve_of = np.repeat(np.arange(N), counts + 1)
-    offset = np.add.reduceat(closed, np.concatenate([[0], np.cumsum(counts + 1)[:-1]]), axis=0)
-    offset = (offset - np.array([p[0] for p in pts_list])) / counts[:, None]          # vertex mean
+    first = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])
+    # scaled first by a power of two per curve (exact, so ordinary curves give the same bits):
+    # a sum or difference of coordinates near 1e308 would overflow
+    magnitude = np.maximum.reduceat(np.abs(closed).max(axis=1), first)
+    pre = np.exp2(np.floor(np.log2(np.where(magnitude > 0, magnitude, 1.0))))
+    closed = closed / pre[curve_of, None]
+    offset = np.add.reduceat(closed, first, axis=0)
+    offset = (offset - closed[first]) / counts[:, None]                                # vertex mean
     centred = closed - offset[curve_of]
-    extent = np.maximum.reduceat(np.abs(centred).max(axis=1), np.concatenate([[0], np.cumsum(counts + 1)[:-1]]))
+    extent = np.maximum.reduceat(np.abs(centred).max(axis=1), first)
     unit = centred / extent[curve_of, None]
     step = np.diff(unit, axis=0)
     seg = np.linalg.norm(step, axis=1)
@@ -295,11 +312,19 @@ def descriptors_batch(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int 
     divisor = rms if scale == "rms" else np.maximum(a1, rms * 1e-15)
     coeffs = fd[:, 1:harmonics + 1] / divisor[:, None, None]
     R, degenerate = _plane_rotations(fd[:, 1], rms)
+    centroid = (offset + fd[:, 0].real * extent[:, None]) * pre[:, None]
+    size = divisor * extent * pre
+    bad = ~(np.isfinite(size) & np.isfinite(centroid).all(axis=1))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        c = curves[i]
+        raise CurveError("the curve's size or position is beyond float64 (coordinates near 1.8e308): "
+                         "scale the input down", path=c.id if isinstance(c, Curve) else None)
     return DescriptorBatch(
         coefficients=np.einsum("nij,nkj->nki", R, coeffs),
         rotation=R,
-        centroid=offset + fd[:, 0].real * extent[:, None],
-        scale=divisor * extent,
+        centroid=centroid,
+        scale=size,
         plane_degenerate=degenerate,
         samples=int(samples), harmonics=int(harmonics), scale_mode=scale,
     )

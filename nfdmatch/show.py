@@ -16,7 +16,7 @@ import numpy as np
 
 from .curve import Curve
 from .descriptors import DescriptorBatch, Descriptors, descriptors, points_at, reconstruct
-from .errors import NfdError
+from .errors import CurveError, NfdError
 from .matching import match_descriptors
 from .render import START_STEP
 
@@ -26,6 +26,18 @@ __all__ = ["ShownMatch", "align_match", "match_panels", "matches_from_curves", "
 #: a file whose re-matched distance differs from the indexed one by more than this (relative
 #: to 1 + distance) no longer holds the indexed curve: draw from the index instead
 _CHANGED = 1e-3
+#: largest coordinate of a query that can be drawn: the pictures square lengths (moments,
+#: extents), which overflows float64 past ~1.3e154
+MAX_DRAWN_COORDINATE = 1e150
+
+
+def _drawable(query: Curve) -> None:
+    """Raise CurveError for a query too large to draw (the matches are drawn at its size)."""
+    largest = float(np.abs(query.points).max())
+    if largest > MAX_DRAWN_COORDINATE:
+        raise CurveError(f"coordinates up to {largest:.3g} are too large to draw (at most "
+                         f"{MAX_DRAWN_COORDINATE:g}): scale the curve down (distance, query and reconstruct "
+                         f"take it as it is)", path=query.id)
 
 
 @dataclass(frozen=True)
@@ -150,6 +162,7 @@ def show_ranked(query: Curve, curves, *, top: int, samples: int | None = None, h
 
     params = dict(samples=samples or DEFAULT_SAMPLES, harmonics=harmonics or DEFAULT_HARMONICS,
                   scale=scale or DEFAULT_SCALE, method=method, direction=direction, mirror=mirror)
+    _drawable(query)
     ranked = rank_curves(query, curves, top=top, **params)
     return matches_from_curves(query, ranked, curves, **params)
 
@@ -160,6 +173,7 @@ def show_searched(query: Curve, index, *, top: int, method: str = "exact", direc
     notes of :func:`matches_from_index`."""
     from .search import search_index
 
+    _drawable(query)
     results, _ = search_index(index, [query], top=top, method=method, direction=direction, mirror=mirror)
     return matches_from_index(query, results[0], index, method=method, direction=direction, mirror=mirror,
                               read_curve=read_curve)

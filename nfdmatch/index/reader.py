@@ -7,8 +7,34 @@ import os
 import h5py
 import numpy as np
 
-from ..errors import IndexFormatError, NfdError, ParameterError
-from .schema import _STATUS, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
+from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
+from .schema import (_STATUS, CRC_ROWS, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, block_crcs,
+                     default_index_path)
+
+#: stored numbers that must be finite (the /curves ones; /search is checked as it is read)
+_FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "inv_sv", "inv_block")
+
+
+def first_nonfinite(values, rows) -> int | None:
+    """The row (of ``rows``, (m,) ints, or a start row) of the first non-finite entry of
+    ``values`` (m, ...) float or complex, or None when all are finite."""
+    values = np.asarray(values)
+    if values.dtype.kind not in "fc" or not values.size:
+        return None
+    bad = ~np.isfinite(values.reshape(len(values), -1)).all(axis=1)
+    if not bad.any():
+        return None
+    i = int(np.argmax(bad))
+    return int(rows[i]) if np.ndim(rows) else int(rows) + i
+
+
+def read_error(exc: BaseException, where: str) -> str:
+    """The message of a failed HDF5 read of ``where``: a failed Fletcher-32 check says so."""
+    text = _short(exc)
+    if "filter returned failure" in text or "checksum" in text.lower():
+        return (f"corrupted nfdmatch index: checksum mismatch in {where} (the file is damaged; "
+                f"`nfdmatch index verify` lists what is bad)")
+    return f"corrupted nfdmatch index: reading {where} failed ({text})"
 
 
 def open_index(path=None) -> "Index":
@@ -38,6 +64,7 @@ class Index:
     Attributes
     ----------
     path : str; format_version : int; nfdmatch_version : str (the writer's);
+    checksums : bool (the file carries checksums, checked as it is read);
     samples, harmonics : int; scale : str ("rms" or "a1"); created, updated : str (ISO-8601 UTC);
     n_curves, n_files : int.
     """
@@ -48,6 +75,8 @@ class Index:
         self._ds = meta["datasets"]
         self._files = files
         self._file_records = None
+        self.checksums: bool = meta.get("checksums", False)
+        self._crc = meta.get("crc", {})
         self.format_version: int = meta["format_version"]
         self.nfdmatch_version: str = meta["nfdmatch_version"]
         self.samples: int = meta["samples"]
@@ -82,7 +111,8 @@ class Index:
         return (f"Index({self.path!r}, curves={self.n_curves}, files={self.n_files}, samples={self.samples}, "
                 f"harmonics={self.harmonics}, scale={self.scale!r})")
 
-    def _read(self, fn):
+    def _read(self, fn, where: str = "the index"):
+        """``fn()``, with any failure of the read as an IndexFormatError about ``where``."""
         if self._h5 is None:
             raise IndexFormatError("the index is closed", path=self.path)
         try:
@@ -90,8 +120,41 @@ class Index:
         except NfdError:
             raise
         except Exception as exc:
-            raise IndexFormatError(f"corrupted nfdmatch index: reading failed ({_short(exc)})",
-                                   path=self.path) from None
+            raise IndexFormatError(read_error(exc, where), path=self.path) from None
+
+    def _bad(self, message: str):
+        raise IndexFormatError(f"corrupted nfdmatch index: {message}", path=self.path)
+
+    def _finite(self, name: str, values, rows, group: str = "curves"):
+        row = first_nonfinite(values, rows)
+        if row is not None:
+            self._bad(f"non-finite value (NaN or Inf) in /{group}/{name}, row {row}")
+        return values
+
+    def _check_strings(self, crc_ds, name: str, blocks, values_of_block) -> None:
+        """Compare the CRC-32 of each CRC_ROWS-row block in ``blocks`` with ``crc_ds`` (a no-op
+        for a file without checksums); ``values_of_block(b)`` gives that block's strings."""
+        if crc_ds is None:
+            return
+        blocks = [int(b) for b in blocks]
+        if not blocks:
+            return
+        lo, hi = min(blocks), max(blocks) + 1
+        stored = np.asarray(self._read(lambda: crc_ds[lo:hi], f"{crc_ds.name}"), dtype=np.uint32)
+        for b in blocks:
+            values = values_of_block(b)
+            if int(block_crcs(values, len(values) or 1)[0] if values else 0) != int(stored[b - lo]):
+                self._bad(f"checksum mismatch in {name}, rows {b * CRC_ROWS}..{b * CRC_ROWS + len(values) - 1}")
+
+    def _id_blocks(self, lo: int, hi: int) -> list[str]:
+        """Ids of rows [lo, hi) read in whole CRC_ROWS-row blocks, each block's CRC checked."""
+        if not self.checksums:
+            return self._read(lambda: self._ds["id"].asstr()[lo:hi].tolist(), "/curves/id")
+        a, b = lo // CRC_ROWS * CRC_ROWS, min(self.n_curves, -(-hi // CRC_ROWS) * CRC_ROWS)
+        values = self._read(lambda: self._ds["id"].asstr()[a:b].tolist(), f"/curves/id, rows {a}..{b - 1}")
+        self._check_strings(self._crc.get("id_crc32"), "/curves/id", range(a // CRC_ROWS, -(-b // CRC_ROWS)),
+                            lambda blk: values[blk * CRC_ROWS - a:(blk + 1) * CRC_ROWS - a])
+        return values[lo - a:hi - a]
 
     def _range(self, start, stop) -> tuple[int, int]:
         start, stop, _ = slice(start, stop).indices(self.n_curves)
@@ -107,15 +170,23 @@ class Index:
                     return []
                 paths = fds["path"].asstr()[...].tolist()
                 errors = fds["error"].asstr()[...].tolist()
+                crc = self._files.get("crc", {})
+                for name, values in (("path", paths), ("error", errors)):
+                    if self.checksums:
+                        self._check_strings(crc.get(f"{name}_crc32"), f"/files/{name}",
+                                            range(-(-F // CRC_ROWS)),
+                                            lambda b, v=values: v[b * CRC_ROWS:(b + 1) * CRC_ROWS])
                 shas = [s.decode("ascii", "replace") if isinstance(s, bytes) else str(s)
                         for s in fds["sha256"][...].tolist()]
                 size, mtime = fds["size"][...].tolist(), fds["mtime_ns"][...].tolist()
                 status = fds["status"][...].tolist()
                 starts, counts = self._files["curve_start"].tolist(), self._files["curve_count"].tolist()
+                # a crafted file's messages are cut as a build cuts them (index info prints them)
+                errors = [e if len(e) <= MAX_MESSAGE_CHARS else excerpt(e, MAX_MESSAGE_CHARS) for e in errors]
                 return [FileRecord(paths[i], int(size[i]), int(mtime[i]), shas[i],
                                    _STATUS.get(int(status[i]), "failed"), errors[i], int(starts[i]),
                                    int(counts[i])) for i in range(F)]
-            self._file_records = self._read(read)
+            self._file_records = self._read(read, "/files")
         return list(self._file_records)
 
     # -- where the files are (docs/index-format.md, "Paths and ids")
@@ -152,7 +223,7 @@ class Index:
         a, b = self._range(start, stop)
         if a == b:
             return []
-        return self._read(lambda: self._ds["id"].asstr()[a:b].tolist())
+        return self._id_blocks(a, b)
 
     def ids_at(self, rows) -> list[str]:
         """Curve ids of the given rows (any order, repeats allowed)."""
@@ -164,10 +235,17 @@ class Index:
         uniq, inverse = np.unique(rows, return_inverse=True)
         lo, hi = int(uniq[0]), int(uniq[-1]) + 1
         if hi - lo <= 4 * len(uniq) + 4096:       # one contiguous read beats scattered ones
-            span = np.asarray(self._read(lambda: self._ds["id"].asstr()[lo:hi]), dtype=object)
+            span = np.asarray(self._id_blocks(lo, hi), dtype=object)
             got = span[uniq - lo]
+        elif self.checksums:                      # whole CRC blocks, to check them
+            got = np.empty(len(uniq), dtype=object)
+            blocks = uniq // CRC_ROWS
+            for blk in np.unique(blocks):
+                block = self._id_blocks(int(blk) * CRC_ROWS, min(self.n_curves, (int(blk) + 1) * CRC_ROWS))
+                sel = blocks == blk
+                got[sel] = [block[r - int(blk) * CRC_ROWS] for r in uniq[sel]]
         else:
-            got = np.asarray(self._read(lambda: self._ds["id"].asstr()[uniq]), dtype=object)
+            got = np.asarray(self._read(lambda: self._ds["id"].asstr()[uniq], "/curves/id"), dtype=object)
         return got[inverse].tolist()
 
     def coefficients_at(self, rows) -> np.ndarray:
@@ -180,7 +258,8 @@ class Index:
         if rows.min() < 0 or rows.max() >= self.n_curves:
             raise IndexError(f"row out of range 0..{self.n_curves - 1}")
         uniq, inverse = np.unique(rows, return_inverse=True)
-        got = np.asarray(self._read(lambda: self._ds["coefficients"][uniq]))
+        got = np.asarray(self._read(lambda: self._ds["coefficients"][uniq], "/curves/coefficients"))
+        self._finite("coefficients", got, uniq)
         return got[inverse]
 
     _ALL_COLUMNS = ("coefficients", "inv_norm", "inv_sv", "inv_block", "centroid", "scale", "rotation",
@@ -201,7 +280,11 @@ class Index:
         unknown = set(names) - set(self._ALL_COLUMNS)
         if unknown:
             raise ParameterError(f"unknown index columns: {', '.join(sorted(unknown))}")
-        raw = self._read(lambda: {name: self._ds[name][a:b] for name in names})
+        raw = {}
+        for name in names:
+            raw[name] = self._read(lambda: self._ds[name][a:b], f"/curves/{name}, rows {a}..{b - 1}")
+            if name in _FLOAT_COLUMNS:
+                self._finite(name, raw[name], a)
         if not upcast:
             return raw
         out = {}
@@ -225,11 +308,14 @@ class Index:
 
     def _raw_rows(self, a: int, b: int) -> dict:
         """Rows [a, b) in storage dtypes, ids as str (for copying into a new index)."""
-        def read():
-            out = {name: ds[a:b] for name, ds in self._ds.items() if name not in ("id", "file")}
-            out["id"] = np.asarray(self._ds["id"].asstr()[a:b], dtype=object)
-            return out
-        return self._read(read)
+        out = {}
+        for name, ds in self._ds.items():
+            if name not in ("id", "file"):
+                out[name] = self._read(lambda: ds[a:b], f"/curves/{name}, rows {a}..{b - 1}")
+                if name in _FLOAT_COLUMNS:
+                    self._finite(name, out[name], a)
+        out["id"] = np.asarray(self._id_blocks(a, b), dtype=object)
+        return out
 
     def search_table(self):
         """What a search reads (:class:`~nfdmatch.search.table.SearchTable`): the stored
@@ -244,7 +330,7 @@ class Index:
                 raise IndexFormatError(f"corrupted nfdmatch index: {message}", path=self.path)
 
             return self._read(lambda: search_table(self._h5, self.n_curves, self.harmonics,
-                                                   self.coefficients_at, fail))
+                                                   self.coefficients_at, fail, self._read), "/search")
         from ..search.table import SearchTable
 
         from ..search.bounds import head_harmonics
@@ -255,7 +341,9 @@ class Index:
             sv, block = self._ds["inv_sv"][...], self._ds["inv_block"][...]
             return np.concatenate([sv, block], axis=1), self._ds["coefficients"][:, :head_harmonics(self.harmonics)]
 
-        F, head = self._read(features)
+        F, head = self._read(features, "/curves")
+        self._finite("inv_sv, inv_block", F, 0)
+        self._finite("coefficients", head, 0)
         return SearchTable.single_cell(self.harmonics, F, head, self.coefficients_at)
 
     def info(self) -> dict:

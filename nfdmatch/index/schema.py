@@ -24,6 +24,94 @@ _STATUS = {0: "ok", 1: "failed"}
 
 _FILE_FIELDS = ("path", "size", "mtime_ns", "sha256", "status", "error", "curve_start", "curve_count")
 
+# --------------------------------------------------------------------------- integrity
+#: root attribute ``checksums``: every dataset has HDF5's Fletcher-32 filter, every string
+#: dataset a ``NAME_crc32`` companion (docs/index-format.md, "Checksums")
+CHECKSUMS = "fletcher32+crc32"
+#: rows per CRC-32 block of a string dataset (divides the /curves/id chunk rows; small, because
+#: a query decodes whole blocks to check the ids it prints: 10 answers, ~320 strings)
+CRC_ROWS = 32
+#: string datasets with a ``NAME_crc32`` companion, per group
+STRING_DATASETS = {"curves": ("id",), "files": ("path", "error")}
+#: sane limits checked before any allocation (docs/index-format.md, "Limits")
+MAX_SAMPLES = 1 << 20
+MAX_CHUNK_BYTES = 64 << 20
+#: declared bytes per stored byte allowed for a compressed dataset (deflate tops out ~1032)
+_MAX_COMPRESSION = 1100
+#: HDF5 filters that only check or reorder bytes (no compression)
+_PLAIN_FILTERS = {h5py.h5z.FILTER_FLETCHER32, h5py.h5z.FILTER_SHUFFLE}
+_CHUNK_ROWS = 4096
+
+
+def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
+    """(ceil(len(values) / rows),) uint32: CRC-32 of each block of ``rows`` strings, every
+    string's UTF-8 bytes followed by one NUL (the ``NAME_crc32`` companion datasets)."""
+    import zlib
+
+    values = list(values)
+    out = np.empty((len(values) + rows - 1) // rows, dtype=np.uint32)
+    for b in range(len(out)):
+        block = values[b * rows:(b + 1) * rows]
+        out[b] = zlib.crc32(b"".join(v.encode("utf-8", "surrogateescape") + b"\0" for v in block))
+    return out
+
+
+def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHUNK_ROWS):
+    """Create dataset ``name`` in ``group`` holding ``data`` (rows along axis 0), with the
+    checksums of the format: numbers chunked with Fletcher-32; strings (HDF5 does not filter
+    variable-length data) plain, plus their ``NAME_crc32`` block checksums."""
+    data = np.asarray(data) if dtype is None else np.asarray(data, dtype=dtype if dtype is not _STR else object)
+    if dtype is _STR:
+        ds = group.create_dataset(name, data=data, dtype=_STR, shape=data.shape)
+        write_string_checks(group, name, data.tolist())
+        return ds
+    rows = max(1, min(chunk_rows, data.shape[0] if data.ndim else 1))
+    chunks = (rows,) + tuple(max(1, x) for x in data.shape[1:]) if data.ndim else None
+    # an empty dataset can be chunked only when resizable
+    maxshape = (None,) + data.shape[1:] if data.ndim and not data.shape[0] else None
+    return group.create_dataset(name, data=data, dtype=dtype or data.dtype, shape=data.shape, chunks=chunks,
+                                maxshape=maxshape, fletcher32=True)
+
+
+def write_string_checks(group, name: str, values) -> None:
+    """The ``NAME_crc32`` companion of string dataset ``name`` (values: its strings in row order)."""
+    group.create_dataset(f"{name}_crc32", data=block_crcs(values), chunks=True, fletcher32=True)
+
+
+def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
+    """Why dataset ``ds`` (at path ``where``) cannot be read safely, from its metadata only, or None.
+
+    Refuses external storage and virtual datasets (their bytes live in other files), a
+    declared size the file cannot hold (uncompressed: the allocated storage must cover every
+    declared byte; compressed: at most :data:`_MAX_COMPRESSION` times the stored bytes),
+    chunks above :data:`MAX_CHUNK_BYTES`, and, when the file declares checksums, a numeric
+    dataset without Fletcher-32."""
+    if ds.is_virtual:
+        return f"{where} is a virtual dataset (data in other files): refused"
+    dcpl = ds.id.get_create_plist()
+    if dcpl.get_external_count() > 0:
+        return f"{where} has external storage (data in another file): refused"
+    vlen = ds.dtype.kind == "O"
+    itemsize = 16 if vlen else ds.dtype.itemsize          # variable length: 16-byte heap references
+    declared = int(np.prod(ds.shape, dtype=np.float64)) * itemsize
+    if ds.chunks is not None:
+        chunk_bytes = int(np.prod(ds.chunks, dtype=np.float64)) * itemsize
+        if chunk_bytes > MAX_CHUNK_BYTES:
+            return f"{where} has chunks of {chunk_bytes} bytes (at most {MAX_CHUNK_BYTES})"
+    filters = {dcpl.get_filter(i)[0] for i in range(dcpl.get_nfilters())}
+    stored = int(ds.id.get_storage_size())
+    if declared:
+        if filters - _PLAIN_FILTERS:
+            if declared > _MAX_COMPRESSION * max(stored, 1):
+                return (f"{where} declares {declared} bytes ({ds.shape}) in {stored} stored bytes, "
+                        f"more than any compression gives")
+        elif stored < declared:
+            return (f"{where} declares {ds.shape} ({declared} bytes) but stores {stored} bytes "
+                    f"of a {file_size}-byte file")
+    if checksums and not vlen and h5py.h5z.FILTER_FLETCHER32 not in filters:
+        return f"{where} has no checksum filter, but the file declares checksums"
+    return None
+
 
 def _curve_layout(K: int) -> dict:
     """/curves dataset name -> (storage dtype, shape after the row axis)."""
@@ -151,6 +239,9 @@ def _open_checked(path: str):
         raise
     except Exception as exc:
         h5.close()
+        if "filter returned failure" in _short(exc):          # a Fletcher-32 mismatch
+            raise _Problem("corrupt", "corrupted nfdmatch index: checksum mismatch in the file table "
+                                      "(/files; the file is damaged)") from None
         raise _Problem("corrupt", f"corrupted nfdmatch index ({_short(exc)})") from None
     return h5, meta, files
 
@@ -172,14 +263,20 @@ def _validate(h5) -> tuple[dict, dict]:
         validate_parameters(samples, harmonics, scale)
     except ParameterError as exc:
         raise _Problem("corrupt", f"corrupted nfdmatch index: {exc.message}") from None
+    if samples > MAX_SAMPLES:
+        raise _Problem("corrupt", f"corrupted nfdmatch index: samples {samples} above the limit {MAX_SAMPLES}")
+    checksums_attr = _attr_str(attrs, "checksums")
+    if checksums_attr not in (None, CHECKSUMS):
+        raise _Problem("corrupt", f"corrupted nfdmatch index: unknown checksums {checksums_attr!r}")
+    checksums = checksums_attr == CHECKSUMS
+    file_size = int(h5.id.get_filesize())
     meta = {"format_version": version, "samples": samples, "harmonics": harmonics, "scale": scale,
+            "checksums": checksums,
             "nfdmatch_version": _attr_str(attrs, "nfdmatch_version") or "",
             "created": _attr_str(attrs, "created") or "", "updated": _attr_str(attrs, "updated") or ""}
 
     def dataset(group, name, tail):
-        obj = h5.get(f"{group}/{name}")
-        if not isinstance(obj, h5py.Dataset):
-            raise _Problem("corrupt", f"corrupted nfdmatch index: missing dataset /{group}/{name}")
+        obj = stored_dataset(h5, f"{group}/{name}", file_size, checksums)
         if len(obj.shape) != 1 + len(tail) or tuple(obj.shape[1:]) != tail:
             raise _Problem("corrupt", f"corrupted nfdmatch index: /{group}/{name} has shape {obj.shape}, "
                                       f"expected (rows, {', '.join(map(str, tail))})".replace(", )", ")"))
@@ -193,6 +290,15 @@ def _validate(h5) -> tuple[dict, dict]:
     N = cds["id"].shape[0]
     if any(d.shape[0] != N for d in cds.values()):
         raise _Problem("corrupt", "corrupted nfdmatch index: the /curves datasets differ in length")
+    if checksums:
+        for group, names in STRING_DATASETS.items():
+            for name in names:
+                rows = (F if group == "files" else N)
+                crc = dataset(group, f"{name}_crc32", ())
+                if crc.shape[0] != (rows + CRC_ROWS - 1) // CRC_ROWS or crc.dtype.kind != "u":
+                    raise _Problem("corrupt", f"corrupted nfdmatch index: /{group}/{name}_crc32 has shape "
+                                              f"{crc.shape}, expected ({(rows + CRC_ROWS - 1) // CRC_ROWS},)")
+                (fds if group == "files" else cds)[f"{name}_crc32"] = crc
     if cds["coefficients"].dtype.kind != "c":
         raise _Problem("corrupt", "corrupted nfdmatch index: /curves/coefficients is not complex")
     counts = fds["curve_count"][...].astype(np.int64)
@@ -204,10 +310,42 @@ def _validate(h5) -> tuple[dict, dict]:
     if version >= 2:
         from .search_group import check_search_group
 
-        problem = check_search_group(h5, int(N), harmonics)
+        problem = check_search_group(h5, int(N), harmonics,
+                                     lambda name: stored_dataset(h5, f"search/{name}", file_size, checksums))
         if problem:
             raise _Problem("corrupt", f"corrupted nfdmatch index: {problem}")
-    files = {"datasets": fds, "curve_start": starts, "curve_count": counts}
-    meta["datasets"] = cds
+    files = {"datasets": {k: v for k, v in fds.items() if k in _FILE_FIELDS}, "curve_start": starts,
+             "curve_count": counts, "crc": {k: v for k, v in fds.items() if k.endswith("_crc32")}}
+    meta["crc"] = {k: v for k, v in cds.items() if k.endswith("_crc32")}
+    meta["datasets"] = {k: v for k, v in cds.items() if not k.endswith("_crc32")}
     meta["n_curves"], meta["n_files"] = int(N), int(F)
     return meta, files
+
+
+def stored_dataset(h5, name: str, file_size: int, checksums: bool):
+    """The dataset at ``name`` (no leading slash) if it is a hard link to a dataset stored in
+    this file that passes :func:`check_stored`; else raises _Problem. Links are not followed:
+    a soft or external link could point anywhere, including into another file."""
+    where = f"/{name}"
+    link = None
+    try:
+        parent = h5
+        parts = name.split("/")
+        for i, part in enumerate(parts):
+            link = parent.get(part, getlink=True)
+            if link is None:
+                break
+            if not isinstance(link, h5py.HardLink):
+                raise _Problem("corrupt", f"corrupted nfdmatch index: {'/' + '/'.join(parts[:i + 1])} is a "
+                                          f"{type(link).__name__}, not stored in the file: refused")
+            parent = parent[part]
+    except _Problem:
+        raise
+    except Exception as exc:
+        raise _Problem("corrupt", f"corrupted nfdmatch index: cannot open {where} ({_short(exc)})") from None
+    if link is None or not isinstance(parent, h5py.Dataset):
+        raise _Problem("corrupt", f"corrupted nfdmatch index: missing dataset {where}")
+    problem = check_stored(parent, where, file_size, checksums)
+    if problem:
+        raise _Problem("corrupt", f"corrupted nfdmatch index: {problem}")
+    return parent

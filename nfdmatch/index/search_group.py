@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .schema import CHECKSUMS, create_checked
 
 __all__ = ["write_search_group", "check_search_group", "search_table", "SEARCH_DATASETS"]
 
@@ -21,6 +22,8 @@ SEARCH_DATASETS = {
 #: /search/coefficients: (N, K, 3) complex64, checked apart (K from the harmonics)
 #: rows read back from /curves at a time while gathering the features
 _READ_ROWS = 1 << 18
+#: positions per HDF5 chunk of the datasets a search reads cell by cell
+_POSITION_CHUNK_ROWS = 256
 
 
 def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) -> int:
@@ -53,33 +56,57 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) 
         coefficients[position_of[a:a + len(block)]] = block
     g = h5.create_group("search")
     g.attrs["cells"] = np.int64(cells.count)
-    g.create_dataset("row", data=cells.row)
-    g.create_dataset("cell_start", data=cells.start)
-    g.create_dataset("centre", data=cells.centre)
-    g.create_dataset("radius", data=cells.radius)
-    g.create_dataset("features", data=features)
-    g.create_dataset("sqnorm", data=sqnorm)
-    g.create_dataset("coefficients", data=coefficients)
+    for name, data in (("cell_start", cells.start), ("centre", cells.centre), ("radius", cells.radius)):
+        create_checked(g, name, data)                 # read whole when a search starts
+    for name, data in (("row", cells.row), ("features", features), ("sqnorm", sqnorm), ("coefficients", coefficients)):
+        # read cell by cell (~128 positions): small chunks, so that a query reads (and
+        # checksums) ~36 KB per cell rather than a 4096-row chunk
+        create_checked(g, name, data, chunk_rows=_POSITION_CHUNK_ROWS)
+    _finish_checksums(h5)
     return cells.count
 
 
-def check_search_group(h5, N: int, harmonics: int) -> str | None:
-    """Why the file's ``/search`` group is not valid for N rows and K harmonics, or None."""
+def _finish_checksums(h5) -> None:
+    """The last step of a build: ``/curves/id_crc32`` from the ids as stored (the writer
+    appends them in pieces; reading them back costs ~1 s per million rows), then the root
+    attribute that makes readers require every checksum."""
+    from .schema import CRC_ROWS, write_string_checks
+
+    ids = h5["curves/id"] if "curves/id" in h5 else None
+    values: list[str] = []
+    if ids is not None:
+        step = CRC_ROWS * 256
+        for a in range(0, ids.shape[0], step):
+            values.extend(ids.asstr()[a:a + step].tolist())
+        write_string_checks(h5["curves"], "id", values)
+    h5.attrs["checksums"] = CHECKSUMS
+
+
+def check_search_group(h5, N: int, harmonics: int, get=None) -> str | None:
+    """Why the file's ``/search`` group is not valid for N rows and K harmonics, or None.
+
+    ``get(name)`` returns dataset ``/search/NAME`` after checking how it is stored (raising
+    the reader's error otherwise); by default, plain lookup."""
     g = h5.get("search")
-    if g is None:
+    if g is None or not hasattr(g, "keys"):
         return "missing group /search"
+    if get is None:
+        get = g.get
     D = 2 * harmonics + 3
-    start = g.get("cell_start")
+    start = get("cell_start")
     if start is None or len(start.shape) != 1 or start.shape[0] < 1:
         return "missing or bad dataset /search/cell_start"
     C = start.shape[0] - 1
+    cells = g.attrs.get("cells")
+    if cells is not None and (not isinstance(cells, (int, np.integer)) or int(cells) != C):
+        return f"/search attribute cells {cells!r} does not match /search/cell_start ({C} cells)"
     for name, (dtype, shape) in SEARCH_DATASETS.items():
-        ds = g.get(name)
+        ds = get(name)
         if ds is None or not hasattr(ds, "shape"):
             return f"missing dataset /search/{name}"
         if tuple(ds.shape) != shape(N, C, D):
             return f"/search/{name} has shape {ds.shape}, expected {shape(N, C, D)}"
-    coefficients = g.get("coefficients")
+    coefficients = get("coefficients")
     want = (N, harmonics, 3)
     if (coefficients is None or not hasattr(coefficients, "shape") or tuple(coefficients.shape) != want
             or coefficients.dtype.kind != "c"):
@@ -90,23 +117,43 @@ def check_search_group(h5, N: int, harmonics: int) -> str | None:
     return None
 
 
-def search_table(h5, N: int, harmonics: int, read_coefficients, fail):
+def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None):
     """A :class:`~nfdmatch.search.table.SearchTable` reading ``/search`` cell by cell.
 
-    ``fail(message)`` raises the reader's error for a corrupted file (rows out of range).
+    ``fail(message)`` raises the reader's error for a corrupted file (rows out of range,
+    non-finite values); ``guard(fn, where)`` runs a read and turns its failure (e.g. a
+    checksum mismatch) into the reader's error (default: run it as is).
     """
     from ..search.table import SearchTable
+    from .reader import first_nonfinite
+
+    if guard is None:
+        def guard(fn, where):
+            return fn()
 
     g = h5["search"]
     start = np.asarray(g["cell_start"][...], dtype=np.int64)
     ds_row, ds_features, ds_sqnorm, ds_coefficients = g["row"], g["features"], g["sqnorm"], g["coefficients"]
 
+    def finite(name, values, first):
+        bad = first_nonfinite(values, first)
+        if bad is not None:
+            fail(f"non-finite value (NaN or Inf) in /search/{name}, position {bad}")
+        return values
+
     def read_positions(a: int, b: int):
-        row = np.asarray(ds_row[a:b], dtype=np.int64)
+        def read():
+            return (np.asarray(ds_row[a:b], dtype=np.int64), np.asarray(ds_features[a:b], dtype=np.float32),
+                    np.asarray(ds_sqnorm[a:b], dtype=np.float64), np.asarray(ds_coefficients[a:b]))
+
+        row, features, sqnorm, coefficients = guard(read, f"/search, positions {a}..{b - 1}")
         if len(row) and (row.min() < 0 or row.max() >= N):
             fail("/search/row holds a row outside the index")
-        return (row, np.asarray(ds_features[a:b], dtype=np.float32), np.asarray(ds_sqnorm[a:b], dtype=np.float64),
-                np.asarray(ds_coefficients[a:b]))
+        finite("features", features, a)
+        finite("sqnorm", sqnorm, a)
+        finite("coefficients", coefficients, a)
+        return row, features, sqnorm, coefficients
 
-    return SearchTable(harmonics, start, np.asarray(g["centre"][...], dtype=np.float64),
-                       np.asarray(g["radius"][...], dtype=np.float64), read_positions, read_coefficients)
+    centre = finite("centre", np.asarray(g["centre"][...], dtype=np.float64), 0)
+    radius = finite("radius", np.asarray(g["radius"][...], dtype=np.float64), 0)
+    return SearchTable(harmonics, start, centre, radius, read_positions, read_coefficients)

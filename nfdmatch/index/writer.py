@@ -8,7 +8,8 @@ import re
 
 import numpy as np
 
-from .schema import _SHA, _STR, FileRecord, _curve_layout
+from ..errors import MAX_MESSAGE_CHARS, excerpt
+from .schema import _SHA, _STR, FileRecord, _curve_layout, create_checked
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
@@ -142,8 +143,10 @@ class _CurveWriter:
         self.ds = {}
         for name, (dtype, tail) in _curve_layout(self.K).items():
             chunk = max(1, min(_SCATTERED_CHUNK_ROWS.get(name, CHUNK_ROWS), first_rows))
+            # Fletcher-32 per chunk: a damaged chunk fails when read (HDF5 filters no strings)
             self.ds[name] = self.group.create_dataset(name, shape=(0,) + tail, maxshape=(None,) + tail,
-                                                      chunks=(chunk,) + tail, dtype=dtype)
+                                                      chunks=(chunk,) + tail, dtype=dtype,
+                                                      fletcher32=dtype is not _STR)
 
     def append(self, piece: dict) -> None:
         n = len(piece["file"])
@@ -177,22 +180,22 @@ def _write_files_table(h5, records: list[FileRecord], space: "_Space | None" = N
     if space is not None:
         space.reserve(sum(len(r.path.encode("utf-8", "surrogateescape")) + len(r.error.encode("utf-8", "replace"))
                           + 200 for r in records))
-    g.create_dataset("path", data=np.array([r.path for r in records], dtype=object), dtype=_STR, shape=(F,))
-    g.create_dataset("size", data=np.array([r.size for r in records], dtype=np.int64), shape=(F,))
-    g.create_dataset("mtime_ns", data=np.array([r.mtime_ns for r in records], dtype=np.int64), shape=(F,))
-    g.create_dataset("sha256", data=np.array([r.sha256.encode("ascii") for r in records], dtype=_SHA),
-                     shape=(F,), dtype=_SHA)
-    g.create_dataset("status", data=np.array([0 if r.status == "ok" else 1 for r in records], dtype=np.uint8),
-                     shape=(F,))
-    g.create_dataset("error", data=np.array([r.error for r in records], dtype=object), dtype=_STR, shape=(F,))
-    g.create_dataset("curve_start", data=np.array([r.curve_start for r in records], dtype=np.int64), shape=(F,))
-    g.create_dataset("curve_count", data=np.array([r.curve_count for r in records], dtype=np.int64), shape=(F,))
+    checked = {"path": ([r.path for r in records], _STR), "size": ([r.size for r in records], np.int64),
+               "mtime_ns": ([r.mtime_ns for r in records], np.int64),
+               "sha256": ([r.sha256.encode("ascii") for r in records], _SHA),
+               "status": ([0 if r.status == "ok" else 1 for r in records], np.uint8),
+               # cut here too: a message from outside NfdError (a worker's crash) is stored as is
+               "error": ([excerpt(r.error, MAX_MESSAGE_CHARS) for r in records], _STR),
+               "curve_start": ([r.curve_start for r in records], np.int64),
+               "curve_count": ([r.curve_count for r in records], np.int64)}
+    for name, (values, dtype) in checked.items():
+        create_checked(g, name, np.array(values, dtype=object if dtype is _STR else dtype).reshape(F), dtype)
 
 
 def _write_sources(h5, paths: list[str], glob: str | None) -> None:
     """/sources: the stored sources of this build and its glob (docs/index-format.md)."""
     g = h5.create_group("sources")
-    g.create_dataset("path", data=np.array(list(paths), dtype=object), dtype=_STR, shape=(len(paths),))
+    create_checked(g, "path", np.array(list(paths), dtype=object), _STR)
     g.attrs["glob"] = glob or ""
 
 

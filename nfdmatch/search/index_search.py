@@ -140,6 +140,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                 account(answer(qi))
         stats.bytes_read = table.bytes_read
 
+    for qi, tk in enumerate(tops):
+        _recompute(index, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=weights)
     results = []
     for tk in tops:
         ids = index.ids_at(tk.rows) if len(tk.rows) else []
@@ -153,6 +155,34 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                         for rank, i in enumerate(order, start=1)])
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def _recompute(index, query, tk, search, *, direction, mirror, weights) -> None:
+    """Replace the distances, shifts and flags of the rows a query found by the numpy
+    reference path's, in a fixed order on this thread.
+
+    The search itself may have used the compiled kernels for some rows and numpy for others
+    (the switch depends on the work done so far, and on timing when queries run on threads);
+    the two agree to ~1e-15 but not bit for bit, so without this the last printed digits
+    change from run to run. The reference is the exact distance, so nothing is lost; rows
+    pushed past ``max_distance`` by the recomputation are dropped as the search would have.
+    """
+    from ..matching import reference_path
+
+    if not len(tk.rows):
+        return
+    order = np.argsort(tk.rows, kind="stable")
+    rows = tk.rows[order]
+    parts = []
+    with reference_path():
+        for a in range(0, len(rows), EXHAUSTIVE_ROWS):
+            chunk = rows[a:a + EXHAUSTIVE_ROWS]
+            parts.append(search(query, index.coefficients_at(chunk), index.samples, direction=direction,
+                                mirror=mirror, weights=weights))
+    dist = np.concatenate([p["distance"] for p in parts])
+    keep = dist <= (np.inf if tk.max_distance is None else tk.max_distance)
+    tk.rows, tk.dist = rows[keep], dist[keep]
+    tk.extra = {key: np.concatenate([p[key] for p in parts])[keep] for key in tk.extra}
 
 
 def _exhaustive(index, qcoef, tops, search, *, direction, mirror, weights, progress) -> int:

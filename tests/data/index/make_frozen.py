@@ -17,7 +17,8 @@ parameters and values, forever. Do not re-run this script to make a failing test
 pass: a reader that cannot read this file is a format break (bump ``format_version``
 and keep reading the old formats instead). ``v1-sample.h5`` was made by this script at
 commit 646aae6 (format 1); today's code writes format 2, so running it now makes
-``v2-sample.h5``.
+``v2-sample.h5`` (last regenerated while format 2 was unreleased, to carry the checksums:
+Fletcher-32 chunks and CRC-32 string blocks).
 """
 
 import os

@@ -1,0 +1,214 @@
+"""``nfdmatch index verify``: read every chunk of an index and say what is bad.
+
+Opening an index checks its structure (schema.py); a query then checks the checksums and
+finiteness of what it reads. This reads everything: every chunk of every dataset (each
+Fletcher-32 checksum verified by HDF5), every 32-row block of strings against its CRC-32,
+every stored float for finiteness, and the derived data against what it is derived from
+(``/curves/file`` against the file table, ``/search`` against ``/curves``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import IndexFormatError
+from .schema import CRC_ROWS, STRING_DATASETS, _open_checked, _Problem, _short, block_crcs
+
+__all__ = ["Finding", "VerifyReport", "verify_index"]
+
+#: rows read at a time from a contiguous (unchunked) dataset
+_BLOCK_ROWS = 65536
+#: rows listed per finding before "... and N more"
+_LIST_ROWS = 10
+#: relative slack of the radius test (the writer rounds radii up by 1e-12; the features are float32)
+_RADIUS_SLACK = 1e-6
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One thing wrong: ``dataset`` (e.g. ``/curves/coefficients``), ``rows`` (a text such as
+    ``"256..511"`` or ``"17, 90"``, ``""`` for the whole dataset), ``what``."""
+
+    dataset: str
+    rows: str
+    what: str
+
+
+@dataclass
+class VerifyReport:
+    """What :func:`verify_index` found: ``path``, ``format_version``, ``checksums`` (the file
+    carries them), ``datasets`` (checked), ``curves``, ``findings`` (list of :class:`Finding`)."""
+
+    path: str
+    format_version: int
+    checksums: bool
+    datasets: int = 0
+    curves: int = 0
+    findings: list = field(default_factory=list)
+    #: dataset -> row ranges that could not be read (left out of the later checks)
+    unreadable: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return not self.findings
+
+
+def _rows_text(rows) -> str:
+    rows = [int(r) for r in rows]
+    text = ", ".join(map(str, rows[:_LIST_ROWS]))
+    return text + (f" ... and {len(rows) - _LIST_ROWS} more" if len(rows) > _LIST_ROWS else "")
+
+
+def _blocks(ds):
+    """(a, b) row ranges of ``ds``: its chunks along the rows, or 64k-row blocks (always for
+    strings: a multiple of the CRC-32 blocks)."""
+    n = ds.shape[0] if ds.shape else 1
+    step = ds.chunks[0] if ds.chunks and ds.dtype.kind != "O" else _BLOCK_ROWS
+    return [(a, min(n, a + step)) for a in range(0, n, step)]
+
+
+def _scan(ds, name, report, *, label="row", keep=None, crc=None):
+    """Read ``ds`` chunk by chunk and check each block as it comes: unreadable chunks (a
+    Fletcher-32 mismatch), non-finite rows, and, with ``crc`` (the stored CRC-32 blocks of a
+    string dataset), each 32-row block of strings. Only what a later cross-check needs is
+    kept: ``keep(block) -> array`` per block (None: nothing), concatenated; so a 1M-row
+    index is verified without holding every dataset at once."""
+    n = ds.shape[0] if ds.shape else 0
+    strings = ds.dtype.kind == "O"
+    kept, bad, nonfinite, crc_bad = [], [], [], []
+    for a, b in _blocks(ds) if ds.shape else []:
+        try:
+            values = ds.asstr()[a:b].tolist() if strings else ds[a:b]
+        except Exception as exc:
+            bad.append((a, b, exc))
+            if keep is not None:
+                kept.append(None)
+            continue
+        if strings:
+            if crc is not None:
+                first = a // CRC_ROWS                          # blocks are multiples of CRC_ROWS
+                want = block_crcs(values)
+                got = np.asarray(crc[first:first + len(want)], dtype=np.uint32)
+                crc_bad += [first + i for i in np.flatnonzero(got != want[:len(got)])]
+                if len(got) < len(want):
+                    crc_bad += list(range(first + len(got), first + len(want)))
+        elif values.dtype.kind in "fc" and values.size:
+            nonfinite += (a + np.flatnonzero(~np.isfinite(values.reshape(len(values), -1)).all(axis=1))).tolist()
+        if keep is not None:
+            kept.append(keep(values))
+    for a, b, exc in bad:
+        text = _short(exc)
+        what = "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
+        report.findings.append(Finding(name, f"{a}..{b - 1}", what))
+    if bad:
+        report.unreadable[name] = [(a, b) for a, b, _ in bad]
+    if nonfinite:
+        report.findings.append(Finding(name, _rows_text(nonfinite),
+                                       f"non-finite values (NaN or Inf), {len(nonfinite)} {label}s"))
+    for blk in crc_bad[:_LIST_ROWS]:
+        report.findings.append(Finding(name, f"{blk * CRC_ROWS}..{min(n, (blk + 1) * CRC_ROWS) - 1}",
+                                       "checksum mismatch (CRC-32 of the strings)"))
+    if keep is None or bad:
+        return None
+    if not ds.shape:
+        return ds[()]
+    if not kept:
+        return keep(ds[0:0])
+    return kept[0] if len(kept) == 1 else np.concatenate(kept)
+
+
+def verify_index(path) -> VerifyReport:
+    """Check a whole index (formats 1 and 2); returns a :class:`VerifyReport`.
+
+    Raises ReadError (missing, unreadable) or IndexFormatError when the file does not even
+    open as an index (its structure is checked first, as for any reader); everything found
+    past that point is a :class:`Finding` in the report.
+    """
+    p = str(os.fspath(path))
+    try:
+        h5, meta, files = _open_checked(p)
+    except _Problem as exc:
+        raise IndexFormatError(exc.message, path=p) from None
+    try:
+        report = VerifyReport(p, meta["format_version"], meta["checksums"], curves=meta["n_curves"])
+        _verify(h5, meta, files, report)
+    finally:
+        h5.close()
+    return report
+
+
+def _verify(h5, meta, files, report) -> None:
+    from ..search.bounds import feature_split, squared_norms
+
+    K = meta["harmonics"]
+    whole = np.asarray
+    # what the cross-checks below need, per dataset (the rest is checked block by block and dropped)
+    needed = {"/curves/file": whole, "/curves/inv_sv": whole, "/curves/inv_block": whole,
+              "/curves/coefficients": whole}
+    groups = {"files": files["datasets"] | files.get("crc", {}), "curves": meta["datasets"] | meta.get("crc", {})}
+    if meta["format_version"] >= 2:
+        groups["search"] = {name: h5["search"][name] for name in h5["search"] if hasattr(h5["search"][name], "shape")}
+        needed.update({f"/search/{name}": whole for name in groups["search"]})
+    crcs = {}
+    if meta["checksums"]:
+        for group, names in STRING_DATASETS.items():
+            for name in names:
+                crc_ds = groups[group].get(f"{name}_crc32")
+                crcs[f"/{group}/{name}"] = _scan(crc_ds, f"/{group}/{name}_crc32", report, keep=whole)
+                report.datasets += 1
+    values = {}
+    for group, datasets in groups.items():
+        for name, ds in datasets.items():
+            full = f"/{group}/{name}"
+            if full[:-len("_crc32")] in crcs and full.endswith("_crc32"):
+                continue                                           # scanned above
+            crc = crcs.get(full)
+            values[full] = _scan(ds, full, report, label="position" if group == "search" else "row",
+                                 keep=needed.get(full), crc=crc)
+            report.datasets += 1
+
+    N, F = meta["n_curves"], meta["n_files"]
+    if report.unreadable:                 # derived data cannot be compared with unreadable rows
+        return
+    file_col = values["/curves/file"]
+    want = np.repeat(np.arange(F), files["curve_count"]) if F else np.zeros(0, dtype=np.int64)
+    bad = np.flatnonzero(np.asarray(file_col, dtype=np.int64) != want)
+    if len(bad):
+        report.findings.append(Finding("/curves/file", _rows_text(bad), "does not match the /files blocks"))
+    if meta["format_version"] < 2 or not N:
+        return
+    split = feature_split(K)
+    row = np.asarray(values["/search/row"], dtype=np.int64)
+    if not np.array_equal(np.sort(row), np.arange(N)):
+        report.findings.append(Finding("/search/row", "", "not a permutation of the /curves rows"))
+        return
+    features = values["/search/features"]
+    derived = np.concatenate([values.pop("/curves/inv_sv"), values.pop("/curves/inv_block")], axis=1)[row]
+    checks = (("/search/features", features, derived),
+              ("/search/sqnorm", values["/search/sqnorm"], squared_norms(features, split)),
+              ("/search/coefficients", values["/search/coefficients"], values.pop("/curves/coefficients")[row]))
+    for name, got, expected in checks:
+        same = got == expected
+        if got.dtype.kind != "c":
+            same |= np.isnan(got) & np.isnan(expected)
+        bad = np.flatnonzero(~same.reshape(len(got), -1).all(axis=1))
+        if len(bad):
+            report.findings.append(Finding(name, _rows_text(bad), "differs from what it is derived from (positions)"))
+    del derived, checks
+    start = np.asarray(values["/search/cell_start"], dtype=np.int64)
+    centre, radius = values["/search/centre"], values["/search/radius"]
+    cell = np.repeat(np.arange(len(start) - 1), np.diff(start))
+    for part, cols in ((0, slice(0, split)), (1, slice(split, None))):
+        dist = np.empty(N)
+        for a in range(0, N, _BLOCK_ROWS):                 # blocks: no (N, D) float64 copy
+            b = min(N, a + _BLOCK_ROWS)
+            X = features[a:b, cols].astype(np.float64) - centre[cell[a:b], cols]
+            dist[a:b] = np.sqrt((X ** 2).sum(axis=1))
+        bad = np.flatnonzero(dist > radius[cell, part] * (1 + _RADIUS_SLACK) + 1e-9)
+        if len(bad):
+            report.findings.append(Finding("/search/radius", _rows_text(np.unique(cell[bad])),
+                                           f"cells with members outside their radius (positions "
+                                           f"{_rows_text(bad)})"))
