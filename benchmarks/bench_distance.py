@@ -125,8 +125,8 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
         print("\nnumba kernels: numba is not installed (pip install numba)")
         return
     fresh = "numba" not in sys.modules
-    os.environ["NFDMATCH_NUMBA"] = "1"
     matching._kernel_state.update(module=None, failed=None, work=0)
+    matching.use_kernels("numba")
     t0 = time.perf_counter()
     matching._compiled_kernels(0)
     load = time.perf_counter() - t0
@@ -145,7 +145,7 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
     saved = matching._THREAD_ROWS
 
     def run(mode, threshold=saved, **kw):
-        os.environ["NFDMATCH_NUMBA"] = mode
+        matching.use_kernels({"0": "numpy", "1": "numba"}[mode])
         matching._THREAD_ROWS = threshold
         dt = timed(lambda: exact_search(q, rows, N, **kw))[1]
         if mode == "0":
@@ -163,9 +163,9 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
             figures[label][1].append(run(mode, threshold, refine=False))
     figures = {label: (float(np.median(a)), float(np.median(b))) for label, (a, b) in figures.items()}
     matching._THREAD_ROWS = saved
-    os.environ["NFDMATCH_NUMBA"] = "1"
+    matching.use_kernels("numba")
     batch = exact_search(q, rows, N)
-    os.environ["NFDMATCH_NUMBA"] = "0"
+    matching.use_kernels("numpy")
     reference = exact_search(q, rows, N)
     got = np.array(got)
     agree = max(np.max(np.abs(got - exact_numpy) / exact_numpy),
@@ -189,9 +189,9 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
 
 def _aligned(C):
     """Rotate a half band (K, 3) so its limit-plane normal is +z (as descriptors() does)."""
-    from nfdmatch.descriptors import _plane_rotation
-    R, _ = _plane_rotation(C[0])
-    return C @ R.T
+    from nfdmatch.descriptors import _plane_rotations
+    R, _ = _plane_rotations(C[:1], np.array([np.linalg.norm(C)]))
+    return C @ R[0].T
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ import numpy as np
 from .descriptors import Descriptors, descriptors, DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
 from .errors import ParameterError
 
-__all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search", "compile_kernels",
+__all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search", "compile_kernels", "use_kernels",
            "invariants", "lower_bound", "METHODS", "DIRECTIONS"]
 
 METHODS = ("exact", "paper")
@@ -318,13 +318,38 @@ def reference_path():
         _reference.on = before
 
 
-def _numba_mode() -> str:
-    mode = os.environ.get(_NUMBA_ENV, "auto").strip().lower()
+def _mode_from_environment(value: str) -> str:
+    mode = value.strip().lower()
     if mode in ("0", "off", "no", "false", "numpy"):
         return "off"
     if mode in ("1", "on", "yes", "true", "numba"):
         return "on"
     return "auto"
+
+
+#: "auto", "on" (numba) or "off" (numpy): NFDMATCH_NUMBA, read once when this module is first
+#: imported; :func:`use_kernels` changes it
+_kernel_state["mode"] = _mode_from_environment(os.environ.get(_NUMBA_ENV, ""))
+
+
+def use_kernels(mode: str) -> None:
+    """Choose how this process computes exact distances.
+
+    mode : ``"auto"`` (the default: the numba kernels once the process has done enough
+        exact work to pay for importing them), ``"numba"`` (from the next call on) or
+        ``"numpy"`` (the reference path, never numba). The environment variable
+        ``NFDMATCH_NUMBA`` (``auto``, ``1``, ``0``) sets the default when nfdmatch is
+        imported; this call is the explicit way for a long-running program.
+    """
+    modes = {"auto": "auto", "numba": "on", "numpy": "off"}
+    if mode not in modes:
+        raise ParameterError(f"kernels must be one of {', '.join(modes)}, got {mode!r}")
+    with _kernel_lock:
+        _kernel_state["mode"] = modes[mode]
+
+
+def _numba_mode() -> str:
+    return _kernel_state.get("mode", "auto")
 
 
 def _compiled_kernels(work: int):

@@ -257,11 +257,11 @@ def test_same_vertices_in_every_format_give_the_same_distance(tmp_path, rng, ext
 # nfdmatch/_kernels.py (numba, optional) must give what the numpy path gives.
 
 def _exact_with(monkeypatch, mode, *args, **kwargs):
-    """exact_search with NFDMATCH_NUMBA=mode in a fresh kernel state; returns (result, state)."""
+    """exact_search with NFDMATCH_NUMBA=mode in a fresh kernel state (as a new process that
+    imports nfdmatch with that environment); returns (result, state)."""
     from nfdmatch import matching
 
-    monkeypatch.setenv("NFDMATCH_NUMBA", mode)
-    state = {"module": None, "failed": None, "work": 0}
+    state = {"module": None, "failed": None, "work": 0, "mode": matching._mode_from_environment(mode)}
     monkeypatch.setattr(matching, "_kernel_state", state)
     return exact_search(*args, **kwargs), state
 

@@ -73,7 +73,9 @@ def test_grid_maximum_compiled_equals_numpy(monkeypatch):
     from nfdmatch import _kernels
     from nfdmatch.matching import _folded_basis
 
-    monkeypatch.setenv("NFDMATCH_NUMBA", "0")
+    from nfdmatch import matching
+
+    monkeypatch.setitem(matching._kernel_state, "mode", "off")
     for mirror in (False, True):
         for direction, D in (("invariant", 2), ("strict", 1)):
             reference = grid_maximum(A[:4], B[:, :4], 24, direction=direction, mirror=mirror)
