@@ -52,8 +52,9 @@ class Curve:
         return int(self.points.shape[0])
 
     @property
-    def is_planar(self) -> bool:
-        """True when all vertices have z == 0 (2-D silhouettes read as z = 0)."""
+    def in_xy_plane(self) -> bool:
+        """True when all vertices have z == 0 (2-D silhouettes read as z = 0); see
+        :func:`nfdmatch.render.is_coplanar` for "in some plane, within a tolerance"."""
         return bool(np.all(self.points[:, 2] == 0.0))
 
 

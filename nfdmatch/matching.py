@@ -111,6 +111,11 @@ def _weights(weights, harmonics: int) -> np.ndarray:
     return w
 
 
+def _check_direction(direction: str) -> None:
+    if direction not in DIRECTIONS:
+        raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
+
+
 _TINY = np.finfo(np.float64).tiny
 
 
@@ -193,8 +198,7 @@ def _kabsch_rotation(M: np.ndarray, mirror: bool) -> np.ndarray:
 
 
 def _direction_variants(B: np.ndarray, direction: str) -> list[tuple[np.ndarray, bool]]:
-    if direction not in DIRECTIONS:
-        raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
+    _check_direction(direction)
     variants = [(B, False)]
     if direction == "invariant":
         variants.append((np.conj(B), True))
@@ -464,8 +468,7 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     N, K, _ = B.shape
     n = int(samples)
     w = _weights(weights, K)
-    if direction not in DIRECTIONS:
-        raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
+    _check_direction(direction)
     D = 2 if direction == "invariant" else 1
     C = min(_REFINE_CANDIDATES if refine else 1, D * n)
     Aw = np.conj(A) * w[:, None]
@@ -561,8 +564,7 @@ def grid_maximum(A: np.ndarray, B: np.ndarray, grid: int, *, direction: str = "i
     A = np.asarray(A, dtype=np.complex128)
     B = np.asarray(B, dtype=np.complex128)
     N, K, _ = B.shape
-    if direction not in DIRECTIONS:
-        raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
+    _check_direction(direction)
     D = 2 if direction == "invariant" else 1
     Aw = np.conj(A)
     kernels = _compiled_kernels(N * D * grid + _CALL_WORK) if N else None
@@ -620,8 +622,7 @@ def paper_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     N, K, _ = B.shape
     n = int(samples)
     w = _weights(weights, K)
-    if direction not in DIRECTIONS:
-        raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
+    _check_direction(direction)
     names = ["forward"] + (["reversed"] if direction == "invariant" else [])
     if mirror:
         names += ["mirrored"] + (["mirrored_reversed"] if direction == "invariant" else [])

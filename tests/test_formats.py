@@ -233,7 +233,7 @@ def test_csv_good_files(name):
 
 def test_csv_2d_gives_z_zero():
     c = read_curve(data("square_2d.txt"))
-    assert c.is_planar
+    assert c.in_xy_plane
 
 
 @pytest.mark.parametrize("text", [

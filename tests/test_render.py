@@ -17,7 +17,7 @@ from oracle import ellipse, random_rotation, torus_knot
 from nfdmatch import render
 from nfdmatch.render import layout, matrix, pyvista_backend
 from nfdmatch.errors import NfdError, ParameterError, RenderError, WriteError
-from nfdmatch.render import (DEFAULT_RENDERER, RENDERERS, MatchPanel, RenderResult, is_planar, render_matches,
+from nfdmatch.render import (DEFAULT_RENDERER, RENDERERS, MatchPanel, RenderResult, is_coplanar, render_matches,
                              render_matrix, short_label, short_labels)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -136,23 +136,23 @@ def test_flags_change_the_title(tmp_path, rng):
 
 # --------------------------------------------------------------------------- 2-D / 3-D
 
-def test_is_planar():
+def test_is_coplanar():
     rot = random_rotation(np.random.default_rng(1))
     flat = ellipse(3.0, 1.0, 50)
-    assert is_planar(flat)
-    assert is_planar(flat @ rot.T + [5.0, -2.0, 7.0])                # a tilted, moved plane
-    assert is_planar(flat[:, :2], flat + [0.0, 0.0, 0.0])          # 2 columns: z = 0
-    assert not is_planar(flat[:, :2], flat + [0.0, 0.0, 0.5])
-    assert is_planar(flat @ rot.T + 3.0, flat @ rot.T * 0.5 + 3.0)   # same plane through both
-    assert is_planar(flat[:, :2])
-    assert not is_planar(torus_knot(2, 3, 100))
-    assert not is_planar(flat, flat + [0.0, 0.0, 1.0])             # two parallel planes
+    assert is_coplanar(flat)
+    assert is_coplanar(flat @ rot.T + [5.0, -2.0, 7.0])                # a tilted, moved plane
+    assert is_coplanar(flat[:, :2], flat + [0.0, 0.0, 0.0])          # 2 columns: z = 0
+    assert not is_coplanar(flat[:, :2], flat + [0.0, 0.0, 0.5])
+    assert is_coplanar(flat @ rot.T + 3.0, flat @ rot.T * 0.5 + 3.0)   # same plane through both
+    assert is_coplanar(flat[:, :2])
+    assert not is_coplanar(torus_knot(2, 3, 100))
+    assert not is_coplanar(flat, flat + [0.0, 0.0, 1.0])             # two parallel planes
     bumped = flat.copy()
     bumped[10, 2] = 1e-4 * 6.0
-    assert not is_planar(bumped)
-    assert is_planar(bumped, tol=1e-3)
+    assert not is_coplanar(bumped)
+    assert is_coplanar(bumped, tol=1e-3)
     with pytest.raises(ParameterError):
-        is_planar(np.array([[0.0, 0.0, np.nan], [1, 0, 0], [0, 1, 0], [1, 1, 1]]))
+        is_coplanar(np.array([[0.0, 0.0, np.nan], [1, 0, 0], [0, 1, 0], [1, 1, 1]]))
 
 
 def test_planar_input_takes_the_2d_view_in_the_query_plane(tmp_path):

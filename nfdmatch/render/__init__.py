@@ -19,7 +19,7 @@ Layout of :func:`render_matches`
     with equal aspect.
 
 View
-    Planar input (:func:`is_planar` of the query and all matches) is drawn in 2-D, in the
+    Planar input (:func:`is_coplanar` of the query and all matches) is drawn in 2-D, in the
     plane of the query (its first two principal axes; simply x, y when every z is ~0).
     Otherwise a 3-D orthographic view: the camera looks along the query's smallest
     principal axis tilted by 30 degrees towards the middle one, the same for all panels.
@@ -49,14 +49,14 @@ import numpy as np
 from ..errors import ParameterError, RenderError, WriteError
 from .layout import (DEFAULT_RENDERER, MAX_SIDE, MIN_SIDE, PICTURE_FORMATS, RENDERERS, START_STEP, MatchPanel,
                      RenderResult, _as_points, _as_vector, _build_scene, _check_renderer, _check_size, _reason,
-                     _Unavailable, _write, check_output, is_planar, picture_format, short_label, short_labels)
+                     _Unavailable, _write, check_output, is_coplanar, picture_format, short_label, short_labels)
 from .matplotlib_backend import _draw_matplotlib
 from .matrix import render_matrix
 from .pyvista_backend import _draw_pyvista
 
 __all__ = ["RENDERERS", "DEFAULT_RENDERER", "START_STEP", "MIN_SIDE", "MAX_SIDE", "MatchPanel", "RenderResult",
            "PICTURE_FORMATS", "check_output", "picture_format", "render_matches",
-           "render_matrix", "is_planar", "short_label", "short_labels"]
+           "render_matrix", "is_coplanar", "short_label", "short_labels"]
 
 
 # --------------------------------------------------------------------------- renderers

@@ -254,7 +254,7 @@ def _check_renderer(renderer) -> str:
 
 # --------------------------------------------------------------------------- geometry
 
-def is_planar(*point_sets, tol: float = 1e-6) -> bool:
+def is_coplanar(*point_sets, tol: float = 1e-6) -> bool:
     """True when all points of all sets lie within ``tol`` times their extent (the largest
     side of their bounding box) of one plane.
 
@@ -264,7 +264,7 @@ def is_planar(*point_sets, tol: float = 1e-6) -> bool:
     tol : relative tolerance.
     """
     if not point_sets:
-        raise ParameterError("is_planar needs at least one point set")
+        raise ParameterError("is_coplanar needs at least one point set")
     pts = np.vstack([_as_points(p, f"point set {i}", min_points=1) for i, p in enumerate(point_sets)])
     extent = float(np.ptp(pts, axis=0).max())
     if extent == 0.0 or len(pts) <= 3:
@@ -375,7 +375,7 @@ def _choose_grid(n: int, size: tuple[int, int], data_w: float, data_h: float) ->
 
 def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], size) -> _Scene:
     match_points = [p.points for p in panels]
-    planar = is_planar(query, *match_points)
+    planar = is_coplanar(query, *match_points)
     everything = np.vstack([query] + match_points)
     extent = float(np.ptp(everything, axis=0).max()) or 1.0
     centre, _ = _moments(query)
