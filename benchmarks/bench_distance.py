@@ -125,13 +125,13 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
         print("\nnumba kernels: numba is not installed (pip install numba)")
         return
     fresh = "numba" not in sys.modules
-    matching._kernel_state.update(module=None, failed=None, work=0)
+    matching.dispatch._kernel_state.update(module=None, failed=None, work=0)
     matching.use_kernels("numba")
     t0 = time.perf_counter()
-    matching._compiled_kernels(0)
+    matching.dispatch._compiled_kernels(0)
     load = time.perf_counter() - t0
-    if matching._kernel_state["module"] is None:
-        print(f"\nnumba kernels unavailable: {matching._kernel_state['failed']!r}")
+    if matching.dispatch._kernel_state["module"] is None:
+        print(f"\nnumba kernels unavailable: {matching.dispatch._kernel_state['failed']!r}")
         return
     import numba
     half = lambda X: X[:K]  # noqa: E731
@@ -141,12 +141,12 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
         got.append(r)
         dt += t
     per_numba = dt / len(pairs) * 1e3
-    workers = min(os.cpu_count() or 1, matching._MAX_THREADS)
-    saved = matching._THREAD_ROWS
+    workers = min(os.cpu_count() or 1, matching.dispatch._MAX_THREADS)
+    saved = matching.dispatch._THREAD_ROWS
 
     def run(mode, threshold=saved, **kw):
         matching.use_kernels({"0": "numpy", "1": "numba"}[mode])
-        matching._THREAD_ROWS = threshold
+        matching.dispatch._THREAD_ROWS = threshold
         dt = timed(lambda: exact_search(q, rows, N, **kw))[1]
         if mode == "0":
             time.sleep(0.3)         # OpenBLAS worker threads spin for a while after a GEMM
@@ -162,7 +162,7 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
             figures[label][0].append(run(mode, threshold))
             figures[label][1].append(run(mode, threshold, refine=False))
     figures = {label: (float(np.median(a)), float(np.median(b))) for label, (a, b) in figures.items()}
-    matching._THREAD_ROWS = saved
+    matching.dispatch._THREAD_ROWS = saved
     matching.use_kernels("numba")
     batch = exact_search(q, rows, N)
     matching.use_kernels("numpy")

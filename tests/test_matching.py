@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import oracle
-from oracle import (random_rigid_motion, random_smooth_curve, resample_polyline, reverse,
+from oracle import (random_rigid_motion, random_smooth_curve, reverse,
                     start_shift)
 
 from nfdmatch import descriptors, distance
@@ -261,8 +261,8 @@ def _exact_with(monkeypatch, mode, *args, **kwargs):
     imports nfdmatch with that environment); returns (result, state)."""
     from nfdmatch import matching
 
-    state = {"module": None, "failed": None, "work": 0, "mode": matching._mode_from_environment(mode)}
-    monkeypatch.setattr(matching, "_kernel_state", state)
+    state = {"module": None, "failed": None, "work": 0, "mode": matching.dispatch._mode_from_environment(mode)}
+    monkeypatch.setattr(matching.dispatch, "_kernel_state", state)
     return exact_search(*args, **kwargs), state
 
 
@@ -308,8 +308,8 @@ def test_numba_path_equals_numpy_path(monkeypatch, rng, samples, harmonics, opti
 
 def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
     pytest.importorskip("numba")
-    from nfdmatch import _kernels
-    from nfdmatch.matching import _folded_basis
+    from nfdmatch.matching import _kernels
+    from nfdmatch.matching.dispatch import _folded_basis
 
     rows, _ = _kernel_rows(rng, 128, 16)
     rows = np.ascontiguousarray(np.concatenate([rows] * 4))
@@ -324,7 +324,7 @@ def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
 
 def test_numba_cos_third_arccos_is_within_a_few_ulps(rng):
     numba = pytest.importorskip("numba")
-    from nfdmatch._kernels import cos_third_acos
+    from nfdmatch.matching._kernels import cos_third_acos
 
     @numba.njit
     def evaluate(r, out):
@@ -345,20 +345,19 @@ def test_numba_cos_third_arccos_is_within_a_few_ulps(rng):
 def test_numba_fallback_when_numba_cannot_be_imported(monkeypatch, rng):
     import sys
 
-    import nfdmatch
     from nfdmatch import matching
 
     rows, _ = _kernel_rows(rng, 128, 16)
     ref, _ = _exact_with(monkeypatch, "0", rows[0], rows, 128)
     monkeypatch.setitem(sys.modules, "numba", None)               # import numba -> ImportError
-    monkeypatch.delitem(sys.modules, "nfdmatch._kernels", raising=False)
-    monkeypatch.delattr(nfdmatch, "_kernels", raising=False)
+    monkeypatch.delitem(sys.modules, "nfdmatch.matching._kernels", raising=False)
+    monkeypatch.delattr(matching, "_kernels", raising=False)
     with pytest.warns(RuntimeWarning, match="numba kernels unavailable"):
         got, state = _exact_with(monkeypatch, "1", rows[0], rows, 128)
     assert isinstance(state["failed"], ImportError) and state["module"] is None
     assert np.array_equal(got["distance"], ref["distance"]) and np.array_equal(got["shift"], ref["shift"])
     # automatic mode: past the threshold it tries once, silently, and stays on numpy
-    monkeypatch.setattr(matching, "_NUMBA_AMORTIZE", 1)
+    monkeypatch.setattr(matching.dispatch, "_NUMBA_AMORTIZE", 1)
     got, state = _exact_with(monkeypatch, "auto", rows[0], rows, 128)
     again = exact_search(rows[0], rows, 128)
     assert isinstance(state["failed"], ImportError)
@@ -370,7 +369,7 @@ def test_numba_is_used_only_once_the_work_amortizes_its_import(monkeypatch, rng)
     from nfdmatch import matching
 
     rows, _ = _kernel_rows(rng, 128, 16)
-    monkeypatch.setattr(matching, "_NUMBA_AMORTIZE", 3 * (len(rows) * 2 * 128 + matching._CALL_WORK))
+    monkeypatch.setattr(matching.dispatch, "_NUMBA_AMORTIZE", 3 * (len(rows) * 2 * 128 + matching.dispatch._CALL_WORK))
     _, state = _exact_with(monkeypatch, "auto", rows[0], rows, 128)
     exact_search(rows[0], rows, 128)
     assert state["module"] is None                     # two calls: below the threshold
@@ -409,9 +408,9 @@ def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
             "from nfdmatch import matching\n"
             "B = np.random.default_rng(0).normal(size=(5, 16, 3)) * (1 + 1j)\n"
             "d = matching.exact_search(B[0], B, 128)['distance']\n"
-            "print(repr(matching._kernel_state['failed'])[:40], d[0] < 1e-9)\n")
+            "print(repr(matching.dispatch._kernel_state['failed'])[:40], d[0] < 1e-9)\n")
     env = dict(os.environ, NFDMATCH_NUMBA="auto")
-    code = code.replace("from nfdmatch import matching\n", "from nfdmatch import matching\nmatching._NUMBA_AMORTIZE = 1\n")
+    code = code.replace("from nfdmatch import matching\n", "from nfdmatch import matching\nmatching.dispatch._NUMBA_AMORTIZE = 1\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0].startswith("RuntimeError") and out.stdout.split()[-1] == "True", out.stdout

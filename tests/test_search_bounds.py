@@ -70,12 +70,12 @@ def test_truncated_bound_is_tight_on_unrelated_curves():
 def test_grid_maximum_compiled_equals_numpy(monkeypatch):
     rng = np.random.default_rng(3)
     A, B = _pairs(rng, 40)
-    from nfdmatch import _kernels
-    from nfdmatch.matching import _folded_basis
+    from nfdmatch.matching import _kernels
+    from nfdmatch.matching.dispatch import _folded_basis
 
     from nfdmatch import matching
 
-    monkeypatch.setitem(matching._kernel_state, "mode", "off")
+    monkeypatch.setitem(matching.dispatch._kernel_state, "mode", "off")
     for mirror in (False, True):
         for direction, D in (("invariant", 2), ("strict", 1)):
             reference = grid_maximum(A[:4], B[:, :4], 24, direction=direction, mirror=mirror)
