@@ -131,6 +131,11 @@ class IndexLockedError(NfdError, OSError):
     """Another build holds the index lock."""
 
 
+class WorkerError(NfdError, RuntimeError):
+    """A build's worker processes kept dying for no file's fault (memory exhausted, killed
+    from outside): the build stops without writing, so the index keeps every curve it had."""
+
+
 class ParameterError(NfdError, ValueError):
     """An invalid parameter value (samples, harmonics, scale, method, ...)."""
 

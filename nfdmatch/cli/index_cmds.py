@@ -36,12 +36,16 @@ def index():
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores].")
 @click.option("--wait", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="Seconds to wait for another build's lock (0: fail at once).")
+@click.option("--file-timeout", type=click.FloatRange(min=0, max=1e9), default=600.0, show_default=True,
+              metavar="SECONDS",
+              help="A file still being read after this long fails alone (0: no limit). Files are read in "
+                   "worker processes, also with --jobs 1, so a stuck or crashing reader cannot stop the build.")
 @optional_descriptor_options("the index's")
 @input_format_option
 @format_option(("text", "json"), default="text",
                help_extra=": text, a summary on stderr; json, one summary object on stdout")
-def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, samples, harmonics, scale,
-                input_format, output_format):
+def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, file_timeout, samples, harmonics,
+                scale, input_format, output_format):
     """Index the curves in SOURCE... (files or folders, recursively).
 
     Incremental: unchanged files (same size and mtime, or same SHA-256) are not
@@ -49,11 +53,15 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     The index is written to a temporary file and moved into place when complete, so
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
+    Files are read in worker processes: a worker that dies is replaced and its files read
+    again; a file that kills a worker twice, or takes longer than --file-timeout, fails
+    alone. Ctrl-C or SIGTERM stops the build at once and leaves the previous index.
     The JSON summary: index, started (UTC), added, updated, removed, unchanged, failed,
     failures (path and error of each failed file), curves, seconds.
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
-    1 nothing written (bad arguments, lock held, unreadable old index).
+    1 nothing written (bad arguments, lock held, unreadable old index, workers kept
+    dying), 130 interrupted (SIGINT), 143 terminated (SIGTERM).
 
     \b
     Examples:
@@ -67,7 +75,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     try:
         report = build_index(list(sources), index_path, samples=samples, harmonics=harmonics, scale=scale,
                              glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run,
-                             jobs=jobs, wait=wait, progress=progress)
+                             jobs=jobs, wait=wait, progress=progress, file_timeout=file_timeout or None)
     finally:
         finish_bar()
     for notice in report.notices:

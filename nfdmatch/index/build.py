@@ -111,7 +111,7 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
 
 def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
                 input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None) -> BuildReport:
+                progress=None, file_timeout=None) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
@@ -126,11 +126,19 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     input_format : force this reader for every file (not recorded in the index).
     rebuild : recompute every file, even unchanged ones.
     dry_run : only plan: stat, hash files whose mtime changed, report; write nothing.
-    jobs : worker processes (None: ``os.cpu_count()``; 1: in this process).
+    jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
+        ``file_timeout`` is given).
     wait : seconds to wait for another build's lock (0: fail at once).
     progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
         then as files finish; total counts the files that must be read or hashed (unchanged
         files are not counted).
+    file_timeout : seconds one file may take to be read and hashed (None or 0: no limit);
+        a file over it fails alone (its worker is killed), the build goes on. With a limit,
+        files are always read in worker processes, even at ``jobs`` 1: a reader stuck in C
+        code cannot be interrupted in this process (the CLI's default is 600 s).
+        Independently of it, a worker process that dies (a reader's crash, the OOM killer)
+        is replaced and its files read again; a file that kills a worker twice fails alone,
+        and deaths that no file explains stop the build (``WorkerError``, nothing written).
 
     Returns
     -------
@@ -145,6 +153,7 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     IndexFormatError : the existing file is not a readable index (see docs/index-format.md for
         which files ``rebuild`` may replace; an HDF5 file of another kind never is).
     WriteError : the index cannot be written (missing folder, no permission, disk full).
+    WorkerError : worker processes kept dying for no file's fault (nothing written).
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
@@ -155,6 +164,9 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
         jobs = os.cpu_count() or 1
     if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
         raise ParameterError(f"jobs must be an integer >= 1, got {jobs!r}")
+    if file_timeout is not None and (isinstance(file_timeout, bool) or not isinstance(file_timeout, (int, float))
+                                     or not file_timeout >= 0 or file_timeout == float("inf")):
+        raise ParameterError(f"file_timeout must be a finite number of seconds >= 0, got {file_timeout!r}")
     if input_format is not None:
         format_of("x", input_format)              # an unknown format name fails before any work
     for name, value in (("samples", samples), ("harmonics", harmonics)):
@@ -255,7 +267,7 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
             report.seconds = time.perf_counter() - t0
             return report
 
-        _write(report, index_path, items, tasks, removed, old, params, jobs, lock, progress)
+        _write(report, index_path, items, tasks, removed, old, params, jobs, lock, progress, file_timeout)
     finally:
         if old is not None:
             old.close()
@@ -306,7 +318,7 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
 
 
 def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress):
+           progress, file_timeout=None):
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
     import secrets
@@ -317,7 +329,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
     total = len(tasks)
     if progress is not None:
         progress(0, total)
-    stream = _run_tasks(tasks, jobs, None if lock is None else lock.fd)
+    stream = _run_tasks(tasks, jobs, None if lock is None else lock.fd, file_timeout or None)
     done = 0
 
     def result_of(task: int) -> dict:
