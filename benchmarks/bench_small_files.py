@@ -9,13 +9,16 @@ whole new process (start-up, planning, reading, describing, writing: what a user
 with J = 1 and 2, for this checkout and for the baseline commit checked out as a detached
 ``git worktree`` under the workdir, so that the gain is a ratio measured in the same run on
 the same (shared) machine. Each figure is the median of ``--repeats`` runs, the runs of the
-two checkouts interleaved. Prints seconds, files/s and the speed-up of 2 jobs over 1.
+two checkouts interleaved. Prints seconds, files/s and the speed-up of 2 jobs over 1, and
+the CPU seconds (user + system, workers included) of each build: on a machine shared with
+other work the wall-clock speed-up of -j 2 needs two idle cores, the CPU time does not.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -65,18 +68,24 @@ def baseline_checkout(workdir: str, commit: str) -> str:
     return path
 
 
-def time_build(code: str, folder: str, index: str, jobs: int) -> float:
+def time_build(code: str, folder: str, index: str, jobs: int) -> tuple[float, float]:
+    """(wall seconds, CPU seconds of the build and its workers) of one whole build process."""
     for p in (index, index + ".lock"):
         if os.path.exists(p):
             os.remove(p)
     env = dict(os.environ, PYTHONPATH=code)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
+    # cwd: a folder without a nfdmatch package, or `python -m` would import the one in cwd
     proc = subprocess.run([sys.executable, "-m", "nfdmatch", "index", "build", folder, "--index", index,
-                           "-j", str(jobs), "-q"], env=env, capture_output=True, text=True)
+                           "-j", str(jobs)], env=env, capture_output=True, text=True,
+                          cwd=os.path.dirname(index))
     seconds = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise SystemExit(f"build failed ({code}, {folder}, -j {jobs}): exit {proc.returncode}\n{proc.stderr}")
-    return seconds
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return seconds, cpu
 
 
 def main() -> None:
@@ -97,22 +106,30 @@ def main() -> None:
         generate(folders[fmt], args.files, fmt, seed)
     index = os.path.join(args.workdir, "bench.h5")
     times: dict = {}
+    cpus: dict = {}
     for _ in range(args.repeats):
         for fmt, folder in folders.items():
             for jobs in (1, 2):
                 for name, code in codes.items():
-                    times.setdefault((name, fmt, jobs), []).append(time_build(code, folder, index, jobs))
-    print(f"{args.files} one-curve files per folder, {os.cpu_count()} cores, median of {args.repeats} runs "
-          f"(whole `nfdmatch index build` processes)")
-    print(f"{'code':<22} {'format':<6} {'-j 1 s':>8} {'files/s':>8} {'-j 2 s':>8} {'files/s':>8} {'j2/j1':>6}")
+                    wall, cpu = time_build(code, folder, index, jobs)
+                    times.setdefault((name, fmt, jobs), []).append(wall)
+                    cpus.setdefault((name, fmt, jobs), []).append(cpu)
+    load = os.getloadavg()[0]
+    print(f"{args.files} one-curve files per folder, {os.cpu_count()} cores (load average {load:.1f} at the "
+          f"end), median of {args.repeats} runs (whole `nfdmatch index build` processes)")
+    print(f"{'code':<22} {'format':<6} {'-j 1 s':>8} {'files/s':>8} {'-j 2 s':>8} {'files/s':>8} {'j2/j1':>6}"
+          f" {'cpu-s j1':>8} {'cpu-s j2':>8}")
     for name in codes:
         for fmt in folders:
             t1 = statistics.median(times[(name, fmt, 1)])
             t2 = statistics.median(times[(name, fmt, 2)])
+            c1 = statistics.median(cpus[(name, fmt, 1)])
+            c2 = statistics.median(cpus[(name, fmt, 2)])
             print(f"{name:<22} {fmt:<6} {t1:8.2f} {args.files / t1:8.0f} {t2:8.2f} {args.files / t2:8.0f} "
-                  f"{t1 / t2:6.2f}")
-    print("all runs (s): " + "; ".join(f"{n} {f} -j{j}: " + " ".join(f"{t:.2f}" for t in v)
-                                       for (n, f, j), v in sorted(times.items())))
+                  f"{t1 / t2:6.2f} {c1:8.2f} {c2:8.2f}")
+    print("cpu-s: user + system seconds of the build and its workers (what a machine shared with "
+          "other work cannot hide); wall times of all runs:")
+    print("; ".join(f"{n} {f} -j{j}: " + " ".join(f"{t:.2f}" for t in v) for (n, f, j), v in sorted(times.items())))
 
 
 if __name__ == "__main__":

@@ -319,7 +319,6 @@ class _Worker:
                                 name="nfdmatch-build-worker")
         self.batch: list[int] | None = None      # task numbers sent, not answered yet
         self.batch_id = -1
-        self.sent_at = 0.0
         self.proc.start()
         child.close()
 
@@ -404,8 +403,11 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
             return
         w.batch = queue.popleft()
         w.batch_id, batches = batches, batches + 1
-        w.sent_at = time.monotonic()
-        w.conn.send((w.batch_id, [(i, tasks[i]) for i in w.batch]))
+        try:
+            w.conn.send((w.batch_id, [(i, tasks[i]) for i in w.batch]))
+        except OSError:                 # it died since its last answer: its death is handled by the loop
+            queue.appendleft(w.batch)
+            w.batch = []
 
     def replace(w: _Worker) -> None:
         w.close()
