@@ -9,7 +9,10 @@ sent SIGINT or SIGTERM (alternating, random order) to its whole process group af
 random delay, and counts per signal: exited within 1 s of the signal, exit codes,
 tracebacks on stderr, hangs (no exit 10 s after the signal: the group is then SIGKILLed),
 temporary files left, the previous index intact (same bytes), processes of the group left
-alive, and builds that finished before the signal came.
+alive, and builds that finished before the signal came. A signal that comes while Python
+is still starting up (importing numpy, before nfdmatch's code runs and takes the lock) gets
+Python's own behaviour (SIGINT: a KeyboardInterrupt traceback from the import, SIGTERM:
+killed at once); those trials are counted apart ("while starting up").
 """
 
 from __future__ import annotations
@@ -86,6 +89,12 @@ def main() -> None:
             proc.communicate()
             original = _digest(index)            # a finished rebuild is the new "previous index"
             continue
+        try:            # the build writes its pid into the lock file once it runs (imports done, lock held)
+            started = open(index + ".lock").read().strip() == str(proc.pid)
+        except OSError:
+            started = False
+        if not started:
+            c["signalled while starting up"] += 1
         sent = time.monotonic()
         os.killpg(proc.pid, sig)
         try:
@@ -99,6 +108,8 @@ def main() -> None:
         c["exited within 1 s"] += latency <= 1.0
         c[f"exit {proc.returncode}"] += 1
         c["tracebacks"] += "Traceback" in err
+        if not started:
+            c["tracebacks while starting up"] += "Traceback" in err
         time.sleep(0.05)
         left = _group_alive(proc.pid)
         c["processes left"] += len(left)
@@ -111,7 +122,8 @@ def main() -> None:
         c["index intact"] += _digest(index) == original
     print(f"{args.trials} trials: `{' '.join(os.path.basename(a) if a == sys.executable else a for a in cmd)} "
           f"--rebuild` over {args.files} one-curve CSV files, signal after {args.min_delay}-{args.max_delay} s")
-    keys = ["trials", "finished before the signal", "exited within 1 s", "hangs", "tracebacks",
+    keys = ["trials", "finished before the signal", "signalled while starting up", "exited within 1 s", "hangs",
+            "tracebacks", "tracebacks while starting up",
             "temp files left", "processes left", "index intact"]
     for name, c in sorted(counts.items()):
         exits = ", ".join(f"{k}: {v}" for k, v in sorted(c.items()) if k.startswith("exit "))
