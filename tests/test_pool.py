@@ -250,3 +250,26 @@ def test_signal_to_the_group_stops_a_build_cleanly(folder, tmp_path, sig, code, 
     assert len(workers) >= 1
     for pid in workers:                               # no worker outlives the build
         assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split(")")[1].split()[0] == "Z"
+
+
+@linux
+def test_workers_of_a_fork_server_see_the_environment_of_now(folder, tmp_path, monkeypatch):
+    """With other threads alive, workers come from a fork server, whose environment is that
+    of when it started: the NFDMATCH_* variables (limits, the test hook) are sent along."""
+    import threading
+
+    paths = _write_folder(folder, 20)
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        build_index([str(folder)], tmp_path / "first.h5", jobs=2)      # the fork server starts here
+        monkeypatch.setenv(HOOK, "kill:c004.csv")
+        monkeypatch.setenv("NFDMATCH_MAX_FILE_BYTES", "100")
+        report = build_index([str(folder)], tmp_path / "second.h5", jobs=2)
+    finally:
+        stop.set()
+        t.join()
+    assert report.failed == 20
+    assert "the process reading it died twice" in dict(report.failures)[paths[4]]
+    assert "more than the limit of 100 bytes" in dict(report.failures)[paths[5]]

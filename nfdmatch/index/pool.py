@@ -267,7 +267,8 @@ def _batches(tasks: list[tuple]) -> list[list[int]]:
 # --------------------------------------------------------------------------- worker processes
 
 def _worker_main(conn, slot, lock_fd) -> None:
-    """A pool worker: batches in on ``conn`` (None: exit), ``(batch_id, results, arrays)`` out."""
+    """A pool worker: ``(batch_id, batch, NFDMATCH_* environment)`` in on ``conn`` (None:
+    exit), ``(batch_id, results, arrays)`` out (see :func:`_compute_batch`)."""
     # SIGINT from the terminal reaches the whole process group: only the parent acts on it.
     # Blocked by the parent across the fork, so nothing arrives before these handlers are set.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -292,12 +293,26 @@ def _worker_main(conn, slot, lock_fd) -> None:
             msg = conn.recv()
             if msg is None:
                 break
-            batch_id, batch = msg
+            batch_id, batch, env = msg
+            _set_environment(env)
             results, arrays = _compute_batch(batch, slot)
             conn.send((batch_id, results, arrays))
     except (EOFError, OSError):      # the parent went away: nothing to report to
         pass
     os._exit(0)                      # no atexit handlers: the parent owns every open file
+
+
+def _environment() -> dict:
+    """The NFDMATCH_* variables of this process (limits such as NFDMATCH_MAX_FILE_BYTES)."""
+    return {k: v for k, v in os.environ.items() if k.startswith("NFDMATCH_")}
+
+
+def _set_environment(env: dict) -> None:
+    """Make a worker's NFDMATCH_* variables the parent's: a forkserver worker inherits the
+    environment of when the fork server started, not the parent's of now."""
+    for k in [k for k in os.environ if k.startswith("NFDMATCH_") and k not in env]:
+        del os.environ[k]
+    os.environ.update(env)
 
 
 def _signal_name(code) -> str:
@@ -379,6 +394,7 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
     """Yield ``(task_number, result)`` as batches finish in worker processes (see the
     module docstring for deaths, time limits and signals)."""
     ctx, forked = _context(tasks)
+    env = _environment()
     queue = collections.deque(_batches(tasks))
     jobs = max(1, min(jobs, len(queue)))
     strikes: collections.Counter = collections.Counter()
@@ -404,7 +420,7 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
         w.batch = queue.popleft()
         w.batch_id, batches = batches, batches + 1
         try:
-            w.conn.send((w.batch_id, [(i, tasks[i]) for i in w.batch]))
+            w.conn.send((w.batch_id, [(i, tasks[i]) for i in w.batch], env))
         except OSError:                 # it died since its last answer: its death is handled by the loop
             queue.appendleft(w.batch)
             w.batch = []
