@@ -126,6 +126,36 @@ def test_cli_crashing_file_exit_3_at_jobs_1_without_traceback(folder, tmp_path):
 
 
 @linux
+def test_cli_segfaulting_reader_in_a_parallel_build(folder, tmp_path):
+    """Through a real process: nothing but the one error line reaches stderr (no worker
+    traceback, no fatal-error dump), every other file is indexed, exit 3."""
+    paths = _write_folder(folder, 25)
+    index = tmp_path / "idx.h5"
+    proc = _cli(["index", "build", folder, "--index", index, "--jobs", "2"], env={HOOK: "segv:c011.csv"})
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 3, err
+    assert out == ""
+    assert err.splitlines() == [
+        f"Error: {paths[11]}: the process reading it died twice (killed by SIGSEGV); the file crashes its reader",
+        err.splitlines()[1], "Error: 1 of 25 files could not be read"]
+    assert err.splitlines()[1].startswith(f"indexed into {index}: 24 added, 0 updated, 0 removed, 0 unchanged, "
+                                          f"1 failed files; 24 curves;")
+    assert _ids(index) == sorted(set(paths) - {paths[11]})
+
+
+@linux
+def test_cli_workers_dying_for_no_file_exit_1_and_keep_the_index(folder, tmp_path):
+    _write_folder(folder, 30)
+    index = tmp_path / "idx.h5"
+    assert _invoke("index", "build", folder, "--index", index, "--jobs", "1")[0] == 0
+    before = index.read_bytes()
+    code, out, err = _invoke("index", "build", folder, "--index", index, "--rebuild", env={HOOK: "killonce:*"})
+    assert code == 1 and out == ""
+    assert err.startswith("Error: worker processes keep dying (") and err.endswith("nothing was written\n")
+    assert index.read_bytes() == before
+
+
+@linux
 def test_deaths_no_file_explains_abort_the_build_and_keep_the_index(folder, tmp_path, monkeypatch):
     paths = _write_folder(folder, 30)
     index = tmp_path / "idx.h5"

@@ -116,7 +116,7 @@ def _failure(path: str, exc: BaseException) -> str:
 def _test_hook(path: str) -> None:
     """``NFDMATCH_TEST_WORKER_HOOK="ACTION:NAME[,ACTION:NAME...]"`` (for tests: worker deaths
     and hung readers on demand): on reading a file whose base name is NAME (``*``: any),
-    ``kill`` SIGKILLs the reading process, ``exit`` calls ``os._exit(70)``, ``sleep``
+    ``kill`` SIGKILLs the reading process, ``segv`` sends it SIGSEGV, ``exit`` calls ``os._exit(70)``, ``sleep``
     sleeps an hour; ``killonce`` and ``sleeponce`` do so only the first time (they leave a
     marker file ``NAME.hooked`` next to the file)."""
     spec = os.environ.get("NFDMATCH_TEST_WORKER_HOOK")
@@ -134,6 +134,9 @@ def _test_hook(path: str) -> None:
             action = action[:-4]
         if action == "kill":
             os.kill(os.getpid(), signal.SIGKILL)
+        elif action == "segv":              # as a C reader's crash
+            signal.signal(signal.SIGSEGV, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGSEGV)
         elif action == "exit":
             os._exit(70)
         elif action == "sleep":
