@@ -168,7 +168,8 @@ def test_deaths_no_file_explains_abort_the_build_and_keep_the_index(folder, tmp_
         build_index([str(folder)], index, jobs=2, rebuild=True, file_timeout=60)
     assert index.read_bytes() == before
     assert [n for n in os.listdir(tmp_path) if ".tmp-" in n] == []
-    assert sum(os.path.exists(p + ".hooked") for p in paths) == pool._SPARE_DEATHS + 1
+    # the 9th death stops it; the other worker may have been killed meanwhile too
+    assert pool._SPARE_DEATHS + 1 <= sum(os.path.exists(p + ".hooked") for p in paths) <= pool._SPARE_DEATHS + 2
 
 
 def _children(pid):
