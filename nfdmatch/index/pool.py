@@ -440,6 +440,9 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
         for _ in range(jobs):
             feed(start())
         while any(w.batch is not None for w in workers):
+            for w in workers:           # a death re-queued work that an idle worker can take
+                if w.batch is None and queue:
+                    feed(w)
             busy = [w for w in workers if w.batch is not None]
             timeout = None
             if file_timeout:
