@@ -186,6 +186,13 @@ def _children(pid):
     return out
 
 
+def _alive(pid):
+    try:
+        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 def _cli(args, env=None, **kw):
     full_env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env or {}))
     return subprocess.Popen([sys.executable, "-m", "nfdmatch", *map(str, args)], env=full_env,
@@ -254,11 +261,16 @@ def test_file_timeout_is_checked(folder, tmp_path):
 
 # --------------------------------------------------------------------------- signals
 
+_INT = (signal.SIGINT, 130, "interrupted (SIGINT)")
+_TERM = (signal.SIGTERM, 143, "terminated (SIGTERM)")
+
+
 @linux
-@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted (SIGINT)"),
-                                             (signal.SIGTERM, 143, "terminated (SIGTERM)")])
-@pytest.mark.parametrize("jobs", [1, 2])
-def test_signal_to_the_group_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs):
+@pytest.mark.parametrize("sig, code, word, jobs, group", [
+    (*_INT, 1, True), (*_INT, 2, True), (*_TERM, 1, True), (*_TERM, 2, True),
+    # to the build's process alone, as `timeout -s INT 3 nfdmatch ...` or `kill PID` send it
+    (*_INT, 2, False), (*_TERM, 2, False)])
+def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, group):
     paths = _write_folder(folder, 300)
     index = tmp_path / "idx.h5"
     build_index([str(folder)], index, jobs=1)
@@ -270,7 +282,18 @@ def test_signal_to_the_group_stops_a_build_cleanly(folder, tmp_path, sig, code, 
     _wait_for(lambda: os.path.exists(paths[150] + ".hooked") and any(".tmp-" in n for n in os.listdir(tmp_path)),
               proc)
     workers = _children(proc.pid)
-    os.killpg(proc.pid, sig)
+    if sig == signal.SIGINT:
+        # workers ignore SIGINT (only the parent acts on it): not one of them may die of it
+        for pid in workers:
+            os.kill(pid, signal.SIGINT)
+        time.sleep(0.5)
+        if proc.poll() is not None or not all(_alive(pid) for pid in workers):
+            os.killpg(proc.pid, signal.SIGKILL)
+            pytest.fail(f"a worker died of SIGINT: {proc.communicate()}")
+    if group:       # Ctrl-C in a terminal: the whole foreground process group
+        os.killpg(proc.pid, sig)
+    else:
+        os.kill(proc.pid, sig)
     out, err = proc.communicate(timeout=30)          # a hang fails here
     assert proc.returncode == code, err
     assert out == ""
@@ -279,8 +302,7 @@ def test_signal_to_the_group_stops_a_build_cleanly(folder, tmp_path, sig, code, 
     assert index.read_bytes() == before
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "src"]
     assert len(workers) >= 1
-    for pid in workers:                               # no worker outlives the build
-        assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split(")")[1].split()[0] == "Z"
+    assert not any(_alive(pid) for pid in workers)    # no worker outlives the build
 
 
 @linux
