@@ -140,6 +140,11 @@ class ShrinkRefusedError(NfdError, ValueError):
     of: int = 0
 
 
+class WorkerError(NfdError, RuntimeError):
+    """A build's worker processes kept dying for no file's fault (memory exhausted, killed
+    from outside): the build stops without writing, so the index keeps every curve it had."""
+
+
 class ParameterError(NfdError, ValueError):
     """An invalid parameter value (samples, harmonics, scale, method, ...)."""
 

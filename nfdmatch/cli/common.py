@@ -14,7 +14,8 @@
   only on success, leaving an identical file untouched (mtime kept) for Make.
 
 Exit codes: 0 ok, 1 error (bad input or any NfdError), 2 usage error, 3 partial success
-(some inputs failed, the rest was answered).
+(some inputs failed, the rest was answered), 130 interrupted (SIGINT, Ctrl-C), 143
+terminated (SIGTERM); both without a traceback, after the command cleaned up.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ import click
 from ..errors import NfdError, NoCurvesError, WriteError
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
+#: 128 + the signal number, as a shell reports a process ended by SIGINT / SIGTERM
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 ROW_FORMATS = ("table", "csv", "tsv", "json", "jsonl")
 #: the row format a ``-o FILE`` gets from its extension when --format is not given
 FORMAT_OF_EXTENSION = {".csv": "csv", ".tsv": "tsv", ".json": "json", ".jsonl": "jsonl", ".txt": "table"}
@@ -63,8 +66,13 @@ class NfdGroup(click.Group):
 
     def invoke(self, ctx):
         started = time.perf_counter()
+        restore = _catch_sigterm() if ctx.parent is None else None
         try:
             return super().invoke(ctx)
+        except KeyboardInterrupt as exc:        # Ctrl-C or SIGTERM: the library cleaned up on its way out
+            terminated = isinstance(exc, Terminated)
+            error(f"{'terminated (SIGTERM)' if terminated else 'interrupted (SIGINT)'}")
+            sys.exit(EXIT_TERMINATED if terminated else EXIT_INTERRUPTED)
         except NfdError as exc:
             error(exc)
             sys.exit(EXIT_ERROR)
@@ -76,6 +84,29 @@ class NfdGroup(click.Group):
         finally:
             if ctx.parent is None and ctx.invoked_subcommand:
                 detail(f"{ctx.invoked_subcommand}: {time.perf_counter() - started:.2f} s")
+            if restore is not None:
+                restore()
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM, so that a command unwinds as on Ctrl-C
+    (temporary files removed, worker processes stopped) and exits 143."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+def _catch_sigterm():
+    """SIGTERM raises :class:`Terminated` while a command runs; returns what restores the
+    previous handler (None off the main thread, where handlers cannot be set)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 def _set_verbosity(ctx, param, value):

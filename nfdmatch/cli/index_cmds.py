@@ -40,11 +40,15 @@ def index():
               help="Seconds to wait for another build's lock (0: fail at once).")
 @click.option("--allow-shrink", is_flag=True,
               help="Allow a build that removes more than half of the index's files (or all of them).")
+@click.option("--file-timeout", type=click.FloatRange(min=0, max=1e9), default=600.0, show_default=True,
+              metavar="SECONDS",
+              help="A file still being read after this long fails alone (0: no limit). Files are read in "
+                   "worker processes, also with --jobs 1, so a stuck or crashing reader cannot stop the build.")
 @optional_descriptor_options("the index's")
 @input_format_option
 @format_option(("text", "json"), default="text",
                help_extra=": text, a summary on stderr; json, one summary object on stdout")
-def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, allow_shrink, samples, harmonics,
+def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, allow_shrink, file_timeout, samples, harmonics,
                 scale, input_format, output_format):
     """Index the curves in SOURCE... (files or folders, recursively).
 
@@ -60,13 +64,17 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     The index is written to a temporary file and moved into place when complete, so
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
+    Files are read in worker processes: a worker that dies is replaced and its files read
+    again; a file that kills a worker twice, or takes longer than --file-timeout, fails
+    alone. Ctrl-C or SIGTERM stops the build at once and leaves the previous index.
     The JSON summary: index, started (UTC), sources, added, updated, removed, unchanged,
     failed, failures (path and error of each failed file), skipped (folders that could not
     be listed, whose indexed files are kept, and non-regular files), curves, seconds; and shrink
     ({removed, of, allowed}) when the build removes (or refused to remove) more than half.
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
-    1 nothing written (bad arguments, lock held, unreadable old index, shrink refused).
+    1 nothing written (bad arguments, lock held, unreadable old index, shrink refused,
+    workers kept dying), 130 interrupted (SIGINT), 143 terminated (SIGTERM).
 
     \b
     Examples:
@@ -82,7 +90,8 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     try:
         report = build_index(list(sources), index_path, samples=samples, harmonics=harmonics, scale=scale,
                              glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run,
-                             jobs=jobs, wait=wait, progress=progress, allow_shrink=allow_shrink)
+                             jobs=jobs, wait=wait, progress=progress, allow_shrink=allow_shrink,
+                             file_timeout=file_timeout or None)
     except ShrinkRefusedError as exc:
         if output_format == "json":             # cron logs the summary: it says what was refused
             deliver(json.dumps({"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),

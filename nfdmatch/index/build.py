@@ -127,7 +127,7 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
 
 def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
                 input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None, allow_shrink=False) -> BuildReport:
+                progress=None, allow_shrink=False, file_timeout=None) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
@@ -145,7 +145,8 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
     input_format : force this reader for every file (not recorded in the index).
     rebuild : recompute every file, even unchanged ones.
     dry_run : only plan: stat, hash files whose mtime changed, report; write nothing.
-    jobs : worker processes (None: ``os.cpu_count()``; 1: in this process).
+    jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
+        ``file_timeout`` is given).
     wait : seconds to wait for another build's lock (0: fail at once).
     progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
         then as files finish; total counts the files that must be read or hashed (unchanged
@@ -155,6 +156,13 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
     Files are stored, and compared with the index's, by the rule of docs/index-format.md
     ("Paths and ids"): relative to the index's folder, whatever the working directory and
     the spelling of the sources.
+    file_timeout : seconds one file may take to be read and hashed (None or 0: no limit);
+        a file over it fails alone (its worker is killed), the build goes on. With a limit,
+        files are always read in worker processes, even at ``jobs`` 1: a reader stuck in C
+        code cannot be interrupted in this process (the CLI's default is 600 s).
+        Independently of it, a worker process that dies (a reader's crash, the OOM killer)
+        is replaced and its files read again; a file that kills a worker twice fails alone,
+        and deaths that no file explains stop the build (``WorkerError``, nothing written).
 
     Returns
     -------
@@ -172,6 +180,7 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
     IndexFormatError : the existing file is not a readable index (see docs/index-format.md for
         which files ``rebuild`` may replace; an HDF5 file of another kind never is).
     WriteError : the index cannot be written (missing folder, no permission, disk full).
+    WorkerError : worker processes kept dying for no file's fault (nothing written).
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
@@ -184,6 +193,9 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
         jobs = os.cpu_count() or 1
     if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
         raise ParameterError(f"jobs must be an integer >= 1, got {jobs!r}")
+    if file_timeout is not None and (isinstance(file_timeout, bool) or not isinstance(file_timeout, (int, float))
+                                     or not file_timeout >= 0 or file_timeout == float("inf")):
+        raise ParameterError(f"file_timeout must be a finite number of seconds >= 0, got {file_timeout!r}")
     if input_format is not None:
         format_of("x", input_format)              # an unknown format name fails before any work
     for name, value in (("samples", samples), ("harmonics", harmonics)):
@@ -336,7 +348,7 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             return report
 
         _write(report, real_index, items, tasks, removed, old, params, jobs, lock, progress,
-               sources=new_sources, name=index_path)
+               file_timeout, sources=new_sources, name=index_path)
     finally:
         if old is not None:
             old.close()
@@ -421,7 +433,7 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
 
 
 def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress, *, sources=((), None), name=None):
+           progress, file_timeout=None, *, sources=((), None), name=None):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
     it (messages)."""
@@ -436,7 +448,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
     total = len(tasks)
     if progress is not None:
         progress(0, total)
-    stream = _run_tasks(tasks, jobs, None if lock is None else lock.fd)
+    stream = _run_tasks(tasks, jobs, None if lock is None else lock.fd, file_timeout or None)
     done = 0
 
     def result_of(task: int) -> dict:

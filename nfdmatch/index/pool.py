@@ -1,8 +1,33 @@
-"""Per-file work of a build (stat, hash, read, describe) and the worker pool that runs it."""
+"""Per-file work of a build (stat, hash, read, describe) and the worker pool that runs it.
+
+Tasks (one per file to read) are grouped into batches by bytes (:func:`_batches`): many
+small files per batch, a large file alone, so that a folder of one-curve files costs one
+message and one ``descriptors_batch`` call per batch rather than per file.
+
+The pool (:class:`_Pool`) is our own rather than ``concurrent.futures``: it must know
+which file a worker was reading when it died or ran out of time, and it must stop at once
+on Ctrl-C. Each worker publishes the task it is reading in a shared slot; the parent waits
+on the workers' pipes and process sentinels together, so that
+
+- a worker that dies (a reader's segfault, the OOM killer, a kill) costs a *strike* to the
+  file it was reading; the rest of its batch is queued again and a fresh worker started.
+  A file with two strikes (it killed a worker, then killed another reading it alone) fails
+  with a message; a file with one strike is read again alone. More deaths than the files
+  to blame explain abort the build (:class:`WorkerError`): nothing is written, so a sick
+  machine cannot shrink an index;
+- a file still being read after ``file_timeout`` seconds fails alone: its worker is
+  killed, the rest of its batch queued again;
+- SIGINT/SIGTERM: workers ignore SIGINT (the terminal sends it to the whole group; only
+  the parent acts on it) and die silently on SIGTERM; the parent's KeyboardInterrupt (or
+  whatever the caller's SIGTERM handler raises) kills every worker on its way out.
+"""
 
 from __future__ import annotations
 
+import collections
+import hashlib
 import os
+import signal
 import stat as _stat
 import threading
 import time
@@ -10,31 +35,55 @@ import time
 import numpy as np
 
 from ..descriptors import descriptors_batch
-from ..errors import NfdError, ReadError
+from ..errors import NfdError, ReadError, WorkerError
 from ..formats import format_of, read_curves
 from ..matching import invariants
 
 #: curves described per descriptors_batch call (bounds the (rows x samples x 3) work arrays)
 _DESCRIBE_ROWS = 4096
+#: the per-file time limit of the CLI's ``index build`` (seconds; a generous bound for a
+#: 100 MB file on a slow disk)
+DEFAULT_FILE_TIMEOUT = 600.0
+#: at most this many bytes of files per batch (a larger file is a batch alone) ...
+_BATCH_BYTES = 256 * 1024
+#: ... and at most this many files: one message and one descriptors_batch call per batch
+_BATCH_FILES = 128
+#: ... and at least this many batches when there is enough to split (keeps both cores busy
+#: on a small folder); batch boundaries depend on the task list only, never on ``jobs``, so
+#: serial and parallel builds describe the same groups and write identical bits
+_MIN_BATCHES = 16
+#: worker deaths that no file explains (not followed by the same file killing a worker
+#: again) before the build gives up
+_SPARE_DEATHS = 8
+#: signals a worker must not receive before it has set its handlers
+_BLOCKED = {signal.SIGINT, signal.SIGTERM}
 
 
-def _sha256(path: str) -> str:
-    import hashlib
-
+def _sha256_and_size(path: str, size: int) -> str:
     h = hashlib.sha256()
-    buf = bytearray(1 << 20)
-    view = memoryview(buf)
     with open(path, "rb") as fh:
-        while True:
-            n = fh.readinto(buf)
-            if not n:
-                break
-            h.update(view[:n])
+        if size <= _BATCH_BYTES:                    # one read: small files are the common case
+            h.update(fh.read())
+        else:
+            buf = bytearray(1 << 20)
+            view = memoryview(buf)
+            while True:
+                n = fh.readinto(buf)
+                if not n:
+                    break
+                h.update(view[:n])
     return h.hexdigest()
 
 
+def _sha256(path: str) -> str:
+    return _sha256_and_size(path, os.stat(path).st_size)
+
+
 def _describe(curves, samples: int, harmonics: int, scale: str) -> dict:
-    """Storage-dtype arrays of the /curves datasets (except id and file) for ``curves``."""
+    """Storage-dtype arrays of the /curves datasets (except id and file) for ``curves``:
+    coefficients (m, K, 3) complex64, rotation (m, 3, 3) float32, centroid (m, 3) and
+    scale (m,) float64, plane_degenerate (m,) uint8, inv_norm (m, K), inv_sv (m, 2K) and
+    inv_block (m, 3) float32."""
     parts = []
     for i in range(0, len(curves), _DESCRIBE_ROWS):
         b = descriptors_batch(curves[i:i + _DESCRIBE_ROWS], samples=samples, harmonics=harmonics, scale=scale)
@@ -56,40 +105,179 @@ def _describe(curves, samples: int, harmonics: int, scale: str) -> dict:
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def _compute_file(path: str, input_format, samples: int, harmonics: int, scale: str, old_sha) -> dict:
-    """Stat, hash, read and describe one file. Never raises (except BaseException such as
-    KeyboardInterrupt): a failure is returned as ``status "failed"`` with its message.
+def _failure(path: str, exc: BaseException) -> str:
+    if isinstance(exc, NfdError):
+        return str(exc)
+    if isinstance(exc, OSError):
+        return str(ReadError(f"cannot read: {exc.strerror or exc}", path=path))
+    return f"{path}: unexpected error: {type(exc).__name__}: {exc}"
 
-    With ``old_sha`` given and equal to the file's hash, returns ``status "same"`` without
-    parsing the file.
-    """
+
+def _test_hook(path: str) -> None:
+    """``NFDMATCH_TEST_WORKER_HOOK="ACTION:NAME[,ACTION:NAME...]"`` (for tests: worker deaths
+    and hung readers on demand): on reading a file whose base name is NAME (``*``: any),
+    ``kill`` SIGKILLs the reading process, ``segv`` sends it SIGSEGV, ``exit`` calls ``os._exit(70)``, ``sleep``
+    sleeps an hour; ``killonce`` and ``sleeponce`` do so only the first time (they leave a
+    marker file ``NAME.hooked`` next to the file)."""
+    spec = os.environ.get("NFDMATCH_TEST_WORKER_HOOK")
+    if not spec:
+        return
+    for item in spec.split(","):
+        action, _, name = item.partition(":")
+        if name not in ("*", os.path.basename(path)):
+            continue
+        if action.endswith("once"):
+            marker = path + ".hooked"
+            if os.path.exists(marker):
+                continue
+            open(marker, "w").close()
+            action = action[:-4]
+        if action == "kill":
+            os.kill(os.getpid(), signal.SIGKILL)
+        elif action == "segv":              # as a C reader's crash
+            signal.signal(signal.SIGSEGV, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGSEGV)
+        elif action == "exit":
+            os._exit(70)
+        elif action == "sleep":
+            time.sleep(3600)
+
+
+def _read_file(path: str, input_format, old_sha) -> tuple[dict, list]:
+    """Stat, hash and read one file: ``(result, curves)``. Never raises (except
+    BaseException such as KeyboardInterrupt): a failure is ``status "failed"`` with its
+    message; ``status "same"`` when the hash equals ``old_sha`` (the file is not parsed);
+    else ``status "ok"`` with its curves."""
     out = {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed", "error": ""}
     try:
         st = os.stat(path)
         out["size"], out["mtime_ns"] = int(st.st_size), int(st.st_mtime_ns)
         if _stat.S_ISDIR(st.st_mode):
             raise ReadError("is a directory, not a curve file", path=path)
-        out["sha256"] = _sha256(path)
+        if not _stat.S_ISREG(st.st_mode):       # opening a FIFO to hash it would block
+            raise ReadError("is not a regular file (a FIFO, device or socket)", path=path)
+        _test_hook(path)
+        out["sha256"] = _sha256_and_size(path, st.st_size)
         if old_sha and out["sha256"] == old_sha:
             out["status"] = "same"
-            return out
+            return out, []
         curves = read_curves(path, format=input_format)
-        out["arrays"] = _describe(curves, samples, harmonics, scale)
         out["ids"] = [c.id for c in curves]
         out["status"] = "ok"
-    except NfdError as exc:
-        out["error"] = str(exc)
-    except OSError as exc:
-        out["error"] = str(ReadError(f"cannot read: {exc.strerror or exc}", path=path))
+        return out, curves
     except Exception as exc:  # a bug must not sink the build: record it against the file
-        out["error"] = f"{path}: unexpected error: {type(exc).__name__}: {exc}"
+        out["error"] = _failure(path, exc)
+        return out, []
+
+
+def _compute_file(path: str, input_format, samples: int, harmonics: int, scale: str, old_sha) -> dict:
+    """One file's result: as :func:`_read_file`, with ``arrays`` (see :func:`_describe`)
+    when ``status`` is "ok"."""
+    out, curves = _read_file(path, input_format, old_sha)
+    if out["status"] == "ok":
+        try:
+            out["arrays"] = _describe(curves, samples, harmonics, scale)
+        except Exception as exc:
+            out.update(status="failed", error=_failure(path, exc))
+            out.pop("ids", None)
     return out
 
 
-def _worker_init(lock_fd) -> None:
-    """Pool worker set-up: drop the inherited lock descriptor (so a worker outliving its
-    parent cannot keep the index locked) and exit when the parent goes away."""
-    if lock_fd is not None:
+def _compute_batch(batch: list[tuple[int, tuple]], slot=None) -> tuple[list, dict | None]:
+    """Read every file of ``batch`` (``(task_number, task)`` pairs; a task is ``(path,
+    input_format, samples, harmonics, scale, old_sha)``, the same parameters throughout)
+    and describe all their curves with one call.
+
+    Returns ``(results, arrays)``: one result per task (as :func:`_read_file`, with
+    ``rows`` for an "ok" one) and the arrays of :func:`_describe` of the "ok" files'
+    curves, in batch order (None when there are none). ``slot`` (a shared double array of
+    2), when given, holds the task being read and since when (``time.monotonic()``), -1
+    between files: the pool reads it to blame a death or a timeout on one file.
+    """
+    results, curves, owners = [], [], []
+    for number, (path, input_format, _samples, _harmonics, _scale, old_sha) in batch:
+        if slot is not None:
+            slot[1] = time.monotonic()
+            slot[0] = number
+        out, file_curves = _read_file(path, input_format, old_sha)
+        if file_curves:
+            out["rows"] = len(file_curves)
+            owners.append(len(results))
+            curves.extend(file_curves)
+        results.append(out)
+    if slot is not None:
+        slot[0] = -1
+    if not curves:
+        return results, None
+    _, _, samples, harmonics, scale, _ = batch[0][1]
+    try:
+        return results, _describe(curves, samples, harmonics, scale)
+    except Exception:
+        pass
+    # something in the batch cannot be described: describe file by file to blame one
+    parts, start = [], 0
+    for r in owners:
+        out = results[r]
+        n = out["rows"]
+        try:
+            parts.append(_describe(curves[start:start + n], samples, harmonics, scale))
+        except Exception as exc:
+            out.update(status="failed", error=_failure(out["path"], exc))
+            out.pop("ids", None)
+            out.pop("rows", None)
+        start += n
+    if not parts:
+        return results, None
+    return results, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _split(results: list, arrays: dict | None):
+    """``(result, ...)`` per file of a batch, each "ok" one with its rows of ``arrays``."""
+    start = 0
+    for out in results:
+        n = out.pop("rows", 0)
+        if out["status"] == "ok":
+            out["arrays"] = {k: v[start:start + n] for k, v in arrays.items()}
+            start += n
+        yield out
+
+
+def _batches(tasks: list[tuple]) -> list[list[int]]:
+    """Task numbers grouped in file order into batches of at most ``_BATCH_FILES`` files
+    and about ``_BATCH_BYTES`` bytes (a larger file alone), smaller when that many bytes
+    would make fewer than ``_MIN_BATCHES`` batches. Depends on the tasks only."""
+    sizes = []
+    for t in tasks:
+        try:
+            sizes.append(os.stat(t[0]).st_size)
+        except OSError:
+            sizes.append(0)
+    limit = max(1, min(_BATCH_BYTES, sum(sizes) // _MIN_BATCHES))
+    files = max(1, min(_BATCH_FILES, -(-len(tasks) // _MIN_BATCHES)))
+    out, current, current_bytes = [], [], 0
+    for i, size in enumerate(sizes):
+        if current and (current_bytes + size > limit or len(current) >= files
+                        or tasks[i][2:5] != tasks[current[0]][2:5]):
+            out.append(current)
+            current, current_bytes = [], 0
+        current.append(i)
+        current_bytes += size
+    if current:
+        out.append(current)
+    return out
+
+
+# --------------------------------------------------------------------------- worker processes
+
+def _worker_main(conn, slot, lock_fd) -> None:
+    """A pool worker: ``(batch_id, batch, NFDMATCH_* environment)`` in on ``conn`` (None:
+    exit), ``(batch_id, results, arrays)`` out (see :func:`_compute_batch`)."""
+    # SIGINT from the terminal reaches the whole process group: only the parent acts on it.
+    # Blocked by the parent across the fork, so nothing arrives before these handlers are set.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _BLOCKED)
+    if lock_fd is not None:          # a worker outliving its parent must not keep the index locked
         try:
             os.close(lock_fd)
         except OSError:
@@ -103,6 +291,91 @@ def _worker_init(lock_fd) -> None:
                 os._exit(1)
 
     threading.Thread(target=watch, daemon=True, name="nfdmatch-parent-watch").start()
+    try:
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                break
+            batch_id, batch, env = msg
+            _set_environment(env)
+            results, arrays = _compute_batch(batch, slot)
+            conn.send((batch_id, results, arrays))
+    except (EOFError, OSError):      # the parent went away: nothing to report to
+        pass
+    os._exit(0)                      # no atexit handlers: the parent owns every open file
+
+
+def _environment() -> dict:
+    """The NFDMATCH_* variables of this process (limits such as NFDMATCH_MAX_FILE_BYTES)."""
+    return {k: v for k, v in os.environ.items() if k.startswith("NFDMATCH_")}
+
+
+def _set_environment(env: dict) -> None:
+    """Make a worker's NFDMATCH_* variables the parent's: a forkserver worker inherits the
+    environment of when the fork server started, not the parent's of now."""
+    for k in [k for k in os.environ if k.startswith("NFDMATCH_") and k not in env]:
+        del os.environ[k]
+    os.environ.update(env)
+
+
+def _signal_name(code) -> str:
+    if code is None:
+        return "unknown cause"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit status {code}"
+
+
+class _Worker:
+    def __init__(self, ctx, lock_fd):
+        self.conn, child = ctx.Pipe()
+        self.slot = ctx.RawArray("d", [-1.0, 0.0])
+        self.proc = ctx.Process(target=_worker_main, args=(child, self.slot, lock_fd), daemon=True,
+                                name="nfdmatch-build-worker")
+        self.batch: list[int] | None = None      # task numbers sent, not answered yet
+        self.batch_id = -1
+        self.proc.start()
+        child.close()
+
+    def reading(self) -> tuple[int, float]:
+        """(task number, since when) of the file being read, task -1 if none."""
+        number, since = int(self.slot[0]), float(self.slot[1])
+        return number, since
+
+    def kill(self) -> None:
+        try:
+            self.proc.kill()
+        except Exception:
+            pass
+
+    def close(self) -> None:
+        self.kill()
+        self.proc.join(5)
+        try:
+            self.conn.close()
+        except OSError:
+            pass
+
+
+def _context(tasks):
+    import multiprocessing  # build-only imports: kept out of query start-up
+
+    if "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1:
+        if _needs_pyvista(tasks):           # imported once here rather than once per worker
+            try:
+                import pyvista  # noqa: F401
+            except Exception:
+                pass
+        return multiprocessing.get_context("fork"), True        # fast, and safe without threads
+    # forking a multi-threaded process can deadlock
+    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        ctx.set_forkserver_preload(["nfdmatch.index"] + (["pyvista"] if _needs_pyvista(tasks) else []))
+    return ctx, False
 
 
 def _needs_pyvista(tasks) -> bool:
@@ -116,39 +389,146 @@ def _needs_pyvista(tasks) -> bool:
     return False
 
 
-def _run_tasks(tasks: list[tuple], jobs: int, lock_fd):
-    """Yield ``(task_number, result)`` as tasks finish; in-process when jobs == 1."""
-    if jobs <= 1 or len(tasks) <= 1:
-        for i, t in enumerate(tasks):
-            yield i, _compute_file(*t)
-        return
-    import multiprocessing  # build-only imports: kept out of query start-up
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+def _failed(path: str, message: str) -> dict:
+    return {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed", "error": message}
 
-    if "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1:
-        ctx, fd = multiprocessing.get_context("fork"), lock_fd      # fast, and safe without threads
-        if _needs_pyvista(tasks):           # imported once here rather than once per worker
-            try:
-                import pyvista  # noqa: F401
-            except Exception:
-                pass
-    else:                                   # forking a multi-threaded process can deadlock
-        method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
-        ctx, fd = multiprocessing.get_context(method), None
-        if method == "forkserver":
-            ctx.set_forkserver_preload(["nfdmatch.index"] + (["pyvista"] if _needs_pyvista(tasks) else []))
-    executor = ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=ctx,
-                                   initializer=_worker_init, initargs=(fd,))
+
+def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None):
+    """Yield ``(task_number, result)`` as batches finish in worker processes (see the
+    module docstring for deaths, time limits and signals)."""
+    ctx, forked = _context(tasks)
+    env = _environment()
+    queue = collections.deque(_batches(tasks))
+    jobs = max(1, min(jobs, len(queue)))
+    strikes: collections.Counter = collections.Counter()
+    deaths = blamed = 0
+    workers: list[_Worker] = []
+    batches = 0
+
+    def start() -> _Worker:
+        # SIGINT/SIGTERM held back across the fork: a worker gets them only once it ignores them
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _BLOCKED)
+        try:
+            w = _Worker(ctx, lock_fd if forked else None)
+            workers.append(w)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        return w
+
+    def feed(w: _Worker) -> None:
+        nonlocal batches
+        if not queue:
+            w.batch = None
+            return
+        w.batch = queue.popleft()
+        w.batch_id, batches = batches, batches + 1
+        try:
+            w.conn.send((w.batch_id, [(i, tasks[i]) for i in w.batch], env))
+        except OSError:                 # it died since its last answer: its death is handled by the loop
+            queue.appendleft(w.batch)
+            w.batch = []
+
+    def replace(w: _Worker) -> None:
+        w.close()
+        workers.remove(w)
+        if queue:
+            feed(start())
+
+    from multiprocessing.connection import wait
+
     try:
-        futures = {executor.submit(_compute_file, *t): i for i, t in enumerate(tasks)}
-        for fut in as_completed(futures):
-            i = futures[fut]
+        for _ in range(jobs):
+            feed(start())
+        while any(w.batch is not None for w in workers):
+            for w in workers:           # a death re-queued work that an idle worker can take
+                if w.batch is None and queue:
+                    feed(w)
+            busy = [w for w in workers if w.batch is not None]
+            timeout = None
+            if file_timeout:
+                now = time.monotonic()
+                ends = []
+                for w in busy:
+                    number, since = w.reading()
+                    ends.append((since if number >= 0 else now) + file_timeout)
+                timeout = min(max(0.01, min(ends) - now), 1.0)
+            ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout))
+            for w in busy:
+                if w.conn in ready or w.proc.sentinel in ready:
+                    msg = None
+                    try:
+                        if w.conn.poll():
+                            msg = w.conn.recv()
+                    except (EOFError, OSError):
+                        msg = None
+                    if msg is not None:
+                        batch = w.batch
+                        feed(w)
+                        _, results, arrays = msg
+                        for i, out in zip(batch, _split(results, arrays)):
+                            yield i, out
+                        continue
+                    # the worker died: blame the file it was reading, queue the rest again
+                    w.proc.join(5)
+                    cause = _signal_name(w.proc.exitcode)
+                    number, _ = w.reading()
+                    batch = w.batch
+                    if number < 0 and len(batch) == 1:     # died describing or sending its one file
+                        number = batch[0]
+                    elif number < 0:                        # ... one of these: try them one by one
+                        queue.extendleft([i] for i in reversed(batch))
+                        batch = []
+                    deaths += 1
+                    rest = [i for i in batch if i != number]
+                    if rest:
+                        queue.appendleft(rest)
+                    if number >= 0 and number in batch:
+                        strikes[number] += 1
+                        if strikes[number] >= 2:
+                            blamed += 1
+                            path = tasks[number][0]
+                            yield number, _failed(path, f"{path}: the process reading it died twice ({cause}); "
+                                                        f"the file crashes its reader")
+                        else:
+                            queue.appendleft([number])          # again, alone, in a fresh worker
+                    if deaths > _SPARE_DEATHS + 2 * blamed:
+                        raise WorkerError(f"worker processes keep dying ({deaths} deaths, last: {cause}), "
+                                          f"not because of one file (out of memory?); nothing was written")
+                    replace(w)
+                elif file_timeout:
+                    number, since = w.reading()
+                    if number >= 0 and time.monotonic() - since > file_timeout:
+                        batch = w.batch
+                        rest = [i for i in batch if i != number]
+                        if rest:
+                            queue.appendleft(rest)
+                        path = tasks[number][0]
+                        replace(w)
+                        yield number, _failed(path, f"{path}: reading it took longer than {file_timeout:g} s "
+                                                    f"(the per-file time limit, --file-timeout); stopped")
+        for w in workers:
             try:
-                result = fut.result()
-            except Exception as exc:   # the worker process died (BrokenProcessPool), pickling, ...
-                path = tasks[i][0]
-                result = {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed",
-                          "error": f"{path}: the worker reading it failed: {type(exc).__name__}: {exc}"}
-            yield i, result
+                w.conn.send(None)
+            except OSError:
+                pass
     finally:
-        executor.shutdown(wait=True, cancel_futures=True)
+        for w in workers:
+            w.close()
+
+
+def _run_tasks(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None = None):
+    """Yield ``(task_number, result)`` for every task (in batch order, not task order).
+
+    In this process when ``jobs`` is 1 and there is no ``file_timeout`` (a hung or
+    crashing reader then hangs or kills the caller: only a worker process can be stopped);
+    else in worker processes (at least one, also for ``jobs`` 1).
+    """
+    if not tasks:
+        return
+    if jobs <= 1 and not file_timeout:
+        for batch in _batches(tasks):
+            results, arrays = _compute_batch([(i, tasks[i]) for i in batch])
+            for i, out in zip(batch, _split(results, arrays)):
+                yield i, out
+        return
+    yield from _run_pool(tasks, jobs, lock_fd, file_timeout)

@@ -1,0 +1,138 @@
+"""Ctrl-C / SIGTERM during a parallel build, as a terminal or `timeout -s INT` delivers them.
+
+    python benchmarks/sigint_trials.py [--trials 30] [--files 10000] [--jobs 2] [--workdir /tmp/nfdmatch-small]
+                                       [--min-delay 0.5] [--max-delay 3.0]
+
+Builds an index of ``--files`` one-curve CSV files once, then runs ``--trials`` rebuilds
+(``nfdmatch index build FOLDER --index I.h5 --rebuild -j JOBS`` in a new session), each
+sent SIGINT or SIGTERM (alternating, random order) to its whole process group after a
+random delay, and counts per signal: exited within 1 s of the signal, exit codes,
+tracebacks on stderr, hangs (no exit 10 s after the signal: the group is then SIGKILLed),
+temporary files left, the previous index intact (same bytes), processes of the group left
+alive, and builds that finished before the signal came. A signal that comes while Python
+is still starting up (importing numpy, before nfdmatch's code runs and takes the lock) gets
+Python's own behaviour (SIGINT: a KeyboardInterrupt traceback from the import, SIGTERM:
+killed at once); those trials are counted apart ("while starting up").
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import hashlib
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.normpath(os.path.join(HERE, ".."))
+sys.path.insert(0, HERE)
+from bench_small_files import generate  # noqa: E402
+
+
+def _digest(path: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
+
+
+def _group_alive(pgid: int) -> list[int]:
+    out = []
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            fields = open(f"/proc/{name}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(int(name))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trials", type=int, default=30)
+    ap.add_argument("--files", type=int, default=10000)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--workdir", default="/tmp/nfdmatch-small")
+    ap.add_argument("--min-delay", type=float, default=0.5,
+                    help="Earliest signal (s after start; before ~0.4 s the interpreter is still importing).")
+    ap.add_argument("--max-delay", type=float, default=3.0)
+    ap.add_argument("--seed", type=int, default=20261201)
+    args = ap.parse_args()
+    folder = os.path.join(args.workdir, f"{args.files}-csv")
+    generate(folder, args.files, "csv", 0)
+    work = os.path.join(args.workdir, "sigint")
+    os.makedirs(work, exist_ok=True)
+    index = os.path.join(work, "idx.h5")
+    env = dict(os.environ, PYTHONPATH=REPO)
+    cmd = [sys.executable, "-m", "nfdmatch", "index", "build", folder, "--index", index, "-j", str(args.jobs)]
+    subprocess.run(cmd + ["-q"], env=env, check=True)
+    original = _digest(index)
+    rnd = random.Random(args.seed)
+    plan = [signal.SIGINT, signal.SIGTERM] * ((args.trials + 1) // 2)
+    rnd.shuffle(plan)
+    counts: dict = collections.defaultdict(collections.Counter)
+    latencies = collections.defaultdict(list)
+    for sig in plan[:args.trials]:
+        c = counts[sig.name]
+        c["trials"] += 1
+        delay = rnd.uniform(args.min_delay, args.max_delay)
+        proc = subprocess.Popen(cmd + ["--rebuild"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                text=True, start_new_session=True)
+        time.sleep(delay)
+        if proc.poll() is not None:
+            c["finished before the signal"] += 1
+            proc.communicate()
+            original = _digest(index)            # a finished rebuild is the new "previous index"
+            continue
+        try:            # the build writes its pid into the lock file once it runs (imports done, lock held)
+            started = open(index + ".lock").read().strip() == str(proc.pid)
+        except OSError:
+            started = False
+        if not started:
+            c["signalled while starting up"] += 1
+        sent = time.monotonic()
+        os.killpg(proc.pid, sig)
+        try:
+            _, err = proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            c["hangs"] += 1
+            os.killpg(proc.pid, signal.SIGKILL)
+            _, err = proc.communicate()
+        latency = time.monotonic() - sent
+        latencies[sig.name].append(latency)
+        c["exited within 1 s"] += latency <= 1.0
+        c[f"exit {proc.returncode}"] += 1
+        c["tracebacks"] += "Traceback" in err
+        if not started:
+            c["tracebacks while starting up"] += "Traceback" in err
+        time.sleep(0.05)
+        left = _group_alive(proc.pid)
+        c["processes left"] += len(left)
+        for pid in left:
+            os.kill(pid, signal.SIGKILL)
+        temps = [n for n in os.listdir(work) if ".tmp-" in n]
+        c["temp files left"] += len(temps)
+        for n in temps:
+            os.remove(os.path.join(work, n))
+        c["index intact"] += _digest(index) == original
+    print(f"{args.trials} trials: `{' '.join(os.path.basename(a) if a == sys.executable else a for a in cmd)} "
+          f"--rebuild` over {args.files} one-curve CSV files, signal after {args.min_delay}-{args.max_delay} s")
+    keys = ["trials", "finished before the signal", "signalled while starting up", "exited within 1 s", "hangs",
+            "tracebacks", "tracebacks while starting up",
+            "temp files left", "processes left", "index intact"]
+    for name, c in sorted(counts.items()):
+        exits = ", ".join(f"{k}: {v}" for k, v in sorted(c.items()) if k.startswith("exit "))
+        lat = sorted(latencies[name])
+        worst = f"{lat[-1]:.2f}" if lat else "-"
+        median = f"{lat[len(lat) // 2]:.2f}" if lat else "-"
+        print(f"{name}: " + ", ".join(f"{k} {c[k]}" for k in keys) + f"; {exits}; "
+              f"signal-to-exit median {median} s, worst {worst} s")
+
+
+if __name__ == "__main__":
+    main()
