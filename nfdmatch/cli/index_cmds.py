@@ -36,11 +36,15 @@ def index():
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores].")
 @click.option("--wait", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="Seconds to wait for another build's lock (0: fail at once).")
+@click.option("--graph", "graph_k", type=click.IntRange(min=0), is_flag=False, flag_value=10, default=None,
+              metavar="[K]",
+              help="Store each curve's K nearest curves (K = 10 when not given), for query --rerank; "
+                   "0 drops the graph [default: keep the index's graph, if it has one].")
 @optional_descriptor_options("the index's")
 @input_format_option
 @format_option(("text", "json"), default="text",
                help_extra=": text, a summary on stderr; json, one summary object on stdout")
-def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, samples, harmonics, scale,
+def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, graph_k, samples, harmonics, scale,
                 input_format, output_format):
     """Index the curves in SOURCE... (files or folders, recursively).
 
@@ -50,7 +54,9 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
     The JSON summary: index, started (UTC), added, updated, removed, unchanged, failed,
-    failures (path and error of each failed file), curves, seconds.
+    failures (path and error of each failed file), curves, seconds, and with a graph
+    graph: {k, searched, updated, kept, seconds} (rows searched in the whole index, copied
+    rows a new curve entered, copied rows kept as they were).
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
     1 nothing written (bad arguments, lock held, unreadable old index).
@@ -67,7 +73,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     try:
         report = build_index(list(sources), index_path, samples=samples, harmonics=harmonics, scale=scale,
                              glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run,
-                             jobs=jobs, wait=wait, progress=progress)
+                             jobs=jobs, wait=wait, progress=progress, graph=graph_k)
     finally:
         finish_bar()
     for notice in report.notices:
@@ -80,6 +86,10 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
                    "unchanged": report.unchanged, "failed": report.failed,
                    "failures": [{"path": path, "error": message} for path, message in report.failures],
                    "curves": report.curves, "seconds": round(report.seconds, 3)}
+        if report.graph.k:
+            g = report.graph
+            summary["graph"] = {"k": g.k, "searched": g.searched, "updated": g.updated, "kept": g.kept,
+                                "seconds": round(g.seconds, 3)}
         if dry_run:
             summary["dry_run"] = True
             summary["changes"] = [{"action": a, "path": p} for a, p in report.changes if a != "unchanged"]
@@ -93,6 +103,10 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
         say(f"{verb}: {report.added} added, {report.updated} updated, {report.removed} removed, "
             f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
             f"{report.seconds:.2f} s")
+        if report.graph.k:
+            g = report.graph
+            say(f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
+                f"{g.kept} kept; {g.seconds:.2f} s")
     if not dry_run:
         finish(report.failed, report.added + report.updated + report.unchanged + report.failed, "files")
 

@@ -18,6 +18,7 @@ from ..sources import find_curve_files
 from .lock import _Lock
 from .pool import _run_tasks, _sha256
 from .reader import Index
+from .graph import GraphStats, graph_changes, write_graph
 from .search_group import write_search_group
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
 from .writer import _CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _write_files_table
@@ -84,6 +85,7 @@ class BuildReport:
     written: bool = False
     dry_run: bool = False
     cells: int = 0
+    graph: GraphStats = field(default_factory=GraphStats)
 
 
 def _load_old(index_path: str, rebuild: bool, notices: list):
@@ -111,7 +113,7 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
 
 def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
                 input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None) -> BuildReport:
+                progress=None, graph=None) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
@@ -128,6 +130,8 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     dry_run : only plan: stat, hash files whose mtime changed, report; write nothing.
     jobs : worker processes (None: ``os.cpu_count()``; 1: in this process).
     wait : seconds to wait for another build's lock (0: fail at once).
+    graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --rerank``);
+        None keeps an existing graph's K (no graph for an index without one), 0 drops it.
     progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
         then as files finish; total counts the files that must be read or hashed (unchanged
         files are not counted).
@@ -239,7 +243,8 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
         upgrade = old is not None and old.format_version < FORMAT_VERSION
         if upgrade:
             report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
-        needs_write = old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
+        needs_write = (old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
+                       or graph_changes(old, graph))
         if not needs_write:
             if progress is not None:
                 progress(0, 0)
@@ -255,7 +260,8 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
             report.seconds = time.perf_counter() - t0
             return report
 
-        _write(report, index_path, items, tasks, removed, old, params, jobs, lock, progress)
+        _write(report, index_path, items, tasks, removed, old, params, jobs, lock, progress,
+               graph=graph, recompute_all=recompute_all)
     finally:
         if old is not None:
             old.close()
@@ -306,7 +312,7 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
 
 
 def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress):
+           progress, *, graph=None, recompute_all=True):
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
     import secrets
@@ -395,6 +401,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             writer.flush()
             _write_files_table(h5, records)
             report.cells = write_search_group(h5, K)
+            report.graph = write_graph(h5, old, graph, reuse=not recompute_all)
             report.curves = writer.rows
         finally:
             stream.close()                          # shuts the worker pool down
