@@ -261,12 +261,17 @@ def _deliver_bytes(data: bytes, output: str) -> None:
                    "returns the same rows and distances).")
 @click.option("--stats", "show_stats", is_flag=True,
               help="Print on stderr how many exact distances the search needed.")
+@click.option("--rerank", is_flag=True,
+              help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
+                   "--graph`); adds the column score (higher is closer), distance stays the exact distance.")
+@click.option("--rerank-depth", type=click.IntRange(min=100), default=100, show_default=True, metavar="M",
+              help="With --rerank: the query's exact top M that the diffusion re-orders.")
 @matching_options
 @input_format_option
 @rows_format_option
 @output_option()
 def query(queries, index_path, top, max_distance, glob_pattern, details, exclude_self_, exhaustive, show_stats,
-          method, strict_direction, mirror, input_format, output_format, output):
+          rerank, rerank_depth, method, strict_direction, mirror, input_format, output_format, output):
     """Find the curves of the index most similar to each curve in QUERY... .
 
     QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
@@ -277,6 +282,10 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
     exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
     Inputs that cannot be read are named on stderr and the others answered (exit 3).
 
+    --rerank: the query's exact top M (--rerank-depth) joined to the neighbour graph stored
+    in the index, a personalised-PageRank diffusion on that neighbourhood, then the top K
+    by the diffused score (docs/rerank.md). Rows gain the column score; deterministic.
+
     \b
     Examples:
       nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
@@ -286,6 +295,18 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
     from ..index import FORMAT_VERSION, open_index
     from ..search import search_index
 
+    if rerank:
+        for given, name in ((exhaustive, "--exhaustive"), (max_distance is not None, "--max-distance"),
+                            (method != "exact", "--method paper"), (strict_direction, "--strict-direction"),
+                            (mirror, "--mirror")):
+            if given:
+                raise click.UsageError(f"--rerank cannot be combined with {name}: the stored graph holds exact, "
+                                       f"direction-invariant distances without mirror images")
+        if top > rerank_depth:
+            raise click.UsageError(f"--top {top} is more than --rerank-depth {rerank_depth}")
+    elif rerank_depth != 100:
+        raise click.UsageError("--rerank-depth needs --rerank")
+
     with open_index(index_path) as idx:
         if idx.format_version < FORMAT_VERSION and not exhaustive:
             note(f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
@@ -294,15 +315,28 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
         progress, finish_bar = progress_bar("searching")
         try:
-            results, stats = search_index(idx, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
-                                          progress=progress, prune=not exhaustive,
-                                          **matching(method, strict_direction, mirror))
+            if rerank:
+                from ..search.rerank import rerank_index
+
+                def is_self(query_id, match_id):
+                    # the same rule as --exclude-self without --rerank
+                    return not exclude_self(query_id, [{"match": match_id, "rank": 1}], 1)
+
+                results, stats = rerank_index(idx, inputs.curves, top=top, depth=rerank_depth, progress=progress,
+                                              exclude=is_self if exclude_self_ else None)
+            else:
+                results, stats = search_index(idx, inputs.curves, top=top + exclude_self_,
+                                              max_distance=max_distance, progress=progress, prune=not exhaustive,
+                                              **matching(method, strict_direction, mirror))
         finally:
             finish_bar()
-    if exclude_self_:
+    if exclude_self_ and not rerank:
         results = [exclude_self(q.id, res, top) for q, res in zip(inputs.curves, results)]
+    columns = match_columns(details)
+    if rerank:
+        columns.insert(columns.index("distance") + 1, "score")
     write_rows([{"query": q.id, **row} for q, res in zip(inputs.curves, results) for row in res],
-               match_columns(details), output_format, output, group_by="query")
+               columns, output_format, output, group_by="query")
     if show_stats:
         say(f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
             f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s"

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["write_graph", "read_graph", "graph_changes", "GraphStats", "DEFAULT_GRAPH_K"]
+__all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "GraphStats", "DEFAULT_GRAPH_K"]
 
 #: neighbours per row when ``--graph`` is given without a number
 DEFAULT_GRAPH_K = 10
@@ -238,3 +238,33 @@ def graph_changes(old, k: int | None) -> bool:
     """True when a build asked for ``k`` must rewrite an index that is otherwise up to date
     (a graph asked for that it lacks or has with another K, or one to drop)."""
     return k is not None and int(k) != _old_graph_k(old)
+
+
+def read_graph_rows(index):
+    """A reader of an open index's graph rows, ``rows -> (neighbour, distance)`` ((m, K)
+    int64 / float64, in the order of ``rows``, repeats allowed), or None when the index has
+    no graph. Reads only the rows asked for (a query needs about M + M K of them)."""
+    from ..errors import IndexFormatError
+
+    h5 = index._h5
+    if h5 is None or "graph" not in h5:
+        return None
+    g = h5["graph"]
+    ds_nb, ds_d = g.get("neighbour"), g.get("distance")
+    N = index.n_curves
+    if (ds_nb is None or ds_d is None or len(ds_nb.shape) != 2 or ds_nb.shape != ds_d.shape
+            or ds_nb.shape[0] != N):
+        raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
+
+    def read(rows):
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if len(rows) == 0:
+            return np.zeros((0, ds_nb.shape[1]), np.int64), np.zeros((0, ds_nb.shape[1]))
+        uniq, inverse = np.unique(rows, return_inverse=True)
+        nb, d = index._read(lambda: (np.asarray(ds_nb[uniq], dtype=np.int64), np.asarray(ds_d[uniq], dtype=np.float64)))
+        if nb.min() < -1 or nb.max() >= N:
+            raise IndexFormatError("corrupted nfdmatch index: /graph/neighbour holds a row outside the index",
+                                   path=index.path)
+        return nb[inverse], d[inverse]
+
+    return read
