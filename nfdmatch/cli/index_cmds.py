@@ -38,8 +38,9 @@ def index():
               help="Seconds to wait for another build's lock (0: fail at once).")
 @click.option("--graph", "graph_k", type=click.IntRange(min=0), is_flag=False, flag_value=10, default=None,
               metavar="[K]",
-              help="Store each curve's K nearest curves (K = 10 when not given), for query --rerank; "
-                   "0 drops the graph [default: keep the index's graph, if it has one].")
+              help="Store each curve's K nearest curves, for query --rerank (K = 10 when not given: then put "
+                   "--graph after the sources or before another option); 0 drops the graph "
+                   "[default: keep the index's graph, if it has one].")
 @optional_descriptor_options("the index's")
 @input_format_option
 @format_option(("text", "json"), default="text",
