@@ -286,3 +286,14 @@ def test_cli_matrix_rerank(tmp_path, rng):
     np.testing.assert_allclose(S, expected, atol=1e-12)
     code, out, _ = run("matrix", tmp_path / "c", "--rerank", "--order", "similar")
     assert code == 0 and out.startswith("id,")
+
+
+def test_cli_index_info_names_the_graph(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 6), 1)
+    index = tmp_path / "i.h5"
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q")[0] == 0
+    code, out, _ = run("index", "info", "--index", index, "--format", "json")
+    assert code == 0 and json.loads(out)["graph"] == 0
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "3")[0] == 0
+    code, out, _ = run("index", "info", "--index", index)
+    assert code == 0 and "graph\t3\n" in out

@@ -119,20 +119,26 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
 def index_info(index_path, output_format, output):
     """Describe an index: files, curves, failed files with reasons, parameters, format, times, size.
 
+    `graph` is the number of nearest curves stored per curve for `query --rerank` (0: no
+    graph; `index build --graph` adds it).
+
     \b
     Example:
       nfdmatch index info --index demo.h5 --format json -o info.json
     """
     from ..index import open_index
 
+    from ..index.graph import graph_k
+
     with open_index(index_path) as idx:
         info = idx.info()
+        info["graph"] = graph_k(idx)             # neighbours per curve stored for --rerank; 0: none
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
     lines = [f"{key}\t{info.get(key)}" for key in (
         "path", "format", "format_version", "nfdmatch_version", "files", "curves", "samples", "harmonics",
-        "scale", "created", "updated", "size_bytes")]
+        "scale", "graph", "created", "updated", "size_bytes")]
     failed = info.get("failed", [])
     lines.append(f"failed\t{len(failed)}")
     lines += [f"  {item['path']}\t{item['error']}" for item in failed]

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "GraphStats", "DEFAULT_GRAPH_K"]
+__all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "graph_k", "GraphStats", "DEFAULT_GRAPH_K"]
 
 #: neighbours per row when ``--graph`` is given without a number
 DEFAULT_GRAPH_K = 10
@@ -61,6 +61,11 @@ def read_graph(index):
     if nb.ndim != 2 or nb.shape != dist.shape or nb.shape[0] != N or (nb.size and (nb.min() < -1 or nb.max() >= N)):
         raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
     return nb, dist
+
+
+def graph_k(index) -> int:
+    """Neighbours per row in an open index's graph; 0 when it has none."""
+    return _old_graph_k(index)
 
 
 def _old_graph_k(old) -> int:
