@@ -166,7 +166,8 @@ def collections(data):
         labels = {row["csv"]: row["class_name"] for row in csv.DictReader(fh)}
     names, curves = _folder(os.path.join(data, "kimia99"))
     out["kimia99"] = dict(curves=curves, labels=np.array([labels[n] for n in names]))
-    rows = [r for r in csv.DictReader(open(os.path.join(data, "mesh_loops", "index.csv"))) if r["kind"] == "section"]
+    with open(os.path.join(data, "mesh_loops", "index.csv")) as fh:
+        rows = [r for r in csv.DictReader(fh) if r["kind"] == "section"]
     _, curves = _folder(os.path.join(data, "mesh_loops"), [r["file"] for r in rows])
     out["mesh sections"] = dict(curves=curves, labels=np.array([r["mesh"] for r in rows]))
     from bench_search import _sample, _smooth_coefficients
@@ -229,8 +230,8 @@ def shipped(cols, knot_data, work):
     from nfdmatch.index import build_index, open_index
     from nfdmatch.search.rerank import rerank_index
 
-    print(f"\n## The shipped path: each query's exact top 100 joined to the stored graph "
-          f"(index build --graph 10, query --rerank)")
+    print("\n## The shipped path: each query's exact top 100 joined to the stored graph "
+          "(index build --graph 10, query --rerank)")
     print(f"{'collection':24} {'plain P@10':>10} {'rerank P@10':>11} {'plain BE':>9} {'rerank BE':>9}"
           f"  {'rerank ranks 1..10 (same class)':s}")
     for name, c in cols.items():

@@ -145,8 +145,8 @@ def families_index(tmp_path_factory):
 
 
 def test_rerank_improves_a_family_collection(families_index):
-    folder, curves, labels = families_index
-    stored = _read_back(folder / "c")                       # stored[i] is curves[i], re-read
+    folder, _, labels = families_index
+    stored = _read_back(folder / "c")                       # the curves as stored, in order
     family = {c.id: f for c, f in zip(stored, labels)}
     with open_index(folder / "i.h5") as idx:
         plain, _ = search_index(idx, stored, top=11)
@@ -297,3 +297,14 @@ def test_cli_index_info_names_the_graph(tmp_path, rng):
     assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "3")[0] == 0
     code, out, _ = run("index", "info", "--index", index)
     assert code == 0 and "graph\t3\n" in out
+
+
+def test_cli_rerank_on_a_damaged_graph_is_a_clean_error(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 6), 1)
+    index = tmp_path / "i.h5"
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "3")[0] == 0
+    with h5py.File(index, "a") as f:
+        f["graph/neighbour"][0, 0] = 99                       # a row the index does not have
+    code, out, err = run("query", tmp_path / "c" / "part-00.obj#0", "--index", index, "--rerank")
+    assert code == 1 and out == ""
+    assert err.startswith(f"Error: {index}: corrupted nfdmatch index") and "Traceback" not in err

@@ -53,10 +53,7 @@ def read_graph(index):
         g = h5["graph"]
         return np.asarray(g["neighbour"][...], dtype=np.int64), np.asarray(g["distance"][...], dtype=np.float64)
 
-    try:
-        nb, dist = index._read(read)
-    except IndexFormatError:
-        raise
+    nb, dist = index._read(read)
     N = index.n_curves
     if nb.ndim != 2 or nb.shape != dist.shape or nb.shape[0] != N or (nb.size and (nb.min() < -1 or nb.max() >= N)):
         raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
@@ -73,7 +70,7 @@ def _old_graph_k(old) -> int:
         return 0
     try:
         return int(old._h5["graph"].attrs["k"])
-    except Exception:
+    except (KeyError, TypeError, ValueError, OSError):      # a damaged group: as if there were none
         return 0
 
 
