@@ -308,3 +308,19 @@ def test_cli_rerank_on_a_damaged_graph_is_a_clean_error(tmp_path, rng):
     code, out, err = run("query", tmp_path / "c" / "part-00.obj#0", "--index", index, "--rerank")
     assert code == 1 and out == ""
     assert err.startswith(f"Error: {index}: corrupted nfdmatch index") and "Traceback" not in err
+
+
+def test_a_damaged_old_graph_is_rebuilt_not_trusted(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 12), 2)
+    index = tmp_path / "i.h5"
+    build_index([tmp_path / "c"], index, jobs=1, graph=4)
+    with h5py.File(index, "a") as f:
+        del f["graph/distance"]
+        f["graph"].create_dataset("distance", data=np.zeros((3, 4)))
+    write_curves(tmp_path / "c" / "part-09.obj", random_curves(rng, 2))
+    report = build_index([tmp_path / "c"], index, jobs=1)
+    assert report.graph.k == 4 and report.graph.searched == 14          # every row, none trusted
+    build_index([tmp_path / "c"], tmp_path / "fresh.h5", jobs=1, graph=4)
+    got, fresh = graph_of(index), graph_of(tmp_path / "fresh.h5")
+    np.testing.assert_array_equal(got[0], fresh[0])
+    np.testing.assert_allclose(got[1], fresh[1])

@@ -97,10 +97,16 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
     distance = np.full((N, k), np.inf)
 
     old_to_new = _copied_rows(h5, old) if reuse and _old_graph_k(old) == k else {}
+    if old_to_new:
+        from ..errors import IndexFormatError
+
+        try:
+            old_nb, old_d = read_graph(old)
+        except IndexFormatError:                  # a damaged old graph: computed afresh
+            old_to_new = {}
     todo = np.ones(N, dtype=bool)
     check = []                                   # copied rows whose list only new rows can change
     if old_to_new:
-        old_nb, old_d = read_graph(old)
         remap = np.full(old.n_curves + 1, -1, dtype=np.int64)      # index -1 (padding) maps to -1
         for o, n in old_to_new.items():
             remap[o] = n
