@@ -55,7 +55,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
     The JSON summary: index, started (UTC), added, updated, removed, unchanged, failed,
-    failures (path and error of each failed file), curves, seconds, and with a graph
+    failures (path and error of each failed file), curves, seconds; with --graph, also
     graph: {k, searched, updated, kept, seconds} (rows searched in the whole index, copied
     rows a new curve entered, copied rows kept as they were).
 
@@ -66,6 +66,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     Examples:
       nfdmatch index build sample_curves/library --index demo.h5
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
+      nfdmatch index build library/ --index library.h5 --graph
     """
     from ..index import build_index
 
@@ -298,6 +299,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
       nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
+      nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
     """
     from ..index import FORMAT_VERSION, open_index
     from ..search import search_index
