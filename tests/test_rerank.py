@@ -235,9 +235,12 @@ def test_cli_build_graph_then_query_rerank(tmp_path, rng):
     assert code == 0, err
     summary = json.loads(out)
     assert summary["graph"]["k"] == 4 and summary["graph"]["searched"] == 24
-
     query = tmp_path / "q.obj"
     write_curves(query, [curves[0]])
+    code, out, err = run("query", query, "--index", index, "--rerank")
+    assert code == 1 and out == "" and "holds 4 neighbours per curve; --rerank needs at least 8" in err
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph", "8", "-q")[0] == 0
+
     code, out, err = run("query", query, "--index", index, "--rerank", "--top", "5", "--format", "csv")
     assert code == 0 and err == ""
     rows = list(csv.DictReader(io.StringIO(out)))
@@ -302,7 +305,7 @@ def test_cli_index_info_names_the_graph(tmp_path, rng):
 def test_cli_rerank_on_a_damaged_graph_is_a_clean_error(tmp_path, rng):
     write_parts(tmp_path / "c", random_curves(rng, 6), 1)
     index = tmp_path / "i.h5"
-    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "3")[0] == 0
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "8")[0] == 0
     with h5py.File(index, "a") as f:
         f["graph/neighbour"][0, 0] = 99                       # a row the index does not have
     code, out, err = run("query", tmp_path / "c" / "part-00.obj#0", "--index", index, "--rerank")

@@ -193,12 +193,12 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
 
     Raises
     ------
-    IndexFormatError : the index has no graph.
+    IndexFormatError : the index has no graph, or one of fewer than 8 neighbours per row.
     ParameterError : depth below 100, top above depth.
 
     Deterministic: the same index and queries give the same rows and scores.
     """
-    from ..index.graph import read_graph_rows
+    from ..index.graph import graph_k, read_graph_rows
     from .index_search import search_index
 
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < MIN_DEPTH:
@@ -210,6 +210,11 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
     if reader is None:
         raise IndexFormatError("the index has no neighbour graph, which --rerank needs: build it with "
                                f"`nfdmatch index build ... --index {index.path} --graph`", path=index.path)
+    stored_k = graph_k(index)
+    if stored_k < SCALE_NEIGHBOURS:
+        raise IndexFormatError(f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
+                               f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
+                               f"--graph {SCALE_NEIGHBOURS}` or more", path=index.path)
     exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
     results = []
     for q, found in zip(queries, exact):
