@@ -1,6 +1,6 @@
 """Re-ranking by diffusion: which method, and what it costs (docs/rerank.md).
 
-    python benchmarks/bench_rerank.py [--data ../shared/data] [--curves 10000] [--skip-timing]
+    python benchmarks/bench_rerank.py [--data ../shared/data] [--curves 10000] [--skip-timing | --skip-tables]
 
 Prints, from the repository root:
 
@@ -278,6 +278,9 @@ def timing(curves, work):
     plain = build_index([folder], os.path.join(work, "plain.h5"), jobs=2)
     t_plain = time.perf_counter() - t
     t = time.perf_counter()
+    graph8 = build_index([folder], os.path.join(work, "graph8.h5"), jobs=2, graph=8)
+    t_graph8 = time.perf_counter() - t
+    t = time.perf_counter()
     graph = build_index([folder], os.path.join(work, "graph.h5"), jobs=2, graph=10)
     t_graph = time.perf_counter() - t
     # incremental: one more file of 1% new curves
@@ -288,6 +291,9 @@ def timing(curves, work):
     print(f"plain build {t_plain:.1f} s; with --graph 10 {t_graph:.1f} s, of which the graph "
           f"{graph.graph.seconds:.1f} s ({graph.graph.searched} rows searched, "
           f"{1e3 * graph.graph.seconds / max(graph.graph.searched, 1):.2f} ms per row)")
+    print(f"with --graph 8 {t_graph8:.1f} s, of which the graph {graph8.graph.seconds:.1f} s "
+          f"({1e3 * graph8.graph.seconds / max(graph8.graph.searched, 1):.2f} ms per row: the 9 nearest other "
+          f"rows of a row are its family, the 10th is not)")
     print(f"incremental, +{len(extra)} curves: {inc.seconds:.1f} s, graph {inc.graph.seconds:.1f} s "
           f"({inc.graph.searched} searched, {inc.graph.updated} updated, {inc.graph.kept} kept)")
     with open_index(os.path.join(work, "graph.h5")) as idx:
@@ -311,12 +317,24 @@ def main():
     ap.add_argument("--data", default=DEFAULT_DATA)
     ap.add_argument("--curves", type=int, default=10000, help="generated curves for the timing (default 10000)")
     ap.add_argument("--skip-timing", action="store_true")
+    ap.add_argument("--skip-tables", action="store_true", help="only the build and query timing")
     args = ap.parse_args()
     if not os.path.isdir(args.data):
         sys.exit(f"development data not found at {args.data}")
+    work = tempfile.mkdtemp(prefix="bench-rerank-")
+    try:
+        if not args.skip_tables:
+            tables(args.data, work)
+        if not args.skip_timing:
+            timing(args.curves, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def tables(data, work):
     t0 = time.perf_counter()
-    cols = collections(args.data)
-    knot_data = knots(args.data)
+    cols = collections(data)
+    knot_data = knots(data)
     print(f"(distance matrices: {time.perf_counter() - t0:.1f} s)")
     print(f"\n## Methods on full distance matrices (k = {K} neighbours, alpha = {A}); P@10 = precision at 10, "
           f"BE = bull's-eye; knots = control->smooth top-1 of 148")
@@ -332,13 +350,7 @@ def main():
                 line += f" {scores_table(method(c['D']), c['labels'])[1]:14.3f}"
         line += f" {knots_top1(method, knot_data[2], knot_data[3]):6d}"
         print(line, flush=True)
-    work = tempfile.mkdtemp(prefix="bench-rerank-")
-    try:
-        shipped(cols, knot_data, work)
-        if not args.skip_timing:
-            timing(args.curves, work)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+    shipped(cols, knot_data, work)
 
 
 if __name__ == "__main__":
