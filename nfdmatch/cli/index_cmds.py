@@ -44,12 +44,17 @@ def index():
               metavar="SECONDS",
               help="A file still being read after this long fails alone (0: no limit). Files are read in "
                    "worker processes, also with --jobs 1, so a stuck or crashing reader cannot stop the build.")
+@click.option("--graph", "graph_k", type=click.IntRange(min=0), is_flag=False, flag_value=10, default=None,
+              metavar="[K]",
+              help="Store each curve's K nearest curves, for query --rerank (K = 10 when not given: then put "
+                   "--graph after the sources or before another option); 0 drops the graph "
+                   "[default: keep the index's graph, if it has one].")
 @optional_descriptor_options("the index's")
 @input_format_option
 @format_option(("text", "json"), default="text",
                help_extra=": text, a summary on stderr; json, one summary object on stdout")
-def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, allow_shrink, file_timeout, samples, harmonics,
-                scale, input_format, output_format):
+def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, allow_shrink, file_timeout,
+                graph_k, samples, harmonics, scale, input_format, output_format):
     """Index the curves in SOURCE... (files or folders, recursively).
 
     Without SOURCE, the sources (and --glob) of the index's last build are re-scanned:
@@ -70,7 +75,9 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     The JSON summary: index, started (UTC), sources, added, updated, removed, unchanged,
     failed, failures (path and error of each failed file), skipped (folders that could not
     be listed, whose indexed files are kept, and non-regular files), curves, seconds; and shrink
-    ({removed, of, allowed}) when the build removes (or refused to remove) more than half.
+    ({removed, of, allowed}) when the build removes (or refused to remove) more than half;
+    with --graph, also graph: {k, searched, updated, kept, seconds} (rows searched in the whole index, copied
+    rows a new curve entered, copied rows kept as they were).
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
     1 nothing written (bad arguments, lock held, unreadable old index, shrink refused,
@@ -81,6 +88,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
       nfdmatch index build sample_curves/library --index demo.h5
       nfdmatch index build --index demo.h5          # again, from its recorded sources
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
+      nfdmatch index build library/ --index library.h5 --graph
     """
     from ..errors import ShrinkRefusedError
     from ..index import build_index
@@ -91,7 +99,7 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
         report = build_index(list(sources), index_path, samples=samples, harmonics=harmonics, scale=scale,
                              glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run,
                              jobs=jobs, wait=wait, progress=progress, allow_shrink=allow_shrink,
-                             file_timeout=file_timeout or None)
+                             file_timeout=file_timeout or None, graph=graph_k)
     except ShrinkRefusedError as exc:
         if output_format == "json":             # cron logs the summary: it says what was refused
             deliver(json.dumps({"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
@@ -114,6 +122,10 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
                    "curves": report.curves, "seconds": round(report.seconds, 3)}
         if report.shrink:
             summary["shrink"] = {"removed": report.shrink[0], "of": report.shrink[1], "allowed": bool(allow_shrink)}
+        if report.graph.k:
+            g = report.graph
+            summary["graph"] = {"k": g.k, "searched": g.searched, "updated": g.updated, "kept": g.kept,
+                                "seconds": round(g.seconds, 3)}
         if dry_run:
             summary["dry_run"] = True
             summary["changes"] = [{"action": a, "path": p} for a, p in report.changes if a != "unchanged"]
@@ -130,6 +142,10 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
         say(f"{verb}: {report.added} added, {report.updated} updated, {report.removed} removed, "
             f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
             f"{report.seconds:.2f} s{shrunk}")
+        if report.graph.k:
+            g = report.graph
+            say(f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
+                f"{g.kept} kept; {g.seconds:.2f} s")
     if not dry_run:
         # a skipped folder or FIFO counts as a failed input: exit 3, so cron mails it
         finish(report.failed + len(report.skipped),
@@ -143,14 +159,20 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
 def index_info(index_path, output_format, output):
     """Describe an index: sources, files, curves, failed files with reasons, parameters, format, times, size.
 
+    `graph` is the number of nearest curves stored per curve for `query --rerank` (0: no
+    graph; `index build --graph` adds it).
+
     \b
     Example:
       nfdmatch index info --index demo.h5 --format json -o info.json
     """
     from ..index import open_index
 
+    from ..index.graph import graph_k
+
     with open_index(index_path) as idx:
         info = idx.info()
+        info["graph"] = graph_k(idx)             # neighbours per curve stored for --rerank; 0: none
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
@@ -159,7 +181,7 @@ def index_info(index_path, output_format, output):
              f"sources\t{'(not recorded)' if sources is None else ' '.join(sources)}"]
     lines += [f"{key}\t{info.get(key)}" for key in (
         "format", "format_version", "nfdmatch_version", "files", "curves", "samples", "harmonics",
-        "scale", "created", "updated", "size_bytes")]
+        "scale", "graph", "created", "updated", "size_bytes")]
     failed = info.get("failed", [])
     lines.append(f"failed\t{len(failed)}")
     lines += [f"  {item['path']}\t{item['error']}" for item in failed]
@@ -329,12 +351,17 @@ def _deliver_bytes(data: bytes, output: str) -> None:
                    "returns the same rows and distances).")
 @click.option("--stats", "show_stats", is_flag=True,
               help="Print on stderr how many exact distances the search needed.")
+@click.option("--rerank", is_flag=True,
+              help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
+                   "--graph`); adds the column score (higher is closer), distance stays the exact distance.")
+@click.option("--rerank-depth", type=click.IntRange(min=100), default=100, show_default=True, metavar="M",
+              help="With --rerank: the query's exact top M that the diffusion re-orders.")
 @matching_options
 @input_format_option
 @rows_format_option
 @output_option()
 def query(queries, index_path, top, max_distance, glob_pattern, details, exclude_self_, exhaustive, show_stats,
-          method, strict_direction, mirror, input_format, output_format, output):
+          rerank, rerank_depth, method, strict_direction, mirror, input_format, output_format, output):
     """Find the curves of the index most similar to each curve in QUERY... .
 
     QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
@@ -345,14 +372,31 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
     exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
     Inputs that cannot be read are named on stderr and the others answered (exit 3).
 
+    --rerank: the query's exact top M (--rerank-depth) joined to the neighbour graph stored
+    in the index, a personalised-PageRank diffusion on that neighbourhood, then the top K
+    by the diffused score (docs/rerank.md). Rows gain the column score; deterministic.
+
     \b
     Examples:
       nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
+      nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
     """
     from ..index import FORMAT_VERSION, open_index
     from ..search import search_index
+
+    if rerank:
+        for given, name in ((exhaustive, "--exhaustive"), (max_distance is not None, "--max-distance"),
+                            (method != "exact", "--method paper"), (strict_direction, "--strict-direction"),
+                            (mirror, "--mirror")):
+            if given:
+                raise click.UsageError(f"--rerank cannot be combined with {name}: the stored graph holds exact, "
+                                       f"direction-invariant distances without mirror images")
+        if top > rerank_depth:
+            raise click.UsageError(f"--top {top} is more than --rerank-depth {rerank_depth}")
+    elif rerank_depth != 100:
+        raise click.UsageError("--rerank-depth needs --rerank")
 
     with open_index(index_path) as idx:
         if idx.format_version < FORMAT_VERSION and not exhaustive:
@@ -362,15 +406,28 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
         progress, finish_bar = progress_bar("searching")
         try:
-            results, stats = search_index(idx, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
-                                          progress=progress, prune=not exhaustive,
-                                          **matching(method, strict_direction, mirror))
+            if rerank:
+                from ..search.rerank import rerank_index
+
+                def is_self(query_id, match_id):
+                    # the same rule as --exclude-self without --rerank
+                    return not exclude_self(query_id, [{"match": match_id, "rank": 1}], 1, idx.locate)
+
+                results, stats = rerank_index(idx, inputs.curves, top=top, depth=rerank_depth, progress=progress,
+                                              exclude=is_self if exclude_self_ else None)
+            else:
+                results, stats = search_index(idx, inputs.curves, top=top + exclude_self_,
+                                              max_distance=max_distance, progress=progress, prune=not exhaustive,
+                                              **matching(method, strict_direction, mirror))
         finally:
             finish_bar()
-        if exclude_self_:
+        if exclude_self_ and not rerank:
             results = [exclude_self(q.id, res, top, idx.locate) for q, res in zip(inputs.curves, results)]
+    columns = match_columns(details)
+    if rerank:
+        columns.insert(columns.index("distance") + 1, "score")
     write_rows([{"query": q.id, **row} for q, res in zip(inputs.curves, results) for row in res],
-               match_columns(details), output_format, output, group_by="query")
+               columns, output_format, output, group_by="query")
     if show_stats:
         say(f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
             f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s"

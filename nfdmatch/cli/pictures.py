@@ -180,9 +180,12 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
 @input_format_option
 @click.option("--order", type=click.Choice(["input", "similar"]), default="input", show_default=True,
               help="Row order: as found, or similar curves next to each other (average-linkage tree).")
+@click.option("--rerank", is_flag=True,
+              help="The diffused similarity over the curves' neighbour graph instead of the distance "
+                   "(higher is closer; docs/rerank.md).")
 @format_option(("csv", "tsv", "json"), help_extra=" of the matrix [default: by the extension of -o, else csv]")
 def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samples, harmonics, scale,
-           input_format, order, output_format):
+           input_format, order, rerank, output_format):
     """The distance between every pair of curves in FILE_OR_FOLDER... .
 
     Rows (stdout, or -o FILE.csv/.tsv/.json): CSV/TSV with a header row
@@ -190,6 +193,9 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
     {"ids": [...], "distances": [[...], ...]}. Symmetric, zero diagonal, curves in the
     order found (files sorted, curves in file order), or with --order similar grouped by
     similarity. With -o FILE.png, also a grey-level picture like the paper's Figure 7.
+    With --rerank the entries are the re-ranked similarity of every pair (diffusion over
+    the curves' 8-nearest-neighbour graph, 1 on the diagonal, higher is closer; JSON key
+    "scores"), what `query --rerank` ranks by.
 
     \b
     Examples:
@@ -212,15 +218,28 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
     finally:
         finish_bar()
     ids = [c.id for c in curves]
+    title = f"{method} distance, {len(ids)} curves"
+    values = distances
+    if rerank:
+        import numpy as np
+
+        from ..search.rerank import diffused_similarity
+
+        values = diffused_similarity(distances)
+        # pictures and the similarity order want a dissimilarity: 0 on the diagonal
+        distances = np.clip(1 - values, 0, None)
+        np.fill_diagonal(distances, 0.0)
+        title = f"re-ranked similarity ({method} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
         distances = distances[permutation][:, permutation]
+        values = values[permutation][:, permutation]
         ids = [ids[i] for i in permutation]
     if fmt == "json":
-        text = json.dumps({"ids": ids, "distances": distances.tolist()}, indent=1) + "\n"
+        text = json.dumps({"ids": ids, ("scores" if rerank else "distances"): values.tolist()}, indent=1) + "\n"
     else:
         text = delimited_text(["id"] + ids, ([curve_id] + [repr(float(v)) for v in row]
-                                             for curve_id, row in zip(ids, distances)), fmt)
+                                             for curve_id, row in zip(ids, values)), fmt)
     deliver(text, rows_output)
     if some_failed():
         pictures = _not_written(pictures)
@@ -228,5 +247,5 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
         from ..render import render_matrix
 
         for path in pictures:
-            _report_picture(render_matrix(distances, ids, path, title=f"{method} distance, {len(ids)} curves"))
+            _report_picture(render_matrix(distances, ids, path, title=title))
     inputs.finish()

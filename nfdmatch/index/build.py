@@ -20,6 +20,7 @@ from .lock import _Lock
 from .paths import curve_ids, found_location, index_file, openable, source_location, stored
 from .pool import _run_tasks, _sha256
 from .reader import Index
+from .graph import GraphStats, graph_changes, write_graph
 from .search_group import write_search_group
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
 from .writer import (_CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _Space, _write_files_table,
@@ -99,6 +100,7 @@ class BuildReport:
     #: ``(removed, of)`` files when the build removes more than half of the index's files
     #: (or all): refused unless ``allow_shrink``; None otherwise
     shrink: tuple | None = None
+    graph: GraphStats = field(default_factory=GraphStats)
 
 
 def _load_old(index_path: str, rebuild: bool, notices: list):
@@ -127,7 +129,7 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
 
 def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
                 input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None, allow_shrink=False, file_timeout=None) -> BuildReport:
+                progress=None, allow_shrink=False, file_timeout=None, graph=None) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
@@ -148,6 +150,8 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
     jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
         ``file_timeout`` is given).
     wait : seconds to wait for another build's lock (0: fail at once).
+    graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --rerank``);
+        None keeps an existing graph's K (no graph for an index without one), 0 drops it.
     progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
         then as files finish; total counts the files that must be read or hashed (unchanged
         files are not counted).
@@ -331,7 +335,7 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
         new_sources = (stored_sources, glob or None)
         needs_write = (old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
-                       or recorded != new_sources or any(it.path != it.old.path for it in items if it.old))
+                       or recorded != new_sources or graph_changes(old, graph) or any(it.path != it.old.path for it in items if it.old))
         if not needs_write:
             if progress is not None:
                 progress(0, 0)
@@ -348,7 +352,8 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             return report
 
         _write(report, real_index, items, tasks, removed, old, params, jobs, lock, progress,
-               file_timeout, sources=new_sources, name=index_path)
+               file_timeout, sources=new_sources, name=index_path, graph=graph,
+               recompute_all=recompute_all)
     finally:
         if old is not None:
             old.close()
@@ -433,7 +438,7 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
 
 
 def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress, file_timeout=None, *, sources=((), None), name=None):
+           progress, file_timeout=None, *, sources=((), None), name=None, graph=None, recompute_all=True):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
     it (messages)."""
@@ -535,6 +540,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             # the cells: features, squared norms, row numbers and first harmonics of every row
             space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K)
+            report.graph = write_graph(h5, old, graph, reuse=not recompute_all)
             report.curves = writer.rows
         except BaseException:
             if space is not None:

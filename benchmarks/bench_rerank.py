@@ -1,0 +1,357 @@
+"""Re-ranking by diffusion: which method, and what it costs (docs/rerank.md).
+
+    python benchmarks/bench_rerank.py [--data ../shared/data] [--curves 10000] [--skip-timing | --skip-tables]
+
+Prints, from the repository root:
+
+1. the method comparison on full distance matrices (every curve of a collection a query,
+   itself left out): plain exact distance, personalised PageRank (PPR) kNN diffusion as
+   A A^T, the shipped PPR (cosine of the PageRank rows + 0.2 direct affinity),
+   tensor-product graph diffusion, offline diffusion + online linear combination,
+   k-reciprocal re-ranking, contextual dissimilarity;
+2. the shipped path (`query --rerank`: each query's exact top 100 joined to the graph
+   stored by `index build --graph`), on the same collections;
+3. graph build time next to the plain build, and query --rerank time next to the plain
+   query, on ``--curves`` generated curves (families of 10, benchmarks/bench_index.py).
+
+Collections: Kimia-99 (9 classes x 11; same-class hits at ranks 1..10 and bull's-eye, the
+same-class hits in the top 22, query included, as a fraction of 11); knotess control ->
+smooth top-1 (each control polygon against the 148 smooth curves; one miss is a pair of
+identical circles); mesh_loops sections (227, label = mesh; precision at 10, bull's-eye
+in the top 2 x mesh size); generated families (40 families x 12, bench_search's
+generator at noise 0.15 and 0.30 of the RMS radius; precision at 10). Development data is
+not shipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import shutil
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.dirname(HERE))
+
+from nfdmatch import Curve, read_curves, write_curves  # noqa: E402
+from nfdmatch.descriptors import descriptors_batch  # noqa: E402
+from nfdmatch.matching import exact_search  # noqa: E402
+from nfdmatch.search import distance_matrix  # noqa: E402
+from nfdmatch.search.rerank import ALPHA, MIX, SCALE_NEIGHBOURS, diffused_similarity  # noqa: E402
+
+DEFAULT_DATA = os.path.normpath(os.path.join(HERE, "..", "..", "shared", "data"))
+K, A = SCALE_NEIGHBOURS, ALPHA
+
+
+# --------------------------------------------------------------------------- methods on a full matrix
+# (research versions for the comparison; the shipped one lives in nfdmatch/search/rerank.py)
+
+def _knn_affinity(D, k=K):
+    N = len(D)
+    off = D.copy()
+    np.fill_diagonal(off, np.inf)
+    order = np.argsort(off, axis=1, kind="stable")
+    s = np.maximum(off[np.arange(N), order[:, min(k, N - 1) - 1]], 1e-12)
+    W = np.exp(-D ** 2 / (s[:, None] * s[None, :]))
+    mask = np.zeros_like(W, dtype=bool)
+    mask[np.arange(N)[:, None], order[:, :k]] = True
+    np.fill_diagonal(mask, True)
+    return W * mask, W, order
+
+
+def _ppr_rows(D, k=K, alpha=A):
+    Wk, _, _ = _knn_affinity(D, k)
+    P = Wk / Wk.sum(axis=1, keepdims=True)
+    return (1 - alpha) * np.linalg.inv(np.eye(len(D)) - alpha * P)
+
+
+def ppr_product(D):
+    """PPR rows A, similarity A A^T (the issue's prototype)."""
+    F = _ppr_rows(D)
+    return F @ F.T
+
+
+def tensor_product(D, k=K, alpha=A, iterations=30):
+    """Tensor-product graph diffusion (Yang, Prasad, Latecki 2012): Q <- alpha P Q P^T + I."""
+    Wk, _, _ = _knn_affinity(D, k)
+    P = Wk / Wk.sum(axis=1, keepdims=True)
+    Q = np.eye(len(D))
+    for _ in range(iterations):
+        Q = alpha * P @ Q @ P.T + np.eye(len(D))
+    return Q
+
+
+def offline_online(D, k=K):
+    """Offline PPR A A^T of the collection; a query's row is the affinity-weighted mean of
+    its k neighbours' rows (the query is left out of its own neighbours)."""
+    F = ppr_product(D)
+    N = len(D)
+    off = D.copy()
+    np.fill_diagonal(off, np.inf)
+    order = np.argsort(off, axis=1, kind="stable")[:, :k]
+    s = np.maximum(off[np.arange(N), order[:, -1]], 1e-12)
+    S = np.empty_like(F)
+    for i in range(N):
+        w = np.exp(-off[i, order[i]] ** 2 / (s[i] * s[order[i]])) + 1e-300
+        S[i] = w @ F[order[i]] / w.sum()
+    return S
+
+
+def k_reciprocal(D, k1=10, k2=4, lam=0.3):
+    """k-reciprocal encoding with expansion and local query expansion, Jaccard distance
+    mixed with the original (Zhong et al. 2017), as a similarity."""
+    N = len(D)
+    order = np.argsort(D, axis=1, kind="stable")
+
+    def reciprocal(i, k):
+        return {int(j) for j in order[i, :k + 1] if i in order[j, :k + 1]}
+
+    R = []
+    for i in range(N):
+        base = reciprocal(i, k1)
+        grown = set(base)
+        for j in base:
+            Rj = reciprocal(j, max(k1 // 2, 1))
+            if len(Rj & base) > 2 / 3 * len(Rj):
+                grown |= Rj
+        R.append(grown)
+    V = np.zeros((N, N))
+    for i in range(N):
+        idx = np.array(sorted(R[i]))
+        scale = max(float(np.median(D[i, order[i, 1:k1 + 1]])), 1e-12)
+        V[i, idx] = np.exp(-D[i, idx] / scale)
+        V[i] /= V[i].sum()
+    if k2 > 1:
+        V = np.stack([V[order[i, :k2]].mean(axis=0) for i in range(N)])
+    J = 1 - np.minimum(V[:, None, :], V[None, :, :]).sum(2) / np.maximum(V[:, None, :], V[None, :, :]).sum(2)
+    return -((1 - lam) * J + lam * D / np.median(D[D > 0]))
+
+
+def contextual(D, k=K):
+    """Contextual dissimilarity (Jegou et al. 2007): d_ij / sqrt(r_i r_j), r = mean k-NN distance."""
+    off = D.copy()
+    np.fill_diagonal(off, np.inf)
+    r = np.sort(off, axis=1)[:, :k].mean(axis=1)
+    return -D / np.sqrt(r[:, None] * r[None, :])
+
+
+METHODS = {
+    "plain exact distance": lambda D: -D,
+    "PPR kNN, A A^T": ppr_product,
+    f"PPR kNN, cosine + {MIX} affinity (shipped)": diffused_similarity,
+    "tensor-product graph": tensor_product,
+    "offline PPR + online combination": offline_online,
+    "k-reciprocal (k1 10, k2 4, lambda 0.3)": k_reciprocal,
+    "contextual dissimilarity": contextual,
+}
+
+
+# --------------------------------------------------------------------------- collections
+
+def _folder(folder, names=None):
+    names = names or sorted(f for f in os.listdir(folder) if f.endswith(".csv") and not f.startswith("_"))
+    return names, [read_curves(os.path.join(folder, f))[0] for f in names]
+
+
+def collections(data):
+    """name -> dict(curves, labels (or None), D)"""
+    out = {}
+    with open(os.path.join(data, "kimia99", "_labels.csv")) as fh:
+        labels = {row["csv"]: row["class_name"] for row in csv.DictReader(fh)}
+    names, curves = _folder(os.path.join(data, "kimia99"))
+    out["kimia99"] = dict(curves=curves, labels=np.array([labels[n] for n in names]))
+    with open(os.path.join(data, "mesh_loops", "index.csv")) as fh:
+        rows = [r for r in csv.DictReader(fh) if r["kind"] == "section"]
+    _, curves = _folder(os.path.join(data, "mesh_loops"), [r["file"] for r in rows])
+    out["mesh sections"] = dict(curves=curves, labels=np.array([r["mesh"] for r in rows]))
+    from bench_search import _sample, _smooth_coefficients
+
+    rng = np.random.default_rng(5)
+    F, M = 40, 12
+    a, b = _smooth_coefficients(rng, F, rng.integers(3, 7, F))
+    owner = np.repeat(np.arange(F), M)
+    for noise in (0.15, 0.3):
+        pts = _sample(a[owner], b[owner], 48, np.random.default_rng(int(noise * 100)), noise)
+        out[f"families noise {noise:.2f}"] = dict(curves=[Curve(p, id=f"f{o:02d}-{i:03d}")
+                                                         for i, (p, o) in enumerate(zip(pts, owner))], labels=owner)
+    for c in out.values():
+        c["D"] = distance_matrix(c["curves"])
+    return out
+
+
+def knots(data):
+    names_c, control = _folder(os.path.join(data, "knotess_control"))
+    names_s, smooth = _folder(os.path.join(data, "knotess_smooth"))
+    assert names_c == names_s
+    Ds = distance_matrix(smooth)
+    bs = descriptors_batch(smooth).coefficients
+    Q = np.array([exact_search(q, bs, 128)["distance"] for q in descriptors_batch(control).coefficients])
+    return control, smooth, Ds, Q
+
+
+def scores_table(S, labels):
+    """(same-class counts at ranks 1..10 with the query left out, precision at 10, bull's-eye)."""
+    S = np.array(S, dtype=float)
+    N = len(S)
+    excl = S.copy()
+    np.fill_diagonal(excl, -np.inf)
+    order = np.argsort(-excl, axis=1, kind="stable")[:, :10]
+    same = labels[order] == labels[:, None]
+    incl = S.copy()
+    np.fill_diagonal(incl, np.inf)                       # the query itself first, as bull's-eye counts it
+    size = np.array([(labels == c).sum() for c in labels])
+    order2 = np.argsort(-incl, axis=1, kind="stable")
+    bull = np.mean([(labels[order2[i, :2 * size[i]]] == labels[i]).sum() / size[i] for i in range(N)])
+    return same.sum(axis=0), same.mean(), bull
+
+
+def knots_top1(method, Ds, Q):
+    N = len(Ds)
+    hits = 0
+    for i in range(N):
+        Aug = np.zeros((N + 1, N + 1))
+        Aug[1:, 1:] = Ds
+        Aug[0, 1:] = Aug[1:, 0] = Q[i]
+        s = np.asarray(method(Aug), dtype=float)[0, 1:]
+        hits += int(np.lexsort((Q[i], -s))[0] == i)
+    return hits
+
+
+# --------------------------------------------------------------------------- the shipped path
+
+def shipped(cols, knot_data, work):
+    """query --rerank (library) through an index with a graph: Kimia, mesh, families, knots."""
+    from nfdmatch.index import build_index, open_index
+    from nfdmatch.search.rerank import rerank_index
+
+    print("\n## The shipped path: each query's exact top 100 joined to the stored graph "
+          "(index build --graph 10, query --rerank)")
+    print(f"{'collection':24} {'plain P@10':>10} {'rerank P@10':>11} {'plain BE':>9} {'rerank BE':>9}"
+          f"  {'rerank ranks 1..10 (same class)':s}")
+    for name, c in cols.items():
+        folder = os.path.join(work, name.replace(" ", "_"))
+        os.makedirs(folder)
+        write_curves(os.path.join(folder, "curves.obj"), c["curves"])
+        build_index([folder], os.path.join(work, name.replace(" ", "_") + ".h5"), jobs=2, graph=10)
+        stored = read_curves(os.path.join(folder, "curves.obj"))
+        with open_index(os.path.join(work, name.replace(" ", "_") + ".h5")) as idx:
+            res, _ = rerank_index(idx, stored, top=100 if len(stored) > 100 else len(stored) - 1, depth=100,
+                                  exclude=lambda q, m: q == m)
+        pos = {s.id: i for i, s in enumerate(stored)}
+        N = len(stored)
+        S = np.full((N, N), -np.inf)
+        for i, r in enumerate(res):
+            for m in r:
+                S[i, pos[m["match"]]] = m["score"]
+        np.fill_diagonal(S, np.inf)
+        counts, p10, bull = scores_table(S, c["labels"])
+        pc, pp, pb = scores_table(-c["D"], c["labels"])
+        print(f"{name:24} {pp:10.3f} {p10:11.3f} {pb:9.3f} {bull:9.3f}  {' '.join(str(x) for x in counts)}"
+              f" = {counts.sum()} (plain {pc.sum()})")
+    control, smooth, _, _ = knot_data
+    folder = os.path.join(work, "knots")
+    os.makedirs(folder)
+    write_curves(os.path.join(folder, "smooth.obj"), smooth)
+    build_index([folder], os.path.join(work, "knots.h5"), jobs=2, graph=10)
+    with open_index(os.path.join(work, "knots.h5")) as idx:
+        res, _ = rerank_index(idx, control, top=1)
+        ids = idx.ids()
+    hits = sum(r[0]["match"] == ids[i] for i, r in enumerate(res))
+    print(f"{'knotess control->smooth':24} top-1 with --rerank: {hits}/{len(control)}")
+
+
+def timing(curves, work):
+    import bench_index
+    from nfdmatch.index import build_index, open_index
+    from nfdmatch.search import search_index
+    from nfdmatch.search.rerank import rerank_index
+
+    folder = os.path.join(work, f"gen{curves}")
+    queries = bench_index.generate(folder, curves)[:20]
+    t = time.perf_counter()
+    plain = build_index([folder], os.path.join(work, "plain.h5"), jobs=2)
+    t_plain = time.perf_counter() - t
+    t = time.perf_counter()
+    graph8 = build_index([folder], os.path.join(work, "graph8.h5"), jobs=2, graph=8)
+    t_graph8 = time.perf_counter() - t
+    t = time.perf_counter()
+    graph = build_index([folder], os.path.join(work, "graph.h5"), jobs=2, graph=10)
+    t_graph = time.perf_counter() - t
+    # incremental: one more file of 1% new curves
+    extra = bench_index.family_members(np.random.default_rng(99), max(curves // 100, 2))
+    write_curves(os.path.join(folder, "zz-extra.obj"), extra)
+    inc = build_index([folder], os.path.join(work, "graph.h5"), jobs=2)
+    print(f"\n## Build, {plain.curves} generated curves (families of 10), 2 workers")
+    print(f"plain build {t_plain:.1f} s; with --graph 10 {t_graph:.1f} s, of which the graph "
+          f"{graph.graph.seconds:.1f} s ({graph.graph.searched} rows searched, "
+          f"{1e3 * graph.graph.seconds / max(graph.graph.searched, 1):.2f} ms per row)")
+    print(f"with --graph 8 {t_graph8:.1f} s, of which the graph {graph8.graph.seconds:.1f} s "
+          f"({1e3 * graph8.graph.seconds / max(graph8.graph.searched, 1):.2f} ms per row: the 9 nearest other "
+          f"rows of a row are its family, the 10th is not)")
+    print(f"incremental, +{len(extra)} curves: {inc.seconds:.1f} s, graph {inc.graph.seconds:.1f} s "
+          f"({inc.graph.searched} searched, {inc.graph.updated} updated, {inc.graph.kept} kept)")
+    with open_index(os.path.join(work, "graph.h5")) as idx:
+        for label, fn in (("plain query --top 10", lambda: search_index(idx, queries, top=10)),
+                          ("query --rerank --top 10 (M 100)", lambda: rerank_index(idx, queries, top=10)),
+                          ("query --rerank --rerank-depth 300", lambda: rerank_index(idx, queries, top=10,
+                                                                                     depth=300))):
+            fn()
+            best = min(_time(fn) for _ in range(3))
+            print(f"{label:36} {1e3 * best / len(queries):7.1f} ms per query ({len(queries)} queries)")
+
+
+def _time(fn):
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=DEFAULT_DATA)
+    ap.add_argument("--curves", type=int, default=10000, help="generated curves for the timing (default 10000)")
+    ap.add_argument("--skip-timing", action="store_true")
+    ap.add_argument("--skip-tables", action="store_true", help="only the build and query timing")
+    args = ap.parse_args()
+    if not os.path.isdir(args.data):
+        sys.exit(f"development data not found at {args.data}")
+    work = tempfile.mkdtemp(prefix="bench-rerank-")
+    try:
+        if not args.skip_tables:
+            tables(args.data, work)
+        if not args.skip_timing:
+            timing(args.curves, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def tables(data, work):
+    t0 = time.perf_counter()
+    cols = collections(data)
+    knot_data = knots(data)
+    print(f"(distance matrices: {time.perf_counter() - t0:.1f} s)")
+    print(f"\n## Methods on full distance matrices (k = {K} neighbours, alpha = {A}); P@10 = precision at 10, "
+          f"BE = bull's-eye; knots = control->smooth top-1 of 148")
+    header = f"{'method':44} {'kimia ranks 1..10 = sum':>36} {'kimia BE':>8} {'mesh P@10':>9} {'mesh BE':>8}"
+    header += "".join(f" {'fam ' + n.split()[-1] + ' P@10':>14}" for n in cols if n.startswith("families"))
+    print(header + f" {'knots':>6}")
+    for name, method in METHODS.items():
+        kc, _, kb = scores_table(method(cols["kimia99"]["D"]), cols["kimia99"]["labels"])
+        _, mp, mb = scores_table(method(cols["mesh sections"]["D"]), cols["mesh sections"]["labels"])
+        line = f"{name:44} {' '.join(f'{x:2d}' for x in kc) + f' = {kc.sum()}':>36} {kb:8.3f} {mp:9.3f} {mb:8.3f}"
+        for n, c in cols.items():
+            if n.startswith("families"):
+                line += f" {scores_table(method(c['D']), c['labels'])[1]:14.3f}"
+        line += f" {knots_top1(method, knot_data[2], knot_data[3]):6d}"
+        print(line, flush=True)
+    shipped(cols, knot_data, work)
+
+
+if __name__ == "__main__":
+    main()

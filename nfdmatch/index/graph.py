@@ -1,0 +1,278 @@
+"""The ``/graph`` group of an index: each row's K nearest other rows and their exact distances
+(docs/index-format.md), what ``query --rerank`` diffuses over (docs/rerank.md).
+
+Written by a build in one call (:func:`write_graph`) once ``/curves``, ``/files`` and
+``/search`` of the new file are complete. Incremental: rows copied unchanged from the old
+index keep their lists when none of their neighbours was removed or changed, and only the
+new rows can enter them; every other row is searched in the new index. The result equals a
+from-scratch build (each list is an exact top K, ties by id).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "graph_k", "GraphStats", "DEFAULT_GRAPH_K"]
+
+#: neighbours per row when ``--graph`` is given without a number
+DEFAULT_GRAPH_K = 10
+#: an index up to this many rows is searched from coefficients held in memory (16 MiB per
+#: 100k rows at K = 16); larger ones read the rows each search needs from the file
+_IN_MEMORY_ROWS = 1 << 19
+
+
+@dataclass
+class GraphStats:
+    """What :func:`write_graph` did: ``k`` (0: no graph written), ``searched`` (rows whose
+    list came from a search of the whole index), ``updated`` (copied rows whose list a new
+    row entered), ``kept`` (copied rows whose list was reused as it was), ``seconds``."""
+
+    k: int = 0
+    searched: int = 0
+    updated: int = 0
+    kept: int = 0
+    seconds: float = 0.0
+
+
+def read_graph(index):
+    """The graph of an open :class:`~nfdmatch.index.Index`: ``(neighbour, distance)``,
+    (N, K) int64 and (N, K) float64, or None when the index has none.
+
+    Raises IndexFormatError when the group is there but malformed."""
+    from ..errors import IndexFormatError
+
+    h5 = index._h5
+    if h5 is None or "graph" not in h5:
+        return None
+
+    def read():
+        g = h5["graph"]
+        return np.asarray(g["neighbour"][...], dtype=np.int64), np.asarray(g["distance"][...], dtype=np.float64)
+
+    nb, dist = index._read(read)
+    N = index.n_curves
+    if nb.ndim != 2 or nb.shape != dist.shape or nb.shape[0] != N or (nb.size and (nb.min() < -1 or nb.max() >= N)):
+        raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
+    return nb, dist
+
+
+def graph_k(index) -> int:
+    """Neighbours per row in an open index's graph; 0 when it has none."""
+    return _old_graph_k(index)
+
+
+def _old_graph_k(old) -> int:
+    if old is None or old._h5 is None or "graph" not in old._h5:
+        return 0
+    try:
+        return int(old._h5["graph"].attrs["k"])
+    except (KeyError, TypeError, ValueError, OSError):      # a damaged group: as if there were none
+        return 0
+
+
+def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = None) -> GraphStats:
+    """Write ``/graph`` into the new index file ``h5`` (``/curves``, ``/files``, ``/search``
+    complete); returns :class:`GraphStats`.
+
+    old : the previous :class:`~nfdmatch.index.Index` (open) or None.
+    k : neighbours per row; None keeps the old index's graph K (no graph when it had none);
+        0 writes no graph.
+    reuse : False searches every row (the curves were recomputed: --rebuild, new parameters).
+    """
+    t0 = time.perf_counter()
+    k = _old_graph_k(old) if k is None else int(k)
+    stats = GraphStats(k=k)
+    if k <= 0:
+        return stats
+    curves = h5["curves"]
+    N = curves["coefficients"].shape[0]
+    K = int(h5.attrs["harmonics"])
+    samples = int(h5.attrs["samples"])
+    ids = np.asarray(curves["id"].asstr()[...], dtype=object)
+    neighbour = np.full((N, k), -1, dtype=np.int64)
+    distance = np.full((N, k), np.inf)
+
+    old_to_new = _copied_rows(h5, old) if reuse and _old_graph_k(old) == k else {}
+    if old_to_new:
+        from ..errors import IndexFormatError
+
+        try:
+            old_nb, old_d = read_graph(old)
+        except IndexFormatError:                  # a damaged old graph: computed afresh
+            old_to_new = {}
+    todo = np.ones(N, dtype=bool)
+    check = []                                   # copied rows whose list only new rows can change
+    if old_to_new:
+        remap = np.full(old.n_curves + 1, -1, dtype=np.int64)      # index -1 (padding) maps to -1
+        for o, n in old_to_new.items():
+            remap[o] = n
+        fresh = np.ones(N, dtype=bool)
+        fresh[list(old_to_new.values())] = False
+        for o, n in old_to_new.items():
+            lst = remap[old_nb[o]]
+            # a list with padding or a neighbour that left is no longer the top K among the
+            # kept rows: search that row again
+            if (old_nb[o] >= 0).all() and (lst >= 0).all():
+                neighbour[n], distance[n] = lst, old_d[o]
+                todo[n] = False
+                check.append(n)
+        check = np.asarray(check, dtype=np.int64)
+    else:
+        fresh = np.ones(N, dtype=bool)
+
+    if N:
+        coefficients = (curves["coefficients"][...] if N <= _IN_MEMORY_ROWS else None)
+
+        def read_coefficients(rows):
+            rows = np.asarray(rows, dtype=np.int64)
+            if coefficients is not None:
+                return coefficients[rows]
+            uniq, inverse = np.unique(rows, return_inverse=True)
+            return curves["coefficients"][uniq][inverse]
+
+        from ..search.table import SearchTable
+        from .search_group import search_table
+
+        def fail(message):
+            from ..errors import IndexFormatError
+            raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
+
+        table = search_table(h5, N, K, read_coefficients, fail)
+        searched = np.flatnonzero(todo)
+        _run(searched, lambda i: _search(i, read_coefficients, table, k + 1, samples, None), threads,
+             lambda i, rows, d: _store(i, rows, d, ids, neighbour, distance, k))
+        stats.searched = len(searched)
+        fresh_rows = np.flatnonzero(fresh)
+        if len(check) and len(fresh_rows):
+            feats = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
+            from ..search.bounds import head_harmonics
+            head = read_coefficients(fresh_rows)[:, :head_harmonics(K)]
+            small = SearchTable.single_cell(K, feats, head, lambda r: read_coefficients(fresh_rows[r]))
+            changed = 0
+
+            def merge(i, rows, d):
+                nonlocal changed
+                if len(rows):
+                    before = neighbour[i].copy()
+                    _store(i, np.concatenate([neighbour[i], fresh_rows[rows]]),
+                           np.concatenate([distance[i], d]), ids, neighbour, distance, k)
+                    changed += not np.array_equal(before, neighbour[i])
+
+            _run(check, lambda i: _search(i, read_coefficients, small, k, samples, distance[i, -1]), threads, merge)
+            stats.updated = changed
+        stats.kept = len(check) - stats.updated
+
+    g = h5.create_group("graph")
+    g.attrs["k"] = np.int64(k)
+    g.attrs["method"] = "exact"
+    g.attrs["direction"] = "invariant"
+    g.attrs["mirror"] = np.int64(0)
+    g.create_dataset("neighbour", data=neighbour)
+    g.create_dataset("distance", data=distance)
+    stats.seconds = time.perf_counter() - t0
+    return stats
+
+
+def _copied_rows(h5, old) -> dict:
+    """old row -> new row for every curve of a file whose contents did not change (same path
+    and SHA-256, indexed both times): its descriptors are the same."""
+    files = h5["files"]
+    paths = files["path"].asstr()[...]
+    sha = files["sha256"][...]
+    status = files["status"][...]
+    start = files["curve_start"][...]
+    count = files["curve_count"][...]
+    new = {str(p): (bytes(s), int(st), int(a), int(c)) for p, s, st, a, c in zip(paths, sha, status, start, count)}
+    out = {}
+    for r in old.files():
+        got = new.get(r.path)
+        if got is None or r.status != "ok" or got[1] != 0 or got[3] != r.curve_count or not r.sha256:
+            continue
+        if got[0].decode("ascii") != r.sha256:
+            continue
+        for j in range(r.curve_count):
+            out[r.curve_start + j] = got[2] + j
+    return out
+
+
+def _search(i, read_coefficients, table, top, samples, max_distance):
+    """Row i's nearest rows of ``table`` (its own row left out): (rows, distances)."""
+    from ..matching import exact_search
+    from ..search.bestfirst import TIE, TopK, search_one
+    from ..search.bounds import feature_vector
+
+    q = np.asarray(read_coefficients([i])[0], dtype=np.complex128)
+    tk = TopK(top, None if max_distance is None else float(max_distance) + TIE)
+    search_one(q, feature_vector(q[None])[0], table, tk, search=exact_search, method="exact",
+               direction="invariant", mirror=False, samples=samples)
+    return tk.rows, tk.dist
+
+
+def _store(i, rows, d, ids, neighbour, distance, k):
+    """Row i's list: the K nearest of ``rows`` other than i, ties (1e-9) by id, as a query orders them."""
+    from ..search.bestfirst import TIE
+
+    rows, d = np.asarray(rows, dtype=np.int64), np.asarray(d, dtype=np.float64)
+    keep = (rows != i) & (rows >= 0)
+    rows, d = rows[keep], d[keep]
+    order = sorted(range(len(rows)), key=lambda j: (round(float(d[j]) / TIE), ids[rows[j]]))[:k]
+    neighbour[i] = -1
+    distance[i] = np.inf
+    neighbour[i, :len(order)] = rows[order]
+    distance[i, :len(order)] = d[order]
+
+
+def _run(rows, work, threads, done):
+    """``done(i, *work(i))`` for every row, ``work`` in threads (one BLAS thread each)."""
+    threads = threads or min(os.cpu_count() or 1, 4)
+    if threads > 1 and len(rows) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(threads) as pool:
+            for i, res in zip(rows, pool.map(work, rows)):
+                done(int(i), *res)
+    else:
+        for i in rows:
+            done(int(i), *work(int(i)))
+
+
+def graph_changes(old, k: int | None) -> bool:
+    """True when a build asked for ``k`` must rewrite an index that is otherwise up to date
+    (a graph asked for that it lacks or has with another K, or one to drop)."""
+    return k is not None and int(k) != _old_graph_k(old)
+
+
+def read_graph_rows(index):
+    """A reader of an open index's graph rows, ``rows -> (neighbour, distance)`` ((m, K)
+    int64 / float64, in the order of ``rows``, repeats allowed), or None when the index has
+    no graph. Reads only the rows asked for (a query needs about M + M K of them)."""
+    from ..errors import IndexFormatError
+
+    h5 = index._h5
+    if h5 is None or "graph" not in h5:
+        return None
+    g = h5["graph"]
+    ds_nb, ds_d = g.get("neighbour"), g.get("distance")
+    N = index.n_curves
+    if (ds_nb is None or ds_d is None or len(ds_nb.shape) != 2 or ds_nb.shape != ds_d.shape
+            or ds_nb.shape[0] != N):
+        raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
+
+    def read(rows):
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if len(rows) == 0:
+            return np.zeros((0, ds_nb.shape[1]), np.int64), np.zeros((0, ds_nb.shape[1]))
+        uniq, inverse = np.unique(rows, return_inverse=True)
+        nb, d = index._read(lambda: (np.asarray(ds_nb[uniq], dtype=np.int64), np.asarray(ds_d[uniq], dtype=np.float64)))
+        if nb.min() < -1 or nb.max() >= N:
+            raise IndexFormatError("corrupted nfdmatch index: /graph/neighbour holds a row outside the index",
+                                   path=index.path)
+        return nb[inverse], d[inverse]
+
+    return read

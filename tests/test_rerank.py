@@ -1,0 +1,336 @@
+"""Re-ranking by diffusion (`query --rerank`, `matrix --rerank`) and the index's neighbour
+graph (`index build --graph`): exact lists, incremental = from scratch, no surprises."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from oracle import random_rigid_motion, smooth_curve_samplings
+
+from nfdmatch import Curve, write_curves
+from nfdmatch.cli import main
+from nfdmatch.errors import IndexFormatError, ParameterError
+from nfdmatch.index import build_index, open_index
+from nfdmatch.search import distance_matrix, search_index
+from nfdmatch.search.rerank import diffused_similarity, rerank_index
+
+
+def run(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return result.exit_code, result.stdout, result.stderr
+
+
+def family_curves(rng, families=16, members=12, spread=0.25, harmonics=5):
+    """Families of curves: a random smooth curve, then members with every coefficient
+    perturbed by ``spread`` of its size, each re-posed. Returns (curves, family labels)."""
+    k = np.arange(1, harmonics + 1)
+    amp = (k ** -1.5)[:, None]
+    t = np.arange(64) / 64
+    arg = 2 * np.pi * np.outer(t, k)
+    curves, labels = [], []
+    for f in range(families):
+        a, b = rng.standard_normal((harmonics, 3)) * amp, rng.standard_normal((harmonics, 3)) * amp
+        for m in range(members):
+            am = a + spread * rng.standard_normal((harmonics, 3)) * amp
+            bm = b + spread * rng.standard_normal((harmonics, 3)) * amp
+            pts = random_rigid_motion(np.cos(arg) @ am + np.sin(arg) @ bm, rng)
+            curves.append(Curve(pts, id=f"f{f:02d}-m{m:02d}"))
+            labels.append(f)
+    return curves, np.array(labels)
+
+
+def random_curves(rng, count):
+    """``count`` unrelated random smooth curves (no class structure)."""
+    return [Curve(random_rigid_motion(smooth_curve_samplings(rng, [int(rng.integers(40, 120))])[0], rng),
+                  id=f"r{i:03d}") for i in range(count)]
+
+
+def write_parts(folder, curves, parts):
+    os.makedirs(folder, exist_ok=True)
+    for i, chunk in enumerate(np.array_split(np.arange(len(curves)), parts)):
+        write_curves(os.path.join(folder, f"part-{i:02d}.obj"), [curves[j] for j in chunk])
+
+
+def graph_of(path):
+    with h5py.File(path, "r") as f:
+        return f["graph/neighbour"][...], f["graph/distance"][...], f["curves/id"].asstr()[...]
+
+
+# --------------------------------------------------------------------------- the graph
+
+def test_graph_rows_are_the_exact_top_k_of_a_query(tmp_path, rng):
+    curves = random_curves(rng, 60)
+    write_parts(tmp_path / "c", curves, 3)
+    index = tmp_path / "i.h5"
+    report = build_index([tmp_path / "c"], index, jobs=1, graph=6)
+    assert report.graph.k == 6 and report.graph.searched == 60
+    nb, dist, ids = graph_of(index)
+    assert nb.shape == dist.shape == (60, 6)
+    with open_index(index) as idx:
+        results, _ = search_index(idx, _read_back(tmp_path / "c"), top=7)
+    by_id = dict(enumerate(ids))
+    for i, res in enumerate(results):
+        expected = [m for m in res if m["row"] != i][:6]
+        assert [by_id[j] for j in nb[i]] == [m["match"] for m in expected]
+        np.testing.assert_allclose(dist[i], [m["distance"] for m in expected], rtol=1e-5, atol=1e-6)
+        assert np.all(np.diff(dist[i]) >= -1e-9)
+
+
+def _read_back(folder):
+    from nfdmatch import read_curves
+
+    out = []
+    for name in sorted(os.listdir(folder)):
+        out.extend(read_curves(os.path.join(folder, name)))
+    return out
+
+
+def test_incremental_graph_equals_a_build_from_scratch(tmp_path, rng):
+    curves, _ = family_curves(rng, families=8, members=10)
+    src = tmp_path / "c"
+    write_parts(src, curves[:60], 6)
+    index = tmp_path / "i.h5"
+    build_index([src], index, jobs=1, graph=5)
+    # add a file, change one, remove one: a new curve closer than old lists' members, and
+    # old lists that lose members
+    write_curves(os.path.join(src, "part-06.obj"), curves[60:75])
+    write_curves(os.path.join(src, "part-01.obj"), curves[75:85])
+    os.remove(os.path.join(src, "part-03.obj"))
+    report = build_index([src], index, jobs=1)                  # keeps the graph's K
+    g = report.graph
+    assert g.k == 5 and g.searched < report.curves and g.searched + g.updated + g.kept == report.curves
+    assert g.updated > 0
+    fresh = tmp_path / "fresh.h5"
+    build_index([src], fresh, jobs=1, graph=5)
+    nb_a, d_a, ids_a = graph_of(index)
+    nb_b, d_b, ids_b = graph_of(fresh)
+    assert list(ids_a) == list(ids_b)
+    np.testing.assert_array_equal(nb_a, nb_b)
+    np.testing.assert_allclose(d_a, d_b, rtol=1e-9, atol=1e-12)
+
+
+def test_graph_kept_by_a_build_without_the_option_and_dropped_with_zero(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 12), 2)
+    index = tmp_path / "i.h5"
+    build_index([tmp_path / "c"], index, jobs=1)
+    with h5py.File(index, "r") as f:
+        assert "graph" not in f
+    report = build_index([tmp_path / "c"], index, jobs=1, graph=20)   # more than N - 1: padded
+    assert report.written and report.graph.k == 20
+    nb, dist, _ = graph_of(index)
+    assert (nb[:, 11:] == -1).all() and np.isinf(dist[:, 11:]).all() and (nb[:, :11] >= 0).all()
+    assert not build_index([tmp_path / "c"], index, jobs=1).written   # nothing changed
+    assert build_index([tmp_path / "c"], index, jobs=1, graph=0).written
+    with h5py.File(index, "r") as f:
+        assert "graph" not in f
+
+
+# --------------------------------------------------------------------------- re-ranking
+
+@pytest.fixture(scope="module")
+def families_index(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("families")
+    curves, labels = family_curves(np.random.default_rng(7))
+    write_parts(folder / "c", curves, 4)
+    build_index([folder / "c"], folder / "i.h5", jobs=1, graph=10)
+    return folder, curves, labels
+
+
+def test_rerank_improves_a_family_collection(families_index):
+    folder, _, labels = families_index
+    stored = _read_back(folder / "c")                       # the curves as stored, in order
+    def stored_id(curve_id):                                # ids are relative to the index's folder
+        return os.path.relpath(curve_id, folder)
+
+    family = {stored_id(c.id): f for c, f in zip(stored, labels)}
+    with open_index(folder / "i.h5") as idx:
+        plain, _ = search_index(idx, stored, top=11)
+        reranked, _ = rerank_index(idx, stored, top=10, depth=100, exclude=lambda q, m: stored_id(q) == m)
+
+    def precision(results):
+        hits = []
+        for q, res in zip(stored, results):
+            res = [m for m in res if m["match"] != stored_id(q.id)][:10]
+            assert len(res) == 10
+            hits.append(np.mean([family[m["match"]] == family[stored_id(q.id)] for m in res]))
+        return float(np.mean(hits))
+
+    p_plain, p_rerank = precision(plain), precision(reranked)
+    assert p_rerank >= p_plain + 0.03, (p_plain, p_rerank)
+
+
+def test_local_diffusion_matches_the_full_one_on_a_small_index(tmp_path, rng):
+    curves, _ = family_curves(rng, families=9, members=10)
+    write_parts(tmp_path / "c", curves, 2)
+    build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
+    stored = _read_back(tmp_path / "c")
+    S = diffused_similarity(distance_matrix(stored))
+    def rel(curve_id):                                      # ids are relative to the index's folder
+        return os.path.relpath(curve_id, tmp_path)
+
+    position = {rel(c.id): i for i, c in enumerate(stored)}
+    with open_index(tmp_path / "i.h5") as idx:
+        results, _ = rerank_index(idx, stored, top=89, depth=100, exclude=lambda q, m: rel(q) == m)
+    for i, res in enumerate(results):
+        assert len(res) == 89 and all(m["match"] != rel(stored[i].id) for m in res)
+        got = np.array([m["score"] for m in res])
+        np.testing.assert_allclose(got, S[i, [position[m["match"]] for m in res]], atol=1e-5)
+        assert np.all(np.diff(got) <= 1e-12)
+
+
+def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng):
+    curves = random_curves(rng, 150)
+    write_parts(tmp_path / "c", curves, 3)
+    build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
+    stored = _read_back(tmp_path / "c")
+    queries = []
+    for i in range(0, 150, 5):
+        pts = stored[i].points
+        radius = np.sqrt(((pts - pts.mean(axis=0)) ** 2).sum(axis=1).mean())
+        pts = pts + rng.normal(scale=1e-3 * radius, size=pts.shape)
+        queries.append(Curve(random_rigid_motion(np.roll(pts, 7, axis=0), rng), id=f"q{i}"))
+    with open_index(tmp_path / "i.h5") as idx:
+        results, _ = rerank_index(idx, queries, top=3)
+        again, _ = rerank_index(idx, queries, top=3)
+    assert [[m["match"] for m in r] for r in results] == [[os.path.relpath(stored[i].id, tmp_path)]
+                                                          + [m["match"] for m in r][1:]
+                                                         for i, r in zip(range(0, 150, 5), results)]
+    assert results == again                                         # deterministic
+
+
+def test_rerank_parameters_and_missing_graph(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 10), 1)
+    build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1)
+    q = random_curves(rng, 1)
+    with open_index(tmp_path / "i.h5") as idx:
+        with pytest.raises(IndexFormatError, match="no neighbour graph"):
+            rerank_index(idx, q)
+        with pytest.raises(ParameterError, match="at least 100"):
+            rerank_index(idx, q, depth=50)
+        with pytest.raises(ParameterError, match="top"):
+            rerank_index(idx, q, top=101, depth=100)
+
+
+def test_diffused_similarity_shape_and_symmetry(rng):
+    curves, _ = family_curves(rng, families=3, members=5)
+    S = diffused_similarity(distance_matrix(curves))
+    assert S.shape == (15, 15) and np.allclose(S, S.T) and np.allclose(np.diag(S), 1.0)
+    assert (S <= 1 + 1e-12).all()
+    with pytest.raises(ParameterError):
+        diffused_similarity(np.zeros((2, 3)))
+
+
+# --------------------------------------------------------------------------- CLI
+
+def test_cli_build_graph_then_query_rerank(tmp_path, rng):
+    curves, _ = family_curves(rng, families=4, members=6)
+    write_parts(tmp_path / "c", curves, 2)
+    index = tmp_path / "i.h5"
+    code, out, err = run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph")
+    assert code == 0 and out == ""
+    assert "graph of 10 neighbours: 24 rows searched, 0 updated by new curves, 0 kept;" in err
+    code, out, err = run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph", "4",
+                         "--format", "json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["graph"]["k"] == 4 and summary["graph"]["searched"] == 24
+    query = tmp_path / "q.obj"
+    write_curves(query, [curves[0]])
+    code, out, err = run("query", query, "--index", index, "--rerank")
+    assert code == 1 and out == "" and "holds 4 neighbours per curve; --rerank needs at least 8" in err
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph", "8", "-q")[0] == 0
+
+    code, out, err = run("query", query, "--index", index, "--rerank", "--top", "5", "--format", "csv")
+    assert code == 0 and err == ""
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert list(rows[0]) == ["query", "rank", "match", "distance", "score"]
+    assert [r["rank"] for r in rows] == ["1", "2", "3", "4", "5"]
+    scores = [float(r["score"]) for r in rows]
+    assert scores == sorted(scores, reverse=True)
+    assert rows[0]["match"].endswith("part-00.obj#0") and float(rows[0]["distance"]) < 1e-4
+    code2, out2, _ = run("query", query, "--index", index, "--rerank", "--top", "5", "--format", "csv")
+    assert (code2, out2) == (code, out)
+
+    code, out, err = run("query", query, "--index", index, "--rerank", "--exclude-self", "--top", "3",
+                         "--format", "jsonl", "--details")
+    assert code == 0, err
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert len(rows) == 3 and {"score", "distance", "shift"} <= set(rows[0])
+
+
+def test_cli_rerank_errors(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 5), 1)
+    index = tmp_path / "i.h5"
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q")[0] == 0
+    query = tmp_path / "c" / "part-00.obj"
+    code, out, err = run("query", query, "--index", index, "--rerank")
+    assert code == 1 and out == ""
+    assert err.startswith(f"Error: {index}: the index has no neighbour graph") and "--graph" in err
+    assert "Traceback" not in err
+    for extra in (["--rerank-depth", "50"], ["--mirror"], ["--exhaustive"], ["--top", "150"]):
+        code, out, err = run("query", query, "--index", index, "--rerank", *extra)
+        assert code == 2 and out == "" and "Error" in err, extra
+    code, out, err = run("query", query, "--index", index, "--rerank-depth", "200")
+    assert code == 2 and "--rerank-depth needs --rerank" in err
+
+
+def test_cli_matrix_rerank(tmp_path, rng):
+    curves, _ = family_curves(rng, families=3, members=4)
+    write_parts(tmp_path / "c", curves, 1)
+    code, out, err = run("matrix", tmp_path / "c", "--rerank", "--format", "json")
+    assert code == 0, err
+    data = json.loads(out)
+    S = np.array(data["scores"])
+    assert "distances" not in data and S.shape == (12, 12)
+    np.testing.assert_allclose(S, S.T)
+    np.testing.assert_allclose(np.diag(S), 1.0)
+    expected = diffused_similarity(distance_matrix(_read_back(tmp_path / "c")))
+    np.testing.assert_allclose(S, expected, atol=1e-12)
+    code, out, _ = run("matrix", tmp_path / "c", "--rerank", "--order", "similar")
+    assert code == 0 and out.startswith("id,")
+
+
+def test_cli_index_info_names_the_graph(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 6), 1)
+    index = tmp_path / "i.h5"
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q")[0] == 0
+    code, out, _ = run("index", "info", "--index", index, "--format", "json")
+    assert code == 0 and json.loads(out)["graph"] == 0
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "3")[0] == 0
+    code, out, _ = run("index", "info", "--index", index)
+    assert code == 0 and "graph\t3\n" in out
+
+
+def test_cli_rerank_on_a_damaged_graph_is_a_clean_error(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 6), 1)
+    index = tmp_path / "i.h5"
+    assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "8")[0] == 0
+    with h5py.File(index, "a") as f:
+        f["graph/neighbour"][0, 0] = 99                       # a row the index does not have
+    code, out, err = run("query", tmp_path / "c" / "part-00.obj#0", "--index", index, "--rerank")
+    assert code == 1 and out == ""
+    assert err.startswith(f"Error: {index}: corrupted nfdmatch index") and "Traceback" not in err
+
+
+def test_a_damaged_old_graph_is_rebuilt_not_trusted(tmp_path, rng):
+    write_parts(tmp_path / "c", random_curves(rng, 12), 2)
+    index = tmp_path / "i.h5"
+    build_index([tmp_path / "c"], index, jobs=1, graph=4)
+    with h5py.File(index, "a") as f:
+        del f["graph/distance"]
+        f["graph"].create_dataset("distance", data=np.zeros((3, 4)))
+    write_curves(tmp_path / "c" / "part-09.obj", random_curves(rng, 2))
+    report = build_index([tmp_path / "c"], index, jobs=1)
+    assert report.graph.k == 4 and report.graph.searched == 14          # every row, none trusted
+    build_index([tmp_path / "c"], tmp_path / "fresh.h5", jobs=1, graph=4)
+    got, fresh = graph_of(index), graph_of(tmp_path / "fresh.h5")
+    np.testing.assert_array_equal(got[0], fresh[0])
+    np.testing.assert_allclose(got[1], fresh[1])
