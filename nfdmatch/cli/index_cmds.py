@@ -11,6 +11,7 @@ from .common import (deliver, error, exclude_self, exclude_self_option, format_o
                      finish, index_option, input_format_option, match_columns, matching, matching_options, note,
                      optional_descriptor_options, output_option, progress_bar, read_inputs, rows_format_option,
                      say, write_rows)
+from .cluster import open_cluster, scheduler_options
 from .group import main
 
 
@@ -38,10 +39,11 @@ def index():
               help="Seconds to wait for another build's lock (0: fail at once).")
 @optional_descriptor_options("the index's")
 @input_format_option
+@scheduler_options
 @format_option(("text", "json"), default="text",
                help_extra=": text, a summary on stderr; json, one summary object on stdout")
 def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, samples, harmonics, scale,
-                input_format, output_format):
+                input_format, scheduler, scheduler_timeout, output_format):
     """Index the curves in SOURCE... (files or folders, recursively).
 
     Incremental: unchanged files (same size and mtime, or same SHA-256) are not
@@ -59,17 +61,28 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
     Examples:
       nfdmatch index build sample_curves/library --index demo.h5
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
+      nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
     """
     from ..index import build_index
 
     started = datetime.now(timezone.utc)
+    cluster = None
+    if scheduler and not dry_run:          # a dry run only plans: nothing for workers to do
+        if jobs is not None:
+            note("--jobs is ignored with --scheduler (the cluster's workers compute the files)")
+        cluster = open_cluster(scheduler, scheduler_timeout)
     progress, finish_bar = progress_bar("indexing files")
     try:
-        report = build_index(list(sources), index_path, samples=samples, harmonics=harmonics, scale=scale,
-                             glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run,
-                             jobs=jobs, wait=wait, progress=progress)
+        options = dict(samples=samples, harmonics=harmonics, scale=scale, glob=glob_pattern,
+                       input_format=input_format, rebuild=rebuild, dry_run=dry_run, wait=wait, progress=progress)
+        if cluster is None:
+            report = build_index(list(sources), index_path, jobs=jobs, **options)
+        else:
+            report = cluster.build_index(list(sources), index_path, **options)
     finally:
         finish_bar()
+        if cluster is not None:
+            cluster.close()
     for notice in report.notices:
         note(notice, prefix="Notice: ")
     for path, message in report.failures:
@@ -249,10 +262,11 @@ def _deliver_bytes(data: bytes, output: str) -> None:
               help="Print on stderr how many exact distances the search needed.")
 @matching_options
 @input_format_option
+@scheduler_options
 @rows_format_option
 @output_option()
 def query(queries, index_path, top, max_distance, glob_pattern, details, exclude_self_, exhaustive, show_stats,
-          method, strict_direction, mirror, input_format, output_format, output):
+          method, strict_direction, mirror, input_format, scheduler, scheduler_timeout, output_format, output):
     """Find the curves of the index most similar to each curve in QUERY... .
 
     QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
@@ -268,6 +282,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
       nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
+      nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
     """
     from ..index import FORMAT_VERSION, open_index
     from ..search import search_index
@@ -278,13 +293,17 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
                  f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
                  f"{idx.path}` upgrades it")
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
         progress, finish_bar = progress_bar("searching")
         try:
-            results, stats = search_index(idx, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
-                                          progress=progress, prune=not exhaustive,
-                                          **matching(method, strict_direction, mirror))
+            run = search_index if cluster is None else cluster.search_index
+            results, stats = run(idx, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
+                                 progress=progress, prune=not exhaustive,
+                                 **matching(method, strict_direction, mirror))
         finally:
             finish_bar()
+            if cluster is not None:
+                cluster.close()
     if exclude_self_:
         results = [exclude_self(q.id, res, top) for q, res in zip(inputs.curves, results)]
     write_rows([{"query": q.id, **row} for q, res in zip(inputs.curves, results) for row in res],

@@ -111,7 +111,7 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
 
 def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
                 input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None) -> BuildReport:
+                progress=None, runner=None) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
@@ -131,6 +131,9 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
     progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
         then as files finish; total counts the files that must be read or hashed (unchanged
         files are not counted).
+    runner : what computes the files to read (None: the local pool); called as
+        ``runner(tasks, jobs, lock_fd)``, it yields ``(task_number, result of
+        pool._compute_file(*task))`` in any order (``nfdmatch.distributed`` plugs Dask in).
 
     Returns
     -------
@@ -255,7 +258,7 @@ def build_index(sources, index_path=None, *, samples=None, harmonics=None, scale
             report.seconds = time.perf_counter() - t0
             return report
 
-        _write(report, index_path, items, tasks, removed, old, params, jobs, lock, progress)
+        _write(report, index_path, items, tasks, removed, old, params, jobs, lock, progress, runner)
     finally:
         if old is not None:
             old.close()
@@ -306,7 +309,7 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
 
 
 def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress):
+           progress, runner=None):
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
     import secrets
@@ -317,7 +320,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
     total = len(tasks)
     if progress is not None:
         progress(0, total)
-    stream = _run_tasks(tasks, jobs, None if lock is None else lock.fd)
+    stream = (runner or _run_tasks)(tasks, jobs, None if lock is None else lock.fd)
     done = 0
 
     def result_of(task: int) -> dict:

@@ -90,6 +90,19 @@ class SearchTable:
         return cls(harmonics, cells.start, cells.centre, cells.radius,
                    lambda a, b: (row[a:b], F[a:b], sq[a:b], head[a:b]), read_coefficients)
 
+    def subset(self, first: int, stop: int) -> "SearchTable":
+        """The table of cells ``[first, stop)`` only (their rows keep their index row
+        numbers): a search over it answers for that part of the index, so parts searched
+        apart merge into the whole table's answer (``--scheduler``: one part per task)."""
+        C = self.n_cells
+        if not 0 <= first < stop <= C:
+            raise IndexError(f"cells [{first}, {stop}) outside 0..{C}")
+        offset = int(self.start[first])
+        read = self._read_positions
+        return SearchTable(self.harmonics, self.start[first:stop + 1] - offset, self.centre[first:stop],
+                           self.radius[first:stop], lambda a, b: read(a + offset, b + offset),
+                           self._read_coefficients)
+
     @property
     def n_cells(self) -> int:
         return len(self.start) - 1
