@@ -27,6 +27,7 @@ import numpy as np
 
 from ._version import __version__
 from .errors import NfdError, ParameterError
+from .search.bestfirst import TopK
 
 __all__ = ["ClusterError", "Cluster", "connect", "DEFAULT_TIMEOUT", "TASK_BYTES", "INSTALL_HINT"]
 
@@ -42,6 +43,9 @@ TASK_FILES = 2048
 _TASKS_PER_THREAD = 4
 #: queries per search task at most: progress granularity and the size of one task's answer
 QUERY_BLOCK = 256
+#: positions of a query's first-round window (its cells of lowest bound over the whole
+#: index): enough to hold its near neighbours, whose distances then seed every range
+WINDOW_ROWS = 2048
 #: times Dask re-runs a task that raised (a worker that died is rescheduled by the scheduler
 #: itself, up to ``distributed.scheduler.allowed-failures`` times)
 RETRIES = 2
@@ -245,7 +249,7 @@ class Cluster:
 
     def search_index(self, index, queries, *, top: int | None = 10, max_distance: float | None = None,
                      method: str = "exact", direction: str = "invariant", mirror: bool = False,
-                     prune: bool = True, progress=None, parts: int | None = None):
+                     prune: bool = True, progress=None, parts: int | None = None, window: int = None):
         """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
 
         Parameters
@@ -291,9 +295,9 @@ class Cluster:
                                           scale=idx.scale).coefficients
                 n_parts = max(1, int(parts) if parts else self.threads)
                 ranges, stats.cell_count = _ranges(idx, n_parts, prune)
-                self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress,
-                                    dict(top=top, max_distance=max_distance, method=method, direction=direction,
-                                         mirror=mirror, prune=prune))
+                self._params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
+                                    mirror=mirror, window=int(window or WINDOW_ROWS))
+                self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, self._params)
             results = _ranked(idx, tops, top)
         finally:
             if own:
@@ -302,27 +306,52 @@ class Cluster:
         return results, stats
 
     def _search_ranges(self, path, stamp, ranges, qcoef, tops, stats, progress, params) -> None:
-        from distributed import as_completed
+        """Fill ``tops`` with each query's exact top K over every range.
 
-        Q = len(qcoef)
-        blocks = [(a, min(Q, a + QUERY_BLOCK)) for a in range(0, Q, QUERY_BLOCK)]
-        # each query block crosses the network once, not once per range
-        scattered = [self.client.scatter(np.ascontiguousarray(qcoef[a:b]), broadcast=len(ranges) > 1)
-                     for a, b in blocks]
-        futures = {}
-        total, done = Q * len(ranges), 0
+        A range searched alone has its own K-th distance, far looser than the whole
+        index's when the query's neighbours lie in other ranges, and computes many exact
+        distances before its own K best are proven (generated families, 2 ranges: 5x the
+        local work). So with several ranges a first round answers each query on a window
+        of the whole index, its cells of lowest bound (:data:`WINDOW_ROWS` positions): the
+        K best found there are real rows whose distances then seed every range's search
+        (they count towards its K-th, so it prunes about as hard as one search over the
+        whole index; each range returns only its own rows). Exact: a row of the range
+        within the K-th distance of (seeds + range) is never pruned, and that K-th is never
+        below the global K-th."""
+        Q, P = len(qcoef), len(ranges)
+        seeded = P > 1 and params["top"] is not None and ranges[0][0] == "cells"
+        total, done = Q * (P + seeded), 0
         if progress is not None:
             progress(0, total)
+        everyone = np.arange(Q)
+        seeds = None
+        if seeded:
+            found = [TopK(params["top"], params["max_distance"]) for _ in range(Q)]
+            done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done)
+            seeds = [{"rows": tk.rows, "dist": tk.dist, **tk.extra} for tk in found]
+        self._round([(rng, everyone, seeds) for rng in ranges], path, stamp, qcoef, tops, stats, progress, total,
+                    done)
+
+    def _round(self, jobs, path, stamp, qcoef, tops, stats, progress, total, done) -> int:
+        """Run ``jobs`` = [(range or None for the window round, query numbers, per-query
+        seeds or None)] as tasks of at most QUERY_BLOCK queries and merge their answers
+        into ``tops``; returns the progress count."""
+        from distributed import as_completed
+
+        futures = {}
         try:
-            for p, rng in enumerate(ranges):
+            for p, (rng, qs, seeds) in enumerate(jobs):
                 # a range stays on one worker, whose cache then holds its cells for every block
-                where = [self.workers[p % len(self.workers)]] if self.workers else None
-                for bi, (a, b) in enumerate(blocks):
-                    fut = self.client.submit(_search_range, path, stamp, rng, scattered[bi], params,
-                                             retries=RETRIES, pure=False, workers=where, allow_other_workers=True)
-                    futures[fut] = (a, b)
+                where = [self.workers[p % len(self.workers)]] if self.workers and rng is not None else None
+                for a in range(0, len(qs), QUERY_BLOCK):
+                    block = qs[a:a + QUERY_BLOCK]
+                    fut = self.client.submit(_search_range, path, stamp, rng, np.ascontiguousarray(qcoef[block]),
+                                             None if seeds is None else [seeds[q] for q in block], self._params,
+                                             retries=RETRIES, pure=False, workers=where,
+                                             allow_other_workers=where is not None)
+                    futures[fut] = block
             for fut in as_completed(list(futures), loop=self.client.loop):
-                a, b = futures.pop(fut)
+                block = futures.pop(fut)
                 try:
                     answer = fut.result()
                 except NfdError:
@@ -330,17 +359,18 @@ class Cluster:
                 except Exception as exc:
                     raise ClusterError(f"a search task failed on every try: {type(exc).__name__}: "
                                        f"{_first_line(exc)}") from None
-                for qi, part in zip(range(a, b), answer["tops"]):
+                for qi, part in zip(block, answer["tops"]):
                     if len(part["rows"]):
                         tops[qi].add(part["dist"], part["rows"], part)
                 for key in ("exact", "truncated", "scanned", "cells", "bytes_read"):
                     setattr(stats, key, getattr(stats, key) + int(answer[key]))
-                done += b - a
+                done += len(block)
                 if progress is not None:
                     progress(done, total)
         finally:
             if futures:
                 self.client.cancel(list(futures))
+        return done
 
 
 # --------------------------------------------------------------------------- build tasks
@@ -428,24 +458,64 @@ def _worker_index(path: str, stamp: tuple):
     return entry
 
 
-def _search_range(path: str, stamp: tuple, rng: tuple, qcoef: np.ndarray, params: dict) -> dict:
+class _SeededTopK(TopK):
+    """A TopK holding rows found elsewhere (seeds) from the start: a row of this range that
+    is also a seed is not added twice (it would count twice towards the K-th distance)."""
+
+    def __init__(self, k, max_distance, seed: dict | None):
+        super().__init__(k, max_distance)
+        self._seen = np.zeros(0, dtype=np.int64)
+        if seed is not None and len(seed["rows"]):
+            super().add(np.asarray(seed["dist"], dtype=np.float64), np.asarray(seed["rows"], dtype=np.int64),
+                        {key: np.asarray(seed[key]) for key in self.extra})
+            self._seen = np.sort(np.asarray(seed["rows"], dtype=np.int64))
+
+    def add(self, dist, rows, result) -> None:
+        if len(self._seen):
+            new = ~_member(rows, self._seen)
+            dist, rows = dist[new], rows[new]
+            result = {key: result[key][new] for key in self.extra}
+        super().add(dist, rows, result)
+
+
+def _member(rows: np.ndarray, sorted_rows: np.ndarray) -> np.ndarray:
+    """(m,) bool: which ``rows`` are in ``sorted_rows`` (ascending)."""
+    if len(sorted_rows) == 0:
+        return np.zeros(len(rows), dtype=bool)
+    at = np.minimum(np.searchsorted(sorted_rows, rows), len(sorted_rows) - 1)
+    return sorted_rows[at] == rows
+
+
+def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params: dict) -> dict:
     """On a worker: each query's exact top K among the rows of one range of the index.
 
-    qcoef : (Q, K, 3) complex128 query descriptors. Returns ``{"tops": [per query {rows
-    (m,) int64, dist (m,) float64, shift (m,) float64, reversed (m,) bool, mirrored (m,)
-    bool}], exact, truncated, scanned, cells, bytes_read}`` (plain arrays and ints)."""
-    from .matching import exact_search, paper_search
-    from .search.bestfirst import TopK, search_one
-    from .search.bounds import feature_vector
+    rng : ``("cells", first, stop)``, ``("rows", start, stop)`` (exhaustive), or None: the
+        window round (each query over its own :data:`WINDOW_ROWS` positions of lowest cell
+        bound, for seeds).
+    qcoef : (Q, K, 3) complex128 query descriptors; seeds : None or per query a dict like
+        one entry of the answer (rows found elsewhere: they count towards the K-th distance,
+        so the search prunes as if it had seen them; only this range's rows are returned).
 
-    idx, table, subtables = _worker_index(path, stamp)
+    Returns ``{"tops": [per query {rows (m,) int64, dist (m,) float64, shift (m,) float64,
+    reversed (m,) bool, mirrored (m,) bool}], exact, truncated, scanned, cells,
+    bytes_read}`` (plain arrays and ints)."""
+    from .matching import exact_search, paper_search
+    from .search.bestfirst import search_one
+    from .search.bounds import cell_lower_bounds, feature_vector
+
+    entry = _worker_index(path, stamp)
+    idx, cache = entry[0], entry[2]
     search = exact_search if params["method"] == "exact" else paper_search
-    tops = [TopK(params["top"], params["max_distance"]) for _ in range(len(qcoef))]
+    tops = [_SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
+            for q in range(len(qcoef))]
     out = {"exact": 0, "truncated": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
-    kind, lo, hi = rng
-    if kind == "rows":
+    options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
+                   samples=idx.samples)
+    mine = None                              # this range's rows (sorted), when seeds may hold others
+    if rng is not None and rng[0] == "rows":
         from .search.index_search import EXHAUSTIVE_ROWS
 
+        kind, lo, hi = rng
         for a in range(lo, hi, EXHAUSTIVE_ROWS * 8):
             b = min(hi, a + EXHAUSTIVE_ROWS * 8)
             coefficients = idx.read_rows(a, b, ("coefficients",), upcast=False)["coefficients"]
@@ -458,24 +528,44 @@ def _search_range(path: str, stamp: tuple, rng: tuple, qcoef: np.ndarray, params
                     tk.add(r["distance"], rows[s:s + EXHAUSTIVE_ROWS], r)
         out["exact"] = (hi - lo) * len(tops)
     else:
-        if table is None:
-            table = _OPEN[(path, stamp)][1] = idx.search_table()
-        sub = subtables.get((lo, hi))
-        if sub is None:
-            sub = subtables[(lo, hi)] = table.subset(lo, hi)
-        before = sub.bytes_read
+        if entry[1] is None:
+            entry[1] = idx.search_table()
+        table = entry[1]
         qfeat = feature_vector(qcoef)
-        for qi, tk in enumerate(tops):
-            work = search_one(qcoef[qi], qfeat[qi], sub, tk, search=search, method=params["method"],
-                              direction=params["direction"], mirror=params["mirror"], samples=idx.samples)
-            for key in ("exact", "truncated", "scanned", "cells"):
-                out[key] += getattr(work, key)
-        out["bytes_read"] = sub.bytes_read - before
-    out["tops"] = [{"rows": tk.rows.astype(np.int64), "dist": np.asarray(tk.dist, dtype=np.float64),
-                    "shift": np.asarray(tk.extra["shift"], dtype=np.float64),
-                    "reversed": np.asarray(tk.extra["reversed"], dtype=bool),
-                    "mirrored": np.asarray(tk.extra["mirrored"], dtype=bool)} for tk in tops]
+        if rng is None:                      # the window round
+            sizes = table.start[1:] - table.start[:-1]
+            for qi, tk in enumerate(tops):
+                order = np.argsort(cell_lower_bounds(qfeat[qi], table.split, table.centre, table.radius),
+                                   kind="stable")
+                n = int(np.searchsorted(np.cumsum(sizes[order]), params["window"])) + 1
+                sub = table.subset(np.sort(order[:n]))
+                _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
+                out["bytes_read"] += sub.bytes_read
+        else:
+            _, lo, hi = rng
+            key = ("range", lo, hi)
+            if key not in cache:
+                a, b = int(table.start[lo]), int(table.start[hi])
+                rows = idx._read(lambda: np.asarray(idx._h5["search"]["row"][a:b], dtype=np.int64))
+                cache[key] = (table.subset((lo, hi)), np.sort(rows))
+            sub, mine = cache[key]
+            before = sub.bytes_read
+            for qi, tk in enumerate(tops):
+                _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
+            out["bytes_read"] = sub.bytes_read - before
+    out["tops"] = []
+    for tk in tops:
+        keep = np.ones(len(tk.rows), dtype=bool) if mine is None or seeds is None else _member(tk.rows, mine)
+        out["tops"].append({"rows": tk.rows[keep].astype(np.int64), "dist": np.asarray(tk.dist[keep], np.float64),
+                            "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
+                            "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
+                            "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool)})
     return out
+
+
+def _account(out: dict, work) -> None:
+    for key in ("exact", "truncated", "scanned", "cells"):
+        out[key] += getattr(work, key)
 
 
 def _ranked(idx, tops, top) -> list[list[dict]]:
