@@ -230,7 +230,8 @@ class Cluster:
         futures = {}
         try:
             for batch in batches:
-                fut = self.client.submit(_compute_batch, [tasks[i] for i in batch], retries=RETRIES, pure=False)
+                fut = self.client.submit(_compute_batch, [tasks[i] for i in batch], os.getcwd(), retries=RETRIES,
+                                        pure=False)
                 futures[fut] = batch
             for fut in as_completed(list(futures), loop=self.client.loop):
                 batch = futures.pop(fut)
@@ -403,13 +404,34 @@ def _failed(path: str, message: str) -> dict:
     return {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed", "error": f"{path}: {message}"}
 
 
-def _compute_batch(tasks: list[tuple]) -> list[dict]:
+def _compute_batch(tasks: list[tuple], cwd: str) -> list[dict]:
     """On a worker: :func:`nfdmatch.index.pool._compute_file` of each task (it never raises
-    for a bad file). Returns dicts of builtins and numpy arrays only."""
+    for a bad file). Returns dicts of builtins and numpy arrays only.
+
+    A relative path is the client's (its working folder ``cwd``, which the worker need not
+    share): the file is read by its absolute name and the result speaks of the path as
+    given, so ids and messages are those of a local build."""
+    from .errors import escape_name
     from .index import pool
 
-    # looked up on the module at each call, not bound at import
-    return [pool._compute_file(*t) for t in tasks]
+    out = []
+    for path, *rest in tasks:
+        full = path if os.path.isabs(path) else os.path.join(cwd, path)
+        # looked up on the module at each call, not bound at import
+        res = pool._compute_file(full, *rest)
+        if full != path:
+            res["path"] = path
+            names = [(escape_name(full), escape_name(path)), (full, path)]      # ids and messages escape
+            res["ids"] = [next((new + i[len(old):] for old, new in names if i.startswith(old)), i)
+                          for i in res.get("ids", ())] if "ids" in res else None
+            if res["ids"] is None:
+                del res["ids"]
+            for old, new in names:
+                if old in res["error"]:
+                    res["error"] = res["error"].replace(old, new, 1)
+                    break
+        out.append(res)
+    return out
 
 
 # --------------------------------------------------------------------------- search tasks

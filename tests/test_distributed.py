@@ -132,6 +132,24 @@ def test_a_cluster_build_writes_the_index_a_local_build_writes(cluster, library,
     _assert_same_file(local, remote)
 
 
+def test_relative_sources_are_the_clients_whatever_the_workers_folder(cluster, library, tmp_path, monkeypatch):
+    import shutil
+
+    folder, _ = library
+    (tmp_path / "rel").mkdir()
+    for name in ("part-00.obj", "part-01.obj", "single-0.csv", "broken.csv"):
+        shutil.copy(folder / name, tmp_path / "rel" / name)
+    monkeypatch.chdir(tmp_path)              # the workers stay in the folder they started in
+    assert cluster.client.run(os.getcwd).popitem()[1] != str(tmp_path)
+    rl = build_index(["rel"], "local.h5", jobs=1)
+    rr = cluster.build_index(["rel"], "remote.h5")
+    assert (rr.added, rr.failed, rr.curves) == (rl.added, rl.failed, rl.curves) == (3, 1, 41)
+    assert rr.failures == rl.failures == [("rel/broken.csv", "rel/broken.csv: line 3: not a number: 'oops'")]
+    _assert_same_file(tmp_path / "local.h5", tmp_path / "remote.h5")
+    with open_index("remote.h5") as idx:
+        assert idx.ids(0, 1) == ["rel/part-00.obj#0"]
+
+
 def test_cli_build_on_the_scheduler_names_a_bad_file_and_exits_3(client, library, tmp_path):
     folder, _ = library
     index = tmp_path / "i.h5"
