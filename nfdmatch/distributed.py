@@ -250,7 +250,8 @@ class Cluster:
 
     def search_index(self, index, queries, *, top: int | None = 10, max_distance: float | None = None,
                      method: str = "exact", direction: str = "invariant", mirror: bool = False,
-                     prune: bool = True, progress=None, parts: int | None = None, window: int = None):
+                     prune: bool = True, progress=None, parts: int | None = None,
+                     window: int | None = None):
         """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
 
         Parameters
@@ -259,7 +260,8 @@ class Cluster:
             what the workers open: a path every worker sees).
         queries, top, max_distance, method, direction, mirror, prune : as in
             :func:`~nfdmatch.search.search_index`.
-        progress : ``progress(done, total)`` in units of (query, range) pairs answered.
+        progress : ``progress(done, total)`` in units of (query, range) pairs answered
+            (with several ranges, the first round counts as one more range).
         parts : index ranges (default: one per worker thread). Pruned search splits by
             ranges of search cells (format 2; a format-1 index is one range), exhaustive
             search by row ranges.
@@ -296,9 +298,9 @@ class Cluster:
                                           scale=idx.scale).coefficients
                 n_parts = max(1, int(parts) if parts else self.threads)
                 ranges, stats.cell_count = _ranges(idx, n_parts, prune)
-                self._params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
-                                    mirror=mirror, window=int(window or WINDOW_ROWS))
-                self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, self._params)
+                params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
+                              mirror=mirror, window=int(window or WINDOW_ROWS))
+                self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
             results = _ranked(idx, tops, top)
         finally:
             if own:
@@ -311,8 +313,8 @@ class Cluster:
 
         A range searched alone has its own K-th distance, far looser than the whole
         index's when the query's neighbours lie in other ranges, and computes many exact
-        distances before its own K best are proven (generated families, 2 ranges: 5x the
-        local work). So with several ranges a first round answers each query on a window
+        distances before its own K best are proven (generated families, 2 ranges: 15x the
+        exact distances of a local search). So with several ranges a first round answers each query on a window
         of the whole index, its cells of lowest bound (:data:`WINDOW_ROWS` positions): the
         K best found there are real rows whose distances then seed every range's search
         (they count towards its K-th, so it prunes about as hard as one search over the
@@ -328,12 +330,13 @@ class Cluster:
         seeds = None
         if seeded:
             found = [TopK(params["top"], params["max_distance"]) for _ in range(Q)]
-            done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done)
+            done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done,
+                               params)
             seeds = [{"rows": tk.rows, "dist": tk.dist, **tk.extra} for tk in found]
         self._round([(rng, everyone, seeds) for rng in ranges], path, stamp, qcoef, tops, stats, progress, total,
-                    done)
+                    done, params)
 
-    def _round(self, jobs, path, stamp, qcoef, tops, stats, progress, total, done) -> int:
+    def _round(self, jobs, path, stamp, qcoef, tops, stats, progress, total, done, params) -> int:
         """Run ``jobs`` = [(range or None for the window round, query numbers, per-query
         seeds or None)] as tasks of at most QUERY_BLOCK queries and merge their answers
         into ``tops``; returns the progress count."""
@@ -347,7 +350,7 @@ class Cluster:
                 for a in range(0, len(qs), QUERY_BLOCK):
                     block = qs[a:a + QUERY_BLOCK]
                     fut = self.client.submit(_search_range, path, stamp, rng, np.ascontiguousarray(qcoef[block]),
-                                             None if seeds is None else [seeds[q] for q in block], self._params,
+                                             None if seeds is None else [seeds[q] for q in block], params,
                                              retries=RETRIES, pure=False, workers=where,
                                              allow_other_workers=where is not None)
                     futures[fut] = block
