@@ -142,8 +142,10 @@ def test_relative_sources_are_the_clients_whatever_the_workers_folder(cluster, l
     monkeypatch.chdir(tmp_path)              # the workers stay in the folder they started in
     assert cluster.client.run(os.getcwd).popitem()[1] != str(tmp_path)
     rl = build_index(["rel"], "local.h5", jobs=1)
-    rr = cluster.build_index(["rel"], "remote.h5")
+    calls = []
+    rr = cluster.build_index(["rel"], "remote.h5", progress=lambda done, total: calls.append((done, total)))
     assert (rr.added, rr.failed, rr.curves) == (rl.added, rl.failed, rl.curves) == (3, 1, 41)
+    assert calls[0] == (0, 4) and calls[-1] == (4, 4) and [d for d, _ in calls] == sorted(d for d, _ in calls)
     assert rr.failures == rl.failures == [("rel/broken.csv", "rel/broken.csv: line 3: not a number: 'oops'")]
     _assert_same_file(tmp_path / "local.h5", tmp_path / "remote.h5")
     with open_index("remote.h5") as idx:
@@ -220,7 +222,10 @@ def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_
         exhaustive, _ = search_index(idx, queries, prune=False, **options)
         # small windows: the first round's seeds are not yet the answer, the ranges must find it
         for parts, window in ((None, None), (2, 1), (3, 40), (7, 100)):
-            remote, stats = cluster.search_index(idx, queries, parts=parts, window=window, **options)
+            calls = []
+            remote, stats = cluster.search_index(idx, queries, parts=parts, window=window,
+                                                 progress=lambda done, total: calls.append((done, total)), **options)
+            assert calls[0][0] == 0 and calls[-1][0] == calls[-1][1] >= len(queries)
             _same_rows(remote, local)
             assert stats.queries == len(queries) and stats.rows == 603 and stats.cell_count == local_stats.cell_count
             assert 0 < stats.exact <= len(queries) * 603
