@@ -333,6 +333,9 @@ class Cluster:
             done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done,
                                params)
             seeds = [{"rows": tk.rows, "dist": tk.dist, **tk.extra} for tk in found]
+            for tk, seed in zip(tops, seeds):
+                if len(seed["rows"]):
+                    tk.add(seed["dist"], seed["rows"], seed)
         self._round([(rng, everyone, seeds) for rng in ranges], path, stamp, qcoef, tops, stats, progress, total,
                     done, params)
 
@@ -526,7 +529,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     bytes_read}`` (plain arrays and ints)."""
     from .matching import exact_search, paper_search
     from .search.bestfirst import search_one
-    from .search.bounds import cell_lower_bounds, feature_vector
+    from .search.bounds import feature_vector
 
     entry = _worker_index(path, stamp)
     idx, cache = entry[0], entry[2]
@@ -536,7 +539,6 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     out = {"exact": 0, "truncated": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
     options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
                    samples=idx.samples)
-    mine = None                              # this range's rows (sorted), when seeds may hold others
     if rng is not None and rng[0] == "rows":
         from .search.index_search import EXHAUSTIVE_ROWS
 
@@ -558,34 +560,51 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
         table = entry[1]
         qfeat = feature_vector(qcoef)
         if rng is None:                      # the window round
-            sizes = table.start[1:] - table.start[:-1]
             for qi, tk in enumerate(tops):
-                order = np.argsort(cell_lower_bounds(qfeat[qi], table.split, table.centre, table.radius),
-                                   kind="stable")
-                n = int(np.searchsorted(np.cumsum(sizes[order]), params["window"])) + 1
-                sub = table.subset(np.sort(order[:n]))
+                sub = table.subset(_window(table, qfeat[qi], params["window"]))
                 _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
                 out["bytes_read"] += sub.bytes_read
         else:
             _, lo, hi = rng
             key = ("range", lo, hi)
             if key not in cache:
-                a, b = int(table.start[lo]), int(table.start[hi])
-                rows = idx._read(lambda: np.asarray(idx._h5["search"]["row"][a:b], dtype=np.int64))
-                cache[key] = (table.subset((lo, hi)), np.sort(rows))
-            sub, mine = cache[key]
+                cache[key] = table.subset((lo, hi))
+            sub = cache[key]
             before = sub.bytes_read
             for qi, tk in enumerate(tops):
-                _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
+                part = sub
+                if seeds is not None:
+                    # the window's cells were searched in the first round: their rows within
+                    # the K-th are all among the seeds already
+                    window = _window(table, qfeat[qi], params["window"])
+                    inside = window[(window >= lo) & (window < hi)]
+                    if len(inside):
+                        rest = np.setdiff1d(np.arange(lo, hi), inside) - lo
+                        if len(rest) == 0:
+                            continue
+                        part = sub.subset(rest)
+                _account(out, search_one(qcoef[qi], qfeat[qi], part, tk, **options))
             out["bytes_read"] = sub.bytes_read - before
     out["tops"] = []
-    for tk in tops:
-        keep = np.ones(len(tk.rows), dtype=bool) if mine is None or seeds is None else _member(tk.rows, mine)
+    for q, tk in enumerate(tops):
+        keep = np.ones(len(tk.rows), dtype=bool) if seeds is None else \
+            ~_member(tk.rows, np.sort(np.asarray(seeds[q]["rows"], dtype=np.int64)))
         out["tops"].append({"rows": tk.rows[keep].astype(np.int64), "dist": np.asarray(tk.dist[keep], np.float64),
                             "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
                             "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
                             "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool)})
     return out
+
+
+def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:
+    """Ascending numbers of the cells of lowest bound for the query holding at least
+    ``positions`` rows (or every cell): the first round's window, the same on every worker."""
+    from .search.bounds import cell_lower_bounds
+
+    sizes = table.start[1:] - table.start[:-1]
+    order = np.argsort(cell_lower_bounds(query_features, table.split, table.centre, table.radius), kind="stable")
+    n = int(np.searchsorted(np.cumsum(sizes[order]), positions)) + 1
+    return np.sort(order[:n])
 
 
 def _account(out: dict, work) -> None:
