@@ -109,13 +109,15 @@ def main():
             rows.append((f"build {report.curves} curves, Dask {n} workers", f"{dt:.2f} s",
                          f"{report.curves / dt:,.0f} curves/s", f"{dt / local_build[n]:.2f}"))
             cluster.search_index(reference, qcurves[:20], top=10)     # each worker opens the index once
-            t0 = time.perf_counter()
-            results, stats = cluster.search_index(reference, qcurves, top=10)
-            dt = time.perf_counter() - t0
-            same = all([r["match"] for r in a] == [r["match"] for r in b] for a, b in zip(results, local_results))
-            rows.append((f"query {len(qcurves)} x {stats.rows} curves, top 10, Dask {n} workers",
-                         f"{dt:.2f} s", f"{dt / len(qcurves) * 1e3:.2f} ms/query",
-                         f"{dt / local_query[n]:.2f}" + ("" if same else " (RESULTS DIFFER)")))
+            for parts in sorted({1, n}):
+                t0 = time.perf_counter()
+                results, stats = cluster.search_index(reference, qcurves, top=10, parts=parts)
+                dt = time.perf_counter() - t0
+                same = all([r["match"] for r in a] == [r["match"] for r in b] for a, b in zip(results, local_results))
+                how = "whole index per worker" if parts == 1 else f"{parts} ranges"
+                rows.append((f"query {len(qcurves)} x {stats.rows} curves, top 10, Dask {n} workers, {how}",
+                             f"{dt:.2f} s", f"{dt / len(qcurves) * 1e3:.2f} ms/query",
+                             f"{dt / local_query[n]:.2f}" + ("" if same else " (RESULTS DIFFER)")))
     width = max(len(r[0]) for r in rows)
     print(f"| {'measure'.ljust(width)} | time | rate | Dask / local |\n|{'-' * (width + 2)}|---:|---:|---:|")
     for r in rows:

@@ -46,6 +46,12 @@ QUERY_BLOCK = 256
 #: positions of a query's first-round window (its cells of lowest bound over the whole
 #: index): enough to hold its near neighbours, whose distances then seed every range
 WINDOW_ROWS = 2048
+#: a search table (features, norms, first harmonics, row numbers of every row) up to this
+#: size is searched whole by each worker; a bigger one is split in ranges, one per thread
+RANGE_BYTES = 2 << 30
+#: bytes per index row of a search table held in memory, at K = 16 (35 float32 features,
+#: 2 float64 norms, 4 x 3 complex64 harmonics, an int64 row)
+_TABLE_ROW_BYTES = 260
 #: times Dask re-runs a task that raised (a worker that died is rescheduled by the scheduler
 #: itself, up to ``distributed.scheduler.allowed-failures`` times)
 RETRIES = 2
@@ -262,9 +268,12 @@ class Cluster:
             :func:`~nfdmatch.search.search_index`.
         progress : ``progress(done, total)`` in units of (query, range) pairs answered
             (with several ranges, the first round counts as one more range).
-        parts : index ranges (default: one per worker thread). Pruned search splits by
-            ranges of search cells (format 2; a format-1 index is one range), exhaustive
-            search by row ranges.
+        parts : index ranges. Default: 1 (every worker searches the whole index for its
+            blocks of queries: the least work) while the index's search table is at most
+            :data:`RANGE_BYTES` (what a worker may end up caching), else one per worker
+            thread (each worker reads and caches only its range; the ranges cost more
+            work, see :meth:`_search_ranges`). Pruned search splits by ranges of search
+            cells (format 2; a format-1 index is one range), exhaustive search by rows.
 
         Returns
         -------
@@ -296,7 +305,10 @@ class Cluster:
             if idx.n_curves and len(queries):
                 qcoef = descriptors_batch(queries, samples=idx.samples, harmonics=idx.harmonics,
                                           scale=idx.scale).coefficients
-                n_parts = max(1, int(parts) if parts else self.threads)
+                if parts:
+                    n_parts = int(parts)
+                else:
+                    n_parts = 1 if idx.n_curves * _TABLE_ROW_BYTES <= RANGE_BYTES else self.threads
                 ranges, stats.cell_count = _ranges(idx, n_parts, prune)
                 params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
                               mirror=mirror, window=int(window or WINDOW_ROWS))
@@ -314,13 +326,14 @@ class Cluster:
         A range searched alone has its own K-th distance, far looser than the whole
         index's when the query's neighbours lie in other ranges, and computes many exact
         distances before its own K best are proven (generated families, 2 ranges: 15x the
-        exact distances of a local search). So with several ranges a first round answers each query on a window
-        of the whole index, its cells of lowest bound (:data:`WINDOW_ROWS` positions): the
-        K best found there are real rows whose distances then seed every range's search
-        (they count towards its K-th, so it prunes about as hard as one search over the
-        whole index; each range returns only its own rows). Exact: a row of the range
-        within the K-th distance of (seeds + range) is never pruned, and that K-th is never
-        below the global K-th."""
+        exact distances of a local search). So with several ranges a first round answers
+        each query on a window of the whole index, its cells of lowest bound
+        (``params["window"]`` positions); those rows join the answer, and their distances
+        seed every range's search of its other cells (they count towards its K-th, so it
+        prunes about as hard as one search over the whole index; each range returns only
+        its own rows). Exact: the window's rows within the final K-th are all in the
+        window's answer, and a range never prunes a row below the K-th distance of (seeds +
+        range), which is never below the global K-th."""
         Q, P = len(qcoef), len(ranges)
         seeded = P > 1 and params["top"] is not None and ranges[0][0] == "cells"
         total, done = Q * (P + seeded), 0
@@ -346,12 +359,14 @@ class Cluster:
         from distributed import as_completed
 
         futures = {}
+        # one job (the whole index, or the window round): blocks spread over every thread
+        size = QUERY_BLOCK if len(jobs) > 1 else max(1, min(QUERY_BLOCK, -(-len(qcoef) // (4 * self.threads))))
         try:
             for p, (rng, qs, seeds) in enumerate(jobs):
                 # a range stays on one worker, whose cache then holds its cells for every block
-                where = [self.workers[p % len(self.workers)]] if self.workers and rng is not None else None
-                for a in range(0, len(qs), QUERY_BLOCK):
-                    block = qs[a:a + QUERY_BLOCK]
+                where = [self.workers[p % len(self.workers)]] if self.workers and len(jobs) > 1 else None
+                for a in range(0, len(qs), size):
+                    block = qs[a:a + size]
                     fut = self.client.submit(_search_range, path, stamp, rng, np.ascontiguousarray(qcoef[block]),
                                              None if seeds is None else [seeds[q] for q in block], params,
                                              retries=RETRIES, pure=False, workers=where,

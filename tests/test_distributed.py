@@ -221,7 +221,7 @@ def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_
         local, local_stats = search_index(idx, queries, **options)
         exhaustive, _ = search_index(idx, queries, prune=False, **options)
         # small windows: the first round's seeds are not yet the answer, the ranges must find it
-        for parts, window in ((None, None), (2, 1), (3, 40), (7, 100)):
+        for parts, window in ((None, None), (2, None), (2, 1), (3, 40), (7, 100)):
             calls = []
             remote, stats = cluster.search_index(idx, queries, parts=parts, window=window,
                                                  progress=lambda done, total: calls.append((done, total)), **options)
@@ -249,6 +249,19 @@ def test_cli_query_on_the_scheduler_prints_what_a_local_query_prints(client, lib
     assert f"{len(queries)} queries x 603 rows" in err and "Traceback" not in err
     code, remote, err = run(*args, "--exhaustive", env={"NFDMATCH_SCHEDULER": client.scheduler.address})
     assert code == 0 and remote == local
+    code, remote, err = run(*args, "--ranges", "3", "--scheduler", client.scheduler.address)
+    assert code == 0 and _csv_rows(remote) == _csv_rows(local)
+    code, out, err = run(*args, "--ranges", "3")
+    assert code == 2 and out == "" and "--ranges needs --scheduler" in err
+
+
+def _csv_rows(text):
+    """CSV rows with distances rounded to 1e-12 (the search's numerical optimum)."""
+    import csv
+    import io
+
+    return [{k: (f"{float(v):.12f}" if k in ("distance", "shift") else v) for k, v in r.items()}
+            for r in csv.DictReader(io.StringIO(text))]
 
 
 def _other_version():

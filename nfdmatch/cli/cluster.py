@@ -36,3 +36,11 @@ def open_cluster(scheduler: str, timeout: float):
     cluster = connect(scheduler, timeout)
     detail(f"connected to {cluster.address}: {len(cluster.workers)} workers, {cluster.threads} threads")
     return cluster
+
+
+def ranges_option(f):
+    """``--ranges N`` of ``query``: how the cluster splits the index."""
+    return click.option("--ranges", type=click.IntRange(min=1), default=None, metavar="N",
+                        help="With --scheduler: split the index into N row ranges, each searched by one "
+                             "worker for every query [default: 1 (each worker searches the whole index for "
+                             "its share of the queries) up to ~8M curves, else one per worker thread].")(f)

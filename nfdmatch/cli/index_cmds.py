@@ -11,7 +11,7 @@ from .common import (deliver, error, exclude_self, exclude_self_option, format_o
                      finish, index_option, input_format_option, match_columns, matching, matching_options, note,
                      optional_descriptor_options, output_option, progress_bar, read_inputs, rows_format_option,
                      say, write_rows)
-from .cluster import open_cluster, scheduler_options
+from .cluster import open_cluster, ranges_option, scheduler_options
 from .group import main
 
 
@@ -263,10 +263,11 @@ def _deliver_bytes(data: bytes, output: str) -> None:
 @matching_options
 @input_format_option
 @scheduler_options
+@ranges_option
 @rows_format_option
 @output_option()
 def query(queries, index_path, top, max_distance, glob_pattern, details, exclude_self_, exhaustive, show_stats,
-          method, strict_direction, mirror, input_format, scheduler, scheduler_timeout, output_format, output):
+          method, strict_direction, mirror, input_format, scheduler, scheduler_timeout, ranges, output_format, output):
     """Find the curves of the index most similar to each curve in QUERY... .
 
     QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
@@ -293,12 +294,15 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
                  f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
                  f"{idx.path}` upgrades it")
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
+        if ranges is not None and not scheduler:
+            raise click.UsageError("--ranges needs --scheduler")
         cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
         progress, finish_bar = progress_bar("searching")
         try:
+            extra = {} if cluster is None else {"parts": ranges}
             run = search_index if cluster is None else cluster.search_index
             results, stats = run(idx, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
-                                 progress=progress, prune=not exhaustive,
+                                 progress=progress, prune=not exhaustive, **extra,
                                  **matching(method, strict_direction, mirror))
         finally:
             finish_bar()
