@@ -1,3 +1,5 @@
 from .cli import main
 
-main()
+# guarded: worker processes started by spawn (a Dask LocalCluster) re-import the main module
+if __name__ == "__main__":
+    main()

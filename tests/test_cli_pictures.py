@@ -221,7 +221,7 @@ def test_picture_commands_do_not_import_renderers_at_startup():
     import sys
 
     code = ("import sys, nfdmatch.cli; "
-            "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk', 'numba', 'h5py') "
+            "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk', 'numba', 'h5py', 'dask', 'distributed') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

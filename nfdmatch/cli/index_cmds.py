@@ -12,6 +12,7 @@ from .common import (EXIT_ERROR, deliver, error, exclude_self, exclude_self_opti
                      finish, index_option, input_format_option, match_columns, matching, matching_options, note,
                      optional_descriptor_options, output_option, progress_bar, read_inputs, rows_format_option,
                      say, write_rows)
+from .cluster import open_cluster, ranges_option, scheduler_options
 from .group import main
 
 
@@ -51,10 +52,11 @@ def index():
                    "[default: keep the index's graph, if it has one].")
 @optional_descriptor_options("the index's")
 @input_format_option
+@scheduler_options
 @format_option(("text", "json"), default="text",
                help_extra=": text, a summary on stderr; json, one summary object on stdout")
 def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait, allow_shrink, file_timeout,
-                graph_k, samples, harmonics, scale, input_format, output_format):
+                graph_k, samples, harmonics, scale, input_format, scheduler, scheduler_timeout, output_format):
     """Index the curves in SOURCE... (files or folders, recursively).
 
     Without SOURCE, the sources (and --glob) of the index's last build are re-scanned:
@@ -89,17 +91,26 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
       nfdmatch index build --index demo.h5          # again, from its recorded sources
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
       nfdmatch index build library/ --index library.h5 --graph
+      nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
     """
     from ..errors import ShrinkRefusedError
     from ..index import build_index
 
     started = datetime.now(timezone.utc)
+    cluster = None
+    if scheduler and not dry_run:          # a dry run only plans: nothing for workers to do
+        if jobs is not None:
+            note("--jobs is ignored with --scheduler (the cluster's workers compute the files)")
+        cluster = open_cluster(scheduler, scheduler_timeout)
     progress, finish_bar = progress_bar("indexing files")
     try:
-        report = build_index(list(sources), index_path, samples=samples, harmonics=harmonics, scale=scale,
-                             glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run,
-                             jobs=jobs, wait=wait, progress=progress, allow_shrink=allow_shrink,
-                             file_timeout=file_timeout or None, graph=graph_k)
+        options = dict(samples=samples, harmonics=harmonics, scale=scale, glob=glob_pattern,
+                       input_format=input_format, rebuild=rebuild, dry_run=dry_run, wait=wait, progress=progress,
+                       allow_shrink=allow_shrink, graph=graph_k)
+        if cluster is None:
+            report = build_index(list(sources), index_path, jobs=jobs, file_timeout=file_timeout or None, **options)
+        else:
+            report = cluster.build_index(list(sources), index_path, **options)
     except ShrinkRefusedError as exc:
         if output_format == "json":             # cron logs the summary: it says what was refused
             deliver(json.dumps({"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
@@ -109,6 +120,8 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
         raise
     finally:
         finish_bar()
+        if cluster is not None:
+            cluster.close()
     for notice in report.notices:
         note(notice, prefix="Notice: ")
     for path, message in report.skipped + report.failures:
@@ -358,10 +371,13 @@ def _deliver_bytes(data: bytes, output: str) -> None:
               help="With --rerank: the query's exact top M that the diffusion re-orders.")
 @matching_options
 @input_format_option
+@scheduler_options
+@ranges_option
 @rows_format_option
 @output_option()
 def query(queries, index_path, top, max_distance, glob_pattern, details, exclude_self_, exhaustive, show_stats,
-          rerank, rerank_depth, method, strict_direction, mirror, input_format, output_format, output):
+          rerank, rerank_depth, method, strict_direction, mirror, input_format, scheduler, scheduler_timeout, ranges,
+          output_format, output):
     """Find the curves of the index most similar to each curve in QUERY... .
 
     QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
@@ -382,6 +398,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
       nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
+      nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
     """
     from ..index import FORMAT_VERSION, open_index
     from ..search import search_index
@@ -395,6 +412,8 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
                                        f"direction-invariant distances without mirror images")
         if top > rerank_depth:
             raise click.UsageError(f"--top {top} is more than --rerank-depth {rerank_depth}")
+        if scheduler:
+            raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
     elif rerank_depth != 100:
         raise click.UsageError("--rerank-depth needs --rerank")
 
@@ -404,6 +423,9 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
                  f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
                  f"{idx.path}` upgrades it")
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
+        if ranges is not None and not scheduler:
+            raise click.UsageError("--ranges needs --scheduler")
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
         progress, finish_bar = progress_bar("searching")
         try:
             if rerank:
@@ -416,11 +438,15 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
                 results, stats = rerank_index(idx, inputs.curves, top=top, depth=rerank_depth, progress=progress,
                                               exclude=is_self if exclude_self_ else None)
             else:
-                results, stats = search_index(idx, inputs.curves, top=top + exclude_self_,
-                                              max_distance=max_distance, progress=progress, prune=not exhaustive,
-                                              **matching(method, strict_direction, mirror))
+                extra = {} if cluster is None else {"parts": ranges}
+                run = search_index if cluster is None else cluster.search_index
+                results, stats = run(idx, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
+                                     progress=progress, prune=not exhaustive, **extra,
+                                     **matching(method, strict_direction, mirror))
         finally:
             finish_bar()
+            if cluster is not None:
+                cluster.close()
         if exclude_self_ and not rerank:
             results = [exclude_self(q.id, res, top, idx.locate) for q, res in zip(inputs.curves, results)]
     columns = match_columns(details)

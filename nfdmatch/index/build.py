@@ -129,7 +129,7 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
 
 def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
                 input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None, allow_shrink=False, file_timeout=None, graph=None) -> BuildReport:
+                progress=None, allow_shrink=False, file_timeout=None, graph=None, runner=None) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
@@ -167,6 +167,9 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
         Independently of it, a worker process that dies (a reader's crash, the OOM killer)
         is replaced and its files read again; a file that kills a worker twice fails alone,
         and deaths that no file explains stop the build (``WorkerError``, nothing written).
+    runner : what computes the files to read (None: the local pool); called as
+        ``runner(tasks, jobs, lock_fd)``, it yields ``(task_number, result of
+        pool._compute_file(*task))`` in any order (``nfdmatch.distributed`` plugs Dask in).
 
     Returns
     -------
@@ -353,7 +356,7 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
 
         _write(report, real_index, items, tasks, removed, old, params, jobs, lock, progress,
                file_timeout, sources=new_sources, name=index_path, graph=graph,
-               recompute_all=recompute_all)
+               recompute_all=recompute_all, runner=runner)
     finally:
         if old is not None:
             old.close()
@@ -438,7 +441,8 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
 
 
 def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress, file_timeout=None, *, sources=((), None), name=None, graph=None, recompute_all=True):
+           progress, file_timeout=None, *, sources=((), None), name=None, graph=None, recompute_all=True,
+           runner=None):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
     it (messages)."""
@@ -453,7 +457,8 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
     total = len(tasks)
     if progress is not None:
         progress(0, total)
-    stream = _run_tasks(tasks, jobs, None if lock is None else lock.fd, file_timeout or None)
+    lock_fd = None if lock is None else lock.fd
+    stream = _run_tasks(tasks, jobs, lock_fd, file_timeout or None) if runner is None else runner(tasks, jobs, lock_fd)
     done = 0
 
     def result_of(task: int) -> dict:

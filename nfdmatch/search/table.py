@@ -93,6 +93,37 @@ class SearchTable:
         return cls(harmonics, cells.start, cells.centre, cells.radius,
                    lambda a, b: (row[a:b], F[a:b], sq[a:b], coefficients[a:b]), read_coefficients)
 
+    def subset(self, cells) -> "SearchTable":
+        """The table of the given cells only (ascending cell numbers, or a ``(first, stop)``
+        range); their rows keep their index row numbers. A search over it answers for that
+        part of the index, so parts searched apart merge into the whole table's answer
+        (``--scheduler``: a range of cells per task). A range reads its positions directly;
+        scattered cells read through this table (its coalesced reads and cache)."""
+        C = self.n_cells
+        if isinstance(cells, tuple):
+            first, stop = cells
+            if not 0 <= first < stop <= C:
+                raise IndexError(f"cells [{first}, {stop}) outside 0..{C}")
+            offset = int(self.start[first])
+            read = self._read_positions
+            return SearchTable(self.harmonics, self.start[first:stop + 1] - offset, self.centre[first:stop],
+                               self.radius[first:stop], lambda a, b: read(a + offset, b + offset),
+                               self._read_coefficients)
+        cells = np.asarray(cells, dtype=np.int64)
+        if len(cells) == 0 or cells.min() < 0 or cells.max() >= C or (np.diff(cells) <= 0).any():
+            raise IndexError(f"cells must be ascending numbers in 0..{C - 1}")
+        start = np.concatenate([[0], np.cumsum(self.start[cells + 1] - self.start[cells])])
+
+        def read_cells(a: int, b: int):
+            # the sub-table reads whole cells (runs of them, or everything): map to ours
+            i, j = int(np.searchsorted(start, a, side="right")) - 1, int(np.searchsorted(start, b, side="left"))
+            got = self.cell_rows(cells[i:j])
+            lo = a - int(start[i])
+            return tuple(x[lo:lo + (b - a)] for x in got)
+
+        return SearchTable(self.harmonics, start, self.centre[cells], self.radius[cells], read_cells,
+                           self._read_coefficients)
+
     @property
     def n_cells(self) -> int:
         return len(self.start) - 1

@@ -1,0 +1,668 @@
+"""Building and querying on a Dask cluster (``--scheduler``; docs/distributed.md).
+
+The client keeps everything that decides the result: the build plan (stat, hash), the
+writing of the index (temp file, atomic replace, lock), the merge of a query's per-range
+top K. The workers only do the bulk work on files and index ranges they read from a path
+every machine sees, and return plain numpy arrays, lists and dicts of builtins (never
+pickled nfdmatch objects), so that what crosses the network does not depend on the
+classes of either side -- only on the nfdmatch and index format versions, which
+:func:`connect` checks.
+
+Dask (``dask`` and ``distributed``, the ``distributed`` extra) is imported only here and
+only when a cluster is asked for.
+
+Library use::
+
+    with connect("local:2") as cluster:            # or "tcp://host:8786", or a dask Client
+        report = cluster.build_index(["curves/"], "curves.h5")
+        results, stats = cluster.search_index("curves.h5", queries, top=10)
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from ._version import __version__
+from .errors import NfdError, ParameterError
+from .search.bestfirst import TopK
+
+__all__ = ["ClusterError", "Cluster", "connect", "DEFAULT_TIMEOUT", "TASK_BYTES", "INSTALL_HINT"]
+
+#: seconds to reach the scheduler and see a worker before giving up (``--scheduler-timeout``)
+DEFAULT_TIMEOUT = 10.0
+#: bytes of input files per build task at most: big enough that a task's overhead (~1 ms on
+#: the scheduler, a round trip) is small next to reading and describing, small enough that
+#: a retried task redoes little and that every worker gets several tasks
+TASK_BYTES = 16 << 20
+#: files per build task at most (many tiny files: keeps progress and retries fine-grained)
+TASK_FILES = 2048
+#: build tasks per worker thread at least, when the files allow (load balance)
+_TASKS_PER_THREAD = 4
+#: queries per search task at most: progress granularity and the size of one task's answer
+QUERY_BLOCK = 256
+#: positions of a query's first-round window (its cells of lowest bound over the whole
+#: index): enough to hold its near neighbours, whose distances then seed every range
+WINDOW_ROWS = 2048
+#: a search table (features, norms, first harmonics, row numbers of every row) up to this
+#: size is searched whole by each worker; a bigger one is split in ranges, one per thread
+RANGE_BYTES = 2 << 30
+#: bytes per index row of a search table held in memory, at K = 16 (35 float32 features,
+#: 2 float64 norms, 4 x 3 complex64 harmonics, an int64 row)
+_TABLE_ROW_BYTES = 260
+#: times Dask re-runs a task that raised (a worker that died is rescheduled by the scheduler
+#: itself, up to ``distributed.scheduler.allowed-failures`` times)
+RETRIES = 2
+INSTALL_HINT = "pip install 'nfdmatch[distributed]' (dask and distributed)"
+
+
+class ClusterError(NfdError, RuntimeError):
+    """The cluster cannot be used: dask missing, scheduler unreachable, no workers, workers
+    running another nfdmatch or index format version, a task that failed on every retry."""
+
+
+def _import_distributed():
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        raise ClusterError(f"--scheduler needs dask and distributed, which are not installed: "
+                           f"{INSTALL_HINT}") from None
+    return distributed
+
+
+# --------------------------------------------------------------------------- connecting
+
+def _worker_info() -> dict:
+    """Run on each worker at connect: what must equal the client's (read at call time)."""
+    import sys
+
+    from . import _version
+    from .index.schema import FORMAT_VERSION
+
+    return {"nfdmatch": _version.__version__, "format_version": int(FORMAT_VERSION),
+            "python": "%d.%d" % sys.version_info[:2]}
+
+
+def connect(scheduler, timeout: float = DEFAULT_TIMEOUT) -> "Cluster":
+    """Connect to a Dask cluster and check its workers.
+
+    Parameters
+    ----------
+    scheduler : ``"local:N"`` (start a LocalCluster of N single-threaded worker processes
+        on this machine; ``"local"``: one per core), a scheduler address
+        (``"tcp://host:8786"``, ``"host:8786"``), or an existing ``distributed.Client``
+        (not closed by :meth:`Cluster.close`).
+    timeout : seconds to reach the scheduler and to see at least one worker.
+
+    Raises
+    ------
+    ClusterError : dask not installed; scheduler unreachable or no worker within
+        ``timeout``; a worker whose nfdmatch, index format or Python version differs from
+        this process's.
+    ParameterError : a malformed ``local:N``, a timeout not > 0.
+    """
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
+        raise ParameterError(f"the scheduler timeout must be a number of seconds > 0, got {timeout!r}")
+    _import_distributed()
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    owned_cluster = None
+    if isinstance(scheduler, Client):
+        client, owned_client = scheduler, False
+        where = str(scheduler.scheduler.address if scheduler.scheduler else scheduler)
+    else:
+        where = str(scheduler).strip()
+        if where == "local" or where.startswith("local:"):
+            n = where.partition(":")[2]
+            try:
+                workers = int(n) if n else (os.cpu_count() or 1)
+            except ValueError:
+                workers = 0
+            if workers < 1:
+                raise ParameterError(f"--scheduler local:N needs a number of workers N >= 1, got {where!r}")
+            try:
+                owned_cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                             dashboard_address=None, silence_logs=logging.ERROR)
+            except Exception as exc:
+                raise ClusterError(f"cannot start a local Dask cluster of {workers} workers: "
+                                   f"{type(exc).__name__}: {exc}") from None
+            target = owned_cluster
+        else:
+            target = where
+        try:
+            client = Client(target, timeout=timeout, set_as_default=False)
+        except Exception as exc:      # OSError / TimeoutError: nothing listening, wrong host
+            if owned_cluster is not None:
+                owned_cluster.close()
+            raise ClusterError(f"cannot reach the Dask scheduler at {where} within {timeout:g} s "
+                               f"({type(exc).__name__}: {_first_line(exc)}); start one with "
+                               f"`dask scheduler` or use --scheduler local:N") from None
+        owned_client = True
+    cluster = Cluster(client, owned_client, owned_cluster, where)
+    try:
+        cluster._check_workers(timeout)
+    except BaseException:
+        cluster.close()
+        raise
+    return cluster
+
+
+def _first_line(exc) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+class Cluster:
+    """A connected Dask client whose workers run this nfdmatch (see :func:`connect`).
+
+    Attributes: ``client`` (distributed.Client), ``address`` (what was asked for),
+    ``workers`` (list of worker addresses), ``threads`` (total worker threads).
+    A context manager: closing shuts down a LocalCluster it started.
+    """
+
+    def __init__(self, client, owned_client: bool, owned_cluster, address: str):
+        self.client = client
+        self._owned_client = owned_client
+        self._owned_cluster = owned_cluster
+        self.address = address
+        self.workers: list[str] = []
+        self.threads = 0
+
+    def __enter__(self) -> "Cluster":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._owned_client and self.client is not None:
+            try:
+                self.client.close()
+            except Exception:
+                pass
+        if self._owned_cluster is not None:
+            try:
+                self._owned_cluster.close()
+            except Exception:
+                pass
+        self.client = self._owned_cluster = None
+
+    def _check_workers(self, timeout: float) -> None:
+        try:
+            self.client.wait_for_workers(1, timeout=timeout)
+        except Exception:
+            raise ClusterError(f"no Dask worker joined the scheduler at {self.address} within {timeout:g} s; "
+                               f"start some with `dask worker {self.address}`") from None
+        try:
+            info = self.client.run(_worker_info)
+        except Exception as exc:     # nfdmatch not importable on a worker, ...
+            raise ClusterError(f"the Dask workers cannot run nfdmatch ({type(exc).__name__}: "
+                               f"{_first_line(exc)}); install nfdmatch {__version__} on every worker") from None
+        mine = _worker_info()
+        bad = [f"{addr} runs nfdmatch {w.get('nfdmatch')} (index format {w.get('format_version')}, "
+               f"Python {w.get('python')})" for addr, w in sorted(info.items())
+               if (w.get("nfdmatch"), w.get("format_version"), w.get("python"))
+               != (mine["nfdmatch"], mine["format_version"], mine["python"])]
+        if bad:
+            raise ClusterError(f"the workers must run nfdmatch {mine['nfdmatch']} (index format "
+                               f"{mine['format_version']}, Python {mine['python']}) like this client: "
+                               + "; ".join(bad[:5]) + (f"; and {len(bad) - 5} more" if len(bad) > 5 else ""))
+        self.workers = sorted(info)
+        threads = self.client.nthreads()
+        self.threads = int(sum(threads.get(w, 1) for w in self.workers)) or 1
+
+    # ----------------------------------------------------------------------- build
+
+    def build_index(self, sources, index_path=None, **options):
+        """:func:`nfdmatch.index.build_index` with the files computed on the workers.
+
+        Same arguments (``jobs`` is ignored) and the same result: the plan and the writing
+        stay here, the index written is the one a local build writes."""
+        from .index import build_index
+
+        options.pop("jobs", None)
+        return build_index(sources, index_path, jobs=1, runner=self._run_build_tasks, **options)
+
+    def _run_build_tasks(self, tasks: list[tuple], jobs, lock_fd):
+        """The build's task runner on the cluster: yield ``(task_number, result)`` as
+        batches finish (the contract of ``nfdmatch.index.pool._run_tasks``)."""
+        from distributed import as_completed
+
+        from .index import pool
+
+        # the local pool's batches (each described by one call, as locally, so a cluster build
+        # writes the same bits), grouped into Dask tasks of bounded size
+        local = pool._batches(tasks)
+        groups = _batches([tasks[b[0]] for b in local], self.threads, sizes=[
+            sum(_size(tasks[i][0]) for i in b) for b in local], counts=[len(b) for b in local])
+        futures = {}
+        try:
+            for group in groups:
+                batches = [local[g] for g in group]
+                fut = self.client.submit(_compute_batches, [[(i, tasks[i]) for i in b] for b in batches], os.getcwd(),
+                                        retries=RETRIES, pure=False)
+                futures[fut] = [i for b in batches for i in b]
+            for fut in as_completed(list(futures), loop=self.client.loop):
+                batch = futures.pop(fut)
+                try:
+                    results = fut.result()
+                except Exception as exc:     # KilledWorker after every retry, a lost scheduler
+                    results = [_failed(tasks[i][0], f"the Dask task reading it failed on every try: "
+                                                    f"{type(exc).__name__}: {_first_line(exc)}") for i in batch]
+                for i, res in zip(batch, results):
+                    yield i, res
+        finally:
+            if futures:
+                self.client.cancel(list(futures))
+
+    # ----------------------------------------------------------------------- query
+
+    def search_index(self, index, queries, *, top: int | None = 10, max_distance: float | None = None,
+                     method: str = "exact", direction: str = "invariant", mirror: bool = False,
+                     prune: bool = True, progress=None, parts: int | None = None,
+                     window: int | None = None):
+        """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
+
+        Parameters
+        ----------
+        index : the index path, or an open :class:`nfdmatch.index.Index` (its ``path`` is
+            what the workers open: a path every worker sees).
+        queries, top, max_distance, method, direction, mirror, prune : as in
+            :func:`~nfdmatch.search.search_index`.
+        progress : ``progress(done, total)`` in units of (query, range) pairs answered
+            (with several ranges, the first round counts as one more range).
+        parts : index ranges. Default: 1 (every worker searches the whole index for its
+            blocks of queries: the least work) while the index's search table is at most
+            :data:`RANGE_BYTES` (what a worker may end up caching), else one per worker
+            thread (each worker reads and caches only its range; the ranges cost more
+            work, see :meth:`_search_ranges`). Pruned search splits by ranges of search
+            cells (format 2; a format-1 index is one range), exhaustive search by rows.
+
+        Returns
+        -------
+        ``(results, stats)`` exactly as :func:`~nfdmatch.search.search_index`: the same
+        rows, distances and order (ties by id). ``stats.bytes_read`` sums the workers'.
+        """
+        from .index import open_index
+        from .search import SearchStats
+
+        if top is None and max_distance is None:
+            raise ParameterError("give top or max_distance (or both)")
+        if top is not None and top < 1:
+            raise ParameterError(f"top must be at least 1, got {top}")
+        from .matching import METHODS
+
+        if method not in METHODS:
+            raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+        t0 = time.perf_counter()
+        own = not hasattr(index, "search_table")
+        idx = open_index(index) if own else index
+        try:
+            from .descriptors import descriptors_batch
+            from .search.bestfirst import TopK
+
+            path = os.path.abspath(idx.path)
+            stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale)
+            stats = SearchStats(queries=len(queries), rows=idx.n_curves, pruned=prune)
+            tops = [TopK(top, max_distance) for _ in queries]
+            if idx.n_curves and len(queries):
+                qcoef = descriptors_batch(queries, samples=idx.samples, harmonics=idx.harmonics,
+                                          scale=idx.scale).coefficients
+                if parts:
+                    n_parts = int(parts)
+                else:
+                    n_parts = 1 if idx.n_curves * _TABLE_ROW_BYTES <= RANGE_BYTES else self.threads
+                ranges, stats.cell_count = _ranges(idx, n_parts, prune)
+                params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
+                              mirror=mirror, window=int(window or WINDOW_ROWS))
+                self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
+                # the reported distances from the reference path on this machine, as a local
+                # search does, so that the output is the local output byte for byte
+                from .matching import exact_search, paper_search
+                from .search.index_search import _recompute
+
+                search = exact_search if method == "exact" else paper_search
+                for qi, tk in enumerate(tops):
+                    _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None)
+            results = _ranked(idx, tops, top)
+        finally:
+            if own:
+                idx.close()
+        stats.seconds = time.perf_counter() - t0
+        return results, stats
+
+    def _search_ranges(self, path, stamp, ranges, qcoef, tops, stats, progress, params) -> None:
+        """Fill ``tops`` with each query's exact top K over every range.
+
+        A range searched alone has its own K-th distance, far looser than the whole
+        index's when the query's neighbours lie in other ranges, and computes many exact
+        distances before its own K best are proven (generated families, 2 ranges: 15x the
+        exact distances of a local search). So with several ranges a first round answers
+        each query on a window of the whole index, its cells of lowest bound
+        (``params["window"]`` positions); those rows join the answer, and their distances
+        seed every range's search of its other cells (they count towards its K-th, so it
+        prunes about as hard as one search over the whole index; each range returns only
+        its own rows). Exact: the window's rows within the final K-th are all in the
+        window's answer, and a range never prunes a row below the K-th distance of (seeds +
+        range), which is never below the global K-th."""
+        Q, P = len(qcoef), len(ranges)
+        seeded = P > 1 and params["top"] is not None and ranges[0][0] == "cells"
+        total, done = Q * (P + seeded), 0
+        if progress is not None:
+            progress(0, total)
+        everyone = np.arange(Q)
+        seeds = None
+        if seeded:
+            found = [TopK(params["top"], params["max_distance"]) for _ in range(Q)]
+            done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done,
+                               params)
+            seeds = [{"rows": tk.rows, "dist": tk.dist, **tk.extra} for tk in found]
+            for tk, seed in zip(tops, seeds):
+                if len(seed["rows"]):
+                    tk.add(seed["dist"], seed["rows"], seed)
+        self._round([(rng, everyone, seeds) for rng in ranges], path, stamp, qcoef, tops, stats, progress, total,
+                    done, params)
+
+    def _round(self, jobs, path, stamp, qcoef, tops, stats, progress, total, done, params) -> int:
+        """Run ``jobs`` = [(range or None for the window round, query numbers, per-query
+        seeds or None)] as tasks of at most QUERY_BLOCK queries and merge their answers
+        into ``tops``; returns the progress count."""
+        from distributed import as_completed
+
+        futures = {}
+        # one job (the whole index, or the window round): blocks spread over every thread
+        size = QUERY_BLOCK if len(jobs) > 1 else max(1, min(QUERY_BLOCK, -(-len(qcoef) // (4 * self.threads))))
+        try:
+            for p, (rng, qs, seeds) in enumerate(jobs):
+                # a range stays on one worker, whose cache then holds its cells for every block
+                where = [self.workers[p % len(self.workers)]] if self.workers and len(jobs) > 1 else None
+                for a in range(0, len(qs), size):
+                    block = qs[a:a + size]
+                    fut = self.client.submit(_search_range, path, stamp, rng, np.ascontiguousarray(qcoef[block]),
+                                             None if seeds is None else [seeds[q] for q in block], params,
+                                             retries=RETRIES, pure=False, workers=where,
+                                             allow_other_workers=where is not None)
+                    futures[fut] = block
+            for fut in as_completed(list(futures), loop=self.client.loop):
+                block = futures.pop(fut)
+                try:
+                    answer = fut.result()
+                except NfdError:
+                    raise
+                except Exception as exc:
+                    raise ClusterError(f"a search task failed on every try: {type(exc).__name__}: "
+                                       f"{_first_line(exc)}") from None
+                for qi, part in zip(block, answer["tops"]):
+                    if len(part["rows"]):
+                        tops[qi].add(part["dist"], part["rows"], part)
+                for key in ("exact", "truncated", "scanned", "cells", "bytes_read"):
+                    setattr(stats, key, getattr(stats, key) + int(answer[key]))
+                done += len(block)
+                if progress is not None:
+                    progress(done, total)
+        finally:
+            if futures:
+                self.client.cancel(list(futures))
+        return done
+
+
+# --------------------------------------------------------------------------- build tasks
+
+def _size(path: str) -> int:
+    try:
+        return os.stat(path).st_size
+    except OSError:
+        return 0
+
+
+def _batches(tasks: list[tuple], threads: int, *, sizes=None, counts=None) -> list[list[int]]:
+    """Items grouped in order into Dask tasks of at most TASK_BYTES (a bigger item is a task
+    alone) and TASK_FILES files. An item is a task (one file: its size on disk), or, with
+    ``sizes`` and ``counts``, a local batch of ``counts[i]`` files and ``sizes[i]`` bytes."""
+    sizes = [_size(t[0]) for t in tasks] if sizes is None else list(sizes)
+    counts = [1] * len(sizes) if counts is None else list(counts)
+    files = sum(counts)
+    # small builds still give every worker thread a few tasks
+    limit = max(1, min(TASK_BYTES, sum(sizes) // max(1, threads * _TASKS_PER_THREAD)))
+    per_files = max(1, min(TASK_FILES, -(-files // max(1, threads * _TASKS_PER_THREAD))))
+    batches, current, nbytes, nfiles = [], [], 0, 0
+    for i, (size, count) in enumerate(zip(sizes, counts)):
+        if current and (nbytes + size > limit or nfiles + count > per_files):
+            batches.append(current)
+            current, nbytes, nfiles = [], 0, 0
+        current.append(i)
+        nbytes += size
+        nfiles += count
+    if current:
+        batches.append(current)
+    return batches
+
+
+def _failed(path: str, message: str) -> dict:
+    return {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed", "error": f"{path}: {message}"}
+
+
+def _compute_batches(batches: list[list[tuple[int, tuple]]], cwd: str) -> list[dict]:
+    """On a worker: each local batch (``(task_number, task)`` pairs) read and described by
+    :func:`nfdmatch.index.pool._compute_batch`, as the local pool does (it never raises for
+    a bad file); one result per task, in order. Returns dicts of builtins and numpy arrays.
+
+    A relative path is the client's (its working folder ``cwd``, which the worker need not
+    share): the file is read by its absolute name and the result speaks of the path as
+    given, so ids and messages are those of a local build."""
+    from .errors import escape_name
+    from .index import pool
+
+    out = []
+    for batch in batches:
+        given = [task[0] for _, task in batch]
+        full = [p if os.path.isabs(p) else os.path.join(cwd, p) for p in given]
+        # looked up on the module at each call, not bound at import
+        results, arrays = pool._compute_batch([(n, (f, *task[1:])) for (n, task), f in zip(batch, full)])
+        for res, path, fpath in zip(pool._split(results, arrays), given, full):
+            if fpath != path:
+                res["path"] = path
+                names = [(escape_name(fpath), escape_name(path)), (fpath, path)]   # ids and messages escape
+                if "ids" in res:
+                    res["ids"] = [next((new + i[len(old):] for old, new in names if i.startswith(old)), i)
+                                  for i in res["ids"]]
+                for old, new in names:
+                    if old in res["error"]:
+                        res["error"] = res["error"].replace(old, new, 1)
+                        break
+            out.append(res)
+    return out
+
+
+# --------------------------------------------------------------------------- search tasks
+
+def _ranges(idx, parts: int, prune: bool):
+    """``(ranges, cell_count)``: the index split into at most ``parts`` ranges of about equal
+    rows. A pruned search takes ranges of search cells ``("cells", first, stop)`` (format
+    2; format 1 has one cell holding every row), an exhaustive one ranges of rows
+    ``("rows", start, stop)``."""
+    N = idx.n_curves
+    if not prune:
+        edges = np.linspace(0, N, min(parts, N) + 1).round().astype(np.int64)
+        return [("rows", int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a], 0
+    if idx.format_version < 2:
+        return [("cells", 0, 1)], 1
+    start = np.asarray(idx._read(lambda: idx._h5["search"]["cell_start"][...]), dtype=np.int64)
+    C = len(start) - 1
+    parts = max(1, min(parts, C))
+    # cut where the cumulative positions pass each 1/parts of the rows
+    cuts = np.searchsorted(start, np.linspace(0, N, parts + 1)[1:-1], side="left")
+    edges = np.unique(np.concatenate([[0], cuts, [C]]))
+    return [("cells", int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a], C
+
+
+#: per worker process: open indexes and their search tables, keyed by path and stamp, so the
+#: blocks of queries of one batch (and the next batches) reuse the cells already read
+_OPEN: dict = {}
+
+
+def _worker_index(path: str, stamp: tuple):
+    from .index import open_index
+
+    key = (path, stamp)
+    entry = _OPEN.get(key)
+    if entry is None:
+        for old_key in [k for k in _OPEN if k[0] == path]:   # a replaced index: drop the old one
+            _OPEN.pop(old_key)[0].close()
+        idx = open_index(path)
+        got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale)
+        if got != tuple(stamp):
+            idx.close()
+            raise ClusterError("the index a worker opened is not the one the client opened (replaced by a "
+                               "build meanwhile, or another file at that path on the worker): query again",
+                               path=path)
+        entry = _OPEN[key] = [idx, None, {}]
+    return entry
+
+
+class _SeededTopK(TopK):
+    """A TopK holding rows found elsewhere (seeds) from the start: a row of this range that
+    is also a seed is not added twice (it would count twice towards the K-th distance)."""
+
+    def __init__(self, k, max_distance, seed: dict | None):
+        super().__init__(k, max_distance)
+        self._seen = np.zeros(0, dtype=np.int64)
+        if seed is not None and len(seed["rows"]):
+            super().add(np.asarray(seed["dist"], dtype=np.float64), np.asarray(seed["rows"], dtype=np.int64),
+                        {key: np.asarray(seed[key]) for key in self.extra})
+            self._seen = np.sort(np.asarray(seed["rows"], dtype=np.int64))
+
+    def add(self, dist, rows, result) -> None:
+        if len(self._seen):
+            new = ~_member(rows, self._seen)
+            dist, rows = dist[new], rows[new]
+            result = {key: result[key][new] for key in self.extra}
+        super().add(dist, rows, result)
+
+
+def _member(rows: np.ndarray, sorted_rows: np.ndarray) -> np.ndarray:
+    """(m,) bool: which ``rows`` are in ``sorted_rows`` (ascending)."""
+    if len(sorted_rows) == 0:
+        return np.zeros(len(rows), dtype=bool)
+    at = np.minimum(np.searchsorted(sorted_rows, rows), len(sorted_rows) - 1)
+    return sorted_rows[at] == rows
+
+
+def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params: dict) -> dict:
+    """On a worker: each query's exact top K among the rows of one range of the index.
+
+    rng : ``("cells", first, stop)``, ``("rows", start, stop)`` (exhaustive), or None: the
+        window round (each query over its own :data:`WINDOW_ROWS` positions of lowest cell
+        bound, for seeds).
+    qcoef : (Q, K, 3) complex128 query descriptors; seeds : None or per query a dict like
+        one entry of the answer (rows found elsewhere: they count towards the K-th distance,
+        so the search prunes as if it had seen them; only this range's rows are returned).
+
+    Returns ``{"tops": [per query {rows (m,) int64, dist (m,) float64, shift (m,) float64,
+    reversed (m,) bool, mirrored (m,) bool}], exact, truncated, scanned, cells,
+    bytes_read}`` (plain arrays and ints)."""
+    from .matching import exact_search, paper_search
+    from .search.bestfirst import search_one
+    from .search.bounds import feature_vector
+
+    entry = _worker_index(path, stamp)
+    idx, cache = entry[0], entry[2]
+    search = exact_search if params["method"] == "exact" else paper_search
+    tops = [_SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
+            for q in range(len(qcoef))]
+    out = {"exact": 0, "truncated": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
+    options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
+                   samples=idx.samples)
+    if rng is not None and rng[0] == "rows":
+        from .search.index_search import EXHAUSTIVE_ROWS
+
+        kind, lo, hi = rng
+        for a in range(lo, hi, EXHAUSTIVE_ROWS * 8):
+            b = min(hi, a + EXHAUSTIVE_ROWS * 8)
+            coefficients = idx.read_rows(a, b, ("coefficients",), upcast=False)["coefficients"]
+            out["bytes_read"] += coefficients.nbytes
+            rows = np.arange(a, b)
+            for qi, tk in enumerate(tops):
+                for s in range(0, len(rows), EXHAUSTIVE_ROWS):
+                    r = search(qcoef[qi], coefficients[s:s + EXHAUSTIVE_ROWS], idx.samples,
+                               direction=params["direction"], mirror=params["mirror"])
+                    tk.add(r["distance"], rows[s:s + EXHAUSTIVE_ROWS], r)
+        out["exact"] = (hi - lo) * len(tops)
+    else:
+        if entry[1] is None:
+            entry[1] = idx.search_table()
+        table = entry[1]
+        qfeat = feature_vector(qcoef)
+        if rng is None:                      # the window round
+            for qi, tk in enumerate(tops):
+                sub = table.subset(_window(table, qfeat[qi], params["window"]))
+                _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
+                out["bytes_read"] += sub.bytes_read
+        else:
+            _, lo, hi = rng
+            key = ("range", lo, hi)
+            if key not in cache:
+                cache[key] = table.subset((lo, hi))
+            sub = cache[key]
+            before = sub.bytes_read
+            for qi, tk in enumerate(tops):
+                part = sub
+                if seeds is not None:
+                    # the window's cells were searched in the first round: their rows within
+                    # the K-th are all among the seeds already
+                    window = _window(table, qfeat[qi], params["window"])
+                    inside = window[(window >= lo) & (window < hi)]
+                    if len(inside):
+                        rest = np.setdiff1d(np.arange(lo, hi), inside) - lo
+                        if len(rest) == 0:
+                            continue
+                        part = sub.subset(rest)
+                _account(out, search_one(qcoef[qi], qfeat[qi], part, tk, **options))
+            out["bytes_read"] = sub.bytes_read - before
+    out["tops"] = []
+    for q, tk in enumerate(tops):
+        keep = np.ones(len(tk.rows), dtype=bool) if seeds is None else \
+            ~_member(tk.rows, np.sort(np.asarray(seeds[q]["rows"], dtype=np.int64)))
+        out["tops"].append({"rows": tk.rows[keep].astype(np.int64), "dist": np.asarray(tk.dist[keep], np.float64),
+                            "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
+                            "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
+                            "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool)})
+    return out
+
+
+def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:
+    """Ascending numbers of the cells of lowest bound for the query holding at least
+    ``positions`` rows (or every cell): the first round's window, the same on every worker."""
+    from .search.bounds import cell_lower_bounds
+
+    sizes = table.start[1:] - table.start[:-1]
+    order = np.argsort(cell_lower_bounds(query_features, table.split, table.centre, table.radius), kind="stable")
+    n = int(np.searchsorted(np.cumsum(sizes[order]), positions)) + 1
+    return np.sort(order[:n])
+
+
+def _account(out: dict, work) -> None:
+    for key in ("exact", "truncated", "scanned", "cells"):
+        out[key] += getattr(work, key)
+
+
+def _ranked(idx, tops, top) -> list[list[dict]]:
+    """The rows of :func:`nfdmatch.search.search_index` from merged TopKs: the same order
+    (distance, ties within TIE by id) and the same keys."""
+    from .search.bestfirst import TIE
+
+    results = []
+    for tk in tops:
+        ids = idx.ids_at(tk.rows) if len(tk.rows) else []
+        order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[i]))
+        if top is not None:
+            order = order[:top]
+        results.append([{"rank": rank, "match": ids[i], "distance": float(tk.dist[i]),
+                         "shift": float(tk.extra["shift"][i]), "reversed": bool(tk.extra["reversed"][i]),
+                         "mirrored": bool(tk.extra["mirrored"][i]), "row": int(tk.rows[i])}
+                        for rank, i in enumerate(order, start=1)])
+    return results

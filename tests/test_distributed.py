@@ -1,0 +1,333 @@
+"""Building and querying on a Dask cluster (--scheduler): a LocalCluster of 2 worker
+processes on the loopback, started once for the module."""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+pytest.importorskip("distributed")
+
+from oracle import random_rigid_motion, smooth_curve_samplings, start_shift  # noqa: E402
+
+from nfdmatch import Curve, read_curves, write_curves  # noqa: E402
+from nfdmatch.cli import main  # noqa: E402
+from nfdmatch.distributed import ClusterError, connect  # noqa: E402
+from nfdmatch.index import build_index, open_index  # noqa: E402
+from nfdmatch.search import search_index  # noqa: E402
+
+#: attributes that record when a file was written, not what it holds
+_TIMES = {"created", "updated"}
+
+
+def run(*args, env=None):
+    result = CliRunner(env=env).invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return result.exit_code, result.stdout, result.stderr
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=50) as cluster, Client(cluster, set_as_default=False) as c:
+        c.wait_for_workers(2, timeout=60)
+        yield c
+
+
+@pytest.fixture
+def cluster(client):
+    client.wait_for_workers(2, timeout=60)      # a test may have killed a worker: the nanny restarts it
+    with connect(client) as c:
+        yield c
+
+
+def _families(rng, families, members):
+    curves = []
+    for f in range(families):
+        for m, pts in enumerate(smooth_curve_samplings(rng, [int(rng.integers(60, 160)) for _ in range(members)],
+                                                       n_harmonics=int(rng.integers(2, 7)))):
+            pts = pts + rng.normal(scale=0.01, size=pts.shape)
+            curves.append(random_rigid_motion(start_shift(pts, int(rng.integers(len(pts)))), rng))
+    return curves
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    """600 curves in 30 OBJ files, 3 single-curve CSV files and one broken CSV file."""
+    rng = np.random.default_rng(13)
+    folder = tmp_path_factory.mktemp("library")
+    curves = _families(rng, 60, 10)
+    order = rng.permutation(len(curves))
+    for f in range(30):
+        write_curves(str(folder / f"part-{f:02d}.obj"), [curves[i] for i in order[f * 20:(f + 1) * 20]])
+    for f, pts in enumerate(_families(rng, 3, 1)):
+        write_curves(str(folder / f"single-{f}.csv"), pts)
+    (folder / "broken.csv").write_text("x,y,z\n1,2,3\n4,oops,6\n")
+    queries = [Curve(random_rigid_motion(start_shift(c, 7)[::-1], rng), id=f"q{i}") for i, c in
+               enumerate(curves[::37])] + [Curve(c, id=f"new{i}") for i, c in enumerate(_families(rng, 4, 1))]
+    return folder, queries
+
+
+def _contents(path):
+    """Every dataset and attribute of an HDF5 file, times of writing left out."""
+    out = {}
+    with h5py.File(path, "r") as h5:
+        out["/"] = {k: v for k, v in h5.attrs.items() if k not in _TIMES}
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                out[name] = (obj.dtype.str, obj[...])
+            out[name + "@attrs"] = dict(obj.attrs.items())
+        h5.visititems(visit)
+    return out
+
+
+def _assert_same_file(a, b):
+    ca, cb = _contents(a), _contents(b)
+    assert sorted(ca) == sorted(cb)
+    assert "curves/coefficients" in ca and "search/cell_start" in ca and "files/path" in ca
+    for name in ca:
+        if isinstance(ca[name], tuple):
+            assert ca[name][0] == cb[name][0], name
+            assert ca[name][1].shape == cb[name][1].shape, name
+            assert np.array_equal(ca[name][1], cb[name][1]), name
+        else:
+            assert ca[name].keys() == cb[name].keys(), name
+            for key in ca[name]:
+                assert np.array_equal(ca[name][key], cb[name][key]), (name, key)
+
+
+def test_a_cluster_build_writes_the_index_a_local_build_writes(cluster, library, tmp_path, monkeypatch):
+    from nfdmatch.search import cells
+
+    monkeypatch.setattr(cells, "ROWS_PER_CELL", 16)     # many cells: the query test splits them
+    folder, _ = library
+    local, remote = tmp_path / "local.h5", tmp_path / "remote.h5"
+    rl = build_index([str(folder)], str(local), jobs=1)
+    rr = cluster.build_index([str(folder)], str(remote))
+    assert (rr.added, rr.failed, rr.curves, rr.written) == (rl.added, rl.failed, rl.curves, True) == (33, 1, 603, True)
+    assert rr.failures == rl.failures and "oops" in rr.failures[0][1]
+    _assert_same_file(local, remote)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []    # no temp file left
+
+    # incremental: one file changed, one removed, one added -- still the local build's file
+    os.utime(folder / "part-03.obj", ns=(1, 1))
+    (folder / "single-2.csv").rename(tmp_path / "moved.csv")
+    write_curves(str(folder / "late.csv"), read_curves(str(tmp_path / "moved.csv"))[0].points * 2.0)
+    try:
+        rl = build_index([str(folder)], str(local), jobs=2)
+        rr = cluster.build_index([str(folder)], str(remote))
+    finally:
+        (folder / "late.csv").unlink()
+        (tmp_path / "moved.csv").rename(folder / "single-2.csv")
+    assert (rr.added, rr.removed, rr.unchanged, rr.failed) == (rl.added, rl.removed, rl.unchanged, rl.failed) \
+        == (1, 1, 32, 1)          # part-03: new mtime, same contents (hashed on the client)
+    _assert_same_file(local, remote)
+
+
+def test_relative_sources_are_the_clients_whatever_the_workers_folder(cluster, library, tmp_path, monkeypatch):
+    import shutil
+
+    folder, _ = library
+    (tmp_path / "rel").mkdir()
+    for name in ("part-00.obj", "part-01.obj", "single-0.csv", "broken.csv"):
+        shutil.copy(folder / name, tmp_path / "rel" / name)
+    monkeypatch.chdir(tmp_path)              # the workers stay in the folder they started in
+    assert cluster.client.run(os.getcwd).popitem()[1] != str(tmp_path)
+    rl = build_index(["rel"], "local.h5", jobs=1)
+    calls = []
+    rr = cluster.build_index(["rel"], "remote.h5", progress=lambda done, total: calls.append((done, total)))
+    assert (rr.added, rr.failed, rr.curves) == (rl.added, rl.failed, rl.curves) == (3, 1, 41)
+    assert calls[0] == (0, 4) and calls[-1] == (4, 4) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+    assert rr.failures == rl.failures == [("rel/broken.csv", "rel/broken.csv: line 3: not a number: 'oops'")]
+    _assert_same_file(tmp_path / "local.h5", tmp_path / "remote.h5")
+    with open_index("remote.h5") as idx:
+        assert idx.ids(0, 1) == ["rel/part-00.obj#0"]
+
+
+def test_cli_build_on_the_scheduler_names_a_bad_file_and_exits_3(client, library, tmp_path):
+    folder, _ = library
+    index = tmp_path / "i.h5"
+    code, out, err = run("index", "build", folder, "--index", index, "--scheduler", client.scheduler.address)
+    assert code == 3 and out == ""
+    assert f"Error: {folder / 'broken.csv'}: line 3: not a number: 'oops'" in err
+    assert f"indexed into {index}: 33 added, 0 updated, 0 removed, 0 unchanged, 1 failed files; 603 curves" in err
+    assert "Traceback" not in err
+    # the same from $NFDMATCH_SCHEDULER; nothing changed, nothing computed
+    code, out, err = run("index", "build", folder, "--index", index, "--format", "json",
+                         env={"NFDMATCH_SCHEDULER": client.scheduler.address})
+    assert code == 3 and '"unchanged": 33' in out and '"failed": 1' in out
+
+
+def _kill_on_first_file():
+    """Run on every worker: its first file kills the worker process (as a crash or an OOM
+    kill would). The nanny starts a fresh process, without this trap."""
+    import os as _os
+
+    from nfdmatch.index import pool
+
+    def die(*args, **kwargs):
+        _os._exit(17)
+    pool._compute_batch = die
+
+
+def test_a_worker_that_dies_mid_task_is_replaced_and_its_task_rerun(client, cluster, library, tmp_path):
+    folder, _ = library
+    local, remote = tmp_path / "local.h5", tmp_path / "remote.h5"
+    build_index([str(folder)], str(local), jobs=1)
+    before = set(cluster.client.scheduler_info()["workers"])
+    client.run(_kill_on_first_file)
+    report = cluster.build_index([str(folder)], str(remote))
+    assert (report.added, report.failed, report.curves) == (33, 1, 603)
+    _assert_same_file(local, remote)
+    client.wait_for_workers(2, timeout=60)
+    assert not before & set(client.scheduler_info()["workers"])      # both workers died and were replaced
+
+
+def _same_rows(a, b):
+    """The same rows in the same order; distances (a numerical optimum, refined from a
+    start that depends on which rows share a batch) to 1e-12, as pruned vs exhaustive."""
+    assert len(a) == len(b)
+    for ra, rb in zip(a, b):
+        assert [{k: v for k, v in r.items() if k not in ("distance", "shift")} for r in ra] == \
+            [{k: v for k, v in r.items() if k not in ("distance", "shift")} for r in rb]
+        assert np.allclose([r["distance"] for r in ra], [r["distance"] for r in rb], rtol=1e-12, atol=1e-12)
+        assert np.allclose([r["shift"] for r in ra], [r["shift"] for r in rb], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("options", [dict(top=5), dict(top=12, mirror=True), dict(top=None, max_distance=0.2),
+                                     dict(top=3, direction="strict", method="paper")])
+def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_path_factory, options):
+    from nfdmatch.search import cells
+
+    folder, queries = library
+    index = tmp_path_factory.getbasetemp() / "query-index.h5"
+    if not index.exists():
+        old = cells.ROWS_PER_CELL
+        cells.ROWS_PER_CELL = 16
+        try:
+            build_index([str(folder)], str(index), jobs=1)
+        finally:
+            cells.ROWS_PER_CELL = old
+    with open_index(index) as idx:
+        assert idx.search_table().n_cells >= 20
+        local, local_stats = search_index(idx, queries, **options)
+        exhaustive, _ = search_index(idx, queries, prune=False, **options)
+        # small windows: the first round's seeds are not yet the answer, the ranges must find it
+        for parts, window in ((None, None), (2, None), (2, 1), (3, 40), (7, 100)):
+            calls = []
+            remote, stats = cluster.search_index(idx, queries, parts=parts, window=window,
+                                                 progress=lambda done, total: calls.append((done, total)), **options)
+            assert calls[0][0] == 0 and calls[-1][0] == calls[-1][1] >= len(queries)
+            _same_rows(remote, local)
+            assert stats.queries == len(queries) and stats.rows == 603 and stats.cell_count == local_stats.cell_count
+            assert 0 < stats.exact <= len(queries) * 603
+        remote, stats = cluster.search_index(str(index), queries, prune=False, parts=4, **options)
+        _same_rows(remote, exhaustive)
+        assert stats.exact == len(queries) * 603 and not stats.pruned
+    assert any(len(r) > 1 for r in local)
+
+
+def test_cli_query_on_the_scheduler_prints_what_a_local_query_prints(client, library, tmp_path):
+    folder, queries = library
+    index = tmp_path / "i.h5"
+    build_index([str(folder)], str(index), jobs=1)
+    qfile = tmp_path / "queries.obj"
+    write_curves(str(qfile), queries)
+    args = ("query", qfile, "--index", index, "--top", "4", "--format", "csv", "--details")
+    code, local, err = run(*args)
+    assert code == 0 and err == ""
+    code, remote, err = run(*args, "--scheduler", client.scheduler.address, "--stats")
+    assert code == 0 and remote == local and len(local.splitlines()) == 1 + 4 * len(queries)
+    assert f"{len(queries)} queries x 603 rows" in err and "Traceback" not in err
+    code, remote, err = run(*args, "--exhaustive", env={"NFDMATCH_SCHEDULER": client.scheduler.address})
+    assert code == 0 and remote == local
+    code, remote, err = run(*args, "--ranges", "3", "--scheduler", client.scheduler.address)
+    assert code == 0 and _csv_rows(remote) == _csv_rows(local)
+    code, out, err = run(*args, "--ranges", "3")
+    assert code == 2 and out == "" and "--ranges needs --scheduler" in err
+
+
+def _csv_rows(text):
+    """CSV rows with distances rounded to 1e-12 (the search's numerical optimum)."""
+    import csv
+    import io
+
+    return [{k: (f"{float(v):.12f}" if k in ("distance", "shift") else v) for k, v in r.items()}
+            for r in csv.DictReader(io.StringIO(text))]
+
+
+def _other_version():
+    import nfdmatch._version
+
+    nfdmatch._version.__version__ = "0.0.1-other"
+
+
+def _own_version():
+    import importlib
+
+    import nfdmatch._version
+
+    importlib.reload(nfdmatch._version)
+
+
+def test_workers_with_another_nfdmatch_version_are_refused_at_connect(client, library, tmp_path):
+    client.run(_other_version, workers=[sorted(client.scheduler_info()["workers"])[0]])
+    try:
+        with pytest.raises(ClusterError, match=r"must run nfdmatch 0\.1\.0 .*runs nfdmatch 0\.0\.1-other"):
+            connect(client)
+        code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler",
+                             client.scheduler.address)
+        assert code == 1 and out == "" and "Error: the workers must run nfdmatch" in err
+        assert "Traceback" not in err and not (tmp_path / "i.h5").exists()
+    finally:
+        client.run(_own_version)
+    with connect(client) as c:
+        assert len(c.workers) == 2
+
+
+def _unused_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_an_unreachable_scheduler_is_an_error_after_the_timeout_not_a_hang(library, tmp_path):
+    address = f"tcp://127.0.0.1:{_unused_port()}"
+    code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", address,
+                         "--scheduler-timeout", "1")
+    assert code == 1 and out == ""
+    assert err.startswith(f"Error: cannot reach the Dask scheduler at {address} within 1 s")
+    assert "Traceback" not in err and not (tmp_path / "i.h5").exists()
+    qfile = tmp_path / "q.csv"
+    write_curves(str(qfile), library[1][0])
+    build_index([str(library[0])], str(tmp_path / "i.h5"), jobs=1)
+    code, out, err = run("query", qfile, "--index", tmp_path / "i.h5",
+                         env={"NFDMATCH_SCHEDULER": address, "NFDMATCH_SCHEDULER_TIMEOUT": "0.5"})
+    assert code == 1 and out == "" and "cannot reach the Dask scheduler" in err and "within 0.5 s" in err
+    code, out, err = run("query", qfile, "--index", tmp_path / "i.h5", "--scheduler", address,
+                         "--scheduler-timeout", "0")
+    assert code == 2 and "--scheduler-timeout" in err
+
+
+def test_bad_local_cluster_size_is_an_error(tmp_path, library):
+    code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", "local:zero")
+    assert code == 1 and "local:N needs a number of workers N >= 1" in err and "Traceback" not in err
+
+
+def test_without_dask_the_scheduler_option_says_what_to_install(library, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)          # import distributed -> ImportError
+    code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", "local:2")
+    assert code == 1 and out == ""
+    assert "Error: --scheduler needs dask and distributed, which are not installed: " \
+           "pip install 'nfdmatch[distributed]'" in err
+    # without --scheduler, nothing changes
+    code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--jobs", "1")
+    assert code == 3
