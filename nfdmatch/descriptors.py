@@ -86,6 +86,12 @@ def validate_parameters(samples: int, harmonics: int, scale: str) -> None:
         raise ParameterError(f"scale must be one of {', '.join(SCALES)}, got {scale!r}")
 
 
+#: the direction of travel at a curve's start is drawn towards the point this fraction of
+#: its length further on (the query's own arrow in a picture, and where nfdmatch.show places
+#: each match's, from the match's alignment)
+START_STEP = 0.04
+
+
 def points_at(points: np.ndarray, fractions) -> np.ndarray:
     """Points of a closed polyline at given fractions of its length.
 

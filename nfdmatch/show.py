@@ -15,10 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .curve import Curve
-from .descriptors import DescriptorBatch, Descriptors, descriptors, points_at, reconstruct
+from .descriptors import START_STEP, DescriptorBatch, Descriptors, descriptors, points_at, reconstruct
 from .errors import CurveError, NfdError
 from .matching import match_descriptors
-from .render import START_STEP
 
 __all__ = ["ShownMatch", "align_match", "match_panels", "matches_from_curves", "matches_from_index", "show_ranked",
            "show_searched"]

@@ -317,6 +317,20 @@ class Index:
         out["id"] = np.asarray(self._id_blocks(a, b), dtype=object)
         return out
 
+    def graph_k(self) -> int:
+        """Neighbours per row of the index's stored neighbour graph (``index build --graph``);
+        0 when it has none."""
+        from .graph import graph_k
+
+        return graph_k(self)
+
+    def graph_reader(self):
+        """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,
+        in the order of ``rows``; None when the index has no graph (docs/index-format.md)."""
+        from .graph import read_graph_rows
+
+        return read_graph_rows(self)
+
     def search_table(self):
         """What a search reads (:class:`~nfdmatch.search.table.SearchTable`): the stored
         cells of a format-2 index, read cell by cell as a query opens them; for format 1,

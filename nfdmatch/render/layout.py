@@ -12,8 +12,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..descriptors import points_at
-from ..errors import ParameterError, RenderError, WriteError
+from ..descriptors import START_STEP, points_at
+from ..errors import ParameterError, WriteError
 
 
 RENDERERS = ("matplotlib", "pyvista")
@@ -21,9 +21,6 @@ DEFAULT_RENDERER = "matplotlib"
 
 #: picture sizes accepted, pixels per side
 MIN_SIDE, MAX_SIDE = 100, 10000
-#: the direction markers: this fraction of the query's length on from its start (the
-#: query's own arrow here; :mod:`nfdmatch.show` places the matches' with it)
-START_STEP = 0.04
 #: characters of a shortened id in a panel title / on a matrix axis
 LABEL_WIDTH = 32
 MATRIX_LABEL_WIDTH = 28

@@ -198,7 +198,6 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
 
     Deterministic: the same index and queries give the same rows and scores.
     """
-    from ..index.graph import graph_k, read_graph_rows
     from .index_search import search_index
 
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < MIN_DEPTH:
@@ -206,11 +205,11 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
     if top < 1 or top > depth:
         raise ParameterError(f"top must be between 1 and the rerank depth ({depth}), got {top}")
     t0 = time.perf_counter()
-    reader = read_graph_rows(index)
+    reader = index.graph_reader()
     if reader is None:
         raise IndexFormatError("the index has no neighbour graph, which --rerank needs: build it with "
                                f"`nfdmatch index build ... --index {index.path} --graph`", path=index.path)
-    stored_k = graph_k(index)
+    stored_k = index.graph_k()
     if stored_k < SCALE_NEIGHBOURS:
         raise IndexFormatError(f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
                                f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
