@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install bench devdata clean
+.PHONY: demo test test-fast lint install bench devdata clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,13 @@ install: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# the unit tests only (no end-to-end runs marked slow): under a minute
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+lint: $(STAMP)
+	$(BIN)/python -m ruff check nfdmatch tests benchmarks
 
 demo: $(STAMP)
 	@echo "== index the sample curves (incremental: a second run recomputes nothing) ==" >&2

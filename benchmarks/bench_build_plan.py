@@ -81,7 +81,7 @@ def main() -> None:
         build_index(["lib"], "idx.h5", jobs=1, allow_shrink=True)
     else:
         build_index(["lib"], "idx.h5", jobs=1)
-    for k, (root, _, names) in enumerate(os.walk(lib)):
+    for _k, (root, _, names) in enumerate(os.walk(lib)):
         for j, name in enumerate(sorted(names)):
             if j % 10 == 0:
                 p = os.path.join(root, name)

@@ -159,7 +159,7 @@ def main(argv=None) -> int:
     # new file (read, check, write, search cells); interleaved, median of --repeat
     touched = os.path.join(sources[0], sorted(os.listdir(sources[0]))[0])
     rewrite = {plain: [], checked: []}
-    for i in range(args.repeat):
+    for _i in range(args.repeat):
         for path in (plain, checked):
             st = os.stat(touched)
             os.utime(touched, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))

@@ -89,7 +89,7 @@ def main():
     _, dt_batch_paper = timed(lambda: paper_search(_aligned(q), np.stack([_aligned(r) for r in rows]), N))
 
     print(f"# {len(pairs)} random smooth pairs, n={N}, K={K}, scale a1, direction-invariant\n")
-    print(f"| method | ms per pair (one call per pair) | vs oracle (1) | vs vectorized brute force (1v) |")
+    print("| method | ms per pair (one call per pair) | vs oracle (1) | vs vectorized brute force (1v) |")
     print("|---|---:|---:|---:|")
     for key, name in [("exact", "exact (shift x SO(3), sub-sample)"), ("exact_int", "exact, integer shifts only"),
                       ("paper", "paper's step"), ("o1", "oracle (1): all shifts x Kabsch"),
@@ -155,7 +155,7 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
     # numpy and numba interleaved, medians of `repeat` runs each (the machine may be shared)
     labels = {"numpy": ("0", saved), "numba, 1 thread": ("1", 10 ** 12), f"numba, {workers} threads": ("1", saved)}
     figures = {label: ([], []) for label in labels}
-    for label, (mode, threshold) in labels.items():
+    for mode, threshold in labels.values():
         run(mode, threshold)                                                 # warm
     for _ in range(repeat):
         for label, (mode, threshold) in labels.items():

@@ -292,7 +292,7 @@ def main():
             results[name, v.label]["help"] = help_t[v.label]
 
     labels = [v.label for v in versions]
-    print(f"\n`nfdmatch --help`: " + ", ".join(f"{lab} {help_t[lab] * 1e3:.0f} ms" for lab in labels))
+    print("\n`nfdmatch --help`: " + ", ".join(f"{lab} {help_t[lab] * 1e3:.0f} ms" for lab in labels))
     head = "| collection | measure | " + " | ".join(labels) + (" | ratio |" if len(labels) > 1 else " |")
     print(head)
     print("|" + "---|" * (head.count("|") - 1))

@@ -50,8 +50,8 @@ def cluster(client):
 
 def _families(rng, families, members):
     curves = []
-    for f in range(families):
-        for m, pts in enumerate(smooth_curve_samplings(rng, [int(rng.integers(60, 160)) for _ in range(members)],
+    for _f in range(families):
+        for _m, pts in enumerate(smooth_curve_samplings(rng, [int(rng.integers(60, 160)) for _ in range(members)],
                                                        n_harmonics=int(rng.integers(2, 7)))):
             pts = pts + rng.normal(scale=0.01, size=pts.shape)
             curves.append(random_rigid_motion(start_shift(pts, int(rng.integers(len(pts)))), rng))

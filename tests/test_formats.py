@@ -6,7 +6,6 @@ import logging
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -812,7 +811,7 @@ def test_text_round_trip_property(tmp_path, rows):
 
 def test_chain_shuffled_reversed_segments_is_one_loop():
     rng = np.random.default_rng(2)
-    for trial in range(20):
+    for _trial in range(20):
         n = int(rng.integers(3, 40))
         labels = rng.permutation(1000)[:n]          # arbitrary vertex ids
         segs = np.column_stack([labels, np.roll(labels, -1)])

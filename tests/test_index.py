@@ -20,6 +20,8 @@ import pytest
 from oracle import random_smooth_curve
 
 import nfdmatch.index as nindex
+from nfdmatch.index import lock as index_lock
+from nfdmatch.index import pool as index_pool
 from nfdmatch import Curve, descriptors, read_curves, write_curves
 from nfdmatch.errors import (IndexFormatError, IndexLockedError, InputError, NfdError, ParameterError,
                              ReadError, ShrinkRefusedError)
@@ -298,7 +300,7 @@ def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
         before = v1.read_rows(0, v1.n_curves)
         unchanged_sha = {r.path: r.sha256 for r in v1.files()}
     for path in sources:
-        if os.path.exists(path) and nindex._sha256(path) != unchanged_sha[path]:
+        if os.path.exists(path) and index_pool._sha256(path) != unchanged_sha[path]:
             pytest.skip(f"{path} changed since the frozen index was made")
     report = build_index(sources, str(target), jobs=1)
     assert report.written and any("upgrading the index from format 1 to 2" in n for n in report.notices)
@@ -319,7 +321,7 @@ def test_frozen_rows_match_the_sample_curves_to_complex64():
         files = idx.files()
     for record in files:
         path = os.path.join(REPO, record.path)
-        if record.status != "ok" or not os.path.exists(path) or nindex._sha256(path) != record.sha256:
+        if record.status != "ok" or not os.path.exists(path) or index_pool._sha256(path) != record.sha256:
             continue
         for curve in read_curves(path):
             row = ids.index(curve.id.replace(REPO + os.sep, ""))
@@ -776,7 +778,7 @@ def test_build_over_a_bad_index_file(tmp_path, lib, kind, policy):
 
 def test_lock_fails_at_once_or_waits(lib, tmp_path):
     idx_path = str(tmp_path / "idx.h5")
-    lock = nindex._Lock(idx_path, 0)
+    lock = index_lock._Lock(idx_path, 0)
     timer = None
     try:
         start = time.monotonic()

@@ -17,6 +17,7 @@ import pytest
 from oracle import random_smooth_curve
 
 import nfdmatch.index as nindex
+from nfdmatch.index import lock as index_lock
 from nfdmatch import write_curves
 from nfdmatch.errors import IndexFormatError, IndexLockedError, ShrinkRefusedError, WriteError
 from nfdmatch.index import build_index, open_index
@@ -232,7 +233,7 @@ def test_a_symlinked_index_updates_its_target_and_shares_its_lock(lib, tmp_path,
     with open_index(target) as idx:
         assert idx.n_files == 6
     # two names for one index take one lock
-    lock = nindex._Lock(str(target), 0)
+    lock = index_lock._Lock(str(target), 0)
     try:
         with pytest.raises(IndexLockedError, match=r"real\.h5\.lock"):
             build_index([str(lib)], str(link), jobs=1, rebuild=True)

@@ -493,7 +493,6 @@ def test_short_labels_drop_the_common_affixes_of_long_similar_names():
 
 
 def test_panel_subtitles_carry_distance_flags_and_note(tmp_path):
-    from nfdmatch import render
 
     q, panels = _ellipse_scene(n_matches=2)
     panels = [panels[0], MatchPanel(id=panels[1].id, distance=0.5, points=panels[1].points, start=panels[1].start,

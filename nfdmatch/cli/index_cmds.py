@@ -124,11 +124,12 @@ def index_build(sources, index_path, glob_pattern, rebuild, dry_run, jobs, wait,
             cluster.close()
     for notice in report.notices:
         note(notice, prefix="Notice: ")
-    for path, message in report.skipped + report.failures:
+    for _path, message in report.skipped + report.failures:
         error(message)
     if output_format == "json":
         summary = {"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
-                   "sources": report.sources, "added": report.added, "updated": report.updated, "removed": report.removed,
+                   "sources": report.sources, "added": report.added, "updated": report.updated,
+                   "removed": report.removed,
                    "unchanged": report.unchanged, "failed": report.failed,
                    "failures": [{"path": path, "error": message} for path, message in report.failures],
                    "skipped": [{"path": path, "error": message} for path, message in report.skipped],
@@ -413,7 +414,8 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
         if top > rerank_depth:
             raise click.UsageError(f"--top {top} is more than --rerank-depth {rerank_depth}")
         if scheduler:
-            raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
+            raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): "
+                                   "drop --scheduler")
     elif rerank_depth != 100:
         raise click.UsageError("--rerank-depth needs --rerank")
 

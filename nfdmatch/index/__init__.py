@@ -23,8 +23,6 @@ processes; ``writer`` writes the datasets of a new file into a temporary file an
 """
 
 from .build import BuildReport, build_index
-from .lock import _Lock
-from .pool import _sha256
 from .reader import Index, open_index
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, default_index_path
 

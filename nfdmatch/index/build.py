@@ -338,7 +338,8 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
         new_sources = (stored_sources, glob or None)
         needs_write = (old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
-                       or recorded != new_sources or graph_changes(old, graph) or any(it.path != it.old.path for it in items if it.old))
+                       or recorded != new_sources or graph_changes(old, graph)
+                       or any(it.path != it.old.path for it in items if it.old))
         if not needs_write:
             if progress is not None:
                 progress(0, 0)

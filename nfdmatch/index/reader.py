@@ -369,7 +369,8 @@ class Index:
             size = os.path.getsize(self.path) if os.path.exists(self.path) else 0
         failed = [{"path": r.path, "error": r.error} for r in self.files() if r.status != "ok"]
         recorded = self.sources()
-        return {"path": self.path, "sources": None if recorded is None else recorded[0], "format": INDEX_FORMAT, "format_version": self.format_version,
+        return {"path": self.path, "sources": None if recorded is None else recorded[0], "format": INDEX_FORMAT,
+                "format_version": self.format_version,
                 "nfdmatch_version": self.nfdmatch_version, "files": self.n_files, "curves": self.n_curves,
                 "failed": failed, "samples": self.samples, "harmonics": self.harmonics, "scale": self.scale,
                 "created": self.created, "updated": self.updated, "size_bytes": size}

@@ -100,7 +100,7 @@ def check_search_group(h5, N: int, harmonics: int, get=None) -> str | None:
     cells = g.attrs.get("cells")
     if cells is not None and (not isinstance(cells, (int, np.integer)) or int(cells) != C):
         return f"/search attribute cells {cells!r} does not match /search/cell_start ({C} cells)"
-    for name, (dtype, shape) in SEARCH_DATASETS.items():
+    for name, (_dtype, shape) in SEARCH_DATASETS.items():
         ds = get(name)
         if ds is None or not hasattr(ds, "shape"):
             return f"missing dataset /search/{name}"

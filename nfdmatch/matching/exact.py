@@ -10,7 +10,8 @@ import threading
 
 import numpy as np
 
-from .common import _REFINE_CANDIDATES, _SMALL_BATCH, _check_direction, _direction_variants, _integer_shift_basis, _kabsch_rotation, _shift_basis, _trace_soa, _trace_svd, _weights
+from .common import (_REFINE_CANDIDATES, _SMALL_BATCH, _check_direction, _direction_variants, _integer_shift_basis,
+                     _kabsch_rotation, _shift_basis, _trace_soa, _trace_svd, _weights)
 from . import dispatch
 from .dispatch import _compiled_kernels, _folded_basis
 

@@ -9,7 +9,8 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ParameterError, RenderError, WriteError
-from .layout import MATRIX_LABEL_WIDTH, RenderResult, _NOTE_COLOR, _check_size, _reason, _write, check_output, picture_format, short_labels
+from .layout import (_NOTE_COLOR, MATRIX_LABEL_WIDTH, RenderResult, _check_size, _reason, _write, check_output,
+                     picture_format, short_labels)
 from .matplotlib_backend import _new_figure, _png_bytes
 
 # --------------------------------------------------------------------------- matrix

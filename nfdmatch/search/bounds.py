@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["feature_vector", "feature_split", "head_harmonics", "squared_norms", "cell_lower_bounds", "row_lower_bounds",
-           "truncated_lower_bounds", "TRUNCATED_HARMONICS", "TRUNCATED_GRID"]
+__all__ = ["feature_vector", "feature_split", "head_harmonics", "squared_norms", "cell_lower_bounds",
+           "row_lower_bounds", "truncated_lower_bounds", "TRUNCATED_HARMONICS", "TRUNCATED_GRID"]
 
 #: harmonics kept by the truncated bound, and its shift grid (multiple of 4, > 2 K'):
 #: on random smooth curves max(truncated, invariant) / exact has median ~0.93 at (4, 24),
