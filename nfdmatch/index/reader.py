@@ -15,6 +15,11 @@ from .schema import (_STATUS, CRC_ROWS, INDEX_FORMAT, FileRecord, _open_checked,
 _FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "inv_sv", "inv_block")
 
 
+#: rows per chunk of :meth:`Index.iter_chunks` (``nfdmatch.search.memory.CHUNK_ROWS`` is the
+#: same for curves in memory)
+ITER_CHUNK_ROWS = 65536
+
+
 def first_nonfinite(values, rows) -> int | None:
     """The row (of ``rows``, (m,) ints, or a start row) of the first non-finite entry of
     ``values`` (m, ...) float or complex, or None when all are finite."""
@@ -299,7 +304,7 @@ class Index:
                 out[name] = value.astype(np.float64)
         return out
 
-    def iter_chunks(self, rows: int = 65536, columns=None, *, upcast: bool = True):
+    def iter_chunks(self, rows: int = ITER_CHUNK_ROWS, columns=None, *, upcast: bool = True):
         """Yield ``(start, read_rows(start, start + rows, columns))`` covering every row in order."""
         if rows < 1:
             raise ParameterError(f"rows must be at least 1, got {rows}")

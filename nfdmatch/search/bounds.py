@@ -33,6 +33,8 @@ TRUNCATED_HARMONICS = 4
 TRUNCATED_GRID = 24
 #: float32 unit roundoff
 _U32 = 2.0 ** -24
+#: rows whose squared norms are computed at a time (bounds the float64 copy)
+_NORM_BLOCK = 65536
 
 
 def head_harmonics(harmonics: int) -> int:
@@ -68,10 +70,10 @@ def squared_norms(features: np.ndarray, split: int) -> np.ndarray:
     """(m, 2) float64 squared norms of the two parts of float32 features (m, D), computed in
     float64 from the float32 values (what :func:`row_lower_bounds` expects)."""
     out = np.empty((len(features), 2))
-    for a in range(0, len(features), 65536):             # blocks: no (m, D) float64 copy
-        F = np.asarray(features[a:a + 65536], dtype=np.float64)
-        out[a:a + 65536, 0] = np.einsum("ij,ij->i", F[:, :split], F[:, :split])
-        out[a:a + 65536, 1] = np.einsum("ij,ij->i", F[:, split:], F[:, split:])
+    for a in range(0, len(features), _NORM_BLOCK):       # blocks: no (m, D) float64 copy
+        F = np.asarray(features[a:a + _NORM_BLOCK], dtype=np.float64)
+        out[a:a + _NORM_BLOCK, 0] = np.einsum("ij,ij->i", F[:, :split], F[:, :split])
+        out[a:a + _NORM_BLOCK, 1] = np.einsum("ij,ij->i", F[:, split:], F[:, split:])
     return out
 
 
