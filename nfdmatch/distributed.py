@@ -651,18 +651,7 @@ def _account(out: dict, work) -> None:
 
 
 def _ranked(idx, tops, top) -> list[list[dict]]:
-    """The rows of :func:`nfdmatch.search.search_index` from merged TopKs: the same order
-    (distance, ties within TIE by id) and the same keys."""
-    from .search.bestfirst import TIE
+    """The rows of :func:`nfdmatch.search.search_index` from merged TopKs (the same code)."""
+    from .search.index_search import ranked_rows
 
-    results = []
-    for tk in tops:
-        ids = idx.ids_at(tk.rows) if len(tk.rows) else []
-        order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[i]))
-        if top is not None:
-            order = order[:top]
-        results.append([{"rank": rank, "match": ids[i], "distance": float(tk.dist[i]),
-                         "shift": float(tk.extra["shift"][i]), "reversed": bool(tk.extra["reversed"][i]),
-                         "mirrored": bool(tk.extra["mirrored"][i]), "row": int(tk.rows[i])}
-                        for rank, i in enumerate(order, start=1)])
-    return results
+    return ranked_rows(idx, tops, top)

@@ -33,6 +33,17 @@ def _check_direction(direction: str) -> None:
         raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
 
 
+def _search_inputs(A, B, samples, weights, direction):
+    """A search's arguments checked once: ``(A (K, 3) complex128, B (N, K, 3) complex128,
+    w (K,) float64, n int)``; a single row ``B`` (K, 3) becomes (1, K, 3)."""
+    A = np.asarray(A, dtype=np.complex128)
+    B = np.asarray(B, dtype=np.complex128)
+    if B.ndim == 2:
+        B = B[None]
+    _check_direction(direction)
+    return A, B, _weights(weights, B.shape[1]), int(samples)
+
+
 _TINY = np.finfo(np.float64).tiny
 
 

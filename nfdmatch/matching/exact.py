@@ -11,7 +11,7 @@ import threading
 import numpy as np
 
 from .common import (_REFINE_CANDIDATES, _SMALL_BATCH, _check_direction, _direction_variants, _integer_shift_basis,
-                     _kabsch_rotation, _shift_basis, _trace_soa, _trace_svd, _weights)
+                     _kabsch_rotation, _search_inputs, _shift_basis, _trace_soa, _trace_svd)
 from . import dispatch
 from .dispatch import _compiled_kernels, _folded_basis
 
@@ -104,14 +104,8 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     maxima per row are refined continuously; the final distance is the direct residual
     at the optimal rotation (no cancellation).
     """
-    A = np.asarray(A, dtype=np.complex128)
-    B = np.asarray(B, dtype=np.complex128)
-    if B.ndim == 2:
-        B = B[None]
+    A, B, w, n = _search_inputs(A, B, samples, weights, direction)
     N, K, _ = B.shape
-    n = int(samples)
-    w = _weights(weights, K)
-    _check_direction(direction)
     D = 2 if direction == "invariant" else 1
     C = min(_REFINE_CANDIDATES if refine else 1, D * n)
     Aw = np.conj(A) * w[:, None]

@@ -3,10 +3,9 @@ integer shift a rotation about z by the angle between bisectors. Kept to reprodu
 
 from __future__ import annotations
 
-
 import numpy as np
 
-from .common import _check_direction, _weights
+from .common import _search_inputs
 
 
 # --------------------------------------------------------------------------- paper
@@ -43,14 +42,8 @@ def paper_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
 
     Returns the same dict as :func:`exact_search`.
     """
-    A = np.asarray(A, dtype=np.complex128)
-    B = np.asarray(B, dtype=np.complex128)
-    if B.ndim == 2:
-        B = B[None]
+    A, B, w, n = _search_inputs(A, B, samples, weights, direction)
     N, K, _ = B.shape
-    n = int(samples)
-    w = _weights(weights, K)
-    _check_direction(direction)
     names = ["forward"] + (["reversed"] if direction == "invariant" else [])
     if mirror:
         names += ["mirrored"] + (["mirrored_reversed"] if direction == "invariant" else [])

@@ -142,6 +142,14 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
 
     for qi, tk in enumerate(tops):
         _recompute(index, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=weights)
+    results = ranked_rows(index, tops, top)
+    stats.seconds = time.perf_counter() - t0
+    return results, stats
+
+
+def ranked_rows(index, tops, top: int | None) -> list[list[dict]]:
+    """Each :class:`~nfdmatch.search.bestfirst.TopK` as the rows :func:`search_index`
+    returns: sorted by distance, distances within ``TIE`` by id, at most ``top``."""
     results = []
     for tk in tops:
         ids = index.ids_at(tk.rows) if len(tk.rows) else []
@@ -153,8 +161,7 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                          "shift": float(tk.extra["shift"][i]), "reversed": bool(tk.extra["reversed"][i]),
                          "mirrored": bool(tk.extra["mirrored"][i]), "row": int(tk.rows[i])}
                         for rank, i in enumerate(order, start=1)])
-    stats.seconds = time.perf_counter() - t0
-    return results, stats
+    return results
 
 
 def _recompute(index, query, tk, search, *, direction, mirror, weights) -> None:
