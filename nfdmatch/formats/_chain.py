@@ -437,11 +437,8 @@ def write_if_changed(path: str, produce) -> bool:
 
 
 def write_text(path, text: str) -> None:
-    """Write ``text`` as UTF-8 with ``\\n`` line ends; I/O problems become :class:`ReadError`.
-
-    (errors.py has no dedicated write error; ReadError is the I/O error class,
-    an ``OSError``.)
-    """
+    """Write ``text`` as UTF-8 with ``\\n`` line ends; I/O problems become
+    :class:`~nfdmatch.errors.WriteError` (an ``OSError``) naming the file."""
     p = str(path)
     try:
         with open(p, "w", encoding="utf-8", newline="\n") as fh:

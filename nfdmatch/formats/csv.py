@@ -248,7 +248,7 @@ def write(path, curves) -> None:
     ------
     ParameterError : not exactly one curve.
     CurveError : an invalid curve.
-    ReadError : the file cannot be written.
+    WriteError : the file cannot be written.
     """
     p = str(path)
     arrays = points_list(curves, path=p)

@@ -221,7 +221,7 @@ def write(path, curves) -> None:
     Raises
     ------
     ParameterError : no curves. CurveError : an invalid curve.
-    ReadError : the file cannot be written.
+    WriteError : the file cannot be written.
     """
     p = str(path)
     arrays = points_list(curves, path=p)

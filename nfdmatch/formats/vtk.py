@@ -159,7 +159,7 @@ def write(path, curves, format: str | None = None) -> None:
     Raises
     ------
     UnknownFormatError, ParameterError (no curves), CurveError (an invalid
-    curve), ReadError (the file cannot be written).
+    curve), WriteError (the file cannot be written).
     """
     p = str(path)
     kind = _kind(p, format)
