@@ -290,14 +290,9 @@ class Cluster:
         from .index import open_index
         from .search import SearchStats
 
-        if top is None and max_distance is None:
-            raise ParameterError("give top or max_distance (or both)")
-        if top is not None and top < 1:
-            raise ParameterError(f"top must be at least 1, got {top}")
-        from .matching import METHODS
+        from .search.index_search import check_search_parameters
 
-        if method not in METHODS:
-            raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+        check_search_parameters(top, max_distance, method)
         t0 = time.perf_counter()
         own = not hasattr(index, "search_table")
         idx = open_index(index) if own else index

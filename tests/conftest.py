@@ -82,3 +82,19 @@ def pytest_collection_modifyitems(config, items):
         module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
         if module in SLOW_MODULES or item.originalname in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture
+def reads(monkeypatch):
+    """Paths read by in-process (jobs=1) builds: the index's reader of curve files, counted."""
+    from nfdmatch.index import pool
+
+    seen = []
+    real = pool.read_curves
+
+    def counting(path, format=None):
+        seen.append(str(path))
+        return real(path, format=format)
+
+    monkeypatch.setattr(pool, "read_curves", counting)
+    return seen

@@ -66,20 +66,6 @@ def lib(tmp_path, rng):
     return _library(tmp_path / "lib", rng)
 
 
-@pytest.fixture
-def reads(monkeypatch):
-    """Paths read by in-process (jobs=1) builds."""
-    seen = []
-    real = nindex.pool.read_curves
-
-    def counting(path, format=None):
-        seen.append(str(path))
-        return real(path, format=format)
-
-    monkeypatch.setattr(nindex.pool, "read_curves", counting)
-    return seen
-
-
 def _snapshot(path):
     with open_index(path) as idx:
         return {"ids": idx.ids(), "files": idx.files(), "rows": idx.read_rows(0, idx.n_curves),

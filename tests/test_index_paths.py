@@ -38,19 +38,6 @@ def lib(tmp_path, rng):
     return _library(tmp_path / "lib", rng)
 
 
-@pytest.fixture
-def reads(monkeypatch):
-    seen = []
-    real = nindex.pool.read_curves
-
-    def counting(path, format=None):
-        seen.append(str(path))
-        return real(path, format=format)
-
-    monkeypatch.setattr(nindex.pool, "read_curves", counting)
-    return seen
-
-
 KEYS = ["lib/c0.csv", "lib/c1.csv", "lib/c2.csv", "lib/sub/multi.obj", "lib/sub/one.obj"]
 IDS = ["lib/c0.csv", "lib/c1.csv", "lib/c2.csv"] + [f"lib/sub/multi.obj#{i}" for i in range(3)] + ["lib/sub/one.obj"]
 

@@ -49,6 +49,16 @@ class SearchStats:
         return value / self.queries if self.queries else 0.0
 
 
+def check_search_parameters(top: int | None, max_distance: float | None, method: str) -> None:
+    """The checks every search of an index makes on its arguments (local or on a cluster)."""
+    if top is None and max_distance is None:
+        raise ParameterError("give top or max_distance (or both)")
+    if top is not None and top < 1:
+        raise ParameterError(f"top must be at least 1, got {top}")
+    if method not in METHODS:
+        raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+
+
 def search_index(index, queries, *, top: int | None = 10, max_distance: float | None = None,
                  method: str = "exact", direction: str = "invariant", mirror: bool = False,
                  prune: bool = True, progress=None, weights=None, threads: int | None = None,
@@ -87,12 +97,7 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     """
     from ..descriptors import descriptors_batch
 
-    if top is None and max_distance is None:
-        raise ParameterError("give top or max_distance (or both)")
-    if top is not None and top < 1:
-        raise ParameterError(f"top must be at least 1, got {top}")
-    if method not in METHODS:
-        raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    check_search_parameters(top, max_distance, method)
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     threads = threads or min(os.cpu_count() or 1, 4)
