@@ -12,7 +12,7 @@ $(BIN)/python:
 
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test]'
-	@echo "compiling the numba kernels once (so that the first query does not)" >&2
+	@echo "compiling the numba kernels once, also ahead of time (so that no query compiles or imports numba)" >&2
 	$(BIN)/python -c "from nfdmatch.matching import compile_kernels; compile_kernels()"
 	touch $(STAMP)
 

@@ -394,7 +394,7 @@ class Cluster:
                 for qi, part in zip(block, answer["tops"]):
                     if len(part["rows"]):
                         tops[qi].add(part["dist"], part["rows"], part)
-                for key in ("exact", "truncated", "scanned", "cells", "bytes_read"):
+                for key in ("exact", "truncated", "fine", "scanned", "cells", "bytes_read"):
                     setattr(stats, key, getattr(stats, key) + int(answer[key]))
                 done += len(block)
                 if progress is not None:
@@ -528,14 +528,14 @@ class _SeededTopK(TopK):
         self._seen = np.zeros(0, dtype=np.int64)
         if seed is not None and len(seed["rows"]):
             super().add(np.asarray(seed["dist"], dtype=np.float64), np.asarray(seed["rows"], dtype=np.int64),
-                        {key: np.asarray(seed[key]) for key in self.extra})
+                        {key: np.asarray(seed[key]) for key in self.extra if key in seed})
             self._seen = np.sort(np.asarray(seed["rows"], dtype=np.int64))
 
     def add(self, dist, rows, result) -> None:
         if len(self._seen):
             new = ~_member(rows, self._seen)
             dist, rows = dist[new], rows[new]
-            result = {key: result[key][new] for key in self.extra}
+            result = {key: result[key][new] for key in self.extra if key in result}
         super().add(dist, rows, result)
 
 
@@ -569,7 +569,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     search = exact_search if params["method"] == "exact" else paper_search
     tops = [_SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
             for q in range(len(qcoef))]
-    out = {"exact": 0, "truncated": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
+    out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
     options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
                    samples=idx.samples)
     if rng is not None and rng[0] == "rows":
@@ -641,7 +641,7 @@ def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:
 
 
 def _account(out: dict, work) -> None:
-    for key in ("exact", "truncated", "scanned", "cells"):
+    for key in ("exact", "truncated", "fine", "scanned", "cells"):
         out[key] += getattr(work, key)
 
 

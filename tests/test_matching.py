@@ -256,12 +256,14 @@ def test_same_vertices_in_every_format_give_the_same_distance(tmp_path, rng, ext
 # --------------------------------------------------------------------------- compiled kernels
 # nfdmatch/_kernels.py (numba, optional) must give what the numpy path gives.
 
-def _exact_with(monkeypatch, mode, *args, **kwargs):
+def _exact_with(monkeypatch, mode, *args, aot=None, **kwargs):
     """exact_search with NFDMATCH_NUMBA=mode in a fresh kernel state (as a new process that
-    imports nfdmatch with that environment); returns (result, state)."""
+    imports nfdmatch with that environment and, unless ``aot`` gives them, without the
+    ahead-of-time kernels); returns (result, state)."""
     from nfdmatch import matching
 
-    state = {"module": None, "failed": None, "work": 0, "mode": matching.dispatch._mode_from_environment(mode)}
+    state = {"module": None, "failed": None, "work": 0, "mode": matching.dispatch._mode_from_environment(mode),
+             "aot": aot}
     monkeypatch.setattr(matching.dispatch, "_kernel_state", state)
     return exact_search(*args, **kwargs), state
 
@@ -304,6 +306,78 @@ def test_numba_path_equals_numpy_path(monkeypatch, rng, samples, harmonics, opti
             assert np.array_equal(got["reversed"][g], ref["reversed"][g])
             assert np.array_equal(got["mirrored"][g], ref["mirrored"][g])
             np.testing.assert_allclose(got["rotation"][g], ref["rotation"][g], atol=1e-8)
+
+
+def _aot_kernels():
+    """The ahead-of-time kernels, which ``make install`` builds (a missing build is a failure:
+    the README's set-up promises them)."""
+    from nfdmatch.matching import aot
+
+    kernels = aot.load()
+    assert kernels is not None, "the ahead-of-time kernels are not built: run make install"
+    return kernels
+
+
+@pytest.mark.parametrize("samples, harmonics", [(128, 16), (30, 7), (127, 16), (12, 3)])
+@pytest.mark.parametrize("options", [{}, {"mirror": True}, {"direction": "strict"}, {"refine": False},
+                                     {"refine_below": 0.5}, {"weights": "random"}])
+def test_ahead_of_time_kernels_equal_the_numpy_path(monkeypatch, rng, samples, harmonics, options):
+    kernels = _aot_kernels()
+    rows, generic = _kernel_rows(rng, samples, harmonics)
+    if options.get("weights") == "random":
+        options = {"weights": rng.uniform(0.0, 2.0, harmonics)}
+    for query in (0, 3, generic):
+        ref, _ = _exact_with(monkeypatch, "0", rows[query], rows, samples, **options)
+        got, state = _exact_with(monkeypatch, "auto", rows[query], rows, samples, aot=kernels, **options)
+        assert state["module"] is None                  # served without importing numba's JIT
+        np.testing.assert_allclose(got["distance"], ref["distance"], rtol=1e-12, atol=1e-13)
+        assert np.allclose(got["rotation"] @ np.swapaxes(got["rotation"], 1, 2), np.eye(3), atol=1e-12)
+        assert np.array_equal(np.linalg.det(got["rotation"]) < 0, got["mirrored"])
+        g = slice(0, generic) if query < generic else slice(0, 0)
+        delta = (got["shift"][g] - ref["shift"][g] + samples / 2) % samples - samples / 2
+        assert np.all(np.abs(delta) < 1e-7)
+        assert np.array_equal(got["reversed"][g], ref["reversed"][g])
+
+
+def test_ahead_of_time_grid_maximum_equals_the_numpy_path(monkeypatch, rng):
+    from nfdmatch import matching
+
+    kernels = _aot_kernels()
+    rows, _ = _kernel_rows(rng, 128, 16)
+    for grid, direction, mirror in ((24, "invariant", False), (16, "strict", True), (10, "invariant", True)):
+        monkeypatch.setattr(matching.dispatch, "_kernel_state", {"module": None, "failed": None, "work": 0,
+                                                                 "mode": "off", "aot": None})
+        ref = matching.grid_maximum(rows[1, :4], rows[:, :4], grid, direction=direction, mirror=mirror)
+        monkeypatch.setattr(matching.dispatch, "_kernel_state", {"module": None, "failed": None, "work": 0,
+                                                                 "mode": "aot", "aot": kernels})
+        got = matching.grid_maximum(rows[1, :4], rows[:, :4], grid, direction=direction, mirror=mirror)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_a_stale_ahead_of_time_build_is_not_used(monkeypatch, tmp_path):
+    from nfdmatch.matching import aot
+
+    stamp = tmp_path / "stamp"
+    stamp.write_text("0" * 64 + "\n")                   # built from another kernel source
+    monkeypatch.setattr(aot, "_STAMP", str(stamp))
+    assert aot.load() is None
+    stamp.write_text(aot.source_digest() + "\n")
+    assert aot.load() is not None
+
+
+def test_a_process_does_not_import_numba_when_the_ahead_of_time_kernels_serve():
+    import subprocess
+    import sys
+
+    _aot_kernels()
+    code = ("import sys, numpy as np\n"
+            "from nfdmatch import matching\n"
+            "B = np.random.default_rng(0).normal(size=(3000, 16, 3)) * (1 + 1j)\n"
+            "d = matching.exact_search(B[0], B, 128)['distance']\n"
+            "print(sys.modules.get('numba') is not None, d[0] < 1e-9)\n")
+    env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_NUMBA"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split() == ["False", "True"]
 
 
 def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
@@ -410,7 +484,9 @@ def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
             "d = matching.exact_search(B[0], B, 128)['distance']\n"
             "print(repr(matching.dispatch._kernel_state['failed'])[:40], d[0] < 1e-9)\n")
     env = dict(os.environ, NFDMATCH_NUMBA="auto")
-    code = code.replace("from nfdmatch import matching\n", "from nfdmatch import matching\nmatching.dispatch._NUMBA_AMORTIZE = 1\n")
+    # without the ahead-of-time kernels (they would serve instead)
+    code = code.replace("from nfdmatch import matching\n", "from nfdmatch import matching\nmatching.dispatch._NUMBA_AMORTIZE = 1\n"
+                        "matching.dispatch._kernel_state['aot'] = None\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0].startswith("RuntimeError") and out.stdout.split()[-1] == "True", out.stdout

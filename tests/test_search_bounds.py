@@ -45,7 +45,7 @@ def _pairs(rng, count):
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), mirror=st.booleans(), strict=st.booleans(),
-       harmonics=st.integers(1, 6), grid=st.sampled_from([8, 12, 24, 32]))
+       harmonics=st.integers(1, 8), grid=st.sampled_from([8, 12, 24, 32, 48]))
 def test_truncated_bound_never_exceeds_the_exact_distance(seed, mirror, strict, harmonics, grid):
     rng = np.random.default_rng(seed)
     A, B = _pairs(rng, 24)
@@ -65,6 +65,29 @@ def test_truncated_bound_is_tight_on_unrelated_curves():
     bound = truncated_lower_bounds(A, B)
     far = exact > 0.2
     assert np.median(bound[far] / exact[far]) > 0.8
+
+
+def test_truncated_stages_each_keep_more_harmonics_than_the_last():
+    from nfdmatch.search.bounds import TRUNCATED_STAGES, truncated_stages
+
+    assert truncated_stages(16, 16) == list(TRUNCATED_STAGES)
+    assert truncated_stages(16, 4) == [TRUNCATED_STAGES[0]]       # a format-1 table: head harmonics only
+    assert truncated_stages(6, 6) == [(4, 24)]                     # K' = K is the exact distance's job
+    assert truncated_stages(3, 3) == [(3, 24)]
+    for K in range(1, 20):
+        stages = truncated_stages(K, K)
+        assert all(a[0] < b[0] for a, b in zip(stages, stages[1:]))
+        assert all(g > 2 * k for k, g in stages)
+
+
+def test_the_finer_stage_is_tighter_on_unrelated_curves():
+    rng = np.random.default_rng(8)
+    A, B = _pairs(rng, 60)
+    exact = exact_search(A, B, N)["distance"]
+    coarse, fine = (truncated_lower_bounds(A, B, harmonics=k, grid=g) for k, g in ((4, 24), (8, 48)))
+    far = exact > 0.2
+    assert np.all(fine <= exact * (1 + 1e-9) + 1e-12)
+    assert np.median(fine[far] / exact[far]) > np.median(coarse[far] / exact[far])
 
 
 def test_grid_maximum_compiled_equals_numpy(monkeypatch):

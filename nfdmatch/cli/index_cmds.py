@@ -462,7 +462,8 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
             + ("" if not stats.pruned else
                f"; per query: {stats.per_query(stats.scanned):.0f} rows bounded in "
                f"{stats.per_query(stats.cells):.1f} of {stats.cell_count} cells, "
-               f"{stats.per_query(stats.truncated):.0f} truncated-harmonic bounds, "
+               f"{stats.per_query(stats.truncated):.0f} truncated-harmonic bounds "
+               f"(+{stats.per_query(stats.fine):.0f} finer), "
                f"{stats.per_query(stats.exact):.0f} exact distances, "
                f"{stats.per_query(stats.bytes_read) / 2**20:.2f} MiB read"))
     inputs.finish()

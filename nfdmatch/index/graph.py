@@ -226,9 +226,20 @@ def _store(i, rows, d, ids, neighbour, distance, k):
     distance[i, :len(order)] = d[order]
 
 
+#: graph rows from which a build on several threads loads the just-in-time kernels
+_THREADED_ROWS = 64
+
+
 def _run(rows, work, threads, done):
     """``done(i, *work(i))`` for every row, ``work`` in threads (one BLAS thread each)."""
+    from ..matching import dispatch
+
     threads = threads or min(os.cpu_count() or 1, 4)
+    if threads > 1 and not dispatch.threads_help():
+        # the kernels compiled ahead of time hold the GIL: threads need the just-in-time
+        # ones, worth their import (~0.45 s) for a graph of more than a few rows
+        if len(rows) < _THREADED_ROWS or not dispatch.load_threaded_kernels():
+            threads = 1
     if threads > 1 and len(rows) > 1:
         from concurrent.futures import ThreadPoolExecutor
 

@@ -133,7 +133,7 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
 
     g = h5["search"]
     start = np.asarray(g["cell_start"][...], dtype=np.int64)
-    ds_row, ds_features, ds_sqnorm, ds_coefficients = g["row"], g["features"], g["sqnorm"], g["coefficients"]
+    ds_row, ds_features, ds_coefficients = g["row"], g["features"], g["coefficients"]
 
     def finite(name, values, first):
         bad = first_nonfinite(values, first)
@@ -142,18 +142,22 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
         return values
 
     def read_positions(a: int, b: int):
+        # two reads per range: the squared norms are recomputed from the features (the
+        # build computes them the same way), the descriptors are read apart, only for the
+        # cells a search takes past the invariant bound (read_descriptors)
         def read():
-            return (np.asarray(ds_row[a:b], dtype=np.int64), np.asarray(ds_features[a:b], dtype=np.float32),
-                    np.asarray(ds_sqnorm[a:b], dtype=np.float64), np.asarray(ds_coefficients[a:b]))
+            return np.asarray(ds_row[a:b], dtype=np.int64), np.asarray(ds_features[a:b], dtype=np.float32)
 
-        row, features, sqnorm, coefficients = guard(read, f"/search, positions {a}..{b - 1}")
+        row, features = guard(read, f"/search, positions {a}..{b - 1}")
         if len(row) and (row.min() < 0 or row.max() >= N):
             fail("/search/row holds a row outside the index")
         finite("features", features, a)
-        finite("sqnorm", sqnorm, a)
-        finite("coefficients", coefficients, a)
-        return row, features, sqnorm, coefficients
+        return row, features, None, None
+
+    def read_descriptors(a: int, b: int):
+        coefficients = guard(lambda: np.asarray(ds_coefficients[a:b]), f"/search/coefficients, positions {a}..{b - 1}")
+        return finite("coefficients", coefficients, a)
 
     centre = finite("centre", np.asarray(g["centre"][...], dtype=np.float64), 0)
     radius = finite("radius", np.asarray(g["radius"][...], dtype=np.float64), 0)
-    return SearchTable(harmonics, start, centre, radius, read_positions, read_coefficients)
+    return SearchTable(harmonics, start, centre, radius, read_positions, read_coefficients, read_descriptors)

@@ -60,6 +60,8 @@ def _mode_from_environment(value: str) -> str:
         return "off"
     if mode in ("1", "on", "yes", "true", "numba"):
         return "on"
+    if mode == "aot":
+        return "aot"
     return "auto"
 
 
@@ -71,13 +73,15 @@ _kernel_state["mode"] = _mode_from_environment(os.environ.get(_NUMBA_ENV, ""))
 def use_kernels(mode: str) -> None:
     """Choose how this process computes exact distances.
 
-    mode : ``"auto"`` (the default: the numba kernels once the process has done enough
-        exact work to pay for importing them), ``"numba"`` (from the next call on) or
-        ``"numpy"`` (the reference path, never numba). The environment variable
-        ``NFDMATCH_NUMBA`` (``auto``, ``1``, ``0``) sets the default when nfdmatch is
-        imported; this call is the explicit way for a long-running program.
+    mode : ``"auto"`` (the default: the kernels compiled ahead of time when ``make install``
+        built them, else numpy until the process has done enough exact work to pay for
+        importing the just-in-time numba kernels), ``"numba"`` (the just-in-time kernels,
+        from the next call on), ``"aot"`` (the ahead-of-time kernels when built, else numpy)
+        or ``"numpy"`` (the reference path). The environment variable ``NFDMATCH_NUMBA``
+        (``auto``, ``1``, ``0``, ``aot``) sets the default when nfdmatch is imported; this
+        call is the explicit way for a long-running program.
     """
-    modes = {"auto": "auto", "numba": "on", "numpy": "off"}
+    modes = {"auto": "auto", "numba": "on", "numpy": "off", "aot": "aot"}
     if mode not in modes:
         raise ParameterError(f"kernels must be one of {', '.join(modes)}, got {mode!r}")
     with _kernel_lock:
@@ -88,23 +92,60 @@ def _numba_mode() -> str:
     return _kernel_state.get("mode", "auto")
 
 
-def _compiled_kernels(work: int):
-    """nfdmatch._kernels when it is (or has just become) worth using, else None (numpy path).
+_UNLOADED = object()
+_kernel_state["aot"] = _UNLOADED
 
-    ``work`` is this call's rows x directions x shifts (+ _CALL_WORK). Any failure to import
-    numba or to load / compile the kernels (e.g. no writable cache directory: compiling in
-    every process would cost more than it saves) falls back to numpy for the rest of the
-    process; with NFDMATCH_NUMBA=1 that also warns.
+
+def _aot_kernels():
+    """The ahead-of-time kernels (:mod:`.aot`) when built for this source, else None; looked
+    up once per process (~1 ms)."""
+    got = _kernel_state.get("aot", _UNLOADED)
+    if got is _UNLOADED:
+        from . import aot
+
+        got = _kernel_state["aot"] = aot.load()
+    return got
+
+
+def _compiled_kernels(work: int):
+    """The kernels a call of ``work`` units should use, or None for the numpy path.
+
+    ``work`` is this call's rows x directions x shifts (+ _CALL_WORK). In ``auto`` mode the
+    ahead-of-time kernels serve every call when built (no import cost); without them numpy
+    serves until the work done so far would have paid for importing numba, then the
+    just-in-time kernels. Once these are loaded (``numba`` mode, the switch above, or
+    :func:`load_threaded_kernels`) they serve every call. Any failure to import numba or to
+    load / compile its kernels (e.g. no writable cache directory: compiling in every process
+    would cost more than it saves) falls back for the rest of the process; with
+    NFDMATCH_NUMBA=1 that also warns.
     """
     state = _kernel_state
     mode = _numba_mode()
     if mode == "off" or getattr(_reference, "on", False):
         return None
-    if state["module"] is not None or state["failed"] is not None:
+    if state["module"] is not None:
         return state["module"]
-    state["work"] += work
-    if mode == "auto" and state["work"] < _NUMBA_AMORTIZE:
+    if mode == "aot":
+        return _aot_kernels()
+    if mode == "auto":
+        aot = _aot_kernels()
+        if aot is not None:
+            return aot
+        if state["failed"] is not None:
+            return None
+        state["work"] += work
+        if state["work"] < _NUMBA_AMORTIZE:
+            return None
+    elif state["failed"] is not None:
         return None
+    _load_jit(warn=mode == "on")
+    return state["module"]
+
+
+def _load_jit(warn: bool) -> bool:
+    """Import the just-in-time kernels once (compiling them on a first use); False when they
+    cannot be used in this process."""
+    state = _kernel_state
     with _kernel_lock:
         if state["module"] is None and state["failed"] is None:
             try:
@@ -112,13 +153,29 @@ def _compiled_kernels(work: int):
                 _warm_up(_kernels)
             except Exception as exc:             # ImportError, numba errors: numpy it is
                 state["failed"] = exc
-                if mode == "on":
+                if warn:
                     import warnings
                     warnings.warn(f"nfdmatch: numba kernels unavailable, using numpy ({exc!r})",
-                                  RuntimeWarning, stacklevel=3)
+                                  RuntimeWarning, stacklevel=4)
             else:
                 state["module"] = _kernels
-    return state["module"]
+    return state["module"] is not None
+
+
+def threads_help() -> bool:
+    """Whether exact work spread over threads runs in parallel: False when the calls would
+    go to the ahead-of-time kernels, which hold the GIL (threads would only take turns)."""
+    kernels = _compiled_kernels(0) if _numba_mode() != "off" else None
+    return kernels is None or getattr(kernels, "threads", True)
+
+
+def load_threaded_kernels() -> bool:
+    """Switch this process to the just-in-time kernels (they release the GIL, so queries on
+    threads run in parallel), unless the mode forbids it; True when they now serve calls.
+    For a caller that has measured enough work ahead to pay for importing numba (~0.45 s)."""
+    if _numba_mode() not in ("auto", "on"):
+        return False
+    return _load_jit(warn=False)
 
 
 def _warm_up(kernels) -> None:
@@ -131,16 +188,27 @@ def _warm_up(kernels) -> None:
     kernels.grid_maximum_rows(A, B, 1, basis, quarter, 8, False)
 
 
-def compile_kernels() -> bool:
-    """Compile (or load from numba's cache) the exact-search kernels now and keep them for
-    this process. ``make install`` runs it once, so that the first query of a new install
-    does not pay the ~15-20 s compile. Returns False when numba cannot be used (the numpy
-    path then serves every search)."""
+def compile_kernels(ahead_of_time: bool = True) -> bool:
+    """Compile (or load from numba's cache) the just-in-time kernels now and keep them for
+    this process; with ``ahead_of_time``, also build the extension module of :mod:`.aot`
+    when it is missing or stale (~30 s). ``make install`` runs it once, so that neither the
+    first query of a new install nor any single query pays for compiling or importing
+    numba. Returns False when numba cannot be used (the numpy path then serves every
+    search)."""
     try:
         from . import _kernels
         _warm_up(_kernels)
     except Exception:                      # ImportError, numba errors: the numpy path serves
         return False
+    if ahead_of_time:
+        from . import aot
+
+        if aot.load() is None:
+            try:
+                aot.build()
+            except Exception:              # no C compiler, numba.pycc gone: the JIT serves
+                pass
+        _kernel_state["aot"] = _UNLOADED
     with _kernel_lock:
         _kernel_state["module"] = _kernels
     return True

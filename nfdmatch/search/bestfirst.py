@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .bounds import cell_lower_bounds, row_lower_bounds, truncated_lower_bounds
+from .bounds import cell_lower_bounds, row_lower_bounds, truncated_lower_bounds, truncated_stages
 
 __all__ = ["TopK", "QueryWork", "search_one", "margin"]
 
@@ -38,14 +38,18 @@ def margin(threshold: float) -> float:
 
 
 class TopK:
-    """The best rows seen so far for one query: every row within the k-th distance (ties kept)."""
+    """The best rows seen so far for one query: every row within the k-th distance (ties kept).
+
+    ``extra`` holds per row the alignment (shift, reversed, mirrored) and ``position``: where
+    the search table holds the row's descriptors (-1 when added from elsewhere), so that
+    they can be read again without a scattered read of the index."""
 
     def __init__(self, k: int | None, max_distance: float | None):
         self.k, self.max_distance = k, max_distance
         self.dist = np.zeros(0)
         self.rows = np.zeros(0, dtype=np.int64)
         self.extra = {key: np.zeros(0, dtype=t) for key, t in
-                      (("shift", float), ("reversed", bool), ("mirrored", bool))}
+                      (("shift", float), ("reversed", bool), ("mirrored", bool), ("position", np.int64))}
 
     def threshold(self) -> float:
         limit = np.inf if self.max_distance is None else self.max_distance
@@ -58,7 +62,8 @@ class TopK:
         self.dist = np.concatenate([self.dist, dist[keep]])
         self.rows = np.concatenate([self.rows, rows[keep]])
         for key in self.extra:
-            self.extra[key] = np.concatenate([self.extra[key], result[key][keep]])
+            values = result[key] if key in result else np.full(len(dist), -1, dtype=self.extra[key].dtype)
+            self.extra[key] = np.concatenate([self.extra[key], np.asarray(values)[keep]])
         t = self.threshold()
         if np.isfinite(t):
             inside = self.dist <= t + TIE
@@ -69,78 +74,77 @@ class TopK:
 @dataclass
 class QueryWork:
     """What one query's search did: positions whose invariant bound was computed
-    (``scanned``), cells opened, truncated bounds, exact distances."""
+    (``scanned``), cells opened, truncated bounds (``truncated``: the first stage, ``fine``:
+    the later ones), exact distances."""
 
     scanned: int = 0
     cells: int = 0
     truncated: int = 0
+    fine: int = 0
     exact: int = 0
     extra: dict = field(default_factory=dict)
 
 
-class _Descriptors:
-    """The descriptors of the rows a query has opened, appended block by block (amortized
-    doubling) and addressed by slot, so that the queues carry 8-byte slots and never copy
-    descriptors when they merge."""
-
-    def __init__(self):
-        self._data = None
-        self._used = 0
-
-    def append(self, block: np.ndarray) -> np.ndarray:
-        """Store ``block`` (m, K'', 3); returns its (m,) int64 slots."""
-        m = len(block)
-        if self._data is None:
-            self._data = np.empty((max(m, 1024),) + block.shape[1:], dtype=block.dtype)
-        elif self._used + m > len(self._data):
-            grown = np.empty((max(2 * len(self._data), self._used + m),) + self._data.shape[1:],
-                             dtype=self._data.dtype)
-            grown[:self._used] = self._data[:self._used]
-            self._data = grown
-        self._data[self._used:self._used + m] = block
-        slots = np.arange(self._used, self._used + m, dtype=np.int64)
-        self._used += m
-        return slots
-
-    def __getitem__(self, slots: np.ndarray) -> np.ndarray:
-        return self._data[slots]
-
-
 class _Sorted:
-    """Rows waiting in increasing order of a bound, consumed from the front, each with the
-    slot of its descriptors in the query's :class:`_Descriptors`."""
+    """Rows waiting in increasing order of a bound, each with its position in the search
+    table (where its descriptors are): sorted runs, one per batch added, taken from the
+    front in one merged order. Adding a batch sorts the batch only (the queue of opened rows
+    holds tens of thousands; re-sorting it per batch cost more than the bounds); the runs
+    are compacted into one when they pile up."""
+
+    _MAX_RUNS = 16
 
     def __init__(self):
-        self.bound = np.zeros(0)
-        self.rows = np.zeros(0, dtype=np.int64)
-        self.slots = np.zeros(0, dtype=np.int64)
-        self.pos = 0
+        self._runs: list[list] = []          # [bound, rows, slots, pos]
 
     def head(self) -> float:
-        return float(self.bound[self.pos]) if self.pos < len(self.bound) else np.inf
+        best = np.inf
+        for bound, _, _, pos in self._runs:
+            if bound[pos] < best:
+                best = bound[pos]
+        return float(best)
 
     def __len__(self) -> int:
-        return len(self.bound) - self.pos
+        return sum(len(r[0]) - r[3] for r in self._runs)
 
     def merge(self, bound, rows, slots, limit: float) -> None:
         """Add rows; every waiting row bounded above ``limit`` (the current pruning
-        threshold, which only decreases) is dropped: it can never be needed."""
-        keep = self.bound[self.pos:] <= limit
-        b = np.concatenate([self.bound[self.pos:][keep], bound])
-        order = np.argsort(b, kind="stable")        # two sorted runs: linear
-        self.bound = b[order]
-        self.rows = np.concatenate([self.rows[self.pos:][keep], rows])[order]
-        self.slots = np.concatenate([self.slots[self.pos:][keep], slots])[order]
-        self.pos = 0
+        threshold, which only decreases) may be dropped: it can never be needed."""
+        if len(bound):
+            order = np.argsort(bound, kind="stable")
+            self._runs.append([bound[order], rows[order], slots[order], 0])
+        if len(self._runs) > self._MAX_RUNS:
+            runs = self._runs
+            b = np.concatenate([r[0][r[3]:] for r in runs])
+            keep = np.flatnonzero(b <= limit)
+            order = keep[np.argsort(b[keep], kind="stable")]
+            self._runs = [[b[order], np.concatenate([r[1][r[3]:] for r in runs])[order],
+                           np.concatenate([r[2][r[3]:] for r in runs])[order], 0]] if len(order) else []
 
     def take(self, count: int, limit: float):
-        """Up to ``count`` rows from the front with a bound at most ``limit`` (at least one):
-        ``(bound, rows, slots)``."""
-        stop = min(self.pos + count, int(np.searchsorted(self.bound, limit, side="right")))
-        stop = max(stop, self.pos + 1)
-        sl = slice(self.pos, stop)
-        self.pos = stop
-        return self.bound[sl], self.rows[sl], self.slots[sl]
+        """Up to about ``count`` rows from the front with a bound at most ``limit`` (at least
+        one): ``(bound, rows, slots)``; ties at the cut may add a few."""
+        ends = []
+        total = 0
+        for bound, _, _, pos in self._runs:
+            end = min(pos + count, int(np.searchsorted(bound, limit, side="right")))
+            ends.append(end)
+            total += end - pos
+        if total == 0:                         # nothing within limit: the single smallest
+            i = int(np.argmin([r[0][r[3]] for r in self._runs]))
+            ends = [r[3] for r in self._runs]
+            ends[i] += 1
+        elif total > count:
+            # the count smallest of the runs' fronts: a prefix of each run
+            cut = np.partition(np.concatenate([r[0][r[3]:e] for r, e in zip(self._runs, ends)]), count - 1)[count - 1]
+            ends = [r[3] + int(np.searchsorted(r[0][r[3]:e], cut, side="right")) for r, e in zip(self._runs, ends)]
+        parts = [(r[0][r[3]:e], r[1][r[3]:e], r[2][r[3]:e]) for r, e in zip(self._runs, ends) if e > r[3]]
+        for r, e in zip(self._runs, ends):
+            r[3] = e
+        self._runs = [r for r in self._runs if r[3] < len(r[0])]
+        if len(parts) == 1:
+            return parts[0]
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
 
 def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table, top: "TopK", *,
@@ -154,14 +158,15 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
     table : :class:`~nfdmatch.search.table.SearchTable`.
     top : :class:`TopK` to fill (its k and max_distance set the threshold).
     search : the distance function (``exact_search`` or ``paper_search``).
-    truncate : use the truncated-harmonic bound between the invariant bound and the exact
+    truncate : use the truncated-harmonic bounds between the invariant bound and the exact
         distance.
 
-    Three queues in one best-first order: unopened cells (by cell bound), rows of opened
-    cells (by invariant bound), rows with a truncated bound (by that bound). Each step works
-    on the queue with the smallest head: opens cells, computes truncated bounds for a batch,
-    or computes exact distances for a batch; the search ends when every head exceeds the
-    k-th distance.
+    Queues in one best-first order: unopened cells (by cell bound), rows of opened cells
+    (by invariant bound), then one queue per truncated-harmonic stage
+    (:func:`~nfdmatch.search.bounds.truncated_stages`, by that stage's bound). Each step
+    works on the queue with the smallest head: opens cells, computes the next stage's bound
+    for a batch of rows, or (from the last queue) exact distances; the search ends when
+    every head exceeds the k-th distance.
     """
     work = QueryWork()
     cb = cell_lower_bounds(query_features, table.split, table.centre, table.radius)
@@ -170,66 +175,84 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
     sizes = (table.start[1:] - table.start[:-1])[corder]
     n_cells = len(corder)
     ci = 0
-    store = _Descriptors()      # descriptors of the opened rows
-    rows_q = _Sorted()          # opened, by invariant bound
-    tight_q = _Sorted()         # by truncated bound
+    queues = [_Sorted()]        # [0]: opened, by invariant bound; [i > 0]: by stage i's bound
+    stages = None               # the truncated stages, once the first cell shows what is stored
     # a table that hands out every harmonic with the cell needs no other read for the exact
     # distances (format 2, memory); else their rows' descriptors are read on demand
     complete = None
-    bound_batch, exact_batch = FIRST_BATCH, FIRST_BATCH
+    batch = [FIRST_BATCH]
+    exact_batch = FIRST_BATCH
     while True:
         thr = margin(top.threshold())
         cell_head = cbs[ci] if ci < n_cells else np.inf
-        row_head, tight_head = rows_q.head(), tight_q.head()
-        head = min(cell_head, row_head, tight_head)
+        heads = [q.head() for q in queues]
+        q_at = int(np.argmin(heads))
+        queue_head = heads[q_at]
+        head = min(cell_head, queue_head)
         if head > thr or head == np.inf:          # every row bounded above the k-th, or none left
             break
-        if cell_head <= row_head and cell_head <= tight_head:
+        if cell_head <= queue_head:
             # open every cell that may hold a row bounded below the next pending row (none
             # when nothing is pending), and at least _OPEN_ROWS positions; never a cell the
             # threshold rules out
             j, opened = ci, 0
-            limit = min(row_head, tight_head)         # inf: nothing pending
+            limit = queue_head                        # inf: nothing pending
             while j < n_cells and cbs[j] <= thr and (opened < _OPEN_ROWS or cbs[j] <= limit < np.inf):
                 opened += sizes[j]
                 j += 1
             cells = corder[ci:j]
             ci = j
             work.cells += len(cells)
-            rows, F, sq, coefficients = table.cell_rows(cells)
-            if complete is None:
-                complete = coefficients.shape[1] == query_coefficients.shape[0]
+            positions, rows, F, sq = table.open_cells(cells)
+            if stages is None:
+                stored = table.stored_harmonics
+                complete = stored == query_coefficients.shape[0]
+                stages = truncated_stages(query_coefficients.shape[0], stored) if truncate else []
+                queues += [_Sorted() for _ in stages]
+                batch += [FIRST_BATCH] * len(stages)
             work.scanned += len(rows)
             b = row_lower_bounds(query_features, table.split, F, sq)
             keep = np.flatnonzero(b <= thr)
-            rows_q.merge(b[keep], rows[keep], store.append(coefficients[keep]), thr)
+            queues[0].merge(b[keep], rows[keep], positions[keep], thr)
             continue
-        if row_head < tight_head:
-            # rows by invariant bound -> truncated bound (or straight to exact when the
-            # truncated bound is off or no k-th distance exists yet)
-            limit = min(thr, cell_head)
-            _, rows, slots = rows_q.take(bound_batch, limit)
-            if truncate and np.isfinite(thr) and len(rows) >= _TRUNCATE_FROM:
-                tb = truncated_lower_bounds(query_coefficients, store[slots], direction=direction,
-                                            mirror=mirror)
-                work.truncated += len(rows)
+        # a batch never reaches past the head of a cheaper queue (or of the cells): what is
+        # pending there may end the search before this stage's rows are needed
+        limit = min(thr, cell_head, min(heads[:q_at], default=np.inf))
+        if q_at < len(stages) and np.isfinite(thr):
+            # the next stage's bound for a batch of this queue's rows (straight to exact
+            # while no k-th distance exists: nothing could be pruned yet)
+            _, rows, slots = queues[q_at].take(batch[q_at], limit)
+            if len(rows) >= _TRUNCATE_FROM or q_at > 0:
+                Kp, grid = stages[q_at]
+                tb = truncated_lower_bounds(query_coefficients, table.coefficients_at_positions(slots, Kp),
+                                            direction=direction,
+                                            mirror=mirror, harmonics=Kp, grid=grid)
+                if q_at == 0:
+                    work.truncated += len(rows)
+                else:
+                    work.fine += len(rows)
                 keep = tb <= thr
-                tight_q.merge(tb[keep], rows[keep], slots[keep], thr)
-                bound_batch = min(bound_batch * 2, MAX_BATCH)
+                queues[q_at + 1].merge(tb[keep], rows[keep], slots[keep], thr)
+                batch[q_at] = min(batch[q_at] * 2, MAX_BATCH)
                 continue
-            coefficients = store[slots] if complete else table.coefficients(rows)
-            _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr)
-            continue
-        limit = min(thr, cell_head, row_head)
-        _, rows, slots = tight_q.take(exact_batch, limit)
-        coefficients = store[slots] if complete else table.coefficients(rows)
-        _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr)
-        exact_batch = min(exact_batch * 2, EXACT_BATCH)
+        else:
+            size = exact_batch if q_at == len(stages) and q_at > 0 else batch[q_at]
+            _, rows, slots = queues[q_at].take(size, limit)
+            if q_at == len(stages) and q_at > 0:
+                exact_batch = min(exact_batch * 2, EXACT_BATCH)
+            elif q_at < len(stages):
+                batch[q_at] = min(batch[q_at] * 2, MAX_BATCH)
+        coefficients = table.coefficients_at_positions(slots) if complete else table.coefficients(rows)
+        _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr,
+               slots if complete else None)
     return work
 
 
-def _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr):
+def _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr,
+           positions=None):
     extra = {"refine_below": thr} if method == "exact" else {}
     r = search(query_coefficients, coefficients, samples, direction=direction, mirror=mirror, **extra)
+    if positions is not None:
+        r["position"] = positions
     work.exact += len(rows)
     top.add(r["distance"], rows, r)

@@ -24,13 +24,19 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["feature_vector", "feature_split", "head_harmonics", "squared_norms", "cell_lower_bounds",
-           "row_lower_bounds", "truncated_lower_bounds", "TRUNCATED_HARMONICS", "TRUNCATED_GRID"]
+           "row_lower_bounds", "truncated_lower_bounds", "truncated_stages", "TRUNCATED_HARMONICS", "TRUNCATED_GRID",
+           "TRUNCATED_STAGES"]
 
 #: harmonics kept by the truncated bound, and its shift grid (multiple of 4, > 2 K'):
 #: on random smooth curves max(truncated, invariant) / exact has median ~0.93 at (4, 24),
 #: for ~2 us per row against ~11 us for the exact distance at n = 128 (benchmarks/bench_search.py)
 TRUNCATED_HARMONICS = 4
 TRUNCATED_GRID = 24
+#: the chain of truncated bounds a search applies in turn, (K', grid) each, cheapest first:
+#: on 100,000 random smooth curves, of the ~20,000 rows whose invariant bound is below a
+#: noisy copy's 10th distance, (4, 24) leaves 400-2,500 and (8, 48) then 25-60 for the exact
+#: distance (~2 us, ~5 us and ~16 us per row; docs/performance.md)
+TRUNCATED_STAGES = ((TRUNCATED_HARMONICS, TRUNCATED_GRID), (8, 48))
 #: float32 unit roundoff
 _U32 = 2.0 ** -24
 #: rows whose squared norms are computed at a time (bounds the float64 copy)
@@ -40,6 +46,19 @@ _NORM_BLOCK = 65536
 def head_harmonics(harmonics: int) -> int:
     """K': the harmonics the truncated bound uses, stored per row beside the features."""
     return min(TRUNCATED_HARMONICS, harmonics)
+
+
+def truncated_stages(harmonics: int, available: int) -> list[tuple[int, int]]:
+    """The (K', grid) stages of :data:`TRUNCATED_STAGES` worth applying to descriptors of
+    ``harmonics`` harmonics of which ``available`` are at hand: each stage keeps more
+    harmonics than the one before and fewer than all (the exact distance is next)."""
+    stages, kept = [], 0
+    for Kp, grid in TRUNCATED_STAGES:
+        Kp = min(Kp, harmonics)
+        if kept < Kp <= available and (Kp < harmonics or not stages):
+            stages.append((Kp, grid))
+            kept = Kp
+    return stages
 
 
 def feature_split(harmonics: int) -> int:
@@ -152,8 +171,8 @@ def truncated_lower_bounds(A: np.ndarray, B: np.ndarray, *, direction: str = "in
     As, Bs = np.asarray(A[:Kp], dtype=np.complex128), np.asarray(B[:, :Kp], dtype=np.complex128)
     fmax = grid_maximum(As, Bs, grid, direction=direction, mirror=mirror)
     k = np.arange(1, Kp + 1)
-    na = np.linalg.norm(As, axis=1)
-    nb = np.linalg.norm(Bs, axis=2)
+    na = np.sqrt((As.real ** 2 + As.imag ** 2).sum(axis=1))
+    nb = np.sqrt(np.einsum("mkj,mkj->mk", Bs.real, Bs.real) + np.einsum("mkj,mkj->mk", Bs.imag, Bs.imag))
     slack = ((np.pi * k / grid) ** 2 * na * nb).sum(axis=1)
     squared = 2.0 * (na ** 2).sum() + 2.0 * (nb ** 2).sum(axis=1)
     # F is a sum of products accurate to rounding: a relative 1e-12 of the squares covers it

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from ..matching import METHODS, exact_search, paper_search
+from ..matching import METHODS, dispatch, exact_search, paper_search
 from .bestfirst import TIE, TopK, search_one
 from .bounds import feature_vector
 
@@ -17,12 +17,16 @@ __all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS"]
 
 #: rows per exact call of the exhaustive search: bounds the (rows x shifts x 9) working set
 EXHAUSTIVE_ROWS = 2048
+#: seconds a process spends importing numba and loading the just-in-time kernels (measured
+#: 0.4-0.5 s on 2 cores): a batch switches to them when the rest of it would take twice that
+_THREADED_KERNELS_IMPORT = 0.45
 
 
 @dataclass
 class SearchStats:
     """What a search did, over all queries: ``queries``, ``rows`` (index rows),
-    ``exact`` (exact distances computed), ``truncated`` (truncated-harmonic bounds),
+    ``exact`` (exact distances computed), ``truncated`` (truncated-harmonic bounds, first
+    stage), ``fine`` (truncated bounds of the later stages, on fewer rows),
     ``scanned`` (rows whose invariant bound was computed), ``cells`` (cells opened),
     ``bytes_read`` (features and descriptors read from the index), ``seconds``,
     ``pruned`` (False for an exhaustive search), ``cell_count`` (cells in the index: 1 when
@@ -32,6 +36,7 @@ class SearchStats:
     rows: int = 0
     exact: int = 0
     truncated: int = 0
+    fine: int = 0
     scanned: int = 0
     cells: int = 0
     bytes_read: int = 0
@@ -125,28 +130,45 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
             nonlocal done
             stats.exact += work.exact
             stats.truncated += work.truncated
+            stats.fine += work.fine
             stats.scanned += work.scanned
             stats.cells += work.cells
             done += 1
             if progress is not None:
                 progress(done, len(queries))
 
-        if threads > 1 and len(queries) > 1:
+        first = 0
+        if threads > 1 and len(queries) > 1 and not dispatch.threads_help():
+            # the kernels compiled ahead of time hold the GIL: answer on this thread, and
+            # switch to the just-in-time kernels (threads in parallel) once the queries left
+            # would take long enough, at the pace so far, to pay for importing them
+            started = time.perf_counter()
+            while first < len(queries):
+                account(answer(first))
+                first += 1
+                pace = (time.perf_counter() - started) / first
+                if (len(queries) - first) * pace > 2 * _THREADED_KERNELS_IMPORT and dispatch.load_threaded_kernels():
+                    break
+            if first == len(queries) or not dispatch.threads_help():
+                threads = 1
+        rest = range(first, len(queries))
+        if threads > 1 and len(rest) > 1:
             from concurrent.futures import ThreadPoolExecutor
 
             from threadpoolctl import threadpool_limits
 
             # one BLAS thread per query thread: idle OpenBLAS workers spin and steal the cores
             with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(threads) as pool:
-                for work in pool.map(answer, range(len(queries))):
+                for work in pool.map(answer, rest):
                     account(work)
         else:
-            for qi in range(len(queries)):
+            for qi in rest:
                 account(answer(qi))
         stats.bytes_read = table.bytes_read
 
     for qi, tk in enumerate(tops):
-        _recompute(index, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=weights)
+        _recompute(index, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=weights,
+                   table=table if prune and index.n_curves and len(queries) else None)
     results = ranked_rows(index, tops, top)
     stats.seconds = time.perf_counter() - t0
     return results, stats
@@ -169,7 +191,7 @@ def ranked_rows(index, tops, top: int | None) -> list[list[dict]]:
     return results
 
 
-def _recompute(index, query, tk, search, *, direction, mirror, weights) -> None:
+def _recompute(index, query, tk, search, *, direction, mirror, weights, table=None) -> None:
     """Replace the distances, shifts and flags of the rows a query found by the numpy
     reference path's, in a fixed order on this thread.
 
@@ -178,6 +200,8 @@ def _recompute(index, query, tk, search, *, direction, mirror, weights) -> None:
     the two agree to ~1e-15 but not bit for bit, so without this the last printed digits
     change from run to run. The reference is the exact distance, so nothing is lost; rows
     pushed past ``max_distance`` by the recomputation are dropped as the search would have.
+    The descriptors come from ``table`` (the search's, already read) when it holds them all,
+    else from the index (a scattered read: up to a whole HDF5 chunk per row).
     """
     from ..matching import reference_path
 
@@ -185,16 +209,23 @@ def _recompute(index, query, tk, search, *, direction, mirror, weights) -> None:
         return
     order = np.argsort(tk.rows, kind="stable")
     rows = tk.rows[order]
+    positions = tk.extra["position"][order]
+    if table is not None and len(positions) and positions.min() >= 0:
+        def coefficients(a, b):
+            return table.coefficients_at_positions(positions[a:b])
+    else:
+        def coefficients(a, b):
+            return index.coefficients_at(rows[a:b])
     parts = []
     with reference_path():
         for a in range(0, len(rows), EXHAUSTIVE_ROWS):
-            chunk = rows[a:a + EXHAUSTIVE_ROWS]
-            parts.append(search(query, index.coefficients_at(chunk), index.samples, direction=direction,
+            parts.append(search(query, coefficients(a, a + EXHAUSTIVE_ROWS), index.samples, direction=direction,
                                 mirror=mirror, weights=weights))
     dist = np.concatenate([p["distance"] for p in parts])
     keep = dist <= (np.inf if tk.max_distance is None else tk.max_distance)
     tk.rows, tk.dist = rows[keep], dist[keep]
-    tk.extra = {key: np.concatenate([p[key] for p in parts])[keep] for key in tk.extra}
+    tk.extra = {key: (positions if key == "position" else np.concatenate([p[key] for p in parts]))[keep]
+                for key in tk.extra}
 
 
 def _exhaustive(index, qcoef, tops, search, *, direction, mirror, weights, progress) -> int:

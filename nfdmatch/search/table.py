@@ -16,6 +16,20 @@ from .bounds import feature_split, squared_norms
 
 __all__ = ["SearchTable"]
 
+
+def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The positions of the runs [lo_i, hi_i) concatenated, (sum(hi - lo),) int64."""
+    lengths = hi - lo
+    total = int(lengths.sum())
+    if total == 0:
+        return np.zeros(0, dtype=np.int64)
+    steps = np.ones(total, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    nonempty = lengths > 0
+    steps[starts[nonempty]] = lo[nonempty] - np.concatenate([[lo[nonempty][0]], (hi[nonempty] - 1)[:-1]])
+    steps[0] = lo[nonempty][0]
+    return np.cumsum(steps)
+
 #: once reads would pass this fraction of the positions, the table is read whole at once
 _READ_ALL_FRACTION = 0.25
 #: cells closer than this many positions are read in one call (an HDF5 read costs ~0.1 ms
@@ -37,13 +51,19 @@ class SearchTable:
         exact distance needs no other read) or only the first K'' <= K (a format-1 file,
         where reading every descriptor at once would cost too much; the truncated bound
         needs K'' >= min(4, K)).
+        ``sqnorm`` may be None (computed here from the features, as the build computes it);
+        ``coefficients`` may be None when ``read_descriptors`` is given.
     read_coefficients : ``read_coefficients(rows) -> (m, K, 3)`` complex for index rows.
+    read_descriptors : ``read_descriptors(a, b) -> (m, K'', 3)`` complex for positions [a, b),
+        called only for the cells whose rows a search takes past the invariant bound (an
+        index file: most opened cells never need their descriptors, the largest part of a
+        row).
 
     Thread-safe: the search answers several queries on threads over one table.
     """
 
     def __init__(self, harmonics: int, start, centre, radius, read_positions: Callable,
-                 read_coefficients: Callable):
+                 read_coefficients: Callable, read_descriptors: Callable | None = None):
         self.harmonics = harmonics
         self.split = feature_split(harmonics)
         self.start = np.asarray(start, dtype=np.int64)
@@ -52,10 +72,12 @@ class SearchTable:
         self.n_positions = int(self.start[-1]) if len(self.start) else 0
         self._read_positions = read_positions
         self._read_coefficients = read_coefficients
-        self._cells: dict[int, tuple] = {}
+        self._read_descriptors = read_descriptors
+        self._cells: dict[int, list] = {}
         self._all = None
         self._positions_read = 0
         self._lock = threading.Lock()
+        self._coefficient_shape, self._coefficient_dtype = (harmonics, 3), np.complex64
         self.bytes_read = 0
 
     @classmethod
@@ -105,10 +127,11 @@ class SearchTable:
             if not 0 <= first < stop <= C:
                 raise IndexError(f"cells [{first}, {stop}) outside 0..{C}")
             offset = int(self.start[first])
-            read = self._read_positions
+            read, read_descriptors = self._read_positions, self._read_descriptors
+            shifted = None if read_descriptors is None else (lambda a, b: read_descriptors(a + offset, b + offset))
             return SearchTable(self.harmonics, self.start[first:stop + 1] - offset, self.centre[first:stop],
                                self.radius[first:stop], lambda a, b: read(a + offset, b + offset),
-                               self._read_coefficients)
+                               self._read_coefficients, shifted)
         cells = np.asarray(cells, dtype=np.int64)
         if len(cells) == 0 or cells.min() < 0 or cells.max() >= C or (np.diff(cells) <= 0).any():
             raise IndexError(f"cells must be ascending numbers in 0..{C - 1}")
@@ -128,9 +151,22 @@ class SearchTable:
     def n_cells(self) -> int:
         return len(self.start) - 1
 
+    @property
+    def stored_harmonics(self) -> int:
+        """K'': the harmonics the table hands out per row (known once a cell was read; a
+        table reading descriptors apart holds all K)."""
+        return self._coefficient_shape[0]
+
     def cell_rows(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The rows of the given cells, concatenated: ``(row (m,) int64, features (m, D)
-        float32, sqnorm (m, 2) float64, coefficients (m, K'', 3) complex)``.
+        float32, sqnorm (m, 2) float64, coefficients (m, K'', 3) complex)``."""
+        positions, rows, F, sq = self.open_cells(cells)
+        return rows, F, sq, self.coefficients_at_positions(positions)
+
+    def open_cells(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What a search needs to bound the rows of the given cells: ``(positions (m,)
+        int64, row (m,) int64, features (m, D) float32, sqnorm (m, 2) float64)``; their
+        descriptors stay in the table (:meth:`coefficients_at_positions`).
 
         Cells not read yet are read in few calls: runs of cells whose positions are close
         are read as one range (each call costs far more than the bytes between them), and
@@ -146,43 +182,105 @@ class SearchTable:
                     self._load_all()
                 else:
                     self._read_cells(sorted(missing))
+        if len(cells) == 1:
+            a, b = int(self.start[cells[0]]), int(self.start[cells[0] + 1])
+            positions = np.arange(a, b, dtype=np.int64)
+            if self._all is not None:
+                return (positions,) + tuple(x[a:b] for x in self._all[:3])
+            return (positions,) + tuple(self._cells[int(cells[0])][:3])
+        lo, hi = self.start[cells], self.start[cells + 1]
+        positions = _ranges(lo, hi)
         if self._all is not None:
-            if len(cells) == 1:
-                a, b = self.start[cells[0]], self.start[cells[0] + 1]
-                return tuple(x[a:b] for x in self._all)
-            pos = np.concatenate([np.arange(self.start[c], self.start[c + 1]) for c in cells])
-            return tuple(x[pos] for x in self._all)
+            return (positions,) + tuple(x[positions] for x in self._all[:3])
         parts = [self._cells[int(c)] for c in cells]
-        if len(parts) == 1:
-            return parts[0]
-        return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+        return (positions,) + tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+
+    def coefficients_at_positions(self, positions: np.ndarray, harmonics: int | None = None) -> np.ndarray:
+        """(m, K', 3) complex descriptors (as stored) at positions of opened cells: the
+        first ``harmonics`` (default: all the table holds, K''). Descriptors not read yet
+        are read here, cell by cell (or all at once when the whole table is in memory)."""
+        positions = np.asarray(positions, dtype=np.int64)
+        h = self._coefficient_shape[0] if harmonics is None else min(harmonics, self._coefficient_shape[0])
+        if self._all is not None:
+            if self._all[3] is None:
+                self._load_all_descriptors()
+            return self._all[3][positions, :h]
+        out = np.empty((len(positions), h, 3), dtype=self._coefficient_dtype)
+        if not len(positions):
+            return out
+        cell = np.searchsorted(self.start, positions, side="right") - 1
+        order = np.argsort(cell, kind="stable")
+        bounds = np.flatnonzero(np.diff(cell[order])) + 1
+        groups = np.split(order, bounds)
+        missing = sorted({int(cell[g[0]]) for g in groups if self._cells[int(cell[g[0]])][3] is None})
+        if missing:
+            self._read_cell_descriptors(missing)
+        for group in groups:
+            c = int(cell[group[0]])
+            out[group] = self._cells[c][3][positions[group] - self.start[c], :h]
+        return out
+
+    def _runs(self, cells: list[int]) -> list[list[int]]:
+        """Position ranges covering ``cells`` (ascending), nearby cells joined."""
+        runs: list[list[int]] = []
+        for c in cells:
+            a, b = int(self.start[c]), int(self.start[c + 1])
+            if runs and a - runs[-1][1] <= _COALESCE_GAP:
+                runs[-1][1] = max(runs[-1][1], b)
+            else:
+                runs.append([a, b])
+        return runs
+
+    def _read_cell_descriptors(self, cells: list[int]) -> None:
+        with self._lock:
+            for a, b in self._runs([c for c in cells if self._cells[c][3] is None]):
+                got = self._read_descriptors(a, b)
+                self.bytes_read += got.nbytes
+                first = int(np.searchsorted(self.start, a, side="left"))
+                last = int(np.searchsorted(self.start, b, side="left"))
+                for c in range(first, last):
+                    if c in self._cells and self._cells[c][3] is None:
+                        self._cells[c][3] = got[int(self.start[c]) - a:int(self.start[c + 1]) - a]
+
+    def _load_all_descriptors(self) -> None:
+        with self._lock:
+            if self._all[3] is None:
+                got = self._read_descriptors(0, self.n_positions)
+                self.bytes_read += got.nbytes
+                self._all = self._all[:3] + (got,)
 
     def _read_cells(self, cells: list[int]) -> None:
         """Read ``cells`` (ascending) in runs of nearby positions; cache every cell read."""
         with self._lock:
-            runs = []
-            for c in cells:
-                a, b = int(self.start[c]), int(self.start[c + 1])
-                if runs and a - runs[-1][1] <= _COALESCE_GAP:
-                    runs[-1][1] = max(runs[-1][1], b)
-                else:
-                    runs.append([a, b])
-            for a, b in runs:
-                got = self._read_positions(a, b)
-                self.bytes_read += sum(x.nbytes for x in got)
+            for a, b in self._runs(cells):
+                got = self._complete(self._read_positions(a, b))
+                self.bytes_read += sum(x.nbytes for x in got if x is not None)
                 self._positions_read += b - a
                 first = int(np.searchsorted(self.start, a, side="left"))
                 last = int(np.searchsorted(self.start, b, side="left"))
                 for c in range(first, last):
                     lo, hi = int(self.start[c]) - a, int(self.start[c + 1]) - a
-                    self._cells[c] = tuple(x[lo:hi] for x in got)
+                    self._cells[c] = [None if x is None else x[lo:hi] for x in got]
 
     def _load_all(self) -> None:
         with self._lock:
             if self._all is None:
-                got = self._read_positions(0, self.n_positions)
-                self.bytes_read += sum(x.nbytes for x in got)
-                self._all = got
+                got = self._complete(self._read_positions(0, self.n_positions))
+                self.bytes_read += sum(x.nbytes for x in got if x is not None)
+                self._all = tuple(got)
+
+    def _complete(self, got) -> list:
+        """A read's (row, features, sqnorm, coefficients) with the squared norms computed
+        when the reader left them out, and the descriptors' shape noted."""
+        row, features, sqnorm, coefficients = got
+        if sqnorm is None:
+            sqnorm = squared_norms(features, self.split)
+        if coefficients is not None:
+            self._coefficient_shape = tuple(coefficients.shape[1:])
+            self._coefficient_dtype = coefficients.dtype
+        elif self._read_descriptors is None:
+            raise ValueError("a search table without descriptors needs read_descriptors")
+        return [row, features, sqnorm, coefficients]
 
     def coefficients(self, rows: np.ndarray) -> np.ndarray:
         """(m, K, 3) complex descriptors of index rows."""

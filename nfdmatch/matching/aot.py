@@ -1,0 +1,152 @@
+"""The exact-search kernels compiled ahead of time: a plain extension module that imports in
+a millisecond, without numba.
+
+The kernels of :mod:`._kernels` are numba code. Compiled just in time they cost a process
+~0.45 s before the first row (importing numba and loading the cached machine code), more
+than a whole single query needs. ``make install`` (through :func:`compile_kernels`) also
+compiles the two entry points ahead of time with ``numba.pycc`` into
+``nfdmatch/matching/_kernels_aot*.so``, next to a stamp holding the digest of the kernel
+source it was built from; :func:`load` returns it only when the stamp matches the source
+(an edited ``_kernels.py`` is never served by a stale build). Without it the search works
+as before (numpy, then the just-in-time kernels once a process has done enough exact work).
+
+The compiled functions hold the GIL (``numba.pycc`` has no ``nogil``): they serve one thread
+of work at full speed; :mod:`.dispatch` switches a long multi-threaded run to the
+just-in-time kernels, which release it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import os
+import sys
+
+import numpy as np
+
+__all__ = ["MODULE", "build", "load", "source_digest"]
+
+#: the extension module's name (in this package)
+MODULE = "_kernels_aot"
+_HERE = os.path.dirname(os.path.abspath(__file__))
+_STAMP = os.path.join(_HERE, MODULE + ".stamp")
+
+#: the exported signatures: the arrays' layouts are the ones exact.py passes
+_EXACT_SIGNATURE = ("void(c16[:,::1], c16[:,::1], f8[::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, i8, b1, f8, "
+                    "f8[::1], f8[::1], f8[:,:,::1], b1[::1], b1[::1], i8, i8)")
+_GRID_SIGNATURE = "void(c16[:,::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, f8[::1], i8, i8)"
+
+
+def source_digest() -> str:
+    """sha256 of the kernel source, this module and the Python version: what a build is for
+    (the built module needs neither numba nor its version once compiled)."""
+    h = hashlib.sha256()
+    for name in ("_kernels.py", "aot.py"):
+        with open(os.path.join(_HERE, name), "rb") as f:
+            h.update(f.read())
+    h.update(sys.version.encode())
+    return h.hexdigest()
+
+
+def build(output_dir: str | None = None) -> str:
+    """Compile the kernels ahead of time into ``output_dir`` (default: this package's folder)
+    and write the stamp; returns the extension's path. Takes ~30 s; needs numba and a C
+    compiler (numba.pycc links with the platform's compiler through distutils/setuptools).
+    Raises whatever numba raises when it cannot."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")                # numba.pycc announces its deprecation
+        from numba.pycc import CC
+
+    from . import _kernels as k
+
+    out = output_dir or _HERE
+    cc = CC(MODULE)
+    cc.output_dir = out
+    cc.verbose = False
+    # built on the machine that runs it (make install): use its instruction set, as the
+    # just-in-time kernels do
+    cc.target_cpu = "host"
+
+    @cc.export("exact_rows", _EXACT_SIGNATURE)
+    def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit,
+                   dist, shift, rot, reversed_, mirrored, lo, hi):
+        k._exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit,
+                      dist, shift, rot, reversed_, mirrored, lo, hi)
+
+    @cc.export("grid_maximum_rows", _GRID_SIGNATURE)
+    def grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi):
+        k._grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi)
+
+    digest = source_digest()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cc.compile()
+    stamp = os.path.join(out, MODULE + ".stamp")
+    with open(stamp + ".part", "w") as f:
+        f.write(digest + "\n")
+    os.replace(stamp + ".part", stamp)
+    return cc.output_file if hasattr(cc, "output_file") else out
+
+
+class _Kernels:
+    """The compiled module behind the interface of :mod:`._kernels` (``exact_rows``,
+    ``grid_maximum_rows``); ``workers`` is accepted and ignored (the GIL is held)."""
+
+    threads = False
+
+    def __init__(self, module):
+        self._module = module
+
+    def exact_rows(self, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers=1):
+        N = B.shape[0]
+        dist = np.empty(N)
+        shift = np.empty(N)
+        rot = np.empty((N, 3, 3))
+        reversed_ = np.zeros(N, dtype=np.bool_)
+        mirrored = np.zeros(N, dtype=np.bool_)
+        if N:
+            self._module.exact_rows(A, Aw, w, B, int(D), _writable(basis, n), bool(quarter), int(n), bool(mirror),
+                                    int(C), bool(refine), float(refine_limit), dist, shift, rot, reversed_, mirrored,
+                                    0, N)
+        return dist, shift, rot, reversed_, mirrored
+
+    def grid_maximum_rows(self, Aw, B, D, basis, quarter, n, mirror, workers=1):
+        N = B.shape[0]
+        fmax = np.empty(N)
+        if N:
+            self._module.grid_maximum_rows(Aw, B, int(D), _writable(basis, n), bool(quarter), int(n), bool(mirror),
+                                           fmax, 0, N)
+        return fmax
+
+
+_writable_cache: dict[tuple, np.ndarray] = {}
+
+
+def _writable(basis: np.ndarray, n: int) -> np.ndarray:
+    """The compiled signatures take writable arrays; the shared bases (one per K and n,
+    :func:`.dispatch._folded_basis`) are read-only: a writable copy of each, kept."""
+    if basis.flags.writeable:
+        return basis
+    key = (basis.shape, int(n))
+    got = _writable_cache.get(key)
+    if got is None:
+        got = _writable_cache[key] = basis.copy()
+    return got
+
+
+def load():
+    """The compiled kernels when a build for the current source is present, else None."""
+    try:
+        with open(_STAMP) as f:
+            stamp = f.read().strip()
+    except OSError:
+        return None
+    try:
+        if stamp != source_digest():
+            return None
+        module = importlib.import_module(f"{__package__}.{MODULE}")
+    except (ImportError, OSError):
+        return None
+    return _Kernels(module)
