@@ -32,7 +32,6 @@ from contextlib import ExitStack
 import numpy as np
 
 from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
-from . import _vtk_read
 from ._chain import (chain_segments, check_readable, ordered_curves, points_list,
                      publish, read_bytes, temp_beside)
 
@@ -108,6 +107,8 @@ def read_points(path, format: str | None = None) -> list[np.ndarray]:
     data = read_bytes(p)
     if not data.strip():
         raise ParseError("the file is empty", path=p)
+    from . import _vtk_read          # xml, lzma, zlib: only when a VTK file is read
+
     dataset = _vtk_read.parse(data, kind, p)
     del data
     offsets, conn = dataset.line_offsets, dataset.line_connectivity

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .reader import unique_rows
+
 __all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "graph_k", "GraphStats", "DEFAULT_GRAPH_K"]
 
 #: neighbours per row when ``--graph`` is given without a number
@@ -131,7 +133,7 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
             rows = np.asarray(rows, dtype=np.int64)
             if coefficients is not None:
                 return coefficients[rows]
-            uniq, inverse = np.unique(rows, return_inverse=True)
+            uniq, inverse = unique_rows(rows)
             return curves["coefficients"][uniq][inverse]
 
         from ..search.table import SearchTable
@@ -279,7 +281,7 @@ def read_graph_rows(index):
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         if len(rows) == 0:
             return np.zeros((0, ds_nb.shape[1]), np.int64), np.zeros((0, ds_nb.shape[1]))
-        uniq, inverse = np.unique(rows, return_inverse=True)
+        uniq, inverse = unique_rows(rows)
         nb, d = index._read(lambda: (np.asarray(ds_nb[uniq], dtype=np.int64), np.asarray(ds_d[uniq], dtype=np.float64)))
         if nb.min() < -1 or nb.max() >= N:
             raise IndexFormatError("corrupted nfdmatch index: /graph/neighbour holds a row outside the index",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from .schema import CHECKSUMS, create_checked
+from .schema import read_runs as read_runs_of
 
 __all__ = ["write_search_group", "check_search_group", "search_table", "SEARCH_DATASETS"]
 
@@ -141,23 +142,36 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
             fail(f"non-finite value (NaN or Inf) in /search/{name}, position {bad}")
         return values
 
-    def read_positions(a: int, b: int):
-        # two reads per range: the squared norms are recomputed from the features (the
-        # build computes them the same way), the descriptors are read apart, only for the
-        # cells a search takes past the invariant bound (read_descriptors)
-        def read():
-            return np.asarray(ds_row[a:b], dtype=np.int64), np.asarray(ds_features[a:b], dtype=np.float32)
-
-        row, features = guard(read, f"/search, positions {a}..{b - 1}")
+    def read_runs(runs):
+        # two reads for any number of ranges (one HDF5 call each): the squared norms are
+        # recomputed from the features (the build computes them the same way), the
+        # descriptors read apart, only for the cells a search takes past the invariant bound
+        where = f"/search, positions {runs[0][0]}..{runs[-1][1] - 1}"
+        row, features = guard(lambda: (np.asarray(read_runs_of(ds_row, runs), dtype=np.int64),
+                                       np.asarray(read_runs_of(ds_features, runs), dtype=np.float32)), where)
         if len(row) and (row.min() < 0 or row.max() >= N):
             fail("/search/row holds a row outside the index")
-        finite("features", features, a)
+        _finite_runs("features", features, runs)
         return row, features, None, None
 
-    def read_descriptors(a: int, b: int):
-        coefficients = guard(lambda: np.asarray(ds_coefficients[a:b]), f"/search/coefficients, positions {a}..{b - 1}")
-        return finite("coefficients", coefficients, a)
+    def read_descriptor_runs(runs):
+        where = f"/search/coefficients, positions {runs[0][0]}..{runs[-1][1] - 1}"
+        coefficients = guard(lambda: np.asarray(read_runs_of(ds_coefficients, runs)), where)
+        return _finite_runs("coefficients", coefficients, runs)
+
+    def _finite_runs(name, values, runs):
+        bad = first_nonfinite(values, 0)
+        if bad is not None:
+            for a, b in runs:                  # the position in the file, not in the read
+                if bad < b - a:
+                    bad += a
+                    break
+                bad -= b - a
+            fail(f"non-finite value (NaN or Inf) in /search/{name}, position {bad}")
+        return values
 
     centre = finite("centre", np.asarray(g["centre"][...], dtype=np.float64), 0)
     radius = finite("radius", np.asarray(g["radius"][...], dtype=np.float64), 0)
-    return SearchTable(harmonics, start, centre, radius, read_positions, read_coefficients, read_descriptors)
+    return SearchTable(harmonics, start, centre, radius, lambda a, b: read_runs([(a, b)]), read_coefficients,
+                       lambda a, b: read_descriptor_runs([(a, b)]), read_runs=read_runs,
+                       read_descriptor_runs=read_descriptor_runs)

@@ -17,6 +17,11 @@ from .bounds import feature_split, squared_norms
 __all__ = ["SearchTable"]
 
 
+def _concatenated(parts: list) -> tuple:
+    """Reads of several ranges as one: each field concatenated (None stays None)."""
+    return tuple(None if parts[0][i] is None else np.concatenate([p[i] for p in parts]) for i in range(4))
+
+
 def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """The positions of the runs [lo_i, hi_i) concatenated, (sum(hi - lo),) int64."""
     lengths = hi - lo
@@ -58,12 +63,15 @@ class SearchTable:
         called only for the cells whose rows a search takes past the invariant bound (an
         index file: most opened cells never need their descriptors, the largest part of a
         row).
+    read_runs, read_descriptor_runs : optional, the same for a list of ``(a, b)`` ranges at
+        once (concatenated): an index file reads them in one HDF5 call.
 
     Thread-safe: the search answers several queries on threads over one table.
     """
 
     def __init__(self, harmonics: int, start, centre, radius, read_positions: Callable,
-                 read_coefficients: Callable, read_descriptors: Callable | None = None):
+                 read_coefficients: Callable, read_descriptors: Callable | None = None, *,
+                 read_runs: Callable | None = None, read_descriptor_runs: Callable | None = None):
         self.harmonics = harmonics
         self.split = feature_split(harmonics)
         self.start = np.asarray(start, dtype=np.int64)
@@ -73,6 +81,11 @@ class SearchTable:
         self._read_positions = read_positions
         self._read_coefficients = read_coefficients
         self._read_descriptors = read_descriptors
+        self._read_runs = read_runs or (lambda runs: _concatenated([read_positions(a, b) for a, b in runs]))
+        if read_descriptor_runs is None and read_descriptors is not None:
+            def read_descriptor_runs(runs):
+                return np.concatenate([read_descriptors(a, b) for a, b in runs])
+        self._read_descriptor_runs = read_descriptor_runs
         self._cells: dict[int, list] = {}
         self._all = None
         self._positions_read = 0
@@ -233,14 +246,19 @@ class SearchTable:
 
     def _read_cell_descriptors(self, cells: list[int]) -> None:
         with self._lock:
-            for a, b in self._runs([c for c in cells if self._cells[c][3] is None]):
-                got = self._read_descriptors(a, b)
-                self.bytes_read += got.nbytes
+            runs = self._runs([c for c in cells if self._cells[c][3] is None])
+            if not runs:
+                return
+            got = self._read_descriptor_runs(runs)
+            self.bytes_read += got.nbytes
+            at = 0
+            for a, b in runs:
                 first = int(np.searchsorted(self.start, a, side="left"))
                 last = int(np.searchsorted(self.start, b, side="left"))
                 for c in range(first, last):
                     if c in self._cells and self._cells[c][3] is None:
-                        self._cells[c][3] = got[int(self.start[c]) - a:int(self.start[c + 1]) - a]
+                        self._cells[c][3] = got[at + int(self.start[c]) - a:at + int(self.start[c + 1]) - a]
+                at += b - a
 
     def _load_all_descriptors(self) -> None:
         with self._lock:
@@ -250,17 +268,21 @@ class SearchTable:
                 self._all = self._all[:3] + (got,)
 
     def _read_cells(self, cells: list[int]) -> None:
-        """Read ``cells`` (ascending) in runs of nearby positions; cache every cell read."""
+        """Read ``cells`` (ascending) in runs of nearby positions, all runs in one call;
+        cache every cell read."""
         with self._lock:
-            for a, b in self._runs(cells):
-                got = self._complete(self._read_positions(a, b))
-                self.bytes_read += sum(x.nbytes for x in got if x is not None)
+            runs = self._runs(cells)
+            got = self._complete(self._read_runs(runs))
+            self.bytes_read += sum(x.nbytes for x in got if x is not None)
+            at = 0
+            for a, b in runs:
                 self._positions_read += b - a
                 first = int(np.searchsorted(self.start, a, side="left"))
                 last = int(np.searchsorted(self.start, b, side="left"))
                 for c in range(first, last):
-                    lo, hi = int(self.start[c]) - a, int(self.start[c + 1]) - a
+                    lo, hi = at + int(self.start[c]) - a, at + int(self.start[c + 1]) - a
                     self._cells[c] = [None if x is None else x[lo:hi] for x in got]
+                at += b - a
 
     def _load_all(self) -> None:
         with self._lock:
