@@ -3,6 +3,9 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# the compiled kernels: rebuilt when their source changes (an edited _kernels.py is never
+# served by a stale ahead-of-time build, but it would fall back to the slower paths)
+KERNELS := $(VENV)/.kernels
 
 .PHONY: demo test test-fast lint install bench devdata clean
 
@@ -12,23 +15,26 @@ $(BIN)/python:
 
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test]'
-	@echo "compiling the numba kernels once, also ahead of time (so that no query compiles or imports numba)" >&2
-	$(BIN)/python -c "from nfdmatch.matching import compile_kernels; compile_kernels()"
 	touch $(STAMP)
 
-install: $(STAMP)
+$(KERNELS): $(STAMP) nfdmatch/matching/_kernels.py nfdmatch/matching/aot.py
+	@echo "compiling the numba kernels once, also ahead of time (so that no query compiles or imports numba)" >&2
+	$(BIN)/python -c "from nfdmatch.matching import compile_kernels; compile_kernels()"
+	touch $(KERNELS)
 
-test: $(STAMP)
+install: $(STAMP) $(KERNELS)
+
+test: install
 	$(BIN)/python -m pytest -q
 
 # the unit tests only (no end-to-end runs marked slow): under a minute
-test-fast: $(STAMP)
+test-fast: install
 	$(BIN)/python -m pytest -q -m "not slow"
 
 lint: $(STAMP)
 	$(BIN)/python -m ruff check nfdmatch tests benchmarks
 
-demo: $(STAMP)
+demo: install
 	@echo "== index the sample curves (incremental: a second run recomputes nothing) ==" >&2
 	@mkdir -p demo-out
 	$(BIN)/nfdmatch index build sample_curves/library --index demo-out/demo.h5
@@ -38,13 +44,13 @@ demo: $(STAMP)
 	$(BIN)/nfdmatch show sample_curves/queries/trefoil-posed.obj --index demo-out/demo.h5 --top 5 -o demo-out/matches.png --format table
 	@echo "== open demo-out/matches.png (the README shows the same picture: docs/images/demo-matches.png) ==" >&2
 
-bench: $(STAMP)
+bench: install
 	$(BIN)/python benchmarks/bench_distance.py
 	$(BIN)/python benchmarks/bench_index.py
 	$(BIN)/python benchmarks/bench_search.py
 	$(BIN)/python benchmarks/bench_render.py
 
-devdata: $(STAMP)
+devdata: install
 	$(BIN)/python benchmarks/eval_devdata.py
 
 clean:

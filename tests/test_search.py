@@ -150,3 +150,25 @@ def test_bad_arguments(rng):
     for kwargs in ({"top": 0}, {"top": None}, {"method": "fast"}):
         with pytest.raises(ParameterError):
             search_index(index, [Curve(np.eye(3))], **kwargs)
+
+
+@pytest.mark.parametrize("switch", [True, False])
+def test_a_batch_on_the_ahead_of_time_kernels_switches_to_threads_only_when_it_pays(monkeypatch, rng, switch):
+    """The ahead-of-time kernels hold the GIL: a batch answers on one thread and loads the
+    just-in-time kernels (threads in parallel) once the queries left would pay for their
+    import; either way the answer is the exhaustive one."""
+    from nfdmatch.matching import aot, dispatch
+    from nfdmatch.search import index_search
+
+    kernels = aot.load()
+    assert kernels is not None, "the ahead-of-time kernels are not built: run make install"
+    state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": kernels}
+    monkeypatch.setattr(dispatch, "_kernel_state", state)
+    monkeypatch.setattr(index_search, "_THREADED_KERNELS_IMPORT", 0.0 if switch else 1e9)
+    curves = _family_curves(rng, 20, 4, 0.01)
+    queries = _variants(rng, curves, 6)
+    index = MemoryIndex(curves, rows_per_cell=8)
+    pruned, _ = search_index(index, queries, top=5, threads=2)
+    assert (state["module"] is not None) == switch
+    full, _ = search_index(index, queries, top=5, prune=False)
+    _same(pruned, full)
