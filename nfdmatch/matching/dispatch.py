@@ -28,6 +28,9 @@ _NUMBA_ENV = "NFDMATCH_NUMBA"
 #: import: the numpy path costs ~0.5 us per unit (~1 ms per call), importing numba and
 #: loading the cached kernels ~0.4 s
 _NUMBA_AMORTIZE = 800_000
+#: work done on the ahead-of-time kernels (~0.065 us per unit) worth importing the
+#: just-in-time ones (0.4-0.5 s), which split big calls and queries over the cores
+_JIT_AFTER_AOT = 8_000_000
 _CALL_WORK = 2_000
 #: rows from which a call made on the main thread splits the rows over threads (a call
 #: made on another thread, e.g. from search_index's pool over queries, never does)
@@ -129,11 +132,16 @@ def _compiled_kernels(work: int):
         return _aot_kernels()
     if mode == "auto":
         aot = _aot_kernels()
-        if aot is not None:
-            return aot
         if state["failed"] is not None:
-            return None
+            return aot
         state["work"] += work
+        if aot is not None:
+            # the same ski-rental, against the ahead-of-time kernels: a long run (an all-pairs
+            # matrix, a graph, a big batch) pays for the threaded ones once it has done as
+            # much work as their import costs; one core gains nothing from them
+            if state["work"] < _JIT_AFTER_AOT or (os.cpu_count() or 1) < 2:
+                return aot
+            return state["module"] if _load_jit(warn=False) else aot
         if state["work"] < _NUMBA_AMORTIZE:
             return None
     elif state["failed"] is not None:
