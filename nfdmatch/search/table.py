@@ -37,6 +37,8 @@ def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 #: once reads would pass this fraction of the positions, the table is read whole at once
 _READ_ALL_FRACTION = 0.25
+#: the same for the descriptors, read apart (most rows a search bounds never need them)
+_READ_ALL_DESCRIPTORS_FRACTION = 0.5
 #: cells closer than this many positions are read in one call (an HDF5 read costs ~0.1 ms
 #: of overhead, about as much as reading a few thousand positions' bytes)
 _COALESCE_GAP = 2048
@@ -86,8 +88,11 @@ class SearchTable:
             def read_descriptor_runs(runs):
                 return np.concatenate([read_descriptors(a, b) for a, b in runs])
         self._read_descriptor_runs = read_descriptor_runs
-        self._cells: dict[int, list] = {}
-        self._all = None
+        self._cells: dict[int, tuple] = {}     # cell -> (row, features, sqnorm)
+        self._all = None                       # the same for every position, once read whole
+        self._desc: dict[int, np.ndarray] = {}  # cell -> descriptors
+        self._desc_all = None
+        self._desc_read = 0
         self._positions_read = 0
         self._lock = threading.Lock()
         self._coefficient_shape, self._coefficient_dtype = (harmonics, 3), np.complex64
@@ -200,7 +205,7 @@ class SearchTable:
             positions = np.arange(a, b, dtype=np.int64)
             if self._all is not None:
                 return (positions,) + tuple(x[a:b] for x in self._all[:3])
-            return (positions,) + tuple(self._cells[int(cells[0])][:3])
+            return (positions,) + self._cells[int(cells[0])]
         lo, hi = self.start[cells], self.start[cells + 1]
         positions = _ranges(lo, hi)
         if self._all is not None:
@@ -211,13 +216,12 @@ class SearchTable:
     def coefficients_at_positions(self, positions: np.ndarray, harmonics: int | None = None) -> np.ndarray:
         """(m, K', 3) complex descriptors (as stored) at positions of opened cells: the
         first ``harmonics`` (default: all the table holds, K''). Descriptors not read yet
-        are read here, cell by cell (or all at once when the whole table is in memory)."""
+        are read here, for the cells holding ``positions`` (all at once once the reads
+        would pass :data:`_READ_ALL_DESCRIPTORS_FRACTION` of the table)."""
         positions = np.asarray(positions, dtype=np.int64)
         h = self._coefficient_shape[0] if harmonics is None else min(harmonics, self._coefficient_shape[0])
-        if self._all is not None:
-            if self._all[3] is None:
-                self._load_all_descriptors()
-            return self._all[3][positions, :h]
+        if self._desc_all is not None:
+            return self._desc_all[positions, :h]
         out = np.empty((len(positions), h, 3), dtype=self._coefficient_dtype)
         if not len(positions):
             return out
@@ -225,12 +229,16 @@ class SearchTable:
         order = np.argsort(cell, kind="stable")
         bounds = np.flatnonzero(np.diff(cell[order])) + 1
         groups = np.split(order, bounds)
-        missing = sorted({int(cell[g[0]]) for g in groups if self._cells[int(cell[g[0]])][3] is None})
+        missing = sorted({int(cell[g[0]]) for g in groups} - self._desc.keys())
         if missing:
+            wanted = int((self.start[np.array(missing) + 1] - self.start[np.array(missing)]).sum())
+            if self._desc_read + wanted > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
+                self._load_all_descriptors()
+                return self._desc_all[positions, :h]
             self._read_cell_descriptors(missing)
         for group in groups:
             c = int(cell[group[0]])
-            out[group] = self._cells[c][3][positions[group] - self.start[c], :h]
+            out[group] = self._desc[c][positions[group] - self.start[c], :h]
         return out
 
     def _runs(self, cells: list[int]) -> list[list[int]]:
@@ -246,26 +254,29 @@ class SearchTable:
 
     def _read_cell_descriptors(self, cells: list[int]) -> None:
         with self._lock:
-            runs = self._runs([c for c in cells if self._cells[c][3] is None])
+            runs = self._runs([c for c in cells if c not in self._desc])
             if not runs:
                 return
             got = self._read_descriptor_runs(runs)
             self.bytes_read += got.nbytes
-            at = 0
-            for a, b in runs:
-                first = int(np.searchsorted(self.start, a, side="left"))
-                last = int(np.searchsorted(self.start, b, side="left"))
-                for c in range(first, last):
-                    if c in self._cells and self._cells[c][3] is None:
-                        self._cells[c][3] = got[at + int(self.start[c]) - a:at + int(self.start[c + 1]) - a]
-                at += b - a
+            self._store_descriptors(runs, got)
+
+    def _store_descriptors(self, runs, got) -> None:
+        at = 0
+        for a, b in runs:
+            self._desc_read += b - a
+            first = int(np.searchsorted(self.start, a, side="left"))
+            last = int(np.searchsorted(self.start, b, side="left"))
+            for c in range(first, last):
+                self._desc.setdefault(c, got[at + int(self.start[c]) - a:at + int(self.start[c + 1]) - a])
+            at += b - a
 
     def _load_all_descriptors(self) -> None:
         with self._lock:
-            if self._all[3] is None:
+            if self._desc_all is None:
                 got = self._read_descriptors(0, self.n_positions)
                 self.bytes_read += got.nbytes
-                self._all = self._all[:3] + (got,)
+                self._desc_all = got
 
     def _read_cells(self, cells: list[int]) -> None:
         """Read ``cells`` (ascending) in runs of nearby positions, all runs in one call;
@@ -281,15 +292,19 @@ class SearchTable:
                 last = int(np.searchsorted(self.start, b, side="left"))
                 for c in range(first, last):
                     lo, hi = at + int(self.start[c]) - a, at + int(self.start[c + 1]) - a
-                    self._cells[c] = [None if x is None else x[lo:hi] for x in got]
+                    self._cells[c] = tuple(x[lo:hi] for x in got[:3])
                 at += b - a
+            if got[3] is not None:
+                self._store_descriptors(runs, got[3])
 
     def _load_all(self) -> None:
         with self._lock:
             if self._all is None:
                 got = self._complete(self._read_positions(0, self.n_positions))
                 self.bytes_read += sum(x.nbytes for x in got if x is not None)
-                self._all = tuple(got)
+                self._all = tuple(got[:3])
+                if got[3] is not None and self._desc_all is None:
+                    self._desc_all = got[3]
 
     def _complete(self, got) -> list:
         """A read's (row, features, sqnorm, coefficients) with the squared norms computed
