@@ -645,8 +645,9 @@ def _account(out: dict, work) -> None:
         out[key] += getattr(work, key)
 
 
-def _ranked(idx, tops, top) -> list[list[dict]]:
-    """The rows of :func:`nfdmatch.search.search_index` from merged TopKs (the same code)."""
+def _ranked(idx, tops, top) -> list[list]:
+    """The :class:`~nfdmatch.records.RankedMatch` es of :func:`nfdmatch.search.search_index`
+    from merged TopKs (the same code)."""
     from .search.index_search import ranked_rows
 
     return ranked_rows(idx, tops, top)

@@ -272,7 +272,7 @@ def test_frozen_indexes_answer_queries_as_the_exhaustive_search(frozen):
     with open_index(frozen) as idx:
         pruned, _ = search_index(idx, queries, top=3)
         full, _ = search_index(idx, queries, top=3, prune=False)
-    assert [[r["match"] for r in p] for p in pruned] == [[r["match"] for r in f] for f in full]
+    assert [[r.id for r in p] for p in pruned] == [[r.id for r in f] for f in full]
 
 
 def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):

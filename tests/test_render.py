@@ -17,8 +17,9 @@ from oracle import ellipse, random_rotation, torus_knot
 from nfdmatch import render
 from nfdmatch.render import layout, matrix, pyvista_backend
 from nfdmatch.errors import NfdError, ParameterError, RenderError, WriteError
-from nfdmatch.render import (DEFAULT_RENDERER, RENDERERS, MatchPanel, RenderResult, is_coplanar, render_matches,
-                             render_matrix, short_label, short_labels)
+from nfdmatch.records import RankedMatch, ShownMatch
+from nfdmatch.render import (DEFAULT_RENDERER, RENDERERS, RenderResult, is_coplanar, render_matches, render_matrix,
+                             short_label, short_labels)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 SMALL = (640, 360)
@@ -26,10 +27,15 @@ SMALL = (640, 360)
 
 # --------------------------------------------------------------------------- helpers
 
-def _panel(points, curve_id="lib/knot.csv", distance=0.1234567, **flags) -> MatchPanel:
+def _shown(curve_id, distance, points, start, forward, *, reversed=False, mirrored=False,
+           source="file") -> ShownMatch:
+    return ShownMatch(RankedMatch(rank=1, id=curve_id, distance=distance, reversed=reversed, mirrored=mirrored),
+                      points=points, start=start, forward=forward, source=source)
+
+
+def _panel(points, curve_id="lib/knot.csv", distance=0.1234567, **flags) -> ShownMatch:
     points = np.asarray(points, float)
-    return MatchPanel(id=curve_id, distance=distance, points=points, start=points[0].copy(),
-                      forward=points[3].copy(), **flags)
+    return _shown(curve_id, distance, points, points[0].copy(), points[3].copy(), **flags)
 
 
 def _knot_scene(rng, n_matches=3):
@@ -46,8 +52,7 @@ def _ellipse_scene(n_matches=2, tilt=None):
     panels = [_panel(ellipse(2.0, 1.1 + 0.2 * i, 90 + i), f"lib/e{i}.csv", 0.02 * (i + 1)) for i in range(n_matches)]
     if tilt is not None:
         q = q @ tilt.T
-        panels = [MatchPanel(id=p.id, distance=p.distance, points=p.points @ tilt.T, start=tilt @ p.start,
-                             forward=tilt @ p.forward) for p in panels]
+        panels = [_shown(p.id, p.distance, p.points @ tilt.T, tilt @ p.start, tilt @ p.forward) for p in panels]
     return q, panels
 
 
@@ -129,7 +134,7 @@ def test_flags_change_the_title(tmp_path, rng):
     p = panels[0]
     plain, flagged = tmp_path / "a.png", tmp_path / "b.png"
     render_matches(q, "q", [p], plain, size=SMALL, renderer="matplotlib")
-    render_matches(q, "q", [MatchPanel(p.id, p.distance, p.points, p.start, p.forward, reversed=True, mirrored=True)],
+    render_matches(q, "q", [_shown(p.id, p.distance, p.points, p.start, p.forward, reversed=True, mirrored=True)],
                    flagged, size=SMALL, renderer="matplotlib")
     assert np.any(_read_png(plain) != _read_png(flagged))
 
@@ -286,8 +291,8 @@ def test_invalid_arrays(tmp_path):
     with pytest.raises(ParameterError, match="shape"):
         render_matches(q[:, :1], "e", panels, out)
     with pytest.raises(ParameterError, match="start"):
-        render_matches(q, "e", [MatchPanel("m", 0.1, p.points, np.array([np.nan, 0, 0]), p.forward)], out)
-    with pytest.raises(ParameterError, match="MatchPanel"):
+        render_matches(q, "e", [_shown("m", 0.1, p.points, np.array([np.nan, 0, 0]), p.forward)], out)
+    with pytest.raises(ParameterError, match="ShownMatch"):
         render_matches(q, "e", [p.points], out)
     with pytest.raises(ParameterError, match="size"):
         render_matches(q, "e", panels, out, size=(50, 900))
@@ -461,7 +466,8 @@ def test_no_egl_in_a_real_process_is_an_error_or_a_fallback_never_a_crash(tmp_pa
         "from nfdmatch.errors import RenderError\n"
         "t = np.linspace(0, 2 * np.pi, 60, endpoint=False)\n"
         "q = np.c_[np.cos(t), np.sin(t), 0.3 * np.sin(3 * t)]\n"
-        "p = render.MatchPanel('m.csv', 0.1, q * 1.1, q[0] * 1.1, q[3] * 1.1)\n"
+        "from nfdmatch.records import RankedMatch, ShownMatch\n"
+        "p = ShownMatch(RankedMatch(1, 'm.csv', 0.1), q * 1.1, q[0] * 1.1, q[3] * 1.1)\n"
         "try:\n"
         "    r = render.render_matches(q, 'q', [p], sys.argv[1], size=(400, 300), renderer='pyvista')\n"
         "    print('drew', r.renderer)\n"
@@ -495,8 +501,8 @@ def test_short_labels_drop_the_common_affixes_of_long_similar_names():
 def test_panel_subtitles_carry_distance_flags_and_note(tmp_path):
 
     q, panels = _ellipse_scene(n_matches=2)
-    panels = [panels[0], MatchPanel(id=panels[1].id, distance=0.5, points=panels[1].points, start=panels[1].start,
-                                    forward=panels[1].forward, reversed=True, note="drawn from index harmonics")]
+    panels = [panels[0], _shown(panels[1].id, 0.5, panels[1].points, panels[1].start, panels[1].forward,
+                                reversed=True, source="index")]
     scene = layout._build_scene(q, "q.csv", panels, SMALL)
     assert scene.panels[1].subtitle == "d = 0.02"
     assert scene.panels[2].subtitle == "d = 0.5  \u00b7  reversed  \u00b7  drawn from index harmonics"

@@ -7,7 +7,8 @@ import json
 import click
 
 from .common import (deliver, descriptor_options, exclude_self, exclude_self_option, format_option,
-                     input_format_option, match_columns, matching, matching_options, output_option, read_inputs,
+                     input_format_option, match_columns, match_row, matching, matching_options, output_option,
+                     read_inputs,
                      read_one, rows_format_option, say, write_rows)
 from .group import main
 
@@ -131,7 +132,7 @@ def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_
                          **matching(method, strict_direction, mirror))
     if exclude_self_:
         ranked = exclude_self(query.id, ranked, top)
-    write_rows([{"query": query.id, **row} for row in ranked], match_columns(details), output_format, output,
+    write_rows([match_row(query.id, m) for m in ranked], match_columns(details), output_format, output,
                group_by="query")
     inputs.finish()
 

@@ -9,9 +9,9 @@ from datetime import datetime, timezone
 import click
 
 from .common import (EXIT_ERROR, deliver, error, exclude_self, exclude_self_option, format_option,
-                     finish, index_option, input_format_option, match_columns, matching, matching_options, note,
-                     optional_descriptor_options, output_option, progress_bar, read_inputs, rows_format_option,
-                     say, write_rows)
+                     finish, index_option, input_format_option, is_query, match_columns, match_row, matching,
+                     matching_options, note, optional_descriptor_options, output_option, progress_bar, read_inputs,
+                     rows_format_option, say, write_rows)
 from .cluster import open_cluster, ranges_option, scheduler_options
 from .group import main
 
@@ -435,7 +435,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
 
                 def is_self(query_id, match_id):
                     # the same rule as --exclude-self without --rerank
-                    return not exclude_self(query_id, [{"match": match_id, "rank": 1}], 1, idx.locate)
+                    return is_query(query_id, match_id, idx.locate)
 
                 results, stats = rerank_index(idx, inputs.curves, top=top, depth=rerank_depth, progress=progress,
                                               exclude=is_self if exclude_self_ else None)
@@ -454,7 +454,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
     columns = match_columns(details)
     if rerank:
         columns.insert(columns.index("distance") + 1, "score")
-    write_rows([{"query": q.id, **row} for q, res in zip(inputs.curves, results) for row in res],
+    write_rows([match_row(q.id, m) for q, res in zip(inputs.curves, results) for m in res],
                columns, output_format, output, group_by="query")
     if show_stats:
         say(f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "

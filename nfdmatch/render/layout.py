@@ -1,5 +1,5 @@
 """What a picture shows, independent of the renderer: the checked inputs
-(:class:`MatchPanel`), labels, output paths, and the scene (panel grid, view, limits)
+(:class:`~nfdmatch.records.ShownMatch`), labels, output paths, and the scene (panel grid, view, limits)
 that both backends draw."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import numpy as np
 
 from ..descriptors import START_STEP, points_at
 from ..errors import ParameterError, WriteError
+from ..records import ShownMatch
 
 
 RENDERERS = ("matplotlib", "pyvista")
@@ -34,31 +35,8 @@ _TILT = math.radians(30.0)     # 3-D view: tilt of the camera away from the smal
 _ARROW = 0.11                  # arrow length, fraction of the larger side of the view
 
 
-@dataclass(frozen=True)
-class MatchPanel:
-    """One match to draw, already in the query's coordinates.
-
-    Attributes
-    ----------
-    id : the match's curve id (a path, or ``path#i``); shortened for display.
-    distance : float, shown with 4 significant digits.
-    points : (m, 3) float64, the matched curve mapped into the query's coordinates
-        (closed; the closing edge is implicit).
-    start : (3,) float64, the point of the match that corresponds to the query's first vertex.
-    forward : (3,) float64, a point a little further along the match in the query's
-        direction of travel.
-    reversed, mirrored : shown in the panel title when set.
-    note : a short remark shown after them (e.g. ``"from index harmonics"``), or None.
-    """
-
-    id: str
-    distance: float
-    points: np.ndarray
-    start: np.ndarray
-    forward: np.ndarray
-    reversed: bool = False
-    mirrored: bool = False
-    note: str | None = None
+#: the old name of :class:`~nfdmatch.records.ShownMatch`, which drawing reads (deprecated)
+MatchPanel = ShownMatch
 
 
 @dataclass(frozen=True)
@@ -370,7 +348,7 @@ def _choose_grid(n: int, size: tuple[int, int], data_w: float, data_h: float) ->
     return rows, cols
 
 
-def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], size) -> _Scene:
+def _build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size) -> _Scene:
     match_points = [p.points for p in panels]
     planar = is_coplanar(query, *match_points)
     everything = np.vstack([query] + match_points)

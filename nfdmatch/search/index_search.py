@@ -10,6 +10,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..matching import METHODS, exact_search, paper_search
+from ..records import RankedMatch
 from .bestfirst import TIE, TopK, search_one
 from .bounds import feature_vector
 
@@ -152,8 +153,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     return results, stats
 
 
-def ranked_rows(index, tops, top: int | None) -> list[list[dict]]:
-    """Each :class:`~nfdmatch.search.bestfirst.TopK` as the rows :func:`search_index`
+def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
+    """Each :class:`~nfdmatch.search.bestfirst.TopK` as the matches :func:`search_index`
     returns: sorted by distance, distances within ``TIE`` by id, at most ``top``."""
     results = []
     for tk in tops:
@@ -162,9 +163,9 @@ def ranked_rows(index, tops, top: int | None) -> list[list[dict]]:
         order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[i]))
         if top is not None:
             order = order[:top]
-        results.append([{"rank": rank, "match": ids[i], "distance": float(tk.dist[i]),
-                         "shift": float(tk.extra["shift"][i]), "reversed": bool(tk.extra["reversed"][i]),
-                         "mirrored": bool(tk.extra["mirrored"][i]), "row": int(tk.rows[i])}
+        results.append([RankedMatch(rank=rank, id=ids[i], distance=float(tk.dist[i]),
+                                    shift=float(tk.extra["shift"][i]), reversed=bool(tk.extra["reversed"][i]),
+                                    mirrored=bool(tk.extra["mirrored"][i]), row=int(tk.rows[i]))
                         for rank, i in enumerate(order, start=1)])
     return results
 

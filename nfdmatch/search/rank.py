@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, descriptors
 from ..errors import ParameterError
+from ..records import RankedMatch
 from .index_search import search_index
 from .memory import MemoryIndex
 
@@ -11,7 +12,7 @@ from .memory import MemoryIndex
 def rank_curves(query, curves, *, top: int | None = None, max_distance: float | None = None,
                 samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
                 scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
-                mirror: bool = False, weights=None) -> list[dict]:
+                mirror: bool = False, weights=None) -> list[RankedMatch]:
     """Rank ``curves`` by distance to ``query``.
 
     Parameters
@@ -24,9 +25,8 @@ def rank_curves(query, curves, *, top: int | None = None, max_distance: float | 
 
     Returns
     -------
-    list of dicts ``{rank, match, distance, shift, reversed, mirrored, row}`` sorted by
-    distance, ties broken by id so the order is deterministic; ``rank`` is 1-based, ``row``
-    the match's position in ``curves``.
+    list of :class:`~nfdmatch.records.RankedMatch` sorted by distance, ties broken by id so
+    the order is deterministic; ``rank`` is 1-based, ``row`` the match's position in ``curves``.
     """
     from ..curve import Curve
 

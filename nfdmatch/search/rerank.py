@@ -186,9 +186,9 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
 
     Returns
     -------
-    ``(results, stats)``: ``results[i]`` lists query i's matches as dicts ``{rank, match,
-    distance, score, shift, reversed, mirrored, row}`` sorted by ``score`` (higher is closer;
-    ties by exact distance, then id); ``distance`` is the exact distance. ``stats`` is the
+    ``(results, stats)``: ``results[i]`` lists query i's matches as
+    :class:`~nfdmatch.records.RankedMatch` es with their ``score``, sorted by ``score`` (higher
+    is closer; ties by exact distance, then id); ``distance`` is the exact distance. ``stats`` is the
     exact search's :class:`~nfdmatch.search.SearchStats` with ``seconds`` covering both steps.
 
     Raises
@@ -220,17 +220,15 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
         if not found:
             results.append([])
             continue
-        rows = np.array([m["row"] for m in found], dtype=np.int64)
-        qd = np.array([m["distance"] for m in found])
-        merged = np.array([exclude is not None and bool(exclude(q.id, m["match"])) for m in found])
+        rows = np.array([m.row for m in found], dtype=np.int64)
+        qd = np.array([m.distance for m in found])
+        merged = np.array([exclude is not None and bool(exclude(q.id, m.id)) for m in found])
         gr, gd = reader(rows)
         scores = rerank_scores(qd, rows, gr, gd, merged=merged,
                                outside_scale=lambda r: _kth(reader(r)[1], SCALE_NEIGHBOURS))
         idx = [i for i in range(len(found)) if not merged[i]]
-        idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i]["rank"]))
-        results.append([{"rank": rank, "match": found[i]["match"], "distance": found[i]["distance"],
-                         "score": float(scores[i]), "shift": found[i]["shift"], "reversed": found[i]["reversed"],
-                         "mirrored": found[i]["mirrored"], "row": found[i]["row"]}
+        idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i].rank))
+        results.append([found[i].replace(rank=rank, score=float(scores[i]))
                         for rank, i in enumerate(idx[:top], start=1)])
     stats.seconds = time.perf_counter() - t0
     return results, stats
