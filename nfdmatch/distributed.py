@@ -301,12 +301,12 @@ class Cluster:
             from .search.bestfirst import TopK
 
             path = os.path.abspath(idx.path)
-            stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale)
+            stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
             stats = SearchStats(queries=len(queries), rows=idx.n_curves, pruned=prune)
             tops = [TopK(top, max_distance) for _ in queries]
             if idx.n_curves and len(queries):
                 qcoef = descriptors_batch(queries, samples=idx.samples, harmonics=idx.harmonics,
-                                          scale=idx.scale).coefficients
+                                          scale=idx.scale_mode).coefficients
                 if parts:
                     n_parts = int(parts)
                 else:
@@ -509,7 +509,7 @@ def _worker_index(path: str, stamp: tuple):
         for old_key in [k for k in _OPEN if k[0] == path]:   # a replaced index: drop the old one
             _OPEN.pop(old_key)[0].close()
         idx = open_index(path)
-        got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale)
+        got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
         if got != tuple(stamp):
             idx.close()
             raise ClusterError("the index a worker opened is not the one the client opened (replaced by a "

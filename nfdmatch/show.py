@@ -76,7 +76,7 @@ def _stored_descriptors(index, row: int, curve_id: str) -> Descriptors:
     """The descriptors an index keeps for one row (true size and pose included)."""
     r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
     return DescriptorBatch(r["coefficients"], r["rotation"], r["centroid"], r["scale"], r["plane_degenerate"],
-                           index.samples, index.harmonics, index.scale).row(0, curve_id)
+                           index.samples, index.harmonics, index.scale_mode).row(0, curve_id)
 
 
 def matches_from_index(query: Curve, results: list[RankedMatch], index, *, method: str = "exact",
@@ -93,7 +93,7 @@ def matches_from_index(query: Curve, results: list[RankedMatch], index, *, metho
     """
     if read_curve is None:
         from .formats import read_curve
-    samples, harmonics, scale = index.samples, index.harmonics, index.scale
+    samples, harmonics, scale = index.samples, index.harmonics, index.scale_mode
     dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
     shown, notes = [], []
     for ranked in results:

@@ -308,7 +308,7 @@ def index_export(index_path, output_format, output):
                                                 "plane_degenerate", "file"])
         ids = idx.ids()
         paths = [r.path for r in idx.files()]
-        params = {"samples": idx.samples, "harmonics": idx.harmonics, "scale_mode": idx.scale}
+        params = {"samples": idx.samples, "harmonics": idx.harmonics, "scale_mode": idx.scale_mode}
     files = [paths[i] for i in rows["file"]]
     frequencies = np.arange(1, params["harmonics"] + 1)
     if fmt == "npz":
