@@ -377,24 +377,29 @@ def optional_descriptor_options(what: str):
 def matching_options(f):
     """--method, --strict-direction and --mirror, passed on as ``matching``: a dict of
     the keyword arguments ``method``, ``direction``, ``mirror`` of the library."""
-    from ..matching import METHODS
+    from ..matching import DEFAULT_METHOD, METHODS
 
     f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(f)
     f = click.option("--strict-direction", is_flag=True,
                      help="Do not match a curve traversed in the opposite direction.")(f)
-    f = click.option("--method", type=click.Choice(list(METHODS)), default="exact", show_default=True,
+    f = click.option("--method", type=click.Choice(list(METHODS)), default=DEFAULT_METHOD, show_default=True,
                      help="exact: global optimum over start shift x rotation; paper: the published step.")(f)
     return f
 
 
 def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
     """The library's matching keyword arguments from the options of :func:`matching_options`."""
-    return {"method": method, "direction": "strict" if strict_direction else "invariant", "mirror": mirror}
+    from ..matching import DEFAULT_DIRECTION, STRICT_DIRECTION
+
+    return {"method": method, "direction": STRICT_DIRECTION if strict_direction else DEFAULT_DIRECTION,
+            "mirror": mirror}
 
 
 def index_option(f):
-    return click.option("--index", "index_path", envvar="NFDMATCH_INDEX", default="nfdmatch.h5",
-                        show_default="$NFDMATCH_INDEX or nfdmatch.h5", type=click.Path(dir_okay=False),
+    from ..defaults import DEFAULT_INDEX, INDEX_ENV
+
+    return click.option("--index", "index_path", envvar=INDEX_ENV, default=DEFAULT_INDEX,
+                        show_default=f"${INDEX_ENV} or {DEFAULT_INDEX}", type=click.Path(dir_okay=False),
                         help="The index file.")(f)
 
 

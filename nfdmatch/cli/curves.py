@@ -6,6 +6,7 @@ import json
 
 import click
 
+from ..descriptors import DEFAULT_SAMPLES
 from .common import (deliver, descriptor_options, exclude_self, exclude_self_option, format_option,
                      input_format_option, match_columns, match_row, matching, matching_options, output_option,
                      read_inputs,
@@ -146,7 +147,7 @@ def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_
 @click.option("--points", "-m", type=click.IntRange(min=3, max=10_000_000), default=None,
               help="Vertices of the rebuilt curve [default: the samples].")
 @click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
-              help="Arc-length samples of the transform [default: max(128, 4K)].")
+              help=f"Arc-length samples of the transform [default: max({DEFAULT_SAMPLES}, 4K)].")
 @click.option("--normalized", is_flag=True,
               help="Write the normalized curve (centred, unit scale, limit plane on z = 0), not the input pose.")
 @input_format_option

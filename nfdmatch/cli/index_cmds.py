@@ -8,6 +8,8 @@ from datetime import datetime, timezone
 
 import click
 
+from ..defaults import DEFAULT_GRAPH_K, DEFAULT_RERANK_DEPTH
+from ..matching import DEFAULT_METHOD
 from .common import (EXIT_ERROR, deliver, error, exclude_self, exclude_self_option, format_option,
                      finish, index_option, input_format_option, is_query, match_columns, match_row, matching,
                      matching_options, note, optional_descriptor_options, output_option, progress_bar, read_inputs,
@@ -45,10 +47,10 @@ def index():
               metavar="SECONDS",
               help="A file still being read after this long fails alone (0: no limit). Files are read in "
                    "worker processes, also with --jobs 1, so a stuck or crashing reader cannot stop the build.")
-@click.option("--graph", "graph_k", type=click.IntRange(min=0), is_flag=False, flag_value=10, default=None,
-              metavar="[K]",
-              help="Store each curve's K nearest curves, for query --rerank (K = 10 when not given: then put "
-                   "--graph after the sources or before another option); 0 drops the graph "
+@click.option("--graph", "graph_k", type=click.IntRange(min=0), is_flag=False, flag_value=DEFAULT_GRAPH_K,
+              default=None, metavar="[K]",
+              help=f"Store each curve's K nearest curves, for query --rerank (K = {DEFAULT_GRAPH_K} when not given: "
+                   "then put --graph after the sources or before another option); 0 drops the graph "
                    "[default: keep the index's graph, if it has one].")
 @optional_descriptor_options("the index's")
 @input_format_option
@@ -368,7 +370,8 @@ def _deliver_bytes(data: bytes, output: str) -> None:
 @click.option("--rerank", is_flag=True,
               help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
                    "--graph`); adds the column score (higher is closer), distance stays the exact distance.")
-@click.option("--rerank-depth", type=click.IntRange(min=100), default=100, show_default=True, metavar="M",
+@click.option("--rerank-depth", type=click.IntRange(min=DEFAULT_RERANK_DEPTH), default=DEFAULT_RERANK_DEPTH,
+              show_default=True, metavar="M",
               help="With --rerank: the query's exact top M that the diffusion re-orders.")
 @matching_options
 @input_format_option
@@ -406,7 +409,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
 
     if rerank:
         for given, name in ((exhaustive, "--exhaustive"), (max_distance is not None, "--max-distance"),
-                            (method != "exact", "--method paper"), (strict_direction, "--strict-direction"),
+                            (method != DEFAULT_METHOD, f"--method {method}"), (strict_direction, "--strict-direction"),
                             (mirror, "--mirror")):
             if given:
                 raise click.UsageError(f"--rerank cannot be combined with {name}: the stored graph holds exact, "
@@ -416,7 +419,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
         if scheduler:
             raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): "
                                    "drop --scheduler")
-    elif rerank_depth != 100:
+    elif rerank_depth != DEFAULT_RERANK_DEPTH:
         raise click.UsageError("--rerank-depth needs --rerank")
 
     with open_index(index_path) as idx:

@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 
+from ..defaults import DEFAULT_RERANK_DEPTH
 from ..errors import IndexFormatError, ParameterError
 
 __all__ = ["diffused_similarity", "rerank_scores", "rerank_index", "SCALE_NEIGHBOURS", "ALPHA", "MIX",
@@ -36,8 +37,8 @@ SCALE_NEIGHBOURS = 8
 ALPHA = 0.8
 #: weight of the direct affinity added to the diffused cosine
 MIX = 0.2
-#: a query's exact candidates (--rerank-depth): at least, and by default
-MIN_DEPTH = DEFAULT_DEPTH = 100
+#: a query's exact candidates (--rerank-depth): at least, and by default (defined with the CLI's defaults)
+MIN_DEPTH = DEFAULT_DEPTH = DEFAULT_RERANK_DEPTH
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
 
