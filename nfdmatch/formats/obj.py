@@ -8,7 +8,7 @@ Reading (:func:`read`):
   index repeated or not);
 * ``l a b`` elements with 2 indices are segments: they are chained into loops
   (each connected component of segments is one curve, see
-  :func:`nfdmatch.formats._chain.chain_segments`);
+  :func:`nfdmatch._graph.chain_segments`);
 * indices are 1-based; negative indices count back from the last vertex
   defined so far; ``v/vt`` forms (``l 1/1 2/2``) use the vertex part;
 * ``\\`` at the end of a line continues it; ``#`` starts a comment; every other
@@ -25,8 +25,9 @@ import warnings
 
 import numpy as np
 
+from .._graph import chain_segments
 from ..errors import CurveError, NoCurvesError, ParseError, excerpt
-from ._chain import chain_segments, is_number, ordered_curves, points_list, read_text, write_text
+from ._chain import is_number, ordered_curves, points_list, read_text, write_text
 
 __all__ = ["read_points", "write"]
 

@@ -31,9 +31,10 @@ from contextlib import ExitStack
 
 import numpy as np
 
+from .._graph import chain_segments
 from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
 from . import _vtk_read
-from ._chain import (chain_segments, check_readable, ordered_curves, points_list,
+from ._chain import (check_readable, ordered_curves, points_list,
                      publish, read_bytes, temp_beside)
 
 __all__ = ["read_points", "write", "KINDS"]
