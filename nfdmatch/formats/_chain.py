@@ -11,6 +11,9 @@
   and :class:`~nfdmatch.curve.Curve` records with the library's id rules.
 
 Nothing here imports pyvista or trimesh.
+
+An internal module: tests import its helpers directly; ``_os_open`` is a test hook (a
+module-level name, so tests can make opening a file fail).
 """
 
 from __future__ import annotations

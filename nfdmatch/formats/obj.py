@@ -17,6 +17,10 @@ Reading (:func:`read`):
 Writing (:func:`write`): all vertices as ``v`` lines (``repr`` precision,
 exact round trip), then one ``l`` element per curve with the closing index
 repeated (``l 1 2 3 ... n 1``).
+
+Test hook: ``_read_points_fast`` (the bulk numpy parser of the common case, which returns
+None to hand a file to the careful parser) is called and replaced by tests, which check that
+it is taken and that both parsers read the same curves.
 """
 
 from __future__ import annotations

@@ -37,6 +37,12 @@ that are shrunk to fit, clear start markers and arrows, and in 3-D the halos at 
 and the lighter far side make over/under readable, which pyvista's shaded tubes show only
 faintly in an orthographic view (its arrows and text are also coarser). pyvista stays
 available (``renderer="pyvista"``) and is the fallback when matplotlib is missing.
+
+Test hooks: tests replace ``_draw_matplotlib`` / ``_draw_pyvista`` in this module (looked up
+at call time by :func:`_drawer`) and :func:`.pyvista_backend._probe_pyvista`, and raise
+``_Unavailable`` (a renderer that cannot draw on this machine), to act out a missing or
+crashing renderer. :func:`.layout.build_scene` is public: what a picture shows can be
+checked without drawing it.
 """
 
 from __future__ import annotations
@@ -49,7 +55,7 @@ import numpy as np
 from ..errors import ParameterError, RenderError, WriteError
 from ..records import ShownMatch
 from .layout import (DEFAULT_RENDERER, MAX_SIDE, MIN_SIDE, PICTURE_FORMATS, RENDERERS, START_STEP, MatchPanel,
-                     RenderResult, _as_points, _as_vector, _build_scene, _check_renderer, _check_size, _reason,
+                     RenderResult, _as_points, _as_vector, build_scene, _check_renderer, _check_size, _reason,
                      _Unavailable, _write, check_output, is_coplanar, picture_format, short_label, short_labels)
 from .matplotlib_backend import _draw_matplotlib
 from .matrix import render_matrix
@@ -108,7 +114,7 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch
                                   forward=_as_vector(p.forward, f"{what} forward"), source=p.source))
     out = check_output(path)
     fmt = picture_format(out)
-    scene = _build_scene(q, str(query_id), checked, size)
+    scene = build_scene(q, str(query_id), checked, size)
     order = [renderer] if renderer != "auto" else [DEFAULT_RENDERER] + [r for r in RENDERERS
                                                                          if r != DEFAULT_RENDERER]
     if fmt != "png":                  # pyvista draws pixels only

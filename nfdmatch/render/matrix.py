@@ -15,7 +15,8 @@ from .matplotlib_backend import _new_figure, _png_bytes
 
 # --------------------------------------------------------------------------- matrix
 
-def _matrix_size(n: int) -> tuple[int, int]:
+def matrix_size(n: int) -> tuple[int, int]:
+    """The default (width, height) in pixels of the picture of an n x n matrix."""
     side = int(np.clip(8 * n + 360, 800, 3000))
     return min(side + 120, 3000), side
 
@@ -52,7 +53,7 @@ def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tupl
         raise ParameterError(f"matrix: {m.shape[0]} rows but {len(labels)} labels")
     if not np.all(np.isfinite(m)):
         raise ParameterError("matrix: contains NaN or infinite distances")
-    size = _matrix_size(m.shape[0]) if size is None else _check_size(size)
+    size = matrix_size(m.shape[0]) if size is None else _check_size(size)
     out = check_output(path)
     t0 = time.perf_counter()
     try:
