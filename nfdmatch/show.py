@@ -10,6 +10,8 @@ keeps each curve's centroid, scale and rotation).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import numpy as np
 
 from .curve import Curve
@@ -53,8 +55,8 @@ def align_match(dq: Descriptors, db: Descriptors, points_b: np.ndarray, ranked: 
     return ShownMatch(match=aligned, points=m.apply(points_b), start=marks[0], forward=marks[1], source=source)
 
 
-def matches_from_curves(query: Curve, results: list[RankedMatch], curves, *, samples: int, harmonics: int,
-                        scale: str, method: str = "exact", direction: str = "invariant",
+def matches_from_curves(query: Curve, results: list[RankedMatch], curves: Sequence[Curve], *, samples: int,
+                        harmonics: int, scale: str, method: str = "exact", direction: str = "invariant",
                         mirror: bool = False) -> list[ShownMatch]:
     """Matches of a ranking over curves held in memory.
 
@@ -80,7 +82,8 @@ def _stored_descriptors(index, row: int, curve_id: str) -> Descriptors:
 
 
 def matches_from_index(query: Curve, results: list[RankedMatch], index, *, method: str = "exact",
-                       direction: str = "invariant", mirror: bool = False, read_curve=None,
+                       direction: str = "invariant", mirror: bool = False,
+                       read_curve: Callable[[str], Curve] | None = None,
                        points: int = 256) -> tuple[list[ShownMatch], list[str]]:
     """Matches of an index search, drawn from their files when those still hold the curve.
 
@@ -120,9 +123,9 @@ def matches_from_index(query: Curve, results: list[RankedMatch], index, *, metho
     return shown, notes
 
 
-def show_ranked(query: Curve, curves, *, top: int, samples: int | None = None, harmonics: int | None = None,
-                scale: str | None = None, method: str = "exact", direction: str = "invariant",
-                mirror: bool = False) -> list[ShownMatch]:
+def show_ranked(query: Curve, curves: Sequence[Curve], *, top: int, samples: int | None = None,
+                harmonics: int | None = None, scale: str | None = None, method: str = "exact",
+                direction: str = "invariant", mirror: bool = False) -> list[ShownMatch]:
     """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
     ``samples, harmonics, scale`` None take the library defaults."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
@@ -136,7 +139,8 @@ def show_ranked(query: Curve, curves, *, top: int, samples: int | None = None, h
 
 
 def show_searched(query: Curve, index, *, top: int, method: str = "exact", direction: str = "invariant",
-                  mirror: bool = False, read_curve=None) -> tuple[list[ShownMatch], list[str]]:
+                  mirror: bool = False,
+                  read_curve: Callable[[str], Curve] | None = None) -> tuple[list[ShownMatch], list[str]]:
     """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
     notes of :func:`matches_from_index`."""
     from .search import search_index

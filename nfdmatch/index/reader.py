@@ -42,7 +42,7 @@ def read_error(exc: BaseException, where: str) -> str:
     return f"corrupted nfdmatch index: reading {where} failed ({text})"
 
 
-def open_index(path=None) -> "Index":
+def open_index(path: str | os.PathLike[str] | None = None) -> Index:
     """Open an index for reading (formats 1 and 2; ``path`` None: :func:`default_index_path`).
 
     The file is opened without HDF5 file locking, so a running build never blocks or

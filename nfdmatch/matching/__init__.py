@@ -26,6 +26,7 @@ For a fixed shift, ``max_R Re sum A_k^H R B_k = max_R tr(R M)`` with
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +37,11 @@ from .common import DEFAULT_DIRECTION, DEFAULT_METHOD, DIRECTIONS, METHODS, STRI
 from .dispatch import compile_kernels, reference_path, use_kernels
 from .exact import exact_search, grid_maximum
 from .paper import paper_search
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from ..curve import Curve
 
 __all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search", "compile_kernels",
            "use_kernels", "reference_path", "kabsch_trace", "invariants", "lower_bound", "METHODS", "DIRECTIONS",
@@ -114,7 +120,8 @@ def _as_descriptors(x, samples, harmonics, scale) -> Descriptors:
 
 
 def match_descriptors(da: Descriptors, db: Descriptors, *, method: str = DEFAULT_METHOD,
-                      direction: str = DEFAULT_DIRECTION, mirror: bool = False, weights=None) -> Match:
+                      direction: str = DEFAULT_DIRECTION, mirror: bool = False,
+                      weights: ArrayLike | None = None) -> Match:
     """Match two :class:`Descriptors` computed with the same parameters; see :func:`distance`."""
     if (da.samples, da.harmonics, da.scale_mode) != (db.samples, db.harmonics, db.scale_mode):
         raise ParameterError("descriptors were computed with different parameters")
@@ -135,9 +142,10 @@ def match_descriptors(da: Descriptors, db: Descriptors, *, method: str = DEFAULT
                  scale=float(ratio), translation=da.centroid - ratio * R @ db.centroid)
 
 
-def distance(a, b, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-             scale: str = DEFAULT_SCALE, method: str = DEFAULT_METHOD, direction: str = DEFAULT_DIRECTION,
-             mirror: bool = False, weights=None) -> Match:
+def distance(a: Curve | Descriptors | ArrayLike, b: Curve | Descriptors | ArrayLike, *,
+             samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS, scale: str = DEFAULT_SCALE,
+             method: str = DEFAULT_METHOD, direction: str = DEFAULT_DIRECTION, mirror: bool = False,
+             weights: ArrayLike | None = None) -> Match:
     """Similarity distance between two closed curves, with the alignment that achieves it.
 
     Parameters

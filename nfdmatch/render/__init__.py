@@ -47,6 +47,7 @@ checked without drawing it.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Sequence
 
@@ -69,7 +70,7 @@ __all__ = ["RENDERERS", "DEFAULT_RENDERER", "START_STEP", "MIN_SIDE", "MAX_SIDE"
 
 # --------------------------------------------------------------------------- renderers
 
-def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch], path, *,
+def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch], path: str | os.PathLike[str], *,
                    size: tuple[int, int] = (1600, 900), renderer: str = "auto") -> RenderResult:
     """Draw the query and its matches, each in the query's frame, into one PNG.
 

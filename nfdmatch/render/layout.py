@@ -179,12 +179,12 @@ def _check_size(size) -> tuple[int, int]:
 PICTURE_FORMATS = {".png": "png", ".svg": "svg", ".pdf": "pdf", "": "png"}
 
 
-def picture_format(path) -> str:
+def picture_format(path: str | os.PathLike[str]) -> str:
     """``"png"``, ``"svg"`` or ``"pdf"``: the format of a picture file, by its extension."""
     return PICTURE_FORMATS.get(os.path.splitext(str(path))[1].lower(), "png")
 
 
-def check_output(path) -> str:
+def check_output(path: str | os.PathLike[str]) -> str:
     """``path`` as a str if a picture can be written there (a ``.png``, ``.svg`` or ``.pdf``
     name, or none for PNG, in an existing folder, not a directory); else
     :class:`ParameterError` / :class:`WriteError`. Cheap: callers check before long work."""
@@ -229,7 +229,7 @@ def _check_renderer(renderer) -> str:
 
 # --------------------------------------------------------------------------- geometry
 
-def is_coplanar(*point_sets, tol: float = 1e-6) -> bool:
+def is_coplanar(*point_sets: np.ndarray, tol: float = 1e-6) -> bool:
     """True when all points of all sets lie within ``tol`` times their extent (the largest
     side of their bounding box) of one plane.
 

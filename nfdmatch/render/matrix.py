@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import time
 from typing import Sequence
 
@@ -21,8 +22,8 @@ def matrix_size(n: int) -> tuple[int, int]:
     return min(side + 120, 3000), side
 
 
-def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tuple[int, int] | None = None,
-                  title: str | None = None) -> RenderResult:
+def render_matrix(matrix: np.ndarray, labels: Sequence[str], path: str | os.PathLike[str], *,
+                  size: tuple[int, int] | None = None, title: str | None = None) -> RenderResult:
     """Draw an all-pairs distance matrix as a grey-level grid (the paper's Figure 7), with
     matplotlib: darker = smaller distance (black = 0, white = the largest), the curve names
     along both axes (shortened; every k-th one when there are too many to read), a colour bar.

@@ -22,11 +22,20 @@ whether a curve is near the query's neighbours. The method (chosen by measuremen
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..defaults import DEFAULT_RERANK_DEPTH
 from ..errors import IndexFormatError, ParameterError
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from ..curve import Curve
+    from ..records import RankedMatch
+    from .index_search import SearchStats
 
 __all__ = ["diffused_similarity", "rerank_scores", "rerank_index", "SCALE_NEIGHBOURS", "ALPHA", "MIX",
            "MIN_DEPTH", "DEFAULT_DEPTH"]
@@ -64,7 +73,7 @@ def _pagerank_cosine(P: np.ndarray, alpha: float) -> np.ndarray:
     return A @ A.T
 
 
-def diffused_similarity(distances, *, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA,
+def diffused_similarity(distances: ArrayLike, *, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA,
                         mix: float = MIX) -> np.ndarray:
     """The re-ranked similarity of every pair of a collection.
 
@@ -171,8 +180,10 @@ def rerank_scores(query_distances, candidates, graph_rows, graph_distances, *, m
     return out
 
 
-def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, exclude=None, progress=None,
-                 threads: int | None = None):
+def rerank_index(index, queries: Sequence[Curve], *, top: int = 10, depth: int = DEFAULT_DEPTH,
+                 exclude: Callable[[str, str], bool] | None = None,
+                 progress: Callable[[int, int], None] | None = None,
+                 threads: int | None = None) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k best curves of an index for each query by diffused score.
 
     Parameters
