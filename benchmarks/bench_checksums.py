@@ -80,7 +80,7 @@ def _build(sources, path):
 def _answer(path, curves):
     with open_index(path) as idx:
         results, _ = search_index(idx, curves, top=10)
-    return [[(r["match"], r["distance"]) for r in res] for res in results]
+    return [[(r.id, r.distance) for r in res] for res in results]
 
 
 def _flips(path, query, count, workdir, seed=5, anywhere=False):
@@ -120,7 +120,7 @@ def _flips(path, query, count, workdir, seed=5, anywhere=False):
         try:
             with idx:
                 results, _ = search_index(idx, [query], top=10)
-            got = [[(r["match"], r["distance"]) for r in res] for res in results]
+            got = [[(r.id, r.distance) for r in res] for res in results]
         except NfdError:
             outcomes["detected by the query"] += 1
             continue

@@ -115,7 +115,7 @@ def main():
                 t0 = time.perf_counter()
                 results, stats = cluster.search_index(reference, qcurves, top=10, parts=parts)
                 dt = time.perf_counter() - t0
-                same = all([r["match"] for r in a] == [r["match"] for r in b] for a, b in zip(results, local_results))
+                same = all([r.id for r in a] == [r.id for r in b] for a, b in zip(results, local_results))
                 how = "whole index per worker" if parts == 1 else f"{parts} ranges"
                 rows.append((f"query {len(qcurves)} x {stats.rows} curves, top 10, Dask {n} workers, {how}",
                              f"{dt:.2f} s", f"{dt / len(qcurves) * 1e3:.2f} ms/query",

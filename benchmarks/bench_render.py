@@ -69,7 +69,7 @@ def scene(query_path, candidates, top=5):
     shown = matches_from_curves(query, rows, candidates, samples=SAMPLES, harmonics=DEFAULT_HARMONICS,
                                 scale=DEFAULT_SCALE)
     panels = [dict(id=m.id, distance=m.distance, points=m.points, start=m.start, forward=m.forward,
-                   reversed=m.reversed, mirrored=m.mirrored) for m in shown]
+                   reversed=m.reversed, mirrored=m.mirrored) for m in shown]   # plain data, saved with np.savez
     return dict(query=query.points, query_id=query.id, panels=panels)
 
 
@@ -108,18 +108,26 @@ def matrix_data(n=100, seed=3):
     return distance_matrix(curves, samples=SAMPLES), ids
 
 
-def panels_of(s):
-    from nfdmatch.render import MatchPanel
+def shown_match(rank, p):
+    """The :class:`~nfdmatch.records.ShownMatch` of one saved panel."""
+    from nfdmatch.records import RankedMatch, ShownMatch
 
-    return [MatchPanel(**p) for p in s["panels"]]
+    return ShownMatch(RankedMatch(rank, p["id"], p["distance"], reversed=p["reversed"], mirrored=p["mirrored"]),
+                      p["points"], p["start"], p["forward"])
+
+
+def panels_of(s):
+    return [shown_match(rank, p) for rank, p in enumerate(s["panels"], 1)]
 
 
 CHILD = r"""
 import json, sys, time, numpy as np
 t0 = time.perf_counter()
-from nfdmatch.render import MatchPanel, render_matches
+from nfdmatch.records import RankedMatch, ShownMatch
+from nfdmatch.render import render_matches
 data = np.load(sys.argv[1], allow_pickle=True)["scene"].item()
-panels = [MatchPanel(**p) for p in data["panels"]]
+panels = [ShownMatch(RankedMatch(rank, p["id"], p["distance"], reversed=p["reversed"], mirrored=p["mirrored"]),
+                     p["points"], p["start"], p["forward"]) for rank, p in enumerate(data["panels"], 1)]
 r = render_matches(data["query"], data["query_id"], panels, sys.argv[2], renderer=sys.argv[3])
 print(json.dumps({"seconds": time.perf_counter() - t0, "renderer": r.renderer, "note": r.note}))
 """

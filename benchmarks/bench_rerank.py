@@ -248,7 +248,7 @@ def shipped(cols, knot_data, work):
         S = np.full((N, N), -np.inf)
         for i, r in enumerate(res):
             for m in r:
-                S[i, pos[m["match"]]] = m["score"]
+                S[i, pos[m.id]] = m.score
         np.fill_diagonal(S, np.inf)
         counts, p10, bull = scores_table(S, c["labels"])
         pc, pp, pb = scores_table(-c["D"], c["labels"])
@@ -262,7 +262,7 @@ def shipped(cols, knot_data, work):
     with open_index(os.path.join(work, "knots.h5")) as idx:
         res, _ = rerank_index(idx, control, top=1)
         ids = idx.ids()
-    hits = sum(r[0]["match"] == ids[i] for i, r in enumerate(res))
+    hits = sum(r[0].id == ids[i] for i, r in enumerate(res))
     print(f"{'knotess control->smooth':24} top-1 with --rerank: {hits}/{len(control)}")
 
 

@@ -16,12 +16,17 @@ Conventions (the project's ``docs/method.md``):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .curve import Curve, as_points
 from .errors import CurveError, ParameterError
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 __all__ = ["Descriptors", "descriptors", "resample", "SCALES", "DEFAULT_SAMPLES",
            "DEFAULT_HARMONICS", "DEFAULT_SCALE", "validate_parameters", "descriptors_batch",
@@ -92,7 +97,7 @@ def validate_parameters(samples: int, harmonics: int, scale: str) -> None:
 START_STEP = 0.04
 
 
-def points_at(points: np.ndarray, fractions) -> np.ndarray:
+def points_at(points: np.ndarray, fractions: ArrayLike) -> np.ndarray:
     """Points of a closed polyline at given fractions of its length.
 
     Parameters
@@ -134,7 +139,7 @@ def resample(points: np.ndarray, samples: int) -> np.ndarray:
     return points_at(points, np.arange(samples) / samples)
 
 
-def descriptors(curve, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
+def descriptors(curve: Curve | ArrayLike, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
                 scale: str = DEFAULT_SCALE) -> Descriptors:
     """Normalized Fourier descriptors of one closed curve.
 
@@ -260,8 +265,8 @@ def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.nd
     return R, degenerate
 
 
-def descriptors_batch(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                      scale: str = DEFAULT_SCALE) -> DescriptorBatch:
+def descriptors_batch(curves: Sequence[Curve | np.ndarray], *, samples: int = DEFAULT_SAMPLES,
+                      harmonics: int = DEFAULT_HARMONICS, scale: str = DEFAULT_SCALE) -> DescriptorBatch:
     """:func:`descriptors` of many curves at once, vectorized (no Python loop over vertices).
 
     Parameters

@@ -16,6 +16,9 @@ Library use::
     with connect("local:2") as cluster:            # or "tcp://host:8786", or a dask Client
         report = cluster.build_index(["curves/"], "curves.h5")
         results, stats = cluster.search_index("curves.h5", queries, top=10)
+
+Test hook: a worker reports ``nfdmatch._version.__version__`` as its version (read when
+:func:`connect` asks); tests change it on workers to act out a version mismatch.
 """
 
 from __future__ import annotations
@@ -301,12 +304,12 @@ class Cluster:
             from .search.bestfirst import TopK
 
             path = os.path.abspath(idx.path)
-            stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale)
+            stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
             stats = SearchStats(queries=len(queries), rows=idx.n_curves, pruned=prune)
             tops = [TopK(top, max_distance) for _ in queries]
             if idx.n_curves and len(queries):
                 qcoef = descriptors_batch(queries, samples=idx.samples, harmonics=idx.harmonics,
-                                          scale=idx.scale).coefficients
+                                          scale=idx.scale_mode).coefficients
                 if parts:
                     n_parts = int(parts)
                 else:
@@ -509,7 +512,7 @@ def _worker_index(path: str, stamp: tuple):
         for old_key in [k for k in _OPEN if k[0] == path]:   # a replaced index: drop the old one
             _OPEN.pop(old_key)[0].close()
         idx = open_index(path)
-        got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale)
+        got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
         if got != tuple(stamp):
             idx.close()
             raise ClusterError("the index a worker opened is not the one the client opened (replaced by a "
@@ -645,8 +648,9 @@ def _account(out: dict, work) -> None:
         out[key] += getattr(work, key)
 
 
-def _ranked(idx, tops, top) -> list[list[dict]]:
-    """The rows of :func:`nfdmatch.search.search_index` from merged TopKs (the same code)."""
+def _ranked(idx, tops, top) -> list[list]:
+    """The :class:`~nfdmatch.records.RankedMatch` es of :func:`nfdmatch.search.search_index`
+    from merged TopKs (the same code)."""
     from .search.index_search import ranked_rows
 
     return ranked_rows(idx, tops, top)

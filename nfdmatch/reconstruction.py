@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .curve import Curve
-from .descriptors import descriptors, reconstruct
+from .descriptors import DEFAULT_SAMPLES, descriptors, reconstruct
 from .errors import ParameterError
 
 __all__ = ["Reconstruction", "reconstruct_curves", "reconstruction_samples"]
@@ -35,7 +35,7 @@ class Reconstruction:
 def reconstruction_samples(harmonics: int, samples: int | None = None) -> int:
     """The arc-length samples of the transform: ``samples``, by default max(128, 4K).
     Raises :class:`ParameterError` unless 2K < samples."""
-    n = samples if samples is not None else max(128, 4 * harmonics)
+    n = samples if samples is not None else max(DEFAULT_SAMPLES, 4 * harmonics)
     if 2 * harmonics >= n:
         raise ParameterError(f"harmonics ({harmonics}) must be below samples/2 ({n}/2)")
     return n

@@ -10,14 +10,15 @@ keeps each curve's centroid, scale and rotation).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from .curve import Curve
 from .descriptors import START_STEP, DescriptorBatch, Descriptors, descriptors, points_at, reconstruct
 from .errors import CurveError, NfdError
-from .matching import match_descriptors
+from .matching import Match, match_descriptors
+from .records import RankedMatch, ShownMatch
 
 __all__ = ["ShownMatch", "align_match", "match_panels", "matches_from_curves", "matches_from_index", "show_ranked",
            "show_searched"]
@@ -39,64 +40,37 @@ def _drawable(query: Curve) -> None:
                          f"take it as it is)", path=query.id)
 
 
-@dataclass(frozen=True)
-class ShownMatch:
-    """One match ready to draw.
-
-    Attributes
-    ----------
-    rank : int, 1-based.
-    id : str, the match's curve id.
-    distance : float, the distance the search reported.
-    points : (m, 3) float64, the match's vertices in the query's coordinates.
-    start : (3,) float64, the point of the match that corresponds to the query's first vertex.
-    forward : (3,) float64, the point that corresponds to the query a little further on
-        (``START_STEP`` of its length): together with ``start``, the direction of travel.
-    reversed, mirrored : bool, as in :class:`~nfdmatch.matching.Match`.
-    source : ``"file"`` (drawn from the curve file) or ``"index"`` (from stored harmonics).
-    """
-
-    rank: int
-    id: str
-    distance: float
-    points: np.ndarray
-    start: np.ndarray
-    forward: np.ndarray
-    reversed: bool
-    mirrored: bool
-    source: str
-
-
-def align_match(dq: Descriptors, db: Descriptors, points_b: np.ndarray, *, rank: int, distance: float,
-                source: str, method: str = "exact", direction: str = "invariant",
-                mirror: bool = False, match=None) -> ShownMatch:
-    """Map ``points_b`` ((m, 3) float64, the curve behind ``db``) into the frame of the query
-    behind ``dq`` with the alignment of their match (``match``, computed when None)."""
-    m = match if match is not None else match_descriptors(dq, db, method=method, direction=direction,
-                                                          mirror=mirror)
+def align_match(dq: Descriptors, db: Descriptors, points_b: np.ndarray, ranked: RankedMatch, *, source: str,
+                method: str = "exact", direction: str = "invariant", mirror: bool = False,
+                alignment: Match | None = None) -> ShownMatch:
+    """The ranked match ``ranked`` with ``points_b`` ((m, 3) float64, the curve behind
+    ``db``) mapped into the frame of the query behind ``dq`` by the alignment of their match
+    (``alignment``, computed when None); the shift and direction become the alignment's."""
+    m = alignment if alignment is not None else match_descriptors(dq, db, method=method, direction=direction,
+                                                                  mirror=mirror)
     fractions = m.partner_fractions(np.array([0.0, START_STEP]), dq.samples)
     marks = m.apply(points_at(points_b, fractions))
-    return ShownMatch(rank=rank, id=db.id, distance=float(distance), points=m.apply(points_b),
-                      start=marks[0], forward=marks[1], reversed=m.reversed, mirrored=m.mirrored,
-                      source=source)
+    aligned = ranked.replace(id=db.id, distance=float(ranked.distance), shift=m.shift, reversed=m.reversed,
+                             mirrored=m.mirrored)
+    return ShownMatch(match=aligned, points=m.apply(points_b), start=marks[0], forward=marks[1], source=source)
 
 
-def matches_from_curves(query: Curve, results: list[dict], curves, *, samples: int, harmonics: int,
-                        scale: str, method: str = "exact", direction: str = "invariant",
+def matches_from_curves(query: Curve, results: list[RankedMatch], curves: Sequence[Curve], *, samples: int,
+                        harmonics: int, scale: str, method: str = "exact", direction: str = "invariant",
                         mirror: bool = False) -> list[ShownMatch]:
     """Matches of a ranking over curves held in memory.
 
-    results : rows of :func:`~nfdmatch.search.rank_curves` over ``curves`` (``rank``,
-        ``distance``, ``row``: the match's position in ``curves``).
+    results : the matches :func:`~nfdmatch.search.rank_curves` found in ``curves`` (``row``:
+        the match's position in ``curves``).
     curves : the sequence of :class:`~nfdmatch.curve.Curve` that was ranked.
     """
     dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
     shown = []
-    for row in results:
-        curve = curves[row["row"]]
+    for ranked in results:
+        curve = curves[ranked.row]
         db = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
-        shown.append(align_match(dq, db, curve.points, rank=row["rank"], distance=row["distance"],
-                                 source="file", method=method, direction=direction, mirror=mirror))
+        shown.append(align_match(dq, db, curve.points, ranked, source="file", method=method, direction=direction,
+                                 mirror=mirror))
     return shown
 
 
@@ -104,16 +78,16 @@ def _stored_descriptors(index, row: int, curve_id: str) -> Descriptors:
     """The descriptors an index keeps for one row (true size and pose included)."""
     r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
     return DescriptorBatch(r["coefficients"], r["rotation"], r["centroid"], r["scale"], r["plane_degenerate"],
-                           index.samples, index.harmonics, index.scale).row(0, curve_id)
+                           index.samples, index.harmonics, index.scale_mode).row(0, curve_id)
 
 
-def matches_from_index(query: Curve, results: list[dict], index, *, method: str = "exact",
-                       direction: str = "invariant", mirror: bool = False, read_curve=None,
+def matches_from_index(query: Curve, results: list[RankedMatch], index, *, method: str = "exact",
+                       direction: str = "invariant", mirror: bool = False,
+                       read_curve: Callable[[str], Curve] | None = None,
                        points: int = 256) -> tuple[list[ShownMatch], list[str]]:
     """Matches of an index search, drawn from their files when those still hold the curve.
 
-    results : one query's rows of :func:`~nfdmatch.search.search_index` (``rank``, ``match``,
-        ``distance``, ``row``).
+    results : one query's matches from :func:`~nfdmatch.search.search_index`.
     index : the open :class:`~nfdmatch.index.Index` searched.
     read_curve : ``spec -> Curve`` (default :func:`nfdmatch.formats.read_curve`).
     points : vertices of a curve drawn from its stored harmonics.
@@ -122,11 +96,11 @@ def matches_from_index(query: Curve, results: list[dict], index, *, method: str 
     """
     if read_curve is None:
         from .formats import read_curve
-    samples, harmonics, scale = index.samples, index.harmonics, index.scale
+    samples, harmonics, scale = index.samples, index.harmonics, index.scale_mode
     dq = descriptors(query, samples=samples, harmonics=harmonics, scale=scale)
     shown, notes = [], []
-    for row in results:
-        curve_id = row["match"]
+    for ranked in results:
+        curve_id = ranked.id
         try:
             # an index's ids are relative to its folder: found from any working directory
             located = index.locate(curve_id) if hasattr(index, "locate") else curve_id
@@ -138,22 +112,20 @@ def matches_from_index(query: Curve, results: list[dict], index, *, method: str 
         else:
             db = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
             m = match_descriptors(dq, db, method=method, direction=direction, mirror=mirror)
-            if abs(m.distance - row["distance"]) <= _CHANGED * (1.0 + row["distance"]):
-                shown.append(align_match(dq, db, curve.points, rank=row["rank"], distance=row["distance"],
-                                         source="file", match=m))
+            if abs(m.distance - ranked.distance) <= _CHANGED * (1.0 + ranked.distance):
+                shown.append(align_match(dq, db, curve.points, ranked, source="file", alignment=m))
                 continue
             reason = f"the file changed since it was indexed (distance now {m.distance:.4g})"
-        db = _stored_descriptors(index, row["row"], curve_id)
-        shown.append(align_match(dq, db, reconstruct(db, points=points), rank=row["rank"],
-                                 distance=row["distance"], source="index", method=method,
+        db = _stored_descriptors(index, ranked.row, curve_id)
+        shown.append(align_match(dq, db, reconstruct(db, points=points), ranked, source="index", method=method,
                                  direction=direction, mirror=mirror))
         notes.append(f"{curve_id}: drawn from its {harmonics} indexed harmonics: {reason}")
     return shown, notes
 
 
-def show_ranked(query: Curve, curves, *, top: int, samples: int | None = None, harmonics: int | None = None,
-                scale: str | None = None, method: str = "exact", direction: str = "invariant",
-                mirror: bool = False) -> list[ShownMatch]:
+def show_ranked(query: Curve, curves: Sequence[Curve], *, top: int, samples: int | None = None,
+                harmonics: int | None = None, scale: str | None = None, method: str = "exact",
+                direction: str = "invariant", mirror: bool = False) -> list[ShownMatch]:
     """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
     ``samples, harmonics, scale`` None take the library defaults."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
@@ -167,7 +139,8 @@ def show_ranked(query: Curve, curves, *, top: int, samples: int | None = None, h
 
 
 def show_searched(query: Curve, index, *, top: int, method: str = "exact", direction: str = "invariant",
-                  mirror: bool = False, read_curve=None) -> tuple[list[ShownMatch], list[str]]:
+                  mirror: bool = False,
+                  read_curve: Callable[[str], Curve] | None = None) -> tuple[list[ShownMatch], list[str]]:
     """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
     notes of :func:`matches_from_index`."""
     from .search import search_index
@@ -178,11 +151,7 @@ def show_searched(query: Curve, index, *, top: int, method: str = "exact", direc
                               read_curve=read_curve)
 
 
-def match_panels(shown) -> list:
-    """:class:`~nfdmatch.render.MatchPanel` of each :class:`ShownMatch`, for
-    :func:`~nfdmatch.render.render_matches`."""
-    from .render import MatchPanel
-
-    return [MatchPanel(id=s.id, distance=s.distance, points=s.points, start=s.start, forward=s.forward,
-                       reversed=s.reversed, mirrored=s.mirrored,
-                       note="drawn from index harmonics" if s.source == "index" else None) for s in shown]
+def match_panels(shown) -> list[ShownMatch]:
+    """Deprecated: :func:`~nfdmatch.render.render_matches` draws :class:`ShownMatch` es as
+    they are; this returns them as a list."""
+    return list(shown)

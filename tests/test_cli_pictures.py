@@ -187,12 +187,12 @@ def test_show_from_an_index_draws_from_files_or_stored_harmonics(folder, tmp_pat
     from nfdmatch import render
 
     drawn = []
-    original = render._build_scene
-    render._build_scene = lambda q, qid, panels, size: drawn.extend(panels) or original(q, qid, panels, size)
+    original = render.build_scene
+    render.build_scene = lambda q, qid, panels, size: drawn.extend(panels) or original(q, qid, panels, size)
     try:
         run("show", query, "--index", index, "--top", 2, "-o", png)
     finally:
-        render._build_scene = original
+        render.build_scene = original
     assert [p.note for p in drawn] == [None, "drawn from index harmonics"]
 
 

@@ -196,10 +196,9 @@ def _same_rows(a, b):
     start that depends on which rows share a batch) to 1e-12, as pruned vs exhaustive."""
     assert len(a) == len(b)
     for ra, rb in zip(a, b):
-        assert [{k: v for k, v in r.items() if k not in ("distance", "shift")} for r in ra] == \
-            [{k: v for k, v in r.items() if k not in ("distance", "shift")} for r in rb]
-        assert np.allclose([r["distance"] for r in ra], [r["distance"] for r in rb], rtol=1e-12, atol=1e-12)
-        assert np.allclose([r["shift"] for r in ra], [r["shift"] for r in rb], rtol=1e-9, atol=1e-9)
+        assert [r.replace(distance=0.0, shift=0.0) for r in ra] == [r.replace(distance=0.0, shift=0.0) for r in rb]
+        assert np.allclose([r.distance for r in ra], [r.distance for r in rb], rtol=1e-12, atol=1e-12)
+        assert np.allclose([r.shift for r in ra], [r.shift for r in rb], rtol=1e-9, atol=1e-9)
 
 
 @pytest.mark.parametrize("options", [dict(top=5), dict(top=12, mirror=True), dict(top=None, max_distance=0.2),

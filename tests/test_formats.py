@@ -37,7 +37,7 @@ from nfdmatch.formats import (
 from nfdmatch.formats import csv as csv_format
 from nfdmatch.formats import obj as obj_format
 from nfdmatch.formats import vtk as vtk_format
-from nfdmatch.formats._chain import chain_segments
+from nfdmatch._graph import chain_segments
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parent / "data" / "formats"

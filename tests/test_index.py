@@ -21,7 +21,6 @@ from oracle import random_smooth_curve
 
 import nfdmatch.index as nindex
 from nfdmatch.index import lock as index_lock
-from nfdmatch.index import pool as index_pool
 from nfdmatch import Curve, descriptors, read_curves, write_curves
 from nfdmatch.errors import (IndexFormatError, IndexLockedError, InputError, NfdError, ParameterError,
                              ReadError, ShrinkRefusedError)
@@ -32,6 +31,12 @@ from nfdmatch.matching import invariants
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 FROZEN = os.path.join(HERE, "data", "index", "v1-sample.h5")
+
+
+def _sha256(path) -> str:
+    """SHA-256 of a file's bytes, as the index stores it (docs/index-format.md)."""
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
 
 
 # --------------------------------------------------------------------------- helpers
@@ -69,7 +74,7 @@ def lib(tmp_path, rng):
 def _snapshot(path):
     with open_index(path) as idx:
         return {"ids": idx.ids(), "files": idx.files(), "rows": idx.read_rows(0, idx.n_curves),
-                "params": (idx.samples, idx.harmonics, idx.scale), "created": idx.created,
+                "params": (idx.samples, idx.harmonics, idx.scale_mode), "created": idx.created,
                 "updated": idx.updated, "n": idx.n_curves}
 
 
@@ -147,7 +152,8 @@ FROZEN_DIGESTS = {
 def test_frozen_v1_index_reads_forever():
     with open_index(FROZEN) as idx:
         assert (idx.format_version, idx.nfdmatch_version) == (1, "0.1.0")
-        assert (idx.samples, idx.harmonics, idx.scale) == (32, 4, "rms")
+        assert (idx.samples, idx.harmonics, idx.scale_mode) == (32, 4, "rms")
+        assert idx.scale == idx.scale_mode                      # the deprecated name
         assert (idx.created, idx.updated) == ("2026-01-01T00:00:00Z", "2026-01-01T00:00:00Z")
         assert (idx.n_curves, idx.n_files) == (7, 5)
         assert idx.ids() == FROZEN_IDS
@@ -201,7 +207,7 @@ FROZEN_V2 = os.path.join(HERE, "data", "index", "v2-sample.h5")
 def test_frozen_v2_index_reads_forever():
     """Format 2 = format 1's tables (same sources, same values) plus /search."""
     with open_index(FROZEN_V2) as idx, open_index(FROZEN) as v1:
-        assert (idx.format_version, idx.samples, idx.harmonics, idx.scale) == (2, 32, 4, "rms")
+        assert (idx.format_version, idx.samples, idx.harmonics, idx.scale_mode) == (2, 32, 4, "rms")
         assert (idx.n_curves, idx.n_files) == (7, 5)
         assert idx.ids() == FROZEN_IDS
         # the same files (the modification times are the clone's that froze each file)
@@ -272,7 +278,7 @@ def test_frozen_indexes_answer_queries_as_the_exhaustive_search(frozen):
     with open_index(frozen) as idx:
         pruned, _ = search_index(idx, queries, top=3)
         full, _ = search_index(idx, queries, top=3, prune=False)
-    assert [[r["match"] for r in p] for p in pruned] == [[r["match"] for r in f] for f in full]
+    assert [[r.id for r in p] for p in pruned] == [[r.id for r in f] for f in full]
 
 
 def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
@@ -286,7 +292,7 @@ def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
         before = v1.read_rows(0, v1.n_curves)
         unchanged_sha = {r.path: r.sha256 for r in v1.files()}
     for path in sources:
-        if os.path.exists(path) and index_pool._sha256(path) != unchanged_sha[path]:
+        if os.path.exists(path) and _sha256(path) != unchanged_sha[path]:
             pytest.skip(f"{path} changed since the frozen index was made")
     report = build_index(sources, str(target), jobs=1)
     assert report.written and any("upgrading the index from format 1 to 2" in n for n in report.notices)
@@ -307,7 +313,7 @@ def test_frozen_rows_match_the_sample_curves_to_complex64():
         files = idx.files()
     for record in files:
         path = os.path.join(REPO, record.path)
-        if record.status != "ok" or not os.path.exists(path) or index_pool._sha256(path) != record.sha256:
+        if record.status != "ok" or not os.path.exists(path) or _sha256(path) != record.sha256:
             continue
         for curve in read_curves(path):
             row = ids.index(curve.id.replace(REPO + os.sep, ""))
@@ -327,7 +333,7 @@ def test_build_ids_file_table_and_descriptors(lib, tmp_path):
     assert report.curves == 8 and report.written and not report.dry_run
     assert report.changes == [("added", p) for p in _keys(lib)]      # relative to the index's folder
     with open_index(idx_path) as idx:
-        assert (idx.samples, idx.harmonics, idx.scale, idx.format_version) == (128, 16, "rms", FORMAT_VERSION)
+        assert (idx.samples, idx.harmonics, idx.scale_mode, idx.format_version) == (128, 16, "rms", FORMAT_VERSION)
         assert idx.created == idx.updated and idx.created.endswith("Z")
         files = idx.files()
         assert [f.path for f in files] == _keys(lib) and idx.sources() == (["lib"], None)
@@ -525,14 +531,14 @@ def test_parameters_none_keep_the_index_and_changes_recompute(lib, tmp_path, rea
     report = build_index([str(lib)], idx_path, jobs=1)
     assert reads == [] and report.unchanged == 5 and report.notices == []
     with open_index(idx_path) as idx:
-        assert (idx.samples, idx.harmonics, idx.scale) == (64, 8, "a1")
+        assert (idx.samples, idx.harmonics, idx.scale_mode) == (64, 8, "a1")
     # same values given explicitly: nothing to do
     assert build_index([str(lib)], idx_path, samples=64, jobs=1).unchanged == 5
     report = build_index([str(lib)], idx_path, harmonics=4, jobs=1)
     assert report.notices == ["parameters changed (harmonics 8 -> 4): recomputing all curves"]
     assert (report.updated, report.unchanged) == (5, 0) and len(reads) == 5
     with open_index(idx_path) as idx:
-        assert (idx.samples, idx.harmonics, idx.scale) == (64, 4, "a1")
+        assert (idx.samples, idx.harmonics, idx.scale_mode) == (64, 4, "a1")
         assert idx.read_rows(0, 1)["coefficients"].shape == (1, 4, 3)
     report = build_index([str(lib)], idx_path, samples=128, scale="rms", jobs=1)
     assert report.notices == ["parameters changed (samples 64 -> 128, scale a1 -> rms): recomputing all curves"]

@@ -189,7 +189,7 @@ def test_aligned_match_lands_on_the_query(seed, shift, flip, vertices):
     ahead = points_at(query.points, np.array([0.04]))[0]
     assert np.linalg.norm(best.forward - ahead) < 0.03 * size
     assert best.reversed == flip
-    assert best.distance == pytest.approx(ranked[0]["distance"])
+    assert best.distance == pytest.approx(ranked[0].distance)
 
 
 def test_matrix_in_row_batches_equals_one_call(rng, monkeypatch):

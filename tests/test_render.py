@@ -17,8 +17,9 @@ from oracle import ellipse, random_rotation, torus_knot
 from nfdmatch import render
 from nfdmatch.render import layout, matrix, pyvista_backend
 from nfdmatch.errors import NfdError, ParameterError, RenderError, WriteError
-from nfdmatch.render import (DEFAULT_RENDERER, RENDERERS, MatchPanel, RenderResult, is_coplanar, render_matches,
-                             render_matrix, short_label, short_labels)
+from nfdmatch.records import RankedMatch, ShownMatch
+from nfdmatch.render import (DEFAULT_RENDERER, RENDERERS, RenderResult, is_coplanar, render_matches, render_matrix,
+                             short_label, short_labels)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 SMALL = (640, 360)
@@ -26,10 +27,15 @@ SMALL = (640, 360)
 
 # --------------------------------------------------------------------------- helpers
 
-def _panel(points, curve_id="lib/knot.csv", distance=0.1234567, **flags) -> MatchPanel:
+def _shown(curve_id, distance, points, start, forward, *, reversed=False, mirrored=False,
+           source="file") -> ShownMatch:
+    return ShownMatch(RankedMatch(rank=1, id=curve_id, distance=distance, reversed=reversed, mirrored=mirrored),
+                      points=points, start=start, forward=forward, source=source)
+
+
+def _panel(points, curve_id="lib/knot.csv", distance=0.1234567, **flags) -> ShownMatch:
     points = np.asarray(points, float)
-    return MatchPanel(id=curve_id, distance=distance, points=points, start=points[0].copy(),
-                      forward=points[3].copy(), **flags)
+    return _shown(curve_id, distance, points, points[0].copy(), points[3].copy(), **flags)
 
 
 def _knot_scene(rng, n_matches=3):
@@ -46,8 +52,7 @@ def _ellipse_scene(n_matches=2, tilt=None):
     panels = [_panel(ellipse(2.0, 1.1 + 0.2 * i, 90 + i), f"lib/e{i}.csv", 0.02 * (i + 1)) for i in range(n_matches)]
     if tilt is not None:
         q = q @ tilt.T
-        panels = [MatchPanel(id=p.id, distance=p.distance, points=p.points @ tilt.T, start=tilt @ p.start,
-                             forward=tilt @ p.forward) for p in panels]
+        panels = [_shown(p.id, p.distance, p.points @ tilt.T, tilt @ p.start, tilt @ p.forward) for p in panels]
     return q, panels
 
 
@@ -129,7 +134,7 @@ def test_flags_change_the_title(tmp_path, rng):
     p = panels[0]
     plain, flagged = tmp_path / "a.png", tmp_path / "b.png"
     render_matches(q, "q", [p], plain, size=SMALL, renderer="matplotlib")
-    render_matches(q, "q", [MatchPanel(p.id, p.distance, p.points, p.start, p.forward, reversed=True, mirrored=True)],
+    render_matches(q, "q", [_shown(p.id, p.distance, p.points, p.start, p.forward, reversed=True, mirrored=True)],
                    flagged, size=SMALL, renderer="matplotlib")
     assert np.any(_read_png(plain) != _read_png(flagged))
 
@@ -158,7 +163,7 @@ def test_is_coplanar():
 def test_planar_input_takes_the_2d_view_in_the_query_plane(tmp_path):
     tilt = random_rotation(np.random.default_rng(5))
     q, panels = _ellipse_scene(2, tilt=tilt)
-    scene = layout._build_scene(q, "e", panels, SMALL)
+    scene = layout.build_scene(q, "e", panels, SMALL)
     assert scene.planar
     for p in scene.panels:
         assert np.abs(p.points[:, 2]).max() < 1e-9               # the plane faces the viewer
@@ -172,14 +177,14 @@ def test_planar_input_takes_the_2d_view_in_the_query_plane(tmp_path):
 
 def test_z0_input_keeps_x_and_y():
     q, panels = _ellipse_scene(1)
-    scene = layout._build_scene(q, "e", panels, SMALL)
+    scene = layout.build_scene(q, "e", panels, SMALL)
     assert scene.planar
     np.testing.assert_allclose(scene.query - scene.query[0], q - q[0], atol=1e-12)
 
 
 def test_3d_input_takes_the_tilted_3d_view(tmp_path, rng):
     q, panels = _knot_scene(rng, 2)
-    scene = layout._build_scene(q, "k", panels, SMALL)
+    scene = layout.build_scene(q, "k", panels, SMALL)
     assert not scene.planar
     # the view is a rotation of the query (no stretching, no mirror) ...
     centred = q - q.mean(axis=0)
@@ -203,15 +208,15 @@ def test_the_view_depends_on_the_shape_not_on_its_vertices(rng):
     uneven = points_at(q, crowded)
     marks = points_at(q, [0.1, 0.37, 0.66])
     probe = [_panel(np.vstack([marks, marks[::-1] * 1.001]))]
-    a = layout._build_scene(q, "k", probe, SMALL)
-    b = layout._build_scene(uneven, "k", probe, SMALL)
+    a = layout.build_scene(q, "k", probe, SMALL)
+    b = layout.build_scene(uneven, "k", probe, SMALL)
     span = np.ptp(a.query, axis=0).max()
     np.testing.assert_allclose(a.panels[1].points, b.panels[1].points, atol=0.02 * span)
 
 
 def test_panels_share_one_window_with_equal_aspect(rng):
     q, panels = _knot_scene(rng, 3)
-    scene = layout._build_scene(q, "k", panels, (1600, 900))
+    scene = layout.build_scene(q, "k", panels, (1600, 900))
     x0, x1, y0, y1 = scene.window
     bw, bh = scene.box
     assert (x1 - x0) / (y1 - y0) == pytest.approx(bw / bh)
@@ -222,7 +227,7 @@ def test_panels_share_one_window_with_equal_aspect(rng):
 
 @pytest.mark.parametrize("count, grid", [(1, (1, 1)), (2, (1, 2)), (4, (2, 2)), (6, (2, 3)), (12, (3, 4))])
 def test_grid_shape_for_the_count(count, grid):
-    assert layout._choose_grid(count, (1600, 900), 1.0, 1.0) == grid
+    assert layout.choose_grid(count, (1600, 900), 1.0, 1.0) == grid
 
 
 # --------------------------------------------------------------------------- labels
@@ -286,8 +291,8 @@ def test_invalid_arrays(tmp_path):
     with pytest.raises(ParameterError, match="shape"):
         render_matches(q[:, :1], "e", panels, out)
     with pytest.raises(ParameterError, match="start"):
-        render_matches(q, "e", [MatchPanel("m", 0.1, p.points, np.array([np.nan, 0, 0]), p.forward)], out)
-    with pytest.raises(ParameterError, match="MatchPanel"):
+        render_matches(q, "e", [_shown("m", 0.1, p.points, np.array([np.nan, 0, 0]), p.forward)], out)
+    with pytest.raises(ParameterError, match="ShownMatch"):
         render_matches(q, "e", [p.points], out)
     with pytest.raises(ParameterError, match="size"):
         render_matches(q, "e", panels, out, size=(50, 900))
@@ -366,10 +371,10 @@ def test_probe_reason_reads_vtk_messages():
               "  WARN| bad X server connection. DISPLAY=\x1b[0m\n"
               "\x1b[0m\x1b[33m2026 (0.9s) [7F]vtkOSOpenGLRenderWindow:150   WARN| libOSMesa not found. It appears"
               "\x1b[0m\n")
-    reason = pyvista_backend._probe_reason(-11, stderr)
+    reason = pyvista_backend.probe_reason(-11, stderr)
     assert reason.startswith("a test render crashed (signal 11): bad X server connection")
     assert "libOSMesa not found" in reason and "\x1b" not in reason
-    assert pyvista_backend._probe_reason(1, "") == "a test render failed (exit status 1)"
+    assert pyvista_backend.probe_reason(1, "") == "a test render failed (exit status 1)"
 
 
 # --------------------------------------------------------------------------- pyvista, for real
@@ -414,8 +419,8 @@ def test_matrix_picture(tmp_path):
     out = tmp_path / "m.png"
     r = render_matrix(m, ids, out, title="exact distance, 12 curves")
     assert r.renderer == "matplotlib" and r.path == str(out)
-    _check_picture(out, matrix._matrix_size(12))
-    assert matrix._matrix_size(12) == (920, 800)
+    _check_picture(out, matrix.matrix_size(12))
+    assert matrix.matrix_size(12) == (920, 800)
     sized = tmp_path / "s.png"
     render_matrix(m, ids, sized, size=(700, 650))
     _check_picture(sized, (700, 650))
@@ -436,7 +441,7 @@ def test_matrix_many_labels(tmp_path):
     m = np.abs(np.subtract.outer(np.arange(n), np.arange(n))).astype(float)
     out = tmp_path / "big.png"
     render_matrix(m, [f"curves/shape-{i:03d}.vtp#{i % 3}" for i in range(n)], out)
-    w, h = matrix._matrix_size(n)
+    w, h = matrix.matrix_size(n)
     assert 800 <= h <= 3000 and 800 <= w <= 3000
     _check_picture(out, (w, h))
 
@@ -461,7 +466,8 @@ def test_no_egl_in_a_real_process_is_an_error_or_a_fallback_never_a_crash(tmp_pa
         "from nfdmatch.errors import RenderError\n"
         "t = np.linspace(0, 2 * np.pi, 60, endpoint=False)\n"
         "q = np.c_[np.cos(t), np.sin(t), 0.3 * np.sin(3 * t)]\n"
-        "p = render.MatchPanel('m.csv', 0.1, q * 1.1, q[0] * 1.1, q[3] * 1.1)\n"
+        "from nfdmatch.records import RankedMatch, ShownMatch\n"
+        "p = ShownMatch(RankedMatch(1, 'm.csv', 0.1), q * 1.1, q[0] * 1.1, q[3] * 1.1)\n"
         "try:\n"
         "    r = render.render_matches(q, 'q', [p], sys.argv[1], size=(400, 300), renderer='pyvista')\n"
         "    print('drew', r.renderer)\n"
@@ -495,9 +501,9 @@ def test_short_labels_drop_the_common_affixes_of_long_similar_names():
 def test_panel_subtitles_carry_distance_flags_and_note(tmp_path):
 
     q, panels = _ellipse_scene(n_matches=2)
-    panels = [panels[0], MatchPanel(id=panels[1].id, distance=0.5, points=panels[1].points, start=panels[1].start,
-                                    forward=panels[1].forward, reversed=True, note="drawn from index harmonics")]
-    scene = layout._build_scene(q, "q.csv", panels, SMALL)
+    panels = [panels[0], _shown(panels[1].id, 0.5, panels[1].points, panels[1].start, panels[1].forward,
+                                reversed=True, source="index")]
+    scene = layout.build_scene(q, "q.csv", panels, SMALL)
     assert scene.panels[1].subtitle == "d = 0.02"
     assert scene.panels[2].subtitle == "d = 0.5  \u00b7  reversed  \u00b7  drawn from index harmonics"
     plain = _read_png(render_matches(q, "q.csv", panels[:1] + [_panel(panels[1].points, panels[1].id, 0.5,

@@ -78,9 +78,9 @@ def test_graph_rows_are_the_exact_top_k_of_a_query(tmp_path, rng):
         results, _ = search_index(idx, _read_back(tmp_path / "c"), top=7)
     by_id = dict(enumerate(ids))
     for i, res in enumerate(results):
-        expected = [m for m in res if m["row"] != i][:6]
-        assert [by_id[j] for j in nb[i]] == [m["match"] for m in expected]
-        np.testing.assert_allclose(dist[i], [m["distance"] for m in expected], rtol=1e-5, atol=1e-6)
+        expected = [m for m in res if m.row != i][:6]
+        assert [by_id[j] for j in nb[i]] == [m.id for m in expected]
+        np.testing.assert_allclose(dist[i], [m.distance for m in expected], rtol=1e-5, atol=1e-6)
         assert np.all(np.diff(dist[i]) >= -1e-9)
 
 
@@ -158,9 +158,9 @@ def test_rerank_improves_a_family_collection(families_index):
     def precision(results):
         hits = []
         for q, res in zip(stored, results):
-            res = [m for m in res if m["match"] != stored_id(q.id)][:10]
+            res = [m for m in res if m.id != stored_id(q.id)][:10]
             assert len(res) == 10
-            hits.append(np.mean([family[m["match"]] == family[stored_id(q.id)] for m in res]))
+            hits.append(np.mean([family[m.id] == family[stored_id(q.id)] for m in res]))
         return float(np.mean(hits))
 
     p_plain, p_rerank = precision(plain), precision(reranked)
@@ -180,9 +180,9 @@ def test_local_diffusion_matches_the_full_one_on_a_small_index(tmp_path, rng):
     with open_index(tmp_path / "i.h5") as idx:
         results, _ = rerank_index(idx, stored, top=89, depth=100, exclude=lambda q, m: rel(q) == m)
     for i, res in enumerate(results):
-        assert len(res) == 89 and all(m["match"] != rel(stored[i].id) for m in res)
-        got = np.array([m["score"] for m in res])
-        np.testing.assert_allclose(got, S[i, [position[m["match"]] for m in res]], atol=1e-5)
+        assert len(res) == 89 and all(m.id != rel(stored[i].id) for m in res)
+        got = np.array([m.score for m in res])
+        np.testing.assert_allclose(got, S[i, [position[m.id] for m in res]], atol=1e-5)
         assert np.all(np.diff(got) <= 1e-12)
 
 
@@ -200,8 +200,8 @@ def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng):
     with open_index(tmp_path / "i.h5") as idx:
         results, _ = rerank_index(idx, queries, top=3)
         again, _ = rerank_index(idx, queries, top=3)
-    assert [[m["match"] for m in r] for r in results] == [[os.path.relpath(stored[i].id, tmp_path)]
-                                                          + [m["match"] for m in r][1:]
+    assert [[m.id for m in r] for r in results] == [[os.path.relpath(stored[i].id, tmp_path)]
+                                                          + [m.id for m in r][1:]
                                                          for i, r in zip(range(0, 150, 5), results)]
     assert results == again                                         # deterministic
 

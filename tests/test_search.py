@@ -44,9 +44,9 @@ def _variants(rng, curves, count):
 
 def _same(pruned, full):
     for p, f in zip(pruned, full):
-        assert [r["match"] for r in p] == [r["match"] for r in f]
-        assert np.allclose([r["distance"] for r in p], [r["distance"] for r in f], rtol=1e-12, atol=1e-12)
-        assert [r["rank"] for r in p] == list(range(1, len(p) + 1))
+        assert [r.id for r in p] == [r.id for r in f]
+        assert np.allclose([r.distance for r in p], [r.distance for r in f], rtol=1e-12, atol=1e-12)
+        assert [r.rank for r in p] == list(range(1, len(p) + 1))
 
 
 @settings(max_examples=14, deadline=None)
@@ -104,8 +104,8 @@ def test_search_work_does_not_grow_with_the_index_for_a_near_duplicate(rng):
     big = MemoryIndex(unrelated + families, rows_per_cell=16)
     (r_small,), s_small = search_index(small, query, top=5)
     (r_big,), s_big = search_index(big, query, top=5)
-    assert r_small[0]["match"] == families[3].id
-    assert [r["match"] for r in r_small] == [r["match"] for r in r_big]
+    assert r_small[0].id == families[3].id
+    assert [r.id for r in r_small] == [r.id for r in r_big]
     assert s_big.exact <= s_small.exact + 10
     assert s_big.scanned < big.n_curves / 2          # the cells kept most rows unread
 
@@ -116,7 +116,7 @@ def test_pruning_skips_most_rows_on_clustered_data(rng):
     results, stats = search_index(index, curves[::10], top=5)
     assert stats.exact_fraction < 0.5
     for q, res in zip(curves[::10], results):
-        assert res[0]["match"] == q.id and res[0]["distance"] < 1e-9
+        assert res[0].id == q.id and res[0].distance < 1e-9
 
 
 def test_matches_pairwise_distance_and_max_distance(rng):
@@ -125,8 +125,8 @@ def test_matches_pairwise_distance_and_max_distance(rng):
     ranked = rank_curves(query, curves, top=None, max_distance=0.2)
     expected = sorted((distance(query, c).distance, c.id) for c in curves)
     expected = [(d, i) for d, i in expected if d <= 0.2]
-    assert [r["match"] for r in ranked] == [i for _, i in expected]
-    assert np.allclose([r["distance"] for r in ranked], [d for d, _ in expected], rtol=1e-9, atol=1e-12)
+    assert [r.id for r in ranked] == [i for _, i in expected]
+    assert np.allclose([r.distance for r in ranked], [d for d, _ in expected], rtol=1e-9, atol=1e-12)
 
 
 def test_ties_are_ordered_by_id():
@@ -134,14 +134,14 @@ def test_ties_are_ordered_by_id():
     circle = np.c_[np.cos(t), np.sin(t), 0 * t]
     curves = [Curve(circle * s, id=name) for s, name in ((1, "c"), (2, "a"), (3, "b"))]
     ranked = rank_curves(curves[0], curves, top=3)
-    assert [r["match"] for r in ranked] == ["a", "b", "c"]
+    assert [r.id for r in ranked] == ["a", "b", "c"]
 
 
 def test_weights_disable_pruning_but_still_rank(rng):
     curves = _family_curves(rng, 4, 2, 0.01)
     w = np.linspace(1, 0, 16)
     ranked = rank_curves(curves[0], curves, top=3, weights=w)
-    assert ranked[0]["match"] == curves[0].id
+    assert ranked[0].id == curves[0].id
 
 
 def test_bad_arguments(rng):

@@ -377,24 +377,29 @@ def optional_descriptor_options(what: str):
 def matching_options(f):
     """--method, --strict-direction and --mirror, passed on as ``matching``: a dict of
     the keyword arguments ``method``, ``direction``, ``mirror`` of the library."""
-    from ..matching import METHODS
+    from ..matching import DEFAULT_METHOD, METHODS
 
     f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(f)
     f = click.option("--strict-direction", is_flag=True,
                      help="Do not match a curve traversed in the opposite direction.")(f)
-    f = click.option("--method", type=click.Choice(list(METHODS)), default="exact", show_default=True,
+    f = click.option("--method", type=click.Choice(list(METHODS)), default=DEFAULT_METHOD, show_default=True,
                      help="exact: global optimum over start shift x rotation; paper: the published step.")(f)
     return f
 
 
 def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
     """The library's matching keyword arguments from the options of :func:`matching_options`."""
-    return {"method": method, "direction": "strict" if strict_direction else "invariant", "mirror": mirror}
+    from ..matching import DEFAULT_DIRECTION, STRICT_DIRECTION
+
+    return {"method": method, "direction": STRICT_DIRECTION if strict_direction else DEFAULT_DIRECTION,
+            "mirror": mirror}
 
 
 def index_option(f):
-    return click.option("--index", "index_path", envvar="NFDMATCH_INDEX", default="nfdmatch.h5",
-                        show_default="$NFDMATCH_INDEX or nfdmatch.h5", type=click.Path(dir_okay=False),
+    from ..defaults import DEFAULT_INDEX, INDEX_ENV
+
+    return click.option("--index", "index_path", envvar=INDEX_ENV, default=DEFAULT_INDEX,
+                        show_default=f"${INDEX_ENV} or {DEFAULT_INDEX}", type=click.Path(dir_okay=False),
                         help="The index file.")(f)
 
 
@@ -414,16 +419,32 @@ def curve_key(curve_id: str) -> str:
     return os.path.realpath(path) + ("" if selected is None else f"#{selected}")
 
 
-def exclude_self(query_id: str, rows: list[dict], top: int, locate=None) -> list[dict]:
-    """``rows`` (ranked, ``match`` ids) without those naming the query's curve, ranks
-    renumbered, at most ``top``. The caller asks the search for one row more. ``locate``:
-    id -> a path that opens it here (an index's ids are relative to its folder)."""
+def exclude_self(query_id: str, matches: list, top: int, locate=None) -> list:
+    """``matches`` (ranked :class:`~nfdmatch.records.RankedMatch` es) without those naming
+    the query's curve, ranks renumbered, at most ``top``. The caller asks the search for one
+    match more. ``locate``: id -> a path that opens it here (an index's ids are relative to
+    its folder)."""
     if query_id == STDIN_ID:
-        return rows[:top]
-    key = curve_key(query_id)
+        return matches[:top]
+    return [m.replace(rank=rank) for rank, m in enumerate(
+        [m for m in matches if not is_query(query_id, m.id, locate)][:top], start=1)]
+
+
+def is_query(query_id: str, match_id: str, locate=None) -> bool:
+    """Whether ``match_id`` names the query's curve: the same id, or the same curve of the
+    same file however the path is spelled (never for stdin). ``locate`` as in
+    :func:`exclude_self`."""
+    if query_id == STDIN_ID:
+        return False
     where = locate or (lambda i: i)
-    kept = [row for row in rows if row["match"] != query_id and curve_key(where(row["match"])) != key]
-    return [{**row, "rank": rank} for rank, row in enumerate(kept[:top], start=1)]
+    return match_id == query_id or curve_key(where(match_id)) == curve_key(query_id)
+
+
+def match_row(query_id: str, m) -> dict:
+    """The row `rank` and `query` print for one :class:`~nfdmatch.records.RankedMatch`
+    (columns: :func:`match_columns`, and ``score`` after a re-ranking)."""
+    return {"query": query_id, "rank": m.rank, "match": m.id, "distance": m.distance, "score": m.score,
+            "shift": m.shift, "reversed": m.reversed, "mirrored": m.mirrored}
 
 
 def match_columns(details: bool) -> list[str]:

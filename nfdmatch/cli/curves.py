@@ -6,8 +6,10 @@ import json
 
 import click
 
+from ..descriptors import DEFAULT_SAMPLES
 from .common import (deliver, descriptor_options, exclude_self, exclude_self_option, format_option,
-                     input_format_option, match_columns, matching, matching_options, output_option, read_inputs,
+                     input_format_option, match_columns, match_row, matching, matching_options, output_option,
+                     read_inputs,
                      read_one, rows_format_option, say, write_rows)
 from .group import main
 
@@ -131,7 +133,7 @@ def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_
                          **matching(method, strict_direction, mirror))
     if exclude_self_:
         ranked = exclude_self(query.id, ranked, top)
-    write_rows([{"query": query.id, **row} for row in ranked], match_columns(details), output_format, output,
+    write_rows([match_row(query.id, m) for m in ranked], match_columns(details), output_format, output,
                group_by="query")
     inputs.finish()
 
@@ -145,7 +147,7 @@ def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_
 @click.option("--points", "-m", type=click.IntRange(min=3, max=10_000_000), default=None,
               help="Vertices of the rebuilt curve [default: the samples].")
 @click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
-              help="Arc-length samples of the transform [default: max(128, 4K)].")
+              help=f"Arc-length samples of the transform [default: max({DEFAULT_SAMPLES}, 4K)].")
 @click.option("--normalized", is_flag=True,
               help="Write the normalized curve (centred, unit scale, limit plane on z = 0), not the input pose.")
 @input_format_option

@@ -8,10 +8,12 @@ from datetime import datetime, timezone
 
 import click
 
+from ..defaults import DEFAULT_GRAPH_K, DEFAULT_RERANK_DEPTH
+from ..matching import DEFAULT_METHOD
 from .common import (EXIT_ERROR, deliver, error, exclude_self, exclude_self_option, format_option,
-                     finish, index_option, input_format_option, match_columns, matching, matching_options, note,
-                     optional_descriptor_options, output_option, progress_bar, read_inputs, rows_format_option,
-                     say, write_rows)
+                     finish, index_option, input_format_option, is_query, match_columns, match_row, matching,
+                     matching_options, note, optional_descriptor_options, output_option, progress_bar, read_inputs,
+                     rows_format_option, say, write_rows)
 from .cluster import open_cluster, ranges_option, scheduler_options
 from .group import main
 
@@ -45,10 +47,10 @@ def index():
               metavar="SECONDS",
               help="A file still being read after this long fails alone (0: no limit). Files are read in "
                    "worker processes, also with --jobs 1, so a stuck or crashing reader cannot stop the build.")
-@click.option("--graph", "graph_k", type=click.IntRange(min=0), is_flag=False, flag_value=10, default=None,
-              metavar="[K]",
-              help="Store each curve's K nearest curves, for query --rerank (K = 10 when not given: then put "
-                   "--graph after the sources or before another option); 0 drops the graph "
+@click.option("--graph", "graph_k", type=click.IntRange(min=0), is_flag=False, flag_value=DEFAULT_GRAPH_K,
+              default=None, metavar="[K]",
+              help=f"Store each curve's K nearest curves, for query --rerank (K = {DEFAULT_GRAPH_K} when not given: "
+                   "then put --graph after the sources or before another option); 0 drops the graph "
                    "[default: keep the index's graph, if it has one].")
 @optional_descriptor_options("the index's")
 @input_format_option
@@ -308,7 +310,7 @@ def index_export(index_path, output_format, output):
                                                 "plane_degenerate", "file"])
         ids = idx.ids()
         paths = [r.path for r in idx.files()]
-        params = {"samples": idx.samples, "harmonics": idx.harmonics, "scale_mode": idx.scale}
+        params = {"samples": idx.samples, "harmonics": idx.harmonics, "scale_mode": idx.scale_mode}
     files = [paths[i] for i in rows["file"]]
     frequencies = np.arange(1, params["harmonics"] + 1)
     if fmt == "npz":
@@ -368,7 +370,8 @@ def _deliver_bytes(data: bytes, output: str) -> None:
 @click.option("--rerank", is_flag=True,
               help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
                    "--graph`); adds the column score (higher is closer), distance stays the exact distance.")
-@click.option("--rerank-depth", type=click.IntRange(min=100), default=100, show_default=True, metavar="M",
+@click.option("--rerank-depth", type=click.IntRange(min=DEFAULT_RERANK_DEPTH), default=DEFAULT_RERANK_DEPTH,
+              show_default=True, metavar="M",
               help="With --rerank: the query's exact top M that the diffusion re-orders.")
 @matching_options
 @input_format_option
@@ -406,7 +409,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
 
     if rerank:
         for given, name in ((exhaustive, "--exhaustive"), (max_distance is not None, "--max-distance"),
-                            (method != "exact", "--method paper"), (strict_direction, "--strict-direction"),
+                            (method != DEFAULT_METHOD, f"--method {method}"), (strict_direction, "--strict-direction"),
                             (mirror, "--mirror")):
             if given:
                 raise click.UsageError(f"--rerank cannot be combined with {name}: the stored graph holds exact, "
@@ -416,7 +419,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
         if scheduler:
             raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): "
                                    "drop --scheduler")
-    elif rerank_depth != 100:
+    elif rerank_depth != DEFAULT_RERANK_DEPTH:
         raise click.UsageError("--rerank-depth needs --rerank")
 
     with open_index(index_path) as idx:
@@ -435,7 +438,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
 
                 def is_self(query_id, match_id):
                     # the same rule as --exclude-self without --rerank
-                    return not exclude_self(query_id, [{"match": match_id, "rank": 1}], 1, idx.locate)
+                    return is_query(query_id, match_id, idx.locate)
 
                 results, stats = rerank_index(idx, inputs.curves, top=top, depth=rerank_depth, progress=progress,
                                               exclude=is_self if exclude_self_ else None)
@@ -454,7 +457,7 @@ def query(queries, index_path, top, max_distance, glob_pattern, details, exclude
     columns = match_columns(details)
     if rerank:
         columns.insert(columns.index("distance") + 1, "score")
-    write_rows([{"query": q.id, **row} for q, res in zip(inputs.curves, results) for row in res],
+    write_rows([match_row(q.id, m) for q, res in zip(inputs.curves, results) for m in res],
                columns, output_format, output, group_by="query")
     if show_stats:
         say(f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "

@@ -121,7 +121,7 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
     from functools import partial
 
     from ..render import render_matches
-    from ..show import match_panels, show_ranked, show_searched
+    from ..show import show_ranked, show_searched
 
     pictures, rows_output = split_outputs(output)
     if len(pictures) != 1:
@@ -159,7 +159,7 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
     if some_failed():
         _not_written(names)
     else:
-        results = [render_matches(q.points, q.id, match_panels(drawn), name, size=width_height, renderer=renderer)
+        results = [render_matches(q.points, q.id, drawn, name, size=width_height, renderer=renderer)
                    for q, drawn, name in zip(queries, shown, names)]
     write_rows([{"query": q.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
                 for q, drawn in zip(queries, shown) for s in drawn],

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import partial
 
@@ -67,7 +67,8 @@ _BY_EXTENSION: dict[str, str] = {}
 FORMATS: dict[str, tuple[str, ...]] = {}
 
 
-def register(name: str, extensions, read: Callable[[str], list[np.ndarray]], write: Callable[..., None]) -> Format:
+def register(name: str, extensions: Iterable[str], read: Callable[[str], list[np.ndarray]],
+             write: Callable[..., None]) -> Format:
     """Register a curve format; an extension belongs to one format only."""
     exts = tuple(e.lower() for e in extensions)
     taken = [e for e in exts if _BY_EXTENSION.get(e, name) != name]
@@ -94,7 +95,7 @@ def supported_extensions() -> list[str]:
     return list(_BY_EXTENSION)
 
 
-def format_of(path, format: str | None = None) -> str:
+def format_of(path: str | os.PathLike[str], format: str | None = None) -> str:
     """The format name used for ``path``: ``format`` if given, else from the extension.
 
     ``format`` may be a format name (``"vtp"``) or an extension (``"tsv"``,
@@ -133,7 +134,7 @@ def format_of(path, format: str | None = None) -> str:
 _MESH_EXTENSIONS = {".stl", ".ply", ".off", ".glb", ".gltf", ".3mf", ".dae"}
 
 
-def split_selector(spec) -> tuple[str, int | None]:
+def split_selector(spec: str | os.PathLike[str]) -> tuple[str, int | None]:
     """Split ``"file.obj#2"`` into ``("file.obj", 2)``; no selector gives ``(spec, None)``.
 
     Only the part after the last ``#`` can be a selector, and only when it is an
@@ -158,7 +159,7 @@ def _read_arrays(path: str, format: str | None) -> list[np.ndarray]:
     return arrays
 
 
-def read_curves(path, format: str | None = None) -> list[Curve]:
+def read_curves(path: str | os.PathLike[str], format: str | None = None) -> list[Curve]:
     """All curves of one file.
 
     Parameters
@@ -181,7 +182,7 @@ def read_curves(path, format: str | None = None) -> list[Curve]:
     return make_curves(p, _read_arrays(p, format))
 
 
-def read_curve(spec, format: str | None = None) -> Curve:
+def read_curve(spec: str | os.PathLike[str], format: str | None = None) -> Curve:
     """One curve: ``spec`` is a file holding one curve, or ``"file#i"`` to pick curve ``i``.
 
     A single-curve file also accepts ``#0``. The returned curve's id is
@@ -210,7 +211,8 @@ def read_curve(spec, format: str | None = None) -> Curve:
     return make_curve(path, arrays[sel], sel, n)
 
 
-def write_curves(path, curves, format: str | None = None) -> None:
+def write_curves(path: str | os.PathLike[str], curves: Curve | np.ndarray | Sequence[Curve | np.ndarray],
+                 format: str | None = None) -> None:
     """Write curves to one file.
 
     Parameters

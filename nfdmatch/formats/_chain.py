@@ -1,7 +1,7 @@
 """Helpers shared by the format modules.
 
-* :func:`chain_segments` turns 2-point line segments (OBJ ``l a b``, VTK_LINE
-  cells) into closed loops.
+* :func:`is_number`, the text readers' test for a numeric field (segments are chained
+  into loops by :func:`nfdmatch._graph.chain_segments`).
 * :func:`ordered_curves` merges polylines and chained loops in file order.
 * :func:`read_bytes` / :func:`read_text` / :func:`check_readable` open a file
   and turn every I/O problem into a :class:`~nfdmatch.errors.ReadError`; they
@@ -11,6 +11,9 @@
   and :class:`~nfdmatch.curve.Curve` records with the library's id rules.
 
 Nothing here imports pyvista or trimesh.
+
+An internal module: tests import its helpers directly; ``_os_open`` is a test hook (a
+module-level name, so tests can make opening a file fail).
 """
 
 from __future__ import annotations
@@ -19,19 +22,19 @@ import os
 import re
 import stat
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from ..curve import Curve, clean_many, clean_points
 from ..errors import ParameterError, ParseError, ReadError, WriteError, escape_name, excerpt
 
-__all__ = ["chain_segments", "ordered_curves", "read_bytes", "read_text", "check_readable",
+__all__ = ["is_number", "ordered_curves", "read_bytes", "read_text", "check_readable",
            "write_text", "curve_id", "make_curve", "make_curves", "points_list"]
 
 
 # ---------------------------------------------------------------------------
-# segment chaining
+# fields and segments
 # ---------------------------------------------------------------------------
 
 def is_number(token: str) -> bool:
@@ -41,110 +44,6 @@ def is_number(token: str) -> bool:
     except ValueError:
         return False
     return True
-
-
-def chain_segments(segments, *, path: str | None = None,
-                   vertex_label: Callable[[int], str] | None = None,
-                   segment_where: Callable[[int], str] | None = None,
-                   ) -> list[tuple[int, np.ndarray]]:
-    """Chain undirected 2-point segments into loops (or open paths).
-
-    Parameters
-    ----------
-    segments : array-like (m, 2) of int, vertex indices (any non-negative base).
-        Self-segments ``(a, a)`` and repeated segments (``a b`` twice, in
-        either direction) are dropped silently.
-    path : file name used in error messages.
-    vertex_label : maps a vertex index to how the format names it in messages
-        (e.g. 1-based for OBJ). Default: ``str(v)``.
-    segment_where : maps a segment's position in ``segments`` to a location
-        text for messages (e.g. ``"line 12"``). Optional.
-
-    Returns
-    -------
-    list of ``(first, vertices)`` in order of ``first``, where ``first`` is the
-    position in ``segments`` of the component's earliest segment and
-    ``vertices`` is an (k,) int64 array of vertex indices in walking order,
-    never repeating the start. Each connected component whose vertices all have
-    degree 2 is a closed loop, walked from the earliest segment in that
-    segment's direction; a simple path (two degree-1 ends) is returned the same
-    way, its closing edge being implicit.
-
-    Raises
-    ------
-    ParseError : a vertex used by more than two segments (a branching point).
-    """
-    label = vertex_label or str
-    seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
-    if len(seg) == 0:
-        return []
-    order = np.arange(len(seg))
-    keep = seg[:, 0] != seg[:, 1]
-    seg, order = seg[keep], order[keep]
-    if len(seg) == 0:
-        return []
-    # drop repeated undirected segments, keeping the first occurrence
-    key = np.sort(seg, axis=1)
-    _, first_idx = np.unique(key, axis=0, return_index=True)
-    first_idx.sort()
-    seg, order = seg[first_idx], order[first_idx]
-
-    verts, inv = np.unique(seg.ravel(), return_inverse=True)
-    local = inv.reshape(-1, 2)
-    nv = len(verts)
-    degree = np.bincount(local.ravel(), minlength=nv)
-    if degree.max() > 2:
-        v = int(np.flatnonzero(degree > 2)[0])
-        users = np.flatnonzero((local == v).any(axis=1))
-        where = ""
-        if segment_where is not None:
-            shown = ", ".join(segment_where(int(order[u])) for u in users[:5])
-            more = ", ..." if len(users) > 5 else ""
-            where = f" ({shown}{more})"
-        raise ParseError(
-            f"vertex {label(int(verts[v]))} is shared by {int(degree[v])} line segments{where}: "
-            "it is a branching point, but each curve must be a simple loop",
-            path=path)
-
-    # adjacency: up to two neighbours per vertex (degree is 1 or 2 here)
-    ends = np.concatenate([local[:, 0], local[:, 1]])
-    others = np.concatenate([local[:, 1], local[:, 0]])
-    by_vertex = np.argsort(ends, kind="stable")
-    start = np.searchsorted(ends[by_vertex], np.arange(nv))
-    nbr = np.full((nv, 2), -1, dtype=np.int64)
-    nbr[:, 0] = others[by_vertex[start]]
-    two = degree == 2
-    nbr[two, 1] = others[by_vertex[start[two] + 1]]
-    nbr_l = nbr.tolist()
-    visited = bytearray(nv)
-    result: list[tuple[int, np.ndarray]] = []
-
-    def walk(start: int, nxt: int) -> tuple[list[int], bool]:
-        """Vertices from ``start`` via ``nxt`` until a dead end or back at ``start``."""
-        out = [start]
-        visited[start] = 1
-        prev, cur = start, nxt
-        while cur != -1 and cur != start:
-            out.append(cur)
-            visited[cur] = 1
-            n0, n1 = nbr_l[cur]
-            prev, cur = cur, (n1 if n0 == prev else n0)
-        return out, cur == start
-
-    # segments are in file order (first_idx sorted): the earliest segment of a
-    # component not yet visited starts that component, in its own direction
-    for s, (a, b) in enumerate(local.tolist()):
-        if visited[a]:
-            continue
-        forward, closed = walk(a, b)
-        if not closed:
-            n0, n1 = nbr_l[a]
-            other = n1 if n0 == b else n0
-            if other != -1:
-                backward, _ = walk(a, other)
-                forward = backward[:0:-1] + forward
-        result.append((int(order[s]), verts[np.array(forward, dtype=np.int64)]))
-    return result
 
 
 def ordered_curves(polylines: Sequence[tuple[int, np.ndarray]],

@@ -38,6 +38,9 @@ data may not exceed :func:`inflated_cap` bytes. Every problem is a
 The result of :func:`parse` is a :class:`Dataset`: points (n, 3) float64 and the
 line cells as CSR arrays (offsets (c + 1,) int64 starting at 0, connectivity
 (m,) int64), plus the number of polygon-like cells.
+
+An internal module, tested directly (``tests/test_vtk_reader.py``, also its ``_lz4_block``
+decoder) against what pyvista/VTK reads.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ Reading (:func:`read`):
   index repeated or not);
 * ``l a b`` elements with 2 indices are segments: they are chained into loops
   (each connected component of segments is one curve, see
-  :func:`nfdmatch.formats._chain.chain_segments`);
+  :func:`nfdmatch._graph.chain_segments`);
 * indices are 1-based; negative indices count back from the last vertex
   defined so far; ``v/vt`` forms (``l 1/1 2/2``) use the vertex part;
 * ``\\`` at the end of a line continues it; ``#`` starts a comment; every other
@@ -17,6 +17,10 @@ Reading (:func:`read`):
 Writing (:func:`write`): all vertices as ``v`` lines (``repr`` precision,
 exact round trip), then one ``l`` element per curve with the closing index
 repeated (``l 1 2 3 ... n 1``).
+
+Test hook: ``_read_points_fast`` (the bulk numpy parser of the common case, which returns
+None to hand a file to the careful parser) is called and replaced by tests, which check that
+it is taken and that both parsers read the same curves.
 """
 
 from __future__ import annotations
@@ -25,8 +29,9 @@ import warnings
 
 import numpy as np
 
+from .._graph import chain_segments
 from ..errors import CurveError, NoCurvesError, ParseError, excerpt
-from ._chain import chain_segments, is_number, ordered_curves, points_list, read_text, write_text
+from ._chain import is_number, ordered_curves, points_list, read_text, write_text
 
 __all__ = ["read_points", "write"]
 

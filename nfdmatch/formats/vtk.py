@@ -18,6 +18,9 @@ curve, closing point index repeated; PolyData for ``.vtk`` (legacy, binary)
 and ``.vtp`` (XML), UnstructuredGrid with VTK_POLY_LINE cells for ``.vtu``.
 The file is written to a temporary file made exclusively beside the target
 (:func:`._chain.temp_beside`, ``tempfile.mkstemp``) and renamed over it.
+
+Test hook: ``_pyvista()`` imports pyvista as this module does (the off-screen window class
+set first); tests write their reference files with it.
 """
 
 from __future__ import annotations
@@ -31,8 +34,9 @@ from contextlib import ExitStack
 
 import numpy as np
 
+from .._graph import chain_segments
 from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
-from ._chain import (chain_segments, check_readable, ordered_curves, points_list,
+from ._chain import (check_readable, ordered_curves, points_list,
                      publish, read_bytes, temp_beside)
 
 __all__ = ["read_points", "write", "KINDS"]

@@ -16,12 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import DEFAULT_GRAPH_K  # neighbours per row when --graph is given without a number
 from .reader import unique_rows
 
 __all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "graph_k", "GraphStats", "DEFAULT_GRAPH_K"]
 
-#: neighbours per row when ``--graph`` is given without a number
-DEFAULT_GRAPH_K = 10
 #: an index up to this many rows is searched from coefficients held in memory (16 MiB per
 #: 100k rows at K = 16); larger ones read the rows each search needs from the file
 _IN_MEMORY_ROWS = 1 << 19

@@ -20,6 +20,9 @@ on the workers' pipes and process sentinels together, so that
 - SIGINT/SIGTERM: workers ignore SIGINT (the terminal sends it to the whole group; only
   the parent acts on it) and die silently on SIGTERM; the parent's KeyboardInterrupt (or
   whatever the caller's SIGTERM handler raises) kills every worker on its way out.
+
+Test hooks: ``_batches`` (the grouping above) and ``_compute_batch`` (a worker's work on
+one batch; a test replaces it on cluster workers to kill them) are used by tests.
 """
 
 from __future__ import annotations

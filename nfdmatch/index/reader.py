@@ -59,7 +59,7 @@ def read_error(exc: BaseException, where: str) -> str:
     return f"corrupted nfdmatch index: reading {where} failed ({text})"
 
 
-def open_index(path=None) -> "Index":
+def open_index(path: str | os.PathLike[str] | None = None) -> Index:
     """Open an index for reading (formats 1 and 2; ``path`` None: :func:`default_index_path`).
 
     The file is opened without HDF5 file locking, so a running build never blocks or
@@ -87,8 +87,9 @@ class Index:
     ----------
     path : str; format_version : int; nfdmatch_version : str (the writer's);
     checksums : bool (the file carries checksums, checked as it is read);
-    samples, harmonics : int; scale : str ("rms" or "a1"); created, updated : str (ISO-8601 UTC);
-    n_curves, n_files : int.
+    samples, harmonics : int; scale_mode : str ("rms" or "a1", the ``scale`` attribute of the
+    file); created, updated : str (ISO-8601 UTC); n_curves, n_files : int.
+    ``scale`` is a deprecated alias of ``scale_mode`` (a descriptor's ``scale`` is its size).
     """
 
     def __init__(self, path: str, h5, meta: dict, files: dict):
@@ -103,7 +104,7 @@ class Index:
         self.nfdmatch_version: str = meta["nfdmatch_version"]
         self.samples: int = meta["samples"]
         self.harmonics: int = meta["harmonics"]
-        self.scale: str = meta["scale"]
+        self.scale_mode: str = meta["scale"]
         self.created: str = meta["created"]
         self.updated: str = meta["updated"]
         self.n_curves: int = meta["n_curves"]
@@ -131,7 +132,12 @@ class Index:
 
     def __repr__(self) -> str:
         return (f"Index({self.path!r}, curves={self.n_curves}, files={self.n_files}, samples={self.samples}, "
-                f"harmonics={self.harmonics}, scale={self.scale!r})")
+                f"harmonics={self.harmonics}, scale_mode={self.scale_mode!r})")
+
+    @property
+    def scale(self) -> str:
+        """Deprecated alias of :attr:`scale_mode`."""
+        return self.scale_mode
 
     def _read(self, fn, where: str = "the index"):
         """``fn()``, with any failure of the read as an IndexFormatError about ``where``."""
@@ -395,5 +401,5 @@ class Index:
         return {"path": self.path, "sources": None if recorded is None else recorded[0], "format": INDEX_FORMAT,
                 "format_version": self.format_version,
                 "nfdmatch_version": self.nfdmatch_version, "files": self.n_files, "curves": self.n_curves,
-                "failed": failed, "samples": self.samples, "harmonics": self.harmonics, "scale": self.scale,
+                "failed": failed, "samples": self.samples, "harmonics": self.harmonics, "scale": self.scale_mode,
                 "created": self.created, "updated": self.updated, "size_bytes": size}

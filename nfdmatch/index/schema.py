@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import h5py
 import numpy as np
 
+from ..defaults import default_index_path  # noqa: F401  (re-exported: nfdmatch.index.default_index_path)
 from ..descriptors import validate_parameters
 from ..errors import ParameterError, ReadError
 
@@ -142,11 +143,6 @@ def _curve_layout(K: int) -> dict:
         "inv_sv": (np.float32, (2 * K,)),
         "inv_block": (np.float32, (3,)),
     }
-
-
-def default_index_path() -> str:
-    """``$NFDMATCH_INDEX`` if set (and not empty), else ``"nfdmatch.h5"``."""
-    return os.environ.get("NFDMATCH_INDEX") or "nfdmatch.h5"
 
 
 @dataclass(frozen=True)

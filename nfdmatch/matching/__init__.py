@@ -26,19 +26,26 @@ For a fixed shift, ``max_R Re sum A_k^H R B_k = max_R tr(R M)`` with
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, Descriptors, descriptors
 from ..errors import ParameterError
 from .bounds import invariants, lower_bound
-from .common import DIRECTIONS, METHODS, kabsch_trace
+from .common import DEFAULT_DIRECTION, DEFAULT_METHOD, DIRECTIONS, METHODS, STRICT_DIRECTION, kabsch_trace
 from .dispatch import compile_kernels, reference_path, use_kernels
 from .exact import exact_search, grid_maximum
 from .paper import paper_search
 
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from ..curve import Curve
+
 __all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search", "compile_kernels",
-           "use_kernels", "reference_path", "kabsch_trace", "invariants", "lower_bound", "METHODS", "DIRECTIONS"]
+           "use_kernels", "reference_path", "kabsch_trace", "invariants", "lower_bound", "METHODS", "DIRECTIONS",
+           "DEFAULT_METHOD", "DEFAULT_DIRECTION", "STRICT_DIRECTION"]
 
 
 @dataclass(frozen=True)
@@ -112,8 +119,9 @@ def _as_descriptors(x, samples, harmonics, scale) -> Descriptors:
     return descriptors(x, samples=samples, harmonics=harmonics, scale=scale)
 
 
-def match_descriptors(da: Descriptors, db: Descriptors, *, method: str = "exact", direction: str = "invariant",
-                      mirror: bool = False, weights=None) -> Match:
+def match_descriptors(da: Descriptors, db: Descriptors, *, method: str = DEFAULT_METHOD,
+                      direction: str = DEFAULT_DIRECTION, mirror: bool = False,
+                      weights: ArrayLike | None = None) -> Match:
     """Match two :class:`Descriptors` computed with the same parameters; see :func:`distance`."""
     if (da.samples, da.harmonics, da.scale_mode) != (db.samples, db.harmonics, db.scale_mode):
         raise ParameterError("descriptors were computed with different parameters")
@@ -134,9 +142,10 @@ def match_descriptors(da: Descriptors, db: Descriptors, *, method: str = "exact"
                  scale=float(ratio), translation=da.centroid - ratio * R @ db.centroid)
 
 
-def distance(a, b, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-             scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
-             mirror: bool = False, weights=None) -> Match:
+def distance(a: Curve | Descriptors | ArrayLike, b: Curve | Descriptors | ArrayLike, *,
+             samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS, scale: str = DEFAULT_SCALE,
+             method: str = DEFAULT_METHOD, direction: str = DEFAULT_DIRECTION, mirror: bool = False,
+             weights: ArrayLike | None = None) -> Match:
     """Similarity distance between two closed curves, with the alignment that achieves it.
 
     Parameters

@@ -7,9 +7,9 @@ import os
 
 import numpy as np
 
+from .._graph import closed_loops
 from ..curve import clean_points
 from ..errors import CurveError, ParameterError
-from ..formats._chain import chain_segments
 from .contours import AXES, Contour, DEFAULT_SECTIONS, ExtractResult
 from .load import load_mesh
 
@@ -180,7 +180,7 @@ def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str,
     Returns cleaned (n_i, 3) float64 loops by decreasing perimeter; open pieces,
     branching points and degenerate loops are counted in ``notes`` (prefixed by ``where``).
     """
-    loops, open_pieces, branching = _chain_loops(segments)
+    loops, open_pieces, branching = closed_loops(segments)
     if branching:
         notes.append(f"{where}: {branching} branching point{'s' if branching != 1 else ''} "
                      "(non-manifold), loops split there")
@@ -202,137 +202,6 @@ def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str,
     for c in result:
         c.setflags(write=False)
     return result
-
-
-def _chain_loops(segments) -> tuple[list[np.ndarray], int, int]:
-    """Closed loops of an undirected segment graph.
-
-    Parameters
-    ----------
-    segments : (m, 2) int array of vertex ids; self-segments and repeated
-        segments are ignored.
-
-    Returns
-    -------
-    ``(loops, open_pieces, branching)``: loops as (k,) int64 id arrays in walking
-    order (closing edge implicit); the number of open pieces dropped; the number
-    of ids used by more than two segments. Without branching this is
-    :func:`~nfdmatch.formats._chain.chain_segments` keeping its closed
-    components; with branching see :func:`_split_branching`.
-    """
-    seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
-    seg = seg[seg[:, 0] != seg[:, 1]]
-    if len(seg) == 0:
-        return [], 0, 0
-    key = np.sort(seg, axis=1)
-    _, first = np.unique(key, axis=0, return_index=True)
-    seg = seg[np.sort(first)]
-    degree = np.bincount(seg.ravel())
-    branching = int((degree > 2).sum())
-    if branching:
-        loops, open_pieces = _split_branching(seg)
-        return loops, open_pieces, branching
-    components = chain_segments(seg)          # degree <= 2 here: it cannot find a branch
-    loops, open_pieces = [], 0
-    for _, ids in components:
-        if (degree[ids] == 2).all():
-            loops.append(ids)
-        else:
-            open_pieces += 1
-    return loops, open_pieces, 0
-
-
-def _split_branching(seg: np.ndarray) -> tuple[list[np.ndarray], int]:
-    """Simple loops of a segment graph with branching vertices, and the number of open pieces.
-
-    ``seg`` (m, 2) int64, no self or repeated segments. Dangling branches are
-    pruned first (each connected group of pruned segments is one open piece);
-    the rest is walked edge by edge, cutting off a simple loop whenever the walk
-    comes back to a vertex already on it; a walk that gets stuck (possible with
-    odd degrees, e.g. a theta shape) leaves its unclosed part as an open piece.
-    """
-    m = len(seg)
-    adjacency: dict[int, list[tuple[int, int]]] = {}
-    for e, (u, v) in enumerate(seg.tolist()):
-        adjacency.setdefault(u, []).append((v, e))
-        adjacency.setdefault(v, []).append((u, e))
-    alive = [True] * m
-    degree = {v: len(n) for v, n in adjacency.items()}
-
-    # prune dangling branches
-    pruned: list[int] = []
-    stack = [v for v, k in degree.items() if k == 1]
-    while stack:
-        v = stack.pop()
-        if degree[v] != 1:
-            continue
-        for w, e in adjacency[v]:
-            if alive[e]:
-                alive[e] = False
-                pruned.append(e)
-                degree[v] -= 1
-                degree[w] -= 1
-                if degree[w] == 1:
-                    stack.append(w)
-                break
-    open_pieces = _count_components(seg[pruned]) if pruned else 0
-
-    loops: list[np.ndarray] = []
-    used = [not a for a in alive]
-    cursor = {v: 0 for v in adjacency}
-
-    def next_edge(v: int):
-        nbrs = adjacency[v]
-        i = cursor[v]
-        while i < len(nbrs) and used[nbrs[i][1]]:
-            i += 1
-        cursor[v] = i
-        return nbrs[i] if i < len(nbrs) else None
-
-    for e0 in range(m):
-        if used[e0]:
-            continue
-        used[e0] = True
-        u, v = int(seg[e0, 0]), int(seg[e0, 1])
-        path, position = [u, v], {u: 0, v: 1}
-        while True:
-            step = next_edge(path[-1])
-            if step is None:
-                if len(path) > 1:
-                    open_pieces += 1
-                break
-            w, e = step
-            used[e] = True
-            if w in position:
-                i = position[w]
-                loops.append(np.array(path[i:], dtype=np.int64))
-                for x in path[i + 1:]:
-                    del position[x]
-                del path[i + 1:]
-                if len(path) == 1 and next_edge(w) is None:
-                    break
-            else:
-                position[w] = len(path)
-                path.append(w)
-    return loops, open_pieces
-
-
-def _count_components(seg: np.ndarray) -> int:
-    """Number of connected components of the graph with edges ``seg`` (m, 2) int64."""
-    parent: dict[int, int] = {}
-
-    def find(x: int) -> int:
-        parent.setdefault(x, x)
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for u, v in seg.tolist():
-        ru, rv = find(u), find(v)
-        if ru != rv:
-            parent[ru] = rv
-    return len({find(x) for x in parent})
 
 
 def _orient_ccw(loops: list[np.ndarray], a: int) -> list[np.ndarray]:

@@ -5,7 +5,7 @@ Modules: :mod:`.layout` (inputs, labels, the scene), :mod:`.matplotlib_backend`,
 :mod:`.pyvista_backend`, :mod:`.matrix`; this one chooses the renderer.
 
 This module only draws: the matches arrive already mapped into the query's coordinates
-(:class:`MatchPanel`). It never prints and never exits; every failure is an
+(:class:`~nfdmatch.records.ShownMatch`, from :mod:`nfdmatch.show`). It never prints and never exits; every failure is an
 :class:`~nfdmatch.errors.NfdError`. matplotlib and pyvista are imported inside the
 functions that use them, so importing this module (or the CLI) costs nothing.
 
@@ -37,31 +37,40 @@ that are shrunk to fit, clear start markers and arrows, and in 3-D the halos at 
 and the lighter far side make over/under readable, which pyvista's shaded tubes show only
 faintly in an orthographic view (its arrows and text are also coarser). pyvista stays
 available (``renderer="pyvista"``) and is the fallback when matplotlib is missing.
+
+Test hooks: tests replace ``_draw_matplotlib`` / ``_draw_pyvista`` in this module (looked up
+at call time by :func:`_drawer`) and :func:`.pyvista_backend._probe_pyvista`, and raise
+``_Unavailable`` (a renderer that cannot draw on this machine), to act out a missing or
+crashing renderer. :func:`.layout.build_scene` is public: what a picture shows can be
+checked without drawing it.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Sequence
 
 import numpy as np
 
 from ..errors import ParameterError, RenderError, WriteError
+from ..records import ShownMatch
 from .layout import (DEFAULT_RENDERER, MAX_SIDE, MIN_SIDE, PICTURE_FORMATS, RENDERERS, START_STEP, MatchPanel,
-                     RenderResult, _as_points, _as_vector, _build_scene, _check_renderer, _check_size, _reason,
+                     RenderResult, _as_points, _as_vector, build_scene, _check_renderer, _check_size, _reason,
                      _Unavailable, _write, check_output, is_coplanar, picture_format, short_label, short_labels)
 from .matplotlib_backend import _draw_matplotlib
 from .matrix import render_matrix
 from .pyvista_backend import _draw_pyvista
 
-__all__ = ["RENDERERS", "DEFAULT_RENDERER", "START_STEP", "MIN_SIDE", "MAX_SIDE", "MatchPanel", "RenderResult",
+__all__ = ["RENDERERS", "DEFAULT_RENDERER", "START_STEP", "MIN_SIDE", "MAX_SIDE", "ShownMatch", "MatchPanel",
+           "RenderResult",
            "PICTURE_FORMATS", "check_output", "picture_format", "render_matches",
            "render_matrix", "is_coplanar", "short_label", "short_labels"]
 
 
 # --------------------------------------------------------------------------- renderers
 
-def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel], path, *,
+def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch], path: str | os.PathLike[str], *,
                    size: tuple[int, int] = (1600, 900), renderer: str = "auto") -> RenderResult:
     """Draw the query and its matches, each in the query's frame, into one PNG.
 
@@ -69,7 +78,8 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel
     ----------
     query : (n, 3) float, the query's vertices (closed polyline).
     query_id : the query's id (shortened for display).
-    panels : the matches, best first; each already mapped into the query's coordinates.
+    panels : the :class:`~nfdmatch.records.ShownMatch` es, best first (each already mapped
+        into the query's coordinates).
     path : the picture file to write: ``.png`` (or no extension), ``.svg`` or ``.pdf``
         (SVG and PDF are drawn by matplotlib whatever ``renderer`` auto picks).
     size : (width, height) of the picture in pixels, 100..10000 each; exact.
@@ -92,21 +102,20 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[MatchPanel
     q = _as_points(query, "query", min_points=2)
     checked = []
     for i, p in enumerate(panels):
-        if not isinstance(p, MatchPanel):
-            raise ParameterError(f"panel {i + 1}: expected a MatchPanel, got {type(p).__name__}")
+        if not isinstance(p, ShownMatch):
+            raise ParameterError(f"panel {i + 1}: expected a ShownMatch, got {type(p).__name__}")
         what = f"match {i + 1} ({p.id})"
         try:
             d = float(p.distance)
         except (TypeError, ValueError):
             raise ParameterError(f"{what}: distance must be a number, got {p.distance!r}") from None
-        checked.append(MatchPanel(id=str(p.id), distance=d, points=_as_points(p.points, what),
-                                  start=_as_vector(p.start, f"{what} start"),
-                                  forward=_as_vector(p.forward, f"{what} forward"),
-                                  reversed=bool(p.reversed), mirrored=bool(p.mirrored),
-                                  note=None if p.note is None else str(p.note)))
+        checked.append(ShownMatch(match=p.match.replace(id=str(p.id), distance=d, reversed=bool(p.reversed),
+                                                        mirrored=bool(p.mirrored)),
+                                  points=_as_points(p.points, what), start=_as_vector(p.start, f"{what} start"),
+                                  forward=_as_vector(p.forward, f"{what} forward"), source=p.source))
     out = check_output(path)
     fmt = picture_format(out)
-    scene = _build_scene(q, str(query_id), checked, size)
+    scene = build_scene(q, str(query_id), checked, size)
     order = [renderer] if renderer != "auto" else [DEFAULT_RENDERER] + [r for r in RENDERERS
                                                                          if r != DEFAULT_RENDERER]
     if fmt != "png":                  # pyvista draws pixels only

@@ -1,5 +1,5 @@
 """What a picture shows, independent of the renderer: the checked inputs
-(:class:`MatchPanel`), labels, output paths, and the scene (panel grid, view, limits)
+(:class:`~nfdmatch.records.ShownMatch`), labels, output paths, and the scene (panel grid, view, limits)
 that both backends draw."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import numpy as np
 
 from ..descriptors import START_STEP, points_at
 from ..errors import ParameterError, WriteError
+from ..records import ShownMatch
 
 
 RENDERERS = ("matplotlib", "pyvista")
@@ -34,31 +35,8 @@ _TILT = math.radians(30.0)     # 3-D view: tilt of the camera away from the smal
 _ARROW = 0.11                  # arrow length, fraction of the larger side of the view
 
 
-@dataclass(frozen=True)
-class MatchPanel:
-    """One match to draw, already in the query's coordinates.
-
-    Attributes
-    ----------
-    id : the match's curve id (a path, or ``path#i``); shortened for display.
-    distance : float, shown with 4 significant digits.
-    points : (m, 3) float64, the matched curve mapped into the query's coordinates
-        (closed; the closing edge is implicit).
-    start : (3,) float64, the point of the match that corresponds to the query's first vertex.
-    forward : (3,) float64, a point a little further along the match in the query's
-        direction of travel.
-    reversed, mirrored : shown in the panel title when set.
-    note : a short remark shown after them (e.g. ``"from index harmonics"``), or None.
-    """
-
-    id: str
-    distance: float
-    points: np.ndarray
-    start: np.ndarray
-    forward: np.ndarray
-    reversed: bool = False
-    mirrored: bool = False
-    note: str | None = None
+#: the old name of :class:`~nfdmatch.records.ShownMatch`, which drawing reads (deprecated)
+MatchPanel = ShownMatch
 
 
 @dataclass(frozen=True)
@@ -201,12 +179,12 @@ def _check_size(size) -> tuple[int, int]:
 PICTURE_FORMATS = {".png": "png", ".svg": "svg", ".pdf": "pdf", "": "png"}
 
 
-def picture_format(path) -> str:
+def picture_format(path: str | os.PathLike[str]) -> str:
     """``"png"``, ``"svg"`` or ``"pdf"``: the format of a picture file, by its extension."""
     return PICTURE_FORMATS.get(os.path.splitext(str(path))[1].lower(), "png")
 
 
-def check_output(path) -> str:
+def check_output(path: str | os.PathLike[str]) -> str:
     """``path`` as a str if a picture can be written there (a ``.png``, ``.svg`` or ``.pdf``
     name, or none for PNG, in an existing folder, not a directory); else
     :class:`ParameterError` / :class:`WriteError`. Cheap: callers check before long work."""
@@ -251,7 +229,7 @@ def _check_renderer(renderer) -> str:
 
 # --------------------------------------------------------------------------- geometry
 
-def is_coplanar(*point_sets, tol: float = 1e-6) -> bool:
+def is_coplanar(*point_sets: np.ndarray, tol: float = 1e-6) -> bool:
     """True when all points of all sets lie within ``tol`` times their extent (the largest
     side of their bounding box) of one plane.
 
@@ -304,7 +282,9 @@ def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass
-class _Panel:
+class ScenePanel:
+    """One panel of a :class:`Scene`: the query alone, or a match over it."""
+
     title: str                 # first line
     subtitle: str              # second line
     points: np.ndarray         # view coordinates (m, 3): x right, y up, z towards the viewer
@@ -314,7 +294,7 @@ class _Panel:
 
 
 @dataclass
-class _Scene:
+class Scene:
     """Everything both renderers need, in view coordinates."""
 
     planar: bool
@@ -350,7 +330,7 @@ def _title_band(font_pt: float) -> int:
     return int(math.ceil(2 * 1.3 * font_pt * 100 / 72 + 8))
 
 
-def _choose_grid(n: int, size: tuple[int, int], data_w: float, data_h: float) -> tuple[int, int]:
+def choose_grid(n: int, size: tuple[int, int], data_w: float, data_h: float) -> tuple[int, int]:
     """(rows, cols) for n panels that makes the drawn curves largest; ties: fewer empty cells."""
     W, H = size
     options = []
@@ -370,7 +350,10 @@ def _choose_grid(n: int, size: tuple[int, int], data_w: float, data_h: float) ->
     return rows, cols
 
 
-def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], size) -> _Scene:
+def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size) -> Scene:
+    """The :class:`Scene` both renderers draw: ``query`` ((n, 3) float64) and the checked
+    ``panels`` in view coordinates, the panel grid for ``size`` (width, height) pixels,
+    titles and subtitles (what a picture shows, testable without drawing it)."""
     match_points = [p.points for p in panels]
     planar = is_coplanar(query, *match_points)
     everything = np.vstack([query] + match_points)
@@ -398,13 +381,13 @@ def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], siz
     q_start, q_forward = q[0], to_view(points_at(query, [START_STEP])[0])
     # shortened together: long names that differ in the middle keep that middle
     qlabel, *match_labels = short_labels([query_id] + [p.id for p in panels])
-    scene_panels = [_Panel(title=f"query: {qlabel}",
+    scene_panels = [ScenePanel(title=f"query: {qlabel}",
                            subtitle=_key(planar, bool(panels)),
                            points=q, start=q_start, forward=q_forward, is_query=True)]
     for rank, p in enumerate(panels, 1):
         flags = [f for f, on in (("reversed", p.reversed), ("mirrored", p.mirrored), (p.note, bool(p.note)))
                  if on]
-        scene_panels.append(_Panel(
+        scene_panels.append(ScenePanel(
             title=f"{rank}. {match_labels[rank - 1]}",
             subtitle="  \u00b7  ".join([f"d = {_format_distance(p.distance)}"] + flags),
             points=to_view(p.points), start=to_view(p.start), forward=to_view(p.forward), is_query=False))
@@ -415,7 +398,7 @@ def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], siz
     # room for the arrows and markers around the curves
     margin = 0.06 * max(dw, dh)
     dw, dh = dw + 2 * margin, dh + 2 * margin
-    rows, cols = _choose_grid(len(scene_panels), size, dw, dh)
+    rows, cols = choose_grid(len(scene_panels), size, dw, dh)
     cw, ch = size[0] / cols, size[1] / rows
     font = _font_for(cw, ch)
     title_px = _title_band(font)
@@ -426,7 +409,7 @@ def _build_scene(query: np.ndarray, query_id: str, panels: list[MatchPanel], siz
     units_per_px = 2 * half / bw
     hw, hh = bw / 2 * units_per_px, bh / 2 * units_per_px
     cx, cy = (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2
-    return _Scene(planar=planar, query=q, query_start=q_start, query_forward=q_forward,
+    return Scene(planar=planar, query=q, query_start=q_start, query_forward=q_forward,
                   panels=scene_panels, size=tuple(size), rows=rows, cols=cols, font_pt=font,
                   title_px=title_px, pad_px=pad, window=(cx - hw, cx + hw, cy - hh, cy + hh),
                   zrange=(float(lo[2]), float(hi[2])), arrow=_ARROW * max(dw, dh) / (1 + 0.12))

@@ -7,7 +7,7 @@ import io
 
 import numpy as np
 
-from .layout import _MATCH_COLOR, _NOTE_COLOR, _QUERY_COLOR, _Scene, _TEXT_COLOR, _UNDER_COLOR, _screen_direction
+from .layout import _MATCH_COLOR, _NOTE_COLOR, _QUERY_COLOR, Scene, _TEXT_COLOR, _UNDER_COLOR, _screen_direction
 
 # --------------------------------------------------------------------------- matplotlib
 
@@ -104,7 +104,7 @@ def _mark_mpl(ax, start, forward, color, arrow_len, *, filled: bool, zorder: flo
             mfc=color if filled else "white", mec="white" if filled else color)
 
 
-def _draw_matplotlib(scene: _Scene, fmt: str = "png") -> bytes:
+def _draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
     fig = _new_figure(scene.size)
     W, H = scene.size
     cw, ch = scene.cell

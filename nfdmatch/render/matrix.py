@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import time
 from typing import Sequence
 
@@ -15,13 +16,14 @@ from .matplotlib_backend import _new_figure, _png_bytes
 
 # --------------------------------------------------------------------------- matrix
 
-def _matrix_size(n: int) -> tuple[int, int]:
+def matrix_size(n: int) -> tuple[int, int]:
+    """The default (width, height) in pixels of the picture of an n x n matrix."""
     side = int(np.clip(8 * n + 360, 800, 3000))
     return min(side + 120, 3000), side
 
 
-def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tuple[int, int] | None = None,
-                  title: str | None = None) -> RenderResult:
+def render_matrix(matrix: np.ndarray, labels: Sequence[str], path: str | os.PathLike[str], *,
+                  size: tuple[int, int] | None = None, title: str | None = None) -> RenderResult:
     """Draw an all-pairs distance matrix as a grey-level grid (the paper's Figure 7), with
     matplotlib: darker = smaller distance (black = 0, white = the largest), the curve names
     along both axes (shortened; every k-th one when there are too many to read), a colour bar.
@@ -52,7 +54,7 @@ def render_matrix(matrix: np.ndarray, labels: Sequence[str], path, *, size: tupl
         raise ParameterError(f"matrix: {m.shape[0]} rows but {len(labels)} labels")
     if not np.all(np.isfinite(m)):
         raise ParameterError("matrix: contains NaN or infinite distances")
-    size = _matrix_size(m.shape[0]) if size is None else _check_size(size)
+    size = matrix_size(m.shape[0]) if size is None else _check_size(size)
     out = check_output(path)
     t0 = time.perf_counter()
     try:

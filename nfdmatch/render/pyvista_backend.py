@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from .layout import _MATCH_COLOR, _QUERY_COLOR, _Scene, _TEXT_COLOR, _UNDER_COLOR, _Unavailable
+from .layout import _MATCH_COLOR, _QUERY_COLOR, Scene, _TEXT_COLOR, _UNDER_COLOR, _Unavailable
 
 # --------------------------------------------------------------------------- pyvista
 
@@ -56,12 +56,13 @@ def _probe_pyvista() -> str | None:
         if proc.returncode == 0 and proc.stdout.startswith("ok"):
             result = None
         else:
-            result = _probe_reason(proc.returncode, proc.stderr)
+            result = probe_reason(proc.returncode, proc.stderr)
     _probe_result[key] = result
     return result
 
 
-def _probe_reason(returncode: int, stderr: str) -> str:
+def probe_reason(returncode: int, stderr: str) -> str:
+    """Why the probe's child process could not render, from its exit status and stderr."""
     lines = [_ANSI.sub("", line).strip() for line in stderr.splitlines()]
     lines = [re.sub(r"^.*?(WARN|ERR|ERROR)\|\s*", "", line) for line in lines if line]
     lines = [re.sub(r"^vtk\w+ \(0x[0-9a-f]+\):\s*", "", line) for line in lines]
@@ -98,7 +99,7 @@ def _stdout_to_stderr():
         os.close(saved)
 
 
-def _draw_pyvista(scene: _Scene) -> bytes:
+def _draw_pyvista(scene: Scene) -> bytes:
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     with _stdout_to_stderr(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -128,7 +129,7 @@ def _draw_pyvista(scene: _Scene) -> bytes:
     return buf.getvalue()
 
 
-def _fill_pyvista(pv, plotter, scene: _Scene) -> None:
+def _fill_pyvista(pv, plotter, scene: Scene) -> None:
     cw, ch = scene.cell
     bw, bh = scene.box
     x0, x1, y0, y1 = scene.window
@@ -173,7 +174,7 @@ def _curve_pv(pv, plotter, pts, color, width, tubes: bool) -> None:
                      render_lines_as_tubes=tubes, lighting=tubes, reset_camera=False)
 
 
-def _mark_pv(pv, plotter, start, forward, color, scene: _Scene, lift: float, *, filled: bool) -> None:
+def _mark_pv(pv, plotter, start, forward, color, scene: Scene, lift: float, *, filled: bool) -> None:
     s = np.asarray(start, dtype=float) + [0, 0, lift]
     d = np.asarray(forward, dtype=float) - np.asarray(start, dtype=float)
     n = float(np.linalg.norm(d))

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..matching import METHODS, dispatch, exact_search, paper_search
+from ..records import RankedMatch
 from .bestfirst import TIE, TopK, search_one
 from .bounds import feature_vector
 
@@ -90,9 +91,10 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
 
     Returns
     -------
-    ``(results, stats)``: ``results[i]`` lists query i's matches as dicts ``{rank, match,
-    distance, shift, reversed, mirrored, row}`` (``row``: the match's row in the index)
-    sorted by distance then id; ``stats`` a :class:`SearchStats`.
+    ``(results, stats)``: ``results[i]`` lists query i's matches as
+    :class:`~nfdmatch.records.RankedMatch` (rank, id, distance, shift, reversed, mirrored,
+    row: the match's row in the index) sorted by distance then id; ``stats`` a
+    :class:`SearchStats`.
 
     Pruned search: one best-first order over the whole index per query
     (:func:`nfdmatch.search.bestfirst.search_one`): cells by their bound, rows by their
@@ -108,7 +110,7 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     threads = threads or min(os.cpu_count() or 1, 4)
     t0 = time.perf_counter()
     qcoef = descriptors_batch(queries, samples=index.samples, harmonics=index.harmonics,
-                              scale=index.scale).coefficients
+                              scale=index.scale_mode).coefficients
     tops = [TopK(top, max_distance) for _ in queries]
     search = exact_search if method == "exact" else paper_search
     stats = SearchStats(queries=len(queries), rows=index.n_curves, pruned=prune)
@@ -174,8 +176,8 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
     return results, stats
 
 
-def ranked_rows(index, tops, top: int | None) -> list[list[dict]]:
-    """Each :class:`~nfdmatch.search.bestfirst.TopK` as the rows :func:`search_index`
+def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
+    """Each :class:`~nfdmatch.search.bestfirst.TopK` as the matches :func:`search_index`
     returns: sorted by distance, distances within ``TIE`` by id, at most ``top``."""
     results = []
     for tk in tops:
@@ -184,9 +186,9 @@ def ranked_rows(index, tops, top: int | None) -> list[list[dict]]:
         order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[i]))
         if top is not None:
             order = order[:top]
-        results.append([{"rank": rank, "match": ids[i], "distance": float(tk.dist[i]),
-                         "shift": float(tk.extra["shift"][i]), "reversed": bool(tk.extra["reversed"][i]),
-                         "mirrored": bool(tk.extra["mirrored"][i]), "row": int(tk.rows[i])}
+        results.append([RankedMatch(rank=rank, id=ids[i], distance=float(tk.dist[i]),
+                                    shift=float(tk.extra["shift"][i]), reversed=bool(tk.extra["reversed"][i]),
+                                    mirrored=bool(tk.extra["mirrored"][i]), row=int(tk.rows[i]))
                         for rank, i in enumerate(order, start=1)])
     return results
 

@@ -2,19 +2,28 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
 from ..errors import ParameterError
 from ..matching import exact_search, paper_search
 
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from ..curve import Curve
+
 #: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
 BATCH_ROWS = 2048
 
 
-def distance_matrix(curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                    scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
-                    mirror: bool = False, weights=None, progress=None) -> np.ndarray:
+def distance_matrix(curves: Sequence[Curve | np.ndarray], *, samples: int = DEFAULT_SAMPLES,
+                    harmonics: int = DEFAULT_HARMONICS, scale: str = DEFAULT_SCALE, method: str = "exact",
+                    direction: str = "invariant", mirror: bool = False, weights: ArrayLike | None = None,
+                    progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """All-pairs distances of ``curves``.
 
     Parameters

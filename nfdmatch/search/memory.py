@@ -13,16 +13,16 @@ CHUNK_ROWS = 65536
 
 class MemoryIndex:
     """Curves held in memory with the same reading interface as :class:`nfdmatch.index.Index`
-    (``samples``, ``harmonics``, ``scale``, ``n_curves``, ``iter_chunks``, ``ids_at``,
-    ``search_table``), so that :func:`search_index` serves both ``rank`` (no index file)
-    and ``query``."""
+    (``samples``, ``harmonics``, ``scale_mode``, ``n_curves``, ``iter_chunks``, ``ids_at``,
+    ``search_table``; ``scale`` a deprecated alias of ``scale_mode``), so that
+    :func:`search_index` serves both ``rank`` (no index file) and ``query``."""
 
     def __init__(self, curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
                  scale: str = DEFAULT_SCALE, rows_per_cell: int | None = None):
         from ..descriptors import descriptors_batch
         from ..matching import invariants
 
-        self.samples, self.harmonics, self.scale = samples, harmonics, scale
+        self.samples, self.harmonics, self.scale_mode = samples, harmonics, scale
         batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
         self._ids = [c.id for c in curves]
         self._rows = {"coefficients": batch.coefficients,
@@ -30,6 +30,11 @@ class MemoryIndex:
         self.n_curves = len(curves)
         #: None: every row in one cell; else cells of about this many rows (as an index file)
         self.rows_per_cell = rows_per_cell
+
+    @property
+    def scale(self) -> str:
+        """Deprecated alias of :attr:`scale_mode`."""
+        return self.scale_mode
 
     def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True):
         for start in range(0, self.n_curves, rows):

@@ -2,16 +2,25 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, descriptors
 from ..errors import ParameterError
+from ..records import RankedMatch
 from .index_search import search_index
 from .memory import MemoryIndex
 
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
-def rank_curves(query, curves, *, top: int | None = None, max_distance: float | None = None,
-                samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
+    from ..curve import Curve
+
+
+def rank_curves(query: Curve | ArrayLike, curves: Sequence[Curve], *, top: int | None = None,
+                max_distance: float | None = None, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
                 scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
-                mirror: bool = False, weights=None) -> list[dict]:
+                mirror: bool = False, weights: ArrayLike | None = None) -> list[RankedMatch]:
     """Rank ``curves`` by distance to ``query``.
 
     Parameters
@@ -24,9 +33,8 @@ def rank_curves(query, curves, *, top: int | None = None, max_distance: float | 
 
     Returns
     -------
-    list of dicts ``{rank, match, distance, shift, reversed, mirrored, row}`` sorted by
-    distance, ties broken by id so the order is deterministic; ``rank`` is 1-based, ``row``
-    the match's position in ``curves``.
+    list of :class:`~nfdmatch.records.RankedMatch` sorted by distance, ties broken by id so
+    the order is deterministic; ``rank`` is 1-based, ``row`` the match's position in ``curves``.
     """
     from ..curve import Curve
 

@@ -22,10 +22,20 @@ whether a curve is near the query's neighbours. The method (chosen by measuremen
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..defaults import DEFAULT_RERANK_DEPTH
 from ..errors import IndexFormatError, ParameterError
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from ..curve import Curve
+    from ..records import RankedMatch
+    from .index_search import SearchStats
 
 __all__ = ["diffused_similarity", "rerank_scores", "rerank_index", "SCALE_NEIGHBOURS", "ALPHA", "MIX",
            "MIN_DEPTH", "DEFAULT_DEPTH"]
@@ -36,8 +46,8 @@ SCALE_NEIGHBOURS = 8
 ALPHA = 0.8
 #: weight of the direct affinity added to the diffused cosine
 MIX = 0.2
-#: a query's exact candidates (--rerank-depth): at least, and by default
-MIN_DEPTH = DEFAULT_DEPTH = 100
+#: a query's exact candidates (--rerank-depth): at least, and by default (defined with the CLI's defaults)
+MIN_DEPTH = DEFAULT_DEPTH = DEFAULT_RERANK_DEPTH
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
 
@@ -63,7 +73,7 @@ def _pagerank_cosine(P: np.ndarray, alpha: float) -> np.ndarray:
     return A @ A.T
 
 
-def diffused_similarity(distances, *, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA,
+def diffused_similarity(distances: ArrayLike, *, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA,
                         mix: float = MIX) -> np.ndarray:
     """The re-ranked similarity of every pair of a collection.
 
@@ -170,8 +180,10 @@ def rerank_scores(query_distances, candidates, graph_rows, graph_distances, *, m
     return out
 
 
-def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, exclude=None, progress=None,
-                 threads: int | None = None):
+def rerank_index(index, queries: Sequence[Curve], *, top: int = 10, depth: int = DEFAULT_DEPTH,
+                 exclude: Callable[[str, str], bool] | None = None,
+                 progress: Callable[[int, int], None] | None = None,
+                 threads: int | None = None) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k best curves of an index for each query by diffused score.
 
     Parameters
@@ -186,9 +198,9 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
 
     Returns
     -------
-    ``(results, stats)``: ``results[i]`` lists query i's matches as dicts ``{rank, match,
-    distance, score, shift, reversed, mirrored, row}`` sorted by ``score`` (higher is closer;
-    ties by exact distance, then id); ``distance`` is the exact distance. ``stats`` is the
+    ``(results, stats)``: ``results[i]`` lists query i's matches as
+    :class:`~nfdmatch.records.RankedMatch` es with their ``score``, sorted by ``score`` (higher
+    is closer; ties by exact distance, then id); ``distance`` is the exact distance. ``stats`` is the
     exact search's :class:`~nfdmatch.search.SearchStats` with ``seconds`` covering both steps.
 
     Raises
@@ -220,17 +232,15 @@ def rerank_index(index, queries, *, top: int = 10, depth: int = DEFAULT_DEPTH, e
         if not found:
             results.append([])
             continue
-        rows = np.array([m["row"] for m in found], dtype=np.int64)
-        qd = np.array([m["distance"] for m in found])
-        merged = np.array([exclude is not None and bool(exclude(q.id, m["match"])) for m in found])
+        rows = np.array([m.row for m in found], dtype=np.int64)
+        qd = np.array([m.distance for m in found])
+        merged = np.array([exclude is not None and bool(exclude(q.id, m.id)) for m in found])
         gr, gd = reader(rows)
         scores = rerank_scores(qd, rows, gr, gd, merged=merged,
                                outside_scale=lambda r: _kth(reader(r)[1], SCALE_NEIGHBOURS))
         idx = [i for i in range(len(found)) if not merged[i]]
-        idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i]["rank"]))
-        results.append([{"rank": rank, "match": found[i]["match"], "distance": found[i]["distance"],
-                         "score": float(scores[i]), "shift": found[i]["shift"], "reversed": found[i]["reversed"],
-                         "mirrored": found[i]["mirrored"], "row": found[i]["row"]}
+        idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i].rank))
+        results.append([found[i].replace(rank=rank, score=float(scores[i]))
                         for rank, i in enumerate(idx[:top], start=1)])
     stats.seconds = time.perf_counter() - t0
     return results, stats

@@ -1,0 +1,28 @@
+"""Defaults that the CLI shows and the library uses, kept here because the modules that own
+them are too heavy for the CLI's start-up (it must not import h5py; docs/architecture.md):
+the index path, the neighbours a ``--graph`` stores, the depth of a re-ranking.
+
+The descriptor defaults (:mod:`nfdmatch.descriptors`) and the method and direction names
+(:mod:`nfdmatch.matching`) live with their owners, which the CLI imports.
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["INDEX_ENV", "DEFAULT_INDEX", "default_index_path", "DEFAULT_GRAPH_K", "DEFAULT_RERANK_DEPTH"]
+
+#: the environment variable naming the index of every command and function that takes one
+INDEX_ENV = "NFDMATCH_INDEX"
+#: the index when neither a path nor ``$NFDMATCH_INDEX`` is given
+DEFAULT_INDEX = "nfdmatch.h5"
+#: neighbours per row when ``--graph`` is given without a number (:mod:`nfdmatch.index.graph`)
+DEFAULT_GRAPH_K = 10
+#: a query's exact candidates for a re-ranking (``--rerank-depth``), at least and by default
+#: (:mod:`nfdmatch.search.rerank`)
+DEFAULT_RERANK_DEPTH = 100
+
+
+def default_index_path() -> str:
+    """``$NFDMATCH_INDEX`` if set (and not empty), else ``"nfdmatch.h5"``."""
+    return os.environ.get(INDEX_ENV) or DEFAULT_INDEX

@@ -1,0 +1,106 @@
+"""The match record: what a search returns (:class:`RankedMatch`) and the same match aligned
+onto its query for drawing (:class:`ShownMatch`).
+
+One record all the way: :func:`~nfdmatch.search.search_index`, :func:`~nfdmatch.search.rank_curves`
+and :func:`~nfdmatch.search.rerank_index` return :class:`RankedMatch` es; :mod:`nfdmatch.show`
+extends each with its vertices in the query's frame (:class:`ShownMatch`);
+:func:`~nfdmatch.render.render_matches` draws :class:`ShownMatch` es; the CLI formats rows
+from them. (:class:`nfdmatch.matching.Match` is the alignment of two curves: rotation, scale,
+translation; it is not a ranking.)
+
+This module sits at the base of the layers (docs/architecture.md): it imports numpy only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["RankedMatch", "ShownMatch", "SOURCES", "INDEX_NOTE"]
+
+#: where a shown match's vertices come from: its curve file, or the harmonics stored in the index
+SOURCES = ("file", "index")
+#: the remark drawn under a match drawn from the index's harmonics
+INDEX_NOTE = "drawn from index harmonics"
+
+
+@dataclass(frozen=True)
+class RankedMatch:
+    """One match of a query, as a search ranks it.
+
+    Attributes
+    ----------
+    rank : int, 1-based.
+    id : str, the match's curve id (an index's ids are relative to its folder).
+    distance : float, the exact distance to the query.
+    shift : float, the start shift in samples (as in :class:`~nfdmatch.matching.Match`).
+    reversed, mirrored : bool, as in :class:`~nfdmatch.matching.Match`.
+    row : int, the match's row in the index (its position in the curves ranked), or None.
+    score : float, the diffused score of a re-ranked search (higher is closer), else None.
+    """
+
+    rank: int
+    id: str
+    distance: float
+    shift: float = 0.0
+    reversed: bool = False
+    mirrored: bool = False
+    row: int | None = None
+    score: float | None = None
+
+    def replace(self, **changes) -> RankedMatch:
+        """A copy with some fields changed (e.g. ``rank`` after dropping rows)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class ShownMatch:
+    """A :class:`RankedMatch` aligned onto its query, ready to draw.
+
+    Attributes
+    ----------
+    match : the :class:`RankedMatch`; its ``shift``, ``reversed`` and ``mirrored`` are the
+        alignment's (the search's, except between equally good alignments of a symmetric curve).
+    points : (m, 3) float64, the match's vertices in the query's coordinates (closed; the
+        closing edge is implicit).
+    start : (3,) float64, the point of the match that corresponds to the query's first vertex.
+    forward : (3,) float64, the point that corresponds to the query a little further on
+        (:data:`~nfdmatch.descriptors.START_STEP` of its length): with ``start``, the
+        direction of travel.
+    source : ``"file"`` (drawn from the curve file) or ``"index"`` (from stored harmonics).
+
+    ``rank``, ``id``, ``distance``, ``reversed``, ``mirrored`` read the match's; ``note`` is
+    the remark drawn with it (:data:`INDEX_NOTE` for ``source="index"``, else None).
+    """
+
+    match: RankedMatch
+    points: np.ndarray
+    start: np.ndarray
+    forward: np.ndarray
+    source: str = "file"
+
+    @property
+    def rank(self) -> int:
+        return self.match.rank
+
+    @property
+    def id(self) -> str:
+        return self.match.id
+
+    @property
+    def distance(self) -> float:
+        return self.match.distance
+
+    @property
+    def reversed(self) -> bool:
+        return self.match.reversed
+
+    @property
+    def mirrored(self) -> bool:
+        return self.match.mirrored
+
+    @property
+    def note(self) -> str | None:
+        return INDEX_NOTE if self.source == "index" else None
