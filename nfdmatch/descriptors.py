@@ -285,8 +285,10 @@ def descriptors_batch(curves: Sequence[Curve | np.ndarray], *, samples: int = DE
         return DescriptorBatch(np.zeros((0, harmonics, 3), complex), np.zeros((0, 3, 3)), np.zeros((0, 3)),
                                np.zeros(0), np.zeros(0, bool), samples, harmonics, scale)
     counts = np.array([len(p) for p in pts_list])
-    # each curve closed explicitly (first vertex repeated), then all concatenated
-    closed = np.concatenate([np.vstack([p, p[:1]]) for p in pts_list])
+    # each curve closed explicitly (first vertex repeated), all concatenated: one insert
+    flat = np.concatenate(pts_list) if N > 1 else pts_list[0]
+    ends = np.cumsum(counts)
+    closed = np.insert(flat, ends, flat[ends - counts], axis=0)
     curve_of = np.repeat(np.arange(N), counts + 1)
     first = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])
     # scaled first by a power of two per curve (exact, so ordinary curves give the same bits):

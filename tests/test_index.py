@@ -509,8 +509,10 @@ def test_bad_files_are_recorded_and_the_rest_indexed(tmp_path, rng, reads):
     assert (report.updated, report.failed, report.curves) == (1, 4, 5)
 
 
-def test_unexpected_worker_exception_becomes_a_failure(lib, tmp_path, monkeypatch):
+@pytest.mark.parametrize("where", ["reader", "bulk path"])
+def test_unexpected_worker_exception_becomes_a_failure(lib, tmp_path, monkeypatch, where):
     real = nindex.pool.read_curves
+    real_fast = nindex.pool._fast_points
     victim = str(lib / "b.csv")
 
     def flaky(path, format=None):
@@ -518,7 +520,15 @@ def test_unexpected_worker_exception_becomes_a_failure(lib, tmp_path, monkeypatc
             raise RuntimeError("boom")
         return real(path, format=format)
 
+    def flaky_fast(path, data, input_format):
+        if str(path) == victim:
+            if where == "bulk path":
+                raise RuntimeError("boom")
+            return None                         # declined: read_curves reads it
+        return real_fast(path, data, input_format)
+
     monkeypatch.setattr(nindex.pool, "read_curves", flaky)
+    monkeypatch.setattr(nindex.pool, "_fast_points", flaky_fast)
     report = build_index([str(lib)], tmp_path / "idx.h5", jobs=1)
     assert (report.added, report.failed, report.curves) == (4, 1, 7)
     assert report.failures == [(victim, f"{victim}: unexpected error: RuntimeError: boom")]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -158,3 +159,29 @@ def test_cells_partition_the_rows_and_their_radii_hold(seed, rows, per_cell):
         assert np.all(cb[c] <= true)
     again = build_cells(F, split, rows_per_cell=per_cell)
     assert np.array_equal(again.row, cells.row) and np.array_equal(again.centre, cells.centre)
+
+
+@pytest.mark.parametrize("rows, per_cell", [(70_000, 128), (20_000, 64)])
+def test_cells_trained_on_samples_still_hold_every_row(rows, per_cell):
+    """Past ``_COARSE_SAMPLE`` rows, and past ``_FINE_SAMPLE_PER_CELL`` rows per cell, the
+    k-means is trained on a sample: every row must still be in exactly one cell, within the
+    stored radius of its centre in both feature parts (what keeps the search exact)."""
+    from nfdmatch.search import cells as cells_module
+
+    assert rows > cells_module._COARSE_SAMPLE or per_cell > cells_module._FINE_SAMPLE_PER_CELL
+    rng = np.random.default_rng(rows)
+    split = 6
+    centres = rng.normal(size=(40, 9)) * rng.uniform(0.1, 3, size=(40, 1))
+    F = (centres[rng.integers(0, 40, rows)] + rng.normal(scale=0.05, size=(rows, 9))
+         * rng.uniform(0.1, 10, size=(rows, 1))).astype(np.float32)
+    F[:50] *= 1e3                                          # a few far outliers
+    cells = build_cells(F, split, rows_per_cell=per_cell)
+    assert np.array_equal(np.sort(cells.row), np.arange(rows))
+    assert cells.start[0] == 0 and cells.start[-1] == rows and np.all(np.diff(cells.start) > 0)
+    cell_of = np.repeat(np.arange(cells.count), np.diff(cells.start))
+    X = F[cells.row].astype(np.float64)
+    c = cells.centre[cell_of]
+    assert np.all(np.linalg.norm(X[:, :split] - c[:, :split], axis=1) <= cells.radius[cell_of, 0])
+    assert np.all(np.linalg.norm(X[:, split:] - c[:, split:], axis=1) <= cells.radius[cell_of, 1])
+    members_ascending = np.diff(cells.row) > 0
+    assert np.all(members_ascending | (np.diff(cell_of) > 0))

@@ -84,6 +84,21 @@ def _read_bulk(data: bytes, path: str) -> np.ndarray | None:
     return arr
 
 
+def bulk_points(data: bytes, path: str) -> np.ndarray | None:
+    """The (n, 3) float64 vertices :func:`read_points` returns for a file whose bytes are
+    ``data``, when its bulk path reads them (plain ASCII numeric rows, see
+    :func:`_read_bulk`); None whenever that is not certain (then :func:`read_points`, the
+    careful parser, decides and names the problem). ``data`` must be the whole file, of at
+    most the size limit; it is checked here as :func:`read_text_bytes` would (no NUL
+    bytes; ASCII, so no BOM and valid UTF-8)."""
+    if b"\x00" in data:
+        return None
+    arr = _read_bulk(data, path)
+    if arr is not None and arr.shape[1] == 2:
+        arr = np.column_stack([arr, np.zeros(len(arr))])
+    return arr
+
+
 def _delimiter(sample: str) -> str | None:
     for delim in (";", ",", "\t"):
         if delim in sample:

@@ -545,7 +545,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             _write_sources(h5, *sources)
             # the cells: features, squared norms, row numbers and first harmonics of every row
             space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
-            report.cells = write_search_group(h5, K)
+            report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
             report.graph = write_graph(h5, old, graph, reuse=not recompute_all)
             report.curves = writer.rows
         except BaseException:

@@ -37,9 +37,12 @@ import time
 
 import numpy as np
 
+from ..curve import Curve, clean_many
 from ..descriptors import descriptors_batch
 from ..errors import NfdError, ReadError, WorkerError
 from ..formats import format_of, read_curves
+from ..formats._chain import curve_id, make_curves, max_file_bytes
+from ..formats.csv import bulk_points
 from ..matching import invariants
 
 #: curves described per descriptors_batch call (bounds the (rows x samples x 3) work arrays)
@@ -146,11 +149,29 @@ def _test_hook(path: str) -> None:
             time.sleep(3600)
 
 
-def _read_file(path: str, input_format, old_sha) -> tuple[dict, list]:
+def _fast_points(path: str, data: bytes, input_format) -> np.ndarray | None:
+    """The raw vertices of a one-curve CSV file from its bytes ``data`` (read once, for the
+    hash too), when the CSV reader's bulk path certainly reads them as :func:`read_curves`
+    would; None otherwise (then :func:`read_curves` reads the file, the careful way)."""
+    try:
+        if format_of(path, input_format) != "csv":
+            return None
+    except NfdError:
+        return None
+    if len(data) > max_file_bytes():
+        return None
+    return bulk_points(data, path)
+
+
+def _read_file(path: str, input_format, old_sha, raw: bool = False) -> tuple[dict, list]:
     """Stat, hash and read one file: ``(result, curves)``. Never raises (except
     BaseException such as KeyboardInterrupt): a failure is ``status "failed"`` with its
     message; ``status "same"`` when the hash equals ``old_sha`` (the file is not parsed);
-    else ``status "ok"`` with its curves."""
+    else ``status "ok"`` with its curves.
+
+    ``raw``: a small one-curve CSV file read by the bulk path may come back as its
+    uncleaned (n, 3) vertex array instead of a list of curves (the caller cleans many
+    at once: :func:`_clean_raw`)."""
     out = {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed", "error": ""}
     try:
         st = os.stat(path)
@@ -160,17 +181,59 @@ def _read_file(path: str, input_format, old_sha) -> tuple[dict, list]:
         if not _stat.S_ISREG(st.st_mode):       # opening a FIFO to hash it would block
             raise ReadError("is not a regular file (a FIFO, device or socket)", path=path)
         _test_hook(path)
-        out["sha256"] = _sha256_and_size(path, st.st_size)
+        fast = None
+        if st.st_size <= _BATCH_BYTES:          # read once: hashed, and parsed when plain CSV
+            with open(path, "rb") as fh:
+                data = fh.read(st.st_size + 1)
+            if len(data) == st.st_size:
+                out["sha256"] = hashlib.sha256(data).hexdigest()
+                if not (old_sha and out["sha256"] == old_sha):
+                    fast = _fast_points(path, data, input_format)
+            else:                               # it changed since stat: the careful way
+                out["sha256"] = _sha256_and_size(path, st.st_size)
+            del data
+        else:
+            out["sha256"] = _sha256_and_size(path, st.st_size)
         if old_sha and out["sha256"] == old_sha:
             out["status"] = "same"
             return out, []
+        if fast is not None:
+            out["ids"] = [curve_id(path, 0, 1)]
+            out["status"] = "ok"
+            if raw:
+                return out, fast
+            curves = make_curves(path, [fast])
+            return out, curves
         curves = read_curves(path, format=input_format)
         out["ids"] = [c.id for c in curves]
         out["status"] = "ok"
         return out, curves
     except Exception as exc:  # a bug must not sink the build: record it against the file
         out["error"] = _failure(path, exc)
+        out.pop("ids", None)
+        out["status"] = "failed"
         return out, []
+
+
+def _clean_raw(results: list, raw: list) -> list:
+    """Curves of the files read raw (``(result index, path, vertices)``, each one curve), cleaned
+    in one vectorized pass (:func:`clean_many`); should any curve be bad, file by file as
+    :func:`read_curves` does, a bad one marking its result failed with the same message.
+    Returns ``[(result index, [Curve])]`` of the good ones."""
+    try:
+        cleaned = clean_many([a for _, _, a in raw])
+        return [(r, [Curve.trusted(pts, curve_id(p, 0, 1), p, None)]) for (r, p, _), pts in zip(raw, cleaned)]
+    except Exception:
+        pass
+    good = []
+    for r, p, a in raw:
+        try:
+            good.append((r, make_curves(p, [a])))
+        except Exception as exc:
+            out = results[r]
+            out.update(status="failed", error=_failure(p, exc))
+            out.pop("ids", None)
+    return good
 
 
 def _compute_file(path: str, input_format, samples: int, harmonics: int, scale: str, old_sha) -> dict:
@@ -197,19 +260,29 @@ def _compute_batch(batch: list[tuple[int, tuple]], slot=None) -> tuple[list, dic
     2), when given, holds the task being read and since when (``time.monotonic()``), -1
     between files: the pool reads it to blame a death or a timeout on one file.
     """
-    results, curves, owners = [], [], []
+    results, raw, per_file = [], [], []
     for number, (path, input_format, _samples, _harmonics, _scale, old_sha) in batch:
         if slot is not None:
             slot[1] = time.monotonic()
             slot[0] = number
-        out, file_curves = _read_file(path, input_format, old_sha)
-        if file_curves:
-            out["rows"] = len(file_curves)
-            owners.append(len(results))
-            curves.extend(file_curves)
+        out, file_curves = _read_file(path, input_format, old_sha, raw=True)
+        if isinstance(file_curves, np.ndarray):
+            raw.append((len(results), path, file_curves))
+        elif file_curves:
+            per_file.append((len(results), file_curves))
         results.append(out)
+    if raw:
+        if slot is not None:                    # cleaning many at once: no one file to blame
+            slot[0] = -1
+        per_file.extend(_clean_raw(results, raw))
+        per_file.sort(key=lambda rc: rc[0])
     if slot is not None:
         slot[0] = -1
+    curves, owners = [], []
+    for r, file_curves in per_file:
+        results[r]["rows"] = len(file_curves)
+        owners.append(r)
+        curves.extend(file_curves)
     if not curves:
         return results, None
     _, _, samples, harmonics, scale, _ = batch[0][1]

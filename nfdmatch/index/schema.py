@@ -66,6 +66,18 @@ def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
 
     values = list(values)
     out = np.empty((len(values) + rows - 1) // rows, dtype=np.uint32)
+    if len(values) > rows and all(type(v) is str for v in values):
+        # one encode of everything; blocks cut at every rows-th NUL (when no string holds a NUL)
+        data = ("\0".join(values) + "\0").encode("utf-8", "surrogateescape")
+        nul = np.flatnonzero(np.frombuffer(data, dtype=np.uint8) == 0)
+        if len(nul) == len(values):
+            ends = np.append(nul[rows - 1::rows] + 1, len(data))[:len(out)].tolist()
+            view = memoryview(data)
+            start = 0
+            for b, end in enumerate(ends):
+                out[b] = zlib.crc32(view[start:end])
+                start = end
+            return out
     for b in range(len(out)):
         block = values[b * rows:(b + 1) * rows]
         out[b] = zlib.crc32(b"".join(v.encode("utf-8", "surrogateescape") + b"\0" for v in block))

@@ -27,10 +27,11 @@ _READ_ROWS = 1 << 18
 _POSITION_CHUNK_ROWS = 256
 
 
-def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) -> int:
+def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None, id_crcs=None) -> int:
     """Write ``/search`` from the file's ``/curves`` (inv_sv, inv_block); returns the number of cells.
 
-    Deterministic: the same curves give the same group (seeded k-means).
+    Deterministic: the same curves give the same group (seeded k-means). ``id_crcs``: the
+    ``/curves/id_crc32`` blocks of the ids as written (None: read the ids back).
     """
     from ..search.bounds import feature_split, squared_norms
     from ..search.cells import ROWS_PER_CELL, build_cells
@@ -63,19 +64,24 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None) 
         # read cell by cell (~128 positions): small chunks, so that a query reads (and
         # checksums) ~36 KB per cell rather than a 4096-row chunk
         create_checked(g, name, data, chunk_rows=_POSITION_CHUNK_ROWS)
-    _finish_checksums(h5)
+    _finish_checksums(h5, id_crcs)
     return cells.count
 
 
-def _finish_checksums(h5) -> None:
+def _finish_checksums(h5, id_crcs=None) -> None:
     """The last step of a build: ``/curves/id_crc32`` from the ids as stored (the writer
-    appends them in pieces; reading them back costs ~1 s per million rows), then the root
-    attribute that makes readers require every checksum."""
+    appends them in pieces and gives their blocks' CRCs as ``id_crcs``; without them they
+    are read back, ~1 s per million rows), then the root attribute that makes readers
+    require every checksum."""
     from .schema import CRC_ROWS, write_string_checks
 
     ids = h5["curves/id"] if "curves/id" in h5 else None
     values: list[str] = []
-    if ids is not None:
+    expected = None if ids is None else (ids.shape[0] + CRC_ROWS - 1) // CRC_ROWS
+    if id_crcs is not None and expected is not None and len(id_crcs) == expected:
+        h5["curves"].create_dataset("id_crc32", data=np.asarray(id_crcs, dtype=np.uint32), chunks=True,
+                                    fletcher32=True)
+    elif ids is not None:
         step = CRC_ROWS * 256
         for a in range(0, ids.shape[0], step):
             values.extend(ids.asstr()[a:a + step].tolist())

@@ -13,7 +13,7 @@ import re
 import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, excerpt
-from .schema import _SHA, _STR, FileRecord, _curve_layout, create_checked
+from .schema import _SHA, _STR, CRC_ROWS, FileRecord, _curve_layout, block_crcs, create_checked
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
@@ -121,7 +121,8 @@ def _nbytes(piece: dict) -> int:
     for value in piece.values():
         value = np.asarray(value)
         if value.dtype == object:
-            total += sum(len(str(v).encode("utf-8", "surrogateescape")) + 32 for v in value.reshape(-1))
+            strings = [v if type(v) is str else str(v) for v in value.reshape(-1).tolist()]
+            total += len("".join(strings).encode("utf-8", "surrogateescape")) + 32 * len(strings)
         else:
             total += value.nbytes
     return total
@@ -142,6 +143,10 @@ class _CurveWriter:
         self.pending: list[dict] = []
         self.pending_rows = 0
         self.rows = 0
+        #: CRC-32 blocks of the ids written so far (/curves/id_crc32, computed as they are
+        #: written rather than read back), and the ids of the unfinished last block
+        self._id_crcs: list[np.ndarray] = []
+        self._id_tail: list = []
 
     def _create(self, first_rows: int) -> None:
         self.ds = {}
@@ -174,8 +179,34 @@ class _CurveWriter:
             data = parts[0] if len(parts) == 1 else np.concatenate(parts)
             ds.resize(self.rows + n, axis=0)
             ds[self.rows:self.rows + n] = data
+            if name == "id":
+                self._check_ids(data)
         self.rows += n
         self.pending, self.pending_rows = [], 0
+
+
+    def _check_ids(self, ids) -> None:
+        if self._id_crcs is None:
+            return
+        values = self._id_tail + np.asarray(ids, dtype=object).reshape(-1).tolist()
+        if any(type(v) is not str for v in values):
+            self._id_crcs = None                # read back from the file at the end instead
+            return
+        whole = len(values) - len(values) % CRC_ROWS
+        if whole:
+            self._id_crcs.append(block_crcs(values[:whole]))
+        self._id_tail = values[whole:]
+
+    def id_crcs(self) -> np.ndarray | None:
+        """``/curves/id_crc32`` of the ids written (:func:`~.schema.block_crcs`), or None when
+        some id was not a ``str`` (then they are read back from the file)."""
+        if self._id_crcs is None:
+            return None
+        values = self._id_tail
+        if any(type(v) is not str for v in values):
+            return None
+        parts = self._id_crcs + ([block_crcs(values)] if values else [])
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.uint32)
 
 
 def _write_files_table(h5, records: list[FileRecord], space: "_Space | None" = None) -> None:
