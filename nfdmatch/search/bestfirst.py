@@ -26,8 +26,10 @@ TIE = 1e-9
 #: rows per batch: the first exact batch sets a k-th distance; truncated bounds are computed
 #: in batches growing to MAX_BATCH, exact distances (in truncated-bound order) to EXACT_BATCH
 FIRST_BATCH, MAX_BATCH, EXACT_BATCH = 32, 2048, 256
-#: positions a query opens at least per step (cells are cheap to open in bulk)
-_OPEN_ROWS = 1024
+#: positions a query opens at least per step (cells are cheap to open in bulk), doubling
+#: with every step up to _MAX_OPEN_ROWS: a query that keeps opening cells (no near
+#: neighbours) does it in few large steps, a query with near neighbours stops after one
+_OPEN_ROWS, _MAX_OPEN_ROWS = 1024, 16384
 #: batches this small go straight to the exact distance (the truncated bound would not pay)
 _TRUNCATE_FROM = 8
 
@@ -182,6 +184,7 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
     complete = None
     batch = [FIRST_BATCH]
     exact_batch = FIRST_BATCH
+    open_rows = _OPEN_ROWS
     while True:
         thr = margin(top.threshold())
         cell_head = cbs[ci] if ci < n_cells else np.inf
@@ -197,9 +200,10 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
             # threshold rules out
             j, opened = ci, 0
             limit = queue_head                        # inf: nothing pending
-            while j < n_cells and cbs[j] <= thr and (opened < _OPEN_ROWS or cbs[j] <= limit < np.inf):
+            while j < n_cells and cbs[j] <= thr and (opened < open_rows or cbs[j] <= limit < np.inf):
                 opened += sizes[j]
                 j += 1
+            open_rows = min(2 * open_rows, _MAX_OPEN_ROWS)
             cells = corder[ci:j]
             ci = j
             work.cells += len(cells)
@@ -215,9 +219,10 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
             keep = np.flatnonzero(b <= thr)
             queues[0].merge(b[keep], rows[keep], positions[keep], thr)
             continue
-        # a batch never reaches past the head of a cheaper queue (or of the cells): what is
-        # pending there may end the search before this stage's rows are needed
-        limit = min(thr, cell_head, min(heads[:q_at], default=np.inf))
+        # a batch never reaches past the head of a cheaper queue or of the cells: what is
+        # pending there may lower the k-th distance before its rows are needed; except the
+        # first bound stage's (its bound is cheap next to a step per few rows)
+        limit = thr if q_at == 0 < len(stages) else min(thr, cell_head, min(heads[:q_at], default=np.inf))
         if q_at < len(stages) and np.isfinite(thr):
             # the next stage's bound for a batch of this queue's rows (straight to exact
             # while no k-th distance exists: nothing could be pruned yet)
