@@ -226,14 +226,32 @@ def _same(a, b):
     return "same distances (tie order differs)" if da == db else "DIFFERENT"
 
 
+def _warm_files(folder):
+    """Read every source file once, so that each version's build finds them in the page
+    cache (this machine reclaims the cache on its own: the first build would read a cold
+    disk and the second a warm cache)."""
+    for entry in os.scandir(folder):
+        with open(entry.path, "rb") as f:
+            while f.read(1 << 24):
+                pass
+
+
+def _warm_index(path):
+    with open(path, "rb") as f:
+        while f.read(1 << 24):
+            pass
+
+
 def measure(version, work, name, queries, repeat):
     index = os.path.join(work, f"{name}-{version.label}.h5")
     if os.path.exists(index):
         os.unlink(index)
+    _warm_files(os.path.join(work, name, "curves"))
     build_t, rss, out = _peak_rss(version, ["index", "build", os.path.join(work, name, "curves"), "--index", index,
                                             "--format", "json"])
     curves = json.loads(out)["curves"]
     io_file = os.path.join(work, "io.txt")
+    _warm_index(index)
     version.run(["query", queries[0], "--index", index, "--top", "10"])           # warm caches and kernels
     single, lo, hi, (out1, err1) = version.timed(["query", queries[0], "--index", index, "--top", "10",
                                                   "--format", "csv", "--stats"], repeat)
