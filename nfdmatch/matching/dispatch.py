@@ -1,6 +1,11 @@
-"""Which implementation computes exact distances: the numpy reference path here, or the
-numba kernels (:mod:`._kernels`), imported once a process has done enough exact work to pay
-for importing them (:func:`use_kernels` chooses explicitly)."""
+"""Which implementation computes exact distances: the numpy reference path here, the
+kernels of :mod:`._kernels` compiled ahead of time (:mod:`.aot`, built by ``make
+install``: no import cost), or the same kernels compiled just in time by numba, imported
+once a process has done enough exact work to pay for importing them (:func:`use_kernels`
+chooses explicitly).
+
+Test hook: ``_kernel_state`` (module, failed, work, mode, aot) is the process's choice; the
+kernel tests replace it with a fresh dict to act out a new process."""
 
 from __future__ import annotations
 
