@@ -317,15 +317,19 @@ class Cluster:
                 ranges, stats.cell_count = _ranges(idx, n_parts, prune)
                 params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
                               mirror=mirror, window=int(window or WINDOW_ROWS))
+                # one range: each query is answered whole by one task, whose worker also
+                # recomputes the distances it reports on the reference path (as a local
+                # search does, from the descriptors it holds), so the client merges nothing
+                params["final"] = len(ranges) == 1
                 self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
-                # the reported distances from the reference path on this machine, as a local
-                # search does, so that the output is the local output byte for byte
-                from .matching import exact_search, paper_search
-                from .search.index_search import _recompute
+                if not params["final"]:
+                    # the reported distances from the reference path, as a local search does
+                    from .matching import exact_search, paper_search
+                    from .search.index_search import _recompute
 
-                search = exact_search if method == "exact" else paper_search
-                for qi, tk in enumerate(tops):
-                    _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None)
+                    search = exact_search if method == "exact" else paper_search
+                    for qi, tk in enumerate(tops):
+                        _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None)
             results = _ranked(idx, tops, top)
         finally:
             if own:
@@ -567,6 +571,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     from .search.bestfirst import search_one
     from .search.bounds import feature_vector
 
+    _worker_kernels()
     entry = _worker_index(path, stamp)
     idx, cache = entry[0], entry[2]
     search = exact_search if params["method"] == "exact" else paper_search
@@ -575,6 +580,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
     options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
                    samples=idx.samples)
+    searched = None                          # the table searched, when one range holds every row
     if rng is not None and rng[0] == "rows":
         from .search.index_search import EXHAUSTIVE_ROWS
 
@@ -603,9 +609,13 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
         else:
             _, lo, hi = rng
             key = ("range", lo, hi)
-            if key not in cache:
-                cache[key] = table.subset((lo, hi))
-            sub = cache[key]
+            if (lo, hi) == (0, table.n_cells):
+                sub = table                  # the whole index: no second table
+            else:
+                if key not in cache:
+                    cache[key] = table.subset((lo, hi))
+                sub = cache[key]
+            searched = sub
             before = sub.bytes_read
             for qi, tk in enumerate(tops):
                 part = sub
@@ -621,6 +631,14 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                         part = sub.subset(rest)
                 _account(out, search_one(qcoef[qi], qfeat[qi], part, tk, **options))
             out["bytes_read"] = sub.bytes_read - before
+    if params.get("final"):
+        # this task's answer is the query's answer: its distances from the reference path,
+        # exactly as search_index reports them (from the descriptors of the table searched)
+        from .search.index_search import _recompute
+
+        for qi, tk in enumerate(tops):
+            _recompute(idx, qcoef[qi], tk, search, direction=params["direction"], mirror=params["mirror"],
+                       weights=None, table=searched)
     out["tops"] = []
     for q, tk in enumerate(tops):
         keep = np.ones(len(tk.rows), dtype=bool) if seeds is None else \
@@ -630,6 +648,24 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                             "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
                             "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool)})
     return out
+
+
+def _worker_kernels() -> None:
+    """On a worker: with several threads, the exact kernels that release the GIL (the ones
+    compiled ahead of time hold it, so tasks on threads would take turns); with one thread
+    the process's default choice (:mod:`nfdmatch.matching.dispatch`) stands."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+        threads = getattr(getattr(worker, "state", None), "nthreads", None) or getattr(worker, "nthreads", 1)
+    except Exception:                # not on a worker (called directly)
+        return
+    if threads > 1:
+        from .matching import dispatch
+
+        if not dispatch.threads_help():
+            dispatch.load_threaded_kernels()
 
 
 def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:
