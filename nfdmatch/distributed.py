@@ -174,6 +174,7 @@ class Cluster:
         self.address = address
         self.workers: list[str] = []
         self.threads = 0
+        self._held = None            # during a query over several ranges: descriptors sent back
 
     def __enter__(self) -> "Cluster":
         return self
@@ -323,13 +324,17 @@ class Cluster:
                 params["final"] = len(ranges) == 1
                 self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
                 if not params["final"]:
-                    # the reported distances from the reference path, as a local search does
+                    # the reported distances from the reference path, as a local search does,
+                    # from the descriptors the workers sent with their rows (else read here)
                     from .matching import exact_search, paper_search
                     from .search.index_search import _recompute
 
                     search = exact_search if method == "exact" else paper_search
                     for qi, tk in enumerate(tops):
-                        _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None)
+                        held = _Held(self._held[qi][0]) if self._held[qi][0] else None
+                        _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None,
+                                   table=held)
+                    self._held = None
             results = _ranked(idx, tops, top)
         finally:
             if own:
@@ -358,6 +363,8 @@ class Cluster:
             progress(0, total)
         everyone = np.arange(Q)
         seeds = None
+        # per query: the descriptors the workers sent with their rows, and their count
+        self._held = [[[], 0] for _ in range(Q)]
         if seeded:
             found = [TopK(params["top"], params["max_distance"]) for _ in range(Q)]
             done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done,
@@ -400,6 +407,11 @@ class Cluster:
                                        f"{_first_line(exc)}") from None
                 for qi, part in zip(block, answer["tops"]):
                     if len(part["rows"]):
+                        if "coef" in part and self._held is not None:
+                            held = self._held[qi]
+                            part["position"] = np.arange(held[1], held[1] + len(part["rows"]))
+                            held[0].append(part.pop("coef"))
+                            held[1] += len(part["rows"])
                         tops[qi].add(part["dist"], part["rows"], part)
                 for key in ("exact", "truncated", "fine", "scanned", "cells", "bytes_read"):
                     setattr(stats, key, getattr(stats, key) + int(answer[key]))
@@ -581,6 +593,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
                    samples=idx.samples)
     searched = None                          # the table searched, when one range holds every row
+    held = [None] * len(tops)                # per query: the table its positions point into
     if rng is not None and rng[0] == "rows":
         from .search.index_search import EXHAUSTIVE_ROWS
 
@@ -603,7 +616,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
         qfeat = feature_vector(qcoef)
         if rng is None:                      # the window round
             for qi, tk in enumerate(tops):
-                sub = table.subset(_window(table, qfeat[qi], params["window"]))
+                sub = held[qi] = table.subset(_window(table, qfeat[qi], params["window"]))
                 _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
                 out["bytes_read"] += sub.bytes_read
         else:
@@ -629,6 +642,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                         if len(rest) == 0:
                             continue
                         part = sub.subset(rest)
+                held[qi] = part
                 _account(out, search_one(qcoef[qi], qfeat[qi], part, tk, **options))
             out["bytes_read"] = sub.bytes_read - before
     if params.get("final"):
@@ -647,7 +661,22 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                             "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
                             "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
                             "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool)})
+        positions = tk.extra["position"][keep]
+        if not params.get("final") and held[q] is not None and len(positions) and positions.min() >= 0:
+            # the rows' descriptors, for the client's recomputation (no scattered index reads)
+            out["tops"][-1]["coef"] = held[q].coefficients_at_positions(positions)
     return out
+
+
+class _Held:
+    """A query's descriptors sent by the workers, behind the one method of a search table
+    that :func:`nfdmatch.search.index_search._recompute` uses."""
+
+    def __init__(self, parts: list) -> None:
+        self._coef = np.concatenate(parts)
+
+    def coefficients_at_positions(self, positions: np.ndarray) -> np.ndarray:
+        return self._coef[positions]
 
 
 def _worker_kernels() -> None:
