@@ -174,6 +174,7 @@ class Cluster:
         self.address = address
         self.workers: list[str] = []
         self.threads = 0
+        self._held = None            # during a query over several ranges: descriptors sent back
 
     def __enter__(self) -> "Cluster":
         return self
@@ -317,15 +318,23 @@ class Cluster:
                 ranges, stats.cell_count = _ranges(idx, n_parts, prune)
                 params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
                               mirror=mirror, window=int(window or WINDOW_ROWS))
+                # one range: each query is answered whole by one task, whose worker also
+                # recomputes the distances it reports on the reference path (as a local
+                # search does, from the descriptors it holds), so the client merges nothing
+                params["final"] = len(ranges) == 1
                 self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
-                # the reported distances from the reference path on this machine, as a local
-                # search does, so that the output is the local output byte for byte
-                from .matching import exact_search, paper_search
-                from .search.index_search import _recompute
+                if not params["final"]:
+                    # the reported distances from the reference path, as a local search does,
+                    # from the descriptors the workers sent with their rows (else read here)
+                    from .matching import exact_search, paper_search
+                    from .search.index_search import _recompute
 
-                search = exact_search if method == "exact" else paper_search
-                for qi, tk in enumerate(tops):
-                    _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None)
+                    search = exact_search if method == "exact" else paper_search
+                    for qi, tk in enumerate(tops):
+                        held = _Held(self._held[qi][0]) if self._held[qi][0] else None
+                        _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None,
+                                   table=held)
+                    self._held = None
             results = _ranked(idx, tops, top)
         finally:
             if own:
@@ -354,6 +363,8 @@ class Cluster:
             progress(0, total)
         everyone = np.arange(Q)
         seeds = None
+        # per query: the descriptors the workers sent with their rows, and their count
+        self._held = [[[], 0] for _ in range(Q)]
         if seeded:
             found = [TopK(params["top"], params["max_distance"]) for _ in range(Q)]
             done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done,
@@ -396,6 +407,11 @@ class Cluster:
                                        f"{_first_line(exc)}") from None
                 for qi, part in zip(block, answer["tops"]):
                     if len(part["rows"]):
+                        if "coef" in part and self._held is not None:
+                            held = self._held[qi]
+                            part["position"] = np.arange(held[1], held[1] + len(part["rows"]))
+                            held[0].append(part.pop("coef"))
+                            held[1] += len(part["rows"])
                         tops[qi].add(part["dist"], part["rows"], part)
                 for key in ("exact", "truncated", "fine", "scanned", "cells", "bytes_read"):
                     setattr(stats, key, getattr(stats, key) + int(answer[key]))
@@ -567,6 +583,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     from .search.bestfirst import search_one
     from .search.bounds import feature_vector
 
+    _worker_kernels()
     entry = _worker_index(path, stamp)
     idx, cache = entry[0], entry[2]
     search = exact_search if params["method"] == "exact" else paper_search
@@ -575,6 +592,8 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
     options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
                    samples=idx.samples)
+    searched = None                          # the table searched, when one range holds every row
+    held = [None] * len(tops)                # per query: the table its positions point into
     if rng is not None and rng[0] == "rows":
         from .search.index_search import EXHAUSTIVE_ROWS
 
@@ -597,15 +616,19 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
         qfeat = feature_vector(qcoef)
         if rng is None:                      # the window round
             for qi, tk in enumerate(tops):
-                sub = table.subset(_window(table, qfeat[qi], params["window"]))
+                sub = held[qi] = table.subset(_window(table, qfeat[qi], params["window"]))
                 _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
                 out["bytes_read"] += sub.bytes_read
         else:
             _, lo, hi = rng
             key = ("range", lo, hi)
-            if key not in cache:
-                cache[key] = table.subset((lo, hi))
-            sub = cache[key]
+            if (lo, hi) == (0, table.n_cells):
+                sub = table                  # the whole index: no second table
+            else:
+                if key not in cache:
+                    cache[key] = table.subset((lo, hi))
+                sub = cache[key]
+            searched = sub
             before = sub.bytes_read
             for qi, tk in enumerate(tops):
                 part = sub
@@ -619,8 +642,17 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                         if len(rest) == 0:
                             continue
                         part = sub.subset(rest)
+                held[qi] = part
                 _account(out, search_one(qcoef[qi], qfeat[qi], part, tk, **options))
             out["bytes_read"] = sub.bytes_read - before
+    if params.get("final"):
+        # this task's answer is the query's answer: its distances from the reference path,
+        # exactly as search_index reports them (from the descriptors of the table searched)
+        from .search.index_search import _recompute
+
+        for qi, tk in enumerate(tops):
+            _recompute(idx, qcoef[qi], tk, search, direction=params["direction"], mirror=params["mirror"],
+                       weights=None, table=searched)
     out["tops"] = []
     for q, tk in enumerate(tops):
         keep = np.ones(len(tk.rows), dtype=bool) if seeds is None else \
@@ -629,7 +661,40 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                             "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
                             "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
                             "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool)})
+        positions = tk.extra["position"][keep]
+        if not params.get("final") and held[q] is not None and len(positions) and positions.min() >= 0:
+            # the rows' descriptors, for the client's recomputation (no scattered index reads)
+            out["tops"][-1]["coef"] = held[q].coefficients_at_positions(positions)
     return out
+
+
+class _Held:
+    """A query's descriptors sent by the workers, behind the one method of a search table
+    that :func:`nfdmatch.search.index_search._recompute` uses."""
+
+    def __init__(self, parts: list) -> None:
+        self._coef = np.concatenate(parts)
+
+    def coefficients_at_positions(self, positions: np.ndarray) -> np.ndarray:
+        return self._coef[positions]
+
+
+def _worker_kernels() -> None:
+    """On a worker: with several threads, the exact kernels that release the GIL (the ones
+    compiled ahead of time hold it, so tasks on threads would take turns); with one thread
+    the process's default choice (:mod:`nfdmatch.matching.dispatch`) stands."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+        threads = getattr(getattr(worker, "state", None), "nthreads", None) or getattr(worker, "nthreads", 1)
+    except Exception:                # not on a worker (called directly)
+        return
+    if threads > 1:
+        from .matching import dispatch
+
+        if not dispatch.threads_help():
+            dispatch.load_threaded_kernels()
 
 
 def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:

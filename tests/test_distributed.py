@@ -234,6 +234,32 @@ def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_
     assert any(len(r) > 1 for r in local)
 
 
+def _threads_help():
+    from nfdmatch.matching import dispatch
+
+    return dispatch.threads_help()
+
+
+def test_a_worker_with_two_threads_answers_on_kernels_that_release_the_gil(library, tmp_path):
+    """The kernels compiled ahead of time hold the GIL: a worker running two tasks at once
+    switches to the just-in-time ones; the answer is still the local one, row for row."""
+    from distributed import Client, LocalCluster
+
+    folder, queries = library
+    index = tmp_path / "i.h5"
+    build_index([str(folder)], str(index), jobs=1)
+    with open_index(index) as idx:
+        local, _ = search_index(idx, queries, top=5)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None,
+                      silence_logs=50) as lc, Client(lc, set_as_default=False) as c, connect(c) as cluster:
+        assert cluster.threads == 2
+        remote, _ = cluster.search_index(str(index), queries, top=5)
+        _same_rows(remote, local)
+        assert all(c.run(_threads_help).values())
+        remote, _ = cluster.search_index(str(index), queries, top=5, parts=2)
+        _same_rows(remote, local)
+
+
 def test_cli_query_on_the_scheduler_prints_what_a_local_query_prints(client, library, tmp_path):
     folder, queries = library
     index = tmp_path / "i.h5"
