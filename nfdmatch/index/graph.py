@@ -144,7 +144,7 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
 
         table = search_table(h5, N, K, read_coefficients, fail)
         searched = np.flatnonzero(todo)
-        _run(searched, lambda i: _search(i, read_coefficients, table, k + 1, samples, None), threads,
+        _run(searched, lambda i: _search_seeded(i, read_coefficients, table, k + 1, samples), threads,
              lambda i, rows, d: _store(i, rows, d, ids, neighbour, distance, k))
         stats.searched = len(searched)
         fresh_rows = np.flatnonzero(fresh)
@@ -211,6 +211,120 @@ def _search(i, read_coefficients, table, top, samples, max_distance):
     search_one(q, feature_vector(q[None])[0], table, tk, search=exact_search, method="exact",
                direction="invariant", mirror=False, samples=samples)
     return tk.rows, tk.dist
+
+
+#: positions whose invariant bound picks a row's seeds (the cells of smallest bound: its own first)
+_SEED_POSITIONS = 256
+#: seeds per list entry: the rows of smallest invariant bound whose exact distances set the
+#: threshold before the search proper
+_SEEDS_PER_ENTRY = 3
+#: rows in the first chunk of the first truncated stage (doubling after)
+_FIRST_CHUNK = 512
+
+
+def _search_seeded(i, read_coefficients, table, top, samples):
+    """Row i's nearest ``top`` rows of ``table`` (itself among them), as :func:`_search`, in
+    two passes with a threshold known from the start.
+
+    Seeds: the ``_SEEDS_PER_ENTRY * top`` rows of smallest invariant bound among the first
+    ``_SEED_POSITIONS`` positions of the cells nearest the row; their top-th exact distance U
+    bounds the row's top-th distance from above. Then every row whose bounds (cell,
+    invariant, each truncated stage in turn) do not exceed U (with the search's rounding
+    margin) gets its exact distance: all at once per stage, a few calls per row instead of
+    the best-first loop's dozens of steps (the loop discovers its threshold while it goes;
+    for a graph row the top-th neighbour is often far, and the loop's steps dominated).
+    Exact: a row within the top-th distance has every bound at most U, so it is computed;
+    the result holds every row within U (ties kept), from which :func:`_store` takes the
+    list as a query's top would."""
+    from ..matching import exact_search
+    from ..search.bestfirst import TIE, margin
+    from ..search.bounds import (cell_lower_bounds, feature_vector, row_lower_bounds, truncated_lower_bounds,
+                                 truncated_stages)
+
+    q = np.asarray(read_coefficients([i])[0], dtype=np.complex128)
+    qf = feature_vector(q[None])[0]
+    cb = cell_lower_bounds(qf, table.split, table.centre, table.radius)
+    corder = np.argsort(cb, kind="stable")
+    sizes = (table.start[1:] - table.start[:-1])[corder]
+    first = int(np.searchsorted(np.cumsum(sizes), _SEED_POSITIONS)) + 1
+    positions, rows, F, sq = table.open_cells(corder[:first])
+    K = q.shape[0]
+    complete = table.stored_harmonics == K
+
+    def exact(pos, r, below):
+        if not len(r):
+            return np.zeros(0)
+        c = table.coefficients_at_positions(pos) if complete else table.coefficients(r)
+        return exact_search(q, c, samples, direction="invariant", mirror=False, refine_below=below)["distance"]
+
+    lb = row_lower_bounds(qf, table.split, F, sq)
+    n_seeds = min(len(rows), _SEEDS_PER_ENTRY * top)
+    if n_seeds < top:
+        return _search(i, read_coefficients, table, top, samples, None)
+    seed = np.argpartition(lb, n_seeds - 1)[:n_seeds] if n_seeds < len(rows) else np.arange(len(rows))
+    seed_pos, seed_rows = positions[seed], rows[seed]
+    seed_d = exact(seed_pos, seed_rows, None)
+    U = float(np.partition(seed_d, top - 1)[top - 1])
+    got_rows, got_d = [seed_rows], [seed_d]
+
+    def tighten(pos, r, bound):
+        """Exact distances of the ``top`` rows of smallest ``bound``; the lowered threshold."""
+        nonlocal U
+        pick = np.argsort(bound, kind="stable")[:top]
+        d = exact(pos[pick], r[pick], margin(U))
+        got_rows.append(r[pick])
+        got_d.append(d)
+        U = min(U, float(np.partition(np.concatenate(got_d), top - 1)[top - 1]))
+        rest = np.ones(len(r), dtype=bool)
+        rest[pick] = False
+        return rest
+
+    cells = corder[cb[corder] <= margin(U)]
+    positions, rows, F, sq = table.open_cells(cells)
+    lb = row_lower_bounds(qf, table.split, F, sq)
+    keep = lb <= margin(U)
+    keep[np.isin(positions, seed_pos)] = False
+    order = np.flatnonzero(keep)
+    order = order[np.argsort(lb[order], kind="stable")]
+    positions, rows, lb = positions[order], rows[order], lb[order]
+    stages = truncated_stages(K, table.stored_harmonics)
+    if stages:
+        # the first stage in chunks of growing size, in invariant-bound order, each chunk's
+        # best rows computed exactly: the threshold falls while the chunks go
+        Kp, grid = stages[0]
+        parts, a, size = [], 0, _FIRST_CHUNK
+        while a < len(rows) and lb[a] <= margin(U):
+            b = int(np.searchsorted(lb, margin(U), side="right"))
+            b = min(b, a + size)
+            pos, r = positions[a:b], rows[a:b]
+            tb = truncated_lower_bounds(q, table.coefficients_at_positions(pos, Kp), direction="invariant",
+                                        mirror=False, harmonics=Kp, grid=grid)
+            k = tb <= margin(U)
+            pos, r, tb = pos[k], r[k], tb[k]
+            rest = tighten(pos, r, tb)
+            parts.append((pos[rest], r[rest], tb[rest]))
+            a, size = b, 2 * size
+        positions = np.concatenate([p[0] for p in parts]) if parts else positions[:0]
+        rows = np.concatenate([p[1] for p in parts]) if parts else rows[:0]
+        bound = np.concatenate([p[2] for p in parts]) if parts else lb[:0]
+        for Kp, grid in stages[1:]:
+            k = bound <= margin(U)
+            positions, rows, bound = positions[k], rows[k], bound[k]
+            if not len(rows):
+                break
+            bound = truncated_lower_bounds(q, table.coefficients_at_positions(positions, Kp), direction="invariant",
+                                           mirror=False, harmonics=Kp, grid=grid)
+            k = bound <= margin(U)
+            positions, rows, bound = positions[k], rows[k], bound[k]
+            rest = tighten(positions, rows, bound)
+            positions, rows, bound = positions[rest], rows[rest], bound[rest]
+        k = bound <= margin(U)
+        positions, rows = positions[k], rows[k]
+    got_d.append(exact(positions, rows, margin(U)))
+    got_rows.append(rows)
+    d, rows = np.concatenate(got_d), np.concatenate(got_rows)
+    inside = d <= U + TIE
+    return rows[inside], d[inside]
 
 
 def _store(i, rows, d, ids, neighbour, distance, k):
