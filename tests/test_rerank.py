@@ -84,6 +84,22 @@ def test_graph_rows_are_the_exact_top_k_of_a_query(tmp_path, rng):
         assert np.all(np.diff(dist[i]) >= -1e-9)
 
 
+def test_graph_with_the_kth_neighbour_outside_the_family_equals_the_exhaustive_search(tmp_path, rng):
+    # families of 6, K = 8: every list ends outside its family (the expensive case of the
+    # seeded graph search), over several cells
+    curves, _ = family_curves(rng, families=50, members=6)
+    write_parts(tmp_path / "c", curves, 2)
+    index = tmp_path / "i.h5"
+    build_index([tmp_path / "c"], index, jobs=1, graph=8)
+    nb, dist, ids = graph_of(index)
+    with open_index(index) as idx:
+        results, _ = search_index(idx, _read_back(tmp_path / "c"), top=9, prune=False)
+    for i, res in enumerate(results):
+        expected = [m for m in res if m.row != i][:8]
+        assert [ids[j] for j in nb[i]] == [m.id for m in expected]
+        np.testing.assert_allclose(dist[i], [m.distance for m in expected], rtol=1e-5, atol=1e-6)
+
+
 def _read_back(folder):
     from nfdmatch import read_curves
 
