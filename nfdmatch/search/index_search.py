@@ -123,8 +123,12 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
         qfeat = feature_vector(qcoef)
 
         def answer(qi):
-            return search_one(qcoef[qi], qfeat[qi], table, tops[qi], search=search, method=method,
+            work = search_one(qcoef[qi], qfeat[qi], table, tops[qi], search=search, method=method,
                               direction=direction, mirror=mirror, samples=index.samples, truncate=truncate)
+            # on the query's own thread: the recomputation is per query and runs in parallel
+            _recompute(index, qcoef[qi], tops[qi], search, direction=direction, mirror=mirror, weights=weights,
+                       table=table)
+            return work
 
         done = 0
 
@@ -168,9 +172,9 @@ def search_index(index, queries, *, top: int | None = 10, max_distance: float | 
                 account(answer(qi))
         stats.bytes_read = table.bytes_read
 
-    for qi, tk in enumerate(tops):
-        _recompute(index, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=weights,
-                   table=table if prune and index.n_curves and len(queries) else None)
+    if not prune:
+        for qi, tk in enumerate(tops):
+            _recompute(index, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=weights)
     results = ranked_rows(index, tops, top)
     stats.seconds = time.perf_counter() - t0
     return results, stats
