@@ -941,3 +941,57 @@ def test_obj_indented_and_oddly_spaced_statements_are_read(tmp_path, odd):
     path.write_text(f"{odd}\nv 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3\n")
     (curve,) = read_curves(path)
     np.testing.assert_array_equal(curve.points, [[9, 9, 9], [0, 0, 0], [1, 0, 0]])
+
+
+_OBJ_V = st.one_of(
+    st.tuples(st.floats(-1e3, 1e3, allow_nan=False), st.floats(-1e3, 1e3, allow_nan=False),
+              st.floats(-1e3, 1e3, allow_nan=False)).map(lambda v: "v {!r} {!r} {!r}".format(*v)),
+    st.sampled_from(["v 1 2", "v 1 2 3 4", "v 1 2 x", "v 1  2 3", "v 1 2 3 ", "v nan 0 0", "v 1_0 2 3",
+                     "v", "v 1 2 3 # c", "vt 1 2", "", "# mid", "v +1 -.5 3e2", "l 1 2 3"]))
+_OBJ_L = st.one_of(
+    st.lists(st.integers(1, 8), min_size=3, max_size=6).map(lambda ix: "l " + " ".join(map(str, ix))),
+    st.sampled_from(["l 1 2", "l", "l 0 1 2", "l 1 2 99", "l -1 1 2", "l +1 2 3", "l 1_0 2 3", "l 1  2 3 ",
+                     "l 1 2 3 # c", "f 1 2 3", "", "# mid", "v 5 5 5", "l 1 2 x", "l 99999999999999999999 1 2"]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(comments=st.lists(st.sampled_from(["# nfdmatch: 3 closed curves", "#", "# a # b", "#x"]), max_size=2),
+       v_lines=st.lists(_OBJ_V, min_size=0, max_size=10), l_lines=st.lists(_OBJ_L, min_size=0, max_size=6),
+       tail=st.sampled_from(["", "\n", "\n\n", "\nl 1 2 3"]))
+def test_obj_block_layout_bulk_path_never_disagrees_with_the_careful_parser(tmp_path_factory, comments, v_lines,
+                                                                            l_lines, tail):
+    """The layout ``write`` makes (comments, a run of `v` lines, a run of `l` lines) is read by
+    the bulk path without a loop over lines; mutated by the odd line anywhere, the bulk path
+    either declines or reads exactly what the careful parser reads, and declines whatever
+    the parser refuses."""
+    from nfdmatch.formats import obj as obj_module
+
+    text = "\n".join(comments + v_lines + l_lines) + tail
+    path = tmp_path_factory.mktemp("obj") / "f.obj"
+    path.write_text(text)
+    fast = obj_module._read_points_fast(text, str(path))
+    original = obj_module._read_points_fast
+    try:
+        obj_module._read_points_fast = lambda text, p: None
+        careful = obj_module.read_points(path)
+    except NfdError:
+        assert fast is None
+        return
+    finally:
+        obj_module._read_points_fast = original
+    if fast is not None:
+        assert len(fast) == len(careful)
+        assert all(np.array_equal(a, b) for a, b in zip(fast, careful))
+
+
+def test_obj_block_layout_takes_the_loop_free_path(tmp_path):
+    """A file as ``write`` makes it is split into rows by blocks, the same rows the loop finds."""
+    from nfdmatch.formats import obj as obj_module
+
+    rng = np.random.default_rng(5)
+    path = tmp_path / "w.obj"
+    write_curves(path, [rng.normal(size=(int(rng.integers(3, 30)), 3)) for _ in range(20)])
+    text = path.read_text()
+    rows = obj_module._block_rows(text)
+    assert rows is not None and rows == obj_module._line_rows(text)
+    assert obj_module._token_counts(rows[1]).tolist() == [len(r.split()) for r in rows[1]]

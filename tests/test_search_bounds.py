@@ -11,7 +11,7 @@ from oracle import random_rigid_motion, random_smooth_curve, resample_polyline, 
 
 from nfdmatch import Curve
 from nfdmatch.descriptors import descriptors_batch
-from nfdmatch.matching import exact_search, grid_maximum
+from nfdmatch.matching import exact_search, grid_maximum, invariants
 from nfdmatch.search.bounds import (cell_lower_bounds, feature_split, feature_vector, row_lower_bounds,
                                     squared_norms, truncated_lower_bounds)
 from nfdmatch.search.cells import build_cells
@@ -185,3 +185,31 @@ def test_cells_trained_on_samples_still_hold_every_row(rows, per_cell):
     assert np.all(np.linalg.norm(X[:, split:] - c[:, split:], axis=1) <= cells.radius[cell_of, 1])
     members_ascending = np.diff(cells.row) > 0
     assert np.all(members_ascending | (np.diff(cell_of) > 0))
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), kind=st.sampled_from(["random", "planar", "flat", "rank1", "zero", "tiny"]))
+def test_invariant_singular_values_equal_the_svd(seed, kind):
+    """The 3x2 blocks' singular values of ``invariants`` come in closed form (cheaper than
+    ``np.linalg.svd``); they agree with the SVD to rounding (relative to the larger value),
+    planar, rank-deficient and zero blocks included."""
+    rng = np.random.default_rng(seed)
+    K = int(rng.integers(1, 20))
+    C = (rng.normal(size=(7, K, 3)) + 1j * rng.normal(size=(7, K, 3))) * 10.0 ** rng.uniform(-3, 3, size=(7, K, 1))
+    if kind == "planar":
+        C[..., 2] = 0
+    elif kind == "flat":
+        C[..., 2] *= 1e-9
+    elif kind == "rank1":
+        C = C.real * (1 + 2j) * rng.normal()
+    elif kind == "zero":
+        C[:, ::2] = 0
+    elif kind == "tiny":
+        C *= 1e-200
+    got = invariants(C)["sv"].reshape(7, K, 2)
+    blocks = np.stack([C.real, C.imag], axis=-1)
+    w = np.sqrt(2.0 * np.ones(K))                     # the default weights are uniform
+    ref = np.linalg.svd(blocks, compute_uv=False) * w[:, None]
+    scale = np.maximum(ref[..., :1], np.finfo(float).tiny)
+    assert np.all(np.abs(got - ref) <= 1e-12 * scale)
+    assert np.all(got[..., 0] >= got[..., 1]) and np.all(got >= 0)

@@ -182,6 +182,35 @@ def _read_points_fast(text: str, p: str):
     # are the only separators and no statement is indented, else the parser decides
     if any(ch in text for ch in "\t\r\v\f\x1c\x1d\x1e\x1f") or text.startswith(" ") or "\n " in text:
         return None
+    rows = _block_rows(text)
+    if rows is None:
+        rows = _line_rows(text)
+        if rows is None:
+            return None
+    v_rows, l_rows = rows
+    l_text = " ".join(l_rows)
+    if "-" in l_text:
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            V = np.loadtxt(v_rows, dtype=np.float64, ndmin=2)
+        flat = np.array(l_text.split(), dtype=np.int64)
+    except (ValueError, OverflowError):     # an index past int64: the parser says which
+        return None
+    counts = _token_counts(l_rows)
+    if V.shape != (len(v_rows), 3) or len(flat) != counts.sum() or counts.min() < 3:
+        return None
+    if not np.isfinite(V).all() or flat.min() < 1 or flat.max() > len(V):
+        return None
+    P = V[flat - 1]
+    ends = np.cumsum(counts).tolist()
+    return [P[a:e] for a, e in zip([0] + ends[:-1], ends)]
+
+
+def _line_rows(text: str):
+    """The text after the keyword of every ``v`` and ``l`` line, a loop over lines; None
+    when a ``#`` is anywhere but at the start of a line, or a bare ``v`` / ``l``."""
     v_rows, l_rows = [], []
     comments = 0
     for line in text.split("\n"):
@@ -196,22 +225,37 @@ def _read_points_fast(text: str, p: str):
             return None                                   # a bare `v` / `l`: let the parser say so
     if not v_rows or not l_rows or text.count("#") != comments:
         return None
-    l_text = " ".join(l_rows)
-    if "-" in l_text:
+    return v_rows, l_rows
+
+
+def _block_rows(text: str):
+    """What :func:`_line_rows` returns, without a loop over lines, for the layout :func:`write`
+    makes: whole-line comments first, then one run of ``v`` lines, then one run of ``l``
+    lines, then nothing but empty lines; None for any other layout."""
+    start = 0
+    while text.startswith("#", start):                    # the leading comment lines
+        start = text.find("\n", start) + 1
+        if start == 0:
+            return None
+    body = text[start:].rstrip("\n")
+    cut = body.find("\nl ")
+    if not body.startswith("v ") or cut < 0 or "#" in body:
         return None
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            V = np.loadtxt(v_rows, dtype=np.float64, ndmin=2)
-        flat = np.array(l_text.split(), dtype=np.int64)
-    except (ValueError, OverflowError):     # an index past int64: the parser says which
+    v_block, l_block = body[:cut], body[cut + 1:]
+    # every line of each block starts with its keyword and a space
+    if v_block.count("\nv ") != v_block.count("\n") or l_block.count("\nl ") != l_block.count("\n"):
         return None
-    counts = np.array([len(row.split()) for row in l_rows])
-    if V.shape != (len(v_rows), 3) or len(flat) != counts.sum() or counts.min() < 3:
-        return None
-    if not np.isfinite(V).all() or flat.min() < 1 or flat.max() > len(V):
-        return None
-    return np.split(V[flat - 1], np.cumsum(counts)[:-1])
+    return v_block[2:].split("\nv "), l_block[2:].split("\nl ")
+
+
+def _token_counts(rows: list[str]) -> np.ndarray:
+    """``[len(row.split()) for row in rows]`` for rows of spaces and printable ASCII."""
+    b = np.frombuffer("\n".join(rows).encode("ascii"), dtype=np.uint8)
+    gap = (b == 32) | (b == 10)
+    first = ~gap
+    first[1:] &= gap[:-1]
+    row = np.cumsum(b == 10)
+    return np.bincount(row[first], minlength=len(rows))
 
 
 def write(path, curves) -> None:

@@ -31,10 +31,30 @@ def invariants(coefficients: np.ndarray, weights=None) -> dict[str, np.ndarray]:
     root = np.sqrt(2.0 * w)
     blocks = np.stack([C.real, C.imag], axis=-1)                          # (..., K, 3, 2)
     norm = np.linalg.norm(C, axis=-1) * root
-    sv = np.linalg.svd(blocks, compute_uv=False) * root[:, None]          # (..., K, 2)
+    sv = _singular_values_3x2(C.real, C.imag) * root[:, None]              # (..., K, 2)
     wide = (blocks * np.sqrt(w)[:, None, None]).swapaxes(-3, -2).reshape(*C.shape[:-2], 3, 2 * K)
     block = np.linalg.svd(wide, compute_uv=False) * np.sqrt(2.0)
     return {"norm": norm, "sv": sv.reshape(*C.shape[:-2], 2 * K), "block": block}
+
+
+def _singular_values_3x2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Singular values, descending, of the 3x2 matrices ``[a b]`` (a, b: (..., 3)) -> (..., 2),
+    as ``np.linalg.svd(..., compute_uv=False)`` gives them (to rounding), in closed form: the
+    larger from the 2x2 Gram matrix's larger eigenvalue (no cancellation), the smaller as
+    ``|a x b| / s1`` (the product of the two is the parallelogram's area), accurate even
+    when it is tiny. Each matrix is first scaled by its largest entry, so that no square
+    under- or overflows."""
+    t = np.maximum(np.abs(a).max(axis=-1), np.abs(b).max(axis=-1))        # scaled to 1: no
+    t = np.where(t > 0, t, 1.0)                                          # under- or overflow
+    a, b = a / t[..., None], b / t[..., None]
+    aa = np.einsum("...i,...i->...", a, a)
+    bb = np.einsum("...i,...i->...", b, b)
+    ab = np.einsum("...i,...i->...", a, b)
+    s1 = np.sqrt(0.5 * (aa + bb) + np.hypot(0.5 * (aa - bb), ab))
+    area = np.linalg.norm(np.cross(a, b), axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s2 = np.where(s1 > 0, area / np.where(s1 > 0, s1, 1.0), 0.0)
+    return np.stack([s1, np.minimum(s2, s1)], axis=-1) * t[..., None]
 
 
 def lower_bound(A: np.ndarray, B: np.ndarray, weights=None) -> np.ndarray:
