@@ -4,15 +4,22 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import ParameterError
-from ..matching import METHODS, dispatch, exact_search, paper_search
+from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, dispatch, exact_search, paper_search
 from ..records import RankedMatch
 from .bestfirst import TIE, TopK, search_one
 from .bounds import feature_vector
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from ..curve import Curve
 
 __all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS"]
 
@@ -65,10 +72,11 @@ def check_search_parameters(top: int | None, max_distance: float | None, method:
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
 
-def search_index(index, queries, *, top: int | None = 10, max_distance: float | None = None,
-                 method: str = "exact", direction: str = "invariant", mirror: bool = False,
-                 prune: bool = True, progress=None, weights=None, threads: int | None = None,
-                 truncate: bool = True):
+def search_index(index, queries: Sequence[Curve], *, top: int | None = 10, max_distance: float | None = None,
+                 method: str = DEFAULT_METHOD, direction: str = DEFAULT_DIRECTION, mirror: bool = False,
+                 prune: bool = True, progress: Callable[[int, int], None] | None = None,
+                 weights: ArrayLike | None = None, threads: int | None = None,
+                 truncate: bool = True) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k nearest curves of an index for each query curve, exactly.
 
     Parameters
