@@ -33,6 +33,7 @@ test-fast: install
 
 lint: $(STAMP)
 	$(BIN)/python -m ruff check nfdmatch tests benchmarks
+	$(BIN)/python -m ruff format --check nfdmatch tests benchmarks
 
 demo: install
 	@echo "== index the sample curves (incremental: a second run recomputes nothing) ==" >&2

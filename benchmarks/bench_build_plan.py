@@ -54,8 +54,10 @@ def main() -> None:
         sub = os.path.join(lib, f"d{i // 500:02d}")
         os.makedirs(sub, exist_ok=True)
         curves = [oracle.random_smooth_curve(rng, 48, 3) for _ in range(args.curves_per_file)]
-        write_curves(os.path.join(sub, f"c{i:05d}.csv" if args.curves_per_file == 1 else f"c{i:05d}.obj"),
-                     curves[0] if args.curves_per_file == 1 else curves)
+        write_curves(
+            os.path.join(sub, f"c{i:05d}.csv" if args.curves_per_file == 1 else f"c{i:05d}.obj"),
+            curves[0] if args.curves_per_file == 1 else curves,
+        )
     index = os.path.join(args.workdir, "idx.h5")
     os.chdir(args.workdir)
     import nfdmatch
@@ -67,14 +69,20 @@ def main() -> None:
     t, r = timed(lambda: build_index(["lib"], "idx.h5", jobs=1), 3)
     rows.append(("rebuild, nothing changed", t, f"{r.unchanged} unchanged, written={r.written}"))
     os.chdir("/")
-    t, r = timed(lambda: build_index([os.path.abspath(lib)], index, jobs=1))      # once: it may rewrite
-    rows.append(("same, absolute spelling, cwd /", t,
-                 f"{r.unchanged} unchanged, {r.added} added, {r.removed} removed, written={r.written}"))
+    t, r = timed(lambda: build_index([os.path.abspath(lib)], index, jobs=1))  # once: it may rewrite
+    rows.append(
+        (
+            "same, absolute spelling, cwd /",
+            t,
+            f"{r.unchanged} unchanged, {r.added} added, {r.removed} removed, written={r.written}",
+        )
+    )
     try:
         t, r = timed(lambda: build_index([], index, jobs=1))
-        rows.append(("no SOURCE (recorded ones)", t,
-                     f"{r.unchanged} unchanged, {r.removed} removed, written={r.written}"))
-    except Exception as exc:                     # an older version: no recorded sources
+        rows.append(
+            ("no SOURCE (recorded ones)", t, f"{r.unchanged} unchanged, {r.removed} removed, written={r.written}")
+        )
+    except Exception as exc:  # an older version: no recorded sources
         rows.append(("no SOURCE (recorded ones)", float("nan"), f"{type(exc).__name__}"))
     os.chdir(args.workdir)
     if "allow_shrink" in build_index.__code__.co_varnames:

@@ -90,18 +90,20 @@ def _flips(path, query, count, workdir, seed=5, anywhere=False):
     reference = _answer(path, [query])
     chunks = []
     with h5py.File(path, "r") as f:
+
         def visit(name, obj):
             if isinstance(obj, h5py.Dataset) and obj.chunks is not None:
                 for i in range(obj.id.get_num_chunks()):
                     info = obj.id.get_chunk_info(i)
                     chunks.append((name, info.byte_offset, info.size))
+
         f.visititems(visit)
     sizes = np.array([c[2] for c in chunks], dtype=np.float64)
     outcomes = {"detected on open": 0, "detected by the query": 0, "same answer": 0, "changed silently": 0}
     copy = os.path.join(workdir, "flipped.h5")
     file_size = os.path.getsize(path)
     for _ in range(count):
-        if anywhere:                               # metadata, heaps and free space too
+        if anywhere:  # metadata, heaps and free space too
             at = int(rng.integers(file_size))
         else:
             name, offset, size = chunks[rng.choice(len(chunks), p=sizes / sizes.sum())]
@@ -134,9 +136,13 @@ def main(argv=None) -> int:
     ap.add_argument("--workdir", default="/tmp/nfdmatch-bench-checksums")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--flips", type=int, default=200)
-    ap.add_argument("--collection", choices=("random", "families"), default="random",
-                    help="bench_search.py's collection: random (loose bounds: a query reads most of the "
-                         "index) or families of 50 (tight bounds: a query reads a few cells)")
+    ap.add_argument(
+        "--collection",
+        choices=("random", "families"),
+        default="random",
+        help="bench_search.py's collection: random (loose bounds: a query reads most of the "
+        "index) or families of 50 (tight bounds: a query reads a few cells)",
+    )
     args = ap.parse_args(argv)
     folder = os.path.join(args.workdir, f"{args.collection}-{args.curves}")
     if args.collection == "random":
@@ -175,9 +181,9 @@ def main(argv=None) -> int:
     sp, sc = os.path.getsize(plain), os.path.getsize(checked)
     print(f"{'file size (MB)':24}{sp / 1e6:16.2f}{sc / 1e6:16.2f}{sc / sp:8.3f}")
     for label, batch in (("1 query (ms)", curves[:1]), ("20 queries (ms/query)", curves)):
-        _answer(plain, batch), _answer(checked, batch)               # warm-up
+        _answer(plain, batch), _answer(checked, batch)  # warm-up
         times = {plain: [], checked: []}
-        for _ in range(args.repeat):                                 # interleaved: same conditions
+        for _ in range(args.repeat):  # interleaved: same conditions
             for path in (plain, checked):
                 t0 = time.perf_counter()
                 _answer(path, batch)
@@ -193,8 +199,10 @@ def main(argv=None) -> int:
     if args.flips:
         for anywhere in (False, True):
             outcomes = _flips(checked, curves[0], args.flips, args.workdir, anywhere=anywhere)
-            print(f"{args.flips} random bit flips {'anywhere in the file' if anywhere else 'in data chunks'}: " +
-                  ", ".join(f"{k} {v}" for k, v in outcomes.items()))
+            print(
+                f"{args.flips} random bit flips {'anywhere in the file' if anywhere else 'in data chunks'}: "
+                + ", ".join(f"{k} {v}" for k, v in outcomes.items())
+            )
     return 0
 
 

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-os.environ["NFDMATCH_NUMBA"] = "0"          # the exact rows below: numpy path; numba: see numba_rows()
+os.environ["NFDMATCH_NUMBA"] = "0"  # the exact rows below: numpy path; numba: see numba_rows()
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 import oracle  # noqa: E402
 
@@ -71,18 +71,30 @@ def main():
     t = {k: 0.0 for k in ("exact", "exact_int", "paper", "o1", "o1v", "o2")}
     res = {k: [] for k in t}
     for A, B in pairs:
-        r, dt = timed(lambda: exact_search(half(A), half(B)[None], N)["distance"][0]); t["exact"] += dt; res["exact"].append(r)
-        r, dt = timed(lambda: exact_search(half(A), half(B)[None], N, refine=False)["distance"][0]); t["exact_int"] += dt; res["exact_int"].append(r)
+        r, dt = timed(lambda: exact_search(half(A), half(B)[None], N)["distance"][0])
+        t["exact"] += dt
+        res["exact"].append(r)
+        r, dt = timed(lambda: exact_search(half(A), half(B)[None], N, refine=False)["distance"][0])
+        t["exact_int"] += dt
+        res["exact_int"].append(r)
         # the paper's step needs plane-aligned descriptors: rotate both (distance is rotation-invariant otherwise)
-        r, dt = timed(lambda: paper_search(_aligned(half(A)), _aligned(half(B))[None], N)["distance"][0]); t["paper"] += dt; res["paper"].append(r)
-        r, dt = timed(lambda: oracle.oracle_integer(A, B, freqs, N)[0]); t["o1"] += dt; res["o1"].append(r)
-        r, dt = timed(lambda: brute_force_vectorized(A, B, freqs, N)); t["o1v"] += dt; res["o1v"].append(r)
-        r, dt = timed(lambda: oracle.oracle_fractional(A, B, freqs, N)[0]); t["o2"] += dt; res["o2"].append(r)
+        r, dt = timed(lambda: paper_search(_aligned(half(A)), _aligned(half(B))[None], N)["distance"][0])
+        t["paper"] += dt
+        res["paper"].append(r)
+        r, dt = timed(lambda: oracle.oracle_integer(A, B, freqs, N)[0])
+        t["o1"] += dt
+        res["o1"].append(r)
+        r, dt = timed(lambda: brute_force_vectorized(A, B, freqs, N))
+        t["o1v"] += dt
+        res["o1v"].append(r)
+        r, dt = timed(lambda: oracle.oracle_fractional(A, B, freqs, N)[0])
+        t["o2"] += dt
+        res["o2"].append(r)
     res = {k: np.array(v) for k, v in res.items()}
     per = {k: v / len(pairs) * 1e3 for k, v in t.items()}
 
     # batched: one query against many rows, as a search does
-    rows = np.stack([half(B) for _, B in pairs] * (args.batch // len(pairs) + 1))[:args.batch]
+    rows = np.stack([half(B) for _, B in pairs] * (args.batch // len(pairs) + 1))[: args.batch]
     q = half(pairs[0][0])
     _, dt_batch = timed(lambda: exact_search(q, rows, N))
     _, dt_batch_int = timed(lambda: exact_search(q, rows, N, refine=False))
@@ -91,17 +103,26 @@ def main():
     print(f"# {len(pairs)} random smooth pairs, n={N}, K={K}, scale a1, direction-invariant\n")
     print("| method | ms per pair (one call per pair) | vs oracle (1) | vs vectorized brute force (1v) |")
     print("|---|---:|---:|---:|")
-    for key, name in [("exact", "exact (shift x SO(3), sub-sample)"), ("exact_int", "exact, integer shifts only"),
-                      ("paper", "paper's step"), ("o1", "oracle (1): all shifts x Kabsch"),
-                      ("o1v", "(1v) vectorized brute force"), ("o2", "oracle (2): 1/32-shift grid")]:
+    for key, name in [
+        ("exact", "exact (shift x SO(3), sub-sample)"),
+        ("exact_int", "exact, integer shifts only"),
+        ("paper", "paper's step"),
+        ("o1", "oracle (1): all shifts x Kabsch"),
+        ("o1v", "(1v) vectorized brute force"),
+        ("o2", "oracle (2): 1/32-shift grid"),
+    ]:
         print(f"| {name} | {per[key]:.3f} | {per['o1'] / per[key]:.1f}x faster | {per['o1v'] / per[key]:.1f}x faster |")
-    print(f"\nbatched, one query vs {args.batch} rows: exact {dt_batch / args.batch * 1e6:.1f} us/pair "
-          f"(integer shifts only {dt_batch_int / args.batch * 1e6:.1f} us/pair), paper {dt_batch_paper / args.batch * 1e6:.1f} us/pair; "
-          f"oracle (1) is {per['o1'] * 1e3 / (dt_batch / args.batch * 1e6):.0f}x slower per pair than batched exact\n")
+    print(
+        f"\nbatched, one query vs {args.batch} rows: exact {dt_batch / args.batch * 1e6:.1f} us/pair "
+        f"(integer shifts only {dt_batch_int / args.batch * 1e6:.1f} us/pair), paper {dt_batch_paper / args.batch * 1e6:.1f} us/pair; "
+        f"oracle (1) is {per['o1'] * 1e3 / (dt_batch / args.batch * 1e6):.0f}x slower per pair than batched exact\n"
+    )
 
     def stats(ratio):
-        return (f"median {np.median(ratio):.6f}, p99 {np.quantile(ratio, 0.99):.6f}, max {ratio.max():.6f}, "
-                f"> 1.001: {np.mean(ratio > 1.001) * 100:.1f}%, > 1.01: {np.mean(ratio > 1.01) * 100:.1f}%")
+        return (
+            f"median {np.median(ratio):.6f}, p99 {np.quantile(ratio, 0.99):.6f}, max {ratio.max():.6f}, "
+            f"> 1.001: {np.mean(ratio > 1.001) * 100:.1f}%, > 1.01: {np.mean(ratio > 1.01) * 100:.1f}%"
+        )
 
     print("accuracy (distance ratios; < 1 means below the oracle):")
     print(f"- exact / oracle (2):          {stats(res['exact'] / res['o2'])}")
@@ -110,8 +131,10 @@ def main():
     print(f"- paper / oracle (1):          {stats(res['paper'] / res['o1'])}")
     print(f"- paper / oracle (2):          {stats(res['paper'] / res['o2'])}")
     within = np.mean(res["exact"] <= res["o2"] * 1.001) * 100
-    print(f"\nexact within 0.1% of oracle (2) on {within:.1f}% of pairs; "
-          f"above oracle (1) beyond 1e-9 relative on {np.sum(res['exact'] > res['o1'] * (1 + 1e-9))} pairs")
+    print(
+        f"\nexact within 0.1% of oracle (2) on {within:.1f}% of pairs; "
+        f"above oracle (1) beyond 1e-9 relative on {np.sum(res['exact'] > res['o1'] * (1 + 1e-9))} pairs"
+    )
     numba_rows(pairs, rows, q, per, res["exact"])
 
 
@@ -134,6 +157,7 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
         print(f"\nnumba kernels unavailable: {matching.dispatch._kernel_state['failed']!r}")
         return
     import numba
+
     half = lambda X: X[:K]  # noqa: E731
     got, dt = [], 0.0
     for A, B in pairs:
@@ -149,14 +173,14 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
         matching.dispatch._THREAD_ROWS = threshold
         dt = timed(lambda: exact_search(q, rows, N, **kw))[1]
         if mode == "0":
-            time.sleep(0.3)         # OpenBLAS worker threads spin for a while after a GEMM
+            time.sleep(0.3)  # OpenBLAS worker threads spin for a while after a GEMM
         return dt
 
     # numpy and numba interleaved, medians of `repeat` runs each (the machine may be shared)
-    labels = {"numpy": ("0", saved), "numba, 1 thread": ("1", 10 ** 12), f"numba, {workers} threads": ("1", saved)}
+    labels = {"numpy": ("0", saved), "numba, 1 thread": ("1", 10**12), f"numba, {workers} threads": ("1", saved)}
     figures = {label: ([], []) for label in labels}
     for mode, threshold in labels.values():
-        run(mode, threshold)                                                 # warm
+        run(mode, threshold)  # warm
     for _ in range(repeat):
         for label, (mode, threshold) in labels.items():
             figures[label][0].append(run(mode, threshold))
@@ -168,28 +192,41 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
     matching.use_kernels("numpy")
     reference = exact_search(q, rows, N)
     got = np.array(got)
-    agree = max(np.max(np.abs(got - exact_numpy) / exact_numpy),
-                np.max(np.abs(batch["distance"] - reference["distance"]) / reference["distance"]))
+    agree = max(
+        np.max(np.abs(got - exact_numpy) / exact_numpy),
+        np.max(np.abs(batch["distance"] - reference["distance"]) / reference["distance"]),
+    )
     same_shift = np.mean(np.abs((batch["shift"] - reference["shift"] + N / 2) % N - N / 2) < 1e-7) * 100
     n = len(rows)
     t_np, t_np_int = figures.pop("numpy")
-    print(f"\nnumba kernels (numba {numba.__version__}; {'import numba + ' if fresh else ''}load of the kernels "
-          f"{load:.2f} s in this process); batched: medians of {repeat} interleaved runs")
+    print(
+        f"\nnumba kernels (numba {numba.__version__}; {'import numba + ' if fresh else ''}load of the kernels "
+        f"{load:.2f} s in this process); batched: medians of {repeat} interleaved runs"
+    )
     print("| exact search | numpy | numba | speed-up |")
     print("|---|---:|---:|---:|")
-    print(f"| one call per pair, ms per pair | {per['exact']:.3f} | {per_numba:.3f} | {per['exact'] / per_numba:.1f}x |")
+    print(
+        f"| one call per pair, ms per pair | {per['exact']:.3f} | {per_numba:.3f} | {per['exact'] / per_numba:.1f}x |"
+    )
     for label, (t_all, t_int) in figures.items():
-        print(f"| batched ({n} rows), {label}, us per pair | {t_np / n * 1e6:.1f} | {t_all / n * 1e6:.1f} | "
-              f"{t_np / t_all:.1f}x |")
-        print(f"| batched, integer shifts only, {label}, us per pair | {t_np_int / n * 1e6:.1f} | "
-              f"{t_int / n * 1e6:.1f} | {t_np_int / t_int:.1f}x |")
-    print(f"\nnumba vs numpy: max relative distance difference {agree:.1e}; same shift on {same_shift:.1f}% of "
-          f"the batched rows")
+        print(
+            f"| batched ({n} rows), {label}, us per pair | {t_np / n * 1e6:.1f} | {t_all / n * 1e6:.1f} | "
+            f"{t_np / t_all:.1f}x |"
+        )
+        print(
+            f"| batched, integer shifts only, {label}, us per pair | {t_np_int / n * 1e6:.1f} | "
+            f"{t_int / n * 1e6:.1f} | {t_np_int / t_int:.1f}x |"
+        )
+    print(
+        f"\nnumba vs numpy: max relative distance difference {agree:.1e}; same shift on {same_shift:.1f}% of "
+        f"the batched rows"
+    )
 
 
 def _aligned(C):
     """Rotate a half band (K, 3) so its limit-plane normal is +z (as descriptors() does)."""
     from nfdmatch.descriptors import _plane_rotations
+
     R, _ = _plane_rotations(C[:1], np.array([np.linalg.norm(C)]))
     return C @ R[0].T
 

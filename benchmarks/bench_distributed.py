@@ -39,6 +39,7 @@ def _warm():
     from nfdmatch.matching import compile_kernels
 
     import nfdmatch.index  # noqa: F401
+
     try:
         import pyvista  # noqa: F401  (the VTP reader)
     except Exception:
@@ -53,10 +54,15 @@ def main():
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--workdir", default="/tmp/nfdmatch-bench-dask")
     ap.add_argument("--reuse", action="store_true", help="reuse the curves of a previous run with as many curves")
-    ap.add_argument("--repeat", type=int, default=1,
-                    help="time each query batch this many times, report the fastest (a shared machine)")
-    ap.add_argument("--queries-only", action="store_true",
-                    help="no build rows: one local build (untimed) for the query rows")
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="time each query batch this many times, report the fastest (a shared machine)",
+    )
+    ap.add_argument(
+        "--queries-only", action="store_true", help="no build rows: one local build (untimed) for the query rows"
+    )
     args = ap.parse_args()
 
     from nfdmatch import read_curves, write_curves
@@ -82,9 +88,11 @@ def main():
             fh.write(str(args.curves))
     while len(queries) < args.queries:
         queries += queries
-    qcurves = [Curve(q, id=f"q{i}") for i, q in enumerate(queries[:args.queries])]
-    print(f"{'reused' if reuse else 'generated'} {args.curves} curves in {time.perf_counter() - t0:.1f} s",
-          file=sys.stderr)
+    qcurves = [Curve(q, id=f"q{i}") for i, q in enumerate(queries[: args.queries])]
+    print(
+        f"{'reused' if reuse else 'generated'} {args.curves} curves in {time.perf_counter() - t0:.1f} s",
+        file=sys.stderr,
+    )
     _warm()
     rows = []
     local_build, local_query = {}, {}
@@ -97,11 +105,17 @@ def main():
         t0 = time.perf_counter()
         report = build_index([src], index, jobs=n)
         local_build[n] = time.perf_counter() - t0
-        rows.append((f"build {report.curves} curves, local --jobs {n}", f"{local_build[n]:.2f} s",
-                     f"{report.curves / local_build[n]:,.0f} curves/s", ""))
+        rows.append(
+            (
+                f"build {report.curves} curves, local --jobs {n}",
+                f"{local_build[n]:.2f} s",
+                f"{report.curves / local_build[n]:,.0f} curves/s",
+                "",
+            )
+        )
     reference = os.path.join(work, f"local-{args.workers[0]}.h5")
     with open_index(reference) as idx:
-        search_index(idx, qcurves, top=10)               # cells cached, as in a long-lived worker
+        search_index(idx, qcurves, top=10)  # cells cached, as in a long-lived worker
         for n in args.workers:
             # on a thread other than the main one, as a Dask task runs: a call on the main
             # thread splits its rows over the cores (threads=1 would then use 2 cores)
@@ -111,23 +125,36 @@ def main():
                     t0 = time.perf_counter()
                     local_results, stats = pool.submit(search_index, idx, qcurves, top=10, threads=n).result()
                     local_query[n] = min(local_query[n], time.perf_counter() - t0)
-            rows.append((f"query {len(qcurves)} x {stats.rows} curves, top 10, local {n} threads",
-                         f"{local_query[n]:.2f} s", f"{local_query[n] / len(qcurves) * 1e3:.2f} ms/query", ""))
+            rows.append(
+                (
+                    f"query {len(qcurves)} x {stats.rows} curves, top 10, local {n} threads",
+                    f"{local_query[n]:.2f} s",
+                    f"{local_query[n] / len(qcurves) * 1e3:.2f} ms/query",
+                    "",
+                )
+            )
     for n in args.workers:
         t0 = time.perf_counter()
         with connect(f"local:{n}", timeout=60) as cluster:
             cluster.client.run(_warm)
-            rows.append((f"start a LocalCluster of {n} workers and warm them", f"{time.perf_counter() - t0:.2f} s",
-                         "", ""))
+            rows.append(
+                (f"start a LocalCluster of {n} workers and warm them", f"{time.perf_counter() - t0:.2f} s", "", "")
+            )
             if not args.queries_only:
                 index = os.path.join(work, f"dask-{n}.h5")
                 t0 = time.perf_counter()
                 report = cluster.build_index([src], index)
                 dt = time.perf_counter() - t0
-                rows.append((f"build {report.curves} curves, Dask {n} workers", f"{dt:.2f} s",
-                             f"{report.curves / dt:,.0f} curves/s", f"{dt / local_build[n]:.2f}"))
+                rows.append(
+                    (
+                        f"build {report.curves} curves, Dask {n} workers",
+                        f"{dt:.2f} s",
+                        f"{report.curves / dt:,.0f} curves/s",
+                        f"{dt / local_build[n]:.2f}",
+                    )
+                )
             for parts in sorted({1, n}):
-                cluster.search_index(reference, qcurves, top=10, parts=parts)   # the workers' caches warm
+                cluster.search_index(reference, qcurves, top=10, parts=parts)  # the workers' caches warm
                 dt = float("inf")
                 for _ in range(args.repeat):
                     t0 = time.perf_counter()
@@ -135,9 +162,14 @@ def main():
                     dt = min(dt, time.perf_counter() - t0)
                 same = all([r.id for r in a] == [r.id for r in b] for a, b in zip(results, local_results))
                 how = "whole index per worker" if parts == 1 else f"{parts} ranges"
-                rows.append((f"query {len(qcurves)} x {stats.rows} curves, top 10, Dask {n} workers, {how}",
-                             f"{dt:.2f} s", f"{dt / len(qcurves) * 1e3:.2f} ms/query",
-                             f"{dt / local_query[n]:.2f}" + ("" if same else " (RESULTS DIFFER)")))
+                rows.append(
+                    (
+                        f"query {len(qcurves)} x {stats.rows} curves, top 10, Dask {n} workers, {how}",
+                        f"{dt:.2f} s",
+                        f"{dt / len(qcurves) * 1e3:.2f} ms/query",
+                        f"{dt / local_query[n]:.2f}" + ("" if same else " (RESULTS DIFFER)"),
+                    )
+                )
     width = max(len(r[0]) for r in rows)
     print(f"| {'measure'.ljust(width)} | time | rate | Dask / local |\n|{'-' * (width + 2)}|---:|---:|---:|")
     for r in rows:

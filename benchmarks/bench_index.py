@@ -105,16 +105,28 @@ def main():
     generate(small_dir, 10_000, per_file=2500, seed=2)
     print(f"generated {args.curves} + 10000 curves in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     big, small = os.path.join(work, "big.h5"), os.path.join(work, "small.h5")
-    for label, folder, index, glob in (("OBJ+VTP", big_dir, big, None), ("VTP only", big_dir, big + ".vtp.h5", "*.vtp"),
-                                       ("OBJ only", big_dir, big + ".obj.h5", "*.obj"), ("10k", small_dir, small, None)):
+    for label, folder, index, glob in (
+        ("OBJ+VTP", big_dir, big, None),
+        ("VTP only", big_dir, big + ".vtp.h5", "*.vtp"),
+        ("OBJ only", big_dir, big + ".obj.h5", "*.obj"),
+        ("10k", small_dir, small, None),
+    ):
         cmd = NFDMATCH + ["index", "build", folder, "--index", index, "--format", "json"]
         if glob:
             cmd += ["--glob", glob]
         dt, proc = run(cmd)
         report = json.loads(proc.stdout)
-        rows.append((f"build {label}: {report['curves']} curves", f"{dt:.2f} s", f"{report['curves'] / dt:,.0f} curves/s"))
+        rows.append(
+            (f"build {label}: {report['curves']} curves", f"{dt:.2f} s", f"{report['curves'] / dt:,.0f} curves/s")
+        )
         dt, proc = run(cmd)
-        rows.append((f"rebuild {label}, nothing changed", f"{dt:.2f} s", f"unchanged {json.loads(proc.stdout)['unchanged']} files"))
+        rows.append(
+            (
+                f"rebuild {label}, nothing changed",
+                f"{dt:.2f} s",
+                f"unchanged {json.loads(proc.stdout)['unchanged']} files",
+            )
+        )
 
     # ---- single query, new process
     qfile = os.path.join(work, "q.csv")
@@ -123,7 +135,13 @@ def main():
     rows.append(("`nfdmatch --help` start-up", f"{help_t * 1e3:.0f} ms", ""))
     for label, index in (("10k", small), (f"{args.curves // 1000}k", big)):
         t = median_time(NFDMATCH + ["query", qfile, "--index", index, "--top", "10"])
-        rows.append((f"single query end to end, {label} curves", f"{t * 1e3:.0f} ms", f"{(t - help_t) * 1e3:.0f} ms above start-up"))
+        rows.append(
+            (
+                f"single query end to end, {label} curves",
+                f"{t * 1e3:.0f} ms",
+                f"{(t - help_t) * 1e3:.0f} ms above start-up",
+            )
+        )
 
     # ---- batch queries in one process
     from nfdmatch.index import open_index
@@ -135,15 +153,22 @@ def main():
             t0 = time.perf_counter()
             results, stats = search_index(idx, qcurves, top=10)
             dt = time.perf_counter() - t0
-            rows.append((f"batch: {len(qcurves)} queries on {stats.rows} curves, top 10, {label}",
-                         f"{dt / len(qcurves) * 1e3:.2f} ms/query", f"exact distances for {stats.exact_fraction:.3%} of rows"))
+            rows.append(
+                (
+                    f"batch: {len(qcurves)} queries on {stats.rows} curves, top 10, {label}",
+                    f"{dt / len(qcurves) * 1e3:.2f} ms/query",
+                    f"exact distances for {stats.exact_fraction:.3%} of rows",
+                )
+            )
 
     # ---- all-vs-all
     from nfdmatch.search import MemoryIndex
 
     rng = np.random.default_rng(5)
     gen = [Curve(p, id=f"g{i:04d}") for i, p in enumerate(x for _ in range(70) for x in family_members(rng, 20))]
-    for label, curves in (("1,400 generated curves", gen),) + ((("Kimia-99", _kimia()),) if os.path.isdir(DATA) else ()):
+    for label, curves in (("1,400 generated curves", gen),) + (
+        (("Kimia-99", _kimia()),) if os.path.isdir(DATA) else ()
+    ):
         t0 = time.perf_counter()
         memory = MemoryIndex(curves)
         _, stats = search_index(memory, curves, top=40)
@@ -162,6 +187,7 @@ def main():
 
 def _kimia():
     from nfdmatch import read_curve
+
     folder = os.path.join(DATA, "kimia99")
     return [read_curve(os.path.join(folder, f)) for f in sorted(os.listdir(folder)) if not f.startswith("_")]
 
@@ -170,9 +196,12 @@ def _devdata(work):
     rows = []
     index = os.path.join(work, "knots.h5")
     run(NFDMATCH + ["index", "build", os.path.join(DATA, "knotess_smooth"), "--index", index])
-    _, proc = run(NFDMATCH + ["query", os.path.join(DATA, "knotess_control"), "--index", index, "--top", "1",
-                             "--format", "csv"])
-    hits = [os.path.basename(r["query"]) == os.path.basename(r["match"]) for r in csv.DictReader(proc.stdout.splitlines())]
+    _, proc = run(
+        NFDMATCH + ["query", os.path.join(DATA, "knotess_control"), "--index", index, "--top", "1", "--format", "csv"]
+    )
+    hits = [
+        os.path.basename(r["query"]) == os.path.basename(r["match"]) for r in csv.DictReader(proc.stdout.splitlines())
+    ]
     rows.append(("knotess control -> smooth, top-1 (CLI)", f"{sum(hits)}/{len(hits)}", ""))
     kimia = os.path.join(DATA, "kimia99")
     index = os.path.join(work, "kimia.h5")
@@ -185,7 +214,7 @@ def _devdata(work):
     cls = lambda p: os.path.basename(p).rsplit("-", 1)[0]  # noqa: E731
     for q, matches in by_query.items():
         matches = [m for m in matches if m != q][:10]
-        counts[:len(matches)] += [cls(m) == cls(q) for m in matches]
+        counts[: len(matches)] += [cls(m) == cls(q) for m in matches]
     rows.append(("Kimia-99 same-class hits at ranks 1..10 (CLI)", " ".join(map(str, counts)), f"sum {counts.sum()}"))
     return rows
 

@@ -66,10 +66,21 @@ def scene(query_path, candidates, top=5):
     """The data `nfdmatch show --against` draws: the query and its top matches, aligned."""
     query = read_curve(query_path)
     rows = rank_curves(query, candidates, top=top, samples=SAMPLES)
-    shown = matches_from_curves(query, rows, candidates, samples=SAMPLES, harmonics=DEFAULT_HARMONICS,
-                                scale=DEFAULT_SCALE)
-    panels = [dict(id=m.id, distance=m.distance, points=m.points, start=m.start, forward=m.forward,
-                   reversed=m.reversed, mirrored=m.mirrored) for m in shown]   # plain data, saved with np.savez
+    shown = matches_from_curves(
+        query, rows, candidates, samples=SAMPLES, harmonics=DEFAULT_HARMONICS, scale=DEFAULT_SCALE
+    )
+    panels = [
+        dict(
+            id=m.id,
+            distance=m.distance,
+            points=m.points,
+            start=m.start,
+            forward=m.forward,
+            reversed=m.reversed,
+            mirrored=m.mirrored,
+        )
+        for m in shown
+    ]  # plain data, saved with np.savez
     return dict(query=query.points, query_id=query.id, panels=panels)
 
 
@@ -79,12 +90,18 @@ def rel(path):
 
 def scenes():
     lib = library_curves()
-    planar = [c for c in lib if abs(np.linalg.svd(c.points - c.points.mean(0), compute_uv=False)[2])
-              <= 1e-9 * np.ptp(c.points, axis=0).max()]
+    planar = [
+        c
+        for c in lib
+        if abs(np.linalg.svd(c.points - c.points.mean(0), compute_uv=False)[2]) <= 1e-9 * np.ptp(c.points, axis=0).max()
+    ]
     two = scene(os.path.join(QUERIES, "ellipse-posed.csv"), planar)
     three = scene(os.path.join(QUERIES, "trefoil-posed.obj"), lib)
-    dense = dict(query=subdivide(three["query"], 2000), query_id=three["query_id"],
-                 panels=[dict(p, points=subdivide(p["points"], 2000)) for p in three["panels"]])
+    dense = dict(
+        query=subdivide(three["query"], 2000),
+        query_id=three["query_id"],
+        panels=[dict(p, points=subdivide(p["points"], 2000)) for p in three["panels"]],
+    )
     for s in (two, three, dense):
         s["query_id"] = rel(s["query_id"])
         for p in s["panels"]:
@@ -112,8 +129,12 @@ def shown_match(rank, p):
     """The :class:`~nfdmatch.records.ShownMatch` of one saved panel."""
     from nfdmatch.records import RankedMatch, ShownMatch
 
-    return ShownMatch(RankedMatch(rank, p["id"], p["distance"], reversed=p["reversed"], mirrored=p["mirrored"]),
-                      p["points"], p["start"], p["forward"])
+    return ShownMatch(
+        RankedMatch(rank, p["id"], p["distance"], reversed=p["reversed"], mirrored=p["mirrored"]),
+        p["points"],
+        p["start"],
+        p["forward"],
+    )
 
 
 def panels_of(s):
@@ -136,8 +157,9 @@ print(json.dumps({"seconds": time.perf_counter() - t0, "renderer": r.renderer, "
 def first_picture(scene_data, out_png, renderer, workdir):
     npz = os.path.join(workdir, "scene.npz")
     np.savez(npz, scene=np.array(scene_data, dtype=object))
-    proc = subprocess.run([sys.executable, "-c", CHILD, npz, out_png, renderer], capture_output=True,
-                          text=True, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, npz, out_png, renderer], capture_output=True, text=True, cwd=ROOT
+    )
     if proc.returncode != 0:
         return None, (proc.stderr.strip().splitlines() or ["failed"])[-1]
     r = json.loads(proc.stdout)
@@ -165,22 +187,24 @@ def main():
             png = os.path.join(args.out, f"show-{name}-{renderer}.png")
             first, note = first_picture(s, png, renderer, args.out)
             times = []
-            try:                          # warm-up: imports and the pyvista probe are in "first"
+            try:  # warm-up: imports and the pyvista probe are in "first"
                 render_matches(s["query"], s["query_id"], panels_of(s), png, size=SIZE, renderer=renderer)
-            except Exception as exc:      # noqa: BLE001  (reported below)
+            except Exception as exc:  # noqa: BLE001  (reported below)
                 note = f"{type(exc).__name__}: {exc}"
             for _ in range(max(args.repeat, 1)):
                 t0 = time.perf_counter()
                 try:
                     render_matches(s["query"], s["query_id"], panels_of(s), png, size=SIZE, renderer=renderer)
-                except Exception as exc:   # noqa: BLE001  (report and go on)
+                except Exception as exc:  # noqa: BLE001  (report and go on)
                     note = f"{type(exc).__name__}: {exc}"
                     break
                 times.append(time.perf_counter() - t0)
             then = f"{statistics.median(times):9.3f}" if times else f"{'-':>9s}"
             first_s = f"{first:10.3f}" if first is not None else f"{'-':>10s}"
-            print(f"{renderer:11s} {name:8s} {first_s} {then}  {rel(png) if png.startswith(ROOT) else png}"
-                  + (f"  ({note})" if note else ""))
+            print(
+                f"{renderer:11s} {name:8s} {first_s} {then}  {rel(png) if png.startswith(ROOT) else png}"
+                + (f"  ({note})" if note else "")
+            )
     m, ids = matrix_data()
     png = os.path.join(args.out, f"matrix-{len(ids)}.png")
     times = []
@@ -191,8 +215,10 @@ def main():
     small = os.path.join(args.out, "matrix-library.png")
     k = len(library_curves())
     render_matrix(m[:k, :k], ids[:k], small, title=f"exact distance, {k} curves")
-    print(f"{'matplotlib':11s} {'matrix':8s} {'':>10s} {statistics.median(times):9.3f}  {png} "
-          f"({len(ids)} curves); {small} ({k} curves)")
+    print(
+        f"{'matplotlib':11s} {'matrix':8s} {'':>10s} {statistics.median(times):9.3f}  {png} "
+        f"({len(ids)} curves); {small} ({k} curves)"
+    )
 
 
 if __name__ == "__main__":

@@ -52,13 +52,14 @@ K, A = SCALE_NEIGHBOURS, ALPHA
 # --------------------------------------------------------------------------- methods on a full matrix
 # (research versions for the comparison; the shipped one lives in nfdmatch/search/rerank.py)
 
+
 def _knn_affinity(D, k=K):
     N = len(D)
     off = D.copy()
     np.fill_diagonal(off, np.inf)
     order = np.argsort(off, axis=1, kind="stable")
     s = np.maximum(off[np.arange(N), order[:, min(k, N - 1) - 1]], 1e-12)
-    W = np.exp(-D ** 2 / (s[:, None] * s[None, :]))
+    W = np.exp(-(D**2) / (s[:, None] * s[None, :]))
     mask = np.zeros_like(W, dtype=bool)
     mask[np.arange(N)[:, None], order[:, :k]] = True
     np.fill_diagonal(mask, True)
@@ -98,7 +99,7 @@ def offline_online(D, k=K):
     s = np.maximum(off[np.arange(N), order[:, -1]], 1e-12)
     S = np.empty_like(F)
     for i in range(N):
-        w = np.exp(-off[i, order[i]] ** 2 / (s[i] * s[order[i]])) + 1e-300
+        w = np.exp(-(off[i, order[i]] ** 2) / (s[i] * s[order[i]])) + 1e-300
         S[i] = w @ F[order[i]] / w.sum()
     return S
 
@@ -110,7 +111,7 @@ def k_reciprocal(D, k1=10, k2=4, lam=0.3):
     order = np.argsort(D, axis=1, kind="stable")
 
     def reciprocal(i, k):
-        return {int(j) for j in order[i, :k + 1] if i in order[j, :k + 1]}
+        return {int(j) for j in order[i, : k + 1] if i in order[j, : k + 1]}
 
     R = []
     for i in range(N):
@@ -124,7 +125,7 @@ def k_reciprocal(D, k1=10, k2=4, lam=0.3):
     V = np.zeros((N, N))
     for i in range(N):
         idx = np.array(sorted(R[i]))
-        scale = max(float(np.median(D[i, order[i, 1:k1 + 1]])), 1e-12)
+        scale = max(float(np.median(D[i, order[i, 1 : k1 + 1]])), 1e-12)
         V[i, idx] = np.exp(-D[i, idx] / scale)
         V[i] /= V[i].sum()
     if k2 > 1:
@@ -154,6 +155,7 @@ METHODS = {
 
 # --------------------------------------------------------------------------- collections
 
+
 def _folder(folder, names=None):
     names = names or sorted(f for f in os.listdir(folder) if f.endswith(".csv") and not f.startswith("_"))
     return names, [read_curves(os.path.join(folder, f))[0] for f in names]
@@ -178,8 +180,9 @@ def collections(data):
     owner = np.repeat(np.arange(F), M)
     for noise in (0.15, 0.3):
         pts = _sample(a[owner], b[owner], 48, np.random.default_rng(int(noise * 100)), noise)
-        out[f"families noise {noise:.2f}"] = dict(curves=[Curve(p, id=f"f{o:02d}-{i:03d}")
-                                                         for i, (p, o) in enumerate(zip(pts, owner))], labels=owner)
+        out[f"families noise {noise:.2f}"] = dict(
+            curves=[Curve(p, id=f"f{o:02d}-{i:03d}") for i, (p, o) in enumerate(zip(pts, owner))], labels=owner
+        )
     for c in out.values():
         c["D"] = distance_matrix(c["curves"])
     return out
@@ -204,10 +207,10 @@ def scores_table(S, labels):
     order = np.argsort(-excl, axis=1, kind="stable")[:, :10]
     same = labels[order] == labels[:, None]
     incl = S.copy()
-    np.fill_diagonal(incl, np.inf)                       # the query itself first, as bull's-eye counts it
+    np.fill_diagonal(incl, np.inf)  # the query itself first, as bull's-eye counts it
     size = np.array([(labels == c).sum() for c in labels])
     order2 = np.argsort(-incl, axis=1, kind="stable")
-    bull = np.mean([(labels[order2[i, :2 * size[i]]] == labels[i]).sum() / size[i] for i in range(N)])
+    bull = np.mean([(labels[order2[i, : 2 * size[i]]] == labels[i]).sum() / size[i] for i in range(N)])
     return same.sum(axis=0), same.mean(), bull
 
 
@@ -225,15 +228,20 @@ def knots_top1(method, Ds, Q):
 
 # --------------------------------------------------------------------------- the shipped path
 
+
 def shipped(cols, knot_data, work):
     """query --rerank (library) through an index with a graph: Kimia, mesh, families, knots."""
     from nfdmatch.index import build_index, open_index
     from nfdmatch.search.rerank import rerank_index
 
-    print("\n## The shipped path: each query's exact top 100 joined to the stored graph "
-          "(index build --graph 10, query --rerank)")
-    print(f"{'collection':24} {'plain P@10':>10} {'rerank P@10':>11} {'plain BE':>9} {'rerank BE':>9}"
-          f"  {'rerank ranks 1..10 (same class)':s}")
+    print(
+        "\n## The shipped path: each query's exact top 100 joined to the stored graph "
+        "(index build --graph 10, query --rerank)"
+    )
+    print(
+        f"{'collection':24} {'plain P@10':>10} {'rerank P@10':>11} {'plain BE':>9} {'rerank BE':>9}"
+        f"  {'rerank ranks 1..10 (same class)':s}"
+    )
     for name, c in cols.items():
         folder = os.path.join(work, name.replace(" ", "_"))
         os.makedirs(folder)
@@ -241,8 +249,9 @@ def shipped(cols, knot_data, work):
         build_index([folder], os.path.join(work, name.replace(" ", "_") + ".h5"), jobs=2, graph=10)
         stored = read_curves(os.path.join(folder, "curves.obj"))
         with open_index(os.path.join(work, name.replace(" ", "_") + ".h5")) as idx:
-            res, _ = rerank_index(idx, stored, top=100 if len(stored) > 100 else len(stored) - 1, depth=100,
-                                  exclude=lambda q, m: q == m)
+            res, _ = rerank_index(
+                idx, stored, top=100 if len(stored) > 100 else len(stored) - 1, depth=100, exclude=lambda q, m: q == m
+            )
         pos = {s.id: i for i, s in enumerate(stored)}
         N = len(stored)
         S = np.full((N, N), -np.inf)
@@ -252,8 +261,10 @@ def shipped(cols, knot_data, work):
         np.fill_diagonal(S, np.inf)
         counts, p10, bull = scores_table(S, c["labels"])
         pc, pp, pb = scores_table(-c["D"], c["labels"])
-        print(f"{name:24} {pp:10.3f} {p10:11.3f} {pb:9.3f} {bull:9.3f}  {' '.join(str(x) for x in counts)}"
-              f" = {counts.sum()} (plain {pc.sum()})")
+        print(
+            f"{name:24} {pp:10.3f} {p10:11.3f} {pb:9.3f} {bull:9.3f}  {' '.join(str(x) for x in counts)}"
+            f" = {counts.sum()} (plain {pc.sum()})"
+        )
     control, smooth, _, _ = knot_data
     folder = os.path.join(work, "knots")
     os.makedirs(folder)
@@ -288,19 +299,26 @@ def timing(curves, work):
     write_curves(os.path.join(folder, "zz-extra.obj"), extra)
     inc = build_index([folder], os.path.join(work, "graph.h5"), jobs=2)
     print(f"\n## Build, {plain.curves} generated curves (families of 10), 2 workers")
-    print(f"plain build {t_plain:.1f} s; with --graph 10 {t_graph:.1f} s, of which the graph "
-          f"{graph.graph.seconds:.1f} s ({graph.graph.searched} rows searched, "
-          f"{1e3 * graph.graph.seconds / max(graph.graph.searched, 1):.2f} ms per row)")
-    print(f"with --graph 8 {t_graph8:.1f} s, of which the graph {graph8.graph.seconds:.1f} s "
-          f"({1e3 * graph8.graph.seconds / max(graph8.graph.searched, 1):.2f} ms per row: the 9 nearest other "
-          f"rows of a row are its family, the 10th is not)")
-    print(f"incremental, +{len(extra)} curves: {inc.seconds:.1f} s, graph {inc.graph.seconds:.1f} s "
-          f"({inc.graph.searched} searched, {inc.graph.updated} updated, {inc.graph.kept} kept)")
+    print(
+        f"plain build {t_plain:.1f} s; with --graph 10 {t_graph:.1f} s, of which the graph "
+        f"{graph.graph.seconds:.1f} s ({graph.graph.searched} rows searched, "
+        f"{1e3 * graph.graph.seconds / max(graph.graph.searched, 1):.2f} ms per row)"
+    )
+    print(
+        f"with --graph 8 {t_graph8:.1f} s, of which the graph {graph8.graph.seconds:.1f} s "
+        f"({1e3 * graph8.graph.seconds / max(graph8.graph.searched, 1):.2f} ms per row: the 9 nearest other "
+        f"rows of a row are its family, the 10th is not)"
+    )
+    print(
+        f"incremental, +{len(extra)} curves: {inc.seconds:.1f} s, graph {inc.graph.seconds:.1f} s "
+        f"({inc.graph.searched} searched, {inc.graph.updated} updated, {inc.graph.kept} kept)"
+    )
     with open_index(os.path.join(work, "graph.h5")) as idx:
-        for label, fn in (("plain query --top 10", lambda: search_index(idx, queries, top=10)),
-                          ("query --rerank --top 10 (M 100)", lambda: rerank_index(idx, queries, top=10)),
-                          ("query --rerank --rerank-depth 300", lambda: rerank_index(idx, queries, top=10,
-                                                                                     depth=300))):
+        for label, fn in (
+            ("plain query --top 10", lambda: search_index(idx, queries, top=10)),
+            ("query --rerank --top 10 (M 100)", lambda: rerank_index(idx, queries, top=10)),
+            ("query --rerank --rerank-depth 300", lambda: rerank_index(idx, queries, top=10, depth=300)),
+        ):
             fn()
             best = min(_time(fn) for _ in range(3))
             print(f"{label:36} {1e3 * best / len(queries):7.1f} ms per query ({len(queries)} queries)")
@@ -336,8 +354,10 @@ def tables(data, work):
     cols = collections(data)
     knot_data = knots(data)
     print(f"(distance matrices: {time.perf_counter() - t0:.1f} s)")
-    print(f"\n## Methods on full distance matrices (k = {K} neighbours, alpha = {A}); P@10 = precision at 10, "
-          f"BE = bull's-eye; knots = control->smooth top-1 of 148")
+    print(
+        f"\n## Methods on full distance matrices (k = {K} neighbours, alpha = {A}); P@10 = precision at 10, "
+        f"BE = bull's-eye; knots = control->smooth top-1 of 148"
+    )
     header = f"{'method':44} {'kimia ranks 1..10 = sum':>36} {'kimia BE':>8} {'mesh P@10':>9} {'mesh BE':>8}"
     header += "".join(f" {'fam ' + n.split()[-1] + ' P@10':>14}" for n in cols if n.startswith("families"))
     print(header + f" {'knots':>6}")

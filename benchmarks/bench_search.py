@@ -44,9 +44,10 @@ QUERIES = 20
 
 # --------------------------------------------------------------------------- generators
 
+
 def _smooth_coefficients(rng, count, harmonics, decay=1.5):
     k = np.arange(1, harmonics.max() + 1)
-    amp = (k ** -decay)[None, :, None] * (k[None, :] <= harmonics[:, None])[:, :, None]
+    amp = (k**-decay)[None, :, None] * (k[None, :] <= harmonics[:, None])[:, :, None]
     return rng.standard_normal((count, len(k), 3)) * amp, rng.standard_normal((count, len(k), 3)) * amp
 
 
@@ -54,9 +55,20 @@ def _rotations(rng, count):
     q = rng.standard_normal((count, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     w, x, y, z = q.T
-    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], 1).reshape(count, 3, 3)
+    return np.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - z * w),
+            2 * (x * z + y * w),
+            2 * (x * y + z * w),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - x * w),
+            2 * (x * z - y * w),
+            2 * (y * z + x * w),
+            1 - 2 * (x * x + y * y),
+        ],
+        1,
+    ).reshape(count, 3, 3)
 
 
 def _sample(a, b, vertices, rng, noise):
@@ -69,7 +81,11 @@ def _sample(a, b, vertices, rng, noise):
     c *= 0.6 / np.maximum(np.abs(c).sum(1, keepdims=True), 1e-12)
     ph = rng.uniform(0, 2 * np.pi, (count, 3))
     for m in range(1, 4):
-        t += c[:, m - 1:m] * (np.sin(2 * np.pi * m * u[None] + ph[:, m - 1:m]) - np.sin(ph[:, m - 1:m])) / (2 * np.pi * m)
+        t += (
+            c[:, m - 1 : m]
+            * (np.sin(2 * np.pi * m * u[None] + ph[:, m - 1 : m]) - np.sin(ph[:, m - 1 : m]))
+            / (2 * np.pi * m)
+        )
     arg = 2 * np.pi * t[:, :, None] * np.arange(1, H + 1)[None, None, :]
     pts = np.einsum("nvh,nhd->nvd", np.cos(arg), a) + np.einsum("nvh,nhd->nvd", np.sin(arg), b)
     size = np.sqrt(((pts - pts.mean(1, keepdims=True)) ** 2).sum(2).mean(1))
@@ -79,8 +95,10 @@ def _sample(a, b, vertices, rng, noise):
     rev = rng.random(count) < 0.5
     pts[rev] = pts[rev, ::-1]
     scale = np.exp(rng.uniform(np.log(0.1), np.log(10), count))
-    return (np.einsum("nvd,ned->nve", pts, _rotations(rng, count)) * scale[:, None, None]
-            + rng.uniform(-100, 100, (count, 3))[:, None, :])
+    return (
+        np.einsum("nvd,ned->nve", pts, _rotations(rng, count)) * scale[:, None, None]
+        + rng.uniform(-100, 100, (count, 3))[:, None, :]
+    )
 
 
 def _write_obj(path, curves):
@@ -170,8 +188,14 @@ class Version:
         env = dict(os.environ, PYTHONPATH=self.source)
         env["NFDMATCH_BENCH_IO"] = io_file or os.devnull
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-P", "-c", _MEASURE, "x"] + list(args), env=env, cwd=self.source,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-P", "-c", _MEASURE, "x"] + list(args),
+            env=env,
+            cwd=self.source,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         out, err = proc.communicate()
         dt = time.perf_counter() - t0
         if proc.returncode != 0:
@@ -191,8 +215,14 @@ def _peak_rss(version, args):
     """(seconds, peak RSS bytes, stdout) of one process."""
     env = dict(os.environ, PYTHONPATH=version.source, NFDMATCH_BENCH_IO=os.devnull)
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-P", "-m", "nfdmatch"] + list(args), env=env, cwd=version.source,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-P", "-m", "nfdmatch"] + list(args),
+        env=env,
+        cwd=version.source,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     out = proc.stdout.read()
     err = proc.stderr.read()
     _, status, usage = os.wait4(proc.pid, 0)
@@ -247,14 +277,16 @@ def measure(version, work, name, queries, repeat):
     if os.path.exists(index):
         os.unlink(index)
     _warm_files(os.path.join(work, name, "curves"))
-    build_t, rss, out = _peak_rss(version, ["index", "build", os.path.join(work, name, "curves"), "--index", index,
-                                            "--format", "json"])
+    build_t, rss, out = _peak_rss(
+        version, ["index", "build", os.path.join(work, name, "curves"), "--index", index, "--format", "json"]
+    )
     curves = json.loads(out)["curves"]
     io_file = os.path.join(work, "io.txt")
     _warm_index(index)
-    version.run(["query", queries[0], "--index", index, "--top", "10"])           # warm caches and kernels
-    single, lo, hi, (out1, err1) = version.timed(["query", queries[0], "--index", index, "--top", "10",
-                                                  "--format", "csv", "--stats"], repeat)
+    version.run(["query", queries[0], "--index", index, "--top", "10"])  # warm caches and kernels
+    single, lo, hi, (out1, err1) = version.timed(
+        ["query", queries[0], "--index", index, "--top", "10", "--format", "csv", "--stats"], repeat
+    )
     version.run(["query", queries[0], "--index", index, "--top", "10"], io_file=io_file)
     single_bytes = int(open(io_file).read())
     version.run(["--help"], io_file=io_file)
@@ -263,10 +295,19 @@ def measure(version, work, name, queries, repeat):
     batch, _, _, (outb, errb) = version.timed(batch_args, max(1, repeat // 2))
     version.run(batch_args, io_file=io_file)
     batch_bytes = int(open(io_file).read())
-    return {"curves": curves, "build": build_t, "rss": rss, "single": single, "single_range": (lo, hi),
-            "single_exact": _exact_per_query(err1), "batch": batch, "batch_exact": _exact_per_query(errb),
-            "single_bytes": single_bytes - help_bytes, "batch_bytes": (batch_bytes - help_bytes) / QUERIES,
-            "rows": _rows(outb)}
+    return {
+        "curves": curves,
+        "build": build_t,
+        "rss": rss,
+        "single": single,
+        "single_range": (lo, hi),
+        "single_exact": _exact_per_query(err1),
+        "batch": batch,
+        "batch_exact": _exact_per_query(errb),
+        "single_bytes": single_bytes - help_bytes,
+        "batch_bytes": (batch_bytes - help_bytes) / QUERIES,
+        "rows": _rows(outb),
+    }
 
 
 def main():
@@ -292,13 +333,15 @@ def main():
     versions = [Version("new", ROOT)]
     if args.baseline:
         base = os.path.join(work, "baseline")
-        rev = subprocess.run(["git", "-C", ROOT, "rev-parse", args.baseline], capture_output=True, text=True,
-                             check=True).stdout.strip()
+        rev = subprocess.run(
+            ["git", "-C", ROOT, "rev-parse", args.baseline], capture_output=True, text=True, check=True
+        ).stdout.strip()
         have = subprocess.run(["git", "-C", base, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
         if have != rev:
             subprocess.run(["git", "-C", ROOT, "worktree", "remove", "--force", base], capture_output=True)
-            subprocess.run(["git", "-C", ROOT, "worktree", "add", "--detach", base, rev], check=True,
-                           capture_output=True)
+            subprocess.run(
+                ["git", "-C", ROOT, "worktree", "add", "--detach", base, rev], check=True, capture_output=True
+            )
         versions.append(Version("baseline", base))
 
     help_t = {v.label: v.timed(["--help"], args.repeat)[0] for v in versions}
@@ -324,10 +367,17 @@ def main():
             ("single query above --help", lambda x: f"{(x['single'] - x['help']) * 1e3:.0f} ms", None),
             ("exact distances, single query", lambda x: f"{x['single_exact']:.0f}", lambda x: x["single_exact"]),
             ("bytes read, single query", lambda x: f"{x['single_bytes'] / 2**20:.1f} MiB", lambda x: x["single_bytes"]),
-            (f"batch of {QUERIES}: ms/query above start-up",
-             lambda x: f"{(x['batch'] - x['help']) / QUERIES * 1e3:.1f} ms", lambda x: x["batch"] - x["help"]),
+            (
+                f"batch of {QUERIES}: ms/query above start-up",
+                lambda x: f"{(x['batch'] - x['help']) / QUERIES * 1e3:.1f} ms",
+                lambda x: x["batch"] - x["help"],
+            ),
             ("exact distances per query, batch", lambda x: f"{x['batch_exact']:.0f}", lambda x: x["batch_exact"]),
-            ("bytes read per query, batch", lambda x: f"{x['batch_bytes'] / 2**20:.1f} MiB", lambda x: x["batch_bytes"]),
+            (
+                "bytes read per query, batch",
+                lambda x: f"{x['batch_bytes'] / 2**20:.1f} MiB",
+                lambda x: x["batch_bytes"],
+            ),
         ]
         for label, fmt, key in rowspec:
             cells = [fmt(r[lab]) for lab in labels]

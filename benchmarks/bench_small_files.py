@@ -36,7 +36,7 @@ def _curve(rng) -> np.ndarray:
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     pts = np.zeros((n, 3))
     for k in range(1, 4):
-        a = rng.normal(size=(3, 2)) / k ** 2
+        a = rng.normal(size=(3, 2)) / k**2
         pts += np.outer(np.cos(k * t), a[:, 0]) + np.outer(np.sin(k * t), a[:, 1])
     return pts
 
@@ -53,8 +53,12 @@ def generate(folder: str, files: int, fmt: str, seed: int) -> None:
         if fmt == "csv":
             text = "x,y,z\n" + "".join(f"{x:.6f},{y:.6f},{z:.6f}\n" for x, y, z in pts)
         else:
-            text = ("".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in pts)
-                    + "l " + " ".join(str(j + 1) for j in range(len(pts))) + " 1\n")
+            text = (
+                "".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in pts)
+                + "l "
+                + " ".join(str(j + 1) for j in range(len(pts)))
+                + " 1\n"
+            )
         with open(os.path.join(folder, f"c{i:05d}.{fmt}"), "w") as fh:
             fh.write(text)
     open(stamp, "w").close()
@@ -63,8 +67,9 @@ def generate(folder: str, files: int, fmt: str, seed: int) -> None:
 def baseline_checkout(workdir: str, commit: str) -> str:
     path = os.path.join(workdir, "baseline-" + commit[:8])
     if not os.path.isdir(path):
-        subprocess.run(["git", "-C", REPO, "worktree", "add", "--detach", path, commit], check=True,
-                       stdout=subprocess.DEVNULL)
+        subprocess.run(
+            ["git", "-C", REPO, "worktree", "add", "--detach", path, commit], check=True, stdout=subprocess.DEVNULL
+        )
     return path
 
 
@@ -77,9 +82,13 @@ def time_build(code: str, folder: str, index: str, jobs: int) -> tuple[float, fl
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     # cwd: a folder without a nfdmatch package, or `python -m` would import the one in cwd
-    proc = subprocess.run([sys.executable, "-m", "nfdmatch", "index", "build", folder, "--index", index,
-                           "-j", str(jobs)], env=env, capture_output=True, text=True,
-                          cwd=os.path.dirname(index))
+    proc = subprocess.run(
+        [sys.executable, "-m", "nfdmatch", "index", "build", folder, "--index", index, "-j", str(jobs)],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=os.path.dirname(index),
+    )
     seconds = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
@@ -115,20 +124,28 @@ def main() -> None:
                     times.setdefault((name, fmt, jobs), []).append(wall)
                     cpus.setdefault((name, fmt, jobs), []).append(cpu)
     load = os.getloadavg()[0]
-    print(f"{args.files} one-curve files per folder, {os.cpu_count()} cores (load average {load:.1f} at the "
-          f"end), median of {args.repeats} runs (whole `nfdmatch index build` processes)")
-    print(f"{'code':<22} {'format':<6} {'-j 1 s':>8} {'files/s':>8} {'-j 2 s':>8} {'files/s':>8} {'j2/j1':>6}"
-          f" {'cpu-s j1':>8} {'cpu-s j2':>8}")
+    print(
+        f"{args.files} one-curve files per folder, {os.cpu_count()} cores (load average {load:.1f} at the "
+        f"end), median of {args.repeats} runs (whole `nfdmatch index build` processes)"
+    )
+    print(
+        f"{'code':<22} {'format':<6} {'-j 1 s':>8} {'files/s':>8} {'-j 2 s':>8} {'files/s':>8} {'j2/j1':>6}"
+        f" {'cpu-s j1':>8} {'cpu-s j2':>8}"
+    )
     for name in codes:
         for fmt in folders:
             t1 = statistics.median(times[(name, fmt, 1)])
             t2 = statistics.median(times[(name, fmt, 2)])
             c1 = statistics.median(cpus[(name, fmt, 1)])
             c2 = statistics.median(cpus[(name, fmt, 2)])
-            print(f"{name:<22} {fmt:<6} {t1:8.2f} {args.files / t1:8.0f} {t2:8.2f} {args.files / t2:8.0f} "
-                  f"{t1 / t2:6.2f} {c1:8.2f} {c2:8.2f}")
-    print("cpu-s: user + system seconds of the build and its workers (what a machine shared with "
-          "other work cannot hide); wall times of all runs:")
+            print(
+                f"{name:<22} {fmt:<6} {t1:8.2f} {args.files / t1:8.0f} {t2:8.2f} {args.files / t2:8.0f} "
+                f"{t1 / t2:6.2f} {c1:8.2f} {c2:8.2f}"
+            )
+    print(
+        "cpu-s: user + system seconds of the build and its workers (what a machine shared with "
+        "other work cannot hide); wall times of all runs:"
+    )
     print("; ".join(f"{n} {f} -j{j}: " + " ".join(f"{t:.2f}" for t in v) for (n, f, j), v in sorted(times.items())))
 
 

@@ -95,11 +95,12 @@ def make_files(work, n_curves):
     for path in list(files.values()):
         write_curves(path, curves)
     from nfdmatch.formats.vtk import _pyvista
+
     mesh = _pyvista().read(files["vtp binary zlib (write_curves)"])
     for label, name, setup in (
-            ("vtp appended raw", "appended.vtp",
-             lambda w: (w.SetDataModeToAppended(), w.SetEncodeAppendedData(0))),
-            ("vtp ascii", "ascii.vtp", lambda w: w.SetDataModeToAscii())):
+        ("vtp appended raw", "appended.vtp", lambda w: (w.SetDataModeToAppended(), w.SetEncodeAppendedData(0))),
+        ("vtp ascii", "ascii.vtp", lambda w: w.SetDataModeToAscii()),
+    ):
         writer = vtk.vtkXMLPolyDataWriter()
         writer.SetInputData(mesh)
         setup(writer)
@@ -125,9 +126,9 @@ def main():
     os.makedirs(args.workdir)
     files = make_files(args.workdir, args.curves)
     from nfdmatch.formats.vtk import _pyvista
+
     pv = _pyvista()
-    warm = subprocess.Popen([sys.executable, "-c", CHILD], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE)
+    warm = subprocess.Popen([sys.executable, "-c", CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
 
     def warm_read(path):
         warm.stdin.write((path + "\n").encode())
@@ -135,8 +136,7 @@ def main():
         return read_reply(warm.stdout)
 
     def child_read(path):
-        proc = subprocess.run([sys.executable, "-c", CHILD, path], capture_output=True,
-                              check=True)
+        proc = subprocess.run([sys.executable, "-c", CHILD, path], capture_output=True, check=True)
         return read_reply(io.BytesIO(proc.stdout))
 
     print(f"{args.curves} curves per file; median of {args.repeat} runs, seconds")
@@ -148,8 +148,7 @@ def main():
         row = [
             timed(lambda: _vtk_read.parse(open(path, "rb").read(), kind, path), args.repeat),
             timed(lambda: read_curves(path), args.repeat),
-            timed(lambda: (lambda m: (np.asarray(m.points), np.asarray(m.lines)))(pv.read(path)),
-                  args.repeat),
+            timed(lambda: (lambda m: (np.asarray(m.points), np.asarray(m.lines)))(pv.read(path)), args.repeat),
             timed(lambda: child_read(path), args.repeat),
             timed(lambda: warm_read(path), args.repeat),
         ]

@@ -49,8 +49,10 @@ def knots(data):
             order = np.lexsort((np.tile(np.arange(len(smooth)), (len(control), 1)), D), axis=1)
             best = order[:, 0]
             hits = best == np.arange(len(control))
-            misses = ", ".join(f"{names_c[i][:-4]} -> {names_s[best[i]][:-4]} ({D[i, best[i]]:.3g}; "
-                               f"true {D[i, i]:.3g})" for i in np.flatnonzero(~hits))
+            misses = ", ".join(
+                f"{names_c[i][:-4]} -> {names_s[best[i]][:-4]} ({D[i, best[i]]:.3g}; true {D[i, i]:.3g})"
+                for i in np.flatnonzero(~hits)
+            )
             print(f"{method:8} {scale:6} {hits.sum():>4}/{len(control)} {dt:8.2f}  {misses}")
 
 
@@ -60,8 +62,10 @@ def kimia(data):
         labels = {row["csv"]: row["class_name"] for row in csv.DictReader(fh)}
     names, curves = load_folder(folder)
     cls = np.array([labels[n] for n in names])
-    print(f"\n## Kimia-99: same-class matches at ranks 1..10 over {len(curves)} queries (max 99 each), "
-          "query itself excluded")
+    print(
+        f"\n## Kimia-99: same-class matches at ranks 1..10 over {len(curves)} queries (max 99 each), "
+        "query itself excluded"
+    )
     print(f"{'method':8} {'scale':6} " + " ".join(f"{r:>3}" for r in range(1, 11)) + "   sum")
     for method in ("exact", "paper"):
         for scale in ("rms", "a1"):

@@ -42,18 +42,25 @@ def main():
         seeds = {k: v for k, v in seeds.items() if k in wanted}
     per_format = max(1, args.mutants // len(seeds))
     t0 = time.perf_counter()
-    table, details = fuzzing.fuzz(seeds, os.path.join(args.workdir, "mutants"), per_format,
-                                  seed=args.seed, timeout=args.timeout, reader=args.reader)
+    table, details = fuzzing.fuzz(
+        seeds,
+        os.path.join(args.workdir, "mutants"),
+        per_format,
+        seed=args.seed,
+        timeout=args.timeout,
+        reader=args.reader,
+    )
     elapsed = time.perf_counter() - t0
-    print(f"reader {args.reader}: {per_format} mutants per format, seed {args.seed}, "
-          f"{elapsed:.1f} s")
+    print(f"reader {args.reader}: {per_format} mutants per format, seed {args.seed}, {elapsed:.1f} s")
     print(fuzzing.format_table(table))
     shown = 0
     for rows in details.values():
         for path, result in rows:
             if result["outcome"] in ("crash", "hang", "traceback") and shown < args.show:
-                print(f"  {result['outcome']}: {path}: "
-                      f"{result.get('detail') or result.get('type', '')} {result.get('message', '')}")
+                print(
+                    f"  {result['outcome']}: {path}: "
+                    f"{result.get('detail') or result.get('type', '')} {result.get('message', '')}"
+                )
                 shown += 1
     bad = sum(t[o] for t in table.values() for o in ("crash", "hang", "traceback"))
     return 1 if bad else 0

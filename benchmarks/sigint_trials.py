@@ -58,8 +58,12 @@ def main() -> None:
     ap.add_argument("--files", type=int, default=10000)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--workdir", default="/tmp/nfdmatch-small")
-    ap.add_argument("--min-delay", type=float, default=0.5,
-                    help="Earliest signal (s after start; before ~0.4 s the interpreter is still importing).")
+    ap.add_argument(
+        "--min-delay",
+        type=float,
+        default=0.5,
+        help="Earliest signal (s after start; before ~0.4 s the interpreter is still importing).",
+    )
     ap.add_argument("--max-delay", type=float, default=3.0)
     ap.add_argument("--seed", type=int, default=20261201)
     args = ap.parse_args()
@@ -77,19 +81,25 @@ def main() -> None:
     rnd.shuffle(plan)
     counts: dict = collections.defaultdict(collections.Counter)
     latencies = collections.defaultdict(list)
-    for sig in plan[:args.trials]:
+    for sig in plan[: args.trials]:
         c = counts[sig.name]
         c["trials"] += 1
         delay = rnd.uniform(args.min_delay, args.max_delay)
-        proc = subprocess.Popen(cmd + ["--rebuild"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                text=True, start_new_session=True)
+        proc = subprocess.Popen(
+            cmd + ["--rebuild"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
         time.sleep(delay)
         if proc.poll() is not None:
             c["finished before the signal"] += 1
             proc.communicate()
-            original = _digest(index)            # a finished rebuild is the new "previous index"
+            original = _digest(index)  # a finished rebuild is the new "previous index"
             continue
-        try:            # the build writes its pid into the lock file once it runs (imports done, lock held)
+        try:  # the build writes its pid into the lock file once it runs (imports done, lock held)
             started = open(index + ".lock").read().strip() == str(proc.pid)
         except OSError:
             started = False
@@ -120,18 +130,31 @@ def main() -> None:
         for n in temps:
             os.remove(os.path.join(work, n))
         c["index intact"] += _digest(index) == original
-    print(f"{args.trials} trials: `{' '.join(os.path.basename(a) if a == sys.executable else a for a in cmd)} "
-          f"--rebuild` over {args.files} one-curve CSV files, signal after {args.min_delay}-{args.max_delay} s")
-    keys = ["trials", "finished before the signal", "signalled while starting up", "exited within 1 s", "hangs",
-            "tracebacks", "tracebacks while starting up",
-            "temp files left", "processes left", "index intact"]
+    print(
+        f"{args.trials} trials: `{' '.join(os.path.basename(a) if a == sys.executable else a for a in cmd)} "
+        f"--rebuild` over {args.files} one-curve CSV files, signal after {args.min_delay}-{args.max_delay} s"
+    )
+    keys = [
+        "trials",
+        "finished before the signal",
+        "signalled while starting up",
+        "exited within 1 s",
+        "hangs",
+        "tracebacks",
+        "tracebacks while starting up",
+        "temp files left",
+        "processes left",
+        "index intact",
+    ]
     for name, c in sorted(counts.items()):
         exits = ", ".join(f"{k}: {v}" for k, v in sorted(c.items()) if k.startswith("exit "))
         lat = sorted(latencies[name])
         worst = f"{lat[-1]:.2f}" if lat else "-"
         median = f"{lat[len(lat) // 2]:.2f}" if lat else "-"
-        print(f"{name}: " + ", ".join(f"{k} {c[k]}" for k in keys) + f"; {exits}; "
-              f"signal-to-exit median {median} s, worst {worst} s")
+        print(
+            f"{name}: " + ", ".join(f"{k} {c[k]}" for k in keys) + f"; {exits}; "
+            f"signal-to-exit median {median} s, worst {worst} s"
+        )
 
 
 if __name__ == "__main__":

@@ -15,5 +15,16 @@ from .errors import NfdError
 from .formats import read_curve, read_curves, write_curves
 from .matching import Match, distance, match_descriptors
 
-__all__ = ["__version__", "Curve", "Descriptors", "Match", "NfdError", "descriptors", "distance",
-           "match_descriptors", "read_curve", "read_curves", "write_curves"]
+__all__ = [
+    "__version__",
+    "Curve",
+    "Descriptors",
+    "Match",
+    "NfdError",
+    "descriptors",
+    "distance",
+    "match_descriptors",
+    "read_curve",
+    "read_curves",
+    "write_curves",
+]

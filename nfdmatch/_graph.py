@@ -35,10 +35,13 @@ def unique_segments(segments) -> tuple[np.ndarray, np.ndarray]:
     return seg[first_idx], order[first_idx]
 
 
-def chain_segments(segments, *, path: str | None = None,
-                   vertex_label: Callable[[int], str] | None = None,
-                   segment_where: Callable[[int], str] | None = None,
-                   ) -> list[tuple[int, np.ndarray]]:
+def chain_segments(
+    segments,
+    *,
+    path: str | None = None,
+    vertex_label: Callable[[int], str] | None = None,
+    segment_where: Callable[[int], str] | None = None,
+) -> list[tuple[int, np.ndarray]]:
     """Chain undirected 2-point segments into loops (or open paths).
 
     Parameters
@@ -89,7 +92,8 @@ def chain_segments(segments, *, path: str | None = None,
         raise ParseError(
             f"vertex {label(int(verts[v]))} is shared by {int(degree[v])} line segments{where}: "
             "it is a branching point, but each curve must be a simple loop",
-            path=path)
+            path=path,
+        )
 
     # adjacency: up to two neighbours per vertex (degree is 1 or 2 here)
     ends = np.concatenate([local[:, 0], local[:, 1]])
@@ -156,7 +160,7 @@ def closed_loops(segments) -> tuple[list[np.ndarray], int, int]:
     if branching:
         loops, open_pieces = split_branching(seg)
         return loops, open_pieces, branching
-    components = chain_segments(seg)          # degree <= 2 here: it cannot find a branch
+    components = chain_segments(seg)  # degree <= 2 here: it cannot find a branch
     loops, open_pieces = [], 0
     for _, ids in components:
         if (degree[ids] == 2).all():
@@ -230,9 +234,9 @@ def split_branching(seg: np.ndarray) -> tuple[list[np.ndarray], int]:
             if w in position:
                 i = position[w]
                 loops.append(np.array(path[i:], dtype=np.int64))
-                for x in path[i + 1:]:
+                for x in path[i + 1 :]:
                     del position[x]
-                del path[i + 1:]
+                del path[i + 1 :]
                 if len(path) == 1 and next_edge(w) is None:
                     break
             else:

@@ -32,8 +32,7 @@ class Curve:
     index: int | None = None
 
     def __post_init__(self):
-        object.__setattr__(self, "points", clean_points(self.points, path=self.source or self.id,
-                                                        curve=self.index))
+        object.__setattr__(self, "points", clean_points(self.points, path=self.source or self.id, curve=self.index))
         self.points.setflags(write=False)
 
     @classmethod
@@ -80,15 +79,15 @@ def clean_points(points, *, path: str | None = None, curve: int | None = None) -
     except (TypeError, ValueError) as exc:
         raise CurveError(f"vertices are not numbers ({exc})", path=path, curve=curve) from None
     if pts.ndim != 2 or pts.shape[1] not in (2, 3):
-        raise CurveError(f"expected an (n, 3) or (n, 2) array of vertices, got shape {pts.shape}",
-                         path=path, curve=curve)
+        raise CurveError(
+            f"expected an (n, 3) or (n, 2) array of vertices, got shape {pts.shape}", path=path, curve=curve
+        )
     if pts.shape[1] == 2:
         pts = np.column_stack([pts, np.zeros(len(pts))])
     bad = ~np.isfinite(pts).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
-        raise CurveError(f"vertex {first} is not finite (NaN or Inf): {pts[first].tolist()}",
-                         path=path, curve=curve)
+        raise CurveError(f"vertex {first} is not finite (NaN or Inf): {pts[first].tolist()}", path=path, curve=curve)
     if len(pts):
         keep = np.ones(len(pts), dtype=bool)
         keep[1:] = np.any(pts[1:] != pts[:-1], axis=1)
@@ -97,14 +96,12 @@ def clean_points(points, *, path: str | None = None, curve: int | None = None) -
             pts = pts[:-1]
     distinct = _distinct_up_to_three(pts)
     if distinct < 3:
-        raise CurveError(f"a closed curve needs at least 3 distinct points, got {distinct}",
-                         path=path, curve=curve)
+        raise CurveError(f"a closed curve needs at least 3 distinct points, got {distinct}", path=path, curve=curve)
     # measured on a rescaled copy so that huge coordinates (1e200) do not overflow
     extent = np.abs(pts).max()
     perimeter = np.linalg.norm(np.diff(pts / extent, axis=0, append=pts[:1] / extent), axis=1).sum()
     if not perimeter > 0 or not np.isfinite(perimeter):
-        raise CurveError(f"the curve has no usable length (perimeter {perimeter})",
-                         path=path, curve=curve)
+        raise CurveError(f"the curve has no usable length (perimeter {perimeter})", path=path, curve=curve)
     return pts
 
 
@@ -134,7 +131,7 @@ def clean_many(arrays, *, path: str | None = None) -> list[np.ndarray]:
     suspicious = ~np.isfinite(magnitude) | (magnitude > 1e150) | ((magnitude < 1e-150) & (magnitude > 0))
     if (counts < 3).any() or suspicious.any():
         bad = np.unique(np.concatenate([np.flatnonzero(counts < 3), curve_of[suspicious]]))
-        for i in bad:           # the careful path raises with the exact message, or passes
+        for i in bad:  # the careful path raises with the exact message, or passes
             clean_points(arrays[i], path=path, curve=int(i))
     keep = np.ones(len(pts), dtype=bool)
     keep[1:] = np.any(pts[1:] != pts[:-1], axis=1)
@@ -149,7 +146,7 @@ def clean_many(arrays, *, path: str | None = None) -> list[np.ndarray]:
     third = np.any(pts != pts[new_starts][curve_of], axis=1) & np.any(pts != pts[second][curve_of], axis=1)
     distinct3 = np.logical_or.reduceat(third, new_starts) & (new_counts >= 3)
     for i in np.flatnonzero(~distinct3):
-        clean_points(arrays[i], path=path, curve=int(i))      # raises the precise error
+        clean_points(arrays[i], path=path, curve=int(i))  # raises the precise error
     return np.split(pts, np.cumsum(new_counts)[:-1])
 
 

@@ -28,9 +28,20 @@ from .errors import CurveError, ParameterError
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
-__all__ = ["Descriptors", "descriptors", "resample", "SCALES", "DEFAULT_SAMPLES",
-           "DEFAULT_HARMONICS", "DEFAULT_SCALE", "validate_parameters", "descriptors_batch",
-           "DescriptorBatch", "points_at", "reconstruct"]
+__all__ = [
+    "Descriptors",
+    "descriptors",
+    "resample",
+    "SCALES",
+    "DEFAULT_SAMPLES",
+    "DEFAULT_HARMONICS",
+    "DEFAULT_SCALE",
+    "validate_parameters",
+    "descriptors_batch",
+    "DescriptorBatch",
+    "points_at",
+    "reconstruct",
+]
 
 SCALES = ("rms", "a1")
 DEFAULT_SAMPLES = 128
@@ -74,8 +85,7 @@ class Descriptors:
         """The full band: ``(frequencies (2K,) int64, coefficients (2K, 3) complex128)``,
         frequencies ordered ``1..K, -1..-K``."""
         k = np.arange(1, self.harmonics + 1)
-        return (np.concatenate([k, -k]),
-                np.concatenate([self.coefficients, np.conj(self.coefficients)]))
+        return (np.concatenate([k, -k]), np.concatenate([self.coefficients, np.conj(self.coefficients)]))
 
 
 def validate_parameters(samples: int, harmonics: int, scale: str) -> None:
@@ -85,8 +95,9 @@ def validate_parameters(samples: int, harmonics: int, scale: str) -> None:
     if not isinstance(harmonics, (int, np.integer)) or isinstance(harmonics, bool) or harmonics < 1:
         raise ParameterError(f"harmonics must be an integer >= 1, got {harmonics!r}")
     if 2 * harmonics >= samples:
-        raise ParameterError(f"harmonics ({harmonics}) must be below samples/2 ({samples}/2): "
-                             f"raise samples or lower harmonics")
+        raise ParameterError(
+            f"harmonics ({harmonics}) must be below samples/2 ({samples}/2): raise samples or lower harmonics"
+        )
     if scale not in SCALES:
         raise ParameterError(f"scale must be one of {', '.join(SCALES)}, got {scale!r}")
 
@@ -139,8 +150,13 @@ def resample(points: np.ndarray, samples: int) -> np.ndarray:
     return points_at(points, np.arange(samples) / samples)
 
 
-def descriptors(curve: Curve | ArrayLike, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                scale: str = DEFAULT_SCALE) -> Descriptors:
+def descriptors(
+    curve: Curve | ArrayLike,
+    *,
+    samples: int = DEFAULT_SAMPLES,
+    harmonics: int = DEFAULT_HARMONICS,
+    scale: str = DEFAULT_SCALE,
+) -> Descriptors:
     """Normalized Fourier descriptors of one closed curve.
 
     Parameters
@@ -156,11 +172,13 @@ def descriptors(curve: Curve | ArrayLike, *, samples: int = DEFAULT_SAMPLES, har
     :func:`descriptors_batch` of this one curve (one implementation of the normalization).
     """
     return descriptors_batch([curve], samples=samples, harmonics=harmonics, scale=scale).row(
-        0, curve.id if isinstance(curve, Curve) else "<array>")
+        0, curve.id if isinstance(curve, Curve) else "<array>"
+    )
 
 
-def reconstruct(d: "Descriptors", *, harmonics: int | None = None, points: int | None = None,
-                normalized: bool = False) -> np.ndarray:
+def reconstruct(
+    d: "Descriptors", *, harmonics: int | None = None, points: int | None = None, normalized: bool = False
+) -> np.ndarray:
     """The curve rebuilt from its first harmonics: what the descriptor sees.
 
     ``x(t) = A_0 + 2 Re sum_{k=1..K} A_k exp(2 pi i k t)`` at ``t = j / points``, with the
@@ -186,10 +204,10 @@ def reconstruct(d: "Descriptors", *, harmonics: int | None = None, points: int |
     m = d.samples if points is None else int(points)
     if m < 3:
         raise ParameterError(f"points must be at least 3, got {points!r}")
-    coeffs = d.coefficients[:K]                                      # (K, 3)
+    coeffs = d.coefficients[:K]  # (K, 3)
     if not normalized:
-        coeffs = coeffs @ d.rotation                                 # rotation^T applied to each row
-    phase = np.exp(2j * np.pi * np.outer(np.arange(m) / m, np.arange(1, K + 1)))   # (m, K)
+        coeffs = coeffs @ d.rotation  # rotation^T applied to each row
+    phase = np.exp(2j * np.pi * np.outer(np.arange(m) / m, np.arange(1, K + 1)))  # (m, K)
     curve = 2.0 * (phase @ coeffs).real
     if normalized:
         return curve
@@ -197,8 +215,10 @@ def reconstruct(d: "Descriptors", *, harmonics: int | None = None, points: int |
     with np.errstate(over="ignore", invalid="ignore"):
         out = curve * d.scale + d.centroid
     if not np.isfinite(out).all():
-        raise CurveError("the rebuilt curve lies beyond float64 (coordinates near 1.8e308); "
-                         "use normalized=True or scale the input down")
+        raise CurveError(
+            "the rebuilt curve lies beyond float64 (coordinates near 1.8e308); "
+            "use normalized=True or scale the input down"
+        )
     return out
 
 
@@ -230,10 +250,17 @@ class DescriptorBatch:
 
     def row(self, i: int, id: str = "<array>") -> Descriptors:
         """Row ``i`` as a :class:`Descriptors` (arrays copied)."""
-        return Descriptors(coefficients=self.coefficients[i].copy(), rotation=self.rotation[i].copy(),
-                           centroid=self.centroid[i].copy(), scale=float(self.scale[i]),
-                           plane_degenerate=bool(self.plane_degenerate[i]), samples=self.samples,
-                           harmonics=self.harmonics, scale_mode=self.scale_mode, id=id)
+        return Descriptors(
+            coefficients=self.coefficients[i].copy(),
+            rotation=self.rotation[i].copy(),
+            centroid=self.centroid[i].copy(),
+            scale=float(self.scale[i]),
+            plane_degenerate=bool(self.plane_degenerate[i]),
+            samples=self.samples,
+            harmonics=self.harmonics,
+            scale_mode=self.scale_mode,
+            id=id,
+        )
 
 
 def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -242,14 +269,17 @@ def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.nd
     a1 (N, 3) complex, rms (N,) -> ((N, 3, 3) float64, (N,) bool degenerate); the identity
     where the plane is undefined (``p``, ``q`` nearly parallel or ``|a1|`` nearly zero)."""
     p, q = a1.real, -a1.imag
-    sv = np.linalg.svd(np.stack([p, q], axis=-1), compute_uv=False)          # (N, 2)
-    degenerate = (sv[:, 0] == 0) | (sv[:, 1] < PLANE_DEGENERACY * sv[:, 0]) \
+    sv = np.linalg.svd(np.stack([p, q], axis=-1), compute_uv=False)  # (N, 2)
+    degenerate = (
+        (sv[:, 0] == 0)
+        | (sv[:, 1] < PLANE_DEGENERACY * sv[:, 0])
         | (np.linalg.norm(a1, axis=1) < rms * PLANE_DEGENERACY)
+    )
     normal = np.cross(p, q)
     length = np.linalg.norm(normal, axis=1, keepdims=True)
     normal = normal / np.where(length > 0, length, 1.0)
     c = normal[:, 2]
-    v = np.stack([normal[:, 1], -normal[:, 0], np.zeros(len(c))], axis=1)    # normal x z
+    v = np.stack([normal[:, 1], -normal[:, 0], np.zeros(len(c))], axis=1)  # normal x z
     vx = np.zeros((len(c), 3, 3))
     vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 0] = -v[:, 2], v[:, 1], v[:, 2]
     vx[:, 1, 2], vx[:, 2, 0], vx[:, 2, 1] = -v[:, 0], -v[:, 1], v[:, 0]
@@ -265,8 +295,13 @@ def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.nd
     return R, degenerate
 
 
-def descriptors_batch(curves: Sequence[Curve | np.ndarray], *, samples: int = DEFAULT_SAMPLES,
-                      harmonics: int = DEFAULT_HARMONICS, scale: str = DEFAULT_SCALE) -> DescriptorBatch:
+def descriptors_batch(
+    curves: Sequence[Curve | np.ndarray],
+    *,
+    samples: int = DEFAULT_SAMPLES,
+    harmonics: int = DEFAULT_HARMONICS,
+    scale: str = DEFAULT_SCALE,
+) -> DescriptorBatch:
     """:func:`descriptors` of many curves at once, vectorized (no Python loop over vertices).
 
     Parameters
@@ -282,8 +317,16 @@ def descriptors_batch(curves: Sequence[Curve | np.ndarray], *, samples: int = DE
     pts_list = [as_points(c) for c in curves]
     N = len(pts_list)
     if N == 0:
-        return DescriptorBatch(np.zeros((0, harmonics, 3), complex), np.zeros((0, 3, 3)), np.zeros((0, 3)),
-                               np.zeros(0), np.zeros(0, bool), samples, harmonics, scale)
+        return DescriptorBatch(
+            np.zeros((0, harmonics, 3), complex),
+            np.zeros((0, 3, 3)),
+            np.zeros((0, 3)),
+            np.zeros(0),
+            np.zeros(0, bool),
+            samples,
+            harmonics,
+            scale,
+        )
     counts = np.array([len(p) for p in pts_list])
     # each curve closed explicitly (first vertex repeated), all concatenated: one insert
     flat = np.concatenate(pts_list) if N > 1 else pts_list[0]
@@ -297,33 +340,33 @@ def descriptors_batch(curves: Sequence[Curve | np.ndarray], *, samples: int = DE
     pre = np.exp2(np.floor(np.log2(np.where(magnitude > 0, magnitude, 1.0))))
     closed = closed / pre[curve_of, None]
     offset = np.add.reduceat(closed, first, axis=0)
-    offset = (offset - closed[first]) / counts[:, None]                                # vertex mean
+    offset = (offset - closed[first]) / counts[:, None]  # vertex mean
     centred = closed - offset[curve_of]
     extent = np.maximum.reduceat(np.abs(centred).max(axis=1), first)
     unit = centred / extent[curve_of, None]
     step = np.diff(unit, axis=0)
     seg = np.linalg.norm(step, axis=1)
-    starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])      # index of each curve's first vertex
-    seg[starts[1:] - 1] = 0.0                                        # no segment between curves
-    cum = np.concatenate([[0.0], np.cumsum(seg)])                    # global arc length, monotone
+    starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])  # index of each curve's first vertex
+    seg[starts[1:] - 1] = 0.0  # no segment between curves
+    cum = np.concatenate([[0.0], np.cumsum(seg)])  # global arc length, monotone
     lengths = cum[starts + counts] - cum[starts]
     targets = cum[starts][:, None] + np.arange(samples)[None, :] * (lengths / samples)[:, None]
     idx = np.searchsorted(cum, targets.ravel(), side="right") - 1
-    last = (starts + counts - 1).repeat(samples)                     # last segment of each curve
+    last = (starts + counts - 1).repeat(samples)  # last segment of each curve
     idx = np.clip(idx, starts.repeat(samples), last)
     seglen = cum[idx + 1] - cum[idx]
     t = (targets.ravel() - cum[idx]) / np.where(seglen > 0, seglen, 1.0)
     # coordinate-major (3, N * samples): contiguous gathers, and FFTs along the last axis
     sampled = (unit.T[:, idx] + t * step.T[:, idx]).reshape(3, N, samples)
     # real samples: rfft gives A_0 .. A_{n//2}, all that is used (A_{-k} = conj A_k)
-    fd = np.fft.rfft(sampled, axis=-1).transpose(1, 2, 0) / samples             # (N, n//2 + 1, 3)
+    fd = np.fft.rfft(sampled, axis=-1).transpose(1, 2, 0) / samples  # (N, n//2 + 1, 3)
     # sum over k = 1 .. n-1 of |A_k|^2: twice each k < n/2, once the Nyquist term
     twice = np.where(2 * np.arange(fd.shape[1]) < samples, 2.0, 1.0)
     twice[0] = 0.0
     rms = np.sqrt(np.einsum("k,nk->n", twice, np.sum(np.abs(fd) ** 2, axis=2)))
     a1 = np.linalg.norm(fd[:, 1], axis=1)
     divisor = rms if scale == "rms" else np.maximum(a1, rms * 1e-15)
-    coeffs = fd[:, 1:harmonics + 1] / divisor[:, None, None]
+    coeffs = fd[:, 1 : harmonics + 1] / divisor[:, None, None]
     R, degenerate = _plane_rotations(fd[:, 1], rms)
     centroid = (offset + fd[:, 0].real * extent[:, None]) * pre[:, None]
     size = divisor * extent * pre
@@ -331,13 +374,17 @@ def descriptors_batch(curves: Sequence[Curve | np.ndarray], *, samples: int = DE
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         c = curves[i]
-        raise CurveError("the curve's size or position is beyond float64 (coordinates near 1.8e308): "
-                         "scale the input down", path=c.id if isinstance(c, Curve) else None)
+        raise CurveError(
+            "the curve's size or position is beyond float64 (coordinates near 1.8e308): scale the input down",
+            path=c.id if isinstance(c, Curve) else None,
+        )
     return DescriptorBatch(
         coefficients=np.einsum("nij,nkj->nki", R, coeffs),
         rotation=R,
         centroid=centroid,
         scale=size,
         plane_degenerate=degenerate,
-        samples=int(samples), harmonics=int(harmonics), scale_mode=scale,
+        samples=int(samples),
+        harmonics=int(harmonics),
+        scale_mode=scale,
     )

@@ -70,12 +70,12 @@ def _import_distributed():
     try:
         import distributed  # noqa: F401
     except ImportError:
-        raise ClusterError(f"--scheduler needs dask and distributed, which are not installed: "
-                           f"{INSTALL_HINT}") from None
+        raise ClusterError(f"--scheduler needs dask and distributed, which are not installed: {INSTALL_HINT}") from None
     return distributed
 
 
 # --------------------------------------------------------------------------- connecting
+
 
 def _worker_info() -> dict:
     """Run on each worker at connect: what must equal the client's (read at call time)."""
@@ -84,8 +84,11 @@ def _worker_info() -> dict:
     from . import _version
     from .index.schema import FORMAT_VERSION
 
-    return {"nfdmatch": _version.__version__, "format_version": int(FORMAT_VERSION),
-            "python": "%d.%d" % sys.version_info[:2]}
+    return {
+        "nfdmatch": _version.__version__,
+        "format_version": int(FORMAT_VERSION),
+        "python": "%d.%d" % sys.version_info[:2],
+    }
 
 
 def connect(scheduler, timeout: float = DEFAULT_TIMEOUT) -> "Cluster":
@@ -128,22 +131,30 @@ def connect(scheduler, timeout: float = DEFAULT_TIMEOUT) -> "Cluster":
             if workers < 1:
                 raise ParameterError(f"--scheduler local:N needs a number of workers N >= 1, got {where!r}")
             try:
-                owned_cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                             dashboard_address=None, silence_logs=logging.ERROR)
+                owned_cluster = LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    silence_logs=logging.ERROR,
+                )
             except Exception as exc:
-                raise ClusterError(f"cannot start a local Dask cluster of {workers} workers: "
-                                   f"{type(exc).__name__}: {exc}") from None
+                raise ClusterError(
+                    f"cannot start a local Dask cluster of {workers} workers: {type(exc).__name__}: {exc}"
+                ) from None
             target = owned_cluster
         else:
             target = where
         try:
             client = Client(target, timeout=timeout, set_as_default=False)
-        except Exception as exc:      # OSError / TimeoutError: nothing listening, wrong host
+        except Exception as exc:  # OSError / TimeoutError: nothing listening, wrong host
             if owned_cluster is not None:
                 owned_cluster.close()
-            raise ClusterError(f"cannot reach the Dask scheduler at {where} within {timeout:g} s "
-                               f"({type(exc).__name__}: {_first_line(exc)}); start one with "
-                               f"`dask scheduler` or use --scheduler local:N") from None
+            raise ClusterError(
+                f"cannot reach the Dask scheduler at {where} within {timeout:g} s "
+                f"({type(exc).__name__}: {_first_line(exc)}); start one with "
+                f"`dask scheduler` or use --scheduler local:N"
+            ) from None
         owned_client = True
     cluster = Cluster(client, owned_client, owned_cluster, where)
     try:
@@ -174,7 +185,7 @@ class Cluster:
         self.address = address
         self.workers: list[str] = []
         self.threads = 0
-        self._held = None            # during a query over several ranges: descriptors sent back
+        self._held = None  # during a query over several ranges: descriptors sent back
 
     def __enter__(self) -> "Cluster":
         return self
@@ -199,22 +210,32 @@ class Cluster:
         try:
             self.client.wait_for_workers(1, timeout=timeout)
         except Exception:
-            raise ClusterError(f"no Dask worker joined the scheduler at {self.address} within {timeout:g} s; "
-                               f"start some with `dask worker {self.address}`") from None
+            raise ClusterError(
+                f"no Dask worker joined the scheduler at {self.address} within {timeout:g} s; "
+                f"start some with `dask worker {self.address}`"
+            ) from None
         try:
             info = self.client.run(_worker_info)
-        except Exception as exc:     # nfdmatch not importable on a worker, ...
-            raise ClusterError(f"the Dask workers cannot run nfdmatch ({type(exc).__name__}: "
-                               f"{_first_line(exc)}); install nfdmatch {__version__} on every worker") from None
+        except Exception as exc:  # nfdmatch not importable on a worker, ...
+            raise ClusterError(
+                f"the Dask workers cannot run nfdmatch ({type(exc).__name__}: "
+                f"{_first_line(exc)}); install nfdmatch {__version__} on every worker"
+            ) from None
         mine = _worker_info()
-        bad = [f"{addr} runs nfdmatch {w.get('nfdmatch')} (index format {w.get('format_version')}, "
-               f"Python {w.get('python')})" for addr, w in sorted(info.items())
-               if (w.get("nfdmatch"), w.get("format_version"), w.get("python"))
-               != (mine["nfdmatch"], mine["format_version"], mine["python"])]
+        bad = [
+            f"{addr} runs nfdmatch {w.get('nfdmatch')} (index format {w.get('format_version')}, "
+            f"Python {w.get('python')})"
+            for addr, w in sorted(info.items())
+            if (w.get("nfdmatch"), w.get("format_version"), w.get("python"))
+            != (mine["nfdmatch"], mine["format_version"], mine["python"])
+        ]
         if bad:
-            raise ClusterError(f"the workers must run nfdmatch {mine['nfdmatch']} (index format "
-                               f"{mine['format_version']}, Python {mine['python']}) like this client: "
-                               + "; ".join(bad[:5]) + (f"; and {len(bad) - 5} more" if len(bad) > 5 else ""))
+            raise ClusterError(
+                f"the workers must run nfdmatch {mine['nfdmatch']} (index format "
+                f"{mine['format_version']}, Python {mine['python']}) like this client: "
+                + "; ".join(bad[:5])
+                + (f"; and {len(bad) - 5} more" if len(bad) > 5 else "")
+            )
         self.workers = sorted(info)
         threads = self.client.nthreads()
         self.threads = int(sum(threads.get(w, 1) for w in self.workers)) or 1
@@ -241,22 +262,36 @@ class Cluster:
         # the local pool's batches (each described by one call, as locally, so a cluster build
         # writes the same bits), grouped into Dask tasks of bounded size
         local = pool._batches(tasks)
-        groups = _batches([tasks[b[0]] for b in local], self.threads, sizes=[
-            sum(_size(tasks[i][0]) for i in b) for b in local], counts=[len(b) for b in local])
+        groups = _batches(
+            [tasks[b[0]] for b in local],
+            self.threads,
+            sizes=[sum(_size(tasks[i][0]) for i in b) for b in local],
+            counts=[len(b) for b in local],
+        )
         futures = {}
         try:
             for group in groups:
                 batches = [local[g] for g in group]
-                fut = self.client.submit(_compute_batches, [[(i, tasks[i]) for i in b] for b in batches], os.getcwd(),
-                                        retries=RETRIES, pure=False)
+                fut = self.client.submit(
+                    _compute_batches,
+                    [[(i, tasks[i]) for i in b] for b in batches],
+                    os.getcwd(),
+                    retries=RETRIES,
+                    pure=False,
+                )
                 futures[fut] = [i for b in batches for i in b]
             for fut in as_completed(list(futures), loop=self.client.loop):
                 batch = futures.pop(fut)
                 try:
                     results = fut.result()
-                except Exception as exc:     # KilledWorker after every retry, a lost scheduler
-                    results = [_failed(tasks[i][0], f"the Dask task reading it failed on every try: "
-                                                    f"{type(exc).__name__}: {_first_line(exc)}") for i in batch]
+                except Exception as exc:  # KilledWorker after every retry, a lost scheduler
+                    results = [
+                        _failed(
+                            tasks[i][0],
+                            f"the Dask task reading it failed on every try: {type(exc).__name__}: {_first_line(exc)}",
+                        )
+                        for i in batch
+                    ]
                 for i, res in zip(batch, results):
                     yield i, res
         finally:
@@ -265,10 +300,21 @@ class Cluster:
 
     # ----------------------------------------------------------------------- query
 
-    def search_index(self, index, queries, *, top: int | None = 10, max_distance: float | None = None,
-                     method: str = "exact", direction: str = "invariant", mirror: bool = False,
-                     prune: bool = True, progress=None, parts: int | None = None,
-                     window: int | None = None):
+    def search_index(
+        self,
+        index,
+        queries,
+        *,
+        top: int | None = 10,
+        max_distance: float | None = None,
+        method: str = "exact",
+        direction: str = "invariant",
+        mirror: bool = False,
+        prune: bool = True,
+        progress=None,
+        parts: int | None = None,
+        window: int | None = None,
+    ):
         """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
 
         Parameters
@@ -309,15 +355,22 @@ class Cluster:
             stats = SearchStats(queries=len(queries), rows=idx.n_curves, pruned=prune)
             tops = [TopK(top, max_distance) for _ in queries]
             if idx.n_curves and len(queries):
-                qcoef = descriptors_batch(queries, samples=idx.samples, harmonics=idx.harmonics,
-                                          scale=idx.scale_mode).coefficients
+                qcoef = descriptors_batch(
+                    queries, samples=idx.samples, harmonics=idx.harmonics, scale=idx.scale_mode
+                ).coefficients
                 if parts:
                     n_parts = int(parts)
                 else:
                     n_parts = 1 if idx.n_curves * _TABLE_ROW_BYTES <= RANGE_BYTES else self.threads
                 ranges, stats.cell_count = _ranges(idx, n_parts, prune)
-                params = dict(top=top, max_distance=max_distance, method=method, direction=direction,
-                              mirror=mirror, window=int(window or WINDOW_ROWS))
+                params = dict(
+                    top=top,
+                    max_distance=max_distance,
+                    method=method,
+                    direction=direction,
+                    mirror=mirror,
+                    window=int(window or WINDOW_ROWS),
+                )
                 # one range: each query is answered whole by one task, whose worker also
                 # recomputes the distances it reports on the reference path (as a local
                 # search does, from the descriptors it holds), so the client merges nothing
@@ -332,8 +385,9 @@ class Cluster:
                     search = exact_search if method == "exact" else paper_search
                     for qi, tk in enumerate(tops):
                         held = _Held(self._held[qi][0]) if self._held[qi][0] else None
-                        _recompute(idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None,
-                                   table=held)
+                        _recompute(
+                            idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None, table=held
+                        )
                     self._held = None
             results = _ranked(idx, tops, top)
         finally:
@@ -367,14 +421,16 @@ class Cluster:
         self._held = [[[], 0] for _ in range(Q)]
         if seeded:
             found = [TopK(params["top"], params["max_distance"]) for _ in range(Q)]
-            done = self._round([(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done,
-                               params)
+            done = self._round(
+                [(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done, params
+            )
             seeds = [{"rows": tk.rows, "dist": tk.dist, **tk.extra} for tk in found]
             for tk, seed in zip(tops, seeds):
                 if len(seed["rows"]):
                     tk.add(seed["dist"], seed["rows"], seed)
-        self._round([(rng, everyone, seeds) for rng in ranges], path, stamp, qcoef, tops, stats, progress, total,
-                    done, params)
+        self._round(
+            [(rng, everyone, seeds) for rng in ranges], path, stamp, qcoef, tops, stats, progress, total, done, params
+        )
 
     def _round(self, jobs, path, stamp, qcoef, tops, stats, progress, total, done, params) -> int:
         """Run ``jobs`` = [(range or None for the window round, query numbers, per-query
@@ -390,11 +446,20 @@ class Cluster:
                 # a range stays on one worker, whose cache then holds its cells for every block
                 where = [self.workers[p % len(self.workers)]] if self.workers and len(jobs) > 1 else None
                 for a in range(0, len(qs), size):
-                    block = qs[a:a + size]
-                    fut = self.client.submit(_search_range, path, stamp, rng, np.ascontiguousarray(qcoef[block]),
-                                             None if seeds is None else [seeds[q] for q in block], params,
-                                             retries=RETRIES, pure=False, workers=where,
-                                             allow_other_workers=where is not None)
+                    block = qs[a : a + size]
+                    fut = self.client.submit(
+                        _search_range,
+                        path,
+                        stamp,
+                        rng,
+                        np.ascontiguousarray(qcoef[block]),
+                        None if seeds is None else [seeds[q] for q in block],
+                        params,
+                        retries=RETRIES,
+                        pure=False,
+                        workers=where,
+                        allow_other_workers=where is not None,
+                    )
                     futures[fut] = block
             for fut in as_completed(list(futures), loop=self.client.loop):
                 block = futures.pop(fut)
@@ -403,8 +468,9 @@ class Cluster:
                 except NfdError:
                     raise
                 except Exception as exc:
-                    raise ClusterError(f"a search task failed on every try: {type(exc).__name__}: "
-                                       f"{_first_line(exc)}") from None
+                    raise ClusterError(
+                        f"a search task failed on every try: {type(exc).__name__}: {_first_line(exc)}"
+                    ) from None
                 for qi, part in zip(block, answer["tops"]):
                     if len(part["rows"]):
                         if "coef" in part and self._held is not None:
@@ -425,6 +491,7 @@ class Cluster:
 
 
 # --------------------------------------------------------------------------- build tasks
+
 
 def _size(path: str) -> int:
     try:
@@ -480,10 +547,11 @@ def _compute_batches(batches: list[list[tuple[int, tuple]]], cwd: str) -> list[d
         for res, path, fpath in zip(pool._split(results, arrays), given, full):
             if fpath != path:
                 res["path"] = path
-                names = [(escape_name(fpath), escape_name(path)), (fpath, path)]   # ids and messages escape
+                names = [(escape_name(fpath), escape_name(path)), (fpath, path)]  # ids and messages escape
                 if "ids" in res:
-                    res["ids"] = [next((new + i[len(old):] for old, new in names if i.startswith(old)), i)
-                                  for i in res["ids"]]
+                    res["ids"] = [
+                        next((new + i[len(old) :] for old, new in names if i.startswith(old)), i) for i in res["ids"]
+                    ]
                 for old, new in names:
                     if old in res["error"]:
                         res["error"] = res["error"].replace(old, new, 1)
@@ -493,6 +561,7 @@ def _compute_batches(batches: list[list[tuple[int, tuple]]], cwd: str) -> list[d
 
 
 # --------------------------------------------------------------------------- search tasks
+
 
 def _ranges(idx, parts: int, prune: bool):
     """``(ranges, cell_count)``: the index split into at most ``parts`` ranges of about equal
@@ -525,15 +594,17 @@ def _worker_index(path: str, stamp: tuple):
     key = (path, stamp)
     entry = _OPEN.get(key)
     if entry is None:
-        for old_key in [k for k in _OPEN if k[0] == path]:   # a replaced index: drop the old one
+        for old_key in [k for k in _OPEN if k[0] == path]:  # a replaced index: drop the old one
             _OPEN.pop(old_key)[0].close()
         idx = open_index(path)
         got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
         if got != tuple(stamp):
             idx.close()
-            raise ClusterError("the index a worker opened is not the one the client opened (replaced by a "
-                               "build meanwhile, or another file at that path on the worker): query again",
-                               path=path)
+            raise ClusterError(
+                "the index a worker opened is not the one the client opened (replaced by a "
+                "build meanwhile, or another file at that path on the worker): query again",
+                path=path,
+            )
         entry = _OPEN[key] = [idx, None, {}]
     return entry
 
@@ -546,8 +617,11 @@ class _SeededTopK(TopK):
         super().__init__(k, max_distance)
         self._seen = np.zeros(0, dtype=np.int64)
         if seed is not None and len(seed["rows"]):
-            super().add(np.asarray(seed["dist"], dtype=np.float64), np.asarray(seed["rows"], dtype=np.int64),
-                        {key: np.asarray(seed[key]) for key in self.extra if key in seed})
+            super().add(
+                np.asarray(seed["dist"], dtype=np.float64),
+                np.asarray(seed["rows"], dtype=np.int64),
+                {key: np.asarray(seed[key]) for key in self.extra if key in seed},
+            )
             self._seen = np.sort(np.asarray(seed["rows"], dtype=np.int64))
 
     def add(self, dist, rows, result) -> None:
@@ -587,13 +661,20 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     entry = _worker_index(path, stamp)
     idx, cache = entry[0], entry[2]
     search = exact_search if params["method"] == "exact" else paper_search
-    tops = [_SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
-            for q in range(len(qcoef))]
+    tops = [
+        _SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
+        for q in range(len(qcoef))
+    ]
     out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
-    options = dict(search=search, method=params["method"], direction=params["direction"], mirror=params["mirror"],
-                   samples=idx.samples)
-    searched = None                          # the table searched, when one range holds every row
-    held = [None] * len(tops)                # per query: the table its positions point into
+    options = dict(
+        search=search,
+        method=params["method"],
+        direction=params["direction"],
+        mirror=params["mirror"],
+        samples=idx.samples,
+    )
+    searched = None  # the table searched, when one range holds every row
+    held = [None] * len(tops)  # per query: the table its positions point into
     if rng is not None and rng[0] == "rows":
         from .search.index_search import EXHAUSTIVE_ROWS
 
@@ -605,16 +686,21 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
             rows = np.arange(a, b)
             for qi, tk in enumerate(tops):
                 for s in range(0, len(rows), EXHAUSTIVE_ROWS):
-                    r = search(qcoef[qi], coefficients[s:s + EXHAUSTIVE_ROWS], idx.samples,
-                               direction=params["direction"], mirror=params["mirror"])
-                    tk.add(r["distance"], rows[s:s + EXHAUSTIVE_ROWS], r)
+                    r = search(
+                        qcoef[qi],
+                        coefficients[s : s + EXHAUSTIVE_ROWS],
+                        idx.samples,
+                        direction=params["direction"],
+                        mirror=params["mirror"],
+                    )
+                    tk.add(r["distance"], rows[s : s + EXHAUSTIVE_ROWS], r)
         out["exact"] = (hi - lo) * len(tops)
     else:
         if entry[1] is None:
             entry[1] = idx.search_table()
         table = entry[1]
         qfeat = feature_vector(qcoef)
-        if rng is None:                      # the window round
+        if rng is None:  # the window round
             for qi, tk in enumerate(tops):
                 sub = held[qi] = table.subset(_window(table, qfeat[qi], params["window"]))
                 _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, **options))
@@ -623,7 +709,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
             _, lo, hi = rng
             key = ("range", lo, hi)
             if (lo, hi) == (0, table.n_cells):
-                sub = table                  # the whole index: no second table
+                sub = table  # the whole index: no second table
             else:
                 if key not in cache:
                     cache[key] = table.subset((lo, hi))
@@ -651,16 +737,32 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
         from .search.index_search import _recompute
 
         for qi, tk in enumerate(tops):
-            _recompute(idx, qcoef[qi], tk, search, direction=params["direction"], mirror=params["mirror"],
-                       weights=None, table=searched)
+            _recompute(
+                idx,
+                qcoef[qi],
+                tk,
+                search,
+                direction=params["direction"],
+                mirror=params["mirror"],
+                weights=None,
+                table=searched,
+            )
     out["tops"] = []
     for q, tk in enumerate(tops):
-        keep = np.ones(len(tk.rows), dtype=bool) if seeds is None else \
-            ~_member(tk.rows, np.sort(np.asarray(seeds[q]["rows"], dtype=np.int64)))
-        out["tops"].append({"rows": tk.rows[keep].astype(np.int64), "dist": np.asarray(tk.dist[keep], np.float64),
-                            "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
-                            "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
-                            "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool)})
+        keep = (
+            np.ones(len(tk.rows), dtype=bool)
+            if seeds is None
+            else ~_member(tk.rows, np.sort(np.asarray(seeds[q]["rows"], dtype=np.int64)))
+        )
+        out["tops"].append(
+            {
+                "rows": tk.rows[keep].astype(np.int64),
+                "dist": np.asarray(tk.dist[keep], np.float64),
+                "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
+                "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
+                "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool),
+            }
+        )
         positions = tk.extra["position"][keep]
         if not params.get("final") and held[q] is not None and len(positions) and positions.min() >= 0:
             # the rows' descriptors, for the client's recomputation (no scattered index reads)
@@ -688,7 +790,7 @@ def _worker_kernels() -> None:
 
         worker = get_worker()
         threads = getattr(getattr(worker, "state", None), "nthreads", None) or getattr(worker, "nthreads", 1)
-    except Exception:                # not on a worker (called directly)
+    except Exception:  # not on a worker (called directly)
         return
     if threads > 1:
         from .matching import dispatch

@@ -62,8 +62,7 @@ class NfdError(Exception):
     curve : 0-based curve number within a multi-curve file, if known.
     """
 
-    def __init__(self, message: str, *, path: str | None = None,
-                 line: int | None = None, curve: int | None = None):
+    def __init__(self, message: str, *, path: str | None = None, line: int | None = None, curve: int | None = None):
         message = str(message)
         if len(message) > MAX_MESSAGE_CHARS:
             message = excerpt(message, MAX_MESSAGE_CHARS)

@@ -41,8 +41,9 @@ def reconstruction_samples(harmonics: int, samples: int | None = None) -> int:
     return n
 
 
-def reconstruct_curves(curves, *, harmonics: int, samples: int | None = None, points: int | None = None,
-                       normalized: bool = False) -> list[Reconstruction]:
+def reconstruct_curves(
+    curves, *, harmonics: int, samples: int | None = None, points: int | None = None, normalized: bool = False
+) -> list[Reconstruction]:
     """Rebuild every curve of ``curves`` (Curves) from its first ``harmonics`` harmonics.
 
     samples : arc-length samples of the transform (default :func:`reconstruction_samples`).
@@ -55,9 +56,13 @@ def reconstruct_curves(curves, *, harmonics: int, samples: int | None = None, po
     n = reconstruction_samples(harmonics, samples)
     out = []
     for curve in curves:
-        pts = reconstruct(descriptors(curve, samples=n, harmonics=harmonics), points=points,
-                          normalized=normalized)
-        out.append(Reconstruction(source_id=curve.id, curve=Curve(pts, id=f"{curve.id} K={harmonics}"),
-                                  harmonics=harmonics,
-                                  distance=None if normalized else float(distance(curve, pts).distance)))
+        pts = reconstruct(descriptors(curve, samples=n, harmonics=harmonics), points=points, normalized=normalized)
+        out.append(
+            Reconstruction(
+                source_id=curve.id,
+                curve=Curve(pts, id=f"{curve.id} K={harmonics}"),
+                harmonics=harmonics,
+                distance=None if normalized else float(distance(curve, pts).distance),
+            )
+        )
     return out

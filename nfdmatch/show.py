@@ -20,8 +20,15 @@ from .errors import CurveError, NfdError
 from .matching import Match, match_descriptors
 from .records import RankedMatch, ShownMatch
 
-__all__ = ["ShownMatch", "align_match", "match_panels", "matches_from_curves", "matches_from_index", "show_ranked",
-           "show_searched"]
+__all__ = [
+    "ShownMatch",
+    "align_match",
+    "match_panels",
+    "matches_from_curves",
+    "matches_from_index",
+    "show_ranked",
+    "show_searched",
+]
 
 #: a file whose re-matched distance differs from the indexed one by more than this (relative
 #: to 1 + distance) no longer holds the indexed curve: draw from the index instead
@@ -35,29 +42,54 @@ def _drawable(query: Curve) -> None:
     """Raise CurveError for a query too large to draw (the matches are drawn at its size)."""
     largest = float(np.abs(query.points).max())
     if largest > MAX_DRAWN_COORDINATE:
-        raise CurveError(f"coordinates up to {largest:.3g} are too large to draw (at most "
-                         f"{MAX_DRAWN_COORDINATE:g}): scale the curve down (distance, query and reconstruct "
-                         f"take it as it is)", path=query.id)
+        raise CurveError(
+            f"coordinates up to {largest:.3g} are too large to draw (at most "
+            f"{MAX_DRAWN_COORDINATE:g}): scale the curve down (distance, query and reconstruct "
+            f"take it as it is)",
+            path=query.id,
+        )
 
 
-def align_match(dq: Descriptors, db: Descriptors, points_b: np.ndarray, ranked: RankedMatch, *, source: str,
-                method: str = "exact", direction: str = "invariant", mirror: bool = False,
-                alignment: Match | None = None) -> ShownMatch:
+def align_match(
+    dq: Descriptors,
+    db: Descriptors,
+    points_b: np.ndarray,
+    ranked: RankedMatch,
+    *,
+    source: str,
+    method: str = "exact",
+    direction: str = "invariant",
+    mirror: bool = False,
+    alignment: Match | None = None,
+) -> ShownMatch:
     """The ranked match ``ranked`` with ``points_b`` ((m, 3) float64, the curve behind
     ``db``) mapped into the frame of the query behind ``dq`` by the alignment of their match
     (``alignment``, computed when None); the shift and direction become the alignment's."""
-    m = alignment if alignment is not None else match_descriptors(dq, db, method=method, direction=direction,
-                                                                  mirror=mirror)
+    m = (
+        alignment
+        if alignment is not None
+        else match_descriptors(dq, db, method=method, direction=direction, mirror=mirror)
+    )
     fractions = m.partner_fractions(np.array([0.0, START_STEP]), dq.samples)
     marks = m.apply(points_at(points_b, fractions))
-    aligned = ranked.replace(id=db.id, distance=float(ranked.distance), shift=m.shift, reversed=m.reversed,
-                             mirrored=m.mirrored)
+    aligned = ranked.replace(
+        id=db.id, distance=float(ranked.distance), shift=m.shift, reversed=m.reversed, mirrored=m.mirrored
+    )
     return ShownMatch(match=aligned, points=m.apply(points_b), start=marks[0], forward=marks[1], source=source)
 
 
-def matches_from_curves(query: Curve, results: list[RankedMatch], curves: Sequence[Curve], *, samples: int,
-                        harmonics: int, scale: str, method: str = "exact", direction: str = "invariant",
-                        mirror: bool = False) -> list[ShownMatch]:
+def matches_from_curves(
+    query: Curve,
+    results: list[RankedMatch],
+    curves: Sequence[Curve],
+    *,
+    samples: int,
+    harmonics: int,
+    scale: str,
+    method: str = "exact",
+    direction: str = "invariant",
+    mirror: bool = False,
+) -> list[ShownMatch]:
     """Matches of a ranking over curves held in memory.
 
     results : the matches :func:`~nfdmatch.search.rank_curves` found in ``curves`` (``row``:
@@ -69,22 +101,38 @@ def matches_from_curves(query: Curve, results: list[RankedMatch], curves: Sequen
     for ranked in results:
         curve = curves[ranked.row]
         db = descriptors(curve, samples=samples, harmonics=harmonics, scale=scale)
-        shown.append(align_match(dq, db, curve.points, ranked, source="file", method=method, direction=direction,
-                                 mirror=mirror))
+        shown.append(
+            align_match(dq, db, curve.points, ranked, source="file", method=method, direction=direction, mirror=mirror)
+        )
     return shown
 
 
 def _stored_descriptors(index, row: int, curve_id: str) -> Descriptors:
     """The descriptors an index keeps for one row (true size and pose included)."""
     r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
-    return DescriptorBatch(r["coefficients"], r["rotation"], r["centroid"], r["scale"], r["plane_degenerate"],
-                           index.samples, index.harmonics, index.scale_mode).row(0, curve_id)
+    return DescriptorBatch(
+        r["coefficients"],
+        r["rotation"],
+        r["centroid"],
+        r["scale"],
+        r["plane_degenerate"],
+        index.samples,
+        index.harmonics,
+        index.scale_mode,
+    ).row(0, curve_id)
 
 
-def matches_from_index(query: Curve, results: list[RankedMatch], index, *, method: str = "exact",
-                       direction: str = "invariant", mirror: bool = False,
-                       read_curve: Callable[[str], Curve] | None = None,
-                       points: int = 256) -> tuple[list[ShownMatch], list[str]]:
+def matches_from_index(
+    query: Curve,
+    results: list[RankedMatch],
+    index,
+    *,
+    method: str = "exact",
+    direction: str = "invariant",
+    mirror: bool = False,
+    read_curve: Callable[[str], Curve] | None = None,
+    points: int = 256,
+) -> tuple[list[ShownMatch], list[str]]:
     """Matches of an index search, drawn from their files when those still hold the curve.
 
     results : one query's matches from :func:`~nfdmatch.search.search_index`.
@@ -105,7 +153,7 @@ def matches_from_index(query: Curve, results: list[RankedMatch], index, *, metho
             # an index's ids are relative to its folder: found from any working directory
             located = index.locate(curve_id) if hasattr(index, "locate") else curve_id
             curve = read_curve(located)
-            if located != curve_id:                 # shown under the id the index reports
+            if located != curve_id:  # shown under the id the index reports
                 curve = Curve.trusted(curve.points, curve_id, curve.source, curve.index)
         except NfdError as exc:
             reason = f"cannot read it ({exc})"
@@ -117,38 +165,71 @@ def matches_from_index(query: Curve, results: list[RankedMatch], index, *, metho
                 continue
             reason = f"the file changed since it was indexed (distance now {m.distance:.4g})"
         db = _stored_descriptors(index, ranked.row, curve_id)
-        shown.append(align_match(dq, db, reconstruct(db, points=points), ranked, source="index", method=method,
-                                 direction=direction, mirror=mirror))
+        shown.append(
+            align_match(
+                dq,
+                db,
+                reconstruct(db, points=points),
+                ranked,
+                source="index",
+                method=method,
+                direction=direction,
+                mirror=mirror,
+            )
+        )
         notes.append(f"{curve_id}: drawn from its {harmonics} indexed harmonics: {reason}")
     return shown, notes
 
 
-def show_ranked(query: Curve, curves: Sequence[Curve], *, top: int, samples: int | None = None,
-                harmonics: int | None = None, scale: str | None = None, method: str = "exact",
-                direction: str = "invariant", mirror: bool = False) -> list[ShownMatch]:
+def show_ranked(
+    query: Curve,
+    curves: Sequence[Curve],
+    *,
+    top: int,
+    samples: int | None = None,
+    harmonics: int | None = None,
+    scale: str | None = None,
+    method: str = "exact",
+    direction: str = "invariant",
+    mirror: bool = False,
+) -> list[ShownMatch]:
     """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
     ``samples, harmonics, scale`` None take the library defaults."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
     from .search import rank_curves
 
-    params = dict(samples=samples or DEFAULT_SAMPLES, harmonics=harmonics or DEFAULT_HARMONICS,
-                  scale=scale or DEFAULT_SCALE, method=method, direction=direction, mirror=mirror)
+    params = dict(
+        samples=samples or DEFAULT_SAMPLES,
+        harmonics=harmonics or DEFAULT_HARMONICS,
+        scale=scale or DEFAULT_SCALE,
+        method=method,
+        direction=direction,
+        mirror=mirror,
+    )
     _drawable(query)
     ranked = rank_curves(query, curves, top=top, **params)
     return matches_from_curves(query, ranked, curves, **params)
 
 
-def show_searched(query: Curve, index, *, top: int, method: str = "exact", direction: str = "invariant",
-                  mirror: bool = False,
-                  read_curve: Callable[[str], Curve] | None = None) -> tuple[list[ShownMatch], list[str]]:
+def show_searched(
+    query: Curve,
+    index,
+    *,
+    top: int,
+    method: str = "exact",
+    direction: str = "invariant",
+    mirror: bool = False,
+    read_curve: Callable[[str], Curve] | None = None,
+) -> tuple[list[ShownMatch], list[str]]:
     """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
     notes of :func:`matches_from_index`."""
     from .search import search_index
 
     _drawable(query)
     results, _ = search_index(index, [query], top=top, method=method, direction=direction, mirror=mirror)
-    return matches_from_index(query, results[0], index, method=method, direction=direction, mirror=mirror,
-                              read_curve=read_curve)
+    return matches_from_index(
+        query, results[0], index, method=method, direction=direction, mirror=mirror, read_curve=read_curve
+    )
 
 
 def match_panels(shown) -> list[ShownMatch]:

@@ -33,8 +33,7 @@ from .formats import supported_extensions
 __all__ = ["find_curve_files", "walk_folder"]
 
 
-def find_curve_files(sources, *, glob: str | None = None, problems: list | None = None
-                     ) -> list[str]:
+def find_curve_files(sources, *, glob: str | None = None, problems: list | None = None) -> list[str]:
     """Curve files named by ``sources``, in a deterministic order.
 
     Parameters
@@ -64,7 +63,7 @@ def find_curve_files(sources, *, glob: str | None = None, problems: list | None 
         source = str(source)
         path, selected = split_selector(source)
         if selected is not None and os.path.isfile(path):
-            found.add(source)                  # file#i: one curve of a multi-curve file
+            found.add(source)  # file#i: one curve of a multi-curve file
         elif os.path.isdir(source):
             for file in walk_folder(source, extensions, glob=glob, problems=problems):
                 found.add(file)
@@ -75,8 +74,7 @@ def find_curve_files(sources, *, glob: str | None = None, problems: list | None 
     return found.paths
 
 
-def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(),
-                problems: list | None = None):
+def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(), problems: list | None = None):
     """Yield the files below ``folder`` whose extension (lower-cased, with the dot) is in
     ``extensions`` and whose name matches ``glob``, recursively, sorted within each folder,
     skipping hidden files and folders and the folders in ``exclude``.
@@ -91,12 +89,14 @@ def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(),
     def unlisted(exc: OSError) -> None:
         if problems is not None:
             where = exc.filename if exc.filename is not None else folder
-            problems.append(ReadError(f"cannot list the folder ({exc.strerror or exc}); its "
-                                      "files are skipped", path=str(where)))
+            problems.append(
+                ReadError(f"cannot list the folder ({exc.strerror or exc}); its files are skipped", path=str(where))
+            )
 
     for root, dirs, files in os.walk(folder, onerror=unlisted):
-        dirs[:] = sorted(d for d in dirs if not d.startswith(".")
-                         and not (skip and os.path.realpath(os.path.join(root, d)) in skip))
+        dirs[:] = sorted(
+            d for d in dirs if not d.startswith(".") and not (skip and os.path.realpath(os.path.join(root, d)) in skip)
+        )
         for name in sorted(files):
             if name.startswith(".") or Path(name).suffix.lower() not in extensions:
                 continue
@@ -106,8 +106,7 @@ def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(),
             kind = _irregular(path)
             if kind is not None:
                 if problems is not None:
-                    problems.append(ReadError(f"is {kind}, not a regular file; skipped",
-                                              path=path))
+                    problems.append(ReadError(f"is {kind}, not a regular file; skipped", path=path))
                 continue
             yield path
 
@@ -121,9 +120,13 @@ def _irregular(path: str) -> str | None:
         return None
     if stat.S_ISREG(mode):
         return None
-    for test, kind in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
-                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-                       (stat.S_ISDIR, "a directory")):
+    for test, kind in (
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISDIR, "a directory"),
+    ):
         if test(mode):
             return kind
     return "not a regular file"

@@ -36,12 +36,27 @@ OUTCOMES = ("error", "accepted", "crash", "hang", "traceback")
 #: space; the readers' own caps keep a file's data far below the rest
 CHILD_MEMORY = 2 * 2**30
 
-HUGE_NUMBERS = [b"1e308", b"-1e308", b"2147483648", b"4294967296", b"9223372036854775807",
-                b"18446744073709551615", b"4611686018427387904", b"-1", b"-2147483649", b"nan",
-                b"inf", b"0", b"1" * 40, b"99999999999"]
+HUGE_NUMBERS = [
+    b"1e308",
+    b"-1e308",
+    b"2147483648",
+    b"4294967296",
+    b"9223372036854775807",
+    b"18446744073709551615",
+    b"4611686018427387904",
+    b"-1",
+    b"-2147483649",
+    b"nan",
+    b"inf",
+    b"0",
+    b"1" * 40,
+    b"99999999999",
+]
 
-_COUNT = re.compile(rb'((?:POINTS|LINES|CELLS|CELL_TYPES|VERTICES|POLYGONS|OFFSETS)\s+)(\d+)'
-                    rb'|((?:Number\w*|offset|header_type)=")([^"]*)(")')
+_COUNT = re.compile(
+    rb"((?:POINTS|LINES|CELLS|CELL_TYPES|VERTICES|POLYGONS|OFFSETS)\s+)(\d+)"
+    rb'|((?:Number\w*|offset|header_type)=")([^"]*)(")'
+)
 _NUMBER = re.compile(rb"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 
 
@@ -70,8 +85,7 @@ def seed_files(folder) -> dict[str, list[str]]:
     p = str(folder / "many.obj")
     write_curves(p, curves)
     segments = folder / "segments.obj"
-    segments.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2\nl 2 3\nl 3 4\nl 4 1\n"
-                        "l 1 3 2\n")
+    segments.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2\nl 2 3\nl 3 4\nl 4 1\nl 1 3 2\n")
     seeds["obj"] = [p, str(segments)]
     pv = _pyvista()
     poly = pv.read(write_and_name(write_curves, folder / "base.vtp", curves))
@@ -91,19 +105,27 @@ def seed_files(folder) -> dict[str, list[str]]:
         seeds[label] = names
     for ext, data in (("vtp", poly), ("vtu", grid)):
         for label, setup in (
-                ("ascii", lambda w: w.SetDataModeToAscii()),
-                ("binary", lambda w: (w.SetDataModeToBinary(), w.SetCompressorTypeToNone())),
-                ("appended-raw", lambda w: (w.SetDataModeToAppended(),
-                                            w.SetEncodeAppendedData(0),
-                                            w.SetCompressorTypeToNone())),
-                ("appended-base64", lambda w: (w.SetDataModeToAppended(),
-                                               w.SetEncodeAppendedData(1),
-                                               w.SetCompressorTypeToNone())),
-                ("zlib", lambda w: (w.SetDataModeToBinary(), w.SetCompressorTypeToZLib())),
-                ("zlib-appended", lambda w: (w.SetDataModeToAppended(),
-                                             w.SetEncodeAppendedData(0),
-                                             w.SetCompressorTypeToZLib(),
-                                             w.SetHeaderTypeToUInt64()))):
+            ("ascii", lambda w: w.SetDataModeToAscii()),
+            ("binary", lambda w: (w.SetDataModeToBinary(), w.SetCompressorTypeToNone())),
+            (
+                "appended-raw",
+                lambda w: (w.SetDataModeToAppended(), w.SetEncodeAppendedData(0), w.SetCompressorTypeToNone()),
+            ),
+            (
+                "appended-base64",
+                lambda w: (w.SetDataModeToAppended(), w.SetEncodeAppendedData(1), w.SetCompressorTypeToNone()),
+            ),
+            ("zlib", lambda w: (w.SetDataModeToBinary(), w.SetCompressorTypeToZLib())),
+            (
+                "zlib-appended",
+                lambda w: (
+                    w.SetDataModeToAppended(),
+                    w.SetEncodeAppendedData(0),
+                    w.SetCompressorTypeToZLib(),
+                    w.SetHeaderTypeToUInt64(),
+                ),
+            ),
+        ):
             w = vtk.vtkXMLPolyDataWriter() if ext == "vtp" else vtk.vtkXMLUnstructuredGridWriter()
             w.SetInputData(data)
             setup(w)
@@ -132,23 +154,23 @@ def _edit(data: bytes, rng) -> bytes:
     if n == 0:
         return bytes(rng.integers(0, 256, 16, dtype=np.uint8))
     kind = int(rng.integers(0, 9))
-    if kind == 0:                                   # flip bytes
+    if kind == 0:  # flip bytes
         b = bytearray(data)
         for _ in range(int(rng.integers(1, 8))):
             b[int(rng.integers(n))] = int(rng.integers(256))
         return bytes(b)
-    if kind == 1:                                   # truncate
-        return data[:int(rng.integers(n))]
-    if kind == 2:                                   # insert a huge number somewhere
+    if kind == 1:  # truncate
+        return data[: int(rng.integers(n))]
+    if kind == 2:  # insert a huge number somewhere
         k = int(rng.integers(n + 1))
         return data[:k] + b" " + HUGE_NUMBERS[int(rng.integers(len(HUGE_NUMBERS)))] + b" " + data[k:]
-    if kind == 3:                                   # replace a number by a huge one
+    if kind == 3:  # replace a number by a huge one
         found = list(_NUMBER.finditer(data))
         if not found:
             return data[::-1]
         m = found[int(rng.integers(len(found)))]
-        return data[:m.start()] + HUGE_NUMBERS[int(rng.integers(len(HUGE_NUMBERS)))] + data[m.end():]
-    if kind in (4, 5):                              # duplicate or remove a line
+        return data[: m.start()] + HUGE_NUMBERS[int(rng.integers(len(HUGE_NUMBERS)))] + data[m.end() :]
+    if kind in (4, 5):  # duplicate or remove a line
         lines = data.split(b"\n")
         k = int(rng.integers(len(lines)))
         if kind == 4:
@@ -156,29 +178,33 @@ def _edit(data: bytes, rng) -> bytes:
         elif len(lines) > 1:
             del lines[k]
         return b"\n".join(lines)
-    if kind == 6:                                   # change a declared count / offset
+    if kind == 6:  # change a declared count / offset
         found = list(_COUNT.finditer(data))
         if not found:
             return _edit(data, rng)
         m = found[int(rng.integers(len(found)))]
-        new = HUGE_NUMBERS[int(rng.integers(len(HUGE_NUMBERS)))] if rng.random() < 0.5 else \
-            str(int(rng.integers(0, 40))).encode()
+        new = (
+            HUGE_NUMBERS[int(rng.integers(len(HUGE_NUMBERS)))]
+            if rng.random() < 0.5
+            else str(int(rng.integers(0, 40))).encode()
+        )
         if m.group(2) is not None:
-            return data[:m.start(2)] + new + data[m.end(2):]
+            return data[: m.start(2)] + new + data[m.end(2) :]
         if m.group(3).startswith(b"header_type"):
             new = [b"UInt32", b"UInt64", b"UInt16", b""][int(rng.integers(4))]
-        return data[:m.start(4)] + new + data[m.end(4):]
-    if kind == 7:                                   # repeat a chunk
+        return data[: m.start(4)] + new + data[m.end(4) :]
+    if kind == 7:  # repeat a chunk
         a = int(rng.integers(n))
         b = min(n, a + int(rng.integers(1, 200)))
         return data[:b] + data[a:b] * int(rng.integers(1, 50)) + data[b:]
-    a = int(rng.integers(n))                        # delete a chunk
-    return data[:a] + data[a + int(rng.integers(1, 200)):]
+    a = int(rng.integers(n))  # delete a chunk
+    return data[:a] + data[a + int(rng.integers(1, 200)) :]
 
 
 # ---------------------------------------------------------------------------
 # the child
 # ---------------------------------------------------------------------------
+
 
 def _child(reader: str) -> None:
     import resource
@@ -187,7 +213,7 @@ def _child(reader: str) -> None:
     from nfdmatch.errors import NfdError
     from nfdmatch.formats import read_curves
 
-    def test_reader(path):                         # lets the tests check this harness
+    def test_reader(path):  # lets the tests check this harness
         data = open(path, "rb").read()
         if b"CRASH" in data:
             os.abort()
@@ -198,8 +224,9 @@ def _child(reader: str) -> None:
             raise IndexError("a reader bug")
         return read_curves(path)
 
-    def pyvista_reader(path):                      # the VTK C++ readers, for comparison
+    def pyvista_reader(path):  # the VTK C++ readers, for comparison
         from nfdmatch.formats.vtk import _pyvista
+
         mesh = _pyvista().read(path)
         if mesh is None or mesh.n_points == 0:
             raise NfdError("no points", path=path)
@@ -217,17 +244,20 @@ def _child(reader: str) -> None:
             curves = read(path)
             result = {"i": int(index), "outcome": "accepted", "curves": len(curves)}
         except NfdError as exc:
-            result = {"i": int(index), "outcome": "error", "type": type(exc).__name__,
-                      "message": str(exc)[:300], "length": len(str(exc))}
+            result = {
+                "i": int(index),
+                "outcome": "error",
+                "type": type(exc).__name__,
+                "message": str(exc)[:300],
+                "length": len(str(exc)),
+            }
         except BaseException as exc:  # noqa: BLE001 - a reader bug: the outcome to count
-            result = {"i": int(index), "outcome": "traceback", "type": type(exc).__name__,
-                      "message": str(exc)[:300]}
+            result = {"i": int(index), "outcome": "traceback", "type": type(exc).__name__, "message": str(exc)[:300]}
         out.write(json.dumps(result) + "\n")
         out.flush()
 
 
-def run_mutants(paths: list[str], *, timeout: float = 10.0, reader: str = "nfdmatch",
-                batch: int = 200) -> list[dict]:
+def run_mutants(paths: list[str], *, timeout: float = 10.0, reader: str = "nfdmatch", batch: int = 200) -> list[dict]:
     """Read every path in child processes; one result dict per path, in order, with
     ``outcome`` one of :data:`OUTCOMES` (crash and hang results carry ``detail``)."""
     results: list[dict | None] = [None] * len(paths)
@@ -237,15 +267,18 @@ def run_mutants(paths: list[str], *, timeout: float = 10.0, reader: str = "nfdma
     next_index = 0
     while next_index < len(paths):
         chunk = list(range(next_index, min(len(paths), next_index + batch)))
-        proc = subprocess.Popen([sys.executable, __file__, "child", reader],
-                                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                stderr=subprocess.DEVNULL, env=env)
-        proc.stdin.write("".join(f"{i}\t{paths[i]}\n" for i in chunk).encode(
-            "utf-8", "surrogateescape"))
+        proc = subprocess.Popen(
+            [sys.executable, __file__, "child", reader],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            env=env,
+        )
+        proc.stdin.write("".join(f"{i}\t{paths[i]}\n" for i in chunk).encode("utf-8", "surrogateescape"))
         proc.stdin.close()
         current = None
         buffer = b""
-        deadline = time.monotonic() + timeout + 20       # start-up: imports
+        deadline = time.monotonic() + timeout + 20  # start-up: imports
         stopped_at = None
         while True:
             wait = deadline - time.monotonic()
@@ -255,16 +288,14 @@ def run_mutants(paths: list[str], *, timeout: float = 10.0, reader: str = "nfdma
                 proc.wait()
                 if current is None:
                     raise RuntimeError("a fuzz child did not start")
-                results[current] = {"i": current, "outcome": "hang",
-                                    "detail": f"no answer within {timeout} s"}
+                results[current] = {"i": current, "outcome": "hang", "detail": f"no answer within {timeout} s"}
                 stopped_at = current + 1
                 break
             piece = os.read(proc.stdout.fileno(), 65536)
-            if not piece:                                  # the child is gone
+            if not piece:  # the child is gone
                 code = proc.wait()
                 if current is not None and results[current] is None:
-                    results[current] = {"i": current, "outcome": "crash",
-                                        "detail": f"child exit status {code}"}
+                    results[current] = {"i": current, "outcome": "crash", "detail": f"child exit status {code}"}
                     stopped_at = current + 1
                 else:
                     stopped_at = chunk[-1] + 1
@@ -285,8 +316,16 @@ def run_mutants(paths: list[str], *, timeout: float = 10.0, reader: str = "nfdma
     return results  # type: ignore[return-value]
 
 
-def fuzz(seeds: dict[str, list[str]], folder, mutants_per_format: int, *, seed: int = 0,
-         timeout: float = 10.0, reader: str = "nfdmatch", batch: int = 200):
+def fuzz(
+    seeds: dict[str, list[str]],
+    folder,
+    mutants_per_format: int,
+    *,
+    seed: int = 0,
+    timeout: float = 10.0,
+    reader: str = "nfdmatch",
+    batch: int = 200,
+):
     """Write ``mutants_per_format`` mutants of each format's seeds into ``folder`` and read
     them. Returns ``(table, results)``: Counter of outcomes per format, and per format the
     list of ``(mutant path, result)``."""
@@ -316,10 +355,8 @@ def format_table(table: dict[str, Counter]) -> str:
     total = Counter()
     for label, counts in table.items():
         total.update(counts)
-        lines.append(f"{label:18}" + "".join(f"{counts[o]:>11}" for o in OUTCOMES)
-                     + f"{sum(counts.values()):>8}")
-    lines.append(f"{'all':18}" + "".join(f"{total[o]:>11}" for o in OUTCOMES)
-                 + f"{sum(total.values()):>8}")
+        lines.append(f"{label:18}" + "".join(f"{counts[o]:>11}" for o in OUTCOMES) + f"{sum(counts.values()):>8}")
+    lines.append(f"{'all':18}" + "".join(f"{total[o]:>11}" for o in OUTCOMES) + f"{sum(total.values()):>8}")
     return "\n".join(lines)
 
 

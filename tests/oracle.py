@@ -21,19 +21,37 @@ Conventions (see docs/method.md):
   ``... R @ (b_{(-j-s) mod m} - cent(b))`` (reversed).
 * ``mu(A, B) = sqrt(sum_k w_k |A_k - B_k|^2)`` over the band.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 __all__ = [
     # oracle
-    "resample", "fd", "normalize", "descriptors", "mu", "shift_band",
-    "reverse_band", "kabsch", "correlation_matrices", "oracle_integer",
-    "oracle_fractional", "lower_bounds",
+    "resample",
+    "fd",
+    "normalize",
+    "descriptors",
+    "mu",
+    "shift_band",
+    "reverse_band",
+    "kabsch",
+    "correlation_matrices",
+    "oracle_integer",
+    "oracle_fractional",
+    "lower_bounds",
     # generators
-    "random_smooth_curve", "random_rotation", "random_rigid_motion",
-    "start_shift", "reverse", "resample_polyline", "torus_knot", "lissajous",
-    "ellipse", "figure_eight_planar", "lemniscate_planar",
+    "random_smooth_curve",
+    "random_rotation",
+    "random_rigid_motion",
+    "start_shift",
+    "reverse",
+    "resample_polyline",
+    "torus_knot",
+    "lissajous",
+    "ellipse",
+    "figure_eight_planar",
+    "lemniscate_planar",
     "collinear_back_and_forth",
 ]
 
@@ -43,6 +61,7 @@ _DIRECTIONS = ("forward", "reversed")
 # ---------------------------------------------------------------------------
 # Descriptors
 # ---------------------------------------------------------------------------
+
 
 def resample(points, m, *, offset=0.0):
     """Uniform arc-length resampling of the closed polyline ``points`` (n,3).
@@ -176,8 +195,7 @@ def _check_dirs(directions):
     return directions
 
 
-def oracle_integer(A, B, freqs, m, *, directions=_DIRECTIONS, mirror=False,
-                   weights=None):
+def oracle_integer(A, B, freqs, m, *, directions=_DIRECTIONS, mirror=False, weights=None):
     """Exact min of ``mu(A, R B(s))`` over integer s in 0..m-1, directions, R.
 
     R in SO(3) (O(3) if ``mirror``).  Returns ``(dist, shift, R, reversed)``
@@ -199,8 +217,7 @@ def oracle_integer(A, B, freqs, m, *, directions=_DIRECTIONS, mirror=False,
     return best
 
 
-def oracle_fractional(A, B, freqs, m, *, upsample=32, directions=_DIRECTIONS,
-                      mirror=False, weights=None, n_direct=5):
+def oracle_fractional(A, B, freqs, m, *, upsample=32, directions=_DIRECTIONS, mirror=False, weights=None, n_direct=5):
     """As :func:`oracle_integer` over shifts ``s = j/upsample``, j in 0..upsample*m-1.
 
     ``M(s)`` for all grid shifts by one inverse FFT of length N = upsample*m per
@@ -269,6 +286,7 @@ def lower_bounds(A, B, freqs=None, weights=None):
 # Test-curve generators
 # ---------------------------------------------------------------------------
 
+
 def random_smooth_curve(rng, n_vertices=2000, n_harmonics=6, decay=1.5):
     """Random smooth closed 3-D curve, (n_vertices,3) float64.
 
@@ -312,8 +330,7 @@ def random_rotation(rng):
     return Q
 
 
-def random_rigid_motion(points, rng, *, scale_range=(0.1, 10), translate=100,
-                        return_params=False):
+def random_rigid_motion(points, rng, *, scale_range=(0.1, 10), translate=100, return_params=False):
     """``c * points @ R.T + t``: random rotation R, log-uniform scale c,
     translation t uniform in [-translate, translate]^3.
 

@@ -19,8 +19,28 @@ _number = st.one_of(
     st.integers(-1000, 1000).map(str),
     st.floats(-10, 10, allow_nan=False).map(lambda x: f"{x:.6f}"),
     st.floats(-10, 10, allow_nan=False).map(lambda x: f"{x:.3e}"),
-    st.sampled_from(["nan", "inf", "-inf", "1e999", "", " ", "1,5", "0x1p3", "1_0", "abc", "+.5", "5.",
-                     "\"1\"", "'2'", "1e", "--1", "\x00", "\xe9"]),
+    st.sampled_from(
+        [
+            "nan",
+            "inf",
+            "-inf",
+            "1e999",
+            "",
+            " ",
+            "1,5",
+            "0x1p3",
+            "1_0",
+            "abc",
+            "+.5",
+            "5.",
+            '"1"',
+            "'2'",
+            "1e",
+            "--1",
+            "\x00",
+            "\xe9",
+        ]
+    ),
 )
 
 
@@ -35,8 +55,11 @@ def _csv_files(draw):
     header = draw(st.sampled_from([None, "x,y,z", "x y z", "X;Y;Z", "a,b,c", "x,y", "z,x,y", "# comment", "x,y,z,w"]))
     if header is not None:
         lines.append(header)
-    base = draw(st.lists(st.lists(st.floats(-100, 100, allow_nan=False), min_size=ncol, max_size=ncol),
-                         min_size=rows, max_size=rows))
+    base = draw(
+        st.lists(
+            st.lists(st.floats(-100, 100, allow_nan=False), min_size=ncol, max_size=ncol), min_size=rows, max_size=rows
+        )
+    )
     for values in base:
         cells = [f"{v:.4f}" for v in values]
         if not plausible and draw(st.integers(0, 3)) == 0:
@@ -60,7 +83,7 @@ def _careful(path: str):
     """(vertices list, None) or (None, message) of the careful way: read_curves."""
     try:
         return [c.points for c in read_curves(path)], None
-    except Exception as exc:        # noqa: BLE001 - compared with the pool's message
+    except Exception as exc:  # noqa: BLE001 - compared with the pool's message
         return None, pool._failure(path, exc)
 
 
@@ -89,8 +112,10 @@ def test_batch_fast_path_agrees_with_read_curves(tmp_path, files):
         return
     good = [points[0] for points, _ in expected if points is not None]
     from nfdmatch.descriptors import descriptors_batch
-    ref = descriptors_batch([read_curves(p)[0] for p, (pts, _) in zip(paths, expected) if pts is not None],
-                            samples=32, harmonics=4)
+
+    ref = descriptors_batch(
+        [read_curves(p)[0] for p, (pts, _) in zip(paths, expected) if pts is not None], samples=32, harmonics=4
+    )
     assert len(good) == len(arrays["coefficients"])
     np.testing.assert_array_equal(arrays["coefficients"], ref.coefficients.astype(np.complex64))
     np.testing.assert_array_equal(arrays["centroid"], ref.centroid)

@@ -84,11 +84,14 @@ def test_distance_selects_a_curve_of_a_multi_curve_file(curves):
     assert code == 1 and "#7" in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize("bad_args, needle", [
-    (["missing.csv"], "missing.csv"),
-    (["bad"], "line 3"),
-    (["unknown.xyz123"], "supported extensions"),
-])
+@pytest.mark.parametrize(
+    "bad_args, needle",
+    [
+        (["missing.csv"], "missing.csv"),
+        (["bad"], "line 3"),
+        (["unknown.xyz123"], "supported extensions"),
+    ],
+)
 def test_distance_bad_input_is_exit_1_with_message(curves, tmp_path, bad_args, needle):
     target = str(curves[bad_args[0]]) if bad_args[0] in curves else str(tmp_path / bad_args[0])
     if target.endswith(".xyz123"):
@@ -173,18 +176,21 @@ def test_rank_skips_a_bad_file_and_exits_3(curves):
 
 
 def test_rank_max_distance_and_glob(curves):
-    code, out, _ = run("rank", curves["a"], curves["a"].parent, "--glob", "*.obj", "--max-distance", "0.02",
-                       "--format", "json")
+    code, out, _ = run(
+        "rank", curves["a"], curves["a"].parent, "--glob", "*.obj", "--max-distance", "0.02", "--format", "json"
+    )
     assert code == 0
     rows = json.loads(out)
     assert {r["match"] for r in rows} == {str(curves["a_posed"]), f"{curves['multi']}#2"}
 
 
 def test_python_dash_m_and_console_script_do_not_import_heavy_libraries():
-    code = ("import sys, runpy; sys.argv=['nfdmatch','--help']\n"
-            "try:\n    runpy.run_module('nfdmatch', run_name='__main__')\n"
-            "except SystemExit: pass\n"
-            "heavy=[m for m in ('pyvista','vtk','trimesh','matplotlib','h5py') if m in sys.modules]\n"
-            "print('HEAVY', heavy)")
+    code = (
+        "import sys, runpy; sys.argv=['nfdmatch','--help']\n"
+        "try:\n    runpy.run_module('nfdmatch', run_name='__main__')\n"
+        "except SystemExit: pass\n"
+        "heavy=[m for m in ('pyvista','vtk','trimesh','matplotlib','h5py') if m in sys.modules]\n"
+        "print('HEAVY', heavy)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "HEAVY []" in out and "Usage:" in out

@@ -48,16 +48,16 @@ def test_build_info_query_round_trip(library, tmp_path):
     code, out, _ = run("index", "info", "--index", index)
     assert code == 0 and "curves\t24" in out
 
-    code, out, err = run("query", os.path.join(QUERIES, "trefoil-posed.obj"), "--index", index,
-                         "--top", "3", "--format", "csv")
+    code, out, err = run(
+        "query", os.path.join(QUERIES, "trefoil-posed.obj"), "--index", index, "--top", "3", "--format", "csv"
+    )
     rows = list(csv.DictReader(io.StringIO(out)))
     assert code == 0 and list(rows[0])[:4] == ["query", "rank", "match", "distance"]
     assert rows[0]["match"].endswith(os.path.join("library", "trefoil.csv"))
     assert float(rows[0]["distance"]) < 0.01 and [r["rank"] for r in rows] == ["1", "2", "3"]
 
     # an indexed curve queried against its own index: itself, first, at ~0
-    code, out, _ = run("query", library / "lissajous-family.obj#1", "--index", index, "--top", "1",
-                       "--format", "json")
+    code, out, _ = run("query", library / "lissajous-family.obj#1", "--index", index, "--top", "1", "--format", "json")
     top = json.loads(out)[0]
     # ids are stored relative to the index's folder (docs/index-format.md, "Paths and ids")
     assert top["match"] == "library/lissajous-family.obj#1" and top["distance"] < 1e-5
@@ -112,11 +112,14 @@ def test_index_path_from_environment(library, tmp_path):
     assert code == 0 and json.loads(out)["match"].endswith("ellipse-2to1.csv")
 
 
-@pytest.mark.parametrize("content, needle", [
-    (b"", "idx.h5"),
-    (b"\x89HDF\r\n\x1a\n" + b"\0" * 100, "idx.h5"),
-    (b"not an index at all" * 100, "idx.h5"),
-])
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        (b"", "idx.h5"),
+        (b"\x89HDF\r\n\x1a\n" + b"\0" * 100, "idx.h5"),
+        (b"not an index at all" * 100, "idx.h5"),
+    ],
+)
 def test_query_on_a_bad_index_is_exit_1(tmp_path, content, needle):
     index = tmp_path / "idx.h5"
     index.write_bytes(content)
@@ -168,7 +171,7 @@ def test_parameter_change_recomputes_with_a_notice(library, tmp_path):
     assert code == 0 and "Notice" in err and summary["updated"] + summary["added"] > 0
     code, out, _ = run("index", "info", "--index", index, "--format", "json")
     assert (json.loads(out)["samples"], json.loads(out)["harmonics"]) == (64, 8)
-    code, summary, _ = build_json(library, "--index", index)        # no flags: keep the index's
+    code, summary, _ = build_json(library, "--index", index)  # no flags: keep the index's
     assert summary["unchanged"] > 0 and summary["updated"] == 0
 
 
@@ -189,11 +192,12 @@ def test_query_exhaustive_gives_the_pruned_answer_and_stats_say_what_was_done(li
     code, pruned, err = run("query", query, "--index", index, "--top", "5", "--format", "csv", "--details", "--stats")
     assert code == 0, err
     assert "exact distances" in err and "rows bounded in" in err and "MiB read" in err
-    code, full, err = run("query", query, "--index", index, "--top", "5", "--format", "csv", "--details",
-                          "--exhaustive", "--stats")
+    code, full, err = run(
+        "query", query, "--index", index, "--top", "5", "--format", "csv", "--details", "--exhaustive", "--stats"
+    )
     assert code == 0 and full == pruned
     curves = int(err.split(" rows:")[0].split(" x ")[1])
-    assert f"{curves} exact distances" in err                   # every row, for the one query
+    assert f"{curves} exact distances" in err  # every row, for the one query
 
 
 def test_query_on_a_format_1_index_says_how_to_upgrade(tmp_path):

@@ -48,6 +48,7 @@ def folder(tmp_path, rng):
 
 # --------------------------------------------------------------------------- reconstruct
 
+
 def test_reconstruct_writes_the_format_of_the_extension_and_reports_the_distance(tmp_path):
     src = os.path.join(SAMPLES, "library", "knotess", "5_2.csv")
     dists = []
@@ -75,8 +76,17 @@ def test_reconstruct_multi_curve_file_points_and_normalized(folder, tmp_path):
     assert [r["curve"] for r in rows] == [f"{folder / 'other.vtp'}#0", f"{folder / 'other.vtp'}#1"]
     back = read_curves(out)
     assert [c.n_vertices for c in back] == [300, 300]
-    code, stdout, stderr = run("reconstruct", f"{folder / 'other.vtp'}#1", "-k", 8, "--normalized",
-                               "-o", tmp_path / "n.csv", "--format", "json")
+    code, stdout, stderr = run(
+        "reconstruct",
+        f"{folder / 'other.vtp'}#1",
+        "-k",
+        8,
+        "--normalized",
+        "-o",
+        tmp_path / "n.csv",
+        "--format",
+        "json",
+    )
     assert code == 0 and "distance" not in json.loads(stdout)[0]
     pts = read_curve(tmp_path / "n.csv").points
     assert np.abs(pts.mean(0)).max() < 1e-9
@@ -95,6 +105,7 @@ def test_reconstruct_errors(folder, tmp_path):
 
 
 # --------------------------------------------------------------------------- matrix
+
 
 def test_matrix_csv_matches_distance_for_every_pair(folder):
     code, out, err = run("matrix", folder)
@@ -131,14 +142,16 @@ def test_matrix_json_tsv_picture_and_partial_failure(folder, tmp_path):
     width, height = png_size(png)
     assert width >= 400 and height >= 400
     assert len(np.unique(png_pixels(png).reshape(-1, 3), axis=0)) > 10
-    code, out, err = run("matrix", folder / "knot.csv", folder / "blob.csv", "--format", "tsv",
-                         "--method", "paper", "--strict-direction")
+    code, out, err = run(
+        "matrix", folder / "knot.csv", folder / "blob.csv", "--format", "tsv", "--method", "paper", "--strict-direction"
+    )
     assert code == 0 and out.splitlines()[0].split("\t")[0] == "id"
     code, out, err = run("matrix", folder / "bad.csv")
     assert code == 1 and out == "" and "bad.csv" in err
 
 
 # --------------------------------------------------------------------------- show
+
 
 def test_show_against_files_writes_the_picture_and_lists_the_rows(folder, tmp_path):
     png = tmp_path / "show.png"
@@ -154,11 +167,9 @@ def test_show_against_files_writes_the_picture_and_lists_the_rows(folder, tmp_pa
     assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 10
     # another query gives another picture
     png2 = tmp_path / "show2.png"
-    code, out, err = run("show", folder / "blob.csv", "--against", folder, "--top", 3, "-o", png2,
-                         "--size", "800x600")
+    code, out, err = run("show", folder / "blob.csv", "--against", folder, "--top", 3, "-o", png2, "--size", "800x600")
     assert code == 0 and png_size(png2) == (800, 600)
-    code, out, err = run("show", folder / "blob.csv", "--against", folder, "--top", 3, "-o", png2,
-                         "--size", "1600x900")
+    code, out, err = run("show", folder / "blob.csv", "--against", folder, "--top", 3, "-o", png2, "--size", "1600x900")
     assert not np.array_equal(png_pixels(png2), pixels)
 
 
@@ -220,9 +231,11 @@ def test_picture_commands_do_not_import_renderers_at_startup():
     import subprocess
     import sys
 
-    code = ("import sys, nfdmatch.cli; "
-            "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk', 'numba', 'h5py', 'dask', 'distributed') "
-            "if m in sys.modules))")
+    code = (
+        "import sys, nfdmatch.cli; "
+        "print(sorted(m for m in ('matplotlib', 'pyvista', 'trimesh', 'vtk', 'numba', 'h5py', 'dask', 'distributed') "
+        "if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -252,8 +265,20 @@ def test_show_reads_match_files_with_the_input_format(tmp_path, rng):
     index = tmp_path / "i.h5"
     code, _, err = run("index", "build", lib / "a.dat", lib / "b.dat", "--index", index, "--input-format", "csv")
     assert code == 0, err
-    code, out, err = run("show", lib / "a.dat", "--index", index, "--input-format", "csv", "--top", 2,
-                         "-o", tmp_path / "s.png", "--format", "json")
+    code, out, err = run(
+        "show",
+        lib / "a.dat",
+        "--index",
+        index,
+        "--input-format",
+        "csv",
+        "--top",
+        2,
+        "-o",
+        tmp_path / "s.png",
+        "--format",
+        "json",
+    )
     assert code == 0, err
     assert [r["source"] for r in json.loads(out)] == ["file", "file"] and "Note" not in err
 
@@ -275,19 +300,40 @@ def test_show_several_queries_one_picture_each_named_by_the_pattern(folder, tmp_
     index = tmp_path / "i.h5"
     assert run("index", "build", folder, "--index", index, "-q")[0] == 0
     rows_file = tmp_path / "rows.csv"
-    code, out, err = run("show", folder / "knot.csv", folder / "other.vtp", "--index", index, "--top", 2,
-                         "-o", tmp_path / "m-{stem}.png", "-o", rows_file)
+    code, out, err = run(
+        "show",
+        folder / "knot.csv",
+        folder / "other.vtp",
+        "--index",
+        index,
+        "--top",
+        2,
+        "-o",
+        tmp_path / "m-{stem}.png",
+        "-o",
+        rows_file,
+    )
     assert code == 0 and out == "", err
     names = sorted(p.name for p in tmp_path.glob("m-*.png"))
     assert names == ["m-knot.png", "m-other-0.png", "m-other-1.png"]
     assert all(png_size(tmp_path / n) == (1600, 900) for n in names)
     assert err.count("wrote ") == 3
     rows = list(csv.DictReader(open(rows_file)))
-    assert [r["query"] for r in rows] == [str(folder / "knot.csv")] * 2 + [f"{folder / 'other.vtp'}#0"] * 2 \
-        + [f"{folder / 'other.vtp'}#1"] * 2
+    assert [r["query"] for r in rows] == [str(folder / "knot.csv")] * 2 + [f"{folder / 'other.vtp'}#0"] * 2 + [
+        f"{folder / 'other.vtp'}#1"
+    ] * 2
     # a query that cannot be read: the others are answered on stdout, no picture is written (exit 3)
-    code, out, err = run("show", folder / "knot.csv", tmp_path / "nope.csv", "--index", index,
-                         "-o", tmp_path / "n-{n}.png", "--format", "csv")
+    code, out, err = run(
+        "show",
+        folder / "knot.csv",
+        tmp_path / "nope.csv",
+        "--index",
+        index,
+        "-o",
+        tmp_path / "n-{n}.png",
+        "--format",
+        "csv",
+    )
     assert code == 3 and "nope.csv" in err and "n-1.png not written" in err
     assert not list(tmp_path.glob("n-*.png")) and len(out.splitlines()) == 6
 

@@ -45,6 +45,7 @@ def leftovers(folder) -> list[str]:
 
 # --------------------------------------------------------------------------- -o FILE
 
+
 def test_query_output_file_is_written_whole_and_an_identical_rerun_keeps_its_mtime(index, tmp_path):
     out = tmp_path / "matches.csv"
     code, stdout, err = run("query", TREFOIL, "--index", index, "--top", 3, "-o", out)
@@ -77,14 +78,17 @@ def test_a_failed_command_leaves_the_output_file_untouched(index, library, tmp_p
     assert code == 1 and stdout == "" and "r.csv" in err and "folder does not exist" in err
 
 
-@pytest.mark.parametrize("command", [
-    ["distance", TREFOIL, os.path.join(LIBRARY, "trefoil.csv")],
-    ["distance", TREFOIL, os.path.join(LIBRARY, "trefoil.csv"), "--format", "json"],
-    ["describe", os.path.join(LIBRARY, "trefoil.csv"), "-k", "4"],
-    ["rank", TREFOIL, LIBRARY, "--top", "3"],
-    ["matrix", os.path.join(LIBRARY, "knotess")],
-    ["index", "info", "--format", "json"],
-])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["distance", TREFOIL, os.path.join(LIBRARY, "trefoil.csv")],
+        ["distance", TREFOIL, os.path.join(LIBRARY, "trefoil.csv"), "--format", "json"],
+        ["describe", os.path.join(LIBRARY, "trefoil.csv"), "-k", "4"],
+        ["rank", TREFOIL, LIBRARY, "--top", "3"],
+        ["matrix", os.path.join(LIBRARY, "knotess")],
+        ["index", "info", "--format", "json"],
+    ],
+)
 def test_every_row_command_writes_to_o_what_it_prints(command, index, tmp_path):
     args = [*command, "--index", index] if command[0] == "index" else command
     code, printed, err = run(*args)
@@ -107,14 +111,17 @@ def test_matrix_splits_pictures_and_rows_by_extension(tmp_path):
 
 # --------------------------------------------------------------------------- bad inputs
 
+
 def test_every_command_answers_what_it_can_read_and_exits_3(index, library, tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("x,y,z\n1,2,3\n4,five,6\n")
     trefoil = os.path.join(LIBRARY, "trefoil.csv")
-    for args in (["query", TREFOIL, bad, "--index", index],
-                 ["describe", trefoil, bad],
-                 ["rank", TREFOIL, trefoil, bad],
-                 ["matrix", trefoil, TREFOIL, bad]):
+    for args in (
+        ["query", TREFOIL, bad, "--index", index],
+        ["describe", trefoil, bad],
+        ["rank", TREFOIL, trefoil, bad],
+        ["matrix", trefoil, TREFOIL, bad],
+    ):
         code, stdout, err = run(*args, "--format", "csv")
         assert code == 3, args
         assert f"Error: {bad}: line 3" in err and "could not be read" in err
@@ -127,8 +134,7 @@ def test_every_command_answers_what_it_can_read_and_exits_3(index, library, tmp_
 def test_an_empty_folder_is_a_named_error_everywhere(index, tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
-    for args in (["query", empty, "--index", index], ["describe", empty], ["rank", TREFOIL, empty],
-                 ["matrix", empty]):
+    for args in (["query", empty, "--index", index], ["describe", empty], ["rank", TREFOIL, empty], ["matrix", empty]):
         code, stdout, err = run(*args)
         assert code == 1 and stdout == "" and f"Error: {empty}: no curve files found" in err, args
     code, stdout, err = run("query", empty, TREFOIL, "--index", index, "--format", "csv")
@@ -143,6 +149,7 @@ def test_describe_takes_folders(tmp_path):
 
 
 # --------------------------------------------------------------------------- -q / -v and summaries
+
 
 def test_quiet_keeps_errors_only_and_verbose_says_more(index, library, tmp_path):
     code, stdout, err = run("index", "build", library, "--index", tmp_path / "q.h5", "-q", "--jobs", "1")
@@ -173,6 +180,7 @@ def test_build_json_summary_names_the_index_start_time_and_failed_files(library,
 
 # --------------------------------------------------------------------------- stdin, --exclude-self
 
+
 def test_stdin_needs_an_input_format_and_is_read_like_a_file():
     text = open(os.path.join(LIBRARY, "trefoil.csv")).read()
     noisy = os.path.join(LIBRARY, "trefoil-noisy.csv")
@@ -180,8 +188,19 @@ def test_stdin_needs_an_input_format_and_is_read_like_a_file():
     assert code == 0 and json.loads(stdout)["a"] == "<stdin>" and json.loads(stdout)["distance"] < 0.1
     code, stdout, err = run("distance", "-", noisy, input=text)
     assert code == 2 and stdout == "" and "--input-format" in err
-    code, stdout, err = run("rank", "-", os.path.join(LIBRARY, "circle.tsv"), os.path.join(LIBRARY, "trefoil.csv"),
-                            "--input-format", "csv", "--top", 1, "--format", "csv", input=text)
+    code, stdout, err = run(
+        "rank",
+        "-",
+        os.path.join(LIBRARY, "circle.tsv"),
+        os.path.join(LIBRARY, "trefoil.csv"),
+        "--input-format",
+        "csv",
+        "--top",
+        1,
+        "--format",
+        "csv",
+        input=text,
+    )
     assert code == 0 and list(csv.DictReader(io.StringIO(stdout)))[0]["match"].endswith("trefoil.csv")
     code, stdout, err = run("describe", "-", "--input-format", "csv", input="x,y,z\n1,2,3\n4,five,6\n")
     assert code == 1 and stdout == "" and "Error: <stdin>: line 3" in err
@@ -191,10 +210,11 @@ def test_exclude_self_drops_the_query_however_its_path_is_spelled(index, library
     trefoil = library / "trefoil.csv"
     code, stdout, _ = run("query", trefoil, "--index", index, "--top", 2, "--format", "json")
     rows = json.loads(stdout)
-    assert rows[0]["match"] == "library/trefoil.csv" and rows[0]["distance"] < 1e-6   # relative to lib.h5's folder
+    assert rows[0]["match"] == "library/trefoil.csv" and rows[0]["distance"] < 1e-6  # relative to lib.h5's folder
     monkeypatch.chdir(library)
-    code, stdout, err = run("query", "./trefoil.csv", "--index", index, "--top", 2, "--format", "json",
-                            "--exclude-self")
+    code, stdout, err = run(
+        "query", "./trefoil.csv", "--index", index, "--top", 2, "--format", "json", "--exclude-self"
+    )
     assert code == 0, err
     rows = json.loads(stdout)
     assert [r["rank"] for r in rows] == [1, 2] and all(not r["match"].endswith("/trefoil.csv") for r in rows)
@@ -203,6 +223,7 @@ def test_exclude_self_drops_the_query_however_its_path_is_spelled(index, library
 
 
 # --------------------------------------------------------------------------- index ls / export
+
 
 def test_index_ls_lists_files_and_curves(index, library):
     code, stdout, err = run("index", "ls", "--index", index, "--format", "json")
@@ -236,22 +257,22 @@ def test_index_export_npz_jsonl_csv_hold_the_stored_descriptors(index, tmp_path)
 
 # --------------------------------------------------------------------------- terminal tables
 
+
 def test_tables_fit_the_terminal_and_fold_the_query_column(index, library):
-    code, stdout, err = run("query", QUERIES, "--index", index, "--top", 3, "--format", "table",
-                            env={"COLUMNS": "60"})
+    code, stdout, err = run("query", QUERIES, "--index", index, "--top", 3, "--format", "table", env={"COLUMNS": "60"})
     assert code == 0 and err == ""
     lines = stdout.splitlines()
     assert max(len(line) for line in lines) <= 60
     assert sum(line.startswith("query: ") for line in lines) == 3 and "trefoil-posed.obj" in stdout
     assert stdout.startswith("paths under library/")
-    assert "library/trefoil.csv" not in stdout.replace("\n", "")     # said once, above
+    assert "library/trefoil.csv" not in stdout.replace("\n", "")  # said once, above
     # CSV is untouched by all this: full ids, one row per match
-    code, stdout, _ = run("query", QUERIES, "--index", index, "--top", 3, "--format", "csv",
-                          env={"COLUMNS": "60"})
+    code, stdout, _ = run("query", QUERIES, "--index", index, "--top", 3, "--format", "csv", env={"COLUMNS": "60"})
     assert len(stdout.splitlines()) == 10 and ",library/trefoil.csv," in stdout
 
 
 # --------------------------------------------------------------------------- progress
+
 
 def test_progress_bars_only_on_a_terminal_and_not_with_quiet(index, monkeypatch):
     from nfdmatch.cli import common
@@ -270,6 +291,7 @@ def test_progress_bars_only_on_a_terminal_and_not_with_quiet(index, monkeypatch)
 
 # --------------------------------------------------------------------------- the README's Makefile
 
+
 def readme_makefile() -> str:
     text = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
     section = text.split("### Use in Makefiles and cron", 1)[1]
@@ -280,8 +302,11 @@ def test_the_readme_makefile_runs_and_a_second_run_rebuilds_nothing(tmp_path):
     (tmp_path / "Makefile").write_text(readme_makefile())
     shutil.copytree(LIBRARY, tmp_path / "curves")
     shutil.copytree(QUERIES, tmp_path / "queries")
-    env = {**os.environ, "NFDMATCH": f"{sys.executable} -m nfdmatch",
-           "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
+    env = {
+        **os.environ,
+        "NFDMATCH": f"{sys.executable} -m nfdmatch",
+        "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]),
+    }
     first = subprocess.run(["make"], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert first.returncode == 0, first.stderr
     report = tmp_path / "report.csv"

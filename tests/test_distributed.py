@@ -35,15 +35,19 @@ def run(*args, env=None):
 def client():
     from distributed import Client, LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=50) as cluster, Client(cluster, set_as_default=False) as c:
+    with (
+        LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=50
+        ) as cluster,
+        Client(cluster, set_as_default=False) as c,
+    ):
         c.wait_for_workers(2, timeout=60)
         yield c
 
 
 @pytest.fixture
 def cluster(client):
-    client.wait_for_workers(2, timeout=60)      # a test may have killed a worker: the nanny restarts it
+    client.wait_for_workers(2, timeout=60)  # a test may have killed a worker: the nanny restarts it
     with connect(client) as c:
         yield c
 
@@ -51,8 +55,11 @@ def cluster(client):
 def _families(rng, families, members):
     curves = []
     for _f in range(families):
-        for _m, pts in enumerate(smooth_curve_samplings(rng, [int(rng.integers(60, 160)) for _ in range(members)],
-                                                       n_harmonics=int(rng.integers(2, 7)))):
+        for _m, pts in enumerate(
+            smooth_curve_samplings(
+                rng, [int(rng.integers(60, 160)) for _ in range(members)], n_harmonics=int(rng.integers(2, 7))
+            )
+        ):
             pts = pts + rng.normal(scale=0.01, size=pts.shape)
             curves.append(random_rigid_motion(start_shift(pts, int(rng.integers(len(pts)))), rng))
     return curves
@@ -66,12 +73,13 @@ def library(tmp_path_factory):
     curves = _families(rng, 60, 10)
     order = rng.permutation(len(curves))
     for f in range(30):
-        write_curves(str(folder / f"part-{f:02d}.obj"), [curves[i] for i in order[f * 20:(f + 1) * 20]])
+        write_curves(str(folder / f"part-{f:02d}.obj"), [curves[i] for i in order[f * 20 : (f + 1) * 20]])
     for f, pts in enumerate(_families(rng, 3, 1)):
         write_curves(str(folder / f"single-{f}.csv"), pts)
     (folder / "broken.csv").write_text("x,y,z\n1,2,3\n4,oops,6\n")
-    queries = [Curve(random_rigid_motion(start_shift(c, 7)[::-1], rng), id=f"q{i}") for i, c in
-               enumerate(curves[::37])] + [Curve(c, id=f"new{i}") for i, c in enumerate(_families(rng, 4, 1))]
+    queries = [
+        Curve(random_rigid_motion(start_shift(c, 7)[::-1], rng), id=f"q{i}") for i, c in enumerate(curves[::37])
+    ] + [Curve(c, id=f"new{i}") for i, c in enumerate(_families(rng, 4, 1))]
     return folder, queries
 
 
@@ -85,6 +93,7 @@ def _contents(path):
             if isinstance(obj, h5py.Dataset):
                 out[name] = (obj.dtype.str, obj[...])
             out[name + "@attrs"] = dict(obj.attrs.items())
+
         h5.visititems(visit)
     return out
 
@@ -107,7 +116,7 @@ def _assert_same_file(a, b):
 def test_a_cluster_build_writes_the_index_a_local_build_writes(cluster, library, tmp_path, monkeypatch):
     from nfdmatch.search import cells
 
-    monkeypatch.setattr(cells, "ROWS_PER_CELL", 16)     # many cells: the query test splits them
+    monkeypatch.setattr(cells, "ROWS_PER_CELL", 16)  # many cells: the query test splits them
     folder, _ = library
     local, remote = tmp_path / "local.h5", tmp_path / "remote.h5"
     rl = build_index([str(folder)], str(local), jobs=1)
@@ -115,7 +124,7 @@ def test_a_cluster_build_writes_the_index_a_local_build_writes(cluster, library,
     assert (rr.added, rr.failed, rr.curves, rr.written) == (rl.added, rl.failed, rl.curves, True) == (33, 1, 603, True)
     assert rr.failures == rl.failures and "oops" in rr.failures[0][1]
     _assert_same_file(local, remote)
-    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []    # no temp file left
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp file left
 
     # incremental: one file changed, one removed, one added -- still the local build's file
     os.utime(folder / "part-03.obj", ns=(1, 1))
@@ -127,8 +136,11 @@ def test_a_cluster_build_writes_the_index_a_local_build_writes(cluster, library,
     finally:
         (folder / "late.csv").unlink()
         (tmp_path / "moved.csv").rename(folder / "single-2.csv")
-    assert (rr.added, rr.removed, rr.unchanged, rr.failed) == (rl.added, rl.removed, rl.unchanged, rl.failed) \
-        == (1, 1, 32, 1)          # part-03: new mtime, same contents (hashed on the client)
+    assert (
+        (rr.added, rr.removed, rr.unchanged, rr.failed)
+        == (rl.added, rl.removed, rl.unchanged, rl.failed)
+        == (1, 1, 32, 1)
+    )  # part-03: new mtime, same contents (hashed on the client)
     _assert_same_file(local, remote)
 
 
@@ -139,7 +151,7 @@ def test_relative_sources_are_the_clients_whatever_the_workers_folder(cluster, l
     (tmp_path / "rel").mkdir()
     for name in ("part-00.obj", "part-01.obj", "single-0.csv", "broken.csv"):
         shutil.copy(folder / name, tmp_path / "rel" / name)
-    monkeypatch.chdir(tmp_path)              # the workers stay in the folder they started in
+    monkeypatch.chdir(tmp_path)  # the workers stay in the folder they started in
     assert cluster.client.run(os.getcwd).popitem()[1] != str(tmp_path)
     rl = build_index(["rel"], "local.h5", jobs=1)
     calls = []
@@ -161,8 +173,16 @@ def test_cli_build_on_the_scheduler_names_a_bad_file_and_exits_3(client, library
     assert f"indexed into {index}: 33 added, 0 updated, 0 removed, 0 unchanged, 1 failed files; 603 curves" in err
     assert "Traceback" not in err
     # the same from $NFDMATCH_SCHEDULER; nothing changed, nothing computed
-    code, out, err = run("index", "build", folder, "--index", index, "--format", "json",
-                         env={"NFDMATCH_SCHEDULER": client.scheduler.address})
+    code, out, err = run(
+        "index",
+        "build",
+        folder,
+        "--index",
+        index,
+        "--format",
+        "json",
+        env={"NFDMATCH_SCHEDULER": client.scheduler.address},
+    )
     assert code == 3 and '"unchanged": 33' in out and '"failed": 1' in out
 
 
@@ -175,6 +195,7 @@ def _kill_on_first_file():
 
     def die(*args, **kwargs):
         _os._exit(17)
+
     pool._compute_batch = die
 
 
@@ -188,7 +209,7 @@ def test_a_worker_that_dies_mid_task_is_replaced_and_its_task_rerun(client, clus
     assert (report.added, report.failed, report.curves) == (33, 1, 603)
     _assert_same_file(local, remote)
     client.wait_for_workers(2, timeout=60)
-    assert not before & set(client.scheduler_info()["workers"])      # both workers died and were replaced
+    assert not before & set(client.scheduler_info()["workers"])  # both workers died and were replaced
 
 
 def _same_rows(a, b):
@@ -201,8 +222,15 @@ def _same_rows(a, b):
         assert np.allclose([r.shift for r in ra], [r.shift for r in rb], rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize("options", [dict(top=5), dict(top=12, mirror=True), dict(top=None, max_distance=0.2),
-                                     dict(top=3, direction="strict", method="paper")])
+@pytest.mark.parametrize(
+    "options",
+    [
+        dict(top=5),
+        dict(top=12, mirror=True),
+        dict(top=None, max_distance=0.2),
+        dict(top=3, direction="strict", method="paper"),
+    ],
+)
 def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_path_factory, options):
     from nfdmatch.search import cells
 
@@ -222,8 +250,14 @@ def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_
         # small windows: the first round's seeds are not yet the answer, the ranges must find it
         for parts, window in ((None, None), (2, None), (2, 1), (3, 40), (7, 100)):
             calls = []
-            remote, stats = cluster.search_index(idx, queries, parts=parts, window=window,
-                                                 progress=lambda done, total: calls.append((done, total)), **options)
+            remote, stats = cluster.search_index(
+                idx,
+                queries,
+                parts=parts,
+                window=window,
+                progress=lambda done, total: calls.append((done, total)),
+                **options,
+            )
             assert calls[0][0] == 0 and calls[-1][0] == calls[-1][1] >= len(queries)
             _same_rows(remote, local)
             assert stats.queries == len(queries) and stats.rows == 603 and stats.cell_count == local_stats.cell_count
@@ -250,8 +284,11 @@ def test_a_worker_with_two_threads_answers_on_kernels_that_release_the_gil(libra
     build_index([str(folder)], str(index), jobs=1)
     with open_index(index) as idx:
         local, _ = search_index(idx, queries, top=5)
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None,
-                      silence_logs=50) as lc, Client(lc, set_as_default=False) as c, connect(c) as cluster:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None, silence_logs=50) as lc,
+        Client(lc, set_as_default=False) as c,
+        connect(c) as cluster,
+    ):
         assert cluster.threads == 2
         remote, _ = cluster.search_index(str(index), queries, top=5)
         _same_rows(remote, local)
@@ -285,8 +322,10 @@ def _csv_rows(text):
     import csv
     import io
 
-    return [{k: (f"{float(v):.12f}" if k in ("distance", "shift") else v) for k, v in r.items()}
-            for r in csv.DictReader(io.StringIO(text))]
+    return [
+        {k: (f"{float(v):.12f}" if k in ("distance", "shift") else v) for k, v in r.items()}
+        for r in csv.DictReader(io.StringIO(text))
+    ]
 
 
 def _other_version():
@@ -308,8 +347,9 @@ def test_workers_with_another_nfdmatch_version_are_refused_at_connect(client, li
     try:
         with pytest.raises(ClusterError, match=r"must run nfdmatch 0\.1\.0 .*runs nfdmatch 0\.0\.1-other"):
             connect(client)
-        code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler",
-                             client.scheduler.address)
+        code, out, err = run(
+            "index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", client.scheduler.address
+        )
         assert code == 1 and out == "" and "Error: the workers must run nfdmatch" in err
         assert "Traceback" not in err and not (tmp_path / "i.h5").exists()
     finally:
@@ -326,19 +366,26 @@ def _unused_port() -> int:
 
 def test_an_unreachable_scheduler_is_an_error_after_the_timeout_not_a_hang(library, tmp_path):
     address = f"tcp://127.0.0.1:{_unused_port()}"
-    code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", address,
-                         "--scheduler-timeout", "1")
+    code, out, err = run(
+        "index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", address, "--scheduler-timeout", "1"
+    )
     assert code == 1 and out == ""
     assert err.startswith(f"Error: cannot reach the Dask scheduler at {address} within 1 s")
     assert "Traceback" not in err and not (tmp_path / "i.h5").exists()
     qfile = tmp_path / "q.csv"
     write_curves(str(qfile), library[1][0])
     build_index([str(library[0])], str(tmp_path / "i.h5"), jobs=1)
-    code, out, err = run("query", qfile, "--index", tmp_path / "i.h5",
-                         env={"NFDMATCH_SCHEDULER": address, "NFDMATCH_SCHEDULER_TIMEOUT": "0.5"})
+    code, out, err = run(
+        "query",
+        qfile,
+        "--index",
+        tmp_path / "i.h5",
+        env={"NFDMATCH_SCHEDULER": address, "NFDMATCH_SCHEDULER_TIMEOUT": "0.5"},
+    )
     assert code == 1 and out == "" and "cannot reach the Dask scheduler" in err and "within 0.5 s" in err
-    code, out, err = run("query", qfile, "--index", tmp_path / "i.h5", "--scheduler", address,
-                         "--scheduler-timeout", "0")
+    code, out, err = run(
+        "query", qfile, "--index", tmp_path / "i.h5", "--scheduler", address, "--scheduler-timeout", "0"
+    )
     assert code == 2 and "--scheduler-timeout" in err
 
 
@@ -348,11 +395,13 @@ def test_bad_local_cluster_size_is_an_error(tmp_path, library):
 
 
 def test_without_dask_the_scheduler_option_says_what_to_install(library, tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "distributed", None)          # import distributed -> ImportError
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
     code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", "local:2")
     assert code == 1 and out == ""
-    assert "Error: --scheduler needs dask and distributed, which are not installed: " \
-           "pip install 'nfdmatch[distributed]'" in err
+    assert (
+        "Error: --scheduler needs dask and distributed, which are not installed: "
+        "pip install 'nfdmatch[distributed]'" in err
+    )
     # without --scheduler, nothing changes
     code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--jobs", "1")
     assert code == 3

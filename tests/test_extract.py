@@ -16,13 +16,12 @@ from click.testing import CliRunner
 
 from nfdmatch.cli import main
 from nfdmatch.errors import MeshError, ParameterError, ReadError, UnknownFormatError
-from nfdmatch.extract import (Contour, extract_contours, find_mesh_files, mesh_stem, section_levels,
-                              write_contours)
+from nfdmatch.extract import Contour, extract_contours, find_mesh_files, mesh_stem, section_levels, write_contours
 from nfdmatch.formats import read_curves
 from conftest import run_cli as run
 
-R_CYL, H_CYL, CYL_SIDES = 0.8, 8.0, 64          # a long cylinder along z
-R_MAJOR, R_MINOR = 2.0, 0.5                      # a torus around z
+R_CYL, H_CYL, CYL_SIDES = 0.8, 8.0, 64  # a long cylinder along z
+R_MAJOR, R_MINOR = 2.0, 0.5  # a torus around z
 
 
 def rows_of(out: str) -> list[dict]:
@@ -37,18 +36,18 @@ def signed_area(points: np.ndarray, a: int) -> float:
 
 # ---------------------------------------------------------------------------------- meshes
 
+
 @pytest.fixture(scope="module")
 def meshes(tmp_path_factory):
     d = tmp_path_factory.mktemp("meshes")
     cyl = trimesh.creation.cylinder(radius=R_CYL, height=H_CYL, sections=CYL_SIDES)
     cyl.export(d / "cylinder.stl")
     cyl.export(d / "cylinder.ply")
-    disk = trimesh.creation.cylinder(radius=2.0, height=0.5, sections=64)       # wider than high
+    disk = trimesh.creation.cylinder(radius=2.0, height=0.5, sections=64)  # wider than high
     disk.export(d / "disk.stl")
-    torus = trimesh.creation.torus(major_radius=R_MAJOR, minor_radius=R_MINOR,
-                                   major_sections=96, minor_sections=48)
+    torus = trimesh.creation.torus(major_radius=R_MAJOR, minor_radius=R_MINOR, major_sections=96, minor_sections=48)
     torus.export(d / "torus.ply")
-    tube = cyl.copy()                                                            # caps removed
+    tube = cyl.copy()  # caps removed
     tube.update_faces(np.abs(tube.face_normals[:, 2]) < 0.5)
     tube.remove_unreferenced_vertices()
     tube.export(d / "tube.stl")
@@ -61,8 +60,7 @@ def meshes(tmp_path_factory):
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]], float)
     trimesh.Trimesh(v, [[0, 1, 2], [0, 3, 4]], process=False).export(d / "bowtie.ply")
     # three fins sharing the edge (0,0,0)-(0,0,1): a Y-shaped section, theta-shaped boundary
-    v = np.array([[0, 0, 0], [0, 0, 1], [1, 0, 0], [1, 0, 1], [-1, 1, 0], [-1, 1, 1],
-                  [-1, -1, 0], [-1, -1, 1]], float)
+    v = np.array([[0, 0, 0], [0, 0, 1], [1, 0, 0], [1, 0, 1], [-1, 1, 0], [-1, 1, 1], [-1, -1, 0], [-1, -1, 1]], float)
     f = [[0, 2, 3], [0, 3, 1], [0, 4, 5], [0, 5, 1], [0, 6, 7], [0, 7, 1]]
     trimesh.Trimesh(v, f, process=False).export(d / "fins.ply")
     # a scene of two cylinders placed apart by scene-graph transforms
@@ -83,11 +81,14 @@ def bad_files(tmp_path):
         "empty": (tmp_path / "empty.stl", "", MeshError, "empty"),
         "curve_csv": (tmp_path / "curve.csv", "x,y,z\n0,0,0\n1,0,0\n0,1,0\n", UnknownFormatError, "curve file"),
         "unknown_ext": (tmp_path / "model.foo", "solid x\n", UnknownFormatError, "'.foo'"),
-        "no_faces": (tmp_path / "points.ply",
-                     "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
-                     "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n", MeshError, "no faces"),
-        "obj_curve": (tmp_path / "loop.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3 1\n", MeshError,
-                      "curve file"),
+        "no_faces": (
+            tmp_path / "points.ply",
+            "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n",
+            MeshError,
+            "no faces",
+        ),
+        "obj_curve": (tmp_path / "loop.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3 1\n", MeshError, "curve file"),
     }
     out = {}
     for name, (path, text, exc, words) in files.items():
@@ -99,6 +100,7 @@ def bad_files(tmp_path):
 
 # ---------------------------------------------------------------------------------- sections
 
+
 @pytest.mark.parametrize("name", ["cylinder.stl", "cylinder.ply"])
 def test_cylinder_sections_along_the_auto_axis_are_circles(meshes, name):
     n = 5
@@ -108,27 +110,26 @@ def test_cylinder_sections_along_the_auto_axis_are_circles(meshes, name):
     np.testing.assert_allclose(result.levels, expected_levels, rtol=0, atol=1e-12)
     assert [c.level_index for c in result.contours] == list(range(n))
     assert result.notes == []
-    chord = R_CYL * (1 - np.cos(np.pi / CYL_SIDES))        # deepest point of a side facet
+    chord = R_CYL * (1 - np.cos(np.pi / CYL_SIDES))  # deepest point of a side facet
     for c, level in zip(result.contours, expected_levels):
         assert (c.kind, c.axis, c.loop, c.mesh) == ("section", "z", 0, str(meshes / name))
         assert c.level == pytest.approx(level, abs=1e-12)
         assert c.points.shape[1] == 3 and c.points.dtype == np.float64 and c.n_vertices >= CYL_SIDES
-        assert np.all(c.points[:, 2] == c.level)            # exactly in the plane
+        assert np.all(c.points[:, 2] == c.level)  # exactly in the plane
         radius = np.hypot(c.points[:, 0], c.points[:, 1])
         assert abs(radius.mean() - R_CYL) < 0.01 * R_CYL
         assert np.abs(radius - R_CYL).max() <= chord + 1e-6
-        assert signed_area(c.points, 2) > 0                  # counter-clockwise seen from +z
+        assert signed_area(c.points, 2) > 0  # counter-clockwise seen from +z
         assert not np.array_equal(c.points[0], c.points[-1])  # closing edge implicit
 
 
 def test_explicit_axis_overrides_the_longest_extent(meshes):
     auto = extract_contours(meshes / "disk.stl", sections=3)
-    assert auto.axis == "x"                                   # x and y tie at 4 > 0.5: the first
+    assert auto.axis == "x"  # x and y tie at 4 > 0.5: the first
     assert all(c.axis == "x" for c in auto.contours)
     result = extract_contours(meshes / "disk.stl", sections=4, axis="z")
     assert result.axis == "z" and len(result.contours) == 4
-    np.testing.assert_allclose([c.level for c in result.contours],
-                               -0.25 + (np.arange(4) + 0.5) * 0.5 / 4, atol=1e-12)
+    np.testing.assert_allclose([c.level for c in result.contours], -0.25 + (np.arange(4) + 0.5) * 0.5 / 4, atol=1e-12)
     for c in result.contours:
         radius = np.hypot(c.points[:, 0], c.points[:, 1])
         assert abs(radius.mean() - 2.0) < 0.02 and np.abs(radius - 2.0).max() < 2.0 * (1 - np.cos(np.pi / 64)) + 1e-6
@@ -137,13 +138,13 @@ def test_explicit_axis_overrides_the_longest_extent(meshes):
 def test_torus_across_its_axis_gives_two_concentric_circles(meshes):
     n = 5
     result = extract_contours(meshes / "torus.ply", sections=n, axis="z")
-    levels = -R_MINOR + (np.arange(n) + 0.5) * 2 * R_MINOR / n       # -0.4 ... 0.4, 0 in the middle
+    levels = -R_MINOR + (np.arange(n) + 0.5) * 2 * R_MINOR / n  # -0.4 ... 0.4, 0 in the middle
     np.testing.assert_allclose(result.levels, levels, atol=1e-12)
     assert len(result.contours) == 2 * n and result.notes == []
     for i, z in enumerate(levels):
         outer, inner = [c for c in result.contours if c.level_index == i]
-        assert (outer.loop, inner.loop) == (0, 1)                  # longest first
-        half = np.sqrt(R_MINOR ** 2 - z ** 2)
+        assert (outer.loop, inner.loop) == (0, 1)  # longest first
+        half = np.sqrt(R_MINOR**2 - z**2)
         for loop, expected in ((outer, R_MAJOR + half), (inner, R_MAJOR - half)):
             radius = np.hypot(loop.points[:, 0], loop.points[:, 1])
             assert abs(radius.mean() - expected) < 0.01 * expected, (i, expected, radius.mean())
@@ -159,13 +160,13 @@ def test_torus_along_its_axis_gives_two_circles_of_the_tube_radius(meshes):
     outer = R_MAJOR + R_MINOR
     np.testing.assert_allclose(result.levels, [-outer * 2 / 3, 0.0, outer * 2 / 3], atol=1e-12)
     by_level = {i: [c for c in result.contours if c.level_index == i] for i in range(3)}
-    assert [len(by_level[i]) for i in range(3)] == [1, 2, 1]       # |x| in (R - r, R + r): one loop
+    assert [len(by_level[i]) for i in range(3)] == [1, 2, 1]  # |x| in (R - r, R + r): one loop
     sides = []
     for c in by_level[1]:
         side = np.sign(c.points[:, 1].mean())
         assert np.all(np.sign(c.points[:, 1]) == side)
         sides.append(side)
-        radius = np.hypot(c.points[:, 1] - side * R_MAJOR, c.points[:, 2])   # about (0, +-R, 0)
+        radius = np.hypot(c.points[:, 1] - side * R_MAJOR, c.points[:, 2])  # about (0, +-R, 0)
         assert abs(radius.mean() - R_MINOR) < 0.01 * R_MINOR
         assert np.abs(radius - R_MINOR).max() < 0.01 * R_MINOR
         assert np.all(c.points[:, 0] == 0.0)
@@ -188,6 +189,7 @@ def test_levels_rule():
 
 
 # ---------------------------------------------------------------------------------- boundaries and open pieces
+
 
 def test_boundaries_of_an_open_tube_are_its_two_rims(meshes):
     result = extract_contours(meshes / "tube.stl", sections=0, boundaries=True)
@@ -241,13 +243,32 @@ def test_branching_points_are_split_into_simple_loops(meshes):
 
 # ---------------------------------------------------------------------------------- names and writing
 
+
 def test_names_are_readable_sortable_and_safe():
     pts = np.eye(3)
-    c = Contour(points=pts, mesh="dir/torus.stl", kind="section", axis="z", level=-0.125,
-                level_index=3, loop=0, level_count=10, loop_count=2)
+    c = Contour(
+        points=pts,
+        mesh="dir/torus.stl",
+        kind="section",
+        axis="z",
+        level=-0.125,
+        level_index=3,
+        loop=0,
+        level_count=10,
+        loop_count=2,
+    )
     assert c.name == "torus_section-z03_at-0.125_loop0"
-    c = Contour(points=pts, mesh="scan #2 v1.ply", kind="section", axis="x", level=-0.0,
-                level_index=7, loop=11, level_count=120, loop_count=12)
+    c = Contour(
+        points=pts,
+        mesh="scan #2 v1.ply",
+        kind="section",
+        axis="x",
+        level=-0.0,
+        level_index=7,
+        loop=11,
+        level_count=120,
+        loop_count=12,
+    )
     assert c.name == "scan_2_v1_section-x007_at0_loop11"
     c = Contour(points=pts, mesh="box.obj", kind="boundary", loop=0, loop_count=1)
     assert c.name == "box_boundary_loop0"
@@ -255,12 +276,17 @@ def test_names_are_readable_sortable_and_safe():
 
 
 def test_write_read_back_and_stems_unique_across_meshes(meshes, tmp_path):
-    contours = (extract_contours(meshes / "cylinder.stl", sections=2).contours
-                + extract_contours(meshes / "cylinder.ply", sections=2).contours)
+    contours = (
+        extract_contours(meshes / "cylinder.stl", sections=2).contours
+        + extract_contours(meshes / "cylinder.ply", sections=2).contours
+    )
     written = write_contours(contours, tmp_path / "new" / "folder")
     assert [os.path.basename(p) for p in written] == [
-        "cylinder-stl_section-z00_at-2_loop0.obj", "cylinder-stl_section-z01_at2_loop0.obj",
-        "cylinder-ply_section-z00_at-2_loop0.obj", "cylinder-ply_section-z01_at2_loop0.obj"]
+        "cylinder-stl_section-z00_at-2_loop0.obj",
+        "cylinder-stl_section-z01_at2_loop0.obj",
+        "cylinder-ply_section-z00_at-2_loop0.obj",
+        "cylinder-ply_section-z01_at2_loop0.obj",
+    ]
     for path, c in zip(written, contours):
         (curve,) = read_curves(path)
         assert curve.id == path and np.array_equal(curve.points, c.points)
@@ -277,10 +303,14 @@ def test_find_mesh_files_walks_folders_and_skips_the_output(meshes, tmp_path):
     (tmp_path / "m" / "out" / "old_section.obj").write_text("x")
     found = find_mesh_files([tmp_path / "m", tmp_path / "given.xyz"], exclude=[tmp_path / "m" / "out"])
     assert [os.path.relpath(p, tmp_path) for p in found] == [
-        os.path.join("m", "a.PLY"), os.path.join("m", "b.stl"), "given.xyz"]
+        os.path.join("m", "a.PLY"),
+        os.path.join("m", "b.stl"),
+        "given.xyz",
+    ]
 
 
 # ---------------------------------------------------------------------------------- errors
+
 
 def test_bad_inputs_raise_clean_errors_naming_the_file(bad_files):
     for name, (path, exc, words) in bad_files.items():
@@ -338,45 +368,69 @@ def test_cli_usage_errors(meshes, tmp_path):
     code, _, err = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "o", "--axis", "w")
     assert code == 2
     # a closed mesh asked only for boundaries gives nothing: exit 1 with notes
-    code, out, err = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "o", "--sections", "0",
-                         "--boundaries")
+    code, out, err = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "o", "--sections", "0", "--boundaries")
     assert code == 1 and out == ""
     assert "Note:" in err and "(the mesh is closed)" in err and "Error: no closed contour" in err
 
 
 # ---------------------------------------------------------------------------------- CLI end to end
 
+
 def test_cli_extract_then_index_and_query(meshes, tmp_path):
     out_dir = tmp_path / "contours"
-    code, out, err = run("extract", meshes / "torus.ply", meshes / "tube.stl", "-o", out_dir,
-                         "--sections", "5", "--axis", "x", "--boundaries", "--format", "json")
+    code, out, err = run(
+        "extract",
+        meshes / "torus.ply",
+        meshes / "tube.stl",
+        "-o",
+        out_dir,
+        "--sections",
+        "5",
+        "--axis",
+        "x",
+        "--boundaries",
+        "--format",
+        "json",
+    )
     assert code == 0, err
     rows = json.loads(out)
     assert list(rows[0]) == ["file", "mesh", "kind", "axis", "level", "loop", "vertices"]
     torus_rows = [r for r in rows if r["mesh"] == str(meshes / "torus.ply")]
     # levels -2, -1, 0, 1, 2: |x| > R - r gives one loop, |x| < R - r two loops
     assert [(r["level"], r["loop"]) for r in torus_rows] == [
-        (-2.0, 0), (-1.0, 0), (-1.0, 1), (0.0, 0), (0.0, 1), (1.0, 0), (1.0, 1), (2.0, 0)]
+        (-2.0, 0),
+        (-1.0, 0),
+        (-1.0, 1),
+        (0.0, 0),
+        (0.0, 1),
+        (1.0, 0),
+        (1.0, 1),
+        (2.0, 0),
+    ]
     assert os.path.basename(torus_rows[0]["file"]) == "torus_section-x00_at-2_loop0.obj"
     tube_rows = [r for r in rows if r["mesh"] == str(meshes / "tube.stl")]
     assert [r["kind"] for r in tube_rows] == ["boundary", "boundary"]
     assert [r["axis"] for r in tube_rows] == [None, None]
     assert err.count("open pieces skipped") == 5 and "Note: " in err
     # the written files, and the manifest of what extract wrote (docs/extract.md)
-    assert sorted(os.listdir(out_dir)) == sorted([os.path.basename(r["file"]) for r in rows]
-                                                 + [".nfdmatch-extract.json"])
+    assert sorted(os.listdir(out_dir)) == sorted(
+        [os.path.basename(r["file"]) for r in rows] + [".nfdmatch-extract.json"]
+    )
     for r in rows:
         (curve,) = read_curves(r["file"])
         assert curve.n_vertices == r["vertices"]
 
     index = tmp_path / "i.h5"
-    result = CliRunner().invoke(main, ["index", "build", str(out_dir), "--index", str(index), "--jobs", "1",
-                                       "--format", "json"], catch_exceptions=False)
+    result = CliRunner().invoke(
+        main,
+        ["index", "build", str(out_dir), "--index", str(index), "--jobs", "1", "--format", "json"],
+        catch_exceptions=False,
+    )
     assert result.exit_code == 0, result.stderr
     summary = json.loads(result.stdout)
     assert summary["curves"] == len(rows) and summary["failed"] == 0
 
-    query = torus_rows[0]["file"]                   # the spiric section at x = -2
+    query = torus_rows[0]["file"]  # the spiric section at x = -2
     code, out, err = run("query", query, "--index", index, "--top", str(len(rows)), "--format", "csv")
     assert code == 0, err
     matches = rows_of(out)
@@ -390,14 +444,24 @@ def test_cli_extract_then_index_and_query(meshes, tmp_path):
 
 
 def test_cli_output_formats_and_table(meshes, tmp_path):
-    code, out, err = run("extract", meshes / "tube.stl", "-o", tmp_path / "v", "--sections", "0",
-                         "--boundaries", "--output-format", "vtp", "--format", "csv")
+    code, out, err = run(
+        "extract",
+        meshes / "tube.stl",
+        "-o",
+        tmp_path / "v",
+        "--sections",
+        "0",
+        "--boundaries",
+        "--output-format",
+        "vtp",
+        "--format",
+        "csv",
+    )
     assert code == 0 and err.startswith("2 contours from 1 of 1 meshes written to")
     files = [r["file"] for r in rows_of(out)]
     assert [os.path.basename(f) for f in files] == ["tube_boundary_loop0.vtp", "tube_boundary_loop1.vtp"]
     assert all(len(read_curves(f)) == 1 for f in files)
-    code, out, _ = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "t", "--sections", "2",
-                       "--format", "table")
+    code, out, _ = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "t", "--sections", "2", "--format", "table")
     assert code == 0 and "cylinder_section-z01_at2_loop0.obj" in out and "vertices" in out
 
 
@@ -420,7 +484,7 @@ def test_a_plane_through_vertices_gives_those_vertices_once(tmp_path):
     trimesh.Trimesh(rings.reshape(-1, 3), faces, process=False).export(tmp_path / "tube.ply")
     (loop,) = extract_contours(tmp_path / "tube.ply", sections=1, axis="z").contours
     assert loop.level == 1.0 and loop.n_vertices == around
-    stored = rings[1].astype(np.float32).astype(np.float64)          # PLY keeps float32
+    stored = rings[1].astype(np.float32).astype(np.float64)  # PLY keeps float32
     assert {tuple(p) for p in loop.points} == {tuple(p) for p in stored}
 
 
@@ -432,16 +496,17 @@ def test_rerun_leaves_unchanged_files_untouched(meshes, tmp_path, fmt):
     assert code == 0, err
     before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
     for p in out.iterdir():
-        os.utime(p, ns=(1, 1))                           # as if written long ago
+        os.utime(p, ns=(1, 1))  # as if written long ago
     code, _, err = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--output-format", fmt)
     assert code == 0, err
-    assert sorted(p.name for p in out.iterdir()) == sorted(before)     # no temporary files left
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)  # no temporary files left
     assert {p.stat().st_mtime_ns for p in out.iterdir()} == {1}
     # the same mesh moved sideways: same names (same levels along z), new content, rewritten
     moved = tmp_path / "moved"
     moved.mkdir()
-    trimesh.creation.cylinder(radius=R_CYL, height=H_CYL, sections=CYL_SIDES).apply_translation(
-        [5.0, 0.0, 0.0]).export(moved / "cylinder.stl")
+    trimesh.creation.cylinder(radius=R_CYL, height=H_CYL, sections=CYL_SIDES).apply_translation([5.0, 0.0, 0.0]).export(
+        moved / "cylinder.stl"
+    )
     code, _, err = run("extract", moved / "cylinder.stl", "-o", out, "--sections", 3, "--output-format", fmt)
     assert code == 0, err
     assert sorted(p.name for p in out.iterdir()) == sorted(before)

@@ -13,8 +13,7 @@ from conftest import run_cli as run
 
 
 def cylinder(path, height=8.0, shift=0.0):
-    trimesh.creation.cylinder(radius=0.8, height=height, sections=32).apply_translation(
-        [0.0, 0.0, shift]).export(path)
+    trimesh.creation.cylinder(radius=0.8, height=height, sections=32).apply_translation([0.0, 0.0, shift]).export(path)
 
 
 def names(folder) -> list[str]:
@@ -26,8 +25,9 @@ def parts(tmp_path):
     d = tmp_path / "parts"
     d.mkdir()
     cylinder(d / "rod.stl")
-    trimesh.creation.torus(major_radius=2.0, minor_radius=0.5, major_sections=48,
-                           minor_sections=24).export(d / "ring.ply")
+    trimesh.creation.torus(major_radius=2.0, minor_radius=0.5, major_sections=48, minor_sections=24).export(
+        d / "ring.ply"
+    )
     return d
 
 
@@ -41,8 +41,8 @@ def test_a_changed_mesh_whose_levels_move_leaves_no_stale_files(parts, tmp_path)
     assert code == 0, err
     old_rod, ring = contours_of(out, "rod"), contours_of(out, "ring")
     assert len(old_rod) == 3 and len(ring) == 4 and MANIFEST in names(out)
-    (out / "notes.obj").write_text("v 0 0 0\n")             # not extract's: never touched
-    cylinder(parts / "rod.stl", height=12.0, shift=1.0)      # the levels move: new names
+    (out / "notes.obj").write_text("v 0 0 0\n")  # not extract's: never touched
+    cylinder(parts / "rod.stl", height=12.0, shift=1.0)  # the levels move: new names
     # without --prune the old files stay (and the manifest remembers them)
     code, _, err = run("extract", parts, "-o", out, "--sections", 3)
     assert code == 0, err
@@ -76,12 +76,12 @@ def test_a_deleted_mesh_loses_its_contours_and_a_failed_one_keeps_them(parts, tm
     assert code == 3 and len(contours_of(out, "ring")) == 4
     assert "its mesh could not be read this run" in err
     (parts / "ring.ply").write_bytes(ring)
-    os.remove(parts / "ring.ply")                            # deleted for good
+    os.remove(parts / "ring.ply")  # deleted for good
     code, _, err = run("extract", parts, "-o", out, "--sections", 2, "--prune")
     assert code == 0, err
     assert contours_of(out, "ring") == [] and len(contours_of(out, "rod")) == 2
     assert "4 stale contour files removed" in err
-    assert not [n for n in names(out) if n.startswith(".") and n != MANIFEST]   # no temporary files
+    assert not [n for n in names(out) if n.startswith(".") and n != MANIFEST]  # no temporary files
 
 
 def test_the_manifest_is_stable_json_and_an_identical_rerun_leaves_it(parts, tmp_path):
@@ -94,7 +94,7 @@ def test_the_manifest_is_stable_json_and_an_identical_rerun_leaves_it(parts, tmp
     assert entry["mesh"] == os.path.realpath(parts / "rod.stl") and len(entry["sha256"]) == 64
     os.utime(out / MANIFEST, ns=(1, 1))
     assert run("extract", parts / "rod.stl", "-o", out, "--sections", 2, "--prune")[0] == 0
-    assert os.stat(out / MANIFEST).st_mtime_ns == 1              # nothing changed: not rewritten
+    assert os.stat(out / MANIFEST).st_mtime_ns == 1  # nothing changed: not rewritten
 
 
 def test_prune_never_follows_a_hostile_manifest(tmp_path):
@@ -105,8 +105,15 @@ def test_prune_never_follows_a_hostile_manifest(tmp_path):
     import hashlib
 
     sha = hashlib.sha256(victim.read_bytes()).hexdigest()
-    (out / MANIFEST).write_text(json.dumps({"format": "nfdmatch-extract-manifest", "version": 1, "files": {
-        "../precious.txt": {"mesh": "x", "sha256": sha}, str(victim): {"mesh": "x", "sha256": sha}}}))
+    (out / MANIFEST).write_text(
+        json.dumps(
+            {
+                "format": "nfdmatch-extract-manifest",
+                "version": 1,
+                "files": {"../precious.txt": {"mesh": "x", "sha256": sha}, str(victim): {"mesh": "x", "sha256": sha}},
+            }
+        )
+    )
     result = prune_contours(out, [])
     assert result.removed == [] and victim.read_text() == "keep me\n"
     (out / MANIFEST).write_text("{not json")

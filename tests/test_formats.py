@@ -95,6 +95,7 @@ def random_curve(rng, n=40, scale=1.0):
 # registry, selectors, lazy imports
 # ---------------------------------------------------------------------------
 
+
 def test_every_format_module_has_read_points_and_write():
     for mod in (csv_format, obj_format, vtk_format):
         assert callable(mod.write) and callable(mod.read_points)
@@ -121,14 +122,12 @@ def test_registry():
 
 def test_unknown_extension_lists_extensions_and_format_option(tmp_path):
     p = write(tmp_path, "curve.dat", "0 0 0\n1 0 0\n0 1 0\n")
-    err = expect(UnknownFormatError, p, lambda: read_curves(p),
-                 contains=(".csv", ".obj", ".vtp", "--input-format"))
+    err = expect(UnknownFormatError, p, lambda: read_curves(p), contains=(".csv", ".obj", ".vtp", "--input-format"))
     assert isinstance(err, ValueError)
     noext = write(tmp_path, "curve", "0 0 0\n1 0 0\n0 1 0\n")
     expect(UnknownFormatError, noext, lambda: read_curves(noext), contains=("--input-format",))
     expect(UnknownFormatError, p, lambda: read_curves(p, format="stl"), contains=("csv, obj",))
-    expect(UnknownFormatError, str(tmp_path / "out.stl"),
-           lambda: write_curves(tmp_path / "out.stl", [SQUARE]))
+    expect(UnknownFormatError, str(tmp_path / "out.stl"), lambda: write_curves(tmp_path / "out.stl", [SQUARE]))
     mesh = write(tmp_path, "part.stl", "solid x\nendsolid x\n")
     expect(UnknownFormatError, mesh, lambda: read_curves(mesh), contains=("triangle mesh", "nfdmatch extract"))
 
@@ -157,7 +156,7 @@ def test_split_selector(tmp_path):
     assert split_selector(f) == (f, None)
     assert split_selector(f + "#") == (f + "#", None)
     assert split_selector(f + "#x") == (f + "#x", None)
-    assert split_selector("missing.obj#3") == ("missing.obj", 3)   # nothing exists: split
+    assert split_selector("missing.obj#3") == ("missing.obj", 3)  # nothing exists: split
     assert split_selector(Path(f)) == (f, None)
     # only the last '#' counts
     weird = write(tmp_path, "a#b.obj", (DATA / "two_squares.obj").read_text())
@@ -170,19 +169,21 @@ def test_split_selector(tmp_path):
 
 
 def test_importing_formats_does_not_import_pyvista_or_trimesh():
-    code = ("import sys, nfdmatch.formats\n"
-            "bad = [m for m in ('pyvista', 'vtk', 'vtkmodules', 'trimesh') if m in sys.modules]\n"
-            "print(bad)\n"
-            "sys.exit(1 if bad else 0)\n")
+    code = (
+        "import sys, nfdmatch.formats\n"
+        "bad = [m for m in ('pyvista', 'vtk', 'vtkmodules', 'trimesh') if m in sys.modules]\n"
+        "print(bad)\n"
+        "sys.exit(1 if bad else 0)\n"
+    )
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
 # ---------------------------------------------------------------------------
 # missing / unreadable files (every format)
 # ---------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("ext", [".csv", ".obj", ".vtk", ".vtp", ".vtu"])
 def test_missing_file(tmp_path, ext):
@@ -209,18 +210,31 @@ def test_permission_denied_is_read_error(tmp_path, monkeypatch):
     monkeypatch.setattr(_chain, "open", denied, raising=False)
     monkeypatch.setattr(_chain, "_os_open", denied)
     expect(ReadError, p, lambda: read_curves(p), contains=("permission denied",))
-    expect(WriteError, str(tmp_path / "out.csv"), lambda: write_curves(tmp_path / "out.csv",
-                                                                      [SQUARE]),
-           contains=("permission denied",))
+    expect(
+        WriteError,
+        str(tmp_path / "out.csv"),
+        lambda: write_curves(tmp_path / "out.csv", [SQUARE]),
+        contains=("permission denied",),
+    )
 
 
 # ---------------------------------------------------------------------------
 # CSV / TSV / TXT / XYZ
 # ---------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name", ["square.csv", "square_semicolon.csv", "square.tsv",
-                                  "square.xyz", "square_2d.txt", "extra_columns.csv",
-                                  "commented.csv"])
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "square.csv",
+        "square_semicolon.csv",
+        "square.tsv",
+        "square.xyz",
+        "square_2d.txt",
+        "extra_columns.csv",
+        "commented.csv",
+    ],
+)
 def test_csv_good_files(name):
     curves = read_curves(data(name))
     assert len(curves) == 1
@@ -235,19 +249,22 @@ def test_csv_2d_gives_z_zero():
     assert c.in_xy_plane
 
 
-@pytest.mark.parametrize("text", [
-    "x,y,z\r\n0,0,0\r\n1,0,0\r\n1,1,0\r\n0,1,0\r\n",        # Windows line ends
-    "x,y,z\r0,0,0\r1,0,0\r1,1,0\r0,1,0\r",                  # old Mac line ends
-    "\ufeffx,y,z\n0,0,0\n1,0,0\n1,1,0\n0,1,0\n",             # byte-order mark
-    "0,0,0\n1,0,0\n1,1,0\n0,1,0",                            # no header, no final newline
-    "  0 ,\t0 , 0\n1 , 0 , 0\n 1,1,0 \n0,1,0\n",            # whitespace around delimiters
-    "0\t0\t0\n1\t0\t0\n1\t1\t0\n0\t1\t0\n",                  # tabs, no header
-    '"x","y","z"\n0,0,0\n1,0,0\n1,1,0\n0,1,0\n',             # quoted header
-    "x y z\n0,0,0\n1,0,0\n1,1,0\n0,1,0\n",                   # header split differently
-    "a;b;c\n0;0;0\n1;0;0\n1;1;0\n0;1;0\n",                   # header without x, y, z names
-    "X,Y\n0,0\n1,0\n1,1\n0,1\n",                             # 2 named columns
-    "name,x,y\np,0,0\nq,1,0\nr,1,1\ns,0,1\n",                # text column ignored, z = 0
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "x,y,z\r\n0,0,0\r\n1,0,0\r\n1,1,0\r\n0,1,0\r\n",  # Windows line ends
+        "x,y,z\r0,0,0\r1,0,0\r1,1,0\r0,1,0\r",  # old Mac line ends
+        "\ufeffx,y,z\n0,0,0\n1,0,0\n1,1,0\n0,1,0\n",  # byte-order mark
+        "0,0,0\n1,0,0\n1,1,0\n0,1,0",  # no header, no final newline
+        "  0 ,\t0 , 0\n1 , 0 , 0\n 1,1,0 \n0,1,0\n",  # whitespace around delimiters
+        "0\t0\t0\n1\t0\t0\n1\t1\t0\n0\t1\t0\n",  # tabs, no header
+        '"x","y","z"\n0,0,0\n1,0,0\n1,1,0\n0,1,0\n',  # quoted header
+        "x y z\n0,0,0\n1,0,0\n1,1,0\n0,1,0\n",  # header split differently
+        "a;b;c\n0;0;0\n1;0;0\n1;1;0\n0;1;0\n",  # header without x, y, z names
+        "X,Y\n0,0\n1,0\n1,1\n0,1\n",  # 2 named columns
+        "name,x,y\np,0,0\nq,1,0\nr,1,1\ns,0,1\n",  # text column ignored, z = 0
+    ],
+)
 def test_csv_layouts(tmp_path, text):
     p = write(tmp_path, "c.csv", text)
     assert read_curve(p).points.tolist() == SQUARE
@@ -258,11 +275,14 @@ def test_csv_duplicates_and_closing_vertex_are_cleaned(tmp_path):
     assert read_curve(p).points.tolist() == SQUARE
 
 
-@pytest.mark.parametrize("rows", [
-    "0,0,0\n1,0,0\n2,0,0\n1,0,0\n",                    # collinear back and forth
-    "1e12,0,0\n2e12,0,0\n2e12,1e12,3e12\n",            # huge
-    "1e-12,0,0\n2e-12,0,0\n2e-12,1e-12,3e-12\n",       # tiny
-])
+@pytest.mark.parametrize(
+    "rows",
+    [
+        "0,0,0\n1,0,0\n2,0,0\n1,0,0\n",  # collinear back and forth
+        "1e12,0,0\n2e12,0,0\n2e12,1e12,3e12\n",  # huge
+        "1e-12,0,0\n2e-12,0,0\n2e-12,1e-12,3e-12\n",  # tiny
+    ],
+)
 def test_csv_degenerate_but_valid(tmp_path, rows):
     p = write(tmp_path, "g.csv", rows)
     pts = read_curve(p).points
@@ -299,8 +319,7 @@ def test_csv_header_column_mismatch(tmp_path):
     expect(ParseError, p, lambda: read_curves(p), line=2)
 
 
-@pytest.mark.parametrize("text,line", [("0 0 0 0\n1 0 0 0\n0 1 0 0\n", 1),
-                                       ("x\n0\n1\n", 2)])
+@pytest.mark.parametrize("text,line", [("0 0 0 0\n1 0 0 0\n0 1 0 0\n", 1), ("x\n0\n1\n", 2)])
 def test_csv_wrong_column_count(tmp_path, text, line):
     p = write(tmp_path, "w.csv", text)
     expect(ParseError, p, lambda: read_curves(p), line=line, contains=("columns",))
@@ -387,6 +406,7 @@ def test_csv_written_layout(tmp_path):
 # OBJ
 # ---------------------------------------------------------------------------
 
+
 def test_obj_two_polylines_with_other_elements():
     p = data("two_squares.obj")
     curves = read_curves(p)
@@ -405,8 +425,7 @@ def test_obj_read_curve_selector():
 
 def test_multi_curve_without_selector_gives_count_and_how_to_pick():
     p = data("two_squares.obj")
-    err = expect(CurveSelectionError, p, lambda: read_curve(p),
-                 contains=("2 curves", "#0", "#1"))
+    err = expect(CurveSelectionError, p, lambda: read_curve(p), contains=("2 curves", "#0", "#1"))
     assert isinstance(err, ValueError)
 
 
@@ -436,9 +455,9 @@ def test_shuffled_reversed_segment_files_give_the_curve(tmp_path, ext):
     rng = np.random.default_rng(4)
     pts = random_curve(rng, 50)
     n = len(pts)
-    perm = rng.permutation(n)                  # vertices stored in random order
+    perm = rng.permutation(n)  # vertices stored in random order
     stored = pts[perm]
-    where = np.argsort(perm)                   # where[i] = stored position of vertex i
+    where = np.argsort(perm)  # where[i] = stored position of vertex i
     segs = np.column_stack([where, np.roll(where, -1)])
     flip = rng.random(n) < 0.5
     segs[flip] = segs[flip][:, ::-1]
@@ -460,20 +479,23 @@ def test_obj_continuation_lines():
     assert read_curve(data("continuation.obj")).points.tolist() == SQUARE
 
 
-@pytest.mark.parametrize("text", [
-    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2 3 4\n",            # closing index implicit
-    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2 3 4 1\n",          # closing index repeated
-    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl -4 -3 -2 -1\n",        # relative indices
-    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1/1 2/2 3/3 4/4 1/1\n",  # v/vt forms
-    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1//1 2//1 3//1 4//1\n",  # v//vn forms
-    "v 0 0 0 1\nv 1 0 0 1\nv 1 1 0 1\nv 0 1 0 1\nl 1 2 3 4\n",    # w coordinate
-    "v 0 0 0 1 0 0\nv 1 0 0 1 0 0\nv 1 1 0 0 1 0\nv 0 1 0 0 0 1\nl 1 2 3 4\n",  # colours
-    "v 0 0 0\r\nv 1 0 0\r\nv 1 1 0\r\nv 0 1 0\r\nl 1 2 3 4\r\n",  # CRLF
-    "  v 0 0 0 # c\n\tv 1 0 0\nv 1 1 0\nv 0 1 0\n# l 9 9\nl 1 2 3 4 # trailing\n",
-    "v 0 0 0\nv 1 0 0\nl 1 2\nv 1 1 0\nv 0 1 0\nl 2 3\nl 4 3\nl 4 1\n",  # segments in 2 groups
-    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2\nl 2 3\nl 3 4\n",   # open segment path
-    "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2\nl 2 3\nl 3 4\nl 4 1\nl 2 1\nl 3 3\n",  # dup + self
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2 3 4\n",  # closing index implicit
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2 3 4 1\n",  # closing index repeated
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl -4 -3 -2 -1\n",  # relative indices
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1/1 2/2 3/3 4/4 1/1\n",  # v/vt forms
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1//1 2//1 3//1 4//1\n",  # v//vn forms
+        "v 0 0 0 1\nv 1 0 0 1\nv 1 1 0 1\nv 0 1 0 1\nl 1 2 3 4\n",  # w coordinate
+        "v 0 0 0 1 0 0\nv 1 0 0 1 0 0\nv 1 1 0 0 1 0\nv 0 1 0 0 0 1\nl 1 2 3 4\n",  # colours
+        "v 0 0 0\r\nv 1 0 0\r\nv 1 1 0\r\nv 0 1 0\r\nl 1 2 3 4\r\n",  # CRLF
+        "  v 0 0 0 # c\n\tv 1 0 0\nv 1 1 0\nv 0 1 0\n# l 9 9\nl 1 2 3 4 # trailing\n",
+        "v 0 0 0\nv 1 0 0\nl 1 2\nv 1 1 0\nv 0 1 0\nl 2 3\nl 4 3\nl 4 1\n",  # segments in 2 groups
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2\nl 2 3\nl 3 4\n",  # open segment path
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nl 1 2\nl 2 3\nl 3 4\nl 4 1\nl 2 1\nl 3 3\n",  # dup + self
+    ],
+)
 def test_obj_layouts(tmp_path, text):
     p = write(tmp_path, "c.obj", text)
     (c,) = read_curves(p)
@@ -483,21 +505,23 @@ def test_obj_layouts(tmp_path, text):
 
 def test_obj_open_segment_path_is_walked_end_to_end(tmp_path):
     # the first segment (3 4) is in the middle of the path; its direction is kept
-    p = write(tmp_path, "p.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 2 0\n"
-                                 "l 3 4\nl 2 1\nl 5 4\nl 3 2\n")
+    p = write(tmp_path, "p.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 2 0\nl 3 4\nl 2 1\nl 5 4\nl 3 2\n")
     (c,) = read_curves(p)
     assert c.points.tolist() == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 2, 0]]
 
 
 def test_obj_polylines_and_segment_loops_in_file_order(tmp_path):
-    p = write(tmp_path, "m.obj",
-              "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
-              "v 5 0 0\nv 6 0 0\nv 6 1 0\n"
-              "v 9 0 0\nv 9 1 0\nv 8 1 0\n"
-              "l 1 2\n"            # curve 0 starts here (segments 1-2-3-4)
-              "l 5 6 7 5\n"        # curve 1
-              "l 2 3\nl 3 4\nl 4 1\n"
-              "l 8 9\nl 10 8\nl 9 10\n")  # curve 2
+    p = write(
+        tmp_path,
+        "m.obj",
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+        "v 5 0 0\nv 6 0 0\nv 6 1 0\n"
+        "v 9 0 0\nv 9 1 0\nv 8 1 0\n"
+        "l 1 2\n"  # curve 0 starts here (segments 1-2-3-4)
+        "l 5 6 7 5\n"  # curve 1
+        "l 2 3\nl 3 4\nl 4 1\n"
+        "l 8 9\nl 10 8\nl 9 10\n",
+    )  # curve 2
     curves = read_curves(p)
     assert [c.id for c in curves] == [f"{p}#0", f"{p}#1", f"{p}#2"]
     assert same_cycle(curves[0].points, np.array(SQUARE))
@@ -507,8 +531,7 @@ def test_obj_polylines_and_segment_loops_in_file_order(tmp_path):
 
 def test_obj_mesh_without_polylines():
     p = data("mesh.obj")
-    expect(NoCurvesError, p, lambda: read_curves(p),
-           contains=("4 faces", "no polylines", "mesh", "extract contours"))
+    expect(NoCurvesError, p, lambda: read_curves(p), contains=("4 faces", "no polylines", "mesh", "extract contours"))
 
 
 def test_obj_no_polylines(tmp_path):
@@ -528,17 +551,20 @@ def test_obj_index_out_of_range():
     expect(ParseError, p, lambda: read_curves(p), line=4, contains=("7", "3 vertices"))
 
 
-@pytest.mark.parametrize("text,line,snippet", [
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 0 1 2\n", 4, "index 0"),
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 -4\n", 4, "-4"),
-    ("v 0 0 0\nv 1 0 0\n\nl 1 2 -1\nv 0 1 0\nl -5 1 2\n", 6, "-5"),
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 two 3\n", 4, "'two'"),
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1\n", 4, "at least 2"),
-    ("v 0 0 0\nv 1 zero 0\nv 0 1 0\nl 1 2 3\n", 2, "'zero'"),
-    ("v 0 0 0\nv 1 0\nv 0 1 0\nl 1 2 3\n", 2, "3 coordinates"),
-    ("v 0 0 0\nv 1 0 0 1 2\nv 0 1 0\nl 1 2 3\n", 2, "got 5"),
-    ("v 0 0 0\nv 1 0 \\\n 0\nv 0 1 0\nl 1 2 3 9\n", 5, "out of range"),
-])
+@pytest.mark.parametrize(
+    "text,line,snippet",
+    [
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 0 1 2\n", 4, "index 0"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 -4\n", 4, "-4"),
+        ("v 0 0 0\nv 1 0 0\n\nl 1 2 -1\nv 0 1 0\nl -5 1 2\n", 6, "-5"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 two 3\n", 4, "'two'"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1\n", 4, "at least 2"),
+        ("v 0 0 0\nv 1 zero 0\nv 0 1 0\nl 1 2 3\n", 2, "'zero'"),
+        ("v 0 0 0\nv 1 0\nv 0 1 0\nl 1 2 3\n", 2, "3 coordinates"),
+        ("v 0 0 0\nv 1 0 0 1 2\nv 0 1 0\nl 1 2 3\n", 2, "got 5"),
+        ("v 0 0 0\nv 1 0 \\\n 0\nv 0 1 0\nl 1 2 3 9\n", 5, "out of range"),
+    ],
+)
 def test_obj_bad_statements(tmp_path, text, line, snippet):
     p = write(tmp_path, "bad.obj", text)
     expect(ParseError, p, lambda: read_curves(p), line=line, contains=(snippet,))
@@ -586,6 +612,7 @@ def test_obj_written_layout(tmp_path):
 # ---------------------------------------------------------------------------
 # VTK / VTP / VTU
 # ---------------------------------------------------------------------------
+
 
 def test_vtk_ascii_polyline():
     p = data("square_ascii.vtk")
@@ -639,36 +666,40 @@ def test_vtk_other_dataset_type(tmp_path):
 def test_vtk_points_only(tmp_path):
     pv = vtk_format._pyvista()
     p = str(tmp_path / "cloud.vtp")
-    pv.PolyData(np.array(SQUARE)).save(p)   # vertex cells only
+    pv.PolyData(np.array(SQUARE)).save(p)  # vertex cells only
     expect(NoCurvesError, p, lambda: read_curves(p), contains=("no line cells",))
 
 
 def test_vtk_polydata_with_vertex_cells_and_lines(tmp_path):
     pv = vtk_format._pyvista()
-    mesh = pv.PolyData(np.array(SQUARE), lines=np.array([5, 0, 1, 2, 3, 0]),
-                       verts=np.array([1, 0, 1, 2]))
+    mesh = pv.PolyData(np.array(SQUARE), lines=np.array([5, 0, 1, 2, 3, 0]), verts=np.array([1, 0, 1, 2]))
     p = str(tmp_path / "mixed.vtp")
     mesh.save(p)
     assert read_curve(p).points.tolist() == SQUARE
 
 
 def test_vtk_branching_segments(tmp_path):
-    p = write(tmp_path, "branch.vtk",
-              "# vtk DataFile Version 3.0\nb\nASCII\nDATASET POLYDATA\nPOINTS 5 double\n"
-              "0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 2 0\n"
-              "LINES 5 15\n2 0 1\n2 1 2\n2 2 3\n2 3 0\n2 2 4\n")
+    p = write(
+        tmp_path,
+        "branch.vtk",
+        "# vtk DataFile Version 3.0\nb\nASCII\nDATASET POLYDATA\nPOINTS 5 double\n"
+        "0 0 0\n1 0 0\n1 1 0\n0 1 0\n2 2 0\n"
+        "LINES 5 15\n2 0 1\n2 1 2\n2 2 3\n2 3 0\n2 2 4\n",
+    )
     expect(ParseError, p, lambda: read_curves(p), contains=("vertex 2", "branching", "cell 4"))
 
 
 def test_vtk_single_point_line_cell(tmp_path):
-    p = write(tmp_path, "one.vtk",
-              "# vtk DataFile Version 3.0\nb\nASCII\nDATASET POLYDATA\nPOINTS 4 double\n"
-              "0 0 0\n1 0 0\n1 1 0\n0 1 0\nLINES 2 7\n4 0 1 2 3\n1 2\n")
+    p = write(
+        tmp_path,
+        "one.vtk",
+        "# vtk DataFile Version 3.0\nb\nASCII\nDATASET POLYDATA\nPOINTS 4 double\n"
+        "0 0 0\n1 0 0\n1 1 0\n0 1 0\nLINES 2 7\n4 0 1 2 3\n1 2\n",
+    )
     expect(ParseError, p, lambda: read_curves(p), contains=("line cell 1",))
 
 
-@pytest.mark.parametrize("name", ["garbage.vtk", "garbage.vtp", "truncated.vtk",
-                                  "truncated.vtp"])
+@pytest.mark.parametrize("name", ["garbage.vtk", "garbage.vtp", "truncated.vtk", "truncated.vtp"])
 def test_vtk_garbage_and_truncated(name, capfd, caplog):
     pv = vtk_format._pyvista()
     before = pv.vtk_verbosity()
@@ -676,7 +707,7 @@ def test_vtk_garbage_and_truncated(name, capfd, caplog):
     with caplog.at_level(logging.DEBUG):
         expect(ParseError, p, lambda: read_curves(p), contains=("could not be read as VTK",))
     out, err = capfd.readouterr()
-    assert out == "" and err == "", (out, err)          # VTK kept quiet
+    assert out == "" and err == "", (out, err)  # VTK kept quiet
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert pv.vtk_verbosity() == before
 
@@ -722,7 +753,7 @@ ALL_EXTS = [".csv", ".tsv", ".txt", ".xyz", ".obj", ".vtk", ".vtp", ".vtu"]
 def test_round_trip_single_curve_exact(tmp_path, ext):
     rng = np.random.default_rng(5)
     pts = random_curve(rng, 60)
-    pts[3] = [1e12, -1e-12, 0.1]           # extreme magnitudes
+    pts[3] = [1e12, -1e-12, 0.1]  # extreme magnitudes
     pts[4] = [-0.0, 5e-324, 1.7976931348623157e308 / 1e10]
     p = str(tmp_path / f"rt{ext}")
     write_curves(p, [Curve(pts)])
@@ -767,7 +798,7 @@ def test_writers_clean_closing_vertex_and_accept_2d(tmp_path):
         p = str(tmp_path / f"c{ext}")
         write_curves(p, [closed])
         assert read_curve(p).points.tolist() == SQUARE
-        write_curves(p, flat)            # a bare 2-D array is one curve
+        write_curves(p, flat)  # a bare 2-D array is one curve
         assert read_curve(p).points.tolist() == SQUARE
 
 
@@ -784,11 +815,9 @@ def test_write_errors(tmp_path):
     assert not [f for f in os.listdir(tmp_path) if ".tmp" in f]
 
 
-settings_fast = settings(max_examples=25, deadline=None,
-                         suppress_health_check=[HealthCheck.function_scoped_fixture])
+settings_fast = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
-finite = st.floats(allow_nan=False, allow_infinity=False, width=64,
-                   min_value=-1e300, max_value=1e300)
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64, min_value=-1e300, max_value=1e300)
 
 
 @settings_fast
@@ -809,11 +838,12 @@ def test_text_round_trip_property(tmp_path, rows):
 # segment chaining
 # ---------------------------------------------------------------------------
 
+
 def test_chain_shuffled_reversed_segments_is_one_loop():
     rng = np.random.default_rng(2)
     for _trial in range(20):
         n = int(rng.integers(3, 40))
-        labels = rng.permutation(1000)[:n]          # arbitrary vertex ids
+        labels = rng.permutation(1000)[:n]  # arbitrary vertex ids
         segs = np.column_stack([labels, np.roll(labels, -1)])
         flip = rng.random(n) < 0.5
         segs[flip] = segs[flip][:, ::-1]
@@ -838,8 +868,7 @@ def test_chain_several_loops_and_paths_in_order():
 def test_chain_branching_raises_with_vertex_and_locations():
     segs = [[0, 1], [1, 2], [2, 0], [1, 3]]
     with pytest.raises(ParseError) as info:
-        chain_segments(segs, path="f.obj", vertex_label=lambda v: str(v + 1),
-                       segment_where=lambda s: f"line {s + 10}")
+        chain_segments(segs, path="f.obj", vertex_label=lambda v: str(v + 1), segment_where=lambda s: f"line {s + 10}")
     msg = str(info.value)
     assert "f.obj" in msg and "vertex 2" in msg and "line 13" in msg
 
@@ -847,7 +876,7 @@ def test_chain_branching_raises_with_vertex_and_locations():
 def test_chain_empty_and_degenerate():
     assert chain_segments(np.zeros((0, 2), dtype=int)) == []
     assert chain_segments([[4, 4]]) == []
-    (first, verts), = chain_segments([[0, 1], [1, 0], [1, 2], [2, 0]])
+    ((first, verts),) = chain_segments([[0, 1], [1, 0], [1, 2], [2, 0]])
     assert sorted(verts.tolist()) == [0, 1, 2]
 
 
@@ -859,7 +888,7 @@ def test_obj_bulk_path_equals_the_careful_parser(tmp_path, monkeypatch):
     curves = [rng.normal(size=(int(rng.integers(3, 40)), 3)) for _ in range(30)]
     path = tmp_path / "many.obj"
     write_curves(path, curves)
-    with open(path, "a") as fh:                       # plus a polyline without the closing index
+    with open(path, "a") as fh:  # plus a polyline without the closing index
         fh.write("l 1 2 3\n")
     bulk = obj_module.read_points(path)
     assert obj_module._read_points_fast(path.read_text(), str(path)) is not None
@@ -897,13 +926,40 @@ def test_vectorized_cleaning_equals_one_by_one(seed):
 
 
 _OBJ_LINES = st.one_of(
-    st.tuples(st.floats(-1e3, 1e3, allow_nan=False), st.floats(-1e3, 1e3, allow_nan=False),
-              st.floats(-1e3, 1e3, allow_nan=False)).map(lambda v: "v {!r} {!r} {!r}".format(*v)),
+    st.tuples(
+        st.floats(-1e3, 1e3, allow_nan=False),
+        st.floats(-1e3, 1e3, allow_nan=False),
+        st.floats(-1e3, 1e3, allow_nan=False),
+    ).map(lambda v: "v {!r} {!r} {!r}".format(*v)),
     st.lists(st.integers(-3, 12), min_size=1, max_size=6).map(lambda ix: "l " + " ".join(map(str, ix))),
-    st.sampled_from(["# comment", "", "o part", "vt 0.5 0.5", "f 1 2 3", "v 1 2", "v 1 2 3 4",
-                     "l", "v 1 2 x", "l 1 2.5 3", "  v 0 0 1", "\tv 0 1 0", "v\f1 1 1", "v 1  2 3",
-                     "l 1 2 3 # end", "v 1 2 3 \\", "g\xa0x", "v 1 2 3\r", "l +1 2 3", "v nan 0 0",
-                     "v 1_0 2 3", "l 1 2", "l 2 3", "l 3 1"]),
+    st.sampled_from(
+        [
+            "# comment",
+            "",
+            "o part",
+            "vt 0.5 0.5",
+            "f 1 2 3",
+            "v 1 2",
+            "v 1 2 3 4",
+            "l",
+            "v 1 2 x",
+            "l 1 2.5 3",
+            "  v 0 0 1",
+            "\tv 0 1 0",
+            "v\f1 1 1",
+            "v 1  2 3",
+            "l 1 2 3 # end",
+            "v 1 2 3 \\",
+            "g\xa0x",
+            "v 1 2 3\r",
+            "l +1 2 3",
+            "v nan 0 0",
+            "v 1_0 2 3",
+            "l 1 2",
+            "l 2 3",
+            "l 3 1",
+        ]
+    ),
 )
 
 
@@ -944,22 +1000,64 @@ def test_obj_indented_and_oddly_spaced_statements_are_read(tmp_path, odd):
 
 
 _OBJ_V = st.one_of(
-    st.tuples(st.floats(-1e3, 1e3, allow_nan=False), st.floats(-1e3, 1e3, allow_nan=False),
-              st.floats(-1e3, 1e3, allow_nan=False)).map(lambda v: "v {!r} {!r} {!r}".format(*v)),
-    st.sampled_from(["v 1 2", "v 1 2 3 4", "v 1 2 x", "v 1  2 3", "v 1 2 3 ", "v nan 0 0", "v 1_0 2 3",
-                     "v", "v 1 2 3 # c", "vt 1 2", "", "# mid", "v +1 -.5 3e2", "l 1 2 3"]))
+    st.tuples(
+        st.floats(-1e3, 1e3, allow_nan=False),
+        st.floats(-1e3, 1e3, allow_nan=False),
+        st.floats(-1e3, 1e3, allow_nan=False),
+    ).map(lambda v: "v {!r} {!r} {!r}".format(*v)),
+    st.sampled_from(
+        [
+            "v 1 2",
+            "v 1 2 3 4",
+            "v 1 2 x",
+            "v 1  2 3",
+            "v 1 2 3 ",
+            "v nan 0 0",
+            "v 1_0 2 3",
+            "v",
+            "v 1 2 3 # c",
+            "vt 1 2",
+            "",
+            "# mid",
+            "v +1 -.5 3e2",
+            "l 1 2 3",
+        ]
+    ),
+)
 _OBJ_L = st.one_of(
     st.lists(st.integers(1, 8), min_size=3, max_size=6).map(lambda ix: "l " + " ".join(map(str, ix))),
-    st.sampled_from(["l 1 2", "l", "l 0 1 2", "l 1 2 99", "l -1 1 2", "l +1 2 3", "l 1_0 2 3", "l 1  2 3 ",
-                     "l 1 2 3 # c", "f 1 2 3", "", "# mid", "v 5 5 5", "l 1 2 x", "l 99999999999999999999 1 2"]))
+    st.sampled_from(
+        [
+            "l 1 2",
+            "l",
+            "l 0 1 2",
+            "l 1 2 99",
+            "l -1 1 2",
+            "l +1 2 3",
+            "l 1_0 2 3",
+            "l 1  2 3 ",
+            "l 1 2 3 # c",
+            "f 1 2 3",
+            "",
+            "# mid",
+            "v 5 5 5",
+            "l 1 2 x",
+            "l 99999999999999999999 1 2",
+        ]
+    ),
+)
 
 
 @settings(max_examples=300, deadline=None)
-@given(comments=st.lists(st.sampled_from(["# nfdmatch: 3 closed curves", "#", "# a # b", "#x"]), max_size=2),
-       v_lines=st.lists(_OBJ_V, min_size=0, max_size=10), l_lines=st.lists(_OBJ_L, min_size=0, max_size=6),
-       tail=st.sampled_from(["", "\n", "\n\n", "\nl 1 2 3"]))
-def test_obj_block_layout_bulk_path_never_disagrees_with_the_careful_parser(tmp_path_factory, comments, v_lines,
-                                                                            l_lines, tail):
+@given(
+    comments=st.lists(st.sampled_from(["# nfdmatch: 3 closed curves", "#", "# a # b", "#x"]), max_size=2),
+    v_lines=st.lists(_OBJ_V, min_size=0, max_size=10),
+    l_lines=st.lists(_OBJ_L, min_size=0, max_size=6),
+    tail=st.sampled_from(["", "\n", "\n\n", "\nl 1 2 3"]),
+)
+def test_obj_block_layout_bulk_path_never_disagrees_with_the_careful_parser(
+    tmp_path_factory, comments, v_lines, l_lines, tail
+):
     """The layout ``write`` makes (comments, a run of `v` lines, a run of `l` lines) is read by
     the bulk path without a loop over lines; mutated by the odd line anywhere, the bulk path
     either declines or reads exactly what the careful parser reads, and declines whatever

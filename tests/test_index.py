@@ -22,10 +22,24 @@ from oracle import random_smooth_curve
 import nfdmatch.index as nindex
 from nfdmatch.index import lock as index_lock
 from nfdmatch import Curve, descriptors, read_curves, write_curves
-from nfdmatch.errors import (IndexFormatError, IndexLockedError, InputError, NfdError, ParameterError,
-                             ReadError, ShrinkRefusedError)
-from nfdmatch.index import (FORMAT_VERSION, INDEX_FORMAT, BuildReport, FileRecord, build_index,
-                            default_index_path, open_index)
+from nfdmatch.errors import (
+    IndexFormatError,
+    IndexLockedError,
+    InputError,
+    NfdError,
+    ParameterError,
+    ReadError,
+    ShrinkRefusedError,
+)
+from nfdmatch.index import (
+    FORMAT_VERSION,
+    INDEX_FORMAT,
+    BuildReport,
+    FileRecord,
+    build_index,
+    default_index_path,
+    open_index,
+)
 from nfdmatch.matching import invariants
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -40,6 +54,7 @@ def _sha256(path) -> str:
 
 
 # --------------------------------------------------------------------------- helpers
+
 
 def _curves(rng, n, vertices=(40, 120)):
     return [random_smooth_curve(rng, int(rng.integers(*vertices)), 4) for _ in range(n)]
@@ -57,8 +72,10 @@ def _library(folder, rng):
 
 
 def _paths(folder):
-    return sorted(os.path.normpath(os.path.join(folder, p)) for p in
-                  ("a.csv", "b.csv", "sub/multi.obj", "sub/two.vtp", "single.obj"))
+    return sorted(
+        os.path.normpath(os.path.join(folder, p))
+        for p in ("a.csv", "b.csv", "sub/multi.obj", "sub/two.vtp", "single.obj")
+    )
 
 
 def _keys(folder):
@@ -73,9 +90,15 @@ def lib(tmp_path, rng):
 
 def _snapshot(path):
     with open_index(path) as idx:
-        return {"ids": idx.ids(), "files": idx.files(), "rows": idx.read_rows(0, idx.n_curves),
-                "params": (idx.samples, idx.harmonics, idx.scale_mode), "created": idx.created,
-                "updated": idx.updated, "n": idx.n_curves}
+        return {
+            "ids": idx.ids(),
+            "files": idx.files(),
+            "rows": idx.read_rows(0, idx.n_curves),
+            "params": (idx.samples, idx.harmonics, idx.scale_mode),
+            "created": idx.created,
+            "updated": idx.updated,
+            "n": idx.n_curves,
+        }
 
 
 def _assert_rows_equal(a, b):
@@ -104,8 +127,8 @@ def _same_size_edit(path):
     data = path.read_bytes()
     lines = data.split(b"\n")
     k = lines[1].index(b".") + 3
-    digit = lines[1][k:k + 1]
-    lines[1] = lines[1][:k] + (b"5" if digit != b"5" else b"6") + lines[1][k + 1:]
+    digit = lines[1][k : k + 1]
+    lines[1] = lines[1][:k] + (b"5" if digit != b"5" else b"6") + lines[1][k + 1 :]
     new = b"\n".join(lines)
     assert len(new) == len(data) and new != data
     path.write_bytes(new)
@@ -123,17 +146,56 @@ FROZEN_IDS = [
     "sample_curves/library/trefoil.csv",
 ]
 FROZEN_FILES = [
-    FileRecord("sample_curves/library/circle.tsv", 3856, 1795441386657119773,
-               "71d6f8c8721c5fff65c7ae384a0835d1ab081dd7b28ac7182c2567add948cff1", "ok", "", 0, 1),
-    FileRecord("sample_curves/library/lissajous-family.obj", 104152, 1795441386652753294,
-               "db9fab8a4a0f6e290f403af136ebc77a98ce4a13c97ca732041b21fd99cece58", "ok", "", 1, 3),
-    FileRecord("sample_curves/library/superellipses.vtp", 7880, 1795441386657119773,
-               "3ec1b033fb9146f301c1454b80e315186b39d678d0d0e279c40027289a3c3e99", "ok", "", 4, 2),
-    FileRecord("sample_curves/library/trefoil.csv", 23281, 1795441386409285493,
-               "9cb26df2948dfa6dc0d45fe3bc975a462d2f17340988de7e9868493a03245010", "ok", "", 6, 1),
-    FileRecord("tests/data/index/bad.csv", 27, 1795443109321567493,
-               "375c163f17b8271b2e60771929baeb041fcdeb8a551453da4a3c2d31de59c3cd", "failed",
-               "tests/data/index/bad.csv: line 3: not a number: 'zero'", 7, 0),
+    FileRecord(
+        "sample_curves/library/circle.tsv",
+        3856,
+        1795441386657119773,
+        "71d6f8c8721c5fff65c7ae384a0835d1ab081dd7b28ac7182c2567add948cff1",
+        "ok",
+        "",
+        0,
+        1,
+    ),
+    FileRecord(
+        "sample_curves/library/lissajous-family.obj",
+        104152,
+        1795441386652753294,
+        "db9fab8a4a0f6e290f403af136ebc77a98ce4a13c97ca732041b21fd99cece58",
+        "ok",
+        "",
+        1,
+        3,
+    ),
+    FileRecord(
+        "sample_curves/library/superellipses.vtp",
+        7880,
+        1795441386657119773,
+        "3ec1b033fb9146f301c1454b80e315186b39d678d0d0e279c40027289a3c3e99",
+        "ok",
+        "",
+        4,
+        2,
+    ),
+    FileRecord(
+        "sample_curves/library/trefoil.csv",
+        23281,
+        1795441386409285493,
+        "9cb26df2948dfa6dc0d45fe3bc975a462d2f17340988de7e9868493a03245010",
+        "ok",
+        "",
+        6,
+        1,
+    ),
+    FileRecord(
+        "tests/data/index/bad.csv",
+        27,
+        1795443109321567493,
+        "375c163f17b8271b2e60771929baeb041fcdeb8a551453da4a3c2d31de59c3cd",
+        "failed",
+        "tests/data/index/bad.csv: line 3: not a number: 'zero'",
+        7,
+        0,
+    ),
 ]
 # sha256 of each /curves dataset's values in little-endian storage dtypes
 FROZEN_DIGESTS = {
@@ -153,7 +215,7 @@ def test_frozen_v1_index_reads_forever():
     with open_index(FROZEN) as idx:
         assert (idx.format_version, idx.nfdmatch_version) == (1, "0.1.0")
         assert (idx.samples, idx.harmonics, idx.scale_mode) == (32, 4, "rms")
-        assert idx.scale == idx.scale_mode                      # the deprecated name
+        assert idx.scale == idx.scale_mode  # the deprecated name
         assert (idx.created, idx.updated) == ("2026-01-01T00:00:00Z", "2026-01-01T00:00:00Z")
         assert (idx.n_curves, idx.n_files) == (7, 5)
         assert idx.ids() == FROZEN_IDS
@@ -162,10 +224,16 @@ def test_frozen_v1_index_reads_forever():
         assert idx.files() == FROZEN_FILES
         rows = idx.read_rows(0, 7)
         K = 4
-        expected = {"coefficients": ((7, K, 3), np.complex128), "inv_norm": ((7, K), np.float64),
-                    "inv_sv": ((7, 2 * K), np.float64), "inv_block": ((7, 3), np.float64),
-                    "centroid": ((7, 3), np.float64), "scale": ((7,), np.float64),
-                    "rotation": ((7, 3, 3), np.float64), "plane_degenerate": ((7,), np.bool_)}
+        expected = {
+            "coefficients": ((7, K, 3), np.complex128),
+            "inv_norm": ((7, K), np.float64),
+            "inv_sv": ((7, 2 * K), np.float64),
+            "inv_block": ((7, 3), np.float64),
+            "centroid": ((7, 3), np.float64),
+            "scale": ((7,), np.float64),
+            "rotation": ((7, 3, 3), np.float64),
+            "plane_degenerate": ((7,), np.bool_),
+        }
         for key, (shape, dtype) in expected.items():
             assert rows[key].shape == shape and rows[key].dtype == dtype, key
         np.testing.assert_array_equal(rows["file"], [0, 1, 1, 1, 2, 2, 3])
@@ -174,9 +242,15 @@ def test_frozen_v1_index_reads_forever():
         assert rows["coefficients"][0, 0, 0] == complex(f32(0.500003457069397), f32(1.299552676028385e-15))
         assert rows["coefficients"][0, 0, 1] == complex(f32(1.2117691459902647e-15), f32(-0.499996542930603))
         assert rows["coefficients"][0, 2, 0].real == np.float32(6.215435860212892e-06)
-        assert rows["scale"].tolist() == [0.9995955124763377, 1.161999396947542, 1.170109796751126,
-                                          1.1584850780453646, 1.121160597667193, 1.6762282668972879,
-                                          2.36950560781353]
+        assert rows["scale"].tolist() == [
+            0.9995955124763377,
+            1.161999396947542,
+            1.170109796751126,
+            1.1584850780453646,
+            1.121160597667193,
+            1.6762282668972879,
+            2.36950560781353,
+        ]
         assert rows["centroid"][1].tolist() == [7.223158161005772e-16, -0.015161576506931203, 4.144878884559944e-16]
         assert rows["inv_block"][2].tolist() == [0.6022557020187378, 0.5785418152809143, 0.545386016368866]
         assert not rows["plane_degenerate"].any()
@@ -190,10 +264,16 @@ def test_frozen_v1_index_reads_forever():
         np.testing.assert_array_equal(np.concatenate([c["coefficients"] for _, c in chunks]), rows["coefficients"])
         info = idx.info()
         assert info["files"] == 5 and info["curves"] == 7
-        assert info["failed"] == [{"path": "tests/data/index/bad.csv",
-                                   "error": "tests/data/index/bad.csv: line 3: not a number: 'zero'"}]
-        assert (info["format"], info["format_version"], info["samples"], info["harmonics"], info["scale"]) == \
-            (INDEX_FORMAT, 1, 32, 4, "rms")
+        assert info["failed"] == [
+            {"path": "tests/data/index/bad.csv", "error": "tests/data/index/bad.csv: line 3: not a number: 'zero'"}
+        ]
+        assert (info["format"], info["format_version"], info["samples"], info["harmonics"], info["scale"]) == (
+            INDEX_FORMAT,
+            1,
+            32,
+            4,
+            "rms",
+        )
         assert info["size_bytes"] == os.path.getsize(FROZEN)
     with h5py.File(FROZEN, "r", locking=False) as f:
         for key, digest in FROZEN_DIGESTS.items():
@@ -211,10 +291,11 @@ def test_frozen_v2_index_reads_forever():
         assert (idx.n_curves, idx.n_files) == (7, 5)
         assert idx.ids() == FROZEN_IDS
         # the same files (the modification times are the clone's that froze each file)
-        assert [dataclasses.replace(r, mtime_ns=0)
-                for r in idx.files()] == [dataclasses.replace(r, mtime_ns=0) for r in FROZEN_FILES]
+        assert [dataclasses.replace(r, mtime_ns=0) for r in idx.files()] == [
+            dataclasses.replace(r, mtime_ns=0) for r in FROZEN_FILES
+        ]
         rows, old = idx.read_rows(0, 7), v1.read_rows(0, 7)
-        for key in rows:     # v1 was written before a rounding-level fix of the plane rotation
+        for key in rows:  # v1 was written before a rounding-level fix of the plane rotation
             np.testing.assert_allclose(rows[key], old[key], rtol=1e-5, atol=1e-5, err_msg=key)
         table = idx.search_table()
         assert table.n_cells == 4
@@ -222,8 +303,9 @@ def test_frozen_v2_index_reads_forever():
         got_rows, features, sqnorm, coefficients = table.cell_rows(np.arange(4))
         np.testing.assert_array_equal(coefficients, rows["coefficients"][got_rows].astype(np.complex64))
         np.testing.assert_array_equal(got_rows, [1, 2, 3, 6, 5, 0, 4])
-        np.testing.assert_array_equal(features, np.concatenate([rows["inv_sv"], rows["inv_block"]], axis=1)[got_rows]
-                                      .astype(np.float32))
+        np.testing.assert_array_equal(
+            features, np.concatenate([rows["inv_sv"], rows["inv_block"]], axis=1)[got_rows].astype(np.float32)
+        )
         # every member within its cell's radius: what the search relies on
         for c in range(4):
             a, b = table.start[c], table.start[c + 1]
@@ -302,7 +384,7 @@ def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
         np.testing.assert_array_equal(after["coefficients"], before["coefficients"])
         assert idx.search_table().n_cells >= 1
     again = build_index(sources, str(target), jobs=1)
-    assert not again.written                          # format 2 now: nothing to do
+    assert not again.written  # format 2 now: nothing to do
 
 
 def test_frozen_rows_match_the_sample_curves_to_complex64():
@@ -325,13 +407,14 @@ def test_frozen_rows_match_the_sample_curves_to_complex64():
 
 # --------------------------------------------------------------------------- building
 
+
 def test_build_ids_file_table_and_descriptors(lib, tmp_path):
     idx_path = tmp_path / "idx.h5"
     report = build_index([str(lib)], idx_path, jobs=1)
     assert isinstance(report, BuildReport)
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (5, 0, 0, 0, 0)
     assert report.curves == 8 and report.written and not report.dry_run
-    assert report.changes == [("added", p) for p in _keys(lib)]      # relative to the index's folder
+    assert report.changes == [("added", p) for p in _keys(lib)]  # relative to the index's folder
     with open_index(idx_path) as idx:
         assert (idx.samples, idx.harmonics, idx.scale_mode, idx.format_version) == (128, 16, "rms", FORMAT_VERSION)
         assert idx.created == idx.updated and idx.created.endswith("Z")
@@ -403,7 +486,7 @@ def test_touched_file_is_hashed_not_recomputed(lib, tmp_path, reads):
     report = build_index([str(lib)], idx_path, jobs=1)
     assert reads == []
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (0, 0, 0, 5, 0)
-    assert report.written          # the new mtime is recorded
+    assert report.written  # the new mtime is recorded
     after = _snapshot(idx_path)
     _assert_rows_equal(after["rows"], before["rows"])
     assert after["ids"] == before["ids"] and after["created"] == before["created"]
@@ -473,7 +556,7 @@ def test_bad_files_are_recorded_and_the_rest_indexed(tmp_path, rng, reads):
     (folder / "two_points.csv").write_text("0 0 0\n1 1 1\n")
     (folder / ".hidden.csv").write_text("junk\n")
     (folder / "notes.md").write_text("not a curve\n")
-    explicit = tmp_path / "curve.dat"                      # given explicitly: unknown extension
+    explicit = tmp_path / "curve.dat"  # given explicitly: unknown extension
     write_curves(explicit, _curves(rng, 1)[0], format="csv")
     idx_path = tmp_path / "idx.h5"
     report = build_index([str(folder), str(explicit)], idx_path, jobs=1)
@@ -486,7 +569,7 @@ def test_bad_files_are_recorded_and_the_rest_indexed(tmp_path, rng, reads):
         assert message.startswith(path + ":"), message
     assert "line 3" in messages[str(folder / "nan.csv")]
     assert "unknown file extension" in messages[str(explicit)]
-    with open_index(idx_path) as idx:                   # stored relative to the index's folder
+    with open_index(idx_path) as idx:  # stored relative to the index's folder
         files = {str(tmp_path / f.path): f for f in idx.files()}
         assert set(files) == set(bad) | {str(folder / "good.csv"), str(folder / "good.obj")}
         for path in bad:
@@ -524,7 +607,7 @@ def test_unexpected_worker_exception_becomes_a_failure(lib, tmp_path, monkeypatc
         if str(path) == victim:
             if where == "bulk path":
                 raise RuntimeError("boom")
-            return None                         # declined: read_curves reads it
+            return None  # declined: read_curves reads it
         return real_fast(path, data, input_format)
 
     monkeypatch.setattr(nindex.pool, "read_curves", flaky)
@@ -553,7 +636,7 @@ def test_parameters_none_keep_the_index_and_changes_recompute(lib, tmp_path, rea
     report = build_index([str(lib)], idx_path, samples=128, scale="rms", jobs=1)
     assert report.notices == ["parameters changed (samples 64 -> 128, scale a1 -> rms): recomputing all curves"]
     with pytest.raises(ParameterError):
-        build_index([str(lib)], idx_path, samples=8, jobs=1)        # 2K >= n with the index's K = 4
+        build_index([str(lib)], idx_path, samples=8, jobs=1)  # 2K >= n with the index's K = 4
 
 
 def test_rebuild_recomputes_everything(lib, tmp_path, reads):
@@ -576,26 +659,38 @@ def test_dry_run_writes_nothing_and_reports_the_plan(lib, tmp_path, rng, reads):
     assert not idx_path.exists() and not os.path.exists(str(idx_path) + ".lock")
     build_index([str(lib)], idx_path, jobs=1)
     data, stamp = idx_path.read_bytes(), os.stat(idx_path).st_mtime_ns
-    a, b, multi, single = (str(lib / "a.csv"), str(lib / "b.csv"), str(lib / "sub" / "multi.obj"),
-                           str(lib / "single.obj"))
-    write_curves(multi, _curves(rng, 2))                             # modified
-    os.remove(b)                                                      # deleted
+    a, b, multi, single = (
+        str(lib / "a.csv"),
+        str(lib / "b.csv"),
+        str(lib / "sub" / "multi.obj"),
+        str(lib / "single.obj"),
+    )
+    write_curves(multi, _curves(rng, 2))  # modified
+    os.remove(b)  # deleted
     new = str(lib / "c.csv")
-    write_curves(new, _curves(rng, 1)[0])                             # added
+    write_curves(new, _curves(rng, 1)[0])  # added
     st = os.stat(single)
-    os.utime(single, ns=(st.st_atime_ns, st.st_mtime_ns + 3_000_000_000))   # touched
+    os.utime(single, ns=(st.st_atime_ns, st.st_mtime_ns + 3_000_000_000))  # touched
     st = os.stat(a)
-    _same_size_edit(lib / "a.csv")                                    # same size, new mtime, new contents
+    _same_size_edit(lib / "a.csv")  # same size, new mtime, new contents
     os.utime(a, ns=(st.st_atime_ns, st.st_mtime_ns + 3_000_000_000))
     reads.clear()
     calls = []
     report = build_index([str(lib)], idx_path, dry_run=True, jobs=1, progress=lambda d, t: calls.append((d, t)))
-    assert reads == []                                                # planning never parses
+    assert reads == []  # planning never parses
     assert report.dry_run and not report.written
     k = {p: os.path.relpath(p, tmp_path) for p in (a, b, new, multi, single, str(lib / "sub" / "two.vtp"))}
-    assert report.changes == sorted([("updated", k[a]), ("removed", k[b]), ("added", k[new]), ("updated", k[multi]),
-                                     ("unchanged", k[single]), ("unchanged", "lib/sub/two.vtp")],
-                                    key=lambda x: x[1])
+    assert report.changes == sorted(
+        [
+            ("updated", k[a]),
+            ("removed", k[b]),
+            ("added", k[new]),
+            ("updated", k[multi]),
+            ("unchanged", k[single]),
+            ("unchanged", "lib/sub/two.vtp"),
+        ],
+        key=lambda x: x[1],
+    )
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (1, 2, 1, 2, 0)
     assert report.curves == 8
     assert calls[0] == (0, 4) and calls[-1] == (4, 4)
@@ -615,9 +710,12 @@ def test_no_sources_is_an_error_without_an_index(tmp_path, lib):
     # with an index, an empty source (a failed mount) is refused: the index is kept whole
     build_index([str(lib)], tmp_path / "idx.h5", jobs=1)
     before = (tmp_path / "idx.h5").read_bytes()
-    with pytest.raises(ShrinkRefusedError, match=r"would remove all of the index's 5 files \(no curve files "
-                                                  r"found under .*empty; an empty or unmounted folder\?\); pass "
-                                                  r"--allow-shrink"):
+    with pytest.raises(
+        ShrinkRefusedError,
+        match=r"would remove all of the index's 5 files \(no curve files "
+        r"found under .*empty; an empty or unmounted folder\?\); pass "
+        r"--allow-shrink",
+    ):
         build_index([str(empty)], tmp_path / "idx.h5", jobs=1)
     assert (tmp_path / "idx.h5").read_bytes() == before
     # a dry run says a build would refuse; allow_shrink empties it (every file removed), with a notice
@@ -637,8 +735,9 @@ def test_parallel_and_serial_builds_are_identical(lib, tmp_path, rng):
     (lib / "bad.csv").write_text("1 2\n")
     calls = []
     serial = build_index([str(lib)], tmp_path / "serial.h5", jobs=1)
-    parallel = build_index([str(lib)], tmp_path / "parallel.h5", jobs=2,
-                           progress=lambda done, total: calls.append((done, total)))
+    parallel = build_index(
+        [str(lib)], tmp_path / "parallel.h5", jobs=2, progress=lambda done, total: calls.append((done, total))
+    )
     assert serial.changes == parallel.changes and serial.failures == parallel.failures
     assert calls[0] == (0, 9) and calls[-1] == (9, 9) and len(calls) == 10
     a, a_attrs = _raw_datasets(tmp_path / "serial.h5")
@@ -682,6 +781,7 @@ def test_build_rejects_bad_arguments(lib, tmp_path):
 
 # --------------------------------------------------------------------------- bad index files
 
+
 def _make_bad(kind, path):
     if kind == "wrong_kind":
         with h5py.File(path, "w") as f:
@@ -696,7 +796,7 @@ def _make_bad(kind, path):
             f.attrs["format_version"] = np.int64(3)
     elif kind == "truncated":
         data = open(FROZEN, "rb").read()
-        open(path, "wb").write(data[:len(data) // 2])
+        open(path, "wb").write(data[: len(data) // 2])
     elif kind == "random":
         open(path, "wb").write(bytes(np.random.default_rng(5).integers(0, 256, 5000, dtype=np.uint8)))
     elif kind == "empty":
@@ -745,13 +845,20 @@ def test_missing_index_and_directory(tmp_path):
         open_index(tmp_path)
 
 
-@pytest.mark.parametrize("kind,policy", [
-    # a truncated HDF5 file does not open: it cannot be shown to be an index, so even
-    # --rebuild leaves it (issue 9: it was overwritten)
-    ("wrong_kind", "never"), ("random", "never"), ("text", "never"),
-    ("truncated", "never"), ("newer", "rebuild"), ("missing_dataset", "rebuild"),
-    ("empty", "always"),
-])
+@pytest.mark.parametrize(
+    "kind,policy",
+    [
+        # a truncated HDF5 file does not open: it cannot be shown to be an index, so even
+        # --rebuild leaves it (issue 9: it was overwritten)
+        ("wrong_kind", "never"),
+        ("random", "never"),
+        ("text", "never"),
+        ("truncated", "never"),
+        ("newer", "rebuild"),
+        ("missing_dataset", "rebuild"),
+        ("empty", "always"),
+    ],
+)
 def test_build_over_a_bad_index_file(tmp_path, lib, kind, policy):
     path = str(tmp_path / "idx.h5")
     _make_bad(kind, path)
@@ -777,6 +884,7 @@ def test_build_over_a_bad_index_file(tmp_path, lib, kind, policy):
 
 
 # --------------------------------------------------------------------------- the lock
+
 
 def test_lock_fails_at_once_or_waits(lib, tmp_path):
     idx_path = str(tmp_path / "idx.h5")
@@ -823,14 +931,19 @@ def big(tmp_path_factory):
     rng = np.random.default_rng(7)
     base = [random_smooth_curve(rng, 64, 4) for _ in range(50)]
     for f in range(6):
-        write_curves(folder / f"f{f}.vtp",
-                     [base[i % 50] * (1 + 0.01 * f) + rng.normal(scale=1e-3, size=(64, 3)) for i in range(1000)])
+        write_curves(
+            folder / f"f{f}.vtp",
+            [base[i % 50] * (1 + 0.01 * f) + rng.normal(scale=1e-3, size=(64, 3)) for i in range(1000)],
+        )
     return str(folder)
 
 
 def _start_build(big, idx_path, samples=1024, jobs=1):
-    return subprocess.Popen([sys.executable, "-c", BUILD_SCRIPT, big, str(idx_path), str(samples), str(jobs)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    return subprocess.Popen(
+        [sys.executable, "-c", BUILD_SCRIPT, big, str(idx_path), str(samples), str(jobs)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
 
 
 def _children(pid):
@@ -838,7 +951,7 @@ def _children(pid):
     for task in os.listdir(f"/proc/{pid}/task"):
         try:
             out += [int(x) for x in open(f"/proc/{pid}/task/{task}/children").read().split()]
-        except OSError:      # the thread ended while we looked
+        except OSError:  # the thread ended while we looked
             continue
     return out
 
@@ -863,10 +976,14 @@ def test_kill_9_during_a_build_leaves_the_previous_index(big, tmp_path):
     rnd = random.Random(20261123)
     # (how to pick the moment, jobs): as soon as the temporary file exists, somewhere while it is
     # written, and at random moments from the start (imports, planning, computing, writing)
-    plans = [("temp", 0.0, 1), ("temp", rnd.uniform(0.2, 1.2), 2), ("start", rnd.uniform(0.1, 1.5), 1),
-             ("start", rnd.uniform(0.1, 1.5), 2)]
+    plans = [
+        ("temp", 0.0, 1),
+        ("temp", rnd.uniform(0.2, 1.2), 2),
+        ("start", rnd.uniform(0.1, 1.5), 1),
+        ("start", rnd.uniform(0.1, 1.5), 2),
+    ]
     for how, delay, jobs in plans:
-        proc = _start_build(big, idx_path, samples=2048, jobs=jobs)     # takes ~3 s or more
+        proc = _start_build(big, idx_path, samples=2048, jobs=jobs)  # takes ~3 s or more
         start = time.monotonic()
         if how == "temp":
             while not _temps(tmp_path) and time.monotonic() - start < 20:
@@ -884,8 +1001,8 @@ def test_kill_9_during_a_build_leaves_the_previous_index(big, tmp_path):
         leftovers = set(os.listdir(tmp_path)) - {"idx.h5", "idx.h5.lock"}
         assert all(n.startswith(".idx.h5.tmp-") for n in leftovers), leftovers
         if how == "temp":
-            assert leftovers             # killed while writing its temporary file
-        deadline = time.monotonic() + 10      # pool workers notice their parent died and exit
+            assert leftovers  # killed while writing its temporary file
+        deadline = time.monotonic() + 10  # pool workers notice their parent died and exit
         while not all(_gone(w) for w in workers) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert all(_gone(w) for w in workers), workers
@@ -915,8 +1032,9 @@ def test_readers_and_a_second_build_while_a_build_runs(big, tmp_path):
         build_index([big], idx_path, jobs=1, wait=0)
     # ... or waits for it
     waited = {}
-    second = threading.Thread(target=lambda: waited.update(
-        report=build_index([big], idx_path, jobs=1, wait=60, samples=128)))
+    second = threading.Thread(
+        target=lambda: waited.update(report=build_index([big], idx_path, jobs=1, wait=60, samples=128))
+    )
     second.start()
     # readers never fail and always see a whole index: the old one or a new one
     reads, seen = 0, set()

@@ -44,6 +44,7 @@ IDS = ["lib/c0.csv", "lib/c1.csv", "lib/c2.csv"] + [f"lib/sub/multi.obj#{i}" for
 
 # --------------------------------------------------------------------------- ids and sources
 
+
 def test_the_same_files_are_the_same_rows_however_the_source_is_spelled(lib, tmp_path, monkeypatch, reads):
     index = tmp_path / "idx.h5"
     monkeypatch.chdir(tmp_path)
@@ -55,8 +56,14 @@ def test_the_same_files_are_the_same_rows_however_the_source_is_spelled(lib, tmp
     link = tmp_path / "elsewhere"
     link.mkdir()
     os.symlink(lib, link / "lib-link")
-    spellings = [("./lib/", tmp_path), (str(lib), tmp_path), (str(lib), link), ("lib-link", link),
-                 (str(link / "lib-link"), "/"), ("../lib", link)]
+    spellings = [
+        ("./lib/", tmp_path),
+        (str(lib), tmp_path),
+        (str(lib), link),
+        ("lib-link", link),
+        (str(link / "lib-link"), "/"),
+        ("../lib", link),
+    ]
     for source, cwd in spellings:
         monkeypatch.chdir(cwd)
         reads.clear()
@@ -66,7 +73,7 @@ def test_the_same_files_are_the_same_rows_however_the_source_is_spelled(lib, tmp
     # both spellings at once are still one set of files
     monkeypatch.chdir(tmp_path)
     report = build_index(["lib", str(link / "lib-link"), "lib/c0.csv"], str(index), jobs=1)
-    assert (report.unchanged, report.added) == (5, 0) and report.written      # the sources changed
+    assert (report.unchanged, report.added) == (5, 0) and report.written  # the sources changed
     with open_index(index) as idx:
         assert idx.ids() == IDS and idx.sources() == (["lib", "lib/c0.csv"], None)
 
@@ -89,7 +96,7 @@ def test_build_without_sources_rescans_the_recorded_ones(lib, tmp_path, monkeypa
     assert json.loads(out)["sources"] == ["lib"] and json.loads(out)["added"] == 3
     write_curves(lib / "new.csv", random_smooth_curve(rng, 40, 4))
     os.remove(lib / "c1.csv")
-    monkeypatch.chdir("/")                      # the cron line: one short command, from anywhere
+    monkeypatch.chdir("/")  # the cron line: one short command, from anywhere
     code, out, err = run("index", "build", "--index", index, "-j", 1, "--format", "json")
     assert code == 0, err
     summary = json.loads(out)
@@ -115,9 +122,9 @@ def test_an_index_without_recorded_sources_is_upgraded_keeping_its_rows(lib, tmp
     index = tmp_path / "idx.h5"
     monkeypatch.chdir(lib)
     build_index(["."], str(index), jobs=1)
-    with h5py.File(index, "r+") as h5:            # what an earlier writer wrote
+    with h5py.File(index, "r+") as h5:  # what an earlier writer wrote
         del h5["sources"]
-        del h5.attrs["checksums"]                 # (no checksums either)
+        del h5.attrs["checksums"]  # (no checksums either)
         for name in ("files/path_crc32", "files/error_crc32", "curves/id_crc32"):
             del h5[name]
         old = sorted(os.path.relpath(os.path.join(str(lib), k[4:])) for k in KEYS)
@@ -125,8 +132,7 @@ def test_an_index_without_recorded_sources_is_upgraded_keeping_its_rows(lib, tmp
         h5["files"].create_dataset("path", data=np.array(old, dtype=object), dtype=h5py.string_dtype())
         ids = h5["curves/id"].asstr()[...].tolist()
         del h5["curves/id"]
-        h5["curves"].create_dataset("id", data=np.array([i[4:] for i in ids], dtype=object),
-                                    dtype=h5py.string_dtype())
+        h5["curves"].create_dataset("id", data=np.array([i[4:] for i in ids], dtype=object), dtype=h5py.string_dtype())
     with open_index(index) as idx:
         assert idx.sources() is None and idx.ids()[0] == "c0.csv" and idx.locate("c0.csv") == "c0.csv"
         before = idx.read_rows(0, idx.n_curves)["coefficients"]
@@ -149,7 +155,7 @@ def test_show_and_exclude_self_find_the_files_from_another_directory(lib, tmp_pa
     code, out, err = run("show", query, "--index", index, "--top", 2, "-o", "m.png", "--format", "json")
     assert code == 0, err
     rows = json.loads(out)
-    assert rows[0]["match"] == "lib/c0.csv" and rows[0]["source"] == "file"      # found, not redrawn
+    assert rows[0]["match"] == "lib/c0.csv" and rows[0]["source"] == "file"  # found, not redrawn
     assert "drawn from its" not in err
     code, out, err = run("query", query, "--index", index, "--top", 2, "--exclude-self", "--format", "json")
     assert code == 0, err
@@ -160,6 +166,7 @@ def test_show_and_exclude_self_find_the_files_from_another_directory(lib, tmp_pa
 
 # --------------------------------------------------------------------------- the shrink guard
 
+
 def test_an_empty_or_unmounted_source_does_not_wipe_the_index(lib, tmp_path):
     index = tmp_path / "idx.h5"
     assert run("index", "build", lib, "--index", index, "-j", 1)[0] == 0
@@ -168,9 +175,11 @@ def test_an_empty_or_unmounted_source_does_not_wipe_the_index(lib, tmp_path):
     empty.mkdir()
     code, out, err = run("index", "build", empty, "--index", index, "-j", 1)
     assert code == 1 and out == ""
-    assert err.startswith(f"Error: {index}: refusing to build: it would remove all of the index's 5 files "
-                          f"(no curve files found under {empty}; an empty or unmounted folder?); pass "
-                          "--allow-shrink")
+    assert err.startswith(
+        f"Error: {index}: refusing to build: it would remove all of the index's 5 files "
+        f"(no curve files found under {empty}; an empty or unmounted folder?); pass "
+        "--allow-shrink"
+    )
     assert index.read_bytes() == data
     code, out, err = run("index", "build", empty, "--index", index, "-j", 1, "--format", "json")
     summary = json.loads(out)
@@ -190,7 +199,7 @@ def test_more_than_half_removed_is_refused_half_is_not(lib, tmp_path):
     build_index([str(lib)], index, jobs=1)
     for name in ("c0.csv", "c1.csv"):
         os.remove(lib / name)
-    report = build_index([str(lib)], index, jobs=1)        # 2 of 5: allowed, no notice
+    report = build_index([str(lib)], index, jobs=1)  # 2 of 5: allowed, no notice
     assert report.removed == 2 and report.shrink is None
     build_index([str(lib)], index, jobs=1)
     for name in ("c2.csv", "sub/one.obj"):
@@ -202,17 +211,18 @@ def test_more_than_half_removed_is_refused_half_is_not(lib, tmp_path):
 
 # --------------------------------------------------------------------------- the index path
 
+
 def test_a_symlinked_index_updates_its_target_and_shares_its_lock(lib, tmp_path, rng):
     real_dir = tmp_path / "store"
     real_dir.mkdir()
     target = real_dir / "real.h5"
     link = tmp_path / "idx.h5"
-    os.symlink(target, link)                       # dangling at first: the build creates the target
+    os.symlink(target, link)  # dangling at first: the build creates the target
     report = build_index([str(lib)], str(link), jobs=1)
     assert report.written and os.path.islink(link) and target.is_file()
     assert sorted(os.listdir(real_dir)) == ["real.h5", "real.h5.lock"]
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "lib", "store"]
-    with open_index(target) as idx:                # stored relative to the real file's folder
+    with open_index(target) as idx:  # stored relative to the real file's folder
         assert idx.files()[0].path == os.path.join(os.path.realpath(lib), "c0.csv")
     write_curves(lib / "c9.csv", random_smooth_curve(rng, 40, 4))
     assert build_index([str(lib)], str(link), jobs=1).added == 1
@@ -249,7 +259,7 @@ def test_disk_full_while_writing_keeps_the_old_index(lib, tmp_path, rng, monkeyp
     assert (code, out) == (1, "")
     assert err == f"Error: {index}: cannot write the index: No space left on device\n"
     assert index.read_bytes() == data
-    assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "lib"]      # no temporary file left
+    assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "lib"]  # no temporary file left
     with pytest.raises(WriteError, match="No space left on device"):
         build_index([str(lib)], str(index), jobs=1)
 
@@ -264,14 +274,17 @@ def test_a_real_failing_write_is_a_clear_error(lib, tmp_path):
     big.mkdir()
     rng = np.random.default_rng(3)
     write_curves(big / "many.obj", [random_smooth_curve(rng, 30, 3) for _ in range(600)])
-    code = ("import resource, signal, sys\n"
-            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
-            f"resource.setrlimit(resource.RLIMIT_FSIZE, ({len(data) + 4096}, {len(data) + 4096}))\n"
-            "from nfdmatch.cli import main\n"
-            "sys.exit(main(['index', 'build', sys.argv[1], '--index', sys.argv[2], '-j', '1', '--allow-shrink']))\n")
+    code = (
+        "import resource, signal, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        f"resource.setrlimit(resource.RLIMIT_FSIZE, ({len(data) + 4096}, {len(data) + 4096}))\n"
+        "from nfdmatch.cli import main\n"
+        "sys.exit(main(['index', 'build', sys.argv[1], '--index', sys.argv[2], '-j', '1', '--allow-shrink']))\n"
+    )
     env = dict(os.environ, PYTHONPATH=ROOT, PYTHONDONTWRITEBYTECODE="1")
-    proc = subprocess.run([sys.executable, "-c", code, str(lib), str(index)], capture_output=True, text=True,
-                          env=env, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(lib), str(index)], capture_output=True, text=True, env=env, timeout=120
+    )
     assert proc.returncode == 1, proc.stderr
     assert proc.stderr.startswith(f"Error: {index}: cannot write the index: ") and "Traceback" not in proc.stderr
     assert index.read_bytes() == data
@@ -284,7 +297,7 @@ def test_rebuild_never_overwrites_a_file_that_is_not_an_index(lib, tmp_path, kin
     build_index([str(lib)], str(index), jobs=1)
     data = index.read_bytes()
     if kind == "truncated":
-        index.write_bytes(data[:len(data) // 3])
+        index.write_bytes(data[: len(data) // 3])
     else:
         index.write_text("my notes, not an index\n")
     before = index.read_bytes()
@@ -297,12 +310,13 @@ def test_rebuild_never_overwrites_a_file_that_is_not_an_index(lib, tmp_path, kin
 
 # --------------------------------------------------------------------------- what a walk skips
 
+
 def test_an_unlistable_folder_keeps_its_rows_and_a_fifo_is_skipped(lib, tmp_path, monkeypatch):
     index = tmp_path / "idx.h5"
     assert run("index", "build", lib, "--index", index, "-j", 1)[0] == 0
     with open_index(index) as idx:
         before = idx.ids()
-    os.mkfifo(lib / "pipe.csv")                   # opening it would block the build forever
+    os.mkfifo(lib / "pipe.csv")  # opening it would block the build forever
     locked = str(lib / "sub")
     real_scandir = os.scandir
 
@@ -319,12 +333,14 @@ def test_an_unlistable_folder_keeps_its_rows_and_a_fifo_is_skipped(lib, tmp_path
     summary = json.loads(out)
     assert (summary["removed"], summary["unchanged"]) == (0, 5) and len(summary["skipped"]) == 2
     with open_index(index) as idx:
-        assert idx.ids() == before                # the sub-folder's curves are still there
+        assert idx.ids() == before  # the sub-folder's curves are still there
     # a FIFO named directly is skipped too, never opened
     monkeypatch.setattr(os, "scandir", real_scandir)
     code, out, err = run("index", "build", lib, lib / "pipe.csv", "--index", index, "-j", 1)
-    assert code == 3 and err.count(f"Error: {lib / 'pipe.csv'}: is a FIFO (named pipe), not a regular file; "
-                                   "skipped\n") == 1                      # named once
+    assert (
+        code == 3
+        and err.count(f"Error: {lib / 'pipe.csv'}: is a FIFO (named pipe), not a regular file; skipped\n") == 1
+    )  # named once
 
 
 def test_a_non_utf8_file_name_is_indexed_under_an_escaped_id(tmp_path, rng, monkeypatch):
@@ -334,7 +350,7 @@ def test_a_non_utf8_file_name_is_indexed_under_an_escaped_id(tmp_path, rng, monk
     write_curves(lib / "ok.csv", random_smooth_curve(rng, 40, 4))
     monkeypatch.chdir(tmp_path)
     assert build_index(["lib"], "i.h5", jobs=1).added == 2
-    report = build_index([str(lib)], "i.h5", jobs=1)         # the escaped id still matches its file
+    report = build_index([str(lib)], "i.h5", jobs=1)  # the escaped id still matches its file
     assert (report.unchanged, report.written) == (2, False)
     with open_index(tmp_path / "i.h5") as idx:
         assert idx.ids() == ["lib/c\\xff.csv", "lib/ok.csv"]

@@ -28,11 +28,13 @@ REPO = os.path.dirname(HERE)
 
 def _run(args, env=None, **kw):
     full = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env or {}))
-    return subprocess.run([sys.executable, "-m", "nfdmatch"] + list(args), env=full, capture_output=True,
-                          timeout=600, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "nfdmatch"] + list(args), env=full, capture_output=True, timeout=600, **kw
+    )
 
 
 # --------------------------------------------------------------------------- determinism
+
 
 @pytest.fixture(scope="module")
 def random_index(tmp_path_factory):
@@ -54,8 +56,7 @@ def random_index(tmp_path_factory):
 def test_query_output_is_byte_identical_run_to_run(random_index):
     """Fresh processes, the compiled kernels forced on, off and left to decide (which path a
     row takes then depends on timing): the same bytes every time."""
-    args = ["query", str(random_index / "queries"), "--index", str(random_index / "lib.h5"), "--top", "10",
-            "--details"]
+    args = ["query", str(random_index / "queries"), "--index", str(random_index / "lib.h5"), "--top", "10", "--details"]
     outputs = []
     for mode in ("0", "1", "auto", "auto", "auto"):
         proc = _run(args, env={"NFDMATCH_NUMBA": mode})
@@ -114,12 +115,21 @@ def test_a_built_index_checksums_every_dataset(built):
             if isinstance(obj, h5py.Dataset):
                 seen.append(name)
                 if obj.dtype.kind == "O":
-                    assert f"{name}_crc32" in f, name          # strings: the CRC companion
+                    assert f"{name}_crc32" in f, name  # strings: the CRC companion
                 else:
                     assert obj.fletcher32, name
+
         f.visititems(visit)
-        assert {"curves/coefficients", "curves/id", "curves/id_crc32", "files/path_crc32", "files/error_crc32",
-                "search/features", "search/coefficients", "sources/path_crc32"} <= set(seen)
+        assert {
+            "curves/coefficients",
+            "curves/id",
+            "curves/id_crc32",
+            "files/path_crc32",
+            "files/error_crc32",
+            "search/features",
+            "search/coefficients",
+            "sources/path_crc32",
+        } <= set(seen)
     with open_index(built) as idx:
         assert idx.checksums
     assert verify_index(built).ok
@@ -192,11 +202,14 @@ def _rewrite(path, dataset, index, value):
         ds[...] = data
 
 
-@pytest.mark.parametrize("dataset, index, where", [
-    ("curves/coefficients", (5, 1, 2), "/curves/coefficients, row 5"),
-    ("search/features", (3, 0), "/search/features, position 3"),
-    ("search/coefficients", (2, 1, 0), "/search/coefficients, position 2"),
-])
+@pytest.mark.parametrize(
+    "dataset, index, where",
+    [
+        ("curves/coefficients", (5, 1, 2), "/curves/coefficients, row 5"),
+        ("search/features", (3, 0), "/search/features, position 3"),
+        ("search/coefficients", (2, 1, 0), "/search/coefficients, position 2"),
+    ],
+)
 def test_a_stored_nan_is_an_index_format_error_naming_dataset_and_row(index_copy, dataset, index, where):
     _rewrite(index_copy, dataset, index, np.nan)
     with open_index(index_copy) as idx:
@@ -206,8 +219,15 @@ def test_a_stored_nan_is_an_index_format_error_naming_dataset_and_row(index_copy
             else:
                 table = idx.search_table()
                 table.cell_rows(np.arange(table.n_cells))
-    result = _cli("query", QUERY, "--index", str(index_copy), "--top", "30", "--exhaustive"
-                  if dataset.startswith("curves") else "--top=30")
+    result = _cli(
+        "query",
+        QUERY,
+        "--index",
+        str(index_copy),
+        "--top",
+        "30",
+        "--exhaustive" if dataset.startswith("curves") else "--top=30",
+    )
     assert result.exit_code == 1 and "non-finite value" in result.stderr and "Traceback" not in result.stderr
     result = _cli("index", "verify", "--index", str(index_copy))
     assert result.exit_code == 1
@@ -225,6 +245,7 @@ def test_a_stored_nan_in_the_squared_norms_is_not_read_by_a_query_and_verify_fin
 
 # --------------------------------------------------------------------------- crafted indexes
 
+
 def _index_info_limited(path):
     """`index info` in a child process with 3 GB of address space: a reader that allocated
     what a crafted file declares (tens of GB) would die, not answer."""
@@ -232,6 +253,7 @@ def _index_info_limited(path):
 
     def limit():
         resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
     return _run(["index", "info", "--index", str(path)], preexec_fn=limit)
 
 
@@ -240,8 +262,7 @@ def _declare(f, name, rows):
     ds = f[name]
     dtype, tail = ds.dtype, ds.shape[1:]
     del f[name]
-    f.create_dataset(name, shape=(rows,) + tail, dtype=dtype, chunks=(4096,) + tail,
-                     fletcher32=dtype.kind != "O")
+    f.create_dataset(name, shape=(rows,) + tail, dtype=dtype, chunks=(4096,) + tail, fletcher32=dtype.kind != "O")
 
 
 def _craft(path, fn):
@@ -249,16 +270,30 @@ def _craft(path, fn):
         fn(f)
 
 
-@pytest.mark.parametrize("craft, message", [
-    (lambda f: f.attrs.__setitem__("samples", np.int64(300_000_000)), "samples 300000000 above the limit"),
-    (lambda f: (f.attrs.__setitem__("samples", np.int64(1 << 20)), f.attrs.__setitem__("harmonics", np.int64(400_000))),
-     "/curves/coefficients has shape"),
-    (lambda f: [f["curves"][name].resize(100_000_000, axis=0) for name in f["curves"] if name != "id_crc32"],
-     "declares (100000000"),
-    (lambda f: [_declare(f, f"files/{name}", 50_000_000) for name in list(f["files"]) if not name.endswith("crc32")],
-     "declares (50000000"),
-    (lambda f: _declare(f, "search/features", 50_000_000), "/search/features declares (50000000"),
-])
+@pytest.mark.parametrize(
+    "craft, message",
+    [
+        (lambda f: f.attrs.__setitem__("samples", np.int64(300_000_000)), "samples 300000000 above the limit"),
+        (
+            lambda f: (
+                f.attrs.__setitem__("samples", np.int64(1 << 20)),
+                f.attrs.__setitem__("harmonics", np.int64(400_000)),
+            ),
+            "/curves/coefficients has shape",
+        ),
+        (
+            lambda f: [f["curves"][name].resize(100_000_000, axis=0) for name in f["curves"] if name != "id_crc32"],
+            "declares (100000000",
+        ),
+        (
+            lambda f: [
+                _declare(f, f"files/{name}", 50_000_000) for name in list(f["files"]) if not name.endswith("crc32")
+            ],
+            "declares (50000000",
+        ),
+        (lambda f: _declare(f, "search/features", 50_000_000), "/search/features declares (50000000"),
+    ],
+)
 def test_a_crafted_index_is_refused_before_any_allocation(index_copy, craft, message):
     _craft(index_copy, craft)
     assert os.path.getsize(index_copy) < 1 << 20
@@ -283,10 +318,8 @@ def test_external_storage_is_refused_and_its_file_never_printed(index_copy, tmp_
     with h5py.File(index_copy, "r") as f:
         N = f["curves/id"].shape[0]
     # fixed-length ids read the other file's bytes: exactly what a reader must never print
-    _craft(index_copy, lambda f: _replace(f, "curves/id", shape=(N,), dtype="S16",
-                                          external=[(str(secret), 0, 16 * N)]))
-    for args in (["index", "ls", "--curves"], ["query", QUERY, "--top", "3"], ["index", "info"],
-                 ["index", "verify"]):
+    _craft(index_copy, lambda f: _replace(f, "curves/id", shape=(N,), dtype="S16", external=[(str(secret), 0, 16 * N)]))
+    for args in (["index", "ls", "--curves"], ["query", QUERY, "--top", "3"], ["index", "info"], ["index", "verify"]):
         result = _cli(*args, "--index", str(index_copy))
         assert result.exit_code == 1, args
         assert "SECRET" not in result.stdout + result.stderr
@@ -314,9 +347,11 @@ def test_virtual_datasets_and_links_are_refused(index_copy, tmp_path):
         del f["curves/centroid"]
         f["curves/centroid"] = h5py.SoftLink("/curves/elsewhere")
 
-    for craft, message in ((virtual, "/curves/scale is a virtual dataset"),
-                           (external_link, "/curves/coefficients is a ExternalLink, not stored in the file"),
-                           (soft_link, "/curves/centroid is a SoftLink, not stored in the file")):
+    for craft, message in (
+        (virtual, "/curves/scale is a virtual dataset"),
+        (external_link, "/curves/coefficients is a ExternalLink, not stored in the file"),
+        (soft_link, "/curves/centroid is a SoftLink, not stored in the file"),
+    ):
         path = tmp_path / f"{craft.__name__}.h5"
         shutil.copyfile(index_copy, path)
         _craft(path, craft)
@@ -331,6 +366,7 @@ def test_a_checksummed_file_with_a_dataset_stripped_of_its_checksum_is_corrupt(i
         data = f["curves/scale"][...]
         del f["curves/scale"]
         f["curves"].create_dataset("scale", data=data)
+
     _craft(index_copy, strip)
     with pytest.raises(IndexFormatError, match="/curves/scale has no checksum filter"):
         open_index(index_copy)
@@ -363,6 +399,7 @@ def test_a_crafted_huge_stored_error_is_cut_on_storing(tmp_path):
 
 
 # --------------------------------------------------------------------------- coordinates near 1e308
+
 
 def _huge_curve(path, factor, offset=0.0):
     t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
@@ -399,12 +436,12 @@ def test_show_refuses_a_query_too_large_to_draw_clearly(tmp_path):
     (tmp_path / "lib").mkdir()
     _huge_curve(tmp_path / "lib" / "small.csv", 1.0)
     with _no_warnings():
-        result = _cli("show", str(tmp_path / "huge.csv"), "--against", str(tmp_path / "lib"),
-                      "-o", str(tmp_path / "s.svg"))
+        result = _cli(
+            "show", str(tmp_path / "huge.csv"), "--against", str(tmp_path / "lib"), "-o", str(tmp_path / "s.svg")
+        )
     assert result.exit_code == 1
     assert result.stdout == ""
-    assert result.stderr.startswith(f"Error: {tmp_path / 'huge.csv'}: coordinates up to 1.2e+308 are too large "
-                                    "to draw")
+    assert result.stderr.startswith(f"Error: {tmp_path / 'huge.csv'}: coordinates up to 1.2e+308 are too large to draw")
     assert not (tmp_path / "s.svg").exists()
 
 
@@ -464,6 +501,7 @@ def test_a_crafted_huge_stored_error_is_cut_when_read(index_copy):
         status = f["files/status"][...]
         status[0] = 1
         f["files/status"][...] = status
+
     _craft(index_copy, craft)
     result = _cli("index", "info", "--index", str(index_copy))
     assert result.exit_code == 0, result.stderr
@@ -475,5 +513,7 @@ def test_a_flipped_bit_in_the_file_table_is_named_on_open(index_copy):
     for args in (["index", "info"], ["index", "verify"], ["query", QUERY]):
         result = _cli(*args, "--index", str(index_copy))
         assert result.exit_code == 1 and result.stdout == ""
-        assert result.stderr == (f"Error: {index_copy}: corrupted nfdmatch index: checksum mismatch in the file "
-                                 "table (/files; the file is damaged)\n")
+        assert result.stderr == (
+            f"Error: {index_copy}: corrupted nfdmatch index: checksum mismatch in the file "
+            "table (/files; the file is damaged)\n"
+        )

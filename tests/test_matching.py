@@ -10,8 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import oracle
-from oracle import (random_rigid_motion, random_smooth_curve, reverse,
-                    start_shift)
+from oracle import random_rigid_motion, random_smooth_curve, reverse, start_shift
 
 from nfdmatch import descriptors, distance
 from nfdmatch.errors import NfdError, ParameterError
@@ -50,8 +49,7 @@ def test_exact_matches_the_brute_force_oracles_on_100_random_pairs():
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**32 - 1), mirror=st.booleans(), strict=st.booleans(),
-       scale=st.sampled_from(["a1", "rms"]))
+@given(seed=st.integers(0, 2**32 - 1), mirror=st.booleans(), strict=st.booleans(), scale=st.sampled_from(["a1", "rms"]))
 def test_exact_never_worse_than_integer_oracle_nor_below_bound(seed, mirror, strict, scale):
     rng = np.random.default_rng(seed)
     a = random_smooth_curve(rng, n_vertices=600, n_harmonics=int(rng.integers(2, 9)))
@@ -68,11 +66,15 @@ def test_exact_never_worse_than_integer_oracle_nor_below_bound(seed, mirror, str
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), reversed_=st.booleans(), shift=st.integers(0, 10_000),
-       vertices=st.integers(600, 1500))
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    reversed_=st.booleans(),
+    shift=st.integers(0, 10_000),
+    vertices=st.integers(600, 1500),
+)
 def test_invariant_under_motion_scale_start_reversal_and_resampling(seed, reversed_, shift, vertices):
     rng = np.random.default_rng(seed)
-    a, b = oracle.smooth_curve_samplings(rng, [1000, vertices])    # the same curve, sampled twice
+    a, b = oracle.smooth_curve_samplings(rng, [1000, vertices])  # the same curve, sampled twice
     b = start_shift(b, shift % vertices)
     if reversed_:
         b = reverse(b)
@@ -93,7 +95,7 @@ def test_alignment_maps_b_onto_a_in_input_coordinates(rng):
     assert m.scale == pytest.approx(1 / c, rel=2e-3)
     mapped = m.scale * b @ m.rotation.T + m.translation
     assert np.allclose(mapped, start_shift(a, 300), atol=5e-3 * np.abs(a).max())
-    same = distance(a, random_rigid_motion(a, rng))      # same vertices, same start
+    same = distance(a, random_rigid_motion(a, rng))  # same vertices, same start
     assert same.distance < 1e-8
 
 
@@ -163,7 +165,7 @@ def test_paper_step_is_the_bisector_rotation_per_shift(rng):
 
 def test_kabsch_trace_closed_form_matches_svd(rng):
     M = rng.normal(size=(500, 3, 3)) * rng.uniform(1e-6, 1e3, size=(500, 1, 1))
-    M[:50, 2] = M[:50, 1] * 0.5   # rank-deficient
+    M[:50, 2] = M[:50, 1] * 0.5  # rank-deficient
     s = np.linalg.svd(M, compute_uv=False)
     d = np.sign(np.linalg.det(M))
     expect = s[:, 0] + s[:, 1] + d * s[:, 2]
@@ -178,7 +180,7 @@ def test_lower_bound_holds_for_batches(rng):
     lb = lower_bound(A, B)
     exact = exact_search(A, B, N, mirror=True)["distance"]
     assert np.all(lb <= exact * (1 + 1e-9))
-    assert np.median(lb / exact) > 0.2   # a bound that prunes, not just zero
+    assert np.median(lb / exact) > 0.2  # a bound that prunes, not just zero
 
 
 def test_batch_equals_pairwise(rng):
@@ -202,12 +204,15 @@ def test_degenerate_first_harmonic_is_safe():
     assert np.isfinite(distance(knot, turned, scale="a1").distance)
 
 
-@pytest.mark.parametrize("points", [
-    oracle.collinear_back_and_forth(50),
-    np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float) * 1e12,
-    np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 1e-12,
-    np.array([[0, 0], [2, 0], [1, 1e-9]], float),
-])
+@pytest.mark.parametrize(
+    "points",
+    [
+        oracle.collinear_back_and_forth(50),
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float) * 1e12,
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 1e-12,
+        np.array([[0, 0], [2, 0], [1, 1e-9]], float),
+    ],
+)
 def test_degenerate_but_valid_curves_give_finite_results(points, rng):
     other = random_smooth_curve(rng, n_vertices=300)
     for method in ("exact", "paper"):
@@ -217,10 +222,18 @@ def test_degenerate_but_valid_curves_give_finite_results(points, rng):
             assert distance(points, points, method=method, scale=scale).distance < 1e-6
 
 
-@pytest.mark.parametrize("kwargs", [
-    {"samples": 16, "harmonics": 8}, {"harmonics": 0}, {"samples": 2}, {"scale": "max"},
-    {"method": "best"}, {"direction": "both"}, {"weights": np.ones(3)},
-])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"samples": 16, "harmonics": 8},
+        {"harmonics": 0},
+        {"samples": 2},
+        {"scale": "max"},
+        {"method": "best"},
+        {"direction": "both"},
+        {"weights": np.ones(3)},
+    ],
+)
 def test_bad_parameters_are_nfd_errors(kwargs, rng):
     a = random_smooth_curve(rng, n_vertices=100)
     with pytest.raises(ParameterError) as info:
@@ -256,14 +269,20 @@ def test_same_vertices_in_every_format_give_the_same_distance(tmp_path, rng, ext
 # --------------------------------------------------------------------------- compiled kernels
 # nfdmatch/_kernels.py (numba, optional) must give what the numpy path gives.
 
+
 def _exact_with(monkeypatch, mode, *args, aot=None, **kwargs):
     """exact_search with NFDMATCH_NUMBA=mode in a fresh kernel state (as a new process that
     imports nfdmatch with that environment and, unless ``aot`` gives them, without the
     ahead-of-time kernels); returns (result, state)."""
     from nfdmatch import matching
 
-    state = {"module": None, "failed": None, "work": 0, "mode": matching.dispatch._mode_from_environment(mode),
-             "aot": aot}
+    state = {
+        "module": None,
+        "failed": None,
+        "work": 0,
+        "mode": matching.dispatch._mode_from_environment(mode),
+        "aot": aot,
+    }
     monkeypatch.setattr(matching.dispatch, "_kernel_state", state)
     return exact_search(*args, **kwargs), state
 
@@ -272,22 +291,37 @@ def _kernel_rows(rng, samples, harmonics):
     """(rows, generic): 10 random 3-D curves, then degenerate rows: collinear (twice),
     |A_1| ~ 0 (torus knot, planar five-fold figure), planar ellipse, all-zero, a copy of row 0."""
     generic = [random_smooth_curve(rng, n_vertices=400, n_harmonics=int(rng.integers(2, 9))) for _ in range(10)]
-    degenerate = [oracle.collinear_back_and_forth(50), oracle.collinear_back_and_forth(80, (1.0, 2.0, -0.5)),
-                  oracle.torus_knot(2, 9, 900), oracle.figure_eight_planar(1000), oracle.ellipse(2.0, 1.0, 300)]
+    degenerate = [
+        oracle.collinear_back_and_forth(50),
+        oracle.collinear_back_and_forth(80, (1.0, 2.0, -0.5)),
+        oracle.torus_knot(2, 9, 900),
+        oracle.figure_eight_planar(1000),
+        oracle.ellipse(2.0, 1.0, 300),
+    ]
     rows = [descriptors(c, samples=samples, harmonics=harmonics).coefficients for c in generic + degenerate]
     rows += [np.zeros((harmonics, 3), complex), rows[0].copy()]
     return np.stack(rows), len(generic)
 
 
 @pytest.mark.parametrize("samples, harmonics", [(128, 16), (64, 8), (30, 7), (127, 16), (12, 3)])
-@pytest.mark.parametrize("options", [{}, {"mirror": True}, {"direction": "strict"}, {"refine": False},
-                                     {"refine_below": 0.5}, {"weights": "random"}, {"mirror": True, "direction": "strict"}])
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"mirror": True},
+        {"direction": "strict"},
+        {"refine": False},
+        {"refine_below": 0.5},
+        {"weights": "random"},
+        {"mirror": True, "direction": "strict"},
+    ],
+)
 def test_numba_path_equals_numpy_path(monkeypatch, rng, samples, harmonics, options):
     pytest.importorskip("numba")
     rows, generic = _kernel_rows(rng, samples, harmonics)
     if options.get("weights") == "random":
         options = {"weights": rng.uniform(0.0, 2.0, harmonics)}
-    for query in (0, 3, generic, generic + 2):          # random curves, collinear, |A_1| ~ 0
+    for query in (0, 3, generic, generic + 2):  # random curves, collinear, |A_1| ~ 0
         ref, ref_state = _exact_with(monkeypatch, "0", rows[query], rows, samples, **options)
         got, state = _exact_with(monkeypatch, "1", rows[query], rows, samples, **options)
         assert ref_state["module"] is None and state["module"] is not None, state["failed"]
@@ -319,8 +353,10 @@ def _aot_kernels():
 
 
 @pytest.mark.parametrize("samples, harmonics", [(128, 16), (30, 7), (127, 16), (12, 3)])
-@pytest.mark.parametrize("options", [{}, {"mirror": True}, {"direction": "strict"}, {"refine": False},
-                                     {"refine_below": 0.5}, {"weights": "random"}])
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"mirror": True}, {"direction": "strict"}, {"refine": False}, {"refine_below": 0.5}, {"weights": "random"}],
+)
 def test_ahead_of_time_kernels_equal_the_numpy_path(monkeypatch, rng, samples, harmonics, options):
     kernels = _aot_kernels()
     rows, generic = _kernel_rows(rng, samples, harmonics)
@@ -329,7 +365,7 @@ def test_ahead_of_time_kernels_equal_the_numpy_path(monkeypatch, rng, samples, h
     for query in (0, 3, generic):
         ref, _ = _exact_with(monkeypatch, "0", rows[query], rows, samples, **options)
         got, state = _exact_with(monkeypatch, "auto", rows[query], rows, samples, aot=kernels, **options)
-        assert state["module"] is None                  # served without importing numba's JIT
+        assert state["module"] is None  # served without importing numba's JIT
         np.testing.assert_allclose(got["distance"], ref["distance"], rtol=1e-12, atol=1e-13)
         assert np.allclose(got["rotation"] @ np.swapaxes(got["rotation"], 1, 2), np.eye(3), atol=1e-12)
         assert np.array_equal(np.linalg.det(got["rotation"]) < 0, got["mirrored"])
@@ -345,11 +381,15 @@ def test_ahead_of_time_grid_maximum_equals_the_numpy_path(monkeypatch, rng):
     kernels = _aot_kernels()
     rows, _ = _kernel_rows(rng, 128, 16)
     for grid, direction, mirror in ((24, "invariant", False), (16, "strict", True), (10, "invariant", True)):
-        monkeypatch.setattr(matching.dispatch, "_kernel_state", {"module": None, "failed": None, "work": 0,
-                                                                 "mode": "off", "aot": None})
+        monkeypatch.setattr(
+            matching.dispatch, "_kernel_state", {"module": None, "failed": None, "work": 0, "mode": "off", "aot": None}
+        )
         ref = matching.grid_maximum(rows[1, :4], rows[:, :4], grid, direction=direction, mirror=mirror)
-        monkeypatch.setattr(matching.dispatch, "_kernel_state", {"module": None, "failed": None, "work": 0,
-                                                                 "mode": "aot", "aot": kernels})
+        monkeypatch.setattr(
+            matching.dispatch,
+            "_kernel_state",
+            {"module": None, "failed": None, "work": 0, "mode": "aot", "aot": kernels},
+        )
         got = matching.grid_maximum(rows[1, :4], rows[:, :4], grid, direction=direction, mirror=mirror)
         np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
 
@@ -358,7 +398,7 @@ def test_a_stale_ahead_of_time_build_is_not_used(monkeypatch, tmp_path):
     from nfdmatch.matching import aot
 
     stamp = tmp_path / "stamp"
-    stamp.write_text("0" * 64 + "\n")                   # built from another kernel source
+    stamp.write_text("0" * 64 + "\n")  # built from another kernel source
     monkeypatch.setattr(aot, "_STAMP", str(stamp))
     assert aot.load() is None
     stamp.write_text(aot.source_digest() + "\n")
@@ -370,11 +410,13 @@ def test_a_process_does_not_import_numba_when_the_ahead_of_time_kernels_serve():
     import sys
 
     _aot_kernels()
-    code = ("import sys, numpy as np\n"
-            "from nfdmatch import matching\n"
-            "B = np.random.default_rng(0).normal(size=(3000, 16, 3)) * (1 + 1j)\n"
-            "d = matching.exact_search(B[0], B, 128)['distance']\n"
-            "print(sys.modules.get('numba') is not None, d[0] < 1e-9)\n")
+    code = (
+        "import sys, numpy as np\n"
+        "from nfdmatch import matching\n"
+        "B = np.random.default_rng(0).normal(size=(3000, 16, 3)) * (1 + 1j)\n"
+        "d = matching.exact_search(B[0], B, 128)['distance']\n"
+        "print(sys.modules.get('numba') is not None, d[0] < 1e-9)\n"
+    )
     env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_NUMBA"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.split() == ["False", "True"]
@@ -391,8 +433,9 @@ def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
     basis, quarter = _folded_basis(16, 128)
     for limit in (np.inf, 0.3):
         one = _kernels.exact_rows(A, np.conj(A), np.ones(16), rows, 2, basis, quarter, 128, False, 3, True, limit)
-        three = _kernels.exact_rows(A, np.conj(A), np.ones(16), rows, 2, basis, quarter, 128, False, 3, True, limit,
-                                    workers=3)
+        three = _kernels.exact_rows(
+            A, np.conj(A), np.ones(16), rows, 2, basis, quarter, 128, False, 3, True, limit, workers=3
+        )
         assert all(np.array_equal(a, b) for a, b in zip(one, three))
 
 
@@ -405,9 +448,16 @@ def test_numba_cos_third_arccos_is_within_a_few_ulps(rng):
         for i in range(r.shape[0]):
             out[i] = cos_third_acos(r[i])
 
-    r = np.concatenate([rng.uniform(-1, 1, 200_000), -1 + rng.uniform(0, 1e-5, 20_000) ** 2,
-                        1 - rng.uniform(0, 1e-5, 20_000) ** 2, 0.5 + rng.uniform(-1e-6, 1e-6, 20_000),
-                        -0.5 + rng.uniform(-1e-6, 1e-6, 20_000), [-1.0, 1.0, 0.0, 0.5, -0.5, -0.0]])
+    r = np.concatenate(
+        [
+            rng.uniform(-1, 1, 200_000),
+            -1 + rng.uniform(0, 1e-5, 20_000) ** 2,
+            1 - rng.uniform(0, 1e-5, 20_000) ** 2,
+            0.5 + rng.uniform(-1e-6, 1e-6, 20_000),
+            -0.5 + rng.uniform(-1e-6, 1e-6, 20_000),
+            [-1.0, 1.0, 0.0, 0.5, -0.5, -0.0],
+        ]
+    )
     out = np.empty_like(r)
     evaluate(r, out)
     expect = np.cos(np.arccos(r) / 3)
@@ -423,7 +473,7 @@ def test_numba_fallback_when_numba_cannot_be_imported(monkeypatch, rng):
 
     rows, _ = _kernel_rows(rng, 128, 16)
     ref, _ = _exact_with(monkeypatch, "0", rows[0], rows, 128)
-    monkeypatch.setitem(sys.modules, "numba", None)               # import numba -> ImportError
+    monkeypatch.setitem(sys.modules, "numba", None)  # import numba -> ImportError
     monkeypatch.delitem(sys.modules, "nfdmatch.matching._kernels", raising=False)
     monkeypatch.delattr(matching, "_kernels", raising=False)
     with pytest.warns(RuntimeWarning, match="numba kernels unavailable"):
@@ -446,9 +496,9 @@ def test_numba_is_used_only_once_the_work_amortizes_its_import(monkeypatch, rng)
     monkeypatch.setattr(matching.dispatch, "_NUMBA_AMORTIZE", 3 * (len(rows) * 2 * 128 + matching.dispatch._CALL_WORK))
     _, state = _exact_with(monkeypatch, "auto", rows[0], rows, 128)
     exact_search(rows[0], rows, 128)
-    assert state["module"] is None                     # two calls: below the threshold
+    assert state["module"] is None  # two calls: below the threshold
     exact_search(rows[0], rows, 128)
-    assert state["module"] is not None                 # the third reaches it
+    assert state["module"] is not None  # the third reaches it
     _, state = _exact_with(monkeypatch, "0", rows[0], rows, 128)
     exact_search(rows[0], rows, 128)
     assert state["module"] is None and state["work"] == 0
@@ -458,13 +508,15 @@ def test_importing_and_a_small_distance_do_not_import_numba():
     import subprocess
     import sys
 
-    code = ("import sys, numpy as np\n"
-            "import nfdmatch, nfdmatch.cli, nfdmatch.search\n"
-            "from nfdmatch import distance\n"
-            "t = np.linspace(0, 2 * np.pi, 200, endpoint=False)\n"
-            "a = np.c_[np.cos(t), np.sin(2 * t), np.sin(3 * t)]\n"
-            "distance(a, a[::-1] * 2)\n"
-            "print(sys.modules.get('numba') is not None)\n")
+    code = (
+        "import sys, numpy as np\n"
+        "import nfdmatch, nfdmatch.cli, nfdmatch.search\n"
+        "from nfdmatch import distance\n"
+        "t = np.linspace(0, 2 * np.pi, 200, endpoint=False)\n"
+        "a = np.c_[np.cos(t), np.sin(2 * t), np.sin(3 * t)]\n"
+        "distance(a, a[::-1] * 2)\n"
+        "print(sys.modules.get('numba') is not None)\n"
+    )
     env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_NUMBA"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.strip() == "False"
@@ -477,16 +529,21 @@ def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
     import subprocess
     import sys
 
-    code = ("import numba.core.caching as caching, numpy as np, sys\n"
-            "caching.CacheImpl._locator_classes = []\n"
-            "from nfdmatch import matching\n"
-            "B = np.random.default_rng(0).normal(size=(5, 16, 3)) * (1 + 1j)\n"
-            "d = matching.exact_search(B[0], B, 128)['distance']\n"
-            "print(repr(matching.dispatch._kernel_state['failed'])[:40], d[0] < 1e-9)\n")
+    code = (
+        "import numba.core.caching as caching, numpy as np, sys\n"
+        "caching.CacheImpl._locator_classes = []\n"
+        "from nfdmatch import matching\n"
+        "B = np.random.default_rng(0).normal(size=(5, 16, 3)) * (1 + 1j)\n"
+        "d = matching.exact_search(B[0], B, 128)['distance']\n"
+        "print(repr(matching.dispatch._kernel_state['failed'])[:40], d[0] < 1e-9)\n"
+    )
     env = dict(os.environ, NFDMATCH_NUMBA="auto")
     # without the ahead-of-time kernels (they would serve instead)
-    code = code.replace("from nfdmatch import matching\n", "from nfdmatch import matching\nmatching.dispatch._NUMBA_AMORTIZE = 1\n"
-                        "matching.dispatch._kernel_state['aot'] = None\n")
+    code = code.replace(
+        "from nfdmatch import matching\n",
+        "from nfdmatch import matching\nmatching.dispatch._NUMBA_AMORTIZE = 1\n"
+        "matching.dispatch._kernel_state['aot'] = None\n",
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0].startswith("RuntimeError") and out.stdout.split()[-1] == "True", out.stdout

@@ -1,4 +1,5 @@
 """Self-checks of the brute-force oracle in tests/oracle.py (no nfdmatch)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -43,10 +44,11 @@ def circ_dist(a, b, m):
 
 # --------------------------------------------------------------------------- basics
 
+
 def test_resample_convention():
     sq = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     r = resample(sq, 8)
-    exp = np.array([[0, 0], [.5, 0], [1, 0], [1, .5], [1, 1], [.5, 1], [0, 1], [0, .5]])
+    exp = np.array([[0, 0], [0.5, 0], [1, 0], [1, 0.5], [1, 1], [0.5, 1], [0, 1], [0, 0.5]])
     np.testing.assert_allclose(r[:, :2], exp, atol=1e-15)
     # zero-length segments and repeated vertices are harmless
     sq2 = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
@@ -98,14 +100,12 @@ def test_shift_and_reverse_sign_conventions(rng):
     A = fd(a)
     freqs = np.concatenate([np.arange(1, K + 1), np.arange(-K, 0)])
     s = 5
-    np.testing.assert_allclose(fd(start_shift(a, s))[freqs % M],
-                               shift_band(A[freqs % M], freqs, M, s), atol=1e-13)
-    np.testing.assert_allclose(fd(np.roll(a[::-1], 1, axis=0))[freqs % M],
-                               reverse_band(A[freqs % M]), atol=1e-13)
+    np.testing.assert_allclose(fd(start_shift(a, s))[freqs % M], shift_band(A[freqs % M], freqs, M, s), atol=1e-13)
+    np.testing.assert_allclose(fd(np.roll(a[::-1], 1, axis=0))[freqs % M], reverse_band(A[freqs % M]), atol=1e-13)
     # a[::-1] == reversal followed by shift 1
-    np.testing.assert_allclose(fd(reverse(a))[freqs % M],
-                               shift_band(reverse_band(A[freqs % M]), freqs, M, 1),
-                               atol=1e-13)
+    np.testing.assert_allclose(
+        fd(reverse(a))[freqs % M], shift_band(reverse_band(A[freqs % M]), freqs, M, 1), atol=1e-13
+    )
 
 
 def test_generators(rng):
@@ -116,9 +116,15 @@ def test_generators(rng):
     assert c.shape == (500, 3) and not np.allclose(c[0], c[-1])
     d = np.linalg.norm(np.diff(c, axis=0), axis=1)
     assert d.std() / d.mean() > 0.05  # not uniform in arc length
-    for f in (torus_knot(2, 3, 300), lissajous(3, 2, 5, 300), ellipse(2, 1, 100),
-              figure_eight_planar(1000), lemniscate_planar(400),
-              collinear_back_and_forth(100), resample_polyline(c, 77, rng)):
+    for f in (
+        torus_knot(2, 3, 300),
+        lissajous(3, 2, 5, 300),
+        ellipse(2, 1, 100),
+        figure_eight_planar(1000),
+        lemniscate_planar(400),
+        collinear_back_and_forth(100),
+        resample_polyline(c, 77, rng),
+    ):
         assert f.ndim == 2 and f.shape[1] == 3 and np.isfinite(f).all()
     A = fd(resample(figure_eight_planar(1000), 128))
     assert np.linalg.norm(A[1]) < 1e-5 * np.sqrt(np.sum(np.abs(A[1:]) ** 2))
@@ -130,6 +136,7 @@ def test_generators(rng):
 
 
 # --------------------------------------------------------------------------- (a)
+
 
 @pytest.mark.parametrize("trial", range(5))
 def test_a_rigid_copy_recovered(rng, trial):
@@ -150,6 +157,7 @@ def test_a_rigid_copy_recovered(rng, trial):
 
 # --------------------------------------------------------------------------- (b)
 
+
 def test_b_reversed_copy(rng):
     p = resample(random_smooth_curve(rng), M)
     s0 = int(rng.integers(M))
@@ -167,6 +175,7 @@ def test_b_reversed_copy(rng):
 
 
 # --------------------------------------------------------------------------- (c)
+
 
 def test_c_mirrored_copy(rng):
     p = resample(random_smooth_curve(rng), M)
@@ -191,6 +200,7 @@ def test_c_planar_mirror_is_a_rotation():
 
 
 # --------------------------------------------------------------------------- (d)
+
 
 def test_d_fractional_never_worse(rng):
     for _ in range(8):
@@ -217,6 +227,7 @@ def test_d_fractional_equals_integer_on_integer_shift(rng):
 
 def test_d_fft_matrices_match_direct(rng):
     from oracle import correlation_matrices
+
     A, freqs = band(rng.standard_normal((M, 3)))
     B, _ = band(rng.standard_normal((M, 3)))
     U = 4
@@ -230,6 +241,7 @@ def test_d_fft_matrices_match_direct(rng):
 
 
 # --------------------------------------------------------------------------- (e)
+
 
 @pytest.mark.parametrize("trial", range(3))
 def test_e_fractional_start_offset(rng, trial):
@@ -248,6 +260,7 @@ def test_e_fractional_start_offset(rng, trial):
 
 
 # --------------------------------------------------------------------------- (f)
+
 
 def _pairs(rng, n):
     gens = [
@@ -283,6 +296,7 @@ def test_f_lower_bounds(rng):
 
 # --------------------------------------------------------------------------- (g)
 
+
 def test_g_trace_formula_matches_direct(rng):
     for _ in range(20):
         A, freqs = band(rng.standard_normal((M, 3)))
@@ -305,6 +319,7 @@ def test_g_trace_formula_matches_direct(rng):
 
 
 # --------------------------------------------------------------------------- (h)
+
 
 def test_h_symmetry(rng):
     for _ in range(6):

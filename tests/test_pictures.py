@@ -10,8 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from oracle import (random_rigid_motion, random_smooth_curve, resample_polyline, reverse, start_shift,
-                    torus_knot)
+from oracle import random_rigid_motion, random_smooth_curve, resample_polyline, reverse, start_shift, torus_knot
 
 from nfdmatch import Curve, descriptors, distance, read_curve
 from nfdmatch.descriptors import descriptors_batch, points_at, reconstruct, resample
@@ -22,9 +21,9 @@ from nfdmatch.show import matches_from_curves
 
 # --------------------------------------------------------------------------- single == batch
 
+
 def test_single_descriptors_are_row_of_batch(rng):
-    curves = [random_rigid_motion(random_smooth_curve(rng, n_vertices=int(n)), rng)
-              for n in rng.integers(50, 900, 6)]
+    curves = [random_rigid_motion(random_smooth_curve(rng, n_vertices=int(n)), rng) for n in rng.integers(50, 900, 6)]
     batch = descriptors_batch(curves, samples=64, harmonics=12, scale="a1")
     for i, c in enumerate(curves):
         d = descriptors(c, samples=64, harmonics=12, scale="a1")
@@ -47,7 +46,7 @@ def test_plane_rotation_stays_orthonormal_for_normals_near_minus_z(tilt):
     R = d.rotation
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-13)
     assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-13)
-    assert np.abs(d.coefficients[:, 2]).max() < 1e-9          # the curve lies in z = 0 after rotation
+    assert np.abs(d.coefficients[:, 2]).max() < 1e-9  # the curve lies in z = 0 after rotation
 
 
 def test_points_at_walks_the_polyline():
@@ -60,10 +59,11 @@ def test_points_at_walks_the_polyline():
 
 # --------------------------------------------------------------------------- reconstruction
 
+
 def _fourier_curve(rng, harmonics: int, n: int = 3000) -> np.ndarray:
     t = np.arange(n) / n
     k = np.arange(1, harmonics + 1)
-    a, b = rng.standard_normal((2, harmonics, 3)) * (k ** -1.5)[None, :, None]
+    a, b = rng.standard_normal((2, harmonics, 3)) * (k**-1.5)[None, :, None]
     return np.cos(2 * np.pi * np.outer(t, k)) @ a + np.sin(2 * np.pi * np.outer(t, k)) @ b
 
 
@@ -80,12 +80,14 @@ def test_reconstruction_at_all_harmonics_reproduces_the_samples(rng):
     np.testing.assert_allclose(rebuilt + nyquist.real * (-1.0) ** np.arange(64)[:, None], samples, atol=1e-9)
 
 
-KNOTESS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                       "sample_curves", "library", "knotess")
+KNOTESS = os.path.join(
+    os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "sample_curves", "library", "knotess"
+)
 
 
-@pytest.mark.parametrize("curve", [torus_knot(2, 3, 1500), torus_knot(3, 4, 2000), torus_knot(2, 5, 1800),
-                                   "3_1.csv", "4_1.csv", "5_2.csv"])
+@pytest.mark.parametrize(
+    "curve", [torus_knot(2, 3, 1500), torus_knot(3, 4, 2000), torus_knot(2, 5, 1800), "3_1.csv", "4_1.csv", "5_2.csv"]
+)
 def test_reconstruction_distance_falls_with_k_to_zero_for_smooth_curves(curve, rng):
     if isinstance(curve, str):
         curve = read_curve(os.path.join(KNOTESS, curve)).points
@@ -118,8 +120,8 @@ def test_reconstruction_keeps_pose_and_normalized_frame(rng):
     np.testing.assert_allclose(rebuilt[0], resample(pts, 128)[0], atol=0.01 * size)
     normalized = reconstruct(d, points=400, normalized=True)
     assert np.abs(normalized.mean(0)).max() < 1e-9
-    assert np.sqrt((normalized ** 2).sum(1).mean()) == pytest.approx(1.0, rel=1e-2)
-    assert np.abs(normalized[:, 2]).max() < np.abs(normalized[:, :2]).max()      # limit plane ~ z = 0
+    assert np.sqrt((normalized**2).sum(1).mean()) == pytest.approx(1.0, rel=1e-2)
+    assert np.abs(normalized[:, 2]).max() < np.abs(normalized[:, :2]).max()  # limit plane ~ z = 0
 
 
 def test_reconstruct_rejects_bad_parameters(rng):
@@ -132,9 +134,9 @@ def test_reconstruct_rejects_bad_parameters(rng):
 
 # --------------------------------------------------------------------------- the matrix
 
+
 def test_matrix_is_symmetric_and_equals_distance_for_every_pair(rng):
-    curves = [random_rigid_motion(random_smooth_curve(rng, n_vertices=int(n)), rng)
-              for n in rng.integers(100, 600, 7)]
+    curves = [random_rigid_motion(random_smooth_curve(rng, n_vertices=int(n)), rng) for n in rng.integers(100, 600, 7)]
     curves.append(reverse(start_shift(curves[0], 17)))
     M = distance_matrix(curves)
     assert M.shape == (8, 8)
@@ -160,9 +162,9 @@ def test_matrix_with_paper_method_and_progress(rng):
 
 # --------------------------------------------------------------------------- alignment
 
+
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2 ** 32 - 1), shift=st.integers(0, 499), flip=st.booleans(),
-       vertices=st.integers(300, 1200))
+@given(seed=st.integers(0, 2**32 - 1), shift=st.integers(0, 499), flip=st.booleans(), vertices=st.integers(300, 1200))
 def test_aligned_match_lands_on_the_query(seed, shift, flip, vertices):
     """A posed, restarted, maybe reversed, resampled copy of the query is drawn on top of
     the query: its vertices lie on the query, its start marker at the query's first vertex
@@ -200,9 +202,11 @@ def test_matrix_in_row_batches_equals_one_call(rng, monkeypatch):
     monkeypatch.setattr(search_module, "BATCH_ROWS", 2)
     sizes = []
     real = search_module.exact_search
-    monkeypatch.setattr(search_module, "exact_search", lambda A, B, *a, **k: sizes.append(len(B)) or real(A, B, *a, **k))
-    np.testing.assert_allclose(distance_matrix(curves), whole, rtol=1e-12, atol=1e-15)   # BLAS rounding
-    assert max(sizes) == 2 and sum(sizes) == 9 * 8 // 2          # bounded calls, every pair once
+    monkeypatch.setattr(
+        search_module, "exact_search", lambda A, B, *a, **k: sizes.append(len(B)) or real(A, B, *a, **k)
+    )
+    np.testing.assert_allclose(distance_matrix(curves), whole, rtol=1e-12, atol=1e-15)  # BLAS rounding
+    assert max(sizes) == 2 and sum(sizes) == 9 * 8 // 2  # bounded calls, every pair once
 
 
 def test_similarity_order_groups_clusters(rng):
@@ -215,8 +219,8 @@ def test_similarity_order_groups_clusters(rng):
     order = similarity_order(D)
     assert sorted(order.tolist()) == list(range(24))
     runs = np.count_nonzero(np.diff(labels[order])) + 1
-    assert runs == 4                                        # each cluster contiguous
-    np.testing.assert_array_equal(similarity_order(D), order)   # deterministic
+    assert runs == 4  # each cluster contiguous
+    np.testing.assert_array_equal(similarity_order(D), order)  # deterministic
     assert similarity_order(np.zeros((1, 1))).tolist() == [0]
     with pytest.raises(ParameterError):
         similarity_order(np.zeros((2, 3)))

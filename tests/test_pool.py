@@ -36,8 +36,12 @@ def _write_folder(folder, n, seed=0):
     for i in range(n):
         t = np.linspace(0, 2 * np.pi, int(rng.integers(20, 40)), endpoint=False)
         a = rng.normal(size=(3, 4))
-        pts = (np.outer(np.cos(t), a[:, 0]) + np.outer(np.sin(t), a[:, 1]) + np.outer(np.cos(2 * t), a[:, 2]) / 3
-               + np.outer(np.sin(3 * t), a[:, 3]) / 5)
+        pts = (
+            np.outer(np.cos(t), a[:, 0])
+            + np.outer(np.sin(t), a[:, 1])
+            + np.outer(np.cos(2 * t), a[:, 2]) / 3
+            + np.outer(np.sin(3 * t), a[:, 3]) / 5
+        )
         path = folder / f"c{i:03d}.csv"
         path.write_text("x,y,z\n" + "".join(f"{x:.9f},{y:.9f},{z:.9f}\n" for x, y, z in pts))
         paths.append(str(path))
@@ -63,18 +67,19 @@ def _invoke(*args, env=None):
 
 # --------------------------------------------------------------------------- batches
 
+
 def test_batches_group_small_files_and_keep_large_ones_alone(tmp_path):
     small = _write_folder(tmp_path / "small", 300)
     big = tmp_path / "big.csv"
-    big.write_text("x,y,z\n" + "1,2,3\n4,5,7\n2,8,1\n" * 30000)       # ~ 600 KB
+    big.write_text("x,y,z\n" + "1,2,3\n4,5,7\n2,8,1\n" * 30000)  # ~ 600 KB
     tasks = [(p, None, 128, 16, "rms", None) for p in small[:150] + [str(big)] + small[150:]]
     batches = pool._batches(tasks)
     assert sorted(i for b in batches for i in b) == list(range(len(tasks)))
-    assert all(b == list(range(b[0], b[-1] + 1)) for b in batches)          # file order kept
-    assert [150] in batches                                                 # the large file alone
+    assert all(b == list(range(b[0], b[-1] + 1)) for b in batches)  # file order kept
+    assert [150] in batches  # the large file alone
     assert all(len(b) <= pool._BATCH_FILES for b in batches)
     assert len(batches) >= pool._MIN_BATCHES
-    assert max(len(b) for b in batches) > 10                                # small files share
+    assert max(len(b) for b in batches) > 10  # small files share
 
 
 def test_serial_and_parallel_builds_of_many_files_are_identical(folder, tmp_path):
@@ -82,20 +87,26 @@ def test_serial_and_parallel_builds_of_many_files_are_identical(folder, tmp_path
     (folder / "bad.csv").write_text("x,y,z\n1,2,3\n")
     serial = build_index([str(folder)], tmp_path / "serial.h5", jobs=1)
     calls = []
-    parallel = build_index([str(folder)], tmp_path / "parallel.h5", jobs=2, file_timeout=60,
-                           progress=lambda done, total: calls.append((done, total)))
+    parallel = build_index(
+        [str(folder)],
+        tmp_path / "parallel.h5",
+        jobs=2,
+        file_timeout=60,
+        progress=lambda done, total: calls.append((done, total)),
+    )
     assert serial.changes == parallel.changes and serial.failures == parallel.failures
     assert (parallel.added, parallel.failed) == (200, 1)
     # progress is per file, even though files travel in batches
     assert calls[0] == (0, 201) and calls[-1] == (201, 201) and len(calls) == 202
     with open_index(tmp_path / "serial.h5") as a, open_index(tmp_path / "parallel.h5") as b:
-        assert a.ids() == b.ids() == sorted(os.path.relpath(p, tmp_path) for p in paths)   # ids: relative to the index
+        assert a.ids() == b.ids() == sorted(os.path.relpath(p, tmp_path) for p in paths)  # ids: relative to the index
         ra, rb = a.read_rows(0, a.n_curves), b.read_rows(0, b.n_curves)
         for key in ra:
             np.testing.assert_array_equal(ra[key], rb[key], err_msg=key)
 
 
 # --------------------------------------------------------------------------- worker deaths
+
 
 @linux
 @pytest.mark.parametrize("jobs", [1, 2])
@@ -108,8 +119,9 @@ def test_a_file_that_kills_its_reader_fails_alone(folder, tmp_path, monkeypatch,
     index = tmp_path / "idx.h5"
     report = build_index([str(folder)], index, jobs=jobs, file_timeout=60)
     assert (report.added, report.failed, report.curves) == (39, 1, 39)
-    assert report.failures == [(crasher, f"{crasher}: the process reading it died twice (killed by SIGKILL); "
-                                         f"the file crashes its reader")]
+    assert report.failures == [
+        (crasher, f"{crasher}: the process reading it died twice (killed by SIGKILL); the file crashes its reader")
+    ]
     assert _ids(index) == sorted(set(paths) - {crasher})
     assert os.path.exists(flaky + ".hooked") and os.path.exists(leaver + ".hooked")
 
@@ -118,8 +130,7 @@ def test_a_file_that_kills_its_reader_fails_alone(folder, tmp_path, monkeypatch,
 def test_cli_crashing_file_exit_3_at_jobs_1_without_traceback(folder, tmp_path):
     paths = _write_folder(folder, 12)
     index = tmp_path / "idx.h5"
-    code, out, err = _invoke("index", "build", folder, "--index", index, "--jobs", "1",
-                             env={HOOK: "kill:c003.csv"})
+    code, out, err = _invoke("index", "build", folder, "--index", index, "--jobs", "1", env={HOOK: "kill:c003.csv"})
     assert code == 3, err
     assert out == ""
     assert f"Error: {paths[3]}: the process reading it died twice (killed by SIGKILL)" in err
@@ -139,9 +150,12 @@ def test_cli_segfaulting_reader_in_a_parallel_build(folder, tmp_path):
     assert out == ""
     assert err.splitlines() == [
         f"Error: {paths[11]}: the process reading it died twice (killed by SIGSEGV); the file crashes its reader",
-        err.splitlines()[1], "Error: 1 of 25 files could not be read"]
-    assert err.splitlines()[1].startswith(f"indexed into {index}: 24 added, 0 updated, 0 removed, 0 unchanged, "
-                                          f"1 failed files; 24 curves;")
+        err.splitlines()[1],
+        "Error: 1 of 25 files could not be read",
+    ]
+    assert err.splitlines()[1].startswith(
+        f"indexed into {index}: 24 added, 0 updated, 0 removed, 0 unchanged, 1 failed files; 24 curves;"
+    )
     assert _ids(index) == sorted(set(paths) - {paths[11]})
 
 
@@ -197,8 +211,14 @@ def _alive(pid):
 
 def _cli(args, env=None, **kw):
     full_env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env or {}))
-    return subprocess.Popen([sys.executable, "-m", "nfdmatch", *map(str, args)], env=full_env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "nfdmatch", *map(str, args)],
+        env=full_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
 
 
 def _wait_for(predicate, proc, seconds=60.0):
@@ -228,6 +248,7 @@ def test_workers_killed_from_outside_are_replaced(folder, tmp_path):
 
 # --------------------------------------------------------------------------- time limit
 
+
 @linux
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_a_file_that_never_finishes_fails_alone(folder, tmp_path, monkeypatch, jobs):
@@ -236,8 +257,9 @@ def test_a_file_that_never_finishes_fails_alone(folder, tmp_path, monkeypatch, j
     index = tmp_path / "idx.h5"
     report = build_index([str(folder)], index, jobs=jobs, file_timeout=1.5)
     assert (report.added, report.failed) == (29, 1)
-    assert report.failures == [(paths[5], f"{paths[5]}: reading it took longer than 1.5 s (the per-file time "
-                                          f"limit, --file-timeout); stopped")]
+    assert report.failures == [
+        (paths[5], f"{paths[5]}: reading it took longer than 1.5 s (the per-file time limit, --file-timeout); stopped")
+    ]
     assert _ids(index) == sorted(set(paths) - {paths[5]})
 
 
@@ -245,8 +267,20 @@ def test_a_file_that_never_finishes_fails_alone(folder, tmp_path, monkeypatch, j
 def test_cli_file_timeout(folder, tmp_path):
     paths = _write_folder(folder, 8)
     index = tmp_path / "idx.h5"
-    code, out, err = _invoke("index", "build", folder, "--index", index, "--jobs", "1", "--file-timeout", "1",
-                             "--format", "json", env={HOOK: "sleep:c002.csv"})
+    code, out, err = _invoke(
+        "index",
+        "build",
+        folder,
+        "--index",
+        index,
+        "--jobs",
+        "1",
+        "--file-timeout",
+        "1",
+        "--format",
+        "json",
+        env={HOOK: "sleep:c002.csv"},
+    )
     assert code == 3, err
     assert f"Error: {paths[2]}: reading it took longer than 1 s" in err and "Traceback" not in err
     assert '"failed": 1' in out and '"added": 7' in out
@@ -268,10 +302,18 @@ _TERM = (signal.SIGTERM, 143, "terminated (SIGTERM)")
 
 
 @linux
-@pytest.mark.parametrize("sig, code, word, jobs, group", [
-    (*_INT, 1, True), (*_INT, 2, True), (*_TERM, 1, True), (*_TERM, 2, True),
-    # to the build's process alone, as `timeout -s INT 3 nfdmatch ...` or `kill PID` send it
-    (*_INT, 2, False), (*_TERM, 2, False)])
+@pytest.mark.parametrize(
+    "sig, code, word, jobs, group",
+    [
+        (*_INT, 1, True),
+        (*_INT, 2, True),
+        (*_TERM, 1, True),
+        (*_TERM, 2, True),
+        # to the build's process alone, as `timeout -s INT 3 nfdmatch ...` or `kill PID` send it
+        (*_INT, 2, False),
+        (*_TERM, 2, False),
+    ],
+)
 def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, group):
     paths = _write_folder(folder, 300)
     index = tmp_path / "idx.h5"
@@ -279,10 +321,12 @@ def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, g
     before = index.read_bytes()
     # c150 hangs: the build is surely under way (temporary file open, workers busy) when the
     # signal comes, as Ctrl-C in a terminal goes to the whole foreground process group
-    proc = _cli(["index", "build", folder, "--index", index, "--jobs", str(jobs), "--rebuild"],
-                env={HOOK: "sleeponce:c150.csv"}, start_new_session=True)
-    _wait_for(lambda: os.path.exists(paths[150] + ".hooked") and any(".tmp-" in n for n in os.listdir(tmp_path)),
-              proc)
+    proc = _cli(
+        ["index", "build", folder, "--index", index, "--jobs", str(jobs), "--rebuild"],
+        env={HOOK: "sleeponce:c150.csv"},
+        start_new_session=True,
+    )
+    _wait_for(lambda: os.path.exists(paths[150] + ".hooked") and any(".tmp-" in n for n in os.listdir(tmp_path)), proc)
     workers = _children(proc.pid)
     if sig == signal.SIGINT:
         # workers ignore SIGINT (only the parent acts on it): not one of them may die of it
@@ -292,11 +336,11 @@ def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, g
         if proc.poll() is not None or not all(_alive(pid) for pid in workers):
             os.killpg(proc.pid, signal.SIGKILL)
             pytest.fail(f"a worker died of SIGINT: {proc.communicate()}")
-    if group:       # Ctrl-C in a terminal: the whole foreground process group
+    if group:  # Ctrl-C in a terminal: the whole foreground process group
         os.killpg(proc.pid, sig)
     else:
         os.kill(proc.pid, sig)
-    out, err = proc.communicate(timeout=30)          # a hang fails here
+    out, err = proc.communicate(timeout=30)  # a hang fails here
     assert proc.returncode == code, err
     assert out == ""
     assert err.strip().splitlines()[-1] == f"Error: {word}"
@@ -304,7 +348,7 @@ def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, g
     assert index.read_bytes() == before
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "src"]
     assert len(workers) >= 1
-    assert not any(_alive(pid) for pid in workers)    # no worker outlives the build
+    assert not any(_alive(pid) for pid in workers)  # no worker outlives the build
 
 
 @linux
@@ -318,7 +362,7 @@ def test_workers_of_a_fork_server_see_the_environment_of_now(folder, tmp_path, m
     t = threading.Thread(target=stop.wait)
     t.start()
     try:
-        build_index([str(folder)], tmp_path / "first.h5", jobs=2)      # the fork server starts here
+        build_index([str(folder)], tmp_path / "first.h5", jobs=2)  # the fork server starts here
         monkeypatch.setenv(HOOK, "kill:c004.csv")
         monkeypatch.setenv("NFDMATCH_MAX_FILE_BYTES", "100")
         report = build_index([str(folder)], tmp_path / "second.h5", jobs=2)

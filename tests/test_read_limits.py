@@ -15,8 +15,7 @@ import h5py
 import numpy as np
 import pytest
 
-from nfdmatch.errors import (MAX_MESSAGE_CHARS, CurveError, NfdError, ParseError, ReadError,
-                             escape_name, excerpt)
+from nfdmatch.errors import MAX_MESSAGE_CHARS, CurveError, NfdError, ParseError, ReadError, escape_name, excerpt
 from nfdmatch.formats import read_curve, read_curves, supported_extensions, write_curves
 from nfdmatch.formats import _chain
 from nfdmatch.sources import find_curve_files, read_all, walk_folder
@@ -32,6 +31,7 @@ def _square(path) -> str:
 # ---------------------------------------------------------------------------
 # non-regular files
 # ---------------------------------------------------------------------------
+
 
 def _run_with_timeout(fn, seconds=10):
     """fn() in a thread; fails the test instead of hanging it."""
@@ -58,8 +58,7 @@ def test_fifo_named_directly_fails_clearly_without_blocking(tmp_path, ext):
     os.mkfifo(fifo)
     with pytest.raises(ReadError) as info:
         _run_with_timeout(lambda: read_curves(fifo))
-    assert str(info.value) == f"{fifo}: is a FIFO (named pipe), not a regular file; only " \
-                              "regular files are read"
+    assert str(info.value) == f"{fifo}: is a FIFO (named pipe), not a regular file; only regular files are read"
 
 
 def test_dev_zero_through_a_symlink_fails_clearly(tmp_path):
@@ -84,12 +83,14 @@ def test_folder_walk_skips_non_regular_files_with_a_notice(tmp_path):
     good = _square(tmp_path / "a.csv")
     os.mkfifo(tmp_path / "b.csv")
     (tmp_path / "c.csv").symlink_to("/dev/zero")
-    (tmp_path / "d.txt").symlink_to(good)                  # a link to a regular file: read
+    (tmp_path / "d.txt").symlink_to(good)  # a link to a regular file: read
     problems = []
     files = _run_with_timeout(lambda: find_curve_files([str(tmp_path)], problems=problems))
     assert files == [good, str(tmp_path / "d.txt")]
-    assert [(type(p), p.path) for p in problems] == [(ReadError, str(tmp_path / "b.csv")),
-                                                     (ReadError, str(tmp_path / "c.csv"))]
+    assert [(type(p), p.path) for p in problems] == [
+        (ReadError, str(tmp_path / "b.csv")),
+        (ReadError, str(tmp_path / "c.csv")),
+    ]
     assert "FIFO (named pipe), not a regular file; skipped" in str(problems[0])
     assert "character device, not a regular file; skipped" in str(problems[1])
     curves, errors = _run_with_timeout(lambda: read_all(files))
@@ -104,6 +105,7 @@ def test_folder_walk_without_a_problem_list_still_skips(tmp_path):
 # ---------------------------------------------------------------------------
 # size cap, memory, message length
 # ---------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("ext", [".csv", ".obj", ".vtk"])
 def test_size_cap_refuses_before_reading(tmp_path, monkeypatch, ext):
@@ -131,8 +133,7 @@ def test_size_cap_from_the_environment(tmp_path, monkeypatch):
 def test_size_cap_reaches_the_cli(tmp_path):
     path = _square(tmp_path / "sq.csv")
     env = dict(os.environ, NFDMATCH_MAX_FILE_BYTES="10")
-    proc = subprocess.run([sys.executable, "-m", "nfdmatch", "describe", path], env=env,
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "nfdmatch", "describe", path], env=env, capture_output=True, text=True)
     assert proc.returncode == 1
     assert "more than the limit of 10 bytes" in proc.stderr and "Traceback" not in proc.stderr
 
@@ -150,7 +151,7 @@ def test_csv_peak_memory_is_a_few_times_the_file(tmp_path):
     finally:
         tracemalloc.stop()
     assert np.array_equal(curve.points, pts)
-    assert peak < 4 * size, (peak, size)               # was 21x (every row as Python strings)
+    assert peak < 4 * size, (peak, size)  # was 21x (every row as Python strings)
 
 
 def test_csv_bulk_and_careful_parsers_agree(tmp_path):
@@ -167,8 +168,7 @@ def test_csv_bulk_and_careful_parsers_agree(tmp_path):
     assert np.array_equal(read_curve(str(bulk)).points, pts)
 
 
-@pytest.mark.parametrize("layout", ["x,y,z\n0,0,0\n{big},1,2\n1,0,0\n0,1,0\n",
-                                    "0,0,0\n1,{big},2\n1,0,0\n0,1,0\n"])
+@pytest.mark.parametrize("layout", ["x,y,z\n0,0,0\n{big},1,2\n1,0,0\n0,1,0\n", "0,0,0\n1,{big},2\n1,0,0\n0,1,0\n"])
 def test_a_huge_token_makes_a_short_message(tmp_path, layout):
     path = tmp_path / "huge.csv"
     path.write_text(layout.format(big="9" * 5_000_000 + "x"))
@@ -206,6 +206,7 @@ def test_every_error_message_is_bounded():
 # file names that are not UTF-8
 # ---------------------------------------------------------------------------
 
+
 def _bad_name(folder: Path, stem: bytes, ext: str) -> str:
     name = os.fsdecode(stem + ext.encode())
     return os.path.join(str(folder), name)
@@ -223,7 +224,7 @@ def test_non_utf8_file_name_reads_with_an_escaped_id(tmp_path, ext):
     write_curves(path, [SQUARE], format=ext)
     (curve,) = read_curves(path)
     assert curve.id == os.path.join(str(tmp_path), "curve\\xff" + ext)
-    assert curve.source == path                      # the name that opens the file
+    assert curve.source == path  # the name that opens the file
     curve.id.encode("utf-8")
 
 
@@ -234,8 +235,7 @@ def test_non_utf8_multi_curve_ids_and_h5py(tmp_path):
     ids = [c.id for c in curves]
     assert ids == [os.path.join(str(tmp_path), "two\\xfe.obj") + f"#{i}" for i in range(2)]
     with h5py.File(tmp_path / "ids.h5", "w") as h5:
-        h5.create_dataset("ids", data=np.array(ids, dtype=object),
-                          dtype=h5py.string_dtype("utf-8"))
+        h5.create_dataset("ids", data=np.array(ids, dtype=object), dtype=h5py.string_dtype("utf-8"))
     with h5py.File(tmp_path / "ids.h5", "r") as h5:
         assert [s.decode() for s in h5["ids"][:]] == ids
 
@@ -251,15 +251,14 @@ def test_non_utf8_names_in_a_folder_and_their_errors(tmp_path):
     assert [c.id for c in curves] == [escape_name(good)]
     (error,) = errors
     message = str(error)
-    message.encode("utf-8")                          # printable and storable
+    message.encode("utf-8")  # printable and storable
     assert message.startswith(str(tmp_path) + "/b\\xff.csv: ")
 
 
 def test_non_utf8_name_through_the_cli(tmp_path):
     path = _bad_name(tmp_path, b"c\xff", ".csv")
     write_curves(path, [SQUARE])
-    proc = subprocess.run([sys.executable, "-m", "nfdmatch", "describe", path],
-                          capture_output=True)
+    proc = subprocess.run([sys.executable, "-m", "nfdmatch", "describe", path], capture_output=True)
     assert proc.returncode == 0, proc.stderr
     assert b"c\\xff.csv" in proc.stdout and b"Traceback" not in proc.stderr
 
@@ -267,6 +266,7 @@ def test_non_utf8_name_through_the_cli(tmp_path):
 # ---------------------------------------------------------------------------
 # folders that cannot be listed
 # ---------------------------------------------------------------------------
+
 
 def test_unlistable_sub_folder_is_reported(tmp_path, monkeypatch):
     _square(tmp_path / "a.csv")
@@ -282,14 +282,13 @@ def test_unlistable_sub_folder_is_reported(tmp_path, monkeypatch):
             raise PermissionError(13, "Permission denied", os.fspath(path))
         return real_scandir(path)
 
-    monkeypatch.setattr(os, "scandir", scandir)   # root reads any folder: simulate chmod 000
+    monkeypatch.setattr(os, "scandir", scandir)  # root reads any folder: simulate chmod 000
     problems = []
     files = find_curve_files([str(tmp_path)], problems=problems)
     assert files == [str(tmp_path / "a.csv"), str(tmp_path / "z" / "b.csv")]
     (problem,) = problems
     assert isinstance(problem, ReadError) and problem.path == str(locked)
-    assert str(problem) == f"{locked}: cannot list the folder (Permission denied); its files " \
-                           "are skipped"
+    assert str(problem) == f"{locked}: cannot list the folder (Permission denied); its files are skipped"
 
 
 def test_walk_folder_reports_the_top_folder_too(tmp_path, monkeypatch):

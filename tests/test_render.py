@@ -18,8 +18,16 @@ from nfdmatch import render
 from nfdmatch.render import layout, matrix, pyvista_backend
 from nfdmatch.errors import NfdError, ParameterError, RenderError, WriteError
 from nfdmatch.records import RankedMatch, ShownMatch
-from nfdmatch.render import (DEFAULT_RENDERER, RENDERERS, RenderResult, is_coplanar, render_matches, render_matrix,
-                             short_label, short_labels)
+from nfdmatch.render import (
+    DEFAULT_RENDERER,
+    RENDERERS,
+    RenderResult,
+    is_coplanar,
+    render_matches,
+    render_matrix,
+    short_label,
+    short_labels,
+)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 SMALL = (640, 360)
@@ -27,10 +35,15 @@ SMALL = (640, 360)
 
 # --------------------------------------------------------------------------- helpers
 
-def _shown(curve_id, distance, points, start, forward, *, reversed=False, mirrored=False,
-           source="file") -> ShownMatch:
-    return ShownMatch(RankedMatch(rank=1, id=curve_id, distance=distance, reversed=reversed, mirrored=mirrored),
-                      points=points, start=start, forward=forward, source=source)
+
+def _shown(curve_id, distance, points, start, forward, *, reversed=False, mirrored=False, source="file") -> ShownMatch:
+    return ShownMatch(
+        RankedMatch(rank=1, id=curve_id, distance=distance, reversed=reversed, mirrored=mirrored),
+        points=points,
+        start=start,
+        forward=forward,
+        source=source,
+    )
 
 
 def _panel(points, curve_id="lib/knot.csv", distance=0.1234567, **flags) -> ShownMatch:
@@ -67,7 +80,7 @@ def _read_png(path) -> np.ndarray:
 def _check_picture(path, size) -> np.ndarray:
     img = _read_png(path)
     assert (img.shape[1], img.shape[0]) == tuple(size)
-    ink = np.any(img < 200, axis=2)                     # clearly not white background
+    ink = np.any(img < 200, axis=2)  # clearly not white background
     assert ink.mean() > 0.004, "picture is (almost) blank"
     colours = np.unique(img.reshape(-1, 3)[::7], axis=0)
     assert len(colours) > 10
@@ -86,6 +99,7 @@ def _greyish(img) -> int:
 
 # --------------------------------------------------------------------------- matplotlib pictures
 
+
 def test_default_picture_is_exact_size_and_drawn(tmp_path, rng, capfd):
     q, panels = _knot_scene(rng, 5)
     out = tmp_path / "show.png"
@@ -93,8 +107,8 @@ def test_default_picture_is_exact_size_and_drawn(tmp_path, rng, capfd):
     assert isinstance(r, RenderResult) and r.renderer == "matplotlib" and r.note is None
     assert r.path == str(out) and r.seconds > 0
     img = _check_picture(out, (1600, 900))
-    assert _reddish(img) > 2000 and _greyish(img) > 200          # matches in colour over a grey query
-    assert capfd.readouterr().out == ""                          # stdout is the CLI's data channel
+    assert _reddish(img) > 2000 and _greyish(img) > 200  # matches in colour over a grey query
+    assert capfd.readouterr().out == ""  # stdout is the CLI's data channel
 
 
 @pytest.mark.parametrize("size", [(1234, 567), (333, 777)])
@@ -117,8 +131,8 @@ def test_picture_changes_with_the_match_and_the_distance(tmp_path, rng):
     assert np.any(a != b)
     diff = np.argwhere(np.any(a != c, axis=2))
     assert len(diff) > 0
-    assert diff[:, 0].max() < SMALL[1] * 0.6                     # only a title changed ...
-    assert np.array_equal(a[SMALL[1] // 2 + 40:], c[SMALL[1] // 2 + 40:])   # ... not the curves
+    assert diff[:, 0].max() < SMALL[1] * 0.6  # only a title changed ...
+    assert np.array_equal(a[SMALL[1] // 2 + 40 :], c[SMALL[1] // 2 + 40 :])  # ... not the curves
 
 
 def test_no_matches_draws_the_query_alone(tmp_path, rng):
@@ -134,24 +148,31 @@ def test_flags_change_the_title(tmp_path, rng):
     p = panels[0]
     plain, flagged = tmp_path / "a.png", tmp_path / "b.png"
     render_matches(q, "q", [p], plain, size=SMALL, renderer="matplotlib")
-    render_matches(q, "q", [_shown(p.id, p.distance, p.points, p.start, p.forward, reversed=True, mirrored=True)],
-                   flagged, size=SMALL, renderer="matplotlib")
+    render_matches(
+        q,
+        "q",
+        [_shown(p.id, p.distance, p.points, p.start, p.forward, reversed=True, mirrored=True)],
+        flagged,
+        size=SMALL,
+        renderer="matplotlib",
+    )
     assert np.any(_read_png(plain) != _read_png(flagged))
 
 
 # --------------------------------------------------------------------------- 2-D / 3-D
 
+
 def test_is_coplanar():
     rot = random_rotation(np.random.default_rng(1))
     flat = ellipse(3.0, 1.0, 50)
     assert is_coplanar(flat)
-    assert is_coplanar(flat @ rot.T + [5.0, -2.0, 7.0])                # a tilted, moved plane
-    assert is_coplanar(flat[:, :2], flat + [0.0, 0.0, 0.0])          # 2 columns: z = 0
+    assert is_coplanar(flat @ rot.T + [5.0, -2.0, 7.0])  # a tilted, moved plane
+    assert is_coplanar(flat[:, :2], flat + [0.0, 0.0, 0.0])  # 2 columns: z = 0
     assert not is_coplanar(flat[:, :2], flat + [0.0, 0.0, 0.5])
-    assert is_coplanar(flat @ rot.T + 3.0, flat @ rot.T * 0.5 + 3.0)   # same plane through both
+    assert is_coplanar(flat @ rot.T + 3.0, flat @ rot.T * 0.5 + 3.0)  # same plane through both
     assert is_coplanar(flat[:, :2])
     assert not is_coplanar(torus_knot(2, 3, 100))
-    assert not is_coplanar(flat, flat + [0.0, 0.0, 1.0])             # two parallel planes
+    assert not is_coplanar(flat, flat + [0.0, 0.0, 1.0])  # two parallel planes
     bumped = flat.copy()
     bumped[10, 2] = 1e-4 * 6.0
     assert not is_coplanar(bumped)
@@ -166,7 +187,7 @@ def test_planar_input_takes_the_2d_view_in_the_query_plane(tmp_path):
     scene = layout.build_scene(q, "e", panels, SMALL)
     assert scene.planar
     for p in scene.panels:
-        assert np.abs(p.points[:, 2]).max() < 1e-9               # the plane faces the viewer
+        assert np.abs(p.points[:, 2]).max() < 1e-9  # the plane faces the viewer
     # the 2:1 ellipse's long axis is horizontal in the view
     span = np.ptp(scene.query, axis=0)
     assert span[0] == pytest.approx(2 * span[1], rel=0.02)
@@ -204,7 +225,7 @@ def test_the_view_depends_on_the_shape_not_on_its_vertices(rng):
     from nfdmatch.descriptors import points_at
 
     q = (torus_knot(2, 3, 300) * [1.6, 1.0, 0.7]) @ random_rotation(rng).T
-    crowded = np.concatenate([[0.0], np.sort(rng.random(899) ** 3)])   # vertices bunched near the start
+    crowded = np.concatenate([[0.0], np.sort(rng.random(899) ** 3)])  # vertices bunched near the start
     uneven = points_at(q, crowded)
     marks = points_at(q, [0.1, 0.37, 0.66])
     probe = [_panel(np.vstack([marks, marks[::-1] * 1.001]))]
@@ -232,6 +253,7 @@ def test_grid_shape_for_the_count(count, grid):
 
 # --------------------------------------------------------------------------- labels
 
+
 def test_short_label():
     assert short_label("/data/knots/trefoil.csv") == "trefoil.csv"
     assert short_label("/data/knots/lissajous.obj#3") == "lissajous.obj#3"
@@ -252,6 +274,7 @@ def test_short_labels_tell_equal_base_names_apart():
 
 
 # --------------------------------------------------------------------------- errors
+
 
 def test_unknown_renderer(tmp_path):
     q, panels = _ellipse_scene(1)
@@ -301,17 +324,22 @@ def test_invalid_arrays(tmp_path):
 
 # --------------------------------------------------------------------------- fallback
 
+
 def _broken(exc):
     def draw(scene):
         raise exc
+
     return draw
 
 
 def test_auto_falls_back_when_the_default_is_unavailable(tmp_path, monkeypatch):
     q, panels = _ellipse_scene(1)
     other = [r for r in RENDERERS if r != DEFAULT_RENDERER][0]
-    monkeypatch.setattr(render, "_draw_" + DEFAULT_RENDERER,
-                        _broken(ImportError(f"No module named {DEFAULT_RENDERER!r}", name=DEFAULT_RENDERER)))
+    monkeypatch.setattr(
+        render,
+        "_draw_" + DEFAULT_RENDERER,
+        _broken(ImportError(f"No module named {DEFAULT_RENDERER!r}", name=DEFAULT_RENDERER)),
+    )
     monkeypatch.setattr(render, "_draw_" + other, lambda scene: _tiny_png(scene.size))
     out = tmp_path / "x.png"
     r = render_matches(q, "e", panels, out, size=SMALL)
@@ -361,16 +389,20 @@ def test_every_renderer_failing_is_a_render_error(tmp_path, monkeypatch):
 
 def test_probe_failure_is_reported_without_drawing(tmp_path, monkeypatch):
     q, panels = _ellipse_scene(1)
-    monkeypatch.setattr(pyvista_backend, "_probe_pyvista", lambda: "a test render crashed (signal 11): libOSMesa not found")
+    monkeypatch.setattr(
+        pyvista_backend, "_probe_pyvista", lambda: "a test render crashed (signal 11): libOSMesa not found"
+    )
     with pytest.raises(RenderError, match=r"off-screen on this machine \(a test render crashed .*libOSMesa"):
         render_matches(q, "e", panels, tmp_path / "x.png", size=SMALL, renderer="pyvista")
 
 
 def test_probe_reason_reads_vtk_messages():
-    stderr = ("\x1b[0m\x1b[33m2026-11-23 15:50:44.829 (   0.985s) [    7FAC2807BB80]vtkXOpenGLRenderWindow.:1452"
-              "  WARN| bad X server connection. DISPLAY=\x1b[0m\n"
-              "\x1b[0m\x1b[33m2026 (0.9s) [7F]vtkOSOpenGLRenderWindow:150   WARN| libOSMesa not found. It appears"
-              "\x1b[0m\n")
+    stderr = (
+        "\x1b[0m\x1b[33m2026-11-23 15:50:44.829 (   0.985s) [    7FAC2807BB80]vtkXOpenGLRenderWindow.:1452"
+        "  WARN| bad X server connection. DISPLAY=\x1b[0m\n"
+        "\x1b[0m\x1b[33m2026 (0.9s) [7F]vtkOSOpenGLRenderWindow:150   WARN| libOSMesa not found. It appears"
+        "\x1b[0m\n"
+    )
     reason = pyvista_backend.probe_reason(-11, stderr)
     assert reason.startswith("a test render crashed (signal 11): bad X server connection")
     assert "libOSMesa not found" in reason and "\x1b" not in reason
@@ -378,6 +410,7 @@ def test_probe_reason_reads_vtk_messages():
 
 
 # --------------------------------------------------------------------------- pyvista, for real
+
 
 def test_pyvista_renders_off_screen_or_says_why(tmp_path, rng, capfd):
     """This machine may lack EGL: then a RenderError with a clear message, never a crash."""
@@ -398,14 +431,17 @@ def test_pyvista_renders_off_screen_or_says_why(tmp_path, rng, capfd):
 
 
 def test_importing_the_cli_does_not_import_a_renderer():
-    code = ("import sys, nfdmatch.cli, nfdmatch.render\n"
-            "heavy = [m for m in ('matplotlib', 'pyvista', 'vtk', 'vtkmodules', 'PIL') if m in sys.modules]\n"
-            "assert not heavy, heavy\n")
+    code = (
+        "import sys, nfdmatch.cli, nfdmatch.render\n"
+        "heavy = [m for m in ('matplotlib', 'pyvista', 'vtk', 'vtkmodules', 'PIL') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
 
 
 # --------------------------------------------------------------------------- matrix
+
 
 def _dark_pixels(path) -> int:
     return int(np.sum(_read_png(path).max(axis=2) < 40))
@@ -428,8 +464,8 @@ def test_matrix_picture(tmp_path):
 
 def test_matrix_darker_is_more_similar(tmp_path):
     n = 6
-    near_diagonal = 1.0 - np.eye(n)          # zero on the diagonal only
-    far_diagonal = np.eye(n)                 # zero everywhere but the diagonal
+    near_diagonal = 1.0 - np.eye(n)  # zero on the diagonal only
+    far_diagonal = np.eye(n)  # zero everywhere but the diagonal
     a, b = tmp_path / "a.png", tmp_path / "b.png"
     render_matrix(near_diagonal, list("abcdef"), a)
     render_matrix(far_diagonal, list("abcdef"), b)
@@ -475,7 +511,8 @@ def test_no_egl_in_a_real_process_is_an_error_or_a_fallback_never_a_crash(tmp_pa
         "    print('error', e)\n"
         "render.DEFAULT_RENDERER = 'pyvista'\n"
         "r = render.render_matches(q, 'q', [p], sys.argv[1], size=(400, 300))\n"
-        "print('auto', r.renderer, r.note)\n")
+        "print('auto', r.renderer, r.note)\n"
+    )
     env = dict(os.environ, __EGL_VENDOR_LIBRARY_FILENAMES=os.devnull)
     env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
     out = tmp_path / "x.png"
@@ -501,14 +538,22 @@ def test_short_labels_drop_the_common_affixes_of_long_similar_names():
 def test_panel_subtitles_carry_distance_flags_and_note(tmp_path):
 
     q, panels = _ellipse_scene(n_matches=2)
-    panels = [panels[0], _shown(panels[1].id, 0.5, panels[1].points, panels[1].start, panels[1].forward,
-                                reversed=True, source="index")]
+    panels = [
+        panels[0],
+        _shown(panels[1].id, 0.5, panels[1].points, panels[1].start, panels[1].forward, reversed=True, source="index"),
+    ]
     scene = layout.build_scene(q, "q.csv", panels, SMALL)
     assert scene.panels[1].subtitle == "d = 0.02"
     assert scene.panels[2].subtitle == "d = 0.5  \u00b7  reversed  \u00b7  drawn from index harmonics"
-    plain = _read_png(render_matches(q, "q.csv", panels[:1] + [_panel(panels[1].points, panels[1].id, 0.5,
-                                                                      reversed=True)],
-                                     tmp_path / "a.png", size=SMALL).path)
+    plain = _read_png(
+        render_matches(
+            q,
+            "q.csv",
+            panels[:1] + [_panel(panels[1].points, panels[1].id, 0.5, reversed=True)],
+            tmp_path / "a.png",
+            size=SMALL,
+        ).path
+    )
     noted = _read_png(render_matches(q, "q.csv", panels, tmp_path / "b.png", size=SMALL).path)
     assert not np.array_equal(plain, noted)
 
@@ -520,5 +565,5 @@ def test_same_picture_again_leaves_the_file_untouched(tmp_path):
     os.utime(out, ns=(1, 1))
     render_matches(q, "e", panels, out, size=SMALL)
     assert out.stat().st_mtime_ns == 1 and os.listdir(tmp_path) == ["same.png"]
-    render_matches(q, "e", panels[:1], out, size=SMALL)          # a different picture replaces it
+    render_matches(q, "e", panels[:1], out, size=SMALL)  # a different picture replaces it
     assert out.stat().st_mtime_ns != 1 and os.listdir(tmp_path) == ["same.png"]

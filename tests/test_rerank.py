@@ -32,7 +32,7 @@ def family_curves(rng, families=16, members=12, spread=0.25, harmonics=5):
     """Families of curves: a random smooth curve, then members with every coefficient
     perturbed by ``spread`` of its size, each re-posed. Returns (curves, family labels)."""
     k = np.arange(1, harmonics + 1)
-    amp = (k ** -1.5)[:, None]
+    amp = (k**-1.5)[:, None]
     t = np.arange(64) / 64
     arg = 2 * np.pi * np.outer(t, k)
     curves, labels = [], []
@@ -49,8 +49,10 @@ def family_curves(rng, families=16, members=12, spread=0.25, harmonics=5):
 
 def random_curves(rng, count):
     """``count`` unrelated random smooth curves (no class structure)."""
-    return [Curve(random_rigid_motion(smooth_curve_samplings(rng, [int(rng.integers(40, 120))])[0], rng),
-                  id=f"r{i:03d}") for i in range(count)]
+    return [
+        Curve(random_rigid_motion(smooth_curve_samplings(rng, [int(rng.integers(40, 120))])[0], rng), id=f"r{i:03d}")
+        for i in range(count)
+    ]
 
 
 def write_parts(folder, curves, parts):
@@ -65,6 +67,7 @@ def graph_of(path):
 
 
 # --------------------------------------------------------------------------- the graph
+
 
 def test_graph_rows_are_the_exact_top_k_of_a_query(tmp_path, rng):
     curves = random_curves(rng, 60)
@@ -120,7 +123,7 @@ def test_incremental_graph_equals_a_build_from_scratch(tmp_path, rng):
     write_curves(os.path.join(src, "part-06.obj"), curves[60:75])
     write_curves(os.path.join(src, "part-01.obj"), curves[75:85])
     os.remove(os.path.join(src, "part-03.obj"))
-    report = build_index([src], index, jobs=1)                  # keeps the graph's K
+    report = build_index([src], index, jobs=1)  # keeps the graph's K
     g = report.graph
     assert g.k == 5 and g.searched < report.curves and g.searched + g.updated + g.kept == report.curves
     assert g.updated > 0
@@ -139,17 +142,18 @@ def test_graph_kept_by_a_build_without_the_option_and_dropped_with_zero(tmp_path
     build_index([tmp_path / "c"], index, jobs=1)
     with h5py.File(index, "r") as f:
         assert "graph" not in f
-    report = build_index([tmp_path / "c"], index, jobs=1, graph=20)   # more than N - 1: padded
+    report = build_index([tmp_path / "c"], index, jobs=1, graph=20)  # more than N - 1: padded
     assert report.written and report.graph.k == 20
     nb, dist, _ = graph_of(index)
     assert (nb[:, 11:] == -1).all() and np.isinf(dist[:, 11:]).all() and (nb[:, :11] >= 0).all()
-    assert not build_index([tmp_path / "c"], index, jobs=1).written   # nothing changed
+    assert not build_index([tmp_path / "c"], index, jobs=1).written  # nothing changed
     assert build_index([tmp_path / "c"], index, jobs=1, graph=0).written
     with h5py.File(index, "r") as f:
         assert "graph" not in f
 
 
 # --------------------------------------------------------------------------- re-ranking
+
 
 @pytest.fixture(scope="module")
 def families_index(tmp_path_factory):
@@ -162,8 +166,9 @@ def families_index(tmp_path_factory):
 
 def test_rerank_improves_a_family_collection(families_index):
     folder, _, labels = families_index
-    stored = _read_back(folder / "c")                       # the curves as stored, in order
-    def stored_id(curve_id):                                # ids are relative to the index's folder
+    stored = _read_back(folder / "c")  # the curves as stored, in order
+
+    def stored_id(curve_id):  # ids are relative to the index's folder
         return os.path.relpath(curve_id, folder)
 
     family = {stored_id(c.id): f for c, f in zip(stored, labels)}
@@ -189,7 +194,8 @@ def test_local_diffusion_matches_the_full_one_on_a_small_index(tmp_path, rng):
     build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
     stored = _read_back(tmp_path / "c")
     S = diffused_similarity(distance_matrix(stored))
-    def rel(curve_id):                                      # ids are relative to the index's folder
+
+    def rel(curve_id):  # ids are relative to the index's folder
         return os.path.relpath(curve_id, tmp_path)
 
     position = {rel(c.id): i for i, c in enumerate(stored)}
@@ -216,10 +222,10 @@ def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng):
     with open_index(tmp_path / "i.h5") as idx:
         results, _ = rerank_index(idx, queries, top=3)
         again, _ = rerank_index(idx, queries, top=3)
-    assert [[m.id for m in r] for r in results] == [[os.path.relpath(stored[i].id, tmp_path)]
-                                                          + [m.id for m in r][1:]
-                                                         for i, r in zip(range(0, 150, 5), results)]
-    assert results == again                                         # deterministic
+    assert [[m.id for m in r] for r in results] == [
+        [os.path.relpath(stored[i].id, tmp_path)] + [m.id for m in r][1:] for i, r in zip(range(0, 150, 5), results)
+    ]
+    assert results == again  # deterministic
 
 
 def test_rerank_parameters_and_missing_graph(tmp_path, rng):
@@ -246,6 +252,7 @@ def test_diffused_similarity_shape_and_symmetry(rng):
 
 # --------------------------------------------------------------------------- CLI
 
+
 def test_cli_build_graph_then_query_rerank(tmp_path, rng):
     curves, _ = family_curves(rng, families=4, members=6)
     write_parts(tmp_path / "c", curves, 2)
@@ -253,8 +260,9 @@ def test_cli_build_graph_then_query_rerank(tmp_path, rng):
     code, out, err = run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph")
     assert code == 0 and out == ""
     assert "graph of 10 neighbours: 24 rows searched, 0 updated by new curves, 0 kept;" in err
-    code, out, err = run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph", "4",
-                         "--format", "json")
+    code, out, err = run(
+        "index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph", "4", "--format", "json"
+    )
     assert code == 0, err
     summary = json.loads(out)
     assert summary["graph"]["k"] == 4 and summary["graph"]["searched"] == 24
@@ -275,8 +283,9 @@ def test_cli_build_graph_then_query_rerank(tmp_path, rng):
     code2, out2, _ = run("query", query, "--index", index, "--rerank", "--top", "5", "--format", "csv")
     assert (code2, out2) == (code, out)
 
-    code, out, err = run("query", query, "--index", index, "--rerank", "--exclude-self", "--top", "3",
-                         "--format", "jsonl", "--details")
+    code, out, err = run(
+        "query", query, "--index", index, "--rerank", "--exclude-self", "--top", "3", "--format", "jsonl", "--details"
+    )
     assert code == 0, err
     rows = [json.loads(line) for line in out.splitlines()]
     assert len(rows) == 3 and {"score", "distance", "shift"} <= set(rows[0])
@@ -330,7 +339,7 @@ def test_cli_rerank_on_a_damaged_graph_is_a_clean_error(tmp_path, rng):
     index = tmp_path / "i.h5"
     assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", "--graph", "8")[0] == 0
     with h5py.File(index, "a") as f:
-        f["graph/neighbour"][0, 0] = 99                       # a row the index does not have
+        f["graph/neighbour"][0, 0] = 99  # a row the index does not have
     code, out, err = run("query", tmp_path / "c" / "part-00.obj#0", "--index", index, "--rerank")
     assert code == 1 and out == ""
     assert err.startswith(f"Error: {index}: corrupted nfdmatch index") and "Traceback" not in err
@@ -345,7 +354,7 @@ def test_a_damaged_old_graph_is_rebuilt_not_trusted(tmp_path, rng):
         f["graph"].create_dataset("distance", data=np.zeros((3, 4)))
     write_curves(tmp_path / "c" / "part-09.obj", random_curves(rng, 2))
     report = build_index([tmp_path / "c"], index, jobs=1)
-    assert report.graph.k == 4 and report.graph.searched == 14          # every row, none trusted
+    assert report.graph.k == 4 and report.graph.searched == 14  # every row, none trusted
     build_index([tmp_path / "c"], tmp_path / "fresh.h5", jobs=1, graph=4)
     got, fresh = graph_of(index), graph_of(tmp_path / "fresh.h5")
     np.testing.assert_array_equal(got[0], fresh[0])

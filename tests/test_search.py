@@ -17,12 +17,14 @@ def _family_curves(rng, families, members, noise):
     """Clusters of the same curve re-sampled, re-posed and perturbed: what retrieval sees."""
     curves = []
     for f in range(families):
-        versions = smooth_curve_samplings(rng, [int(rng.integers(60, 200)) for _ in range(members)],
-                                          n_harmonics=int(rng.integers(2, 7)))
+        versions = smooth_curve_samplings(
+            rng, [int(rng.integers(60, 200)) for _ in range(members)], n_harmonics=int(rng.integers(2, 7))
+        )
         for m, pts in enumerate(versions):
             pts = pts + rng.normal(scale=noise, size=pts.shape)
-            curves.append(Curve(random_rigid_motion(start_shift(pts, int(rng.integers(len(pts)))), rng),
-                                id=f"f{f:03d}-m{m:02d}"))
+            curves.append(
+                Curve(random_rigid_motion(start_shift(pts, int(rng.integers(len(pts)))), rng), id=f"f{f:03d}-m{m:02d}")
+            )
     return curves
 
 
@@ -50,15 +52,21 @@ def _same(pruned, full):
 
 
 @settings(max_examples=14, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), top=st.integers(1, 12), families=st.integers(1, 12),
-       members=st.integers(1, 6), noise=st.sampled_from([0.0, 0.01, 0.1]), mirror=st.booleans(),
-       strict=st.booleans(), cells=st.sampled_from([None, 1, 3, 16]), truncate=st.booleans())
-def test_pruned_search_equals_exhaustive_ranking(seed, top, families, members, noise, mirror, strict, cells,
-                                                 truncate):
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    top=st.integers(1, 12),
+    families=st.integers(1, 12),
+    members=st.integers(1, 6),
+    noise=st.sampled_from([0.0, 0.01, 0.1]),
+    mirror=st.booleans(),
+    strict=st.booleans(),
+    cells=st.sampled_from([None, 1, 3, 16]),
+    truncate=st.booleans(),
+)
+def test_pruned_search_equals_exhaustive_ranking(seed, top, families, members, noise, mirror, strict, cells, truncate):
     rng = np.random.default_rng(seed)
     curves = _family_curves(rng, families, members, noise)
-    queries = (_family_curves(rng, 2, 1, noise) + _variants(rng, curves, 2)
-               + [curves[int(rng.integers(len(curves)))]])
+    queries = _family_curves(rng, 2, 1, noise) + _variants(rng, curves, 2) + [curves[int(rng.integers(len(curves)))]]
     index = MemoryIndex(curves, rows_per_cell=cells)
     options = dict(top=top, mirror=mirror, direction="strict" if strict else "invariant")
     pruned, stats = search_index(index, queries, truncate=truncate, **options)
@@ -81,7 +89,7 @@ def test_pruned_equals_exhaustive_on_an_index_file_with_cells(seed, top, max_dis
     folder = tmp_path_factory.mktemp("lib")
     curves = _family_curves(rng, 10, 4, 0.01)
     for a in range(0, len(curves), 8):
-        write_curves(str(folder / f"part{a:03d}.obj"), [c.points for c in curves[a:a + 8]])
+        write_curves(str(folder / f"part{a:03d}.obj"), [c.points for c in curves[a : a + 8]])
     index_path = str(folder / "idx.h5")
     build_index([str(folder)], index_path, jobs=1)
     queries = _variants(rng, curves, 3) + _family_curves(rng, 1, 1, 0.0)
@@ -107,7 +115,7 @@ def test_search_work_does_not_grow_with_the_index_for_a_near_duplicate(rng):
     assert r_small[0].id == families[3].id
     assert [r.id for r in r_small] == [r.id for r in r_big]
     assert s_big.exact <= s_small.exact + 10
-    assert s_big.scanned < big.n_curves / 2          # the cells kept most rows unread
+    assert s_big.scanned < big.n_curves / 2  # the cells kept most rows unread
 
 
 def test_pruning_skips_most_rows_on_clustered_data(rng):
@@ -147,6 +155,7 @@ def test_weights_disable_pruning_but_still_rank(rng):
 def test_bad_arguments(rng):
     index = MemoryIndex(_family_curves(rng, 1, 2, 0.0))
     from nfdmatch.errors import ParameterError
+
     for kwargs in ({"top": 0}, {"top": None}, {"method": "fast"}):
         with pytest.raises(ParameterError):
             search_index(index, [Curve(np.eye(3))], **kwargs)

@@ -12,8 +12,14 @@ from oracle import random_rigid_motion, random_smooth_curve, resample_polyline, 
 from nfdmatch import Curve
 from nfdmatch.descriptors import descriptors_batch
 from nfdmatch.matching import exact_search, grid_maximum, invariants
-from nfdmatch.search.bounds import (cell_lower_bounds, feature_split, feature_vector, row_lower_bounds,
-                                    squared_norms, truncated_lower_bounds)
+from nfdmatch.search.bounds import (
+    cell_lower_bounds,
+    feature_split,
+    feature_vector,
+    row_lower_bounds,
+    squared_norms,
+    truncated_lower_bounds,
+)
 from nfdmatch.search.cells import build_cells
 
 N, K = 128, 16
@@ -45,8 +51,13 @@ def _pairs(rng, count):
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), mirror=st.booleans(), strict=st.booleans(),
-       harmonics=st.integers(1, 8), grid=st.sampled_from([8, 12, 24, 32, 48]))
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    mirror=st.booleans(),
+    strict=st.booleans(),
+    harmonics=st.integers(1, 8),
+    grid=st.sampled_from([8, 12, 24, 32, 48]),
+)
 def test_truncated_bound_never_exceeds_the_exact_distance(seed, mirror, strict, harmonics, grid):
     rng = np.random.default_rng(seed)
     A, B = _pairs(rng, 24)
@@ -72,8 +83,8 @@ def test_truncated_stages_each_keep_more_harmonics_than_the_last():
     from nfdmatch.search.bounds import TRUNCATED_STAGES, truncated_stages
 
     assert truncated_stages(16, 16) == list(TRUNCATED_STAGES)
-    assert truncated_stages(16, 4) == [TRUNCATED_STAGES[0]]       # a format-1 table: head harmonics only
-    assert truncated_stages(6, 6) == [(4, 24)]                     # K' = K is the exact distance's job
+    assert truncated_stages(16, 4) == [TRUNCATED_STAGES[0]]  # a format-1 table: head harmonics only
+    assert truncated_stages(6, 6) == [(4, 24)]  # K' = K is the exact distance's job
     assert truncated_stages(3, 3) == [(3, 24)]
     for K in range(1, 20):
         stages = truncated_stages(K, K)
@@ -104,8 +115,9 @@ def test_grid_maximum_compiled_equals_numpy():
             with reference_path():
                 reference = grid_maximum(A[:4], B[:, :4], 24, direction=direction, mirror=mirror)
             basis, quarter = _folded_basis(4, 24)
-            compiled = _kernels.grid_maximum_rows(np.conj(A[:4]), np.ascontiguousarray(B[:, :4]), D, basis,
-                                                  quarter, 24, mirror)
+            compiled = _kernels.grid_maximum_rows(
+                np.conj(A[:4]), np.ascontiguousarray(B[:, :4]), D, basis, quarter, 24, mirror
+            )
             assert np.allclose(compiled, reference, rtol=1e-12, atol=1e-12)
 
 
@@ -120,8 +132,9 @@ def test_row_bound_in_float32_never_exceeds_the_feature_distance(seed, spread):
     X = (q[None, :] + rng.normal(scale=spread, size=(200, D))).astype(np.float32)
     bound = row_lower_bounds(q, split, X, squared_norms(X, split))
     X64 = X.astype(np.float64)
-    true = np.maximum(np.linalg.norm(X64[:, :split] - q[:split], axis=1),
-                      np.linalg.norm(X64[:, split:] - q[split:], axis=1))
+    true = np.maximum(
+        np.linalg.norm(X64[:, :split] - q[:split], axis=1), np.linalg.norm(X64[:, split:] - q[split:], axis=1)
+    )
     assert np.all(bound <= true)
     assert np.all(bound >= true - 2e-3 * (1 + np.linalg.norm(q)))
 
@@ -150,12 +163,14 @@ def test_cells_partition_the_rows_and_their_radii_hold(seed, rows, per_cell):
     q = rng.normal(size=9)
     cb = cell_lower_bounds(q, split, cells.centre, cells.radius)
     for c in range(cells.count):
-        members = cells.row[cells.start[c]:cells.start[c + 1]]
-        assert np.all(np.diff(members) > 0)                      # ascending within a cell
+        members = cells.row[cells.start[c] : cells.start[c + 1]]
+        assert np.all(np.diff(members) > 0)  # ascending within a cell
         X = F[members].astype(np.float64)
         assert np.all(np.linalg.norm(X[:, :split] - cells.centre[c, :split], axis=1) <= cells.radius[c, 0])
         assert np.all(np.linalg.norm(X[:, split:] - cells.centre[c, split:], axis=1) <= cells.radius[c, 1])
-        true = np.maximum(np.linalg.norm(X[:, :split] - q[:split], axis=1), np.linalg.norm(X[:, split:] - q[split:], axis=1))
+        true = np.maximum(
+            np.linalg.norm(X[:, :split] - q[:split], axis=1), np.linalg.norm(X[:, split:] - q[split:], axis=1)
+        )
         assert np.all(cb[c] <= true)
     again = build_cells(F, split, rows_per_cell=per_cell)
     assert np.array_equal(again.row, cells.row) and np.array_equal(again.centre, cells.centre)
@@ -172,9 +187,11 @@ def test_cells_trained_on_samples_still_hold_every_row(rows, per_cell):
     rng = np.random.default_rng(rows)
     split = 6
     centres = rng.normal(size=(40, 9)) * rng.uniform(0.1, 3, size=(40, 1))
-    F = (centres[rng.integers(0, 40, rows)] + rng.normal(scale=0.05, size=(rows, 9))
-         * rng.uniform(0.1, 10, size=(rows, 1))).astype(np.float32)
-    F[:50] *= 1e3                                          # a few far outliers
+    F = (
+        centres[rng.integers(0, 40, rows)]
+        + rng.normal(scale=0.05, size=(rows, 9)) * rng.uniform(0.1, 10, size=(rows, 1))
+    ).astype(np.float32)
+    F[:50] *= 1e3  # a few far outliers
     cells = build_cells(F, split, rows_per_cell=per_cell)
     assert np.array_equal(np.sort(cells.row), np.arange(rows))
     assert cells.start[0] == 0 and cells.start[-1] == rows and np.all(np.diff(cells.start) > 0)
@@ -208,7 +225,7 @@ def test_invariant_singular_values_equal_the_svd(seed, kind):
         C *= 1e-200
     got = invariants(C)["sv"].reshape(7, K, 2)
     blocks = np.stack([C.real, C.imag], axis=-1)
-    w = np.sqrt(2.0 * np.ones(K))                     # the default weights are uniform
+    w = np.sqrt(2.0 * np.ones(K))  # the default weights are uniform
     ref = np.linalg.svd(blocks, compute_uv=False) * w[:, None]
     scale = np.maximum(ref[..., :1], np.finfo(float).tiny)
     assert np.all(np.abs(got - ref) <= 1e-12 * scale)

@@ -34,9 +34,8 @@ def test_sections_of_a_posed_copy_find_their_own_levels(meshes, tmp_path):
     code, out, err = run("extract", meshes / "column-posed.ply", "--sections", 12, "-o", tmp_path / "posed")
     assert code == 0, err
     rows = list(csv.DictReader(io.StringIO(out)))
-    assert {r["axis"] for r in rows} == {"x"}                 # the posed copy lies along x
-    code, out, err = run("query", tmp_path / "posed", "--index", tmp_path / "column.h5", "--top", 2,
-                         "--format", "csv")
+    assert {r["axis"] for r in rows} == {"x"}  # the posed copy lies along x
+    code, out, err = run("query", tmp_path / "posed", "--index", tmp_path / "column.h5", "--top", 2, "--format", "csv")
     assert code == 0, err
     hits = list(csv.DictReader(io.StringIO(out)))
     by_query: dict[str, list[dict]] = {}
@@ -55,8 +54,19 @@ def test_sections_of_a_posed_copy_find_their_own_levels(meshes, tmp_path):
 
 
 def test_the_cup_rim_is_a_boundary_and_sections_across_its_opening_are_skipped(meshes, tmp_path):
-    code, out, err = run("extract", meshes / "cup.stl", "--sections", 3, "--axis", "z", "--boundaries",
-                         "-o", tmp_path / "cup", "--format", "csv")
+    code, out, err = run(
+        "extract",
+        meshes / "cup.stl",
+        "--sections",
+        3,
+        "--axis",
+        "z",
+        "--boundaries",
+        "-o",
+        tmp_path / "cup",
+        "--format",
+        "csv",
+    )
     assert code == 0, err
     kinds = [r["kind"] for r in csv.DictReader(io.StringIO(out))]
     assert kinds == ["section", "section", "section", "boundary"]

@@ -42,11 +42,9 @@ def test_planted_symlinks_at_the_old_temp_names_are_not_followed(tmp_path, ext):
     for pid in range(os.getpid() - 2, os.getpid() + 3):
         (tmp_path / f".{target.name}.{pid}.tmp{ext}").symlink_to(victim)
     write_if_changed(str(target), lambda temp: write_curves(temp, [SQUARE], format=ext))
-    write_curves(str(target), [SQUARE, [[0, 0, 1], [1, 0, 1], [0, 1, 1]]] if ext != ".csv"
-                 else [SQUARE])
+    write_curves(str(target), [SQUARE, [[0, 0, 1], [1, 0, 1], [0, 1, 1]]] if ext != ".csv" else [SQUARE])
     assert victim.read_text() == "keep me"
-    leftovers = [n for n in os.listdir(tmp_path) if n.startswith(".") and not
-                 os.path.islink(tmp_path / n)]
+    leftovers = [n for n in os.listdir(tmp_path) if n.startswith(".") and not os.path.islink(tmp_path / n)]
     assert leftovers == []
 
 

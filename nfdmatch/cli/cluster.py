@@ -14,13 +14,23 @@ _TIMEOUT = 10.0
 
 def scheduler_options(f):
     """``--scheduler ADDRESS`` (or $NFDMATCH_SCHEDULER) and ``--scheduler-timeout SECONDS``."""
-    f = click.option("--scheduler-timeout", type=click.FloatRange(min=0, min_open=True), default=_TIMEOUT,
-                     show_default=True, envvar="NFDMATCH_SCHEDULER_TIMEOUT",
-                     help="Seconds to reach the scheduler and see a worker before failing.")(f)
-    return click.option("--scheduler", default=None, envvar="NFDMATCH_SCHEDULER", metavar="ADDRESS",
-                        help="Run on a Dask cluster: a scheduler address (tcp://host:8786; also "
-                             "$NFDMATCH_SCHEDULER) or local:N for N local worker processes. Needs "
-                             "pip install 'nfdmatch[distributed]'; see docs/distributed.md.")(f)
+    f = click.option(
+        "--scheduler-timeout",
+        type=click.FloatRange(min=0, min_open=True),
+        default=_TIMEOUT,
+        show_default=True,
+        envvar="NFDMATCH_SCHEDULER_TIMEOUT",
+        help="Seconds to reach the scheduler and see a worker before failing.",
+    )(f)
+    return click.option(
+        "--scheduler",
+        default=None,
+        envvar="NFDMATCH_SCHEDULER",
+        metavar="ADDRESS",
+        help="Run on a Dask cluster: a scheduler address (tcp://host:8786; also "
+        "$NFDMATCH_SCHEDULER) or local:N for N local worker processes. Needs "
+        "pip install 'nfdmatch[distributed]'; see docs/distributed.md.",
+    )(f)
 
 
 def open_cluster(scheduler: str, timeout: float):
@@ -40,7 +50,12 @@ def open_cluster(scheduler: str, timeout: float):
 
 def ranges_option(f):
     """``--ranges N`` of ``query``: how the cluster splits the index."""
-    return click.option("--ranges", type=click.IntRange(min=1), default=None, metavar="N",
-                        help="With --scheduler: split the index into N row ranges, each searched by one "
-                             "worker for every query [default: 1 (each worker searches the whole index for "
-                             "its share of the queries) up to ~8M curves, else one per worker thread].")(f)
+    return click.option(
+        "--ranges",
+        type=click.IntRange(min=1),
+        default=None,
+        metavar="N",
+        help="With --scheduler: split the index into N row ranges, each searched by one "
+        "worker for every query [default: 1 (each worker searches the whole index for "
+        "its share of the queries) up to ~8M curves, else one per worker thread].",
+    )(f)

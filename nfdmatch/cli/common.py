@@ -50,6 +50,7 @@ _VERBOSITY = "nfdmatch.verbosity"
 
 # --------------------------------------------------------------------------- errors and exit codes
 
+
 class NothingRead(Exception):
     """Raised by commands when no input could be read (each was already named): exit 1."""
 
@@ -69,7 +70,7 @@ class NfdGroup(click.Group):
         restore = _catch_sigterm() if ctx.parent is None else None
         try:
             return super().invoke(ctx)
-        except KeyboardInterrupt as exc:        # Ctrl-C or SIGTERM: the library cleaned up on its way out
+        except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the library cleaned up on its way out
             terminated = isinstance(exc, Terminated)
             error(f"{'terminated (SIGTERM)' if terminated else 'interrupted (SIGINT)'}")
             sys.exit(EXIT_TERMINATED if terminated else EXIT_INTERRUPTED)
@@ -124,8 +125,10 @@ _VERBOSITY_OPTIONS = (
 
 
 def _verbosity_params() -> list[click.Option]:
-    return [click.Option(list(names), is_flag=True, expose_value=False, callback=_set_verbosity, help=text)
-            for names, text in _VERBOSITY_OPTIONS]
+    return [
+        click.Option(list(names), is_flag=True, expose_value=False, callback=_set_verbosity, help=text)
+        for names, text in _VERBOSITY_OPTIONS
+    ]
 
 
 def verbosity_options(f):
@@ -191,6 +194,7 @@ def finish(failed: int, total: int, what: str = "inputs") -> None:
 
 # --------------------------------------------------------------------------- inputs
 
+
 @dataclass
 class Inputs:
     """What :func:`read_inputs` read: ``curves`` in input order, ``errors`` (each already
@@ -252,7 +256,7 @@ def read_inputs(specs, *, glob: str | None = None, input_format: str | None = No
 
     seen: set[str] = set()
     curves, errors, total = [], [], 0
-    for spec in dict.fromkeys(str(s) for s in specs):    # stdin is read once
+    for spec in dict.fromkeys(str(s) for s in specs):  # stdin is read once
         if spec == "-":
             total += 1
             try:
@@ -287,24 +291,31 @@ def read_inputs(specs, *, glob: str | None = None, input_format: str | None = No
 
 # --------------------------------------------------------------------------- options
 
+
 def format_option(formats=ROW_FORMATS, default=None, help_extra=""):
     """The one ``--format`` option: every command that writes rows or a summary uses it."""
-    return click.option("--format", "output_format", type=click.Choice(formats), default=default,
-                        show_default=default is not None,
-                        help="Output format" + help_extra + ".")
+    return click.option(
+        "--format",
+        "output_format",
+        type=click.Choice(formats),
+        default=default,
+        show_default=default is not None,
+        help="Output format" + help_extra + ".",
+    )
 
 
 # rows formats with the default that every row-writing command has
 def rows_format_option(f):
-    return format_option(help_extra=" (default: by the extension of -o, else a table on a terminal and "
-                                    "CSV otherwise)")(f)
+    return format_option(help_extra=" (default: by the extension of -o, else a table on a terminal and CSV otherwise)")(
+        f
+    )
 
 
 def _check_output_path(ctx, param, value):
     """Fail before any work when an output file cannot be written (exit 1, named)."""
     paths = value if isinstance(value, tuple) else (() if value is None else (value,))
     for path in paths:
-        if "{" in path:                      # a pattern (show): its folder is checked
+        if "{" in path:  # a pattern (show): its folder is checked
             path = path.split("{", 1)[0] + "x"
         check_writable(path)
     return value
@@ -321,12 +332,25 @@ def check_writable(path: str) -> str:
     return path
 
 
-def output_option(help="Write the rows to FILE (whole, and only when the command succeeds; an identical "
-                       "file is left untouched) instead of stdout.", multiple=False, required=False):
+def output_option(
+    help="Write the rows to FILE (whole, and only when the command succeeds; an identical "
+    "file is left untouched) instead of stdout.",
+    multiple=False,
+    required=False,
+):
     """The one ``-o/--output`` option of commands that write rows (and pictures)."""
-    return click.option("--output", "-o", "output", type=click.Path(dir_okay=False), default=None,
-                        multiple=multiple, required=required, metavar="FILE", callback=_check_output_path,
-                        help=help)
+    return click.option(
+        "--output",
+        "-o",
+        "output",
+        type=click.Path(dir_okay=False),
+        default=None,
+        multiple=multiple,
+        required=required,
+        metavar="FILE",
+        callback=_check_output_path,
+        help=help,
+    )
 
 
 def split_outputs(paths) -> tuple[list[str], str | None]:
@@ -335,27 +359,50 @@ def split_outputs(paths) -> tuple[list[str], str | None]:
     pictures = [p for p in paths if os.path.splitext(p)[1].lower() in PICTURE_EXTENSIONS]
     rows = [p for p in paths if p not in pictures]
     if len(rows) > 1:
-        raise click.UsageError(f"one -o for the rows at most (pictures end in {', '.join(PICTURE_EXTENSIONS)}); "
-                               f"got {', '.join(rows)}")
+        raise click.UsageError(
+            f"one -o for the rows at most (pictures end in {', '.join(PICTURE_EXTENSIONS)}); got {', '.join(rows)}"
+        )
     return pictures, (rows[0] if rows else None)
 
 
 def input_format_option(f):
     from ..formats import FORMATS
 
-    return click.option("--input-format", "input_format", type=click.Choice(sorted(FORMATS)), default=None,
-                        help="Read inputs as this format whatever their extension (needed for '-', stdin).")(f)
+    return click.option(
+        "--input-format",
+        "input_format",
+        type=click.Choice(sorted(FORMATS)),
+        default=None,
+        help="Read inputs as this format whatever their extension (needed for '-', stdin).",
+    )(f)
 
 
 def descriptor_options(f):
     from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, SCALES
 
-    f = click.option("--scale", type=click.Choice(SCALES), default=DEFAULT_SCALE, show_default=True,
-                     help="Scale normalization: RMS radius (robust) or |A_1| (the paper).")(f)
-    f = click.option("--harmonics", "-k", type=click.IntRange(min=1), default=DEFAULT_HARMONICS,
-                     show_default=True, help="Harmonics K: frequencies +-1..+-K are compared.")(f)
-    f = click.option("--samples", "-n", type=click.IntRange(min=3), default=DEFAULT_SAMPLES,
-                     show_default=True, help="Arc-length samples per curve.")(f)
+    f = click.option(
+        "--scale",
+        type=click.Choice(SCALES),
+        default=DEFAULT_SCALE,
+        show_default=True,
+        help="Scale normalization: RMS radius (robust) or |A_1| (the paper).",
+    )(f)
+    f = click.option(
+        "--harmonics",
+        "-k",
+        type=click.IntRange(min=1),
+        default=DEFAULT_HARMONICS,
+        show_default=True,
+        help="Harmonics K: frequencies +-1..+-K are compared.",
+    )(f)
+    f = click.option(
+        "--samples",
+        "-n",
+        type=click.IntRange(min=3),
+        default=DEFAULT_SAMPLES,
+        show_default=True,
+        help="Arc-length samples per curve.",
+    )(f)
     return f
 
 
@@ -364,13 +411,28 @@ def optional_descriptor_options(what: str):
     from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, SCALES
 
     def decorate(f):
-        f = click.option("--scale", type=click.Choice(SCALES), default=None,
-                         help=f"Scale normalization [default: {what}, else {DEFAULT_SCALE}].")(f)
-        f = click.option("--harmonics", "-k", type=click.IntRange(min=1), default=None,
-                         help=f"Harmonics K [default: {what}, else {DEFAULT_HARMONICS}].")(f)
-        f = click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
-                         help=f"Arc-length samples [default: {what}, else {DEFAULT_SAMPLES}].")(f)
+        f = click.option(
+            "--scale",
+            type=click.Choice(SCALES),
+            default=None,
+            help=f"Scale normalization [default: {what}, else {DEFAULT_SCALE}].",
+        )(f)
+        f = click.option(
+            "--harmonics",
+            "-k",
+            type=click.IntRange(min=1),
+            default=None,
+            help=f"Harmonics K [default: {what}, else {DEFAULT_HARMONICS}].",
+        )(f)
+        f = click.option(
+            "--samples",
+            "-n",
+            type=click.IntRange(min=3),
+            default=None,
+            help=f"Arc-length samples [default: {what}, else {DEFAULT_SAMPLES}].",
+        )(f)
         return f
+
     return decorate
 
 
@@ -380,10 +442,16 @@ def matching_options(f):
     from ..matching import DEFAULT_METHOD, METHODS
 
     f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(f)
-    f = click.option("--strict-direction", is_flag=True,
-                     help="Do not match a curve traversed in the opposite direction.")(f)
-    f = click.option("--method", type=click.Choice(list(METHODS)), default=DEFAULT_METHOD, show_default=True,
-                     help="exact: global optimum over start shift x rotation; paper: the published step.")(f)
+    f = click.option(
+        "--strict-direction", is_flag=True, help="Do not match a curve traversed in the opposite direction."
+    )(f)
+    f = click.option(
+        "--method",
+        type=click.Choice(list(METHODS)),
+        default=DEFAULT_METHOD,
+        show_default=True,
+        help="exact: global optimum over start shift x rotation; paper: the published step.",
+    )(f)
     return f
 
 
@@ -391,24 +459,36 @@ def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
     """The library's matching keyword arguments from the options of :func:`matching_options`."""
     from ..matching import DEFAULT_DIRECTION, STRICT_DIRECTION
 
-    return {"method": method, "direction": STRICT_DIRECTION if strict_direction else DEFAULT_DIRECTION,
-            "mirror": mirror}
+    return {
+        "method": method,
+        "direction": STRICT_DIRECTION if strict_direction else DEFAULT_DIRECTION,
+        "mirror": mirror,
+    }
 
 
 def index_option(f):
     from ..defaults import DEFAULT_INDEX, INDEX_ENV
 
-    return click.option("--index", "index_path", envvar=INDEX_ENV, default=DEFAULT_INDEX,
-                        show_default=f"${INDEX_ENV} or {DEFAULT_INDEX}", type=click.Path(dir_okay=False),
-                        help="The index file.")(f)
+    return click.option(
+        "--index",
+        "index_path",
+        envvar=INDEX_ENV,
+        default=DEFAULT_INDEX,
+        show_default=f"${INDEX_ENV} or {DEFAULT_INDEX}",
+        type=click.Path(dir_okay=False),
+        help="The index file.",
+    )(f)
 
 
 # --------------------------------------------------------------------------- rows
 
 exclude_self_option = click.option(
-    "--exclude-self", "exclude_self_", is_flag=True,
+    "--exclude-self",
+    "exclude_self_",
+    is_flag=True,
     help="Drop the query itself from its matches: a match with the query's id, or the same curve of "
-         "the same file (however the path is spelled).")
+    "the same file (however the path is spelled).",
+)
 
 
 def curve_key(curve_id: str) -> str:
@@ -426,8 +506,10 @@ def exclude_self(query_id: str, matches: list, top: int, locate=None) -> list:
     its folder)."""
     if query_id == STDIN_ID:
         return matches[:top]
-    return [m.replace(rank=rank) for rank, m in enumerate(
-        [m for m in matches if not is_query(query_id, m.id, locate)][:top], start=1)]
+    return [
+        m.replace(rank=rank)
+        for rank, m in enumerate([m for m in matches if not is_query(query_id, m.id, locate)][:top], start=1)
+    ]
 
 
 def is_query(query_id: str, match_id: str, locate=None) -> bool:
@@ -443,8 +525,16 @@ def is_query(query_id: str, match_id: str, locate=None) -> bool:
 def match_row(query_id: str, m) -> dict:
     """The row `rank` and `query` print for one :class:`~nfdmatch.records.RankedMatch`
     (columns: :func:`match_columns`, and ``score`` after a re-ranking)."""
-    return {"query": query_id, "rank": m.rank, "match": m.id, "distance": m.distance, "score": m.score,
-            "shift": m.shift, "reversed": m.reversed, "mirrored": m.mirrored}
+    return {
+        "query": query_id,
+        "rank": m.rank,
+        "match": m.id,
+        "distance": m.distance,
+        "score": m.score,
+        "shift": m.shift,
+        "reversed": m.reversed,
+        "mirrored": m.mirrored,
+    }
 
 
 def match_columns(details: bool) -> list[str]:
@@ -462,8 +552,9 @@ def resolve_format(fmt: str | None, output: str | None) -> str:
     return "table" if sys.stdout.isatty() else "csv"
 
 
-def write_rows(rows: list[dict], columns: list[str], fmt: str | None, output: str | None = None, *,
-               group_by: str | None = None) -> None:
+def write_rows(
+    rows: list[dict], columns: list[str], fmt: str | None, output: str | None = None, *, group_by: str | None = None
+) -> None:
     """Write rows to ``output`` (stdout when None) as a table, CSV, TSV, JSON (a list) or
     JSON lines. Machine formats carry no markup; floats keep full precision (repr).
     ``group_by``: in a table, a heading per value of this column instead of the column."""
@@ -513,11 +604,17 @@ def common_folder(values) -> str:
         return ""
     prefix = os.path.commonprefix(values)
     cut = prefix.rfind("/")
-    return prefix[:cut + 1] if cut >= 0 else ""
+    return prefix[: cut + 1] if cut >= 0 else ""
 
 
-def render_table(rows: list[dict], columns: list[str], *, group_by: str | None = None,
-                 terminal: bool = False, width: int | None = None) -> str:
+def render_table(
+    rows: list[dict],
+    columns: list[str],
+    *,
+    group_by: str | None = None,
+    terminal: bool = False,
+    width: int | None = None,
+) -> str:
     """A rich table as text that fits ``width`` (default: the terminal's): the folder all
     paths of a column share is said once above the table, long ids wrap inside their cell,
     and with ``group_by`` each value of that column heads its own table."""
@@ -532,8 +629,9 @@ def render_table(rows: list[dict], columns: list[str], *, group_by: str | None =
     paths = [c for c in shown if c in PATH_COLUMNS]
     folder = common_folder([str(row.get(c) or "") for row in rows for c in paths])
     buf = io.StringIO()
-    console = Console(file=buf, width=width, force_terminal=terminal, no_color=not terminal,
-                      highlight=False, soft_wrap=False)
+    console = Console(
+        file=buf, width=width, force_terminal=terminal, no_color=not terminal, highlight=False, soft_wrap=False
+    )
     if folder and len(folder) > 1:
         console.print(f"[dim]paths under[/dim] {folder}", markup=True, overflow="fold")
     groups: list[tuple[str | None, list[dict]]] = []
@@ -551,19 +649,18 @@ def render_table(rows: list[dict], columns: list[str], *, group_by: str | None =
         key_folder = ""
     for key, group in groups:
         if key is not None:
-            console.print(f"[bold]{group_by}:[/bold] {key[len(key_folder):]}", markup=True, overflow="fold")
+            console.print(f"[bold]{group_by}:[/bold] {key[len(key_folder) :]}", markup=True, overflow="fold")
         table = Table(show_header=True, header_style="bold")
         for col in shown:
             sample = group[0].get(col) if group else None
             numeric = isinstance(sample, (int, float)) and not isinstance(sample, bool)
-            table.add_column(col, justify="right" if numeric else "left", no_wrap=numeric,
-                             overflow="fold")
+            table.add_column(col, justify="right" if numeric else "left", no_wrap=numeric, overflow="fold")
         for row in group:
             cells = []
             for col in shown:
                 text = _cell_text(row.get(col), pretty=True)
                 if col in paths and folder and text.startswith(folder):
-                    text = text[len(folder):]
+                    text = text[len(folder) :]
                 cells.append(text)
             table.add_row(*cells)
         console.print(table)
@@ -571,6 +668,7 @@ def render_table(rows: list[dict], columns: list[str], *, group_by: str | None =
 
 
 # --------------------------------------------------------------------------- writing
+
 
 def deliver(text: str, output: str | None) -> None:
     """``text`` on stdout, or written whole to the file ``output`` (see :func:`write_if_changed`).
@@ -614,7 +712,7 @@ def write_if_changed(path: str, data: bytes) -> bool:
             umask = os.umask(0)
             os.umask(umask)
             mode = 0o666 & ~umask
-        os.chmod(temp, mode)            # mkstemp makes 0600; keep the file readable as usual
+        os.chmod(temp, mode)  # mkstemp makes 0600; keep the file readable as usual
         os.replace(temp, path)
         temp = None
     except OSError as exc:
@@ -638,8 +736,15 @@ def progress_bar(description: str):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     # no auto-refresh thread: a running thread would force the build's workers off fork
-    bar = Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                   console=Console(stderr=True, force_terminal=True), transient=True, auto_refresh=False)
+    bar = Progress(
+        TextColumn(description),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=Console(stderr=True, force_terminal=True),
+        transient=True,
+        auto_refresh=False,
+    )
     task = bar.add_task(description, total=None)
     bar.start()
 

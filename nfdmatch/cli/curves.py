@@ -7,10 +7,24 @@ import json
 import click
 
 from ..descriptors import DEFAULT_SAMPLES
-from .common import (deliver, descriptor_options, exclude_self, exclude_self_option, format_option,
-                     input_format_option, match_columns, match_row, matching, matching_options, output_option,
-                     read_inputs,
-                     read_one, rows_format_option, say, write_rows)
+from .common import (
+    deliver,
+    descriptor_options,
+    exclude_self,
+    exclude_self_option,
+    format_option,
+    input_format_option,
+    match_columns,
+    match_row,
+    matching,
+    matching_options,
+    output_option,
+    read_inputs,
+    read_one,
+    rows_format_option,
+    say,
+    write_rows,
+)
 from .group import main
 
 
@@ -22,8 +36,9 @@ from .group import main
 @input_format_option
 @format_option(("text", "json"), default="text")
 @output_option()
-def distance(curve_a, curve_b, method, strict_direction, mirror, samples, harmonics, scale,
-             input_format, output_format, output):
+def distance(
+    curve_a, curve_b, method, strict_direction, mirror, samples, harmonics, scale, input_format, output_format, output
+):
     """Similarity distance between two curves A and B, and the alignment of B onto A.
 
     A and B are files (FILE#I for curve I of a multi-curve file; `-` for stdin). The
@@ -40,21 +55,26 @@ def distance(curve_a, curve_b, method, strict_direction, mirror, samples, harmon
         raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
     a = read_one(curve_a, input_format)
     b = read_one(curve_b, input_format)
-    m = match_distance(a, b, samples=samples, harmonics=harmonics, scale=scale,
-                       **matching(method, strict_direction, mirror))
+    m = match_distance(
+        a, b, samples=samples, harmonics=harmonics, scale=scale, **matching(method, strict_direction, mirror)
+    )
     record = m.to_dict()
     if output_format == "json":
         text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
     else:
-        text = "".join(f"{key}\t{value}\n" for key, value in [
-            ("distance", f"{m.distance:.10g}"),
-            ("shift", f"{m.shift:.6f}"),
-            ("reversed", str(m.reversed).lower()),
-            ("mirrored", str(m.mirrored).lower()),
-            ("scale", f"{m.scale:.10g}"),
-            ("rotation", json.dumps([[round(v, 12) for v in row] for row in record["rotation"]])),
-            ("translation", json.dumps([round(v, 12) for v in record["translation"]])),
-            ("method", m.method)])
+        text = "".join(
+            f"{key}\t{value}\n"
+            for key, value in [
+                ("distance", f"{m.distance:.10g}"),
+                ("shift", f"{m.shift:.6f}"),
+                ("reversed", str(m.reversed).lower()),
+                ("mirrored", str(m.mirrored).lower()),
+                ("scale", f"{m.scale:.10g}"),
+                ("rotation", json.dumps([[round(v, 12) for v in row] for row in record["rotation"]])),
+                ("translation", json.dumps([round(v, 12) for v in record["translation"]])),
+                ("method", m.method),
+            ]
+        )
     deliver(text, output)
 
 
@@ -88,8 +108,17 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
     fmt = resolve_format(output_format, output)
     fmt = "csv" if fmt == "table" else fmt
     if fmt in ("json", "jsonl"):
-        columns = ["id", "samples", "harmonics", "scale", "scale_value", "centroid", "plane_degenerate",
-                   "frequencies", "coefficients"]
+        columns = [
+            "id",
+            "samples",
+            "harmonics",
+            "scale",
+            "scale_value",
+            "centroid",
+            "plane_degenerate",
+            "frequencies",
+            "coefficients",
+        ]
         write_rows(rows, columns, fmt, output)
     else:
         flat = [_flatten_descriptor_row(r) for r in rows]
@@ -100,10 +129,8 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
 @main.command()
 @click.argument("query_spec", metavar="QUERY")
 @click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
-@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True,
-              help="Number of matches to list.")
-@click.option("--max-distance", type=click.FloatRange(min=0), default=None,
-              help="Only list matches at most this far.")
+@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Number of matches to list.")
+@click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only list matches at most this far.")
 @click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
 @click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
 @exclude_self_option
@@ -112,8 +139,24 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
 @input_format_option
 @rows_format_option
 @output_option()
-def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_self_, method, strict_direction,
-         mirror, samples, harmonics, scale, input_format, output_format, output):
+def rank(
+    query_spec,
+    sources,
+    top,
+    max_distance,
+    glob_pattern,
+    details,
+    exclude_self_,
+    method,
+    strict_direction,
+    mirror,
+    samples,
+    harmonics,
+    scale,
+    input_format,
+    output_format,
+    output,
+):
     """Rank the curves in SOURCE... (files or folders) by similarity to QUERY, without an index.
 
     QUERY is one curve (FILE, FILE#I or `-`). Folders are searched recursively for files
@@ -128,34 +171,64 @@ def rank(query_spec, sources, top, max_distance, glob_pattern, details, exclude_
 
     query = read_one(query_spec, input_format)
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-    ranked = rank_curves(query, inputs.curves, top=top + exclude_self_, max_distance=max_distance,
-                         samples=samples, harmonics=harmonics, scale=scale,
-                         **matching(method, strict_direction, mirror))
+    ranked = rank_curves(
+        query,
+        inputs.curves,
+        top=top + exclude_self_,
+        max_distance=max_distance,
+        samples=samples,
+        harmonics=harmonics,
+        scale=scale,
+        **matching(method, strict_direction, mirror),
+    )
     if exclude_self_:
         ranked = exclude_self(query.id, ranked, top)
-    write_rows([match_row(query.id, m) for m in ranked], match_columns(details), output_format, output,
-               group_by="query")
+    write_rows(
+        [match_row(query.id, m) for m in ranked], match_columns(details), output_format, output, group_by="query"
+    )
     inputs.finish()
 
 
 @main.command()
 @click.argument("curve_spec", metavar="FILE")
-@click.option("--harmonics", "-k", type=click.IntRange(min=1), required=True,
-              help="Harmonics K kept: frequencies +-1..+-K.")
-@click.option("--output", "-o", required=True, type=click.Path(dir_okay=False),
-              help="The curve file to write; its extension picks the format (csv, obj, vtk, vtp, vtu).")
-@click.option("--points", "-m", type=click.IntRange(min=3, max=10_000_000), default=None,
-              help="Vertices of the rebuilt curve [default: the samples].")
-@click.option("--samples", "-n", type=click.IntRange(min=3), default=None,
-              help=f"Arc-length samples of the transform [default: max({DEFAULT_SAMPLES}, 4K)].")
-@click.option("--normalized", is_flag=True,
-              help="Write the normalized curve (centred, unit scale, limit plane on z = 0), not the input pose.")
+@click.option(
+    "--harmonics", "-k", type=click.IntRange(min=1), required=True, help="Harmonics K kept: frequencies +-1..+-K."
+)
+@click.option(
+    "--output",
+    "-o",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="The curve file to write; its extension picks the format (csv, obj, vtk, vtp, vtu).",
+)
+@click.option(
+    "--points",
+    "-m",
+    type=click.IntRange(min=3, max=10_000_000),
+    default=None,
+    help="Vertices of the rebuilt curve [default: the samples].",
+)
+@click.option(
+    "--samples",
+    "-n",
+    type=click.IntRange(min=3),
+    default=None,
+    help=f"Arc-length samples of the transform [default: max({DEFAULT_SAMPLES}, 4K)].",
+)
+@click.option(
+    "--normalized",
+    is_flag=True,
+    help="Write the normalized curve (centred, unit scale, limit plane on z = 0), not the input pose.",
+)
 @input_format_option
-@click.option("--output-format", "curve_format", default=None,
-              help="Write this curve format whatever OUT's extension (csv, obj, vtk, vtp, vtu).")
+@click.option(
+    "--output-format",
+    "curve_format",
+    default=None,
+    help="Write this curve format whatever OUT's extension (csv, obj, vtk, vtp, vtu).",
+)
 @format_option(help_extra=" of the summary rows on stdout (default: a table on a terminal, CSV otherwise)")
-def reconstruct(curve_spec, harmonics, output, points, samples, normalized, input_format, curve_format,
-                output_format):
+def reconstruct(curve_spec, harmonics, output, points, samples, normalized, input_format, curve_format, output_format):
     """Rebuild the curve(s) in FILE from their first K harmonics: what the descriptor sees.
 
     The rebuilt curve keeps the input's position, size and orientation (unless
@@ -182,13 +255,17 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
         from ..formats import read_curve, read_curves, split_selector
 
         path, selected = split_selector(curve_spec)
-        curves = ([read_curve(curve_spec, format=input_format)] if selected is not None
-                  else read_curves(path, format=input_format))
-    rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points,
-                                 normalized=normalized)
+        curves = (
+            [read_curve(curve_spec, format=input_format)]
+            if selected is not None
+            else read_curves(path, format=input_format)
+        )
+    rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points, normalized=normalized)
     write_curves(output, [r.curve for r in rebuilt], format=curve_format)
-    rows = [{"curve": r.source_id, "harmonics": r.harmonics, "vertices": len(r.curve.points),
-             "distance": r.distance} for r in rebuilt]
+    rows = [
+        {"curve": r.source_id, "harmonics": r.harmonics, "vertices": len(r.curve.points), "distance": r.distance}
+        for r in rebuilt
+    ]
     write_rows(rows, ["curve", "harmonics", "vertices"] + ([] if normalized else ["distance"]), output_format)
     say(f"wrote {output}")
 
@@ -196,8 +273,12 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
 def _descriptor_row(d) -> dict:
     freqs, coeffs = d.band()
     return {
-        "id": d.id, "samples": d.samples, "harmonics": d.harmonics, "scale": d.scale_mode,
-        "scale_value": float(d.scale), "centroid": [float(v) for v in d.centroid],
+        "id": d.id,
+        "samples": d.samples,
+        "harmonics": d.harmonics,
+        "scale": d.scale_mode,
+        "scale_value": float(d.scale),
+        "centroid": [float(v) for v in d.centroid],
         "plane_degenerate": bool(d.plane_degenerate),
         "frequencies": [int(f) for f in freqs],
         # per frequency, per axis x, y, z: [real, imaginary]

@@ -13,18 +13,43 @@ from .group import main
 
 @main.command()
 @click.argument("meshes", nargs=-1, required=True, metavar="MESH...")
-@click.option("-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Folder for the contour files (created if needed).")
-@click.option("--sections", type=click.IntRange(min=0), default=10, show_default=True,
-              help="Number N of section planes (0: boundaries only, with --boundaries).")
-@click.option("--axis", type=click.Choice(["x", "y", "z", "auto"]), default="auto", show_default=True,
-              help="Axis the planes are perpendicular to; auto: the longest side of the bounding box.")
+@click.option(
+    "-o",
+    "--output",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Folder for the contour files (created if needed).",
+)
+@click.option(
+    "--sections",
+    type=click.IntRange(min=0),
+    default=10,
+    show_default=True,
+    help="Number N of section planes (0: boundaries only, with --boundaries).",
+)
+@click.option(
+    "--axis",
+    type=click.Choice(["x", "y", "z", "auto"]),
+    default="auto",
+    show_default=True,
+    help="Axis the planes are perpendicular to; auto: the longest side of the bounding box.",
+)
 @click.option("--boundaries", is_flag=True, help="Also extract the boundary loops of open meshes.")
-@click.option("--output-format", "curve_format", type=click.Choice(["obj", "csv", "vtp"]), default="obj",
-              show_default=True, help="Curve file format of the written contours.")
-@click.option("--prune", is_flag=True,
-              help="Remove DIR's contour files written by an earlier extract that this run no longer produces "
-                   "(levels moved, mesh deleted); files extract did not write are never touched.")
+@click.option(
+    "--output-format",
+    "curve_format",
+    type=click.Choice(["obj", "csv", "vtp"]),
+    default="obj",
+    show_default=True,
+    help="Curve file format of the written contours.",
+)
+@click.option(
+    "--prune",
+    is_flag=True,
+    help="Remove DIR's contour files written by an earlier extract that this run no longer produces "
+    "(levels moved, mesh deleted); files extract did not write are never touched.",
+)
 @format_option(help_extra=" of the list of written files (default: a table on a terminal, CSV otherwise)")
 def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, output_format):
     """Write closed contours of triangle meshes (STL, PLY, OBJ, OFF, GLB/GLTF) as curve files.
@@ -75,10 +100,19 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, ou
             error(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
         sys.exit(EXIT_ERROR)
     written = write_contours(contours, out_dir, format=curve_format)
-    rows = [{"file": path, "mesh": c.mesh, "kind": c.kind, "axis": c.axis, "level": c.level, "loop": c.loop,
-             "vertices": c.n_vertices} for path, c in zip(written, contours)]
-    write_rows(rows, ["file", "mesh", "kind", "axis", "level", "loop", "vertices"], output_format,
-               group_by="mesh")
+    rows = [
+        {
+            "file": path,
+            "mesh": c.mesh,
+            "kind": c.kind,
+            "axis": c.axis,
+            "level": c.level,
+            "loop": c.loop,
+            "vertices": c.n_vertices,
+        }
+        for path, c in zip(written, contours)
+    ]
+    write_rows(rows, ["file", "mesh", "kind", "axis", "level", "loop", "vertices"], output_format, group_by="mesh")
     pruned = ""
     if prune:
         result = prune_contours(out_dir, written, keep_meshes=[e.path for e in errors if e.path])
@@ -92,4 +126,3 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, ou
     meshes_with = len({c.mesh for c in contours})
     say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}{pruned}")
     finish(len(errors), len(files), "meshes")
-

@@ -7,10 +7,27 @@ import os
 
 import click
 
-from .common import (descriptor_options, deliver, delimited_text, error, finish, format_option, index_option,
-                     input_format_option, matching, matching_options, note, optional_descriptor_options,
-                     output_option, progress_bar, read_inputs, say, some_failed, split_outputs,
-                     write_rows)
+from .common import (
+    descriptor_options,
+    deliver,
+    delimited_text,
+    error,
+    finish,
+    format_option,
+    index_option,
+    input_format_option,
+    matching,
+    matching_options,
+    note,
+    optional_descriptor_options,
+    output_option,
+    progress_bar,
+    read_inputs,
+    say,
+    some_failed,
+    split_outputs,
+    write_rows,
+)
 from .group import main
 
 
@@ -27,9 +44,13 @@ def _parse_size(value: str) -> tuple[int, int]:
 
 
 def _renderer_option(f):
-    return click.option("--renderer", type=click.Choice(["auto", "matplotlib", "pyvista"]), default="auto",
-                        show_default=True,
-                        help="Drawing library; auto uses the default and falls back to the other one.")(f)
+    return click.option(
+        "--renderer",
+        type=click.Choice(["auto", "matplotlib", "pyvista"]),
+        default="auto",
+        show_default=True,
+        help="Drawing library; auto uses the default and falls back to the other one.",
+    )(f)
 
 
 def _report_picture(result) -> None:
@@ -66,9 +87,11 @@ def _picture_names(pattern: str, queries) -> list[str]:
     """One picture file per query, from ``pattern`` with ``{stem}`` and ``{n}`` (1-based)."""
     if "{" not in pattern:
         if len(queries) > 1:
-            raise click.UsageError(f"{len(queries)} queries give {len(queries)} pictures: name them with a "
-                                   "pattern, e.g. -o 'matches-{stem}.png' ({stem}: the query file's name, "
-                                   "{n}: its number)")
+            raise click.UsageError(
+                f"{len(queries)} queries give {len(queries)} pictures: name them with a "
+                "pattern, e.g. -o 'matches-{stem}.png' ({stem}: the query file's name, "
+                "{n}: its number)"
+            )
         return [pattern]
     try:
         names = [pattern.format(stem=_stem(q.id), n=n) for n, q in enumerate(queries, start=1)]
@@ -82,25 +105,48 @@ def _picture_names(pattern: str, queries) -> list[str]:
 @main.command()
 @click.argument("query_spec", metavar="QUERY")
 @click.argument("sources", nargs=-1, metavar="[QUERY...|SOURCE...]")
-@click.option("--against", is_flag=True,
-              help="Rank the files or folders SOURCE... (after the one QUERY) instead of searching an index.")
+@click.option(
+    "--against",
+    is_flag=True,
+    help="Rank the files or folders SOURCE... (after the one QUERY) instead of searching an index.",
+)
 @index_option
-@click.option("--top", type=click.IntRange(min=1, max=23), default=5, show_default=True,
-              help="Matches to draw.")
-@output_option(help="The picture to write (.png, .svg or .pdf); for several queries a pattern with {stem} "
-                    "or {n}, e.g. 'matches-{stem}.png'. Another -o FILE (not a picture) gets the rows drawn.",
-               multiple=True, required=True)
+@click.option("--top", type=click.IntRange(min=1, max=23), default=5, show_default=True, help="Matches to draw.")
+@output_option(
+    help="The picture to write (.png, .svg or .pdf); for several queries a pattern with {stem} "
+    "or {n}, e.g. 'matches-{stem}.png'. Another -o FILE (not a picture) gets the rows drawn.",
+    multiple=True,
+    required=True,
+)
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
-@click.option("--glob", "glob_pattern", default=None,
-              help="Only files in folders whose name matches (with --against).")
+@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches (with --against).")
 @matching_options
 @optional_descriptor_options("with --against")
 @input_format_option
-@format_option(help_extra=" of the rows drawn (default: by the extension of their -o, else a table on a "
-                          "terminal and CSV otherwise)")
-def show(query_spec, sources, against, index_path, top, output, size, renderer, glob_pattern, method,
-         strict_direction, mirror, samples, harmonics, scale, input_format, output_format):
+@format_option(
+    help_extra=" of the rows drawn (default: by the extension of their -o, else a table on a "
+    "terminal and CSV otherwise)"
+)
+def show(
+    query_spec,
+    sources,
+    against,
+    index_path,
+    top,
+    output,
+    size,
+    renderer,
+    glob_pattern,
+    method,
+    strict_direction,
+    mirror,
+    samples,
+    harmonics,
+    scale,
+    input_format,
+    output_format,
+):
     """Draw each query and its best matches, aligned onto the query, into one picture per query.
 
     The matches come from the index (--index, as `query` finds them; every QUERY... is a
@@ -125,14 +171,16 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
 
     pictures, rows_output = split_outputs(output)
     if len(pictures) != 1:
-        raise click.UsageError("show draws one picture per query: give one -o FILE.png (.svg, .pdf), "
-                               "a pattern for several queries")
+        raise click.UsageError(
+            "show draws one picture per query: give one -o FILE.png (.svg, .pdf), a pattern for several queries"
+        )
     width_height = _parse_size(size)
     if against and not sources:
         raise click.UsageError("--against needs at least one SOURCE file or folder")
     if not against and (samples or harmonics or scale or glob_pattern):
-        raise click.UsageError("--samples/--harmonics/--scale/--glob go with --against: "
-                               "the index fixes its own parameters and curves")
+        raise click.UsageError(
+            "--samples/--harmonics/--scale/--glob go with --against: the index fixes its own parameters and curves"
+        )
     query_inputs = read_inputs([query_spec] + ([] if against else list(sources)), input_format=input_format)
     queries = query_inputs.curves
     names = _picture_names(pictures[0], queries)
@@ -140,8 +188,10 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
     match = matching(method, strict_direction, mirror)
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = [show_ranked(q, source_inputs.curves, top=top, samples=samples, harmonics=harmonics, scale=scale,
-                             **match) for q in queries]
+        shown = [
+            show_ranked(q, source_inputs.curves, top=top, samples=samples, harmonics=harmonics, scale=scale, **match)
+            for q in queries
+        ]
     else:
         from ..formats import read_curve
         from ..index import open_index
@@ -150,8 +200,9 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
         shown = []
         with open_index(index_path) as idx:
             for q in queries:
-                drawn, notes = show_searched(q, idx, top=top, read_curve=partial(read_curve, format=input_format),
-                                             **match)
+                drawn, notes = show_searched(
+                    q, idx, top=top, read_curve=partial(read_curve, format=input_format), **match
+                )
                 shown.append(drawn)
                 for message in notes:
                     note(message)
@@ -159,11 +210,21 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
     if some_failed():
         _not_written(names)
     else:
-        results = [render_matches(q.points, q.id, drawn, name, size=width_height, renderer=renderer)
-                   for q, drawn, name in zip(queries, shown, names)]
-    write_rows([{"query": q.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
-                for q, drawn in zip(queries, shown) for s in drawn],
-               ["query", "rank", "match", "distance", "source"], output_format, rows_output, group_by="query")
+        results = [
+            render_matches(q.points, q.id, drawn, name, size=width_height, renderer=renderer)
+            for q, drawn, name in zip(queries, shown, names)
+        ]
+    write_rows(
+        [
+            {"query": q.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
+            for q, drawn in zip(queries, shown)
+            for s in drawn
+        ],
+        ["query", "rank", "match", "distance", "source"],
+        output_format,
+        rows_output,
+        group_by="query",
+    )
     for result in results:
         _report_picture(result)
     failed = query_inputs.errors + (source_inputs.errors if source_inputs else [])
@@ -172,20 +233,44 @@ def show(query_spec, sources, against, index_path, top, output, size, renderer, 
 
 @main.command()
 @click.argument("sources", nargs=-1, required=True, metavar="FILE_OR_FOLDER...")
-@output_option(help="FILE.png: draw the matrix as a shaded picture (darker = more similar); any other FILE: "
-                    "write the matrix there instead of stdout. Give -o twice for both.", multiple=True)
+@output_option(
+    help="FILE.png: draw the matrix as a shaded picture (darker = more similar); any other FILE: "
+    "write the matrix there instead of stdout. Give -o twice for both.",
+    multiple=True,
+)
 @click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches.")
 @matching_options
 @descriptor_options
 @input_format_option
-@click.option("--order", type=click.Choice(["input", "similar"]), default="input", show_default=True,
-              help="Row order: as found, or similar curves next to each other (average-linkage tree).")
-@click.option("--rerank", is_flag=True,
-              help="The diffused similarity over the curves' neighbour graph instead of the distance "
-                   "(higher is closer; docs/rerank.md).")
+@click.option(
+    "--order",
+    type=click.Choice(["input", "similar"]),
+    default="input",
+    show_default=True,
+    help="Row order: as found, or similar curves next to each other (average-linkage tree).",
+)
+@click.option(
+    "--rerank",
+    is_flag=True,
+    help="The diffused similarity over the curves' neighbour graph instead of the distance "
+    "(higher is closer; docs/rerank.md).",
+)
 @format_option(("csv", "tsv", "json"), help_extra=" of the matrix [default: by the extension of -o, else csv]")
-def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samples, harmonics, scale,
-           input_format, order, rerank, output_format):
+def matrix(
+    sources,
+    output,
+    glob_pattern,
+    method,
+    strict_direction,
+    mirror,
+    samples,
+    harmonics,
+    scale,
+    input_format,
+    order,
+    rerank,
+    output_format,
+):
     """The distance between every pair of curves in FILE_OR_FOLDER... .
 
     Rows (stdout, or -o FILE.csv/.tsv/.json): CSV/TSV with a header row
@@ -206,15 +291,21 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
     from .common import resolve_format
 
     pictures, rows_output = split_outputs(output)
-    _check_pictures(pictures)                # before the O(N^2) work, not after it
+    _check_pictures(pictures)  # before the O(N^2) work, not after it
     fmt = resolve_format(output_format, rows_output)
     fmt = "csv" if fmt not in ("csv", "tsv", "json") else fmt
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:
-        distances = distance_matrix(curves, samples=samples, harmonics=harmonics, scale=scale, progress=progress,
-                                    **matching(method, strict_direction, mirror))
+        distances = distance_matrix(
+            curves,
+            samples=samples,
+            harmonics=harmonics,
+            scale=scale,
+            progress=progress,
+            **matching(method, strict_direction, mirror),
+        )
     finally:
         finish_bar()
     ids = [c.id for c in curves]
@@ -238,8 +329,9 @@ def matrix(sources, output, glob_pattern, method, strict_direction, mirror, samp
     if fmt == "json":
         text = json.dumps({"ids": ids, ("scores" if rerank else "distances"): values.tolist()}, indent=1) + "\n"
     else:
-        text = delimited_text(["id"] + ids, ([curve_id] + [repr(float(v)) for v in row]
-                                             for curve_id, row in zip(ids, values)), fmt)
+        text = delimited_text(
+            ["id"] + ids, ([curve_id] + [repr(float(v)) for v in row] for curve_id, row in zip(ids, values)), fmt
+        )
     deliver(text, rows_output)
     if some_failed():
         pictures = _not_written(pictures)

@@ -47,8 +47,18 @@ from . import obj as _obj
 from . import vtk as _vtk
 from ._chain import check_readable, make_curve, make_curves
 
-__all__ = ["FORMATS", "Format", "register", "supported_extensions", "format_of", "split_selector", "read_curves",
-           "read_curve", "write_curves"]
+__all__ = [
+    "FORMATS",
+    "Format",
+    "register",
+    "supported_extensions",
+    "format_of",
+    "split_selector",
+    "read_curves",
+    "read_curve",
+    "write_curves",
+]
+
 
 @dataclass(frozen=True)
 class Format:
@@ -67,8 +77,9 @@ _BY_EXTENSION: dict[str, str] = {}
 FORMATS: dict[str, tuple[str, ...]] = {}
 
 
-def register(name: str, extensions: Iterable[str], read: Callable[[str], list[np.ndarray]],
-             write: Callable[..., None]) -> Format:
+def register(
+    name: str, extensions: Iterable[str], read: Callable[[str], list[np.ndarray]], write: Callable[..., None]
+) -> Format:
     """Register a curve format; an extension belongs to one format only."""
     exts = tuple(e.lower() for e in extensions)
     taken = [e for e in exts if _BY_EXTENSION.get(e, name) != name]
@@ -114,20 +125,23 @@ def format_of(path: str | os.PathLike[str], format: str | None = None) -> str:
         ext = name if name.startswith(".") else "." + name
         if ext in _BY_EXTENSION:
             return _BY_EXTENSION[ext]
-        raise UnknownFormatError(f"unknown format {format!r}; choose one of "
-                                 f"{', '.join(FORMATS)}", path=p)
+        raise UnknownFormatError(f"unknown format {format!r}; choose one of {', '.join(FORMATS)}", path=p)
     ext = os.path.splitext(p)[1].lower()
     if ext in _BY_EXTENSION:
         return _BY_EXTENSION[ext]
     if ext in _MESH_EXTENSIONS:
         raise UnknownFormatError(
             f"{ext!r} is a triangle mesh, not a curve file: extract its contours first "
-            f"(`nfdmatch extract`: planar sections or boundary loops)", path=p)
+            f"(`nfdmatch extract`: planar sections or boundary loops)",
+            path=p,
+        )
     what = f"unknown file extension {ext!r}" if ext else "no file extension"
     raise UnknownFormatError(
         f"{what}; supported extensions: {', '.join(supported_extensions())}; "
         f"name the format instead (--input-format / --output-format, format= in Python): "
-        f"one of {', '.join(FORMATS)}", path=p)
+        f"one of {', '.join(FORMATS)}",
+        path=p,
+    )
 
 
 #: mesh formats that people hand to the curve readers by mistake
@@ -144,8 +158,7 @@ def split_selector(spec: str | os.PathLike[str]) -> tuple[str, int | None]:
     """
     s = str(os.fspath(spec))
     head, sep, tail = s.rpartition("#")
-    if sep and head and _SELECTOR.fullmatch(tail) and (os.path.exists(head)
-                                                        or not os.path.exists(s)):
+    if sep and head and _SELECTOR.fullmatch(tail) and (os.path.exists(head) or not os.path.exists(s)):
         return head, int(tail)
     return s, None
 
@@ -200,19 +213,20 @@ def read_curve(spec: str | os.PathLike[str], format: str | None = None) -> Curve
     if sel is None:
         if n != 1:
             raise CurveSelectionError(
-                f"holds {n} curves; pick one by appending #0 ... #{n - 1} to the file name "
-                f"(e.g. {path}#0)", path=path)
+                f"holds {n} curves; pick one by appending #0 ... #{n - 1} to the file name (e.g. {path}#0)", path=path
+            )
         return make_curve(path, arrays[0], 0, 1)
     if not 0 <= sel < n:
         valid = "#0" if n == 1 else f"#0 ... #{n - 1}"
         raise CurveSelectionError(
-            f"no curve #{sel}: the file holds {n} curve{'s' if n != 1 else ''} ({valid})",
-            path=path)
+            f"no curve #{sel}: the file holds {n} curve{'s' if n != 1 else ''} ({valid})", path=path
+        )
     return make_curve(path, arrays[sel], sel, n)
 
 
-def write_curves(path: str | os.PathLike[str], curves: Curve | np.ndarray | Sequence[Curve | np.ndarray],
-                 format: str | None = None) -> None:
+def write_curves(
+    path: str | os.PathLike[str], curves: Curve | np.ndarray | Sequence[Curve | np.ndarray], format: str | None = None
+) -> None:
     """Write curves to one file.
 
     Parameters

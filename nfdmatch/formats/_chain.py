@@ -29,13 +29,24 @@ import numpy as np
 from ..curve import Curve, clean_many, clean_points
 from ..errors import ParameterError, ParseError, ReadError, WriteError, escape_name, excerpt
 
-__all__ = ["is_number", "ordered_curves", "read_bytes", "read_text", "check_readable",
-           "write_text", "curve_id", "make_curve", "make_curves", "points_list"]
+__all__ = [
+    "is_number",
+    "ordered_curves",
+    "read_bytes",
+    "read_text",
+    "check_readable",
+    "write_text",
+    "curve_id",
+    "make_curve",
+    "make_curves",
+    "points_list",
+]
 
 
 # ---------------------------------------------------------------------------
 # fields and segments
 # ---------------------------------------------------------------------------
+
 
 def is_number(token: str) -> bool:
     """True when ``float(token)`` parses (the text readers' test for a numeric field)."""
@@ -46,8 +57,9 @@ def is_number(token: str) -> bool:
     return True
 
 
-def ordered_curves(polylines: Sequence[tuple[int, np.ndarray]],
-                   loops: Sequence[tuple[int, np.ndarray]]) -> list[np.ndarray]:
+def ordered_curves(
+    polylines: Sequence[tuple[int, np.ndarray]], loops: Sequence[tuple[int, np.ndarray]]
+) -> list[np.ndarray]:
     """Merge ``(position, vertex_indices)`` lists of polylines and chained loops in file order."""
     items = sorted([*polylines, *loops], key=lambda item: item[0])
     return [v for _, v in items]
@@ -70,20 +82,23 @@ def max_file_bytes() -> int:
         try:
             limit = int(value)
         except ValueError:
-            raise ParameterError(f"NFDMATCH_MAX_FILE_BYTES must be a number of bytes, "
-                                 f"not {excerpt(value)!r}") from None
+            raise ParameterError(f"NFDMATCH_MAX_FILE_BYTES must be a number of bytes, not {excerpt(value)!r}") from None
         if limit > 0:
             return limit
     return MAX_FILE_BYTES
 
 
-_os_open = os.open          # a module name, so tests can make opening fail
+_os_open = os.open  # a module name, so tests can make opening fail
 
 
 def _file_kind(mode: int) -> str:
-    for test, name in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
-                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-                       (stat.S_ISDIR, "a directory")):
+    for test, name in (
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISDIR, "a directory"),
+    ):
         if test(mode):
             return name
     return "not a regular file"
@@ -93,8 +108,7 @@ def _refuse_irregular(p: str, mode: int) -> None:
     if stat.S_ISDIR(mode):
         raise ReadError("is a directory, not a file", path=p)
     if not stat.S_ISREG(mode):
-        raise ReadError(f"is {_file_kind(mode)}, not a regular file; only regular files are read",
-                        path=p)
+        raise ReadError(f"is {_file_kind(mode)}, not a regular file; only regular files are read", path=p)
 
 
 def _io_error(p: str, exc: OSError) -> ReadError:
@@ -122,9 +136,11 @@ def _open_regular(p: str) -> tuple[int, int]:
         _refuse_irregular(p, info.st_mode)
         limit = max_file_bytes()
         if info.st_size > limit:
-            raise ReadError(f"is {info.st_size} bytes, more than the limit of {limit} bytes "
-                            "(set the environment variable NFDMATCH_MAX_FILE_BYTES to allow more)",
-                            path=p)
+            raise ReadError(
+                f"is {info.st_size} bytes, more than the limit of {limit} bytes "
+                "(set the environment variable NFDMATCH_MAX_FILE_BYTES to allow more)",
+                path=p,
+            )
     except BaseException:
         os.close(fd)
         raise
@@ -157,9 +173,12 @@ def read_bytes(path) -> bytes:
                 while piece := fh.read(1 << 20):
                     total += len(piece)
                     if total > limit:
-                        raise ReadError(f"is more than the limit of {limit} bytes (set the "
-                                        "environment variable NFDMATCH_MAX_FILE_BYTES to allow "
-                                        "more)", path=p)
+                        raise ReadError(
+                            f"is more than the limit of {limit} bytes (set the "
+                            "environment variable NFDMATCH_MAX_FILE_BYTES to allow "
+                            "more)",
+                            path=p,
+                        )
                     pieces.append(piece)
                 data = b"".join(pieces)
     except OSError as exc:
@@ -189,8 +208,7 @@ def read_text_bytes(path) -> bytes:
         try:
             data.decode("utf-8")
         except UnicodeDecodeError as exc:
-            raise ParseError(f"not a text file (invalid UTF-8 at byte {exc.start})",
-                             path=p) from None
+            raise ParseError(f"not a text file (invalid UTF-8 at byte {exc.start})", path=p) from None
     if not data.strip():
         raise ParseError("the file is empty", path=p)
     return data
@@ -217,6 +235,7 @@ def read_text(path) -> str:
 # Curve construction
 # ---------------------------------------------------------------------------
 
+
 def curve_id(path: str, index: int, count: int) -> str:
     """``path`` for a single-curve file, else ``path#index``; a file name that is not valid
     UTF-8 has its undecodable bytes escaped as ``\\xNN`` (:func:`nfdmatch.errors.escape_name`)."""
@@ -231,8 +250,7 @@ def make_curve(path, points: np.ndarray, index: int, count: int) -> Curve:
     (``path`` rather than ``path#0``).
     """
     p = str(path)
-    return Curve(points, id=curve_id(p, index, count), source=p,
-                 index=None if count == 1 else index)
+    return Curve(points, id=curve_id(p, index, count), source=p, index=None if count == 1 else index)
 
 
 def make_curves(path, point_arrays: Sequence[np.ndarray]) -> list[Curve]:
@@ -297,7 +315,7 @@ def _umask() -> int:
                     return int(line.split()[1], 8)
     except (OSError, ValueError, IndexError):
         pass
-    mask = os.umask(0o022)          # no /proc: read it the only portable way
+    mask = os.umask(0o022)  # no /proc: read it the only portable way
     os.umask(mask)
     return mask
 

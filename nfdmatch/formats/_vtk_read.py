@@ -72,7 +72,7 @@ MAX_SECTIONS = 10_000
 MAX_PIECES = 10_000
 MAX_BASE64_PIECES = 10_000
 
-_CHUNK_TOKENS = 1 << 20          # ASCII numbers are converted this many at a time
+_CHUNK_TOKENS = 1 << 20  # ASCII numbers are converted this many at a time
 
 _VTK_VERTEX, _VTK_POLY_VERTEX, _VTK_LINE, _VTK_POLY_LINE = 1, 2, 3, 4
 
@@ -123,6 +123,7 @@ def parse(data: bytes, kind: str, path: str) -> Dataset:
 # shared checks
 # ---------------------------------------------------------------------------
 
+
 def _count(text, what: str) -> int:
     """A non-negative decimal integer from the file (declared count / size / offset)."""
     s = text.decode("ascii", "replace") if isinstance(text, bytes) else str(text)
@@ -140,8 +141,12 @@ def _as_index(values: np.ndarray, what: str) -> np.ndarray:
     """Integer array -> int64, refusing values that do not fit (uint64 past 2^63)."""
     if values.dtype.kind == "f":
         raise _Bad(f"{what} are floating-point numbers, not integers")
-    if values.dtype.kind == "u" and values.dtype.itemsize == 8 and len(values) \
-            and int(values.max()) > np.iinfo(np.int64).max:
+    if (
+        values.dtype.kind == "u"
+        and values.dtype.itemsize == 8
+        and len(values)
+        and int(values.max()) > np.iinfo(np.int64).max
+    ):
         raise _Bad(f"{what} hold a value past 2^63")
     return values.astype(np.int64, copy=False)
 
@@ -153,16 +158,15 @@ def _check_offsets(offsets: np.ndarray, n_connectivity: int, what: str) -> None:
     steps = np.diff(offsets)
     if len(steps) and steps.min() < 0:
         k = int(np.flatnonzero(steps < 0)[0])
-        raise _Bad(f"{what}: offset {k + 1} ({int(offsets[k + 1])}) is below the one before "
-                   f"({int(offsets[k])})")
+        raise _Bad(f"{what}: offset {k + 1} ({int(offsets[k + 1])}) is below the one before ({int(offsets[k])})")
     if offsets[-1] != n_connectivity:
         bad = offsets > n_connectivity
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
-            raise _Bad(f"{what}: offset {k} ({int(offsets[k])}) is past the end of the "
-                       f"{n_connectivity} connectivity entries")
-        raise _Bad(f"{what}: the offsets end at {int(offsets[-1])} but there are "
-                   f"{n_connectivity} connectivity entries")
+            raise _Bad(
+                f"{what}: offset {k} ({int(offsets[k])}) is past the end of the {n_connectivity} connectivity entries"
+            )
+        raise _Bad(f"{what}: the offsets end at {int(offsets[-1])} but there are {n_connectivity} connectivity entries")
 
 
 def _split_lines(types: np.ndarray | None, offsets: np.ndarray, conn: np.ndarray):
@@ -184,8 +188,13 @@ def _split_lines(types: np.ndarray | None, offsets: np.ndarray, conn: np.ndarray
 
 
 def _n_other(types: np.ndarray) -> int:
-    other = ((types != _VTK_LINE) & (types != _VTK_POLY_LINE) & (types != _VTK_VERTEX)
-             & (types != _VTK_POLY_VERTEX) & (types != 0))
+    other = (
+        (types != _VTK_LINE)
+        & (types != _VTK_POLY_LINE)
+        & (types != _VTK_VERTEX)
+        & (types != _VTK_POLY_VERTEX)
+        & (types != 0)
+    )
     return int(np.count_nonzero(other))
 
 
@@ -194,12 +203,28 @@ def _n_other(types: np.ndarray) -> int:
 # ---------------------------------------------------------------------------
 
 _LEGACY_TYPES = {
-    "bit": None, "unsigned_char": "u1", "char": "i1", "signed_char": "i1",
-    "unsigned_short": "u2", "short": "i2", "unsigned_int": "u4", "int": "i4",
-    "unsigned_long": "u8", "long": "i8", "float": "f4", "double": "f8",
-    "vtkidtype": "i8", "vtktypeint8": "i1", "vtktypeuint8": "u1", "vtktypeint16": "i2",
-    "vtktypeuint16": "u2", "vtktypeint32": "i4", "vtktypeuint32": "u4",
-    "vtktypeint64": "i8", "vtktypeuint64": "u8", "vtktypefloat32": "f4",
+    "bit": None,
+    "unsigned_char": "u1",
+    "char": "i1",
+    "signed_char": "i1",
+    "unsigned_short": "u2",
+    "short": "i2",
+    "unsigned_int": "u4",
+    "int": "i4",
+    "unsigned_long": "u8",
+    "long": "i8",
+    "float": "f4",
+    "double": "f8",
+    "vtkidtype": "i8",
+    "vtktypeint8": "i1",
+    "vtktypeuint8": "u1",
+    "vtktypeint16": "i2",
+    "vtktypeuint16": "u2",
+    "vtktypeint32": "i4",
+    "vtktypeuint32": "u4",
+    "vtktypeint64": "i8",
+    "vtktypeuint64": "u8",
+    "vtktypefloat32": "f4",
     "vtktypefloat64": "f8",
 }
 
@@ -234,7 +259,7 @@ class _Legacy:
             raise _Bad(f"the file ends where {what} was expected")
         end = self.buf.find(b"\n", self.pos)
         end = len(self.buf) if end < 0 else end
-        text = self.buf[self.pos:end].rstrip(b"\r")
+        text = self.buf[self.pos : end].rstrip(b"\r")
         self.pos = end + 1
         return text
 
@@ -253,8 +278,9 @@ class _Legacy:
             big = dtype.newbyteorder(">")
             need = count * big.itemsize
             if need > len(self.buf) - self.pos:
-                raise _Bad(f"{what} declares {count} values ({need} bytes) but only "
-                           f"{len(self.buf) - self.pos} bytes follow")
+                raise _Bad(
+                    f"{what} declares {count} values ({need} bytes) but only {len(self.buf) - self.pos} bytes follow"
+                )
             out = np.frombuffer(self.buf, big, count, self.pos).astype(dtype.newbyteorder("="))
             self.pos += need
             return out
@@ -262,34 +288,35 @@ class _Legacy:
 
     def _ascii_values(self, count: int, dtype: np.dtype, what: str) -> np.ndarray:
         self._skip_space()
-        room = (len(self.buf) - self.pos + 1) // 2      # a number and a separator
+        room = (len(self.buf) - self.pos + 1) // 2  # a number and a separator
         if count > room:
-            raise _Bad(f"{what} declares {count} values but the rest of the file "
-                       f"({len(self.buf) - self.pos} bytes) cannot hold that many")
+            raise _Bad(
+                f"{what} declares {count} values but the rest of the file "
+                f"({len(self.buf) - self.pos} bytes) cannot hold that many"
+            )
         # usually the values run to the next line starting with a keyword: parse that span
         # in one go; if it does not hold exactly `count` numbers, go token by token
         if count:
             m = _NEXT_KEYWORD_LINE.search(self.buf, self.pos)
             end = len(self.buf) if m is None else m.start()
             if end - self.pos <= 64 * count + 64:
-                fast = _fast_numbers(self.buf[self.pos:end], dtype)
+                fast = _fast_numbers(self.buf[self.pos : end], dtype)
                 if fast is not None and len(fast) == count:
                     self.pos = end
                     return fast.astype(dtype, copy=False)
         out = np.empty(count, dtype=dtype)
         done = 0
-        rest = self.buf[self.pos:] if count else b""
+        rest = self.buf[self.pos :] if count else b""
         consumed = 0
         while done < count:
             take = min(_CHUNK_TOKENS, count - done)
             parts = rest.split(None, take)
             if len(parts) < take:
-                raise _Bad(f"{what} declares {count} values but the file holds only "
-                           f"{done + len(parts)}")
+                raise _Bad(f"{what} declares {count} values but the file holds only {done + len(parts)}")
             new_rest = parts[take] if len(parts) > take else b""
-            span = rest[:len(rest) - len(new_rest)]
+            span = rest[: len(rest) - len(new_rest)]
             del parts[take:]
-            out[done:done + take] = _numbers(span, parts, dtype, what)
+            out[done : done + take] = _numbers(span, parts, dtype, what)
             done += take
             consumed += len(span)
             rest = new_rest
@@ -306,7 +333,7 @@ class _Legacy:
         self.version = (int(m.group(1)[:6]), int(m.group(2)[:6]))
         if self.pos >= len(self.buf):
             raise _Bad("the file ends after the first line")
-        self.line("the title line", skip_blank=False)             # title: anything
+        self.line("the title line", skip_blank=False)  # title: anything
         mode = self.line("ASCII or BINARY").strip().upper()
         if mode not in (b"ASCII", b"BINARY"):
             raise _Bad(f"line 3 must be ASCII or BINARY, not {_short(mode)!r}")
@@ -316,9 +343,12 @@ class _Legacy:
             raise _Bad(f"expected 'DATASET <type>', found {_short(b' '.join(words))!r}")
         dataset = words[1].upper()
         if dataset not in (b"POLYDATA", b"UNSTRUCTURED_GRID"):
-            raise NoCurvesError(f"holds a dataset of type {dataset.decode('latin-1')}; curves "
-                                "are read from the line cells of PolyData or UnstructuredGrid "
-                                "only", path=path)
+            raise NoCurvesError(
+                f"holds a dataset of type {dataset.decode('latin-1')}; curves "
+                "are read from the line cells of PolyData or UnstructuredGrid "
+                "only",
+                path=path,
+            )
         points = None
         lines = None
         n_other = 0
@@ -328,11 +358,13 @@ class _Legacy:
         for _ in range(MAX_SECTIONS + 1):
             word = self.peek_word()
             if not word:
-                rest = self.buf[self.pos:].split(None, 2)
+                rest = self.buf[self.pos :].split(None, 2)
                 if rest:
-                    raise _Bad(f"found {_short(b' '.join(rest[:2]))!r} where a section "
-                               f"keyword was expected (after {last or 'the header'}: more "
-                               "values than declared?)")
+                    raise _Bad(
+                        f"found {_short(b' '.join(rest[:2]))!r} where a section "
+                        f"keyword was expected (after {last or 'the header'}: more "
+                        "values than declared?)"
+                    )
                 break
             if word in _ATTRIBUTE_SECTIONS:
                 break
@@ -361,8 +393,7 @@ class _Legacy:
                 n = _count(header[1], "the CELL_TYPES count")
                 types = self.values(n, "int", "CELL_TYPES").astype(np.int64)
             else:
-                raise _Bad(f"unexpected section {_short(key)!r} in a "
-                           f"{dataset.decode('latin-1')} dataset")
+                raise _Bad(f"unexpected section {_short(key)!r} in a {dataset.decode('latin-1')} dataset")
         else:
             raise _Bad(f"more than {MAX_SECTIONS} sections before the attribute data")
         if points is None:
@@ -393,19 +424,19 @@ class _Legacy:
             raise _Bad(f"the {what} line must be '{what} n size'")
         first = _count(header[1], f"the {what} cell count")
         second = _count(header[2], f"the {what} size")
-        if self.peek_word() == b"OFFSETS":            # version 5 layout
+        if self.peek_word() == b"OFFSETS":  # version 5 layout
             off_type = self.line("OFFSETS").split()
             if len(off_type) != 2:
                 raise _Bad(f"{what}: the OFFSETS line must be 'OFFSETS type'")
-            offsets = _as_index(self.values(first, off_type[1].decode("latin-1"),
-                                            f"{what} OFFSETS"), f"{what} offsets")
+            offsets = _as_index(self.values(first, off_type[1].decode("latin-1"), f"{what} OFFSETS"), f"{what} offsets")
             if self.peek_word() != b"CONNECTIVITY":
                 raise _Bad(f"{what}: CONNECTIVITY expected after OFFSETS")
             conn_type = self.line("CONNECTIVITY").split()
             if len(conn_type) != 2:
                 raise _Bad(f"{what}: the CONNECTIVITY line must be 'CONNECTIVITY type'")
-            conn = _as_index(self.values(second, conn_type[1].decode("latin-1"),
-                                         f"{what} CONNECTIVITY"), f"{what} connectivity")
+            conn = _as_index(
+                self.values(second, conn_type[1].decode("latin-1"), f"{what} CONNECTIVITY"), f"{what} connectivity"
+            )
             if first == 0:
                 if second:
                     raise _Bad(f"{what}: connectivity without offsets")
@@ -434,8 +465,7 @@ def _walk_counts(flat: np.ndarray, n_cells: int, what: str):
         heads[c] = k
         k += 1 + n
         if k > size:
-            raise _Bad(f"{what}: cell {c} declares {n} points, past the end of the "
-                       f"{size} values")
+            raise _Bad(f"{what}: cell {c} declares {n} points, past the end of the {size} values")
     if k != size:
         raise _Bad(f"{what}: the {n_cells} cells use {k} of the {size} values declared")
     head_idx = np.array(heads, dtype=np.int64)
@@ -461,7 +491,7 @@ def _fast_numbers(span: bytes, dtype: np.dtype) -> np.ndarray | None:
                 fast = np.fromstring(span, dtype=np.int64, sep=" ")
                 limits = np.iinfo(np.int64)
                 if len(fast) and (fast.max() == limits.max or fast.min() == limits.min):
-                    fast = None                     # numpy clamps overflow: decide exactly below
+                    fast = None  # numpy clamps overflow: decide exactly below
             else:
                 fast = None
         except ValueError:
@@ -500,8 +530,9 @@ def _numbers(span: bytes, tokens, dtype: np.dtype, what: str) -> np.ndarray:
         return np.array(values, dtype=np.int64) if values else np.zeros(0, np.int64)
     except (ValueError, OverflowError):
         bad = next((t for t in tokens if not _is_number(t, dtype.kind)), b"?")
-        raise _Bad(f"{what}: not {'a number' if dtype.kind == 'f' else 'an integer'} "
-                   f"(or out of range): {_short(bad)!r}") from None
+        raise _Bad(
+            f"{what}: not {'a number' if dtype.kind == 'f' else 'an integer'} (or out of range): {_short(bad)!r}"
+        ) from None
 
 
 def _is_number(token: bytes, kind: str) -> bool:
@@ -520,16 +551,32 @@ def _is_number(token: bytes, kind: str) -> bool:
 # ---------------------------------------------------------------------------
 
 _XML_TYPES = {
-    "Int8": "i1", "UInt8": "u1", "Int16": "i2", "UInt16": "u2", "Int32": "i4",
-    "UInt32": "u4", "Int64": "i8", "UInt64": "u8", "Float32": "f4", "Float64": "f8",
-    "Char": "i1", "UChar": "u1", "Short": "i2", "UShort": "u2", "Int": "i4", "UInt": "u4",
-    "Long": "i8", "ULong": "u8", "Float": "f4", "Double": "f8", "IdType": "i8",
+    "Int8": "i1",
+    "UInt8": "u1",
+    "Int16": "i2",
+    "UInt16": "u2",
+    "Int32": "i4",
+    "UInt32": "u4",
+    "Int64": "i8",
+    "UInt64": "u8",
+    "Float32": "f4",
+    "Float64": "f8",
+    "Char": "i1",
+    "UChar": "u1",
+    "Short": "i2",
+    "UShort": "u2",
+    "Int": "i4",
+    "UInt": "u4",
+    "Long": "i8",
+    "ULong": "u8",
+    "Float": "f4",
+    "Double": "f8",
+    "IdType": "i8",
 }
 
 _B64_CHUNK = re.compile(rb"[A-Za-z0-9+/]*={0,2}")
 _NOT_B64 = re.compile(rb"[^A-Za-z0-9+/=\s]")
-_B64_ALPHABET = (b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/="
-                 b" \t\r\n\x0b\x0c")
+_B64_ALPHABET = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/= \t\r\n\x0b\x0c"
 
 
 def _b64decode(text: bytes, what: str) -> bytes:
@@ -538,7 +585,7 @@ def _b64decode(text: bytes, what: str) -> bytes:
         bad = _NOT_B64.search(text)
         raise _Bad(f"{what}: {_short(bad.group(0) if bad else b'?')!r} is not base64")
     text = text.translate(None, b" \t\r\n\x0b\x0c")
-    if b"=" not in text[:-2]:               # one piece: the common case
+    if b"=" not in text[:-2]:  # one piece: the common case
         pieces = [text]
     else:
         pieces = [p for p in _B64_CHUNK.findall(text) if p]
@@ -558,8 +605,7 @@ def _b64decode(text: bytes, what: str) -> bytes:
 
 
 class _Xml:
-    def __init__(self, data: bytes, root, kind: str, appended: bytes | None,
-                 appended_base64: bool, path: str):
+    def __init__(self, data: bytes, root, kind: str, appended: bytes | None, appended_base64: bool, path: str):
         self.data_size = len(data)
         self.root = root
         self.kind = kind
@@ -575,8 +621,7 @@ class _Xml:
             raise _Bad(f"header_type {_short(header)!r} is neither UInt32 nor UInt64")
         self.header = np.dtype(self.order + ("u4" if header == "UInt32" else "u8"))
         compressor = root.get("compressor")
-        if compressor not in (None, "", "vtkZLibDataCompressor", "vtkLZMADataCompressor",
-                              "vtkLZ4DataCompressor"):
+        if compressor not in (None, "", "vtkZLibDataCompressor", "vtkLZMADataCompressor", "vtkLZ4DataCompressor"):
             raise _Bad(f"compressor {_short(compressor)!r} is not supported")
         self.compressor = compressor or None
         self.inflated = 0
@@ -585,9 +630,11 @@ class _Xml:
         self._b64_offsets = None
 
     def _limit(self) -> str:
-        return (f"more than the limit of {self.cap} bytes of data for a file of "
-                f"{self.data_size} bytes (nfdmatch.formats._vtk_read.MAX_INFLATED_BYTES, "
-                f"MAX_INFLATION_RATIO)")
+        return (
+            f"more than the limit of {self.cap} bytes of data for a file of "
+            f"{self.data_size} bytes (nfdmatch.formats._vtk_read.MAX_INFLATED_BYTES, "
+            f"MAX_INFLATION_RATIO)"
+        )
 
     # -- one DataArray -> numpy --------------------------------------------
 
@@ -608,8 +655,7 @@ class _Xml:
         else:
             dtype = np.dtype(self.order + code)
             if expected * dtype.itemsize > self.cap:
-                raise _Bad(f"{what} declares {expected} values ({expected * dtype.itemsize} "
-                           f"bytes): {self._limit()}")
+                raise _Bad(f"{what} declares {expected} values ({expected * dtype.itemsize} bytes): {self._limit()}")
             if fmt == "binary":
                 raw = _b64decode((element.text or "").encode("ascii", "replace"), what)
                 blob = self._unpack(raw, 0, what)
@@ -618,20 +664,18 @@ class _Xml:
             else:
                 raise _Bad(f"{what}: unknown DataArray format {_short(fmt)!r}")
             if len(blob) != expected * dtype.itemsize:
-                raise _Bad(f"{what}: {len(blob)} bytes of data for {expected} values of "
-                           f"{dtype.itemsize} bytes")
+                raise _Bad(f"{what}: {len(blob)} bytes of data for {expected} values of {dtype.itemsize} bytes")
             values = np.frombuffer(blob, dtype).astype(dtype.newbyteorder("="))
         return values
 
     def _ascii(self, text: str, expected: int, dtype: np.dtype, what: str) -> np.ndarray:
         if expected > (len(text) + 1) // 2:
-            raise _Bad(f"{what} declares {expected} values but holds "
-                       f"at most {(len(text) + 1) // 2}")
+            raise _Bad(f"{what} declares {expected} values but holds at most {(len(text) + 1) // 2}")
         raw = text.encode("ascii", "replace")
         values = _numbers(raw, None, dtype, what)
         if len(values) == expected:
             return values.astype(dtype, copy=False)
-        reader = _Legacy(raw)           # says how the count is wrong
+        reader = _Legacy(raw)  # says how the count is wrong
         values = reader._ascii_values(expected, dtype, what)
         reader._skip_space()
         if reader.pos < len(reader.buf):
@@ -646,15 +690,13 @@ class _Xml:
         if self.compressor is None:
             n = int(np.frombuffer(raw, self.header, 1, start)[0])
             if n > len(raw) - start - h:
-                raise _Bad(f"{what}: the header declares {n} bytes but only "
-                           f"{len(raw) - start - h} follow")
-            return raw[start + h:start + h + n]
+                raise _Bad(f"{what}: the header declares {n} bytes but only {len(raw) - start - h} follow")
+            return raw[start + h : start + h + n]
         if len(raw) - start < 3 * h:
             raise _Bad(f"{what}: the compression header is cut short")
         n_blocks, block, last = (int(v) for v in np.frombuffer(raw, self.header, 3, start))
         if n_blocks > (len(raw) - start - 3 * h) // h:
-            raise _Bad(f"{what}: the compression header declares {n_blocks} blocks, more than "
-                       "the data holds")
+            raise _Bad(f"{what}: the compression header declares {n_blocks} blocks, more than the data holds")
         sizes = np.frombuffer(raw, self.header, n_blocks, start + 3 * h).astype(np.uint64)
         if n_blocks == 0:
             return b""
@@ -663,16 +705,16 @@ class _Xml:
         total = (n_blocks - 1) * block + (last or block)
         self.inflated += total
         if self.inflated > self.cap:
-            raise _Bad(f"{what}: the compressed data would inflate to "
-                       f"{self._limit()}")
+            raise _Bad(f"{what}: the compressed data would inflate to {self._limit()}")
         pos = start + (3 + n_blocks) * h
         if int(sizes.sum()) > len(raw) - pos:
-            raise _Bad(f"{what}: the compressed blocks declare {int(sizes.sum())} bytes but "
-                       f"only {len(raw) - pos} follow")
+            raise _Bad(
+                f"{what}: the compressed blocks declare {int(sizes.sum())} bytes but only {len(raw) - pos} follow"
+            )
         out = []
         for b, size in enumerate(sizes.tolist()):
             want = last if (b == n_blocks - 1 and last) else block
-            out.append(_inflate(self.compressor, raw[pos:pos + size], want, what))
+            out.append(_inflate(self.compressor, raw[pos : pos + size], want, what))
             pos += size
         return b"".join(out)
 
@@ -681,15 +723,18 @@ class _Xml:
             raise _Bad(f"{what}: format 'appended' but the file has no AppendedData")
         offset = _count(element.get("offset", ""), f"{what} offset")
         if offset >= len(self.appended) and not (offset == len(self.appended) == 0):
-            raise _Bad(f"{what}: offset {offset} is past the end of the "
-                       f"{len(self.appended)} bytes of appended data")
+            raise _Bad(f"{what}: offset {offset} is past the end of the {len(self.appended)} bytes of appended data")
         if not self.appended_base64:
             return self._unpack(self.appended, offset, what)
         # base64: each array is encoded apart; it runs to the next array's offset
         if self._b64_offsets is None:
-            self._b64_offsets = sorted({_count(e.get("offset", "0"), "offset")
-                                        for e in self.root.iter("DataArray")
-                                        if e.get("format") == "appended"})
+            self._b64_offsets = sorted(
+                {
+                    _count(e.get("offset", "0"), "offset")
+                    for e in self.root.iter("DataArray")
+                    if e.get("format") == "appended"
+                }
+            )
         k = np.searchsorted(self._b64_offsets, offset, side="right")
         end = self._b64_offsets[k] if k < len(self._b64_offsets) else len(self.appended)
         return self._unpack(_b64decode(self.appended[offset:end], what), 0, what)
@@ -702,21 +747,18 @@ def _inflate(compressor: str, blob: bytes, want: int, what: str) -> bytes:
             d = zlib.decompressobj()
             out = d.decompress(blob, want)
             if not d.eof:
-                raise _Bad(f"{what}: a compressed block is cut short or inflates past its "
-                           f"stated size ({want} bytes)")
+                raise _Bad(f"{what}: a compressed block is cut short or inflates past its stated size ({want} bytes)")
         elif compressor == "vtkLZMADataCompressor":
             d = lzma.LZMADecompressor()
             out = d.decompress(blob, want)
             if not d.eof:
-                raise _Bad(f"{what}: a compressed block is cut short or inflates past its "
-                           f"stated size ({want} bytes)")
+                raise _Bad(f"{what}: a compressed block is cut short or inflates past its stated size ({want} bytes)")
         else:
             out = _lz4_block(blob, want, what)
     except (zlib.error, lzma.LZMAError, EOFError) as exc:
         raise _Bad(f"{what}: corrupt compressed data ({exc})") from None
     if len(out) != want:
-        raise _Bad(f"{what}: a compressed block inflates to {len(out)} bytes, not the "
-                   f"{want} stated")
+        raise _Bad(f"{what}: a compressed block inflates to {len(out)} bytes, not the {want} stated")
     return out
 
 
@@ -739,10 +781,10 @@ def _lz4_block(src: bytes, want: int, what: str) -> bytes:
                     break
         if i + lit > n or len(out) + lit > want:
             raise _Bad(f"{what}: corrupt LZ4 data")
-        out += src[i:i + lit]
+        out += src[i : i + lit]
         i += lit
         if i >= n:
-            break                                   # the last sequence has literals only
+            break  # the last sequence has literals only
         if i + 2 > n:
             raise _Bad(f"{what}: corrupt LZ4 data")
         offset = src[i] | (src[i + 1] << 8)
@@ -761,8 +803,8 @@ def _lz4_block(src: bytes, want: int, what: str) -> bytes:
             raise _Bad(f"{what}: corrupt LZ4 data")
         start = len(out) - offset
         if match <= offset:
-            out += out[start:start + match]
-        else:                                       # overlapping copy repeats the pattern
+            out += out[start : start + match]
+        else:  # overlapping copy repeats the pattern
             pattern = bytes(out[start:])
             reps = -(-match // offset)
             out += (pattern * reps)[:match]
@@ -780,7 +822,7 @@ def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:
         close = data.find(b">", start_tag)
         if close < 0:
             raise _Bad("the AppendedData tag is not closed")
-        tag = data[start_tag:close + 1]
+        tag = data[start_tag : close + 1]
         m = re.search(rb'encoding\s*=\s*"([^"]*)"', tag)
         encoding = m.group(1) if m else b"raw"
         if encoding not in (b"raw", b"base64"):
@@ -792,7 +834,7 @@ def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:
         end = data.rfind(b"</AppendedData>")
         if end < underscore:
             end = len(data)
-        appended = data[underscore + 1:end]
+        appended = data[underscore + 1 : end]
         if appended_base64:
             appended = appended.rstrip()
         head = data[:start_tag] + b"</VTKFile>"
@@ -805,9 +847,11 @@ def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:
     dtype_name = root.get("type", "")
     want = {"vtp": "PolyData", "vtu": "UnstructuredGrid"}[kind]
     if dtype_name not in ("PolyData", "UnstructuredGrid"):
-        raise NoCurvesError(f"holds a dataset of type {_short(dtype_name) or '(none)'}; curves "
-                            "are read from the line cells of PolyData or UnstructuredGrid only",
-                            path=path)
+        raise NoCurvesError(
+            f"holds a dataset of type {_short(dtype_name) or '(none)'}; curves "
+            "are read from the line cells of PolyData or UnstructuredGrid only",
+            path=path,
+        )
     if dtype_name != want:
         raise _Bad(f"a .{kind} file must hold {want}, this one holds {dtype_name}")
     xml = _Xml(data, root, kind, appended, appended_base64, path)
@@ -839,9 +883,13 @@ def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:
         else:
             offsets, conn = _xml_cells(xml, piece, "Cells", "NumberOfCells", where)
             n_cells = len(offsets) - 1
-            types = (_as_index(xml.array(_named(piece, "Cells", "types"), n_cells, 1,
-                                         f"{where} cell types"), f"{where} cell types")
-                     if n_cells else np.zeros(0, np.int64))
+            types = (
+                _as_index(
+                    xml.array(_named(piece, "Cells", "types"), n_cells, 1, f"{where} cell types"), f"{where} cell types"
+                )
+                if n_cells
+                else np.zeros(0, np.int64)
+            )
             n_other += _n_other(types)
             offsets, conn = _split_lines(types, offsets, conn)
         all_points.append(pts)
@@ -870,16 +918,14 @@ def _xml_cells(xml: _Xml, piece, section: str, count_attr: str, where: str):
     if n_cells == 0:
         return np.zeros(1, np.int64), np.zeros(0, np.int64)
     what = f"{where} {section}"
-    offsets = _as_index(xml.array(_named(piece, section, "offsets"), n_cells, 1,
-                                  f"{what} offsets"), f"{what} offsets")
+    offsets = _as_index(xml.array(_named(piece, section, "offsets"), n_cells, 1, f"{what} offsets"), f"{what} offsets")
     last = int(offsets[-1])
     if last < 0:
         raise _Bad(f"{what} offsets: the last offset is negative ({last})")
     conn_el = _named(piece, section, "connectivity")
     if conn_el is None:
         raise _Bad(f"{what} connectivity: the DataArray is missing")
-    conn = _as_index(xml.array(conn_el, last, 1, f"{what} connectivity"),
-                     f"{what} connectivity")
+    conn = _as_index(xml.array(conn_el, last, 1, f"{what} connectivity"), f"{what} connectivity")
     offsets = np.concatenate([np.zeros(1, np.int64), offsets])
     _check_offsets(offsets, len(conn), f"{what}")
     return offsets, conn

@@ -64,19 +64,29 @@ def _read_bulk(data: bytes, path: str) -> np.ndarray | None:
     first, sample = first_rows
     has_header = not all(is_number(t) for t in _ANY_DELIMITER.split(first) if t)
     delim = _delimiter(sample if has_header else first)
-    ncol = len(sample.split(delim) if delim else sample.split()) if has_header else \
-        len(first.split(delim) if delim else first.split())
+    ncol = (
+        len(sample.split(delim) if delim else sample.split())
+        if has_header
+        else len(first.split(delim) if delim else first.split())
+    )
     cols = _columns(first, delim, ncol) if has_header else list(range(ncol))
     if cols != list(range(ncol)) or ncol not in (2, 3):
-        return None                 # other columns (they may hold text): the careful parser
+        return None  # other columns (they may hold text): the careful parser
     stream = io.BytesIO(data)
     stream.seek(body_start)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            arr = np.loadtxt(stream, dtype=np.float64, delimiter=delim, comments="#",
-                             skiprows=1 if has_header else 0, ndmin=2,
-                             quotechar=None, encoding="ascii")
+            arr = np.loadtxt(
+                stream,
+                dtype=np.float64,
+                delimiter=delim,
+                comments="#",
+                skiprows=1 if has_header else 0,
+                ndmin=2,
+                quotechar=None,
+                encoding="ascii",
+            )
     except (ValueError, IndexError):
         return None
     if arr.shape[0] == 0 or arr.shape[1] != len(cols) or not np.isfinite(arr).all():
@@ -164,8 +174,7 @@ def read_points(path) -> list[np.ndarray]:
     has_header = not all(is_number(t) for t in _ANY_DELIMITER.split(first) if t)
     data = content[1:] if has_header else content
     if not data:
-        raise ParseError("no data rows: the file holds only a header line", path=p,
-                         line=first_line)
+        raise ParseError("no data rows: the file holds only a header line", path=p, line=first_line)
 
     sample = data[0][1]
     delim: str | None
@@ -189,8 +198,11 @@ def read_points(path) -> list[np.ndarray]:
         if len(names) != ncol:
             names = [_unquote(t) for t in _ANY_DELIMITER.split(first) if t]
         if len(names) != ncol:
-            raise ParseError(f"the header (line {first_line}) names {len(names)} columns but "
-                             f"line {data[0][0]} holds {ncol} values", path=p, line=data[0][0])
+            raise ParseError(
+                f"the header (line {first_line}) names {len(names)} columns but line {data[0][0]} holds {ncol} values",
+                path=p,
+                line=data[0][0],
+            )
         lower = [n.lower() for n in names]
         if "x" in lower and "y" in lower:
             cols = [lower.index("x"), lower.index("y")]
@@ -202,16 +214,18 @@ def read_points(path) -> list[np.ndarray]:
         cols = []
     if not cols:
         if ncol not in (2, 3):
-            raise ParseError(f"{ncol} columns; expected 3 (x, y, z) or 2 (x, y), or a header "
-                             "line naming the x, y, z columns", path=p, line=data[0][0])
+            raise ParseError(
+                f"{ncol} columns; expected 3 (x, y, z) or 2 (x, y), or a header line naming the x, y, z columns",
+                path=p,
+                line=data[0][0],
+            )
         cols = list(range(ncol))
 
     lengths = np.fromiter((len(r) for r in rows), dtype=np.int64, count=len(rows))
     ragged = np.flatnonzero(lengths != ncol)
     if len(ragged):
         k = int(ragged[0])
-        raise ParseError(f"expected {ncol} values (as on line {data[0][0]}), got {lengths[k]}",
-                         path=p, line=data[k][0])
+        raise ParseError(f"expected {ncol} values (as on line {data[0][0]}), got {lengths[k]}", path=p, line=data[k][0])
 
     table = rows if cols == list(range(ncol)) else [[r[c] for c in cols] for r in rows]
     try:
@@ -225,8 +239,7 @@ def read_points(path) -> list[np.ndarray]:
     finite = np.isfinite(arr).all(axis=1)
     if not finite.all():
         k = int(np.flatnonzero(~finite)[0])
-        raise CurveError(f"value is not finite (NaN or Inf): {excerpt(data[k][1])!r}", path=p,
-                         line=data[k][0])
+        raise CurveError(f"value is not finite (NaN or Inf): {excerpt(data[k][1])!r}", path=p, line=data[k][0])
     if arr.shape[1] == 2:
         arr = np.column_stack([arr, np.zeros(len(arr))])
     return [arr]
@@ -244,8 +257,7 @@ def _raise_first_bad_cell(path, data, table, delim) -> None:
                 hint = ""
                 if delim == ";" and re.fullmatch(r"[-+]?\d+,\d*([eE][-+]?\d+)?", tok):
                     hint = " (decimal commas are not supported; use a point)"
-                raise ParseError(f"not a number: {excerpt(tok)!r}{hint}", path=path,
-                                 line=lineno) from None
+                raise ParseError(f"not a number: {excerpt(tok)!r}{hint}", path=path, line=lineno) from None
 
 
 def write(path, curves) -> None:
@@ -268,8 +280,11 @@ def write(path, curves) -> None:
     p = str(path)
     arrays = points_list(curves, path=p)
     if len(arrays) != 1:
-        raise ParameterError(f"a CSV file holds exactly one curve, got {len(arrays)}; write "
-                             "one file per curve, or use OBJ / VTP for several curves", path=p)
+        raise ParameterError(
+            f"a CSV file holds exactly one curve, got {len(arrays)}; write "
+            "one file per curve, or use OBJ / VTP for several curves",
+            path=p,
+        )
     ext = os.path.splitext(p)[1].lower()
     d = {".tsv": "\t", ".txt": " ", ".xyz": " "}.get(ext, ",")
     out = [d.join("xyz")]

@@ -81,8 +81,8 @@ def read_points(path) -> list[np.ndarray]:
         return fast
     coords: list[tuple[float, float, float]] = []
     v_lines: list[int] = []
-    elements: list[tuple[int, list[int]]] = []   # (line, 0-based indices)
-    checks: list[tuple[int, int]] = []           # (line, largest positive 1-based index)
+    elements: list[tuple[int, list[int]]] = []  # (line, 0-based indices)
+    checks: list[tuple[int, int]] = []  # (line, largest positive 1-based index)
     n_faces = 0
 
     for lineno, line in _logical_lines(text):
@@ -91,20 +91,21 @@ def read_points(path) -> list[np.ndarray]:
         if kw == "v":
             vals = tokens[1:]
             if len(vals) not in (3, 4, 6):
-                raise ParseError(f"a vertex (`v`) needs 3 coordinates x y z (optionally w), "
-                                 f"got {len(vals)}", path=p, line=lineno)
+                raise ParseError(
+                    f"a vertex (`v`) needs 3 coordinates x y z (optionally w), got {len(vals)}", path=p, line=lineno
+                )
             try:
                 coords.append((float(vals[0]), float(vals[1]), float(vals[2])))
             except ValueError:
                 bad = next(t for t in vals[:3] if not is_number(t))
-                raise ParseError(f"vertex coordinate is not a number: {excerpt(bad)!r}", path=p,
-                                 line=lineno) from None
+                raise ParseError(f"vertex coordinate is not a number: {excerpt(bad)!r}", path=p, line=lineno) from None
             v_lines.append(lineno)
         elif kw == "l":
             refs = tokens[1:]
             if len(refs) < 2:
-                raise ParseError(f"an `l` element needs at least 2 vertex indices, got "
-                                 f"{len(refs)}", path=p, line=lineno)
+                raise ParseError(
+                    f"an `l` element needs at least 2 vertex indices, got {len(refs)}", path=p, line=lineno
+                )
             nv = len(coords)
             idx: list[int] = []
             largest = 0
@@ -113,16 +114,16 @@ def read_points(path) -> list[np.ndarray]:
                 try:
                     k = int(head)
                 except ValueError:
-                    raise ParseError(f"bad vertex index {excerpt(ref)!r} in `l` element", path=p,
-                                     line=lineno) from None
+                    raise ParseError(f"bad vertex index {excerpt(ref)!r} in `l` element", path=p, line=lineno) from None
                 if k == 0:
-                    raise ParseError("vertex index 0 is invalid (OBJ indices start at 1)",
-                                     path=p, line=lineno)
+                    raise ParseError("vertex index 0 is invalid (OBJ indices start at 1)", path=p, line=lineno)
                 if k < 0:
                     if nv + k < 0:
-                        raise ParseError(f"relative vertex index {k} points before the first "
-                                         f"vertex ({nv} vertices defined so far)", path=p,
-                                         line=lineno)
+                        raise ParseError(
+                            f"relative vertex index {k} points before the first vertex ({nv} vertices defined so far)",
+                            path=p,
+                            line=lineno,
+                        )
                     idx.append(nv + k)
                 else:
                     idx.append(k - 1)
@@ -136,21 +137,23 @@ def read_points(path) -> list[np.ndarray]:
         if n_faces:
             raise NoCurvesError(
                 f"holds {n_faces} faces but no polylines (`l` elements): it is a mesh; "
-                "extract contours from it first (`nfdmatch extract`: sections or boundary loops)", path=p)
+                "extract contours from it first (`nfdmatch extract`: sections or boundary loops)",
+                path=p,
+            )
         raise NoCurvesError("no polylines (`l` elements) in the file", path=p)
 
     nv = len(coords)
     for lineno, largest in checks:
         if largest > nv:
-            raise ParseError(f"vertex index {largest} is out of range: the file defines {nv} "
-                             "vertices", path=p, line=lineno)
+            raise ParseError(
+                f"vertex index {largest} is out of range: the file defines {nv} vertices", path=p, line=lineno
+            )
 
     V = np.array(coords, dtype=np.float64).reshape(-1, 3)
     finite = np.isfinite(V).all(axis=1)
     if not finite.all():
         k = int(np.flatnonzero(~finite)[0])
-        raise CurveError(f"vertex {k + 1} is not finite (NaN or Inf): {V[k].tolist()}",
-                         path=p, line=v_lines[k])
+        raise CurveError(f"vertex {k + 1} is not finite (NaN or Inf): {V[k].tolist()}", path=p, line=v_lines[k])
 
     polylines: list[tuple[int, np.ndarray]] = []
     segments: list[list[int]] = []
@@ -162,9 +165,11 @@ def read_points(path) -> list[np.ndarray]:
         else:
             polylines.append((pos, np.array(idx, dtype=np.int64)))
     loops = chain_segments(
-        np.array(segments, dtype=np.int64).reshape(-1, 2), path=p,
+        np.array(segments, dtype=np.int64).reshape(-1, 2),
+        path=p,
         vertex_label=lambda v: str(v + 1),
-        segment_where=lambda s: f"line {elements[seg_pos[s]][0]}")
+        segment_where=lambda s: f"line {elements[seg_pos[s]][0]}",
+    )
     loops = [(seg_pos[s], verts) for s, verts in loops]
     return [V[idx] for idx in ordered_curves(polylines, loops)]
 
@@ -196,7 +201,7 @@ def _read_points_fast(text: str, p: str):
             warnings.simplefilter("ignore")
             V = np.loadtxt(v_rows, dtype=np.float64, ndmin=2)
         flat = np.array(l_text.split(), dtype=np.int64)
-    except (ValueError, OverflowError):     # an index past int64: the parser says which
+    except (ValueError, OverflowError):  # an index past int64: the parser says which
         return None
     counts = _token_counts(l_rows)
     if V.shape != (len(v_rows), 3) or len(flat) != counts.sum() or counts.min() < 3:
@@ -222,7 +227,7 @@ def _line_rows(text: str):
         elif head[:1] == "#":
             comments += 1
         elif head[:1] in ("v", "l") and (head == "v" or head == "l"):
-            return None                                   # a bare `v` / `l`: let the parser say so
+            return None  # a bare `v` / `l`: let the parser say so
     if not v_rows or not l_rows or text.count("#") != comments:
         return None
     return v_rows, l_rows
@@ -233,7 +238,7 @@ def _block_rows(text: str):
     makes: whole-line comments first, then one run of ``v`` lines, then one run of ``l``
     lines, then nothing but empty lines; None for any other layout."""
     start = 0
-    while text.startswith("#", start):                    # the leading comment lines
+    while text.startswith("#", start):  # the leading comment lines
         start = text.find("\n", start) + 1
         if start == 0:
             return None
@@ -241,7 +246,7 @@ def _block_rows(text: str):
     cut = body.find("\nl ")
     if not body.startswith("v ") or cut < 0 or "#" in body:
         return None
-    v_block, l_block = body[:cut], body[cut + 1:]
+    v_block, l_block = body[:cut], body[cut + 1 :]
     # every line of each block starts with its keyword and a space
     if v_block.count("\nv ") != v_block.count("\n") or l_block.count("\nl ") != l_block.count("\n"):
         return None
@@ -283,4 +288,3 @@ def write(path, curves) -> None:
         out.append("l " + " ".join(map(str, range(offset, offset + n))) + f" {offset}")
         offset += n
     write_text(p, "\n".join(out) + "\n")
-

@@ -36,8 +36,7 @@ import numpy as np
 
 from .._graph import chain_segments
 from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
-from ._chain import (check_readable, ordered_curves, points_list,
-                     publish, read_bytes, temp_beside)
+from ._chain import check_readable, ordered_curves, points_list, publish, read_bytes, temp_beside
 
 __all__ = ["read_points", "write", "KINDS"]
 
@@ -50,6 +49,7 @@ _VTK_POLY_LINE = 4
 def _pyvista():
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import pyvista
+
     return pyvista
 
 
@@ -59,8 +59,9 @@ def _kind(path: str, format: str | None) -> str:
     else:
         kind = os.path.splitext(path)[1].lower().lstrip(".")
     if kind not in KINDS:
-        raise UnknownFormatError(f"not a VTK format: {kind or '(no extension)'!r}; expected one "
-                                 f"of {', '.join(KINDS)}", path=path)
+        raise UnknownFormatError(
+            f"not a VTK format: {kind or '(no extension)'!r}; expected one of {', '.join(KINDS)}", path=path
+        )
     return kind
 
 
@@ -111,7 +112,7 @@ def read_points(path, format: str | None = None) -> list[np.ndarray]:
     data = read_bytes(p)
     if not data.strip():
         raise ParseError("the file is empty", path=p)
-    from . import _vtk_read          # xml, lzma, zlib: only when a VTK file is read
+    from . import _vtk_read  # xml, lzma, zlib: only when a VTK file is read
 
     dataset = _vtk_read.parse(data, kind, p)
     del data
@@ -122,30 +123,32 @@ def read_points(path, format: str | None = None) -> list[np.ndarray]:
             raise NoCurvesError(
                 f"holds {dataset.n_other} polygon/triangle cells but no line cells (polylines): "
                 "it is a mesh; extract contours from it first (`nfdmatch extract`: sections or "
-                "boundary loops)", path=p)
+                "boundary loops)",
+                path=p,
+            )
         raise NoCurvesError("holds no line cells (polylines)", path=p)
     points = dataset.points
     n_points = len(points)
     lengths = np.diff(offsets)
     if lengths.min() < 2:
         c = int(np.flatnonzero(lengths < 2)[0])
-        raise ParseError(f"line cell {c} has {int(lengths[c])} point(s); a line needs at "
-                         "least 2", path=p)
+        raise ParseError(f"line cell {c} has {int(lengths[c])} point(s); a line needs at least 2", path=p)
     outside = (conn < 0) | (conn >= n_points)
     if outside.any():
         k = int(np.flatnonzero(outside)[0])
         c = int(np.searchsorted(offsets, k, side="right")) - 1
-        raise ParseError(f"line cell {c} refers to point {int(conn[k])} but the file holds "
-                         f"{n_points} points", path=p)
+        raise ParseError(f"line cell {c} refers to point {int(conn[k])} but the file holds {n_points} points", path=p)
     is_segment = lengths == 2
     seg_cell = np.flatnonzero(is_segment)
     segments = np.column_stack([conn[offsets[seg_cell]], conn[offsets[seg_cell] + 1]])
-    polylines = [(c, conn[a:b]) for c, a, b in zip(np.flatnonzero(~is_segment).tolist(),
-                                                    offsets[:-1][~is_segment].tolist(),
-                                                    offsets[1:][~is_segment].tolist())]
+    polylines = [
+        (c, conn[a:b])
+        for c, a, b in zip(
+            np.flatnonzero(~is_segment).tolist(), offsets[:-1][~is_segment].tolist(), offsets[1:][~is_segment].tolist()
+        )
+    ]
     seg_cell_list = seg_cell.tolist()
-    loops = chain_segments(segments.reshape(-1, 2), path=p,
-                           segment_where=lambda s: f"line cell {seg_cell_list[s]}")
+    loops = chain_segments(segments.reshape(-1, 2), path=p, segment_where=lambda s: f"line cell {seg_cell_list[s]}")
     loops = [(seg_cell_list[s], verts) for s, verts in loops]
     return [points[idx] for idx in ordered_curves(polylines, loops)]
 
@@ -184,8 +187,7 @@ def write(path, curves, format: str | None = None) -> None:
 
     pv = _pyvista()
     if kind == "vtu":
-        mesh = pv.UnstructuredGrid(cells, np.full(len(arrays), _VTK_POLY_LINE, dtype=np.uint8),
-                                   pts)
+        mesh = pv.UnstructuredGrid(cells, np.full(len(arrays), _VTK_POLY_LINE, dtype=np.uint8), pts)
     else:
         mesh = pv.PolyData(pts, lines=cells)
     if mesh.points.dtype != np.float64:  # pragma: no cover - pyvista keeps float64 input
@@ -195,7 +197,7 @@ def write(path, curves, format: str | None = None) -> None:
     try:
         temp = temp_beside(p, KINDS[kind])
         target = temp
-        if not _utf8(temp):     # VTK takes UTF-8 names only: write elsewhere, then copy
+        if not _utf8(temp):  # VTK takes UTF-8 names only: write elsewhere, then copy
             private = tempfile.mkdtemp(prefix="nfdmatch-")
             target = os.path.join(private, "curves" + KINDS[kind])
         with ExitStack() as stack:

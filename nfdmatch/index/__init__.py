@@ -25,8 +25,16 @@ processes; ``writer`` writes the datasets of a new file into a temporary file an
 from .reader import Index, open_index
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, default_index_path
 
-__all__ = ["INDEX_FORMAT", "FORMAT_VERSION", "Index", "FileRecord", "BuildReport", "open_index",
-           "build_index", "default_index_path"]
+__all__ = [
+    "INDEX_FORMAT",
+    "FORMAT_VERSION",
+    "Index",
+    "FileRecord",
+    "BuildReport",
+    "open_index",
+    "build_index",
+    "default_index_path",
+]
 
 
 def __getattr__(name):
@@ -37,5 +45,5 @@ def __getattr__(name):
     if name in ("build_index", "BuildReport"):
         return getattr(importlib.import_module(f"{__name__}.build"), name)
     if name in ("build", "pool", "writer", "graph", "lock", "verify", "paths", "search_group"):
-        return importlib.import_module(f"{__name__}.{name}")     # submodules, as before the lazy import
+        return importlib.import_module(f"{__name__}.{name}")  # submodules, as before the lazy import
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

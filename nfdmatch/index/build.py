@@ -12,8 +12,7 @@ import numpy as np
 
 from .._version import __version__
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, validate_parameters
-from ..errors import (IndexFormatError, InputError, NfdError, ParameterError, ReadError, ShrinkRefusedError,
-                      WriteError)
+from ..errors import IndexFormatError, InputError, NfdError, ParameterError, ReadError, ShrinkRefusedError, WriteError
 from ..formats import format_of, split_selector
 from ..sources import _irregular, find_curve_files
 from .lock import _Lock
@@ -23,8 +22,7 @@ from .reader import Index
 from .graph import GraphStats, graph_changes, write_graph
 from .search_group import write_search_group
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
-from .writer import (_CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _Space, _write_files_table,
-                     _write_sources)
+from .writer import _CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _Space, _write_files_table, _write_sources
 
 
 def _utcnow() -> str:
@@ -108,7 +106,7 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
     try:
         h5, meta, files = _open_checked(index_path)
     except ReadError:
-        if not os.path.exists(index_path):      # nothing there (or a link to a file to be made)
+        if not os.path.exists(index_path):  # nothing there (or a link to a file to be made)
             return None
         raise
     except _Problem as exc:
@@ -117,19 +115,37 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
             return None
         # a file that does not open as HDF5 cannot be shown to be an index: never replaced
         if exc.kind in ("foreign", "not_hdf5", "unopenable"):
-            raise IndexFormatError(f"{exc.message}; refusing to overwrite it: move it away or choose "
-                                   f"another --index", path=index_path) from None
+            raise IndexFormatError(
+                f"{exc.message}; refusing to overwrite it: move it away or choose another --index", path=index_path
+            ) from None
         if rebuild:
             notices.append(f"replacing {index_path}: {exc.message}")
             return None
-        raise IndexFormatError(f"{exc.message}; move it away or pass --rebuild to replace it",
-                               path=index_path) from None
+        raise IndexFormatError(
+            f"{exc.message}; move it away or pass --rebuild to replace it", path=index_path
+        ) from None
     return Index(index_path, h5, meta, files)
 
 
-def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, scale=None, glob=None,
-                input_format=None, rebuild=False, dry_run=False, jobs=None, wait=0.0,
-                progress=None, allow_shrink=False, file_timeout=None, graph=None, runner=None) -> BuildReport:
+def build_index(
+    sources=None,
+    index_path=None,
+    *,
+    samples=None,
+    harmonics=None,
+    scale=None,
+    glob=None,
+    input_format=None,
+    rebuild=False,
+    dry_run=False,
+    jobs=None,
+    wait=0.0,
+    progress=None,
+    allow_shrink=False,
+    file_timeout=None,
+    graph=None,
+    runner=None,
+) -> BuildReport:
     """Build or update the index of every curve under ``sources``.
 
     Parameters
@@ -200,11 +216,15 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
         jobs = os.cpu_count() or 1
     if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
         raise ParameterError(f"jobs must be an integer >= 1, got {jobs!r}")
-    if file_timeout is not None and (isinstance(file_timeout, bool) or not isinstance(file_timeout, (int, float))
-                                     or not file_timeout >= 0 or file_timeout == float("inf")):
+    if file_timeout is not None and (
+        isinstance(file_timeout, bool)
+        or not isinstance(file_timeout, (int, float))
+        or not file_timeout >= 0
+        or file_timeout == float("inf")
+    ):
         raise ParameterError(f"file_timeout must be a finite number of seconds >= 0, got {file_timeout!r}")
     if input_format is not None:
-        format_of("x", input_format)              # an unknown format name fails before any work
+        format_of("x", input_format)  # an unknown format name fails before any work
     for name, value in (("samples", samples), ("harmonics", harmonics)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
             raise ParameterError(f"{name} must be an integer, got {value!r}")
@@ -216,8 +236,9 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
     base = os.path.dirname(real_index)
     folder = os.path.dirname(index_path) or "."
     if not os.path.isdir(folder) or not os.path.isdir(base):
-        raise WriteError(f"cannot write the index: no folder {folder if not os.path.isdir(folder) else base}",
-                         path=index_path)
+        raise WriteError(
+            f"cannot write the index: no folder {folder if not os.path.isdir(folder) else base}", path=index_path
+        )
 
     report = BuildReport(dry_run=bool(dry_run))
     lock = None if dry_run else _Lock(real_index, wait, name=index_path)
@@ -227,11 +248,16 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
         recorded = None if old is None else old.sources()
         if not sources:
             if old is None:
-                raise InputError("no SOURCE given and no index to take them from; name the files or folders "
-                                 "to index", path=index_path)
+                raise InputError(
+                    "no SOURCE given and no index to take them from; name the files or folders to index",
+                    path=index_path,
+                )
             if recorded is None:
-                raise InputError("no SOURCE given and the index does not record its sources (it was built by an "
-                                 "older nfdmatch); name them once, later builds remember them", path=index_path)
+                raise InputError(
+                    "no SOURCE given and the index does not record its sources (it was built by an "
+                    "older nfdmatch); name them once, later builds remember them",
+                    path=index_path,
+                )
             sources = [openable(s, base) for s in recorded[0]]
             if glob is None:
                 glob = recorded[1]
@@ -247,8 +273,9 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
         changed = []
         for name in given:
             previous = getattr(old, name) if old is not None else None
-            params[name] = given[name] if given[name] is not None else (
-                previous if previous is not None else defaults[name])
+            params[name] = (
+                given[name] if given[name] is not None else (previous if previous is not None else defaults[name])
+            )
             if old is not None and given[name] is not None and given[name] != previous:
                 changed.append(f"{name} {previous} -> {given[name]}")
         params["samples"], params["harmonics"] = int(params["samples"]), int(params["harmonics"])
@@ -257,8 +284,9 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             report.notices.append(f"parameters changed ({', '.join(changed)}): recomputing all curves")
         recompute_all = bool(rebuild) or bool(changed) or old is None
         if not found and old is not None:
-            report.notices.append(f"no curve files found under {', '.join(sources)}: "
-                                  f"every file would be removed from the index")
+            report.notices.append(
+                f"no curve files found under {', '.join(sources)}: every file would be removed from the index"
+            )
 
         # the plan. An index that does not record its sources stored paths relative to its
         # build's working directory: they are mapped to the stored rule from this one, so
@@ -273,16 +301,22 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
         found_set = set(found)
         # a folder that could not be listed this time (permissions, I/O) keeps its files'
         # rows as they were: a fault of the machine must not remove curves
-        held = {key for key, (_, r) in old_rows.items() if key not in found_set and any(
-            key == u or key.startswith(u.rstrip("/") + "/") for u in unseen)}
+        held = {
+            key
+            for key, (_, r) in old_rows.items()
+            if key not in found_set and any(key == u or key.startswith(u.rstrip("/") + "/") for u in unseen)
+        }
         items: list[PlanItem] = []
         tasks = []
         for path in sorted(found_set | held):
             entry = old_rows.get(path)
             r = entry[1] if entry else None
             if path in held:
-                items.append(PlanItem(path, Action.COPY if r.status == "ok" else Action.KEEP_FAILED, r, None,
-                                      openable(path, base)))
+                items.append(
+                    PlanItem(
+                        path, Action.COPY if r.status == "ok" else Action.KEEP_FAILED, r, None, openable(path, base)
+                    )
+                )
                 continue
             file = opens[path]
             try:
@@ -308,20 +342,27 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
         # an empty or unmounted source folder must not wipe an index from cron
         if old_files and (len(removed) == len(old_files) or 2 * len(removed) > len(old_files)):
             report.shrink = (len(removed), len(old_files))
-            what = (f"would remove {'all' if len(removed) == len(old_files) else len(removed)} of the "
-                    f"index's {len(old_files)} files")
+            what = (
+                f"would remove {'all' if len(removed) == len(old_files) else len(removed)} of the "
+                f"index's {len(old_files)} files"
+            )
             if dry_run and not allow_shrink:
                 report.notices.append(f"a build {what}: it will refuse unless --allow-shrink is given")
             elif not allow_shrink:
-                cause = "no curve files found under " + ", ".join(sources) if not found else \
-                    f"{len(found)} files found under {', '.join(sources)}"
-                refused = ShrinkRefusedError(f"refusing to build: it {what} ({cause}; an empty or unmounted "
-                                             f"folder?); pass --allow-shrink to remove them", path=index_path)
+                cause = (
+                    "no curve files found under " + ", ".join(sources)
+                    if not found
+                    else f"{len(found)} files found under {', '.join(sources)}"
+                )
+                refused = ShrinkRefusedError(
+                    f"refusing to build: it {what} ({cause}; an empty or unmounted "
+                    f"folder?); pass --allow-shrink to remove them",
+                    path=index_path,
+                )
                 refused.removed, refused.of = report.shrink
                 raise refused
             else:
-                report.notices.append(f"removing {len(removed)} of the index's {len(old_files)} files "
-                                      f"(--allow-shrink)")
+                report.notices.append(f"removing {len(removed)} of the index's {len(old_files)} files (--allow-shrink)")
 
         if dry_run:
             _dry_run_report(report, items, removed, old, progress)
@@ -330,16 +371,24 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
 
         stale = _remove_stale_temps(real_index)
         if stale:
-            report.notices.append(f"removed {len(stale)} temporary file(s) left by an interrupted build: "
-                                  f"{', '.join(stale)}")
+            report.notices.append(
+                f"removed {len(stale)} temporary file(s) left by an interrupted build: {', '.join(stale)}"
+            )
         # a format-1 index is rewritten as format 2 (with its cells) even when nothing changed
         upgrade = old is not None and old.format_version < FORMAT_VERSION
         if upgrade:
             report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
         new_sources = (stored_sources, glob or None)
-        needs_write = (old is None or recompute_all or bool(tasks) or bool(removed) or upgrade
-                       or recorded != new_sources or graph_changes(old, graph)
-                       or any(it.path != it.old.path for it in items if it.old))
+        needs_write = (
+            old is None
+            or recompute_all
+            or bool(tasks)
+            or bool(removed)
+            or upgrade
+            or recorded != new_sources
+            or graph_changes(old, graph)
+            or any(it.path != it.old.path for it in items if it.old)
+        )
         if not needs_write:
             if progress is not None:
                 progress(0, 0)
@@ -355,9 +404,24 @@ def build_index(sources=None, index_path=None, *, samples=None, harmonics=None, 
             report.seconds = time.perf_counter() - t0
             return report
 
-        _write(report, real_index, items, tasks, removed, old, params, jobs, lock, progress,
-               file_timeout, sources=new_sources, name=index_path, graph=graph,
-               recompute_all=recompute_all, runner=runner)
+        _write(
+            report,
+            real_index,
+            items,
+            tasks,
+            removed,
+            old,
+            params,
+            jobs,
+            lock,
+            progress,
+            file_timeout,
+            sources=new_sources,
+            name=index_path,
+            graph=graph,
+            recompute_all=recompute_all,
+            runner=runner,
+        )
     finally:
         if old is not None:
             old.close()
@@ -380,9 +444,9 @@ def _find(sources: list[str], glob, base: str, skipped: list):
         real = source_location(source)
         is_folder = os.path.isdir(source)
         problems: list = []
-        files = find_curve_files([source], glob=glob, problems=problems)   # ReadError: a missing source
+        files = find_curve_files([source], glob=glob, problems=problems)  # ReadError: a missing source
         kind = None if is_folder else _irregular(split_selector(source)[0])
-        if kind is not None:                # a FIFO named directly: opening it would block the build
+        if kind is not None:  # a FIFO named directly: opening it would block the build
             files = []
             if any(path == source for path, _ in skipped):
                 continue
@@ -394,7 +458,7 @@ def _find(sources: list[str], glob, base: str, skipped: list):
             opens.setdefault(stored(found_location(file, source, real, is_folder), base), file)
         for problem in problems:
             if any(path == problem.path for path, _ in skipped):
-                continue                     # named once, however many sources reach it
+                continue  # named once, however many sources reach it
             skipped.append((problem.path, str(problem)))
             if problem.path and os.path.isdir(problem.path):
                 unseen.append(stored(found_location(problem.path, source, real, is_folder), base))
@@ -417,7 +481,7 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
         elif item.action is Action.COMPUTE:
             actions[path] = "added" if r is None else "updated"
             done += 1
-        else:                                   # Action.HASH
+        else:  # Action.HASH
             try:
                 same = _sha256(item.file or path) == r.sha256
             except OSError:
@@ -441,9 +505,25 @@ def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, pr
     report.curves = 0 if old is None else old.n_curves
 
 
-def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, removed, old, params, jobs, lock,
-           progress, file_timeout=None, *, sources=((), None), name=None, graph=None, recompute_all=True,
-           runner=None):
+def _write(
+    report: BuildReport,
+    index_path: str,
+    items: list[PlanItem],
+    tasks,
+    removed,
+    old,
+    params,
+    jobs,
+    lock,
+    progress,
+    file_timeout=None,
+    *,
+    sources=((), None),
+    name=None,
+    graph=None,
+    recompute_all=True,
+    runner=None,
+):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
     it (messages)."""
@@ -483,7 +563,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             raise WriteError(f"cannot write the index: {_short(exc)}", path=shown) from None
         try:
             space = _Space(h5)
-            space.reserve(0)                        # the superblock, attributes, small tables
+            space.reserve(0)  # the superblock, attributes, small tables
             attrs = h5.attrs
             attrs["format"] = INDEX_FORMAT
             attrs["format_version"] = np.int64(FORMAT_VERSION)
@@ -491,7 +571,7 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             attrs["samples"] = np.int64(params["samples"])
             attrs["harmonics"] = np.int64(params["harmonics"])
             attrs["scale"] = params["scale"]
-            attrs["created"] = (old.created if old is not None and old.created else now)
+            attrs["created"] = old.created if old is not None and old.created else now
             attrs["updated"] = now
             writer = _CurveWriter(h5, K, space)
             run = _CopyRun(old, writer)
@@ -513,15 +593,17 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
                     report.failures.append((item.file or path, r.error))
                     continue
                 res = result_of(item.task)
-                if res["status"] == "same":            # mtime changed, contents did not
+                if res["status"] == "same":  # mtime changed, contents did not
                     if r.status == "ok":
                         run.add(r.curve_start, r.curve_count, file_row, new_ids)
-                        records.append(FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "ok", "", start,
-                                                  r.curve_count))
+                        records.append(
+                            FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "ok", "", start, r.curve_count)
+                        )
                         actions[path] = "unchanged"
                     else:
-                        records.append(FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "failed", r.error,
-                                                  start, 0))
+                        records.append(
+                            FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "failed", r.error, start, 0)
+                        )
                         actions[path] = "failed"
                         report.failures.append((item.file or path, r.error))
                     continue
@@ -535,8 +617,9 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
                     records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
                     actions[path] = "added" if r is None else "updated"
                 else:
-                    records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "failed",
-                                              res["error"], start, 0))
+                    records.append(
+                        FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "failed", res["error"], start, 0)
+                    )
                     actions[path] = "failed"
                     report.failures.append((item.file or path, res["error"]))
             run.flush()
@@ -550,17 +633,17 @@ def _write(report: BuildReport, index_path: str, items: list[PlanItem], tasks, r
             report.curves = writer.rows
         except BaseException:
             if space is not None:
-                space.abandon()                     # HDF5 cannot close a file it failed to write
+                space.abandon()  # HDF5 cannot close a file it failed to write
             raise
         finally:
-            stream.close()                          # shuts the worker pool down
+            stream.close()  # shuts the worker pool down
             try:
                 h5.close()
             except Exception:
                 if space is None or not space.abandoned:
                     raise
         _Space.release(tmp)
-        _fsync_path(tmp, strict=True)       # a full disk may show only here: never replace then
+        _fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
         os.replace(tmp, index_path)
         _fsync_path(folder, directory=True)
     except BaseException as exc:

@@ -71,7 +71,7 @@ def _old_graph_k(old) -> int:
         return 0
     try:
         return int(old._h5["graph"].attrs["k"])
-    except (KeyError, TypeError, ValueError, OSError):      # a damaged group: as if there were none
+    except (KeyError, TypeError, ValueError, OSError):  # a damaged group: as if there were none
         return 0
 
 
@@ -103,12 +103,12 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
 
         try:
             old_nb, old_d = read_graph(old)
-        except IndexFormatError:                  # a damaged old graph: computed afresh
+        except IndexFormatError:  # a damaged old graph: computed afresh
             old_to_new = {}
     todo = np.ones(N, dtype=bool)
-    check = []                                   # copied rows whose list only new rows can change
+    check = []  # copied rows whose list only new rows can change
     if old_to_new:
-        remap = np.full(old.n_curves + 1, -1, dtype=np.int64)      # index -1 (padding) maps to -1
+        remap = np.full(old.n_curves + 1, -1, dtype=np.int64)  # index -1 (padding) maps to -1
         for o, n in old_to_new.items():
             remap[o] = n
         fresh = np.ones(N, dtype=bool)
@@ -126,7 +126,7 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
         fresh = np.ones(N, dtype=bool)
 
     if N:
-        coefficients = (curves["coefficients"][...] if N <= _IN_MEMORY_ROWS else None)
+        coefficients = curves["coefficients"][...] if N <= _IN_MEMORY_ROWS else None
 
         def read_coefficients(rows):
             rows = np.asarray(rows, dtype=np.int64)
@@ -140,6 +140,7 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
 
         def fail(message):
             from ..errors import IndexFormatError
+
             raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
 
         table = search_table(h5, N, K, read_coefficients, fail)
@@ -153,14 +154,19 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
             at[rows] = positions
             searched = searched[np.argsort(at[searched], kind="stable")]
             helpers = _Helpers(table.n_positions, at)
-        _run(searched, lambda i: _search_seeded(i, read_coefficients, table, k + 1, samples, helpers), threads,
-             lambda i, rows, d: _store(i, rows, d, ids, neighbour, distance, k))
+        _run(
+            searched,
+            lambda i: _search_seeded(i, read_coefficients, table, k + 1, samples, helpers),
+            threads,
+            lambda i, rows, d: _store(i, rows, d, ids, neighbour, distance, k),
+        )
         stats.searched = len(searched)
         fresh_rows = np.flatnonzero(fresh)
         if len(check) and len(fresh_rows):
             feats = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
             from ..search.bounds import head_harmonics
-            head = read_coefficients(fresh_rows)[:, :head_harmonics(K)]
+
+            head = read_coefficients(fresh_rows)[:, : head_harmonics(K)]
             small = SearchTable.single_cell(K, feats, head, lambda r: read_coefficients(fresh_rows[r]))
             changed = 0
 
@@ -168,8 +174,15 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
                 nonlocal changed
                 if len(rows):
                     before = neighbour[i].copy()
-                    _store(i, np.concatenate([neighbour[i], fresh_rows[rows]]),
-                           np.concatenate([distance[i], d]), ids, neighbour, distance, k)
+                    _store(
+                        i,
+                        np.concatenate([neighbour[i], fresh_rows[rows]]),
+                        np.concatenate([distance[i], d]),
+                        ids,
+                        neighbour,
+                        distance,
+                        k,
+                    )
                     changed += not np.array_equal(before, neighbour[i])
 
             _run(check, lambda i: _search(i, read_coefficients, small, k, samples, distance[i, -1]), threads, merge)
@@ -217,8 +230,17 @@ def _search(i, read_coefficients, table, top, samples, max_distance):
 
     q = np.asarray(read_coefficients([i])[0], dtype=np.complex128)
     tk = TopK(top, None if max_distance is None else float(max_distance) + TIE)
-    search_one(q, feature_vector(q[None])[0], table, tk, search=exact_search, method="exact",
-               direction="invariant", mirror=False, samples=samples)
+    search_one(
+        q,
+        feature_vector(q[None])[0],
+        table,
+        tk,
+        search=exact_search,
+        method="exact",
+        direction="invariant",
+        mirror=False,
+        samples=samples,
+    )
     return tk.rows, tk.dist
 
 
@@ -239,14 +261,14 @@ class _Helpers:
     (every such position had a bound above the threshold, itself at least U_h). Kept for the
     last rows searched, as float32 rounded down, within a memory budget."""
 
-    _BUDGET = 1 << 25                          # bytes
+    _BUDGET = 1 << 25  # bytes
 
     def __init__(self, n_positions: int, at):
         import threading
         from collections import OrderedDict
 
         self.n_positions = n_positions
-        self.at = at                            # row -> position
+        self.at = at  # row -> position
         self.capacity = max(8, min(256, self._BUDGET // max(4 * n_positions, 1)))
         self._rows: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
@@ -289,8 +311,13 @@ def _search_seeded(i, read_coefficients, table, top, samples, helpers=None):
     list as a query's top would."""
     from ..matching import exact_search
     from ..search.bestfirst import TIE, margin
-    from ..search.bounds import (cell_lower_bounds, feature_vector, row_lower_bounds, truncated_lower_bounds,
-                                 truncated_stages)
+    from ..search.bounds import (
+        cell_lower_bounds,
+        feature_vector,
+        row_lower_bounds,
+        truncated_lower_bounds,
+        truncated_stages,
+    )
 
     q = np.asarray(read_coefficients([i])[0], dtype=np.complex128)
     qf = feature_vector(q[None])[0]
@@ -342,7 +369,7 @@ def _search_seeded(i, read_coefficients, table, top, samples, helpers=None):
                 known[extra_pos] = extra_d
                 U = float(np.partition(seed_d, top - 1)[top - 1])
         near = [(h[0], dh) for h, dh in near]
-    got_rows, got_d = [seed_rows], [seed_d]   # (after the helpers' rows joined the seeds)
+    got_rows, got_d = [seed_rows], [seed_d]  # (after the helpers' rows joined the seeds)
 
     def tighten(pos, r, bound):
         """Exact distances of the ``top`` rows of smallest ``bound``; the lowered threshold."""
@@ -350,7 +377,7 @@ def _search_seeded(i, read_coefficients, table, top, samples, helpers=None):
         pick = np.argsort(bound, kind="stable")[:top]
         below = margin(U)
         d = exact(pos[pick], r[pick], below)
-        if known is not None:           # a row left unrefined is known to be above ``below``
+        if known is not None:  # a row left unrefined is known to be above ``below``
             known[pos[pick]] = np.minimum(d, below * (1 - 1e-8))
         got_rows.append(r[pick])
         got_d.append(d)
@@ -384,8 +411,14 @@ def _search_seeded(i, read_coefficients, table, top, samples, helpers=None):
             b = int(np.searchsorted(lb, margin(U), side="right"))
             b = min(b, a + size)
             pos, r = positions[a:b], rows[a:b]
-            tb = truncated_lower_bounds(q, table.coefficients_at_positions(pos, Kp), direction="invariant",
-                                        mirror=False, harmonics=Kp, grid=grid)
+            tb = truncated_lower_bounds(
+                q,
+                table.coefficients_at_positions(pos, Kp),
+                direction="invariant",
+                mirror=False,
+                harmonics=Kp,
+                grid=grid,
+            )
             if known is not None:
                 known[pos] = np.maximum(lb[a:b], tb)
             k = tb <= margin(U)
@@ -401,9 +434,17 @@ def _search_seeded(i, read_coefficients, table, top, samples, helpers=None):
             positions, rows, bound = positions[k], rows[k], bound[k]
             if not len(rows):
                 break
-            bound = np.maximum(bound, truncated_lower_bounds(
-                q, table.coefficients_at_positions(positions, Kp), direction="invariant", mirror=False,
-                harmonics=Kp, grid=grid))
+            bound = np.maximum(
+                bound,
+                truncated_lower_bounds(
+                    q,
+                    table.coefficients_at_positions(positions, Kp),
+                    direction="invariant",
+                    mirror=False,
+                    harmonics=Kp,
+                    grid=grid,
+                ),
+            )
             if known is not None:
                 known[positions] = bound
             k = bound <= margin(U)
@@ -437,8 +478,8 @@ def _store(i, rows, d, ids, neighbour, distance, k):
     order = sorted(range(len(rows)), key=lambda j: (round(float(d[j]) / TIE), ids[rows[j]]))[:k]
     neighbour[i] = -1
     distance[i] = np.inf
-    neighbour[i, :len(order)] = rows[order]
-    distance[i, :len(order)] = d[order]
+    neighbour[i, : len(order)] = rows[order]
+    distance[i, : len(order)] = d[order]
 
 
 #: graph rows from which a build on several threads loads the just-in-time kernels
@@ -486,8 +527,7 @@ def read_graph_rows(index):
     g = h5["graph"]
     ds_nb, ds_d = g.get("neighbour"), g.get("distance")
     N = index.n_curves
-    if (ds_nb is None or ds_d is None or len(ds_nb.shape) != 2 or ds_nb.shape != ds_d.shape
-            or ds_nb.shape[0] != N):
+    if ds_nb is None or ds_d is None or len(ds_nb.shape) != 2 or ds_nb.shape != ds_d.shape or ds_nb.shape[0] != N:
         raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
 
     def read(rows):
@@ -497,8 +537,9 @@ def read_graph_rows(index):
         uniq, inverse = unique_rows(rows)
         nb, d = index._read(lambda: (np.asarray(ds_nb[uniq], dtype=np.int64), np.asarray(ds_d[uniq], dtype=np.float64)))
         if nb.min() < -1 or nb.max() >= N:
-            raise IndexFormatError("corrupted nfdmatch index: /graph/neighbour holds a row outside the index",
-                                   path=index.path)
+            raise IndexFormatError(
+                "corrupted nfdmatch index: /graph/neighbour holds a row outside the index", path=index.path
+            )
         return nb[inverse], d[inverse]
 
     return read

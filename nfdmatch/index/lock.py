@@ -22,8 +22,9 @@ class _Lock:
         try:
             self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
         except OSError as exc:
-            raise WriteError(f"cannot create the lock file {self.path}: {exc.strerror or exc}",
-                             path=index_path) from None
+            raise WriteError(
+                f"cannot create the lock file {self.path}: {exc.strerror or exc}", path=index_path
+            ) from None
         deadline = time.monotonic() + max(0.0, float(wait or 0.0))
         while True:
             try:
@@ -40,7 +41,9 @@ class _Lock:
                     waited = f" (waited {wait:g} s)" if wait else ""
                     raise IndexLockedError(
                         f"another build holds the lock on {self.path} (pid {holder}){waited}; "
-                        f"retry later or pass --wait SECONDS", path=index_path) from None
+                        f"retry later or pass --wait SECONDS",
+                        path=index_path,
+                    ) from None
                 time.sleep(min(0.05, left))
         os.ftruncate(self.fd, 0)
         os.pwrite(self.fd, f"{os.getpid()}\n".encode(), 0)

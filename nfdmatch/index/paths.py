@@ -37,7 +37,7 @@ def stored(location: str, base: str) -> str:
     # a string prefix first: relpath costs ~70 us, and a build calls this once per file
     prefix = base if base.endswith(os.sep) else base + os.sep
     if location.startswith(prefix) and os.pardir not in location.split(os.sep):
-        return escape_name(location[len(prefix):])
+        return escape_name(location[len(prefix) :])
     rel = os.path.relpath(location, base)
     if rel == os.pardir or rel.startswith(os.pardir + os.sep):
         return escape_name(location)
@@ -65,8 +65,8 @@ def found_location(found: str, source: str, source_real: str, is_folder: bool) -
     if not is_folder:
         return source_real
     prefix = source if source.endswith(os.sep) else source + os.sep
-    if found.startswith(prefix):                  # the walk joins below the source as given
-        below = os.path.normpath(found[len(prefix):])
+    if found.startswith(prefix):  # the walk joins below the source as given
+        below = os.path.normpath(found[len(prefix) :])
         if not below.startswith(os.pardir):
             return os.path.join(source_real, below)
     return os.path.join(source_real, os.path.relpath(found, source))

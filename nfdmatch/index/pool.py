@@ -68,7 +68,7 @@ _BLOCKED = {signal.SIGINT, signal.SIGTERM}
 def _sha256_and_size(path: str, size: int) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:
-        if size <= _BATCH_BYTES:                    # one read: small files are the common case
+        if size <= _BATCH_BYTES:  # one read: small files are the common case
             h.update(fh.read())
         else:
             buf = bytearray(1 << 20)
@@ -92,20 +92,22 @@ def _describe(curves, samples: int, harmonics: int, scale: str) -> dict:
     inv_block (m, 3) float32."""
     parts = []
     for i in range(0, len(curves), _DESCRIBE_ROWS):
-        b = descriptors_batch(curves[i:i + _DESCRIBE_ROWS], samples=samples, harmonics=harmonics, scale=scale)
+        b = descriptors_batch(curves[i : i + _DESCRIBE_ROWS], samples=samples, harmonics=harmonics, scale=scale)
         m = len(b)
         c64 = b.coefficients.astype(np.complex64)
         inv = invariants(c64.astype(np.complex128))
-        parts.append({
-            "coefficients": c64,
-            "rotation": b.rotation.astype(np.float32),
-            "centroid": np.asarray(b.centroid, dtype=np.float64),
-            "scale": np.asarray(b.scale, dtype=np.float64),
-            "plane_degenerate": np.asarray(b.plane_degenerate, dtype=np.uint8),
-            "inv_norm": inv["norm"].reshape(m, harmonics).astype(np.float32),
-            "inv_sv": inv["sv"].reshape(m, 2 * harmonics).astype(np.float32),
-            "inv_block": inv["block"].reshape(m, 3).astype(np.float32),
-        })
+        parts.append(
+            {
+                "coefficients": c64,
+                "rotation": b.rotation.astype(np.float32),
+                "centroid": np.asarray(b.centroid, dtype=np.float64),
+                "scale": np.asarray(b.scale, dtype=np.float64),
+                "plane_degenerate": np.asarray(b.plane_degenerate, dtype=np.uint8),
+                "inv_norm": inv["norm"].reshape(m, harmonics).astype(np.float32),
+                "inv_sv": inv["sv"].reshape(m, 2 * harmonics).astype(np.float32),
+                "inv_block": inv["block"].reshape(m, 3).astype(np.float32),
+            }
+        )
     if len(parts) == 1:
         return parts[0]
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -140,7 +142,7 @@ def _test_hook(path: str) -> None:
             action = action[:-4]
         if action == "kill":
             os.kill(os.getpid(), signal.SIGKILL)
-        elif action == "segv":              # as a C reader's crash
+        elif action == "segv":  # as a C reader's crash
             signal.signal(signal.SIGSEGV, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGSEGV)
         elif action == "exit":
@@ -178,18 +180,18 @@ def _read_file(path: str, input_format, old_sha, raw: bool = False) -> tuple[dic
         out["size"], out["mtime_ns"] = int(st.st_size), int(st.st_mtime_ns)
         if _stat.S_ISDIR(st.st_mode):
             raise ReadError("is a directory, not a curve file", path=path)
-        if not _stat.S_ISREG(st.st_mode):       # opening a FIFO to hash it would block
+        if not _stat.S_ISREG(st.st_mode):  # opening a FIFO to hash it would block
             raise ReadError("is not a regular file (a FIFO, device or socket)", path=path)
         _test_hook(path)
         fast = None
-        if st.st_size <= _BATCH_BYTES:          # read once: hashed, and parsed when plain CSV
+        if st.st_size <= _BATCH_BYTES:  # read once: hashed, and parsed when plain CSV
             with open(path, "rb") as fh:
                 data = fh.read(st.st_size + 1)
             if len(data) == st.st_size:
                 out["sha256"] = hashlib.sha256(data).hexdigest()
                 if not (old_sha and out["sha256"] == old_sha):
                     fast = _fast_points(path, data, input_format)
-            else:                               # it changed since stat: the careful way
+            else:  # it changed since stat: the careful way
                 out["sha256"] = _sha256_and_size(path, st.st_size)
             del data
         else:
@@ -272,7 +274,7 @@ def _compute_batch(batch: list[tuple[int, tuple]], slot=None) -> tuple[list, dic
             per_file.append((len(results), file_curves))
         results.append(out)
     if raw:
-        if slot is not None:                    # cleaning many at once: no one file to blame
+        if slot is not None:  # cleaning many at once: no one file to blame
             slot[0] = -1
         per_file.extend(_clean_raw(results, raw))
         per_file.sort(key=lambda rc: rc[0])
@@ -296,7 +298,7 @@ def _compute_batch(batch: list[tuple[int, tuple]], slot=None) -> tuple[list, dic
         out = results[r]
         n = out["rows"]
         try:
-            parts.append(_describe(curves[start:start + n], samples, harmonics, scale))
+            parts.append(_describe(curves[start : start + n], samples, harmonics, scale))
         except Exception as exc:
             out.update(status="failed", error=_failure(out["path"], exc))
             out.pop("ids", None)
@@ -313,7 +315,7 @@ def _split(results: list, arrays: dict | None):
     for out in results:
         n = out.pop("rows", 0)
         if out["status"] == "ok":
-            out["arrays"] = {k: v[start:start + n] for k, v in arrays.items()}
+            out["arrays"] = {k: v[start : start + n] for k, v in arrays.items()}
             start += n
         yield out
 
@@ -332,8 +334,9 @@ def _batches(tasks: list[tuple]) -> list[list[int]]:
     files = max(1, min(_BATCH_FILES, -(-len(tasks) // _MIN_BATCHES)))
     out, current, current_bytes = [], [], 0
     for i, size in enumerate(sizes):
-        if current and (current_bytes + size > limit or len(current) >= files
-                        or tasks[i][2:5] != tasks[current[0]][2:5]):
+        if current and (
+            current_bytes + size > limit or len(current) >= files or tasks[i][2:5] != tasks[current[0]][2:5]
+        ):
             out.append(current)
             current, current_bytes = [], 0
         current.append(i)
@@ -345,6 +348,7 @@ def _batches(tasks: list[tuple]) -> list[list[int]]:
 
 # --------------------------------------------------------------------------- worker processes
 
+
 def _worker_main(conn, slot, lock_fd) -> None:
     """A pool worker: ``(batch_id, batch, NFDMATCH_* environment)`` in on ``conn`` (None:
     exit), ``(batch_id, results, arrays)`` out (see :func:`_compute_batch`)."""
@@ -353,7 +357,7 @@ def _worker_main(conn, slot, lock_fd) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _BLOCKED)
-    if lock_fd is not None:          # a worker outliving its parent must not keep the index locked
+    if lock_fd is not None:  # a worker outliving its parent must not keep the index locked
         try:
             os.close(lock_fd)
         except OSError:
@@ -376,9 +380,9 @@ def _worker_main(conn, slot, lock_fd) -> None:
             _set_environment(env)
             results, arrays = _compute_batch(batch, slot)
             conn.send((batch_id, results, arrays))
-    except (EOFError, OSError):      # the parent went away: nothing to report to
+    except (EOFError, OSError):  # the parent went away: nothing to report to
         pass
-    os._exit(0)                      # no atexit handlers: the parent owns every open file
+    os._exit(0)  # no atexit handlers: the parent owns every open file
 
 
 def _environment() -> dict:
@@ -409,9 +413,10 @@ class _Worker:
     def __init__(self, ctx, lock_fd):
         self.conn, child = ctx.Pipe()
         self.slot = ctx.RawArray("d", [-1.0, 0.0])
-        self.proc = ctx.Process(target=_worker_main, args=(child, self.slot, lock_fd), daemon=True,
-                                name="nfdmatch-build-worker")
-        self.batch: list[int] | None = None      # task numbers sent, not answered yet
+        self.proc = ctx.Process(
+            target=_worker_main, args=(child, self.slot, lock_fd), daemon=True, name="nfdmatch-build-worker"
+        )
+        self.batch: list[int] | None = None  # task numbers sent, not answered yet
         self.batch_id = -1
         self.proc.start()
         child.close()
@@ -440,12 +445,12 @@ def _context(tasks):
     import multiprocessing  # build-only imports: kept out of query start-up
 
     if "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1:
-        if _needs_pyvista(tasks):           # imported once here rather than once per worker
+        if _needs_pyvista(tasks):  # imported once here rather than once per worker
             try:
                 import pyvista  # noqa: F401
             except Exception:
                 pass
-        return multiprocessing.get_context("fork"), True        # fast, and safe without threads
+        return multiprocessing.get_context("fork"), True  # fast, and safe without threads
     # forking a multi-threaded process can deadlock
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     ctx = multiprocessing.get_context(method)
@@ -500,7 +505,7 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
         w.batch_id, batches = batches, batches + 1
         try:
             w.conn.send((w.batch_id, [(i, tasks[i]) for i in w.batch], env))
-        except OSError:                 # it died since its last answer: its death is handled by the loop
+        except OSError:  # it died since its last answer: its death is handled by the loop
             queue.appendleft(w.batch)
             w.batch = []
 
@@ -516,7 +521,7 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
         for _ in range(jobs):
             feed(start())
         while any(w.batch is not None for w in workers):
-            for w in workers:           # a death re-queued work that an idle worker can take
+            for w in workers:  # a death re-queued work that an idle worker can take
                 if w.batch is None and queue:
                     feed(w)
             busy = [w for w in workers if w.batch is not None]
@@ -549,9 +554,9 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
                     cause = _signal_name(w.proc.exitcode)
                     number, _ = w.reading()
                     batch = w.batch
-                    if number < 0 and len(batch) == 1:     # died describing or sending its one file
+                    if number < 0 and len(batch) == 1:  # died describing or sending its one file
                         number = batch[0]
-                    elif number < 0:                        # ... one of these: try them one by one
+                    elif number < 0:  # ... one of these: try them one by one
                         queue.extendleft([i] for i in reversed(batch))
                         batch = []
                     deaths += 1
@@ -563,13 +568,20 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
                         if strikes[number] >= 2:
                             blamed += 1
                             path = tasks[number][0]
-                            yield number, _failed(path, f"{path}: the process reading it died twice ({cause}); "
-                                                        f"the file crashes its reader")
+                            yield (
+                                number,
+                                _failed(
+                                    path,
+                                    f"{path}: the process reading it died twice ({cause}); the file crashes its reader",
+                                ),
+                            )
                         else:
-                            queue.appendleft([number])          # again, alone, in a fresh worker
+                            queue.appendleft([number])  # again, alone, in a fresh worker
                     if deaths > _SPARE_DEATHS + 2 * blamed:
-                        raise WorkerError(f"worker processes keep dying ({deaths} deaths, last: {cause}), "
-                                          f"not because of one file (out of memory?); nothing was written")
+                        raise WorkerError(
+                            f"worker processes keep dying ({deaths} deaths, last: {cause}), "
+                            f"not because of one file (out of memory?); nothing was written"
+                        )
                     replace(w)
                 elif file_timeout:
                     number, since = w.reading()
@@ -580,8 +592,14 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
                             queue.appendleft(rest)
                         path = tasks[number][0]
                         replace(w)
-                        yield number, _failed(path, f"{path}: reading it took longer than {file_timeout:g} s "
-                                                    f"(the per-file time limit, --file-timeout); stopped")
+                        yield (
+                            number,
+                            _failed(
+                                path,
+                                f"{path}: reading it took longer than {file_timeout:g} s "
+                                f"(the per-file time limit, --file-timeout); stopped",
+                            ),
+                        )
         for w in workers:
             try:
                 w.conn.send(None)

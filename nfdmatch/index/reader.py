@@ -8,8 +8,18 @@ import h5py
 import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
-from .schema import (_STATUS, CRC_ROWS, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, block_crcs,
-                     default_index_path, read_runs)
+from .schema import (
+    _STATUS,
+    CRC_ROWS,
+    INDEX_FORMAT,
+    FileRecord,
+    _open_checked,
+    _Problem,
+    _short,
+    block_crcs,
+    default_index_path,
+    read_runs,
+)
 
 #: stored numbers that must be finite (the /curves ones; /search is checked as it is read)
 _FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "inv_sv", "inv_block")
@@ -28,8 +38,8 @@ def first_nonfinite(values, rows) -> int | None:
         return None
     flat = values.reshape(len(values), -1)
     if values.dtype.kind == "c" and flat.flags.c_contiguous:
-        flat = flat.view(values.real.dtype)           # isfinite on the parts: ~3x faster
-    if np.isfinite(flat).all():                       # the common case: one flat pass
+        flat = flat.view(values.real.dtype)  # isfinite on the parts: ~3x faster
+    if np.isfinite(flat).all():  # the common case: one flat pass
         return None
     bad = ~np.isfinite(flat).all(axis=1)
     if not bad.any():
@@ -54,8 +64,10 @@ def read_error(exc: BaseException, where: str) -> str:
     """The message of a failed HDF5 read of ``where``: a failed Fletcher-32 check says so."""
     text = _short(exc)
     if "filter returned failure" in text or "checksum" in text.lower():
-        return (f"corrupted nfdmatch index: checksum mismatch in {where} (the file is damaged; "
-                f"`nfdmatch index verify` lists what is bad)")
+        return (
+            f"corrupted nfdmatch index: checksum mismatch in {where} (the file is damaged; "
+            f"`nfdmatch index verify` lists what is bad)"
+        )
     return f"corrupted nfdmatch index: reading {where} failed ({text})"
 
 
@@ -131,8 +143,10 @@ class Index:
             pass
 
     def __repr__(self) -> str:
-        return (f"Index({self.path!r}, curves={self.n_curves}, files={self.n_files}, samples={self.samples}, "
-                f"harmonics={self.harmonics}, scale_mode={self.scale_mode!r})")
+        return (
+            f"Index({self.path!r}, curves={self.n_curves}, files={self.n_files}, samples={self.samples}, "
+            f"harmonics={self.harmonics}, scale_mode={self.scale_mode!r})"
+        )
 
     @property
     def scale(self) -> str:
@@ -180,9 +194,13 @@ class Index:
             return self._read(lambda: self._ds["id"].asstr()[lo:hi].tolist(), "/curves/id")
         a, b = lo // CRC_ROWS * CRC_ROWS, min(self.n_curves, -(-hi // CRC_ROWS) * CRC_ROWS)
         values = self._read(lambda: self._ds["id"].asstr()[a:b].tolist(), f"/curves/id, rows {a}..{b - 1}")
-        self._check_strings(self._crc.get("id_crc32"), "/curves/id", range(a // CRC_ROWS, -(-b // CRC_ROWS)),
-                            lambda blk: values[blk * CRC_ROWS - a:(blk + 1) * CRC_ROWS - a])
-        return values[lo - a:hi - a]
+        self._check_strings(
+            self._crc.get("id_crc32"),
+            "/curves/id",
+            range(a // CRC_ROWS, -(-b // CRC_ROWS)),
+            lambda blk: values[blk * CRC_ROWS - a : (blk + 1) * CRC_ROWS - a],
+        )
+        return values[lo - a : hi - a]
 
     def _range(self, start, stop) -> tuple[int, int]:
         start, stop, _ = slice(start, stop).indices(self.n_curves)
@@ -192,6 +210,7 @@ class Index:
     def files(self) -> list[FileRecord]:
         """The ``/files`` table, sorted by path (read on first use)."""
         if self._file_records is None:
+
             def read():
                 fds, F = self._files["datasets"], self.n_files
                 if F == 0:
@@ -201,19 +220,35 @@ class Index:
                 crc = self._files.get("crc", {})
                 for name, values in (("path", paths), ("error", errors)):
                     if self.checksums:
-                        self._check_strings(crc.get(f"{name}_crc32"), f"/files/{name}",
-                                            range(-(-F // CRC_ROWS)),
-                                            lambda b, v=values: v[b * CRC_ROWS:(b + 1) * CRC_ROWS])
-                shas = [s.decode("ascii", "replace") if isinstance(s, bytes) else str(s)
-                        for s in fds["sha256"][...].tolist()]
+                        self._check_strings(
+                            crc.get(f"{name}_crc32"),
+                            f"/files/{name}",
+                            range(-(-F // CRC_ROWS)),
+                            lambda b, v=values: v[b * CRC_ROWS : (b + 1) * CRC_ROWS],
+                        )
+                shas = [
+                    s.decode("ascii", "replace") if isinstance(s, bytes) else str(s)
+                    for s in fds["sha256"][...].tolist()
+                ]
                 size, mtime = fds["size"][...].tolist(), fds["mtime_ns"][...].tolist()
                 status = fds["status"][...].tolist()
                 starts, counts = self._files["curve_start"].tolist(), self._files["curve_count"].tolist()
                 # a crafted file's messages are cut as a build cuts them (index info prints them)
                 errors = [e if len(e) <= MAX_MESSAGE_CHARS else excerpt(e, MAX_MESSAGE_CHARS) for e in errors]
-                return [FileRecord(paths[i], int(size[i]), int(mtime[i]), shas[i],
-                                   _STATUS.get(int(status[i]), "failed"), errors[i], int(starts[i]),
-                                   int(counts[i])) for i in range(F)]
+                return [
+                    FileRecord(
+                        paths[i],
+                        int(size[i]),
+                        int(mtime[i]),
+                        shas[i],
+                        _STATUS.get(int(status[i]), "failed"),
+                        errors[i],
+                        int(starts[i]),
+                        int(counts[i]),
+                    )
+                    for i in range(F)
+                ]
+
             self._file_records = self._read(read, "/files")
         return list(self._file_records)
 
@@ -221,17 +256,23 @@ class Index:
     def sources(self):
         """``(paths, glob)`` of the last build, as stored (``glob`` None for none), or None for
         an index that does not record them (format 1, or an earlier format-2 writer)."""
+
         def read():
             g = self._h5.get("sources")
             ds = g.get("path") if isinstance(g, h5py.Group) else None
             # optional and only a build's default: a malformed one counts as absent
-            if not isinstance(ds, h5py.Dataset) or len(ds.shape) != 1 or ds.dtype.kind not in "OS" \
-                    or ds.shape[0] > 100_000:
+            if (
+                not isinstance(ds, h5py.Dataset)
+                or len(ds.shape) != 1
+                or ds.dtype.kind not in "OS"
+                or ds.shape[0] > 100_000
+            ):
                 return None
             paths = ds.asstr()[...].tolist() if ds.shape[0] else []
             glob = g.attrs.get("glob", "")
             glob = glob.decode("utf-8", "replace") if isinstance(glob, bytes) else str(glob)
             return paths, (glob or None)
+
         return self._read(read)
 
     def locate(self, curve_id: str) -> str:
@@ -262,16 +303,20 @@ class Index:
             raise IndexError(f"row out of range 0..{self.n_curves - 1}")
         uniq, inverse = unique_rows(rows)
         lo, hi = int(uniq[0]), int(uniq[-1]) + 1
-        if hi - lo <= 4 * len(uniq) + 4096:       # one contiguous read beats scattered ones
+        if hi - lo <= 4 * len(uniq) + 4096:  # one contiguous read beats scattered ones
             span = np.asarray(self._id_blocks(lo, hi), dtype=object)
             got = span[uniq - lo]
-        elif self.checksums:                      # whole CRC blocks, to check them, in one read
+        elif self.checksums:  # whole CRC blocks, to check them, in one read
             blocks = unique_rows(uniq // CRC_ROWS)[0]
             runs = [(int(b) * CRC_ROWS, min(self.n_curves, (int(b) + 1) * CRC_ROWS)) for b in blocks]
             values = self._read(lambda: read_runs(self._ds["id"], runs), "/curves/id")
-            offset = {int(b): i * CRC_ROWS for i, b in enumerate(blocks)}     # every block but the last is full
-            self._check_strings(self._crc.get("id_crc32"), "/curves/id", blocks,
-                                lambda blk: values[offset[blk]:offset[blk] + CRC_ROWS])
+            offset = {int(b): i * CRC_ROWS for i, b in enumerate(blocks)}  # every block but the last is full
+            self._check_strings(
+                self._crc.get("id_crc32"),
+                "/curves/id",
+                blocks,
+                lambda blk: values[offset[blk] : offset[blk] + CRC_ROWS],
+            )
             got = np.asarray([values[offset[int(r) // CRC_ROWS] + int(r) % CRC_ROWS] for r in uniq], dtype=object)
         else:
             got = np.asarray(self._read(lambda: self._ds["id"].asstr()[uniq], "/curves/id"), dtype=object)
@@ -291,8 +336,17 @@ class Index:
         self._finite("coefficients", got, uniq)
         return got[inverse]
 
-    _ALL_COLUMNS = ("coefficients", "inv_norm", "inv_sv", "inv_block", "centroid", "scale", "rotation",
-                    "plane_degenerate", "file")
+    _ALL_COLUMNS = (
+        "coefficients",
+        "inv_norm",
+        "inv_sv",
+        "inv_block",
+        "centroid",
+        "scale",
+        "rotation",
+        "plane_degenerate",
+        "file",
+    )
 
     def read_rows(self, start: int, stop: int, columns=None, *, upcast: bool = True) -> dict:
         """Rows ``[start, stop)`` as float64/complex128 arrays.
@@ -372,8 +426,10 @@ class Index:
             def fail(message):
                 raise IndexFormatError(f"corrupted nfdmatch index: {message}", path=self.path)
 
-            return self._read(lambda: search_table(self._h5, self.n_curves, self.harmonics,
-                                                   self.coefficients_at, fail, self._read), "/search")
+            return self._read(
+                lambda: search_table(self._h5, self.n_curves, self.harmonics, self.coefficients_at, fail, self._read),
+                "/search",
+            )
         from ..search.table import SearchTable
 
         from ..search.bounds import head_harmonics
@@ -382,7 +438,7 @@ class Index:
             # the first harmonics only (the truncated bound's input): the exact distances
             # read their rows' descriptors on demand
             sv, block = self._ds["inv_sv"][...], self._ds["inv_block"][...]
-            return np.concatenate([sv, block], axis=1), self._ds["coefficients"][:, :head_harmonics(self.harmonics)]
+            return np.concatenate([sv, block], axis=1), self._ds["coefficients"][:, : head_harmonics(self.harmonics)]
 
         F, head = self._read(features, "/curves")
         self._finite("inv_sv, inv_block", F, 0)
@@ -398,8 +454,19 @@ class Index:
             size = os.path.getsize(self.path) if os.path.exists(self.path) else 0
         failed = [{"path": r.path, "error": r.error} for r in self.files() if r.status != "ok"]
         recorded = self.sources()
-        return {"path": self.path, "sources": None if recorded is None else recorded[0], "format": INDEX_FORMAT,
-                "format_version": self.format_version,
-                "nfdmatch_version": self.nfdmatch_version, "files": self.n_files, "curves": self.n_curves,
-                "failed": failed, "samples": self.samples, "harmonics": self.harmonics, "scale": self.scale_mode,
-                "created": self.created, "updated": self.updated, "size_bytes": size}
+        return {
+            "path": self.path,
+            "sources": None if recorded is None else recorded[0],
+            "format": INDEX_FORMAT,
+            "format_version": self.format_version,
+            "nfdmatch_version": self.nfdmatch_version,
+            "files": self.n_files,
+            "curves": self.n_curves,
+            "failed": failed,
+            "samples": self.samples,
+            "harmonics": self.harmonics,
+            "scale": self.scale_mode,
+            "created": self.created,
+            "updated": self.updated,
+            "size_bytes": size,
+        }

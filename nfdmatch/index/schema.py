@@ -53,7 +53,7 @@ def read_runs(ds, runs):
         strings = ds.asstr()
         return [v for a, b in runs for v in strings[a:b].tolist()]
     if len(runs) == 1:
-        return ds[runs[0][0]:runs[0][1]]
+        return ds[runs[0][0] : runs[0][1]]
     if not runs:
         return np.empty((0,) + tuple(ds.shape[1:]), dtype=ds.dtype)
     return np.concatenate([ds[a:b] for a, b in runs])
@@ -71,7 +71,7 @@ def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
         data = ("\0".join(values) + "\0").encode("utf-8", "surrogateescape")
         nul = np.flatnonzero(np.frombuffer(data, dtype=np.uint8) == 0)
         if len(nul) == len(values):
-            ends = np.append(nul[rows - 1::rows] + 1, len(data))[:len(out)].tolist()
+            ends = np.append(nul[rows - 1 :: rows] + 1, len(data))[: len(out)].tolist()
             view = memoryview(data)
             start = 0
             for b, end in enumerate(ends):
@@ -79,7 +79,7 @@ def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
                 start = end
             return out
     for b in range(len(out)):
-        block = values[b * rows:(b + 1) * rows]
+        block = values[b * rows : (b + 1) * rows]
         out[b] = zlib.crc32(b"".join(v.encode("utf-8", "surrogateescape") + b"\0" for v in block))
     return out
 
@@ -97,8 +97,9 @@ def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHU
     chunks = (rows,) + tuple(max(1, x) for x in data.shape[1:]) if data.ndim else None
     # an empty dataset can be chunked only when resizable
     maxshape = (None,) + data.shape[1:] if data.ndim and not data.shape[0] else None
-    return group.create_dataset(name, data=data, dtype=dtype or data.dtype, shape=data.shape, chunks=chunks,
-                                maxshape=maxshape, fletcher32=True)
+    return group.create_dataset(
+        name, data=data, dtype=dtype or data.dtype, shape=data.shape, chunks=chunks, maxshape=maxshape, fletcher32=True
+    )
 
 
 def write_string_checks(group, name: str, values) -> None:
@@ -120,7 +121,7 @@ def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
     if dcpl.get_external_count() > 0:
         return f"{where} has external storage (data in another file): refused"
     vlen = ds.dtype.kind == "O"
-    itemsize = 16 if vlen else ds.dtype.itemsize          # variable length: 16-byte heap references
+    itemsize = 16 if vlen else ds.dtype.itemsize  # variable length: 16-byte heap references
     declared = int(np.prod(ds.shape, dtype=np.float64)) * itemsize
     if ds.chunks is not None:
         chunk_bytes = int(np.prod(ds.chunks, dtype=np.float64)) * itemsize
@@ -131,11 +132,14 @@ def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
     if declared:
         if filters - _PLAIN_FILTERS:
             if declared > _MAX_COMPRESSION * max(stored, 1):
-                return (f"{where} declares {declared} bytes ({ds.shape}) in {stored} stored bytes, "
-                        f"more than any compression gives")
+                return (
+                    f"{where} declares {declared} bytes ({ds.shape}) in {stored} stored bytes, "
+                    f"more than any compression gives"
+                )
         elif stored < declared:
-            return (f"{where} declares {ds.shape} ({declared} bytes) but stores {stored} bytes "
-                    f"of a {file_size}-byte file")
+            return (
+                f"{where} declares {ds.shape} ({declared} bytes) but stores {stored} bytes of a {file_size}-byte file"
+            )
     if checksums and not vlen and h5py.h5z.FILTER_FLETCHER32 not in filters:
         return f"{where} has no checksum filter, but the file declares checksums"
     return None
@@ -176,6 +180,7 @@ class FileRecord:
 
 
 # --------------------------------------------------------------------------- opening
+
 
 class _Problem(Exception):
     """Why a file is not a readable index; ``kind`` drives what a build may do with it:
@@ -262,9 +267,10 @@ def _open_checked(path: str):
         raise
     except Exception as exc:
         h5.close()
-        if "filter returned failure" in _short(exc):          # a Fletcher-32 mismatch
-            raise _Problem("corrupt", "corrupted nfdmatch index: checksum mismatch in the file table "
-                                      "(/files; the file is damaged)") from None
+        if "filter returned failure" in _short(exc):  # a Fletcher-32 mismatch
+            raise _Problem(
+                "corrupt", "corrupted nfdmatch index: checksum mismatch in the file table (/files; the file is damaged)"
+            ) from None
         raise _Problem("corrupt", f"corrupted nfdmatch index ({_short(exc)})") from None
     return h5, meta, files
 
@@ -279,8 +285,11 @@ def _validate(h5) -> tuple[dict, dict]:
     if version is None or version < 1:
         raise _Problem("corrupt", f"corrupted nfdmatch index: bad format_version {attrs.get('format_version')!r}")
     if version > FORMAT_VERSION:
-        raise _Problem("newer", f"written by a newer nfdmatch (format {version}); "
-                                f"this version reads formats {' and '.join(map(str, READABLE_VERSIONS))}")
+        raise _Problem(
+            "newer",
+            f"written by a newer nfdmatch (format {version}); "
+            f"this version reads formats {' and '.join(map(str, READABLE_VERSIONS))}",
+        )
     samples, harmonics, scale = _attr_int(attrs, "samples"), _attr_int(attrs, "harmonics"), _attr_str(attrs, "scale")
     try:
         validate_parameters(samples, harmonics, scale)
@@ -293,16 +302,25 @@ def _validate(h5) -> tuple[dict, dict]:
         raise _Problem("corrupt", f"corrupted nfdmatch index: unknown checksums {checksums_attr!r}")
     checksums = checksums_attr == CHECKSUMS
     file_size = int(h5.id.get_filesize())
-    meta = {"format_version": version, "samples": samples, "harmonics": harmonics, "scale": scale,
-            "checksums": checksums,
-            "nfdmatch_version": _attr_str(attrs, "nfdmatch_version") or "",
-            "created": _attr_str(attrs, "created") or "", "updated": _attr_str(attrs, "updated") or ""}
+    meta = {
+        "format_version": version,
+        "samples": samples,
+        "harmonics": harmonics,
+        "scale": scale,
+        "checksums": checksums,
+        "nfdmatch_version": _attr_str(attrs, "nfdmatch_version") or "",
+        "created": _attr_str(attrs, "created") or "",
+        "updated": _attr_str(attrs, "updated") or "",
+    }
 
     def dataset(group, name, tail):
         obj = stored_dataset(h5, f"{group}/{name}", file_size, checksums)
         if len(obj.shape) != 1 + len(tail) or tuple(obj.shape[1:]) != tail:
-            raise _Problem("corrupt", f"corrupted nfdmatch index: /{group}/{name} has shape {obj.shape}, "
-                                      f"expected (rows, {', '.join(map(str, tail))})".replace(", )", ")"))
+            raise _Problem(
+                "corrupt",
+                f"corrupted nfdmatch index: /{group}/{name} has shape {obj.shape}, "
+                f"expected (rows, {', '.join(map(str, tail))})".replace(", )", ")"),
+            )
         return obj
 
     fds = {name: dataset("files", name, ()) for name in _FILE_FIELDS}
@@ -316,11 +334,14 @@ def _validate(h5) -> tuple[dict, dict]:
     if checksums:
         for group, names in STRING_DATASETS.items():
             for name in names:
-                rows = (F if group == "files" else N)
+                rows = F if group == "files" else N
                 crc = dataset(group, f"{name}_crc32", ())
                 if crc.shape[0] != (rows + CRC_ROWS - 1) // CRC_ROWS or crc.dtype.kind != "u":
-                    raise _Problem("corrupt", f"corrupted nfdmatch index: /{group}/{name}_crc32 has shape "
-                                              f"{crc.shape}, expected ({(rows + CRC_ROWS - 1) // CRC_ROWS},)")
+                    raise _Problem(
+                        "corrupt",
+                        f"corrupted nfdmatch index: /{group}/{name}_crc32 has shape "
+                        f"{crc.shape}, expected ({(rows + CRC_ROWS - 1) // CRC_ROWS},)",
+                    )
                 (fds if group == "files" else cds)[f"{name}_crc32"] = crc
     if cds["coefficients"].dtype.kind != "c":
         raise _Problem("corrupt", "corrupted nfdmatch index: /curves/coefficients is not complex")
@@ -328,17 +349,24 @@ def _validate(h5) -> tuple[dict, dict]:
     starts = fds["curve_start"][...].astype(np.int64)
     expected = np.concatenate([[0], np.cumsum(counts)[:-1]]) if F else starts
     if (counts < 0).any() or not np.array_equal(starts, expected) or int(counts.sum()) != N:
-        raise _Problem("corrupt", "corrupted nfdmatch index: the /files curve_start/curve_count blocks "
-                                  "do not tile the /curves rows")
+        raise _Problem(
+            "corrupt",
+            "corrupted nfdmatch index: the /files curve_start/curve_count blocks do not tile the /curves rows",
+        )
     if version >= 2:
         from .search_group import check_search_group
 
-        problem = check_search_group(h5, int(N), harmonics,
-                                     lambda name: stored_dataset(h5, f"search/{name}", file_size, checksums))
+        problem = check_search_group(
+            h5, int(N), harmonics, lambda name: stored_dataset(h5, f"search/{name}", file_size, checksums)
+        )
         if problem:
             raise _Problem("corrupt", f"corrupted nfdmatch index: {problem}")
-    files = {"datasets": {k: v for k, v in fds.items() if k in _FILE_FIELDS}, "curve_start": starts,
-             "curve_count": counts, "crc": {k: v for k, v in fds.items() if k.endswith("_crc32")}}
+    files = {
+        "datasets": {k: v for k, v in fds.items() if k in _FILE_FIELDS},
+        "curve_start": starts,
+        "curve_count": counts,
+        "crc": {k: v for k, v in fds.items() if k.endswith("_crc32")},
+    }
     meta["crc"] = {k: v for k, v in cds.items() if k.endswith("_crc32")}
     meta["datasets"] = {k: v for k, v in cds.items() if not k.endswith("_crc32")}
     meta["n_curves"], meta["n_files"] = int(N), int(F)
@@ -359,8 +387,11 @@ def stored_dataset(h5, name: str, file_size: int, checksums: bool):
             if link is None:
                 break
             if not isinstance(link, h5py.HardLink):
-                raise _Problem("corrupt", f"corrupted nfdmatch index: {'/' + '/'.join(parts[:i + 1])} is a "
-                                          f"{type(link).__name__}, not stored in the file: refused")
+                raise _Problem(
+                    "corrupt",
+                    f"corrupted nfdmatch index: {'/' + '/'.join(parts[: i + 1])} is a "
+                    f"{type(link).__name__}, not stored in the file: refused",
+                )
             parent = parent[part]
     except _Problem:
         raise

@@ -54,12 +54,12 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None, 
     position_of[cells.row] = np.arange(N, dtype=np.int64)
     coefficients = np.empty((N, harmonics, 3), dtype=np.complex64)
     for a in range(0, N, _READ_ROWS):
-        block = curves["coefficients"][a:a + _READ_ROWS]
-        coefficients[position_of[a:a + len(block)]] = block
+        block = curves["coefficients"][a : a + _READ_ROWS]
+        coefficients[position_of[a : a + len(block)]] = block
     g = h5.create_group("search")
     g.attrs["cells"] = np.int64(cells.count)
     for name, data in (("cell_start", cells.start), ("centre", cells.centre), ("radius", cells.radius)):
-        create_checked(g, name, data)                 # read whole when a search starts
+        create_checked(g, name, data)  # read whole when a search starts
     for name, data in (("row", cells.row), ("features", features), ("sqnorm", sqnorm), ("coefficients", coefficients)):
         # read cell by cell (~128 positions): small chunks, so that a query reads (and
         # checksums) ~36 KB per cell rather than a 4096-row chunk
@@ -79,12 +79,11 @@ def _finish_checksums(h5, id_crcs=None) -> None:
     values: list[str] = []
     expected = None if ids is None else (ids.shape[0] + CRC_ROWS - 1) // CRC_ROWS
     if id_crcs is not None and expected is not None and len(id_crcs) == expected:
-        h5["curves"].create_dataset("id_crc32", data=np.asarray(id_crcs, dtype=np.uint32), chunks=True,
-                                    fletcher32=True)
+        h5["curves"].create_dataset("id_crc32", data=np.asarray(id_crcs, dtype=np.uint32), chunks=True, fletcher32=True)
     elif ids is not None:
         step = CRC_ROWS * 256
         for a in range(0, ids.shape[0], step):
-            values.extend(ids.asstr()[a:a + step].tolist())
+            values.extend(ids.asstr()[a : a + step].tolist())
         write_string_checks(h5["curves"], "id", values)
     h5.attrs["checksums"] = CHECKSUMS
 
@@ -115,8 +114,12 @@ def check_search_group(h5, N: int, harmonics: int, get=None) -> str | None:
             return f"/search/{name} has shape {ds.shape}, expected {shape(N, C, D)}"
     coefficients = get("coefficients")
     want = (N, harmonics, 3)
-    if (coefficients is None or not hasattr(coefficients, "shape") or tuple(coefficients.shape) != want
-            or coefficients.dtype.kind != "c"):
+    if (
+        coefficients is None
+        or not hasattr(coefficients, "shape")
+        or tuple(coefficients.shape) != want
+        or coefficients.dtype.kind != "c"
+    ):
         return f"missing or bad dataset /search/coefficients (expected complex, shape {want})"
     starts = np.asarray(start[...], dtype=np.int64)
     if starts[0] != 0 or starts[-1] != N or (np.diff(starts) < 0).any():
@@ -135,6 +138,7 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
     from .reader import first_nonfinite
 
     if guard is None:
+
         def guard(fn, where):
             return fn()
 
@@ -153,8 +157,13 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
         # recomputed from the features (the build computes them the same way), the
         # descriptors read apart, only for the cells a search takes past the invariant bound
         where = f"/search, positions {runs[0][0]}..{runs[-1][1] - 1}"
-        row, features = guard(lambda: (np.asarray(read_runs_of(ds_row, runs), dtype=np.int64),
-                                       np.asarray(read_runs_of(ds_features, runs), dtype=np.float32)), where)
+        row, features = guard(
+            lambda: (
+                np.asarray(read_runs_of(ds_row, runs), dtype=np.int64),
+                np.asarray(read_runs_of(ds_features, runs), dtype=np.float32),
+            ),
+            where,
+        )
         if len(row) and (row.min() < 0 or row.max() >= N):
             fail("/search/row holds a row outside the index")
         _finite_runs("features", features, runs)
@@ -168,7 +177,7 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
     def _finite_runs(name, values, runs):
         bad = first_nonfinite(values, 0)
         if bad is not None:
-            for a, b in runs:                  # the position in the file, not in the read
+            for a, b in runs:  # the position in the file, not in the read
                 if bad < b - a:
                     bad += a
                     break
@@ -178,6 +187,14 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
 
     centre = finite("centre", np.asarray(g["centre"][...], dtype=np.float64), 0)
     radius = finite("radius", np.asarray(g["radius"][...], dtype=np.float64), 0)
-    return SearchTable(harmonics, start, centre, radius, lambda a, b: read_runs([(a, b)]), read_coefficients,
-                       lambda a, b: read_descriptor_runs([(a, b)]), read_runs=read_runs,
-                       read_descriptor_runs=read_descriptor_runs)
+    return SearchTable(
+        harmonics,
+        start,
+        centre,
+        radius,
+        lambda a, b: read_runs([(a, b)]),
+        read_coefficients,
+        lambda a, b: read_descriptor_runs([(a, b)]),
+        read_runs=read_runs,
+        read_descriptor_runs=read_descriptor_runs,
+    )

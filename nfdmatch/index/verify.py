@@ -89,10 +89,10 @@ def _scan(ds, name, report, *, label="row", keep=None, crc=None):
             continue
         if strings:
             if crc is not None:
-                first = a // CRC_ROWS                          # blocks are multiples of CRC_ROWS
+                first = a // CRC_ROWS  # blocks are multiples of CRC_ROWS
                 want = block_crcs(values)
-                got = np.asarray(crc[first:first + len(want)], dtype=np.uint32)
-                crc_bad += [first + i for i in np.flatnonzero(got != want[:len(got)])]
+                got = np.asarray(crc[first : first + len(want)], dtype=np.uint32)
+                crc_bad += [first + i for i in np.flatnonzero(got != want[: len(got)])]
                 if len(got) < len(want):
                     crc_bad += list(range(first + len(got), first + len(want)))
         elif values.dtype.kind in "fc" and values.size:
@@ -106,11 +106,17 @@ def _scan(ds, name, report, *, label="row", keep=None, crc=None):
     if bad:
         report.unreadable[name] = [(a, b) for a, b, _ in bad]
     if nonfinite:
-        report.findings.append(Finding(name, _rows_text(nonfinite),
-                                       f"non-finite values (NaN or Inf), {len(nonfinite)} {label}s"))
+        report.findings.append(
+            Finding(name, _rows_text(nonfinite), f"non-finite values (NaN or Inf), {len(nonfinite)} {label}s")
+        )
     for blk in crc_bad[:_LIST_ROWS]:
-        report.findings.append(Finding(name, f"{blk * CRC_ROWS}..{min(n, (blk + 1) * CRC_ROWS) - 1}",
-                                       "checksum mismatch (CRC-32 of the strings)"))
+        report.findings.append(
+            Finding(
+                name,
+                f"{blk * CRC_ROWS}..{min(n, (blk + 1) * CRC_ROWS) - 1}",
+                "checksum mismatch (CRC-32 of the strings)",
+            )
+        )
     if keep is None or bad:
         return None
     if not ds.shape:
@@ -146,8 +152,7 @@ def _verify(h5, meta, files, report) -> None:
     K = meta["harmonics"]
     whole = np.asarray
     # what the cross-checks below need, per dataset (the rest is checked block by block and dropped)
-    needed = {"/curves/file": whole, "/curves/inv_sv": whole, "/curves/inv_block": whole,
-              "/curves/coefficients": whole}
+    needed = {"/curves/file": whole, "/curves/inv_sv": whole, "/curves/inv_block": whole, "/curves/coefficients": whole}
     groups = {"files": files["datasets"] | files.get("crc", {}), "curves": meta["datasets"] | meta.get("crc", {})}
     if meta["format_version"] >= 2:
         groups["search"] = {name: h5["search"][name] for name in h5["search"] if hasattr(h5["search"][name], "shape")}
@@ -163,15 +168,16 @@ def _verify(h5, meta, files, report) -> None:
     for group, datasets in groups.items():
         for name, ds in datasets.items():
             full = f"/{group}/{name}"
-            if full[:-len("_crc32")] in crcs and full.endswith("_crc32"):
-                continue                                           # scanned above
+            if full[: -len("_crc32")] in crcs and full.endswith("_crc32"):
+                continue  # scanned above
             crc = crcs.get(full)
-            values[full] = _scan(ds, full, report, label="position" if group == "search" else "row",
-                                 keep=needed.get(full), crc=crc)
+            values[full] = _scan(
+                ds, full, report, label="position" if group == "search" else "row", keep=needed.get(full), crc=crc
+            )
             report.datasets += 1
 
     N, F = meta["n_curves"], meta["n_files"]
-    if report.unreadable:                 # derived data cannot be compared with unreadable rows
+    if report.unreadable:  # derived data cannot be compared with unreadable rows
         return
     file_col = values["/curves/file"]
     want = np.repeat(np.arange(F), files["curve_count"]) if F else np.zeros(0, dtype=np.int64)
@@ -187,9 +193,11 @@ def _verify(h5, meta, files, report) -> None:
         return
     features = values["/search/features"]
     derived = np.concatenate([values.pop("/curves/inv_sv"), values.pop("/curves/inv_block")], axis=1)[row]
-    checks = (("/search/features", features, derived),
-              ("/search/sqnorm", values["/search/sqnorm"], squared_norms(features, split)),
-              ("/search/coefficients", values["/search/coefficients"], values.pop("/curves/coefficients")[row]))
+    checks = (
+        ("/search/features", features, derived),
+        ("/search/sqnorm", values["/search/sqnorm"], squared_norms(features, split)),
+        ("/search/coefficients", values["/search/coefficients"], values.pop("/curves/coefficients")[row]),
+    )
     for name, got, expected in checks:
         same = got == expected
         if got.dtype.kind != "c":
@@ -203,12 +211,16 @@ def _verify(h5, meta, files, report) -> None:
     cell = np.repeat(np.arange(len(start) - 1), np.diff(start))
     for part, cols in ((0, slice(0, split)), (1, slice(split, None))):
         dist = np.empty(N)
-        for a in range(0, N, _BLOCK_ROWS):                 # blocks: no (N, D) float64 copy
+        for a in range(0, N, _BLOCK_ROWS):  # blocks: no (N, D) float64 copy
             b = min(N, a + _BLOCK_ROWS)
             X = features[a:b, cols].astype(np.float64) - centre[cell[a:b], cols]
-            dist[a:b] = np.sqrt((X ** 2).sum(axis=1))
+            dist[a:b] = np.sqrt((X**2).sum(axis=1))
         bad = np.flatnonzero(dist > radius[cell, part] * (1 + _RADIUS_SLACK) + 1e-9)
         if len(bad):
-            report.findings.append(Finding("/search/radius", _rows_text(np.unique(cell[bad])),
-                                           f"cells with members outside their radius (positions "
-                                           f"{_rows_text(bad)})"))
+            report.findings.append(
+                Finding(
+                    "/search/radius",
+                    _rows_text(np.unique(cell[bad])),
+                    f"cells with members outside their radius (positions {_rows_text(bad)})",
+                )
+            )

@@ -43,7 +43,7 @@ class _Space:
     def __init__(self, h5):
         try:
             self.fd = int(h5.id.get_vfd_handle())
-        except Exception:                       # another driver: nothing to reserve on
+        except Exception:  # another driver: nothing to reserve on
             self.fd = None
         self.reserved = 0
         self.abandoned = False
@@ -153,9 +153,14 @@ class _CurveWriter:
         for name, (dtype, tail) in _curve_layout(self.K).items():
             chunk = max(1, min(_SCATTERED_CHUNK_ROWS.get(name, CHUNK_ROWS), first_rows))
             # Fletcher-32 per chunk: a damaged chunk fails when read (HDF5 filters no strings)
-            self.ds[name] = self.group.create_dataset(name, shape=(0,) + tail, maxshape=(None,) + tail,
-                                                      chunks=(chunk,) + tail, dtype=dtype,
-                                                      fletcher32=dtype is not _STR)
+            self.ds[name] = self.group.create_dataset(
+                name,
+                shape=(0,) + tail,
+                maxshape=(None,) + tail,
+                chunks=(chunk,) + tail,
+                dtype=dtype,
+                fletcher32=dtype is not _STR,
+            )
 
     def append(self, piece: dict) -> None:
         n = len(piece["file"])
@@ -178,19 +183,18 @@ class _CurveWriter:
             parts = [p[name] for p in self.pending]
             data = parts[0] if len(parts) == 1 else np.concatenate(parts)
             ds.resize(self.rows + n, axis=0)
-            ds[self.rows:self.rows + n] = data
+            ds[self.rows : self.rows + n] = data
             if name == "id":
                 self._check_ids(data)
         self.rows += n
         self.pending, self.pending_rows = [], 0
-
 
     def _check_ids(self, ids) -> None:
         if self._id_crcs is None:
             return
         values = self._id_tail + np.asarray(ids, dtype=object).reshape(-1).tolist()
         if any(type(v) is not str for v in values):
-            self._id_crcs = None                # read back from the file at the end instead
+            self._id_crcs = None  # read back from the file at the end instead
             return
         whole = len(values) - len(values) % CRC_ROWS
         if whole:
@@ -213,16 +217,23 @@ def _write_files_table(h5, records: list[FileRecord], space: "_Space | None" = N
     g = h5.create_group("files")
     F = len(records)
     if space is not None:
-        space.reserve(sum(len(r.path.encode("utf-8", "surrogateescape")) + len(r.error.encode("utf-8", "replace"))
-                          + 200 for r in records))
-    checked = {"path": ([r.path for r in records], _STR), "size": ([r.size for r in records], np.int64),
-               "mtime_ns": ([r.mtime_ns for r in records], np.int64),
-               "sha256": ([r.sha256.encode("ascii") for r in records], _SHA),
-               "status": ([0 if r.status == "ok" else 1 for r in records], np.uint8),
-               # cut here too: a message from outside NfdError (a worker's crash) is stored as is
-               "error": ([excerpt(r.error, MAX_MESSAGE_CHARS) for r in records], _STR),
-               "curve_start": ([r.curve_start for r in records], np.int64),
-               "curve_count": ([r.curve_count for r in records], np.int64)}
+        space.reserve(
+            sum(
+                len(r.path.encode("utf-8", "surrogateescape")) + len(r.error.encode("utf-8", "replace")) + 200
+                for r in records
+            )
+        )
+    checked = {
+        "path": ([r.path for r in records], _STR),
+        "size": ([r.size for r in records], np.int64),
+        "mtime_ns": ([r.mtime_ns for r in records], np.int64),
+        "sha256": ([r.sha256.encode("ascii") for r in records], _SHA),
+        "status": ([0 if r.status == "ok" else 1 for r in records], np.uint8),
+        # cut here too: a message from outside NfdError (a worker's crash) is stored as is
+        "error": ([excerpt(r.error, MAX_MESSAGE_CHARS) for r in records], _STR),
+        "curve_start": ([r.curve_start for r in records], np.int64),
+        "curve_count": ([r.curve_count for r in records], np.int64),
+    }
     for name, (values, dtype) in checked.items():
         create_checked(g, name, np.array(values, dtype=object if dtype is _STR else dtype).reshape(F), dtype)
 
@@ -321,9 +332,9 @@ class _CopyRun:
         for a in range(self.start, self.stop, _WRITE_ROWS):
             b = min(self.stop, a + _WRITE_ROWS)
             piece = self.old._raw_rows(a, b)
-            piece["file"] = file_col[a - self.start:b - self.start]
+            piece["file"] = file_col[a - self.start : b - self.start]
             if new_ids is not None:
-                piece["id"] = new_ids[a - self.start:b - self.start]
+                piece["id"] = new_ids[a - self.start : b - self.start]
             self.writer.append(piece)
         self.start = self.stop = 0
         self.file_rows, self.counts, self.ids = [], [], []

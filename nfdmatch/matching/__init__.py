@@ -43,9 +43,25 @@ if TYPE_CHECKING:
 
     from ..curve import Curve
 
-__all__ = ["Match", "distance", "match_descriptors", "exact_search", "grid_maximum", "paper_search", "compile_kernels",
-           "use_kernels", "reference_path", "kabsch_trace", "invariants", "lower_bound", "METHODS", "DIRECTIONS",
-           "DEFAULT_METHOD", "DEFAULT_DIRECTION", "STRICT_DIRECTION"]
+__all__ = [
+    "Match",
+    "distance",
+    "match_descriptors",
+    "exact_search",
+    "grid_maximum",
+    "paper_search",
+    "compile_kernels",
+    "use_kernels",
+    "reference_path",
+    "kabsch_trace",
+    "invariants",
+    "lower_bound",
+    "METHODS",
+    "DIRECTIONS",
+    "DEFAULT_METHOD",
+    "DEFAULT_DIRECTION",
+    "STRICT_DIRECTION",
+]
 
 
 @dataclass(frozen=True)
@@ -106,22 +122,29 @@ class Match:
         return np.mod(-t if self.reversed else t, 1.0)
 
 
-
 # --------------------------------------------------------------------------- public API
+
 
 def _as_descriptors(x, samples, harmonics, scale) -> Descriptors:
     if isinstance(x, Descriptors):
         if (x.samples, x.harmonics, x.scale_mode) != (samples, harmonics, scale):
             raise ParameterError(
                 f"descriptors of {x.id} were computed with samples={x.samples}, harmonics={x.harmonics}, "
-                f"scale={x.scale_mode}, not samples={samples}, harmonics={harmonics}, scale={scale}")
+                f"scale={x.scale_mode}, not samples={samples}, harmonics={harmonics}, scale={scale}"
+            )
         return x
     return descriptors(x, samples=samples, harmonics=harmonics, scale=scale)
 
 
-def match_descriptors(da: Descriptors, db: Descriptors, *, method: str = DEFAULT_METHOD,
-                      direction: str = DEFAULT_DIRECTION, mirror: bool = False,
-                      weights: ArrayLike | None = None) -> Match:
+def match_descriptors(
+    da: Descriptors,
+    db: Descriptors,
+    *,
+    method: str = DEFAULT_METHOD,
+    direction: str = DEFAULT_DIRECTION,
+    mirror: bool = False,
+    weights: ArrayLike | None = None,
+) -> Match:
     """Match two :class:`Descriptors` computed with the same parameters; see :func:`distance`.
 
     One pair is computed on the numpy reference path (about a millisecond): the same digits
@@ -131,26 +154,43 @@ def match_descriptors(da: Descriptors, db: Descriptors, *, method: str = DEFAULT
         raise ParameterError("descriptors were computed with different parameters")
     if method == "exact":
         with reference_path():
-            r = exact_search(da.coefficients, db.coefficients, da.samples, weights=weights,
-                             direction=direction, mirror=mirror)
+            r = exact_search(
+                da.coefficients, db.coefficients, da.samples, weights=weights, direction=direction, mirror=mirror
+            )
     elif method == "paper":
-        r = paper_search(da.coefficients, db.coefficients, da.samples, weights=weights,
-                         direction=direction, mirror=mirror)
+        r = paper_search(
+            da.coefficients, db.coefficients, da.samples, weights=weights, direction=direction, mirror=mirror
+        )
     else:
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     R_aligned = r["rotation"][0]
     # descriptors live in each curve's plane-aligned frame; map back to input coordinates
     R = da.rotation.T @ R_aligned @ db.rotation
     ratio = da.scale / db.scale
-    return Match(distance=float(r["distance"][0]), shift=float(r["shift"][0]), rotation=R,
-                 reversed=bool(r["reversed"][0]), mirrored=bool(r["mirrored"][0]), method=method,
-                 scale=float(ratio), translation=da.centroid - ratio * R @ db.centroid)
+    return Match(
+        distance=float(r["distance"][0]),
+        shift=float(r["shift"][0]),
+        rotation=R,
+        reversed=bool(r["reversed"][0]),
+        mirrored=bool(r["mirrored"][0]),
+        method=method,
+        scale=float(ratio),
+        translation=da.centroid - ratio * R @ db.centroid,
+    )
 
 
-def distance(a: Curve | Descriptors | ArrayLike, b: Curve | Descriptors | ArrayLike, *,
-             samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS, scale: str = DEFAULT_SCALE,
-             method: str = DEFAULT_METHOD, direction: str = DEFAULT_DIRECTION, mirror: bool = False,
-             weights: ArrayLike | None = None) -> Match:
+def distance(
+    a: Curve | Descriptors | ArrayLike,
+    b: Curve | Descriptors | ArrayLike,
+    *,
+    samples: int = DEFAULT_SAMPLES,
+    harmonics: int = DEFAULT_HARMONICS,
+    scale: str = DEFAULT_SCALE,
+    method: str = DEFAULT_METHOD,
+    direction: str = DEFAULT_DIRECTION,
+    mirror: bool = False,
+    weights: ArrayLike | None = None,
+) -> Match:
     """Similarity distance between two closed curves, with the alignment that achieves it.
 
     Parameters

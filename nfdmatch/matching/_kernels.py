@@ -68,14 +68,15 @@ _NINF = -np.inf
 # offsets and step of the refinement (as matching._REFINE_MID_OFFSETS / _REFINE_FINE_STEP)
 _MID0, _MID1, _MID2, _MID3, _MID4 = -2.0 / 16.0, -1.0 / 16.0, 0.0, 1.0 / 16.0, 2.0 / 16.0
 _FINE = 1e-3
-_REFINE_BLOCK = 64            # candidates refined together (vectorized across them)
+_REFINE_BLOCK = 64  # candidates refined together (vectorized across them)
 
-_jit = dict(error_model="numpy")          # float division by zero gives inf / nan, as numpy
+_jit = dict(error_model="numpy")  # float division by zero gives inf / nan, as numpy
 _inline = dict(inline="always", **_jit)
 
 
 # ----------------------------------------------------------------------------- scalar helpers
 # NaN handling as numpy's maximum / minimum: a NaN argument stays NaN.
+
 
 @njit(**_inline)
 def _atleast(x, lo):
@@ -91,12 +92,12 @@ def _atmost(x, hi):
 # approximation R(z) of (asin(x) - x) / x^3 on |x| <= 0.5, the three ranges as selects,
 # without fdlibm's extra-precision split of s (~1 ulp); the cosine on [0, pi/3] by its
 # Taylor series to x^18 (remainder < 2e-18).
-_PIO2_HI = 1.57079632679489655800e+00
+_PIO2_HI = 1.57079632679489655800e00
 _PIO2_LO = 6.12323399573676603587e-17
-_PI = 3.14159265358979311600e+00
+_PI = 3.14159265358979311600e00
 _PS0, _PS1, _PS2 = 1.66666666666666657415e-01, -3.25565818622400915405e-01, 2.01212532134862925881e-01
 _PS3, _PS4, _PS5 = -4.00555345006794114027e-02, 7.91534994289814532176e-04, 3.47933107596021167570e-05
-_QS1, _QS2 = -2.40339491173441421878e+00, 2.02094576023350569471e+00
+_QS1, _QS2 = -2.40339491173441421878e00, 2.02094576023350569471e00
 _QS3, _QS4 = -6.88283971605453293030e-01, 7.70381505559019352791e-02
 _C1, _C2, _C3 = -1.0 / 2.0, 1.0 / 24.0, -1.0 / 720.0
 _C4, _C5, _C6 = 1.0 / 40320.0, -1.0 / 3628800.0, 1.0 / 479001600.0
@@ -140,8 +141,14 @@ def _lmax(s00, s11, s22, s01, s02, s12):
 @njit(**_inline)
 def trace1(a, b, c, d, e, f, g, h, i, mirror):
     """max_R tr(R M), M = [[a, b, c], [d, e, f], [g, h, i]]: matching._trace_soa for one matrix."""
-    l1 = _lmax(a * a + d * d + g * g, b * b + e * e + h * h, c * c + f * f + i * i,
-               a * b + d * e + g * h, a * c + d * f + g * i, b * c + e * f + h * i)
+    l1 = _lmax(
+        a * a + d * d + g * g,
+        b * b + e * e + h * h,
+        c * c + f * f + i * i,
+        a * b + d * e + g * h,
+        a * c + d * f + g * i,
+        b * c + e * f + h * i,
+    )
     c00 = e * i - f * h
     c01 = f * g - d * i
     c02 = d * h - e * g
@@ -152,9 +159,14 @@ def trace1(a, b, c, d, e, f, g, h, i, mirror):
     c21 = c * d - a * f
     c22 = a * e - b * d
     det = a * c00 + b * c01 + c * c02
-    l12 = _lmax(c00 * c00 + c10 * c10 + c20 * c20, c01 * c01 + c11 * c11 + c21 * c21,
-                c02 * c02 + c12 * c12 + c22 * c22, c00 * c01 + c10 * c11 + c20 * c21,
-                c00 * c02 + c10 * c12 + c20 * c22, c01 * c02 + c11 * c12 + c21 * c22)
+    l12 = _lmax(
+        c00 * c00 + c10 * c10 + c20 * c20,
+        c01 * c01 + c11 * c11 + c21 * c21,
+        c02 * c02 + c12 * c12 + c22 * c22,
+        c00 * c01 + c10 * c11 + c20 * c21,
+        c00 * c02 + c10 * c12 + c20 * c22,
+        c01 * c02 + c11 * c12 + c21 * c22,
+    )
     s1 = math.sqrt(l1)
     s12 = math.sqrt(l12)
     s2 = s12 / _atleast(s1, _TINY)
@@ -198,6 +210,7 @@ def _argmax_first(v0, v1, v2, v3, v4):
 
 # ----------------------------------------------------------------------------- integer stage
 
+
 @njit(**_inline)
 def _shift_matrices(P, basis, quarter, W, M):
     """M (9, n) = the products P (2K, 9, 1) times the integer-shift basis, through the folded
@@ -218,7 +231,7 @@ def _shift_matrices(P, basis, quarter, W, M):
             W[2, s] = 0.0
             W[3, s] = 0.0
         for k in range(K):
-            a = 1 if (quarter and k % 2 == 0) else 0     # k = 0 is frequency 1 (odd)
+            a = 1 if (quarter and k % 2 == 0) else 0  # k = 0 is frequency 1 (odd)
             pr = P[k, jj, 0]
             pim = P[K + k, jj, 0]
             for s in range(width):
@@ -260,15 +273,16 @@ def _integer_rows(Aw, B, D, basis, quarter, n, mirror, C, cand, val, fminus, fpl
             _products(Aw, B, row, dd == 1, P, 0)
             _shift_matrices(P, basis, quarter, W, M)
             base = dd * n
-            for s in range(n):                       # no calls: vectorizes over s
-                F[base + s] = trace1(M[0, s], M[1, s], M[2, s], M[3, s], M[4, s], M[5, s],
-                                     M[6, s], M[7, s], M[8, s], mirror)
+            for s in range(n):  # no calls: vectorizes over s
+                F[base + s] = trace1(
+                    M[0, s], M[1, s], M[2, s], M[3, s], M[4, s], M[5, s], M[6, s], M[7, s], M[8, s], mirror
+                )
         # the C largest local maxima (periodic in s per direction): as argpartition on
         # Fm = where(local max, F, -inf), ties to the lower index
         for dd in range(D):
             base = dd * n
             last = base + n - 1
-            for s in range(1, n - 1):                # vectorizes
+            for s in range(1, n - 1):  # vectorizes
                 fv = F[base + s]
                 FM[base + s] = fv if (fv >= F[base + s - 1] and fv >= F[base + s + 1]) else _NINF
             fv = F[base]
@@ -327,12 +341,13 @@ def _split(run, N, workers):
         pool = _executor
     bounds = [N * t // workers for t in range(workers + 1)]
     futures = [pool.submit(run, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:])]
-    run(bounds[0], bounds[1])                       # the first block on the calling thread
+    run(bounds[0], bounds[1])  # the first block on the calling thread
     for future in futures:
         future.result()
 
 
 # ----------------------------------------------------------------------------- refinement
+
 
 @njit(**_jit)
 def _evaluate(P, x, m, n, mirror, CR, CI, ZR, ZI, MA, out):
@@ -350,7 +365,7 @@ def _evaluate(P, x, m, n, mirror, CR, CI, ZR, ZI, MA, out):
         for c in range(m):
             MA[jj, c] = 0.0
     for k in range(K):
-        if k > 0:                                    # e^{i (k+1) theta} = e^{i k theta} e^{i theta}
+        if k > 0:  # e^{i (k+1) theta} = e^{i k theta} e^{i theta}
             for c in range(m):
                 cr = CR[c] * ZR[c] - CI[c] * ZI[c]
                 CI[c] = CR[c] * ZI[c] + CI[c] * ZR[c]
@@ -359,8 +374,9 @@ def _evaluate(P, x, m, n, mirror, CR, CI, ZR, ZI, MA, out):
             for c in range(m):
                 MA[jj, c] += P[k, jj, c] * (2.0 * CR[c]) + P[K + k, jj, c] * (-2.0 * CI[c])
     for c in range(m):
-        out[c] = trace1(MA[0, c], MA[1, c], MA[2, c], MA[3, c], MA[4, c], MA[5, c], MA[6, c],
-                        MA[7, c], MA[8, c], mirror)
+        out[c] = trace1(
+            MA[0, c], MA[1, c], MA[2, c], MA[3, c], MA[4, c], MA[5, c], MA[6, c], MA[7, c], MA[8, c], mirror
+        )
 
 
 @njit(**_jit)
@@ -383,7 +399,7 @@ def _refine_rows(Aw, B, rows, dirs, s0, f_minus, f_0, f_plus, n, mirror, shift, 
     K = Aw.shape[0]
     bs = _REFINE_BLOCK
     P = np.empty((2 * K, 9, bs))
-    X = np.empty((8, bs))                # the 5 mid points, then the 3 fine ones
+    X = np.empty((8, bs))  # the 5 mid points, then the 3 fine ones
     FX = np.empty((8, bs))
     X2 = np.empty(bs)
     CR = np.empty(bs)
@@ -498,7 +514,7 @@ def _kabsch(M, mirror, X, V, R):
         if nrm1 > nrm0:
             o0, o1 = o1, o0
             nrm0, nrm1 = nrm1, nrm0
-    odd = (o0 == 1 and o1 == 0) or (o0 == 2 and o1 == 1) or (o0 == 0 and o1 == 2)   # one swap
+    odd = (o0 == 1 and o1 == 0) or (o0 == 2 and o1 == 1) or (o0 == 0 and o1 == 2)  # one swap
     sgn = -1.0 if odd else 1.0
     x1 = (X[0, o0], X[1, o0], X[2, o0])
     x2 = (X[0, o1], X[1, o1], X[2, o1])
@@ -508,7 +524,7 @@ def _kabsch(M, mirror, X, V, R):
     v3 = (sgn * V[0, o2], sgn * V[1, o2], sgn * V[2, o2])
     if nrm0 > 0.0:
         u1 = (x1[0] / nrm0, x1[1] / nrm0, x1[2] / nrm0)
-    else:                                            # M = 0: R = I, as LAPACK's U = V = I
+    else:  # M = 0: R = I, as LAPACK's U = V = I
         u1 = v1
     d = u1[0] * x2[0] + u1[1] * x2[1] + u1[2] * x2[2]
     y = (x2[0] - d * u1[0], x2[1] - d * u1[1], x2[2] - d * u1[2])
@@ -583,6 +599,7 @@ def _finish_rows(A, Aw, w, B, dirs, shift, n, mirror, dist, rot, mirrored, lo, h
 
 # ----------------------------------------------------------------------------- the driver
 
+
 @njit(**_jit)
 def _argmax_row(values, r, C):
     """np.argmax(values[r, :C]): the first maximum, or the first NaN."""
@@ -597,8 +614,9 @@ def _argmax_row(values, r, C):
 
 
 @njit(cache=True, nogil=True, **_jit)
-def _exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit,
-                dist, shift, rot, reversed_, mirrored, lo, hi):
+def _exact_rows(
+    A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, dist, shift, rot, reversed_, mirrored, lo, hi
+):
     """exact_search for rows lo..hi of B, all stages: integer candidates, the refine_below
     test, refinement, the pick, the final alignment (as matching.exact_search's numpy path)."""
     m = hi - lo
@@ -635,7 +653,7 @@ def _exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_lim
                         t += b.real * b.real + b.imag * b.imag
                     norm_b = math.sqrt(t)
                     curvature += 2.0 * w[k] * (2.0 * math.pi * (k + 1) / n) ** 2 * norm_a[k] * norm_b
-                    sq_b += w[k] * norm_b ** 2
+                    sq_b += w[k] * norm_b**2
                 lower2 = (2.0 * sq_a + 2.0 * sq_b) - 2.0 * (fmax[r] + curvature / 8.0)
                 todo[r] = lower2 <= refine_limit
         count = 0
@@ -672,7 +690,7 @@ def _exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_lim
     best_dir = np.empty(m, dtype=np.int64)
     best_shift = np.empty(m)
     for r in range(m):
-        if not (fmax[r] > _NINF and fmax[r] < np.inf):        # no finite local maximum
+        if not (fmax[r] > _NINF and fmax[r] < np.inf):  # no finite local maximum
             for c in range(C):
                 val[r, c] = _NINF
         c = _argmax_row(val, r, C)
@@ -682,7 +700,7 @@ def _exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_lim
     for r in range(m):
         x = best_shift[r] % n
         near = math.floor(x + 0.5)
-        if abs(x - near) < 1e-9:                              # 127.99999.. -> 0
+        if abs(x - near) < 1e-9:  # 127.99999.. -> 0
             x = near
         shift[lo + r] = x % n
         reversed_[lo + r] = best_dir[r] == 1
@@ -703,12 +721,36 @@ def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limi
     rot = np.empty((N, 3, 3))
     reversed_ = np.zeros(N, dtype=np.bool_)
     mirrored = np.zeros(N, dtype=np.bool_)
-    _split(lambda lo, hi: _exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit,
-                                      dist, shift, rot, reversed_, mirrored, lo, hi), N, workers)
+    _split(
+        lambda lo, hi: _exact_rows(
+            A,
+            Aw,
+            w,
+            B,
+            D,
+            basis,
+            quarter,
+            n,
+            mirror,
+            C,
+            refine,
+            refine_limit,
+            dist,
+            shift,
+            rot,
+            reversed_,
+            mirrored,
+            lo,
+            hi,
+        ),
+        N,
+        workers,
+    )
     return dist, shift, rot, reversed_, mirrored
 
 
 # ----------------------------------------------------------------------------- grid maximum
+
 
 @njit(cache=True, nogil=True, **_jit)
 def _grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi):

@@ -32,8 +32,10 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 _STAMP = os.path.join(_HERE, MODULE + ".stamp")
 
 #: the exported signatures: the arrays' layouts are the ones exact.py passes
-_EXACT_SIGNATURE = ("void(c16[:,::1], c16[:,::1], f8[::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, i8, b1, f8, "
-                    "f8[::1], f8[::1], f8[:,:,::1], b1[::1], b1[::1], i8, i8)")
+_EXACT_SIGNATURE = (
+    "void(c16[:,::1], c16[:,::1], f8[::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, i8, b1, f8, "
+    "f8[::1], f8[::1], f8[:,:,::1], b1[::1], b1[::1], i8, i8)"
+)
 _GRID_SIGNATURE = "void(c16[:,::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, f8[::1], i8, i8)"
 
 
@@ -56,7 +58,7 @@ def build(output_dir: str | None = None) -> str:
     import warnings
 
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")                # numba.pycc announces its deprecation
+        warnings.simplefilter("ignore")  # numba.pycc announces its deprecation
         from numba.pycc import CC
 
     from . import _kernels as k
@@ -70,10 +72,48 @@ def build(output_dir: str | None = None) -> str:
     cc.target_cpu = "host"
 
     @cc.export("exact_rows", _EXACT_SIGNATURE)
-    def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit,
-                   dist, shift, rot, reversed_, mirrored, lo, hi):
-        k._exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit,
-                      dist, shift, rot, reversed_, mirrored, lo, hi)
+    def exact_rows(
+        A,
+        Aw,
+        w,
+        B,
+        D,
+        basis,
+        quarter,
+        n,
+        mirror,
+        C,
+        refine,
+        refine_limit,
+        dist,
+        shift,
+        rot,
+        reversed_,
+        mirrored,
+        lo,
+        hi,
+    ):
+        k._exact_rows(
+            A,
+            Aw,
+            w,
+            B,
+            D,
+            basis,
+            quarter,
+            n,
+            mirror,
+            C,
+            refine,
+            refine_limit,
+            dist,
+            shift,
+            rot,
+            reversed_,
+            mirrored,
+            lo,
+            hi,
+        )
 
     @cc.export("grid_maximum_rows", _GRID_SIGNATURE)
     def grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi):
@@ -107,17 +147,36 @@ class _Kernels:
         reversed_ = np.zeros(N, dtype=np.bool_)
         mirrored = np.zeros(N, dtype=np.bool_)
         if N:
-            self._module.exact_rows(A, Aw, w, B, int(D), _writable(basis, n), bool(quarter), int(n), bool(mirror),
-                                    int(C), bool(refine), float(refine_limit), dist, shift, rot, reversed_, mirrored,
-                                    0, N)
+            self._module.exact_rows(
+                A,
+                Aw,
+                w,
+                B,
+                int(D),
+                _writable(basis, n),
+                bool(quarter),
+                int(n),
+                bool(mirror),
+                int(C),
+                bool(refine),
+                float(refine_limit),
+                dist,
+                shift,
+                rot,
+                reversed_,
+                mirrored,
+                0,
+                N,
+            )
         return dist, shift, rot, reversed_, mirrored
 
     def grid_maximum_rows(self, Aw, B, D, basis, quarter, n, mirror, workers=1):
         N = B.shape[0]
         fmax = np.empty(N)
         if N:
-            self._module.grid_maximum_rows(Aw, B, int(D), _writable(basis, n), bool(quarter), int(n), bool(mirror),
-                                           fmax, 0, N)
+            self._module.grid_maximum_rows(
+                Aw, B, int(D), _writable(basis, n), bool(quarter), int(n), bool(mirror), fmax, 0, N
+            )
         return fmax
 
 

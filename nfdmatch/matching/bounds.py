@@ -11,6 +11,7 @@ from .common import _weights
 
 # --------------------------------------------------------------------------- bounds
 
+
 def invariants(coefficients: np.ndarray, weights=None) -> dict[str, np.ndarray]:
     """Shift-, rotation-, reflection- and reversal-invariant features of descriptors.
 
@@ -29,9 +30,9 @@ def invariants(coefficients: np.ndarray, weights=None) -> dict[str, np.ndarray]:
     K = C.shape[-2]
     w = _weights(weights, K)
     root = np.sqrt(2.0 * w)
-    blocks = np.stack([C.real, C.imag], axis=-1)                          # (..., K, 3, 2)
+    blocks = np.stack([C.real, C.imag], axis=-1)  # (..., K, 3, 2)
     norm = np.linalg.norm(C, axis=-1) * root
-    sv = _singular_values_3x2(C.real, C.imag) * root[:, None]              # (..., K, 2)
+    sv = _singular_values_3x2(C.real, C.imag) * root[:, None]  # (..., K, 2)
     wide = (blocks * np.sqrt(w)[:, None, None]).swapaxes(-3, -2).reshape(*C.shape[:-2], 3, 2 * K)
     block = np.linalg.svd(wide, compute_uv=False) * np.sqrt(2.0)
     return {"norm": norm, "sv": sv.reshape(*C.shape[:-2], 2 * K), "block": block}
@@ -44,8 +45,8 @@ def _singular_values_3x2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ``|a x b| / s1`` (the product of the two is the parallelogram's area), accurate even
     when it is tiny. Each matrix is first scaled by its largest entry, so that no square
     under- or overflows."""
-    t = np.maximum(np.abs(a).max(axis=-1), np.abs(b).max(axis=-1))        # scaled to 1: no
-    t = np.where(t > 0, t, 1.0)                                          # under- or overflow
+    t = np.maximum(np.abs(a).max(axis=-1), np.abs(b).max(axis=-1))  # scaled to 1: no
+    t = np.where(t > 0, t, 1.0)  # under- or overflow
     a, b = a / t[..., None], b / t[..., None]
     aa = np.einsum("...i,...i->...", a, a)
     bb = np.einsum("...i,...i->...", b, b)

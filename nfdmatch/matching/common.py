@@ -16,10 +16,11 @@ DIRECTIONS = ("invariant", "strict")
 DEFAULT_METHOD, DEFAULT_DIRECTION = METHODS[0], DIRECTIONS[0]
 #: the direction that does not match a curve traversed backwards (``--strict-direction``)
 STRICT_DIRECTION = DIRECTIONS[1]
-_REFINE_CANDIDATES = 3        # integer local maxima refined per row
+_REFINE_CANDIDATES = 3  # integer local maxima refined per row
 
 
 # --------------------------------------------------------------------------- helpers
+
 
 def _weights(weights, harmonics: int) -> np.ndarray:
     """(K,) float64 weights w_1..w_K, validated (uniform when None)."""
@@ -27,8 +28,10 @@ def _weights(weights, harmonics: int) -> np.ndarray:
         return np.ones(harmonics)
     w = np.asarray(weights, dtype=np.float64).reshape(-1)
     if w.shape != (harmonics,) or not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise ParameterError(f"weights must be {harmonics} finite non-negative numbers "
-                             f"(one per harmonic 1..{harmonics}), got shape {w.shape}")
+        raise ParameterError(
+            f"weights must be {harmonics} finite non-negative numbers "
+            f"(one per harmonic 1..{harmonics}), got shape {w.shape}"
+        )
     return w
 
 
@@ -71,15 +74,26 @@ def _trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:
     digits exactly when the curves are near-planar or near-linear.
     """
     a, b, c, d, e, f, g, h, i = m
-    l1 = _lmax_soa(a * a + d * d + g * g, b * b + e * e + h * h, c * c + f * f + i * i,
-                   a * b + d * e + g * h, a * c + d * f + g * i, b * c + e * f + h * i)
+    l1 = _lmax_soa(
+        a * a + d * d + g * g,
+        b * b + e * e + h * h,
+        c * c + f * f + i * i,
+        a * b + d * e + g * h,
+        a * c + d * f + g * i,
+        b * c + e * f + h * i,
+    )
     c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
     c10, c11, c12 = c * h - b * i, a * i - c * g, b * g - a * h
     c20, c21, c22 = b * f - c * e, c * d - a * f, a * e - b * d
     det = a * c00 + b * c01 + c * c02
-    l12 = _lmax_soa(c00 * c00 + c10 * c10 + c20 * c20, c01 * c01 + c11 * c11 + c21 * c21,
-                    c02 * c02 + c12 * c12 + c22 * c22, c00 * c01 + c10 * c11 + c20 * c21,
-                    c00 * c02 + c10 * c12 + c20 * c22, c01 * c02 + c11 * c12 + c21 * c22)
+    l12 = _lmax_soa(
+        c00 * c00 + c10 * c10 + c20 * c20,
+        c01 * c01 + c11 * c11 + c21 * c21,
+        c02 * c02 + c12 * c12 + c22 * c22,
+        c00 * c01 + c10 * c11 + c20 * c21,
+        c00 * c02 + c10 * c12 + c20 * c22,
+        c01 * c02 + c11 * c12 + c21 * c22,
+    )
     s1 = np.sqrt(l1)
     s12 = np.sqrt(l12)
     s2 = s12 / np.maximum(s1, _TINY)

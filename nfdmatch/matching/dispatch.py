@@ -163,13 +163,16 @@ def _load_jit(warn: bool) -> bool:
         if state["module"] is None and state["failed"] is None:
             try:
                 from . import _kernels
+
                 _warm_up(_kernels)
-            except Exception as exc:             # ImportError, numba errors: numpy it is
+            except Exception as exc:  # ImportError, numba errors: numpy it is
                 state["failed"] = exc
                 if warn:
                     import warnings
-                    warnings.warn(f"nfdmatch: numba kernels unavailable, using numpy ({exc!r})",
-                                  RuntimeWarning, stacklevel=4)
+
+                    warnings.warn(
+                        f"nfdmatch: numba kernels unavailable, using numpy ({exc!r})", RuntimeWarning, stacklevel=4
+                    )
             else:
                 state["module"] = _kernels
     return state["module"] is not None
@@ -210,8 +213,9 @@ def compile_kernels(ahead_of_time: bool = True) -> bool:
     search)."""
     try:
         from . import _kernels
+
         _warm_up(_kernels)
-    except Exception:                      # ImportError, numba errors: the numpy path serves
+    except Exception:  # ImportError, numba errors: the numpy path serves
         return False
     if ahead_of_time:
         from . import aot
@@ -219,7 +223,7 @@ def compile_kernels(ahead_of_time: bool = True) -> bool:
         if aot.load() is None:
             try:
                 aot.build()
-            except Exception:              # no C compiler, numba.pycc gone: the JIT serves
+            except Exception:  # no C compiler, numba.pycc gone: the JIT serves
                 pass
         _kernel_state["aot"] = _UNLOADED
     with _kernel_lock:

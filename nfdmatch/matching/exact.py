@@ -10,16 +10,26 @@ import threading
 
 import numpy as np
 
-from .common import (_REFINE_CANDIDATES, _SMALL_BATCH, _check_direction, _direction_variants, _integer_shift_basis,
-                     _kabsch_rotation, _search_inputs, _shift_basis, _trace_soa, _trace_svd)
+from .common import (
+    _REFINE_CANDIDATES,
+    _SMALL_BATCH,
+    _check_direction,
+    _direction_variants,
+    _integer_shift_basis,
+    _kabsch_rotation,
+    _search_inputs,
+    _shift_basis,
+    _trace_soa,
+    _trace_svd,
+)
 from . import dispatch
 from .dispatch import _compiled_kernels, _folded_basis
 
 
 # --------------------------------------------------------------------------- exact
 
-_REFINE_MID_OFFSETS = np.array([-2.0, -1.0, 0.0, 1.0, 2.0]) / 16.0   # around the first estimate
-_REFINE_FINE_STEP = 1e-3                                           # spacing of the last parabola
+_REFINE_MID_OFFSETS = np.array([-2.0, -1.0, 0.0, 1.0, 2.0]) / 16.0  # around the first estimate
+_REFINE_FINE_STEP = 1e-3  # spacing of the last parabola
 
 
 def _parabola(x, h, f_minus, f_0, f_plus):
@@ -50,9 +60,9 @@ def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
     K = Pc.shape[2] // 2
     rows = np.arange(C)
 
-    def evaluate(points):                                   # (C, m) -> (C, m)
-        M = np.matmul(Pc, _shift_basis(points, K, n))       # (C, 9, m)
-        if M.shape[0] * M.shape[2] <= _SMALL_BATCH:         # LAPACK beats ~100 numpy calls here
+    def evaluate(points):  # (C, m) -> (C, m)
+        M = np.matmul(Pc, _shift_basis(points, K, n))  # (C, 9, m)
+        if M.shape[0] * M.shape[2] <= _SMALL_BATCH:  # LAPACK beats ~100 numpy calls here
             return _trace_svd(M.transpose(0, 2, 1).reshape(*points.shape, 3, 3), mirror)
         return _trace_soa(np.moveaxis(M, 1, 0), mirror)
 
@@ -60,8 +70,9 @@ def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
     mid = x1[:, None] + _REFINE_MID_OFFSETS
     fm = evaluate(mid)
     j = np.clip(np.argmax(fm, axis=1), 1, len(_REFINE_MID_OFFSETS) - 2)
-    x2, _, _ = _parabola(mid[rows, j], _REFINE_MID_OFFSETS[1] - _REFINE_MID_OFFSETS[0],
-                         fm[rows, j - 1], fm[rows, j], fm[rows, j + 1])
+    x2, _, _ = _parabola(
+        mid[rows, j], _REFINE_MID_OFFSETS[1] - _REFINE_MID_OFFSETS[0], fm[rows, j - 1], fm[rows, j], fm[rows, j + 1]
+    )
     h = _REFINE_FINE_STEP
     fine = x2[:, None] + np.array([-h, 0.0, h])
     ff = evaluate(fine)
@@ -73,10 +84,17 @@ def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
     return points[rows, best], values[rows, best]
 
 
-
-def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
-                 direction: str = "invariant", mirror: bool = False, refine: bool = True,
-                 refine_below: float | None = None):
+def exact_search(
+    A: np.ndarray,
+    B: np.ndarray,
+    samples: int,
+    *,
+    weights=None,
+    direction: str = "invariant",
+    mirror: bool = False,
+    refine: bool = True,
+    refine_below: float | None = None,
+):
     """The global optimum over start shift x rotation for one query against many rows.
 
     Parameters
@@ -112,23 +130,37 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
     kernels = _compiled_kernels(N * D * n + dispatch._CALL_WORK) if N else None
     if kernels is not None:
         # compiled: every stage per row in one call (F per row stays in cache)
-        workers = (min(os.cpu_count() or 1, dispatch._MAX_THREADS)
-                   if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread() else 1)
+        workers = (
+            min(os.cpu_count() or 1, dispatch._MAX_THREADS)
+            if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread()
+            else 1
+        )
         limit = np.inf
         if refine and refine_below is not None and np.isfinite(refine_below):
-            limit = refine_below ** 2 * (1 + 1e-9) + 1e-12
+            limit = refine_below**2 * (1 + 1e-9) + 1e-12
         basis, quarter = _folded_basis(K, n)
         dist, shift, R, reversed_, mirrored = kernels.exact_rows(
-            np.ascontiguousarray(A), np.ascontiguousarray(Aw), np.ascontiguousarray(w, dtype=np.float64),
-            np.ascontiguousarray(B), D, basis, quarter, n, bool(mirror), C, bool(refine), float(limit), workers)
+            np.ascontiguousarray(A),
+            np.ascontiguousarray(Aw),
+            np.ascontiguousarray(w, dtype=np.float64),
+            np.ascontiguousarray(B),
+            D,
+            basis,
+            quarter,
+            n,
+            bool(mirror),
+            C,
+            bool(refine),
+            float(limit),
+            workers,
+        )
         return {"distance": dist, "shift": shift, "rotation": R, "reversed": reversed_, "mirrored": mirrored}
-    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])          # (D, N, K, 3)
+    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])  # (D, N, K, 3)
     # P[j, i, d, r, k] = 2 w_k B_k[j] conj(A_k[i]): M(s)[j, i] = Re sum_k P e^{2 pi i k s / n}
     P = np.einsum("drkj,ki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
-    F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, n))
-                   .reshape(9, D, N, n), mirror)                               # (D, N, n)
-    F = F.transpose(1, 0, 2)                                                  # (N, D, n)
+    F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, n)).reshape(9, D, N, n), mirror)  # (D, N, n)
+    F = F.transpose(1, 0, 2)  # (N, D, n)
 
     local_max = (F >= np.roll(F, 1, axis=2)) & (F >= np.roll(F, -1, axis=2))
     Fm = np.where(local_max, F, -np.inf).reshape(N, D * n)
@@ -145,29 +177,35 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
         if refine_below is not None and np.isfinite(refine_below):
             k = np.arange(1, K + 1)
             norm_a = np.linalg.norm(A, axis=1)
-            norm_b = np.linalg.norm(B, axis=2)                                  # (N, K)
+            norm_b = np.linalg.norm(B, axis=2)  # (N, K)
             curvature = (2.0 * w * (2.0 * np.pi * k / n) ** 2 * norm_a * norm_b).sum(axis=1)
-            squared = 2.0 * (w * norm_a ** 2).sum() + 2.0 * (w * norm_b ** 2).sum(axis=1)
+            squared = 2.0 * (w * norm_a**2).sum() + 2.0 * (w * norm_b**2).sum(axis=1)
             lower2 = squared - 2.0 * (Fmax + curvature / 8.0)
-            todo = np.repeat(lower2 <= refine_below ** 2 * (1 + 1e-9) + 1e-12, C)
+            todo = np.repeat(lower2 <= refine_below**2 * (1 + 1e-9) + 1e-12, C)
         if todo.any():
             sel = np.flatnonzero(todo)
-            Pc = Pcat[:, dirs[sel], rows[sel], :].transpose(1, 0, 2)            # (m, 9, 2K)
+            Pc = Pcat[:, dirs[sel], rows[sel], :].transpose(1, 0, 2)  # (m, 9, 2K)
             Fr = F.reshape(N, D * n)
             base = cand.reshape(-1)[sel] - s_int[sel]
             shifts[sel], values[sel] = _refine_shifts(
-                Pc, shifts[sel], Fr[rows[sel], base + (s_int[sel] - 1) % n], values[sel],
-                Fr[rows[sel], base + (s_int[sel] + 1) % n], n, mirror)
+                Pc,
+                shifts[sel],
+                Fr[rows[sel], base + (s_int[sel] - 1) % n],
+                values[sel],
+                Fr[rows[sel], base + (s_int[sel] + 1) % n],
+                n,
+                mirror,
+            )
     values = np.where(np.isfinite(Fmax).repeat(C), values, -np.inf).reshape(N, C)
     pick = np.arange(N) * C + np.argmax(values, axis=1)
     shift, direction_idx = shifts[pick], dirs[pick]
 
-    Bsel = np.where((direction_idx == 1)[:, None, None], np.conj(B), B)       # (N, K, 3)
+    Bsel = np.where((direction_idx == 1)[:, None, None], np.conj(B), B)  # (N, K, 3)
     Bs = Bsel * np.exp((2j * np.pi / n) * np.outer(shift, np.arange(1, K + 1)))[:, :, None]
     Mbest = 2.0 * np.einsum("nkj,ki->nji", Bs, Aw).real
     R = _kabsch_rotation(Mbest, mirror)
     resid = A[None] - np.einsum("nij,nkj->nki", R, Bs)
-    dist = np.sqrt(2.0 * np.einsum("k,nk->n", w, np.sum(resid.real ** 2 + resid.imag ** 2, axis=2)))
+    dist = np.sqrt(2.0 * np.einsum("k,nk->n", w, np.sum(resid.real**2 + resid.imag**2, axis=2)))
     mirrored = np.linalg.det(R) < 0
     shift = np.mod(shift, n)
     shift = np.where(np.abs(shift - np.round(shift)) < 1e-9, np.round(shift), shift) % n  # 127.99999.. -> 0
@@ -175,13 +213,14 @@ def exact_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
         "distance": dist,
         "shift": shift,
         "rotation": R,
-        "reversed": direction_idx == 1,        # variants: (B, False), (conj(B), True)
+        "reversed": direction_idx == 1,  # variants: (B, False), (conj(B), True)
         "mirrored": mirrored,
     }
 
 
-def grid_maximum(A: np.ndarray, B: np.ndarray, grid: int, *, direction: str = "invariant",
-                 mirror: bool = False) -> np.ndarray:
+def grid_maximum(
+    A: np.ndarray, B: np.ndarray, grid: int, *, direction: str = "invariant", mirror: bool = False
+) -> np.ndarray:
     """max over ``grid`` equally spaced start shifts, both directions (when ``direction`` is
     invariant) and all rotations of the correlation objective, per row.
 
@@ -206,12 +245,16 @@ def grid_maximum(A: np.ndarray, B: np.ndarray, grid: int, *, direction: str = "i
     Aw = np.conj(A)
     kernels = _compiled_kernels(N * D * grid + dispatch._CALL_WORK) if N else None
     if kernels is not None:
-        workers = (min(os.cpu_count() or 1, dispatch._MAX_THREADS)
-                   if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread() else 1)
+        workers = (
+            min(os.cpu_count() or 1, dispatch._MAX_THREADS)
+            if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread()
+            else 1
+        )
         basis, quarter = _folded_basis(K, grid)
-        return kernels.grid_maximum_rows(np.ascontiguousarray(Aw), np.ascontiguousarray(B), D, basis, quarter,
-                                         grid, bool(mirror), workers)
-    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])          # (D, N, K, 3)
+        return kernels.grid_maximum_rows(
+            np.ascontiguousarray(Aw), np.ascontiguousarray(B), D, basis, quarter, grid, bool(mirror), workers
+        )
+    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])  # (D, N, K, 3)
     P = np.einsum("drkj,ki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
     F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, grid)).reshape(9, D, N, grid), mirror)

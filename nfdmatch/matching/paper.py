@@ -25,13 +25,15 @@ def _bisector_angle(c1: np.ndarray) -> np.ndarray:
     """Angle in the xy-plane of the bisector of p = Re c1, q = -Im c1; c1 (..., 3) complex."""
     p, q = c1.real[..., :2], -c1.imag[..., :2]
     tiny = np.finfo(float).tiny
-    h = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), tiny) \
-        + q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), tiny)
+    h = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), tiny) + q / np.maximum(
+        np.linalg.norm(q, axis=-1, keepdims=True), tiny
+    )
     return np.arctan2(h[..., 1], h[..., 0])
 
 
-def paper_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
-                 direction: str = "invariant", mirror: bool = False):
+def paper_search(
+    A: np.ndarray, B: np.ndarray, samples: int, *, weights=None, direction: str = "invariant", mirror: bool = False
+):
     """The paper's matching step (Zhang & Fiume 2002, section 4.2.3), one query against many rows.
 
     Both ``A`` (K, 3) and ``B`` (N, K, 3) must be limit-plane aligned (as returned by
@@ -49,27 +51,38 @@ def paper_search(A: np.ndarray, B: np.ndarray, samples: int, *, weights=None,
         names += ["mirrored"] + (["mirrored_reversed"] if direction == "invariant" else [])
     k = np.arange(1, K + 1)
     shifts = np.arange(n)
-    phase = np.exp(2j * np.pi * np.outer(shifts, k) / n)                 # (n, K)
+    phase = np.exp(2j * np.pi * np.outer(shifts, k) / n)  # (n, K)
     theta_a = _bisector_angle(A[0])
-    best = {"distance": np.full(N, np.inf), "shift": np.zeros(N), "rotation": np.tile(np.eye(3), (N, 1, 1)),
-            "reversed": np.zeros(N, bool), "mirrored": np.zeros(N, bool)}
+    best = {
+        "distance": np.full(N, np.inf),
+        "shift": np.zeros(N),
+        "rotation": np.tile(np.eye(3), (N, 1, 1)),
+        "reversed": np.zeros(N, bool),
+        "mirrored": np.zeros(N, bool),
+    }
     for name in names:
         T, conj, rev, mir = _PAPER_VARIANTS[name]
-        Bv = (np.conj(B) if conj else B) @ T.T                            # (N, K, 3)
-        Bs = Bv[:, None, :, :] * phase[None, :, :, None]                  # (N, n, K, 3)
-        theta = theta_a - _bisector_angle(Bs[:, :, 0, :])                 # (N, n)
+        Bv = (np.conj(B) if conj else B) @ T.T  # (N, K, 3)
+        Bs = Bv[:, None, :, :] * phase[None, :, :, None]  # (N, n, K, 3)
+        theta = theta_a - _bisector_angle(Bs[:, :, 0, :])  # (N, n)
         c, s = np.cos(theta), np.sin(theta)
         x = c[..., None] * Bs[..., 0] - s[..., None] * Bs[..., 1]
         y = s[..., None] * Bs[..., 0] + c[..., None] * Bs[..., 1]
-        d2 = 2.0 * np.einsum("k,nsk->ns", w, np.abs(A[:, 0] - x) ** 2 + np.abs(A[:, 1] - y) ** 2
-                             + np.abs(A[:, 2] - Bs[..., 2]) ** 2)
+        d2 = 2.0 * np.einsum(
+            "k,nsk->ns", w, np.abs(A[:, 0] - x) ** 2 + np.abs(A[:, 1] - y) ** 2 + np.abs(A[:, 2] - Bs[..., 2]) ** 2
+        )
         j = np.argmin(d2, axis=1)
         dist = np.sqrt(d2[np.arange(N), j])
         better = dist < best["distance"]
         th = theta[np.arange(N), j]
         Rz = np.zeros((N, 3, 3))
         Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = (
-            np.cos(th), -np.sin(th), np.sin(th), np.cos(th), 1.0)
+            np.cos(th),
+            -np.sin(th),
+            np.sin(th),
+            np.cos(th),
+            1.0,
+        )
         best["distance"] = np.where(better, dist, best["distance"])
         best["shift"] = np.where(better, j.astype(float), best["shift"])
         best["rotation"] = np.where(better[:, None, None], Rz @ T, best["rotation"])

@@ -72,6 +72,20 @@ from .manifest import MANIFEST, PruneResult, prune_contours, read_manifest
 from .naming import write_contours
 from .sections import extract_contours, section_levels
 
-__all__ = ["AXES", "DEFAULT_SECTIONS", "Contour", "ExtractResult", "PruneResult", "MANIFEST", "mesh_extensions",
-           "find_mesh_files", "load_mesh", "section_levels", "extract_contours",
-           "write_contours", "prune_contours", "read_manifest", "mesh_stem"]
+__all__ = [
+    "AXES",
+    "DEFAULT_SECTIONS",
+    "Contour",
+    "ExtractResult",
+    "PruneResult",
+    "MANIFEST",
+    "mesh_extensions",
+    "find_mesh_files",
+    "load_mesh",
+    "section_levels",
+    "extract_contours",
+    "write_contours",
+    "prune_contours",
+    "read_manifest",
+    "mesh_stem",
+]

@@ -10,7 +10,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-
 #: the axes a section can be perpendicular to
 AXES = ("x", "y", "z")
 #: default number of section levels
@@ -25,6 +24,7 @@ _NOT_MESH_FORMATS = {"xyz", "stl_ascii"}
 # ---------------------------------------------------------------------------
 # records
 # ---------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class Contour:
@@ -75,7 +75,7 @@ class Contour:
         if self.kind == "boundary":
             return f"{stem}_boundary_{loop}"
         width = max(2, len(str(max((self.level_count or 1) - 1, 0))))
-        level = f"{self.level + 0.0:.6g}"          # + 0.0: no "-0"
+        level = f"{self.level + 0.0:.6g}"  # + 0.0: no "-0"
         return f"{stem}_section-{self.axis}{self.level_index:0{width}d}_at{level}_{loop}"
 
 

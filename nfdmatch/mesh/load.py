@@ -138,8 +138,7 @@ def load_mesh(path):
 
     vertices = np.concatenate([v for v, _ in parts]) if parts else np.zeros((0, 3))
     offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
-    faces = (np.concatenate([f + o for (_, f), o in zip(parts, offsets)]) if parts
-             else np.zeros((0, 3), dtype=np.int64))
+    faces = np.concatenate([f + o for (_, f), o in zip(parts, offsets)]) if parts else np.zeros((0, 3), dtype=np.int64)
     if len(faces) == 0:
         raise MeshError("not a triangle mesh: it has no faces", path=p)
     finite = np.isfinite(vertices).all(axis=1)
@@ -155,8 +154,9 @@ def load_mesh(path):
     if not keep.all():
         mesh.update_faces(keep)
     if len(mesh.faces) == 0:
-        raise MeshError("not a usable triangle mesh: every face is degenerate "
-                        "(repeated or non-finite vertices)", path=p)
+        raise MeshError(
+            "not a usable triangle mesh: every face is degenerate (repeated or non-finite vertices)", path=p
+        )
     return mesh
 
 
@@ -183,8 +183,12 @@ def _triangle_parts(loaded) -> list[tuple[np.ndarray, np.ndarray]] | str:
     parts, others = [], []
     for g in geometries:
         if isinstance(g, trimesh.Trimesh) and len(g.faces):
-            parts.append((np.asarray(g.vertices, dtype=np.float64).reshape(-1, 3),
-                          np.asarray(g.faces, dtype=np.int64).reshape(-1, 3)))
+            parts.append(
+                (
+                    np.asarray(g.vertices, dtype=np.float64).reshape(-1, 3),
+                    np.asarray(g.faces, dtype=np.int64).reshape(-1, 3),
+                )
+            )
         else:
             others.append(g)
     if parts:

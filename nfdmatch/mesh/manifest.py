@@ -55,8 +55,13 @@ def read_manifest(out_dir) -> tuple[dict, str | None]:
     entries = {}
     for name, entry in files.items():
         # only plain names of this folder: a manifest never points elsewhere
-        if (isinstance(name, str) and isinstance(entry, dict) and name == os.path.basename(name)
-                and name not in ("", ".", "..", MANIFEST) and isinstance(entry.get("sha256"), str)):
+        if (
+            isinstance(name, str)
+            and isinstance(entry, dict)
+            and name == os.path.basename(name)
+            and name not in ("", ".", "..", MANIFEST)
+            and isinstance(entry.get("sha256"), str)
+        ):
             entries[name] = {"mesh": str(entry.get("mesh", "")), "sha256": entry["sha256"]}
     return entries, None
 
@@ -64,15 +69,22 @@ def read_manifest(out_dir) -> tuple[dict, str | None]:
 def _write_manifest(d: str, entries: dict) -> None:
     import json
 
-    text = json.dumps({"format": _MANIFEST_FORMAT, "version": 1,
-                       "files": {name: entries[name] for name in sorted(entries)}}, indent=1, sort_keys=True) + "\n"
+    text = (
+        json.dumps(
+            {"format": _MANIFEST_FORMAT, "version": 1, "files": {name: entries[name] for name in sorted(entries)}},
+            indent=1,
+            sort_keys=True,
+        )
+        + "\n"
+    )
     target = os.path.join(d, MANIFEST)
 
     def produce(temp):
         with open(temp, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)
+
     try:
-        write_if_changed(target, produce)           # whole, atomically; untouched when the same
+        write_if_changed(target, produce)  # whole, atomically; untouched when the same
     except OSError as exc:
         raise WriteError(f"cannot write the manifest ({exc.strerror or exc})", path=target) from None
 
@@ -116,7 +128,7 @@ def prune_contours(out_dir, written, *, keep_meshes=()) -> PruneResult:
             continue
         if os.path.islink(path) or _sha256_file(path) != entry["sha256"]:
             result.kept.append((path, "changed since extract wrote it; left alone"))
-            del entries[name]                          # no longer extract's file
+            del entries[name]  # no longer extract's file
             continue
         try:
             os.remove(path)

@@ -91,8 +91,7 @@ def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj")
         except OSError as exc:
             raise WriteError(f"cannot write the file ({exc.strerror or exc})", path=target) from None
         except Exception as exc:  # a writer backend (VTK) failing its own way
-            raise WriteError(f"cannot write the file ({type(exc).__name__}: {exc})",
-                             path=target) from None
+            raise WriteError(f"cannot write the file ({type(exc).__name__}: {exc})", path=target) from None
         written.append(target)
         produced[os.path.basename(target)] = c.mesh
     _record(d, produced)

@@ -46,8 +46,10 @@ def section_levels(bounds, sections: int, axis: str = "auto") -> tuple[str, np.n
 # extraction
 # ---------------------------------------------------------------------------
 
-def extract_contours(path, *, sections: int = DEFAULT_SECTIONS, axis: str = "auto",
-                     boundaries: bool = False) -> ExtractResult:
+
+def extract_contours(
+    path, *, sections: int = DEFAULT_SECTIONS, axis: str = "auto", boundaries: bool = False
+) -> ExtractResult:
     """Closed section loops (and boundary loops) of the triangle mesh in ``path``.
 
     Parameters
@@ -81,15 +83,14 @@ def extract_contours(path, *, sections: int = DEFAULT_SECTIONS, axis: str = "aut
     mesh = load_mesh(p)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
-    result = ExtractResult(mesh=p, axis=None, levels=np.zeros(0), vertices=len(vertices),
-                           faces=len(faces))
+    result = ExtractResult(mesh=p, axis=None, levels=np.zeros(0), vertices=len(vertices), faces=len(faces))
     notes = result.notes
 
     if sections:
         axis_name, levels = section_levels(mesh.bounds, sections, axis)
         result.axis, result.levels = axis_name, levels
         a = AXES.index(axis_name)
-        bounds = np.asarray(mesh.bounds, dtype=np.float64)   # of the vertices used by faces
+        bounds = np.asarray(mesh.bounds, dtype=np.float64)  # of the vertices used by faces
         if not bounds[1, a] - bounds[0, a] > 0:
             notes.append(f"{p}: the mesh is flat along {axis_name} (zero extent): no sections")
         else:
@@ -101,31 +102,40 @@ def extract_contours(path, *, sections: int = DEFAULT_SECTIONS, axis: str = "aut
             width = max(2, len(str(sections - 1)))
             for i, level in enumerate(levels.tolist()):
                 where = f"{p}: section {axis_name}{i:0{width}d} at {level + 0.0:.6g}"
-                loops = _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi,
-                                       a, level, where, notes)
+                loops = _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a, level, where, notes)
                 loops = _orient_ccw(loops, a)
                 result.contours.extend(
-                    Contour(points=pts, mesh=p, kind="section", axis=axis_name, level=float(level),
-                            level_index=i, loop=k, level_count=sections, loop_count=len(loops))
-                    for k, pts in enumerate(loops))
+                    Contour(
+                        points=pts,
+                        mesh=p,
+                        kind="section",
+                        axis=axis_name,
+                        level=float(level),
+                        level_index=i,
+                        loop=k,
+                        level_count=sections,
+                        loop_count=len(loops),
+                    )
+                    for k, pts in enumerate(loops)
+                )
 
     if boundaries:
         loops = _boundary_loops(mesh, f"{p}: boundary", notes)
         if not loops and not any(n.startswith(f"{p}: boundary") for n in notes):
             notes.append(f"{p}: no boundary loops (the mesh is closed)")
         result.contours.extend(
-            Contour(points=pts, mesh=p, kind="boundary", loop=k, loop_count=len(loops))
-            for k, pts in enumerate(loops))
+            Contour(points=pts, mesh=p, kind="boundary", loop=k, loop_count=len(loops)) for k, pts in enumerate(loops)
+        )
 
     if not result.contours:
-        asked = " or ".join(w for w, on in (("section loops", sections), ("boundary loops", boundaries))
-                            if on)
+        asked = " or ".join(w for w, on in (("section loops", sections), ("boundary loops", boundaries)) if on)
         notes.append(f"{p}: nothing extracted (no closed {asked})")
     return result
 
 
-def _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a: int, level: float,
-                   where: str, notes: list[str]) -> list[np.ndarray]:
+def _section_loops(
+    vertices, faces, edges, face_edges, face_lo, face_hi, a: int, level: float, where: str, notes: list[str]
+) -> list[np.ndarray]:
     """Closed loops of the plane ``coordinate a == level``, as cleaned (m, 3) float64 arrays.
 
     vertices (n, 3) float64, faces (f, 3) int64, edges (e, 2) int64 unique
@@ -135,26 +145,26 @@ def _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a: int,
     hit = (face_lo < level) & (face_hi >= level)
     if not hit.any():
         return []
-    fe = face_edges[hit]                                    # (h, 3) edge ids
+    fe = face_edges[hit]  # (h, 3) edge ids
     used = np.unique(fe)
-    ends = edges[used]                                      # (u, 2)
-    d = vertices[ends, a] - level                           # (u, 2) signed heights
+    ends = edges[used]  # (u, 2)
+    d = vertices[ends, a] - level  # (u, 2) signed heights
     crossing = (d[:, 0] >= 0) != (d[:, 1] >= 0)
     cross_of = np.zeros(len(edges), dtype=bool)
     cross_of[used[crossing]] = True
-    fc = cross_of[fe]                                       # (h, 3): two True per row
+    fc = cross_of[fe]  # (h, 3): two True per row
     rows, cols = np.nonzero(fc)
-    segments = fe[rows, cols].reshape(-1, 2)                # (h, 2) pairs of edge ids
+    segments = fe[rows, cols].reshape(-1, 2)  # (h, 2) pairs of edge ids
 
     # crossing points, one per crossing edge (computed once per edge, so both faces
     # of an edge share it exactly); segments renumbered into them
-    ids = used[crossing]                                    # sorted edge ids
+    ids = used[crossing]  # sorted edge ids
     d0, d1 = d[crossing, 0], d[crossing, 1]
     t = d0 / (d0 - d1)
     p0, p1 = vertices[edges[ids, 0]], vertices[edges[ids, 1]]
     # (1 - t) p0 + t p1 gives the vertex itself exactly where the plane passes through one
     # (t = 0 or 1), so the two edges meeting there give the same point and cleaning drops it
-    points = (1.0 - t)[:, None] * p0 + t[:, None] * p1      # (c, 3)
+    points = (1.0 - t)[:, None] * p0 + t[:, None] * p1  # (c, 3)
     points[:, a] = level
     return _loops_to_points(np.searchsorted(ids, segments), points, where, notes)
 
@@ -168,13 +178,11 @@ def _boundary_loops(mesh, where: str, notes: list[str]) -> list[np.ndarray]:
     if len(single) == 0:
         return []
     segments = np.asarray(mesh.edges, dtype=np.int64)[np.asarray(single, dtype=np.int64)]
-    order = np.argsort(single, kind="stable")               # face order: walking follows winding
-    return _loops_to_points(segments[order], np.asarray(mesh.vertices, dtype=np.float64),
-                            where, notes)
+    order = np.argsort(single, kind="stable")  # face order: walking follows winding
+    return _loops_to_points(segments[order], np.asarray(mesh.vertices, dtype=np.float64), where, notes)
 
 
-def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str,
-                     notes: list[str]) -> list[np.ndarray]:
+def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str, notes: list[str]) -> list[np.ndarray]:
     """Chain segments (m, 2) int64 of ids into ``points`` (k, 3) into closed loops.
 
     Returns cleaned (n_i, 3) float64 loops by decreasing perimeter; open pieces,
@@ -182,11 +190,11 @@ def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str,
     """
     loops, open_pieces, branching = closed_loops(segments)
     if branching:
-        notes.append(f"{where}: {branching} branching point{'s' if branching != 1 else ''} "
-                     "(non-manifold), loops split there")
+        notes.append(
+            f"{where}: {branching} branching point{'s' if branching != 1 else ''} (non-manifold), loops split there"
+        )
     if open_pieces:
-        notes.append(f"{where}: {open_pieces} open piece{'s' if open_pieces != 1 else ''} "
-                     "skipped (not closed)")
+        notes.append(f"{where}: {open_pieces} open piece{'s' if open_pieces != 1 else ''} skipped (not closed)")
     out, degenerate = [], 0
     for ids in loops:
         try:
@@ -194,8 +202,10 @@ def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str,
         except CurveError:
             degenerate += 1
     if degenerate:
-        notes.append(f"{where}: {degenerate} degenerate loop{'s' if degenerate != 1 else ''} "
-                     "skipped (fewer than 3 distinct points)")
+        notes.append(
+            f"{where}: {degenerate} degenerate loop{'s' if degenerate != 1 else ''} "
+            "skipped (fewer than 3 distinct points)"
+        )
     lengths = [float(np.linalg.norm(np.diff(c, axis=0, append=c[:1]), axis=1).sum()) for c in out]
     order = sorted(range(len(out)), key=lambda k: (-lengths[k], tuple(out[k].min(axis=0))))
     result = [out[k] for k in order]
@@ -206,7 +216,7 @@ def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str,
 
 def _orient_ccw(loops: list[np.ndarray], a: int) -> list[np.ndarray]:
     """Reverse the loops that run clockwise seen from the positive end of axis ``a``."""
-    i, j = (a + 1) % 3, (a + 2) % 3                        # right-handed in-plane coordinates
+    i, j = (a + 1) % 3, (a + 2) % 3  # right-handed in-plane coordinates
     out = []
     for c in loops:
         x, y = c[:, i], c[:, j]

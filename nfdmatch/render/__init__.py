@@ -55,23 +55,65 @@ import numpy as np
 
 from ..errors import ParameterError, RenderError, WriteError
 from ..records import ShownMatch
-from .layout import (DEFAULT_RENDERER, MAX_SIDE, MIN_SIDE, PICTURE_FORMATS, RENDERERS, START_STEP, MatchPanel,
-                     RenderResult, _as_points, _as_vector, build_scene, _check_renderer, _check_size, _reason,
-                     _Unavailable, _write, check_output, is_coplanar, picture_format, short_label, short_labels)
+from .layout import (
+    DEFAULT_RENDERER,
+    MAX_SIDE,
+    MIN_SIDE,
+    PICTURE_FORMATS,
+    RENDERERS,
+    START_STEP,
+    MatchPanel,
+    RenderResult,
+    _as_points,
+    _as_vector,
+    build_scene,
+    _check_renderer,
+    _check_size,
+    _reason,
+    _Unavailable,
+    _write,
+    check_output,
+    is_coplanar,
+    picture_format,
+    short_label,
+    short_labels,
+)
 from .matplotlib_backend import _draw_matplotlib
 from .matrix import render_matrix
 from .pyvista_backend import _draw_pyvista
 
-__all__ = ["RENDERERS", "DEFAULT_RENDERER", "START_STEP", "MIN_SIDE", "MAX_SIDE", "ShownMatch", "MatchPanel",
-           "RenderResult",
-           "PICTURE_FORMATS", "check_output", "picture_format", "render_matches",
-           "render_matrix", "is_coplanar", "short_label", "short_labels"]
+__all__ = [
+    "RENDERERS",
+    "DEFAULT_RENDERER",
+    "START_STEP",
+    "MIN_SIDE",
+    "MAX_SIDE",
+    "ShownMatch",
+    "MatchPanel",
+    "RenderResult",
+    "PICTURE_FORMATS",
+    "check_output",
+    "picture_format",
+    "render_matches",
+    "render_matrix",
+    "is_coplanar",
+    "short_label",
+    "short_labels",
+]
 
 
 # --------------------------------------------------------------------------- renderers
 
-def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch], path: str | os.PathLike[str], *,
-                   size: tuple[int, int] = (1600, 900), renderer: str = "auto") -> RenderResult:
+
+def render_matches(
+    query: np.ndarray,
+    query_id: str,
+    panels: Sequence[ShownMatch],
+    path: str | os.PathLike[str],
+    *,
+    size: tuple[int, int] = (1600, 900),
+    renderer: str = "auto",
+) -> RenderResult:
     """Draw the query and its matches, each in the query's frame, into one PNG.
 
     Parameters
@@ -109,16 +151,20 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch
             d = float(p.distance)
         except (TypeError, ValueError):
             raise ParameterError(f"{what}: distance must be a number, got {p.distance!r}") from None
-        checked.append(ShownMatch(match=p.match.replace(id=str(p.id), distance=d, reversed=bool(p.reversed),
-                                                        mirrored=bool(p.mirrored)),
-                                  points=_as_points(p.points, what), start=_as_vector(p.start, f"{what} start"),
-                                  forward=_as_vector(p.forward, f"{what} forward"), source=p.source))
+        checked.append(
+            ShownMatch(
+                match=p.match.replace(id=str(p.id), distance=d, reversed=bool(p.reversed), mirrored=bool(p.mirrored)),
+                points=_as_points(p.points, what),
+                start=_as_vector(p.start, f"{what} start"),
+                forward=_as_vector(p.forward, f"{what} forward"),
+                source=p.source,
+            )
+        )
     out = check_output(path)
     fmt = picture_format(out)
     scene = build_scene(q, str(query_id), checked, size)
-    order = [renderer] if renderer != "auto" else [DEFAULT_RENDERER] + [r for r in RENDERERS
-                                                                         if r != DEFAULT_RENDERER]
-    if fmt != "png":                  # pyvista draws pixels only
+    order = [renderer] if renderer != "auto" else [DEFAULT_RENDERER] + [r for r in RENDERERS if r != DEFAULT_RENDERER]
+    if fmt != "png":  # pyvista draws pixels only
         if renderer == "pyvista":
             raise ParameterError(f"pyvista draws PNG only; use --renderer matplotlib for .{fmt}", path=out)
         order = ["matplotlib"]
@@ -129,7 +175,7 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch
             data = _drawer(name)(scene) if fmt == "png" else _drawer(name)(scene, fmt=fmt)
         except (WriteError, ParameterError):
             raise
-        except Exception as exc:        # ImportError, RuntimeError from VTK/EGL, anything else
+        except Exception as exc:  # ImportError, RuntimeError from VTK/EGL, anything else
             reason = _reason(exc)
             if renderer != "auto":
                 raise RenderError(_unavailable(name, reason, exc), path=out) from exc
@@ -140,8 +186,7 @@ def render_matches(query: np.ndarray, query_id: str, panels: Sequence[ShownMatch
         if failures:
             note = "; ".join(f"{n} could not draw ({r})" for n, r in failures) + f"; used {name}"
         return RenderResult(path=out, renderer=name, seconds=time.perf_counter() - t0, note=note)
-    raise RenderError("no renderer could draw the picture: "
-                      + "; ".join(f"{n}: {r}" for n, r in failures), path=out)
+    raise RenderError("no renderer could draw the picture: " + "; ".join(f"{n}: {r}" for n, r in failures), path=out)
 
 
 def _drawer(name: str):

@@ -26,13 +26,13 @@ MIN_SIDE, MAX_SIDE = 100, 10000
 LABEL_WIDTH = 32
 MATRIX_LABEL_WIDTH = 28
 
-_QUERY_COLOR = "#1f4e9c"       # the query, in its own panel
-_UNDER_COLOR = "#9c9c9c"       # the query under a match
-_MATCH_COLOR = "#d1421b"       # a match
+_QUERY_COLOR = "#1f4e9c"  # the query, in its own panel
+_UNDER_COLOR = "#9c9c9c"  # the query under a match
+_MATCH_COLOR = "#d1421b"  # a match
 _TEXT_COLOR = "#1a1a1a"
 _NOTE_COLOR = "#555555"
-_TILT = math.radians(30.0)     # 3-D view: tilt of the camera away from the smallest axis
-_ARROW = 0.11                  # arrow length, fraction of the larger side of the view
+_TILT = math.radians(30.0)  # 3-D view: tilt of the camera away from the smallest axis
+_ARROW = 0.11  # arrow length, fraction of the larger side of the view
 
 
 #: the old name of :class:`~nfdmatch.records.ShownMatch`, which drawing reads (deprecated)
@@ -77,7 +77,7 @@ def short_label(id: str, width: int = LABEL_WIDTH) -> str:
     selector = ""
     m = _SELECTOR.search(text)
     if m and m.start() > 0:
-        text, selector = text[:m.start()], m.group(0)
+        text, selector = text[: m.start()], m.group(0)
     base = re.split(r"[\\/]", text.rstrip("\\/"))[-1] or text
     return _ellipsize(base + selector, width)
 
@@ -86,7 +86,7 @@ def short_labels(ids: Sequence[str], width: int = LABEL_WIDTH) -> list[str]:
     """:func:`short_label` of each id; ids whose base names collide keep as many parent
     folders as it takes to tell them apart (``a/x.csv``, ``b/x.csv``)."""
     ids = [str(i) for i in ids]
-    labels = [short_label(i, 10 ** 6) for i in ids]
+    labels = [short_label(i, 10**6) for i in ids]
     parts = [re.split(r"[\\/]", _SELECTOR.sub("", i).rstrip("\\/")) for i in ids]
     for depth in range(2, 1 + max((len(p) for p in parts), default=1)):
         distinct: dict[str, set] = {}
@@ -115,10 +115,12 @@ def _without_common_affixes(labels: list[str]) -> list[str]:
     shortest = min(len(label) for label in labels)
     cut_start = max((i + 1 for i, ch in enumerate(prefix) if ch in _CUT), default=0)
     cut_end = max((i + 1 for i, ch in enumerate(suffix[::-1]) if ch in _CUT), default=0)
-    if cut_start + cut_end >= shortest:                     # nothing distinctive would be left
+    if cut_start + cut_end >= shortest:  # nothing distinctive would be left
         return labels
-    return [("\u2026" if cut_start else "") + label[cut_start:len(label) - cut_end]
-            + ("\u2026" if cut_end else "") for label in labels]
+    return [
+        ("\u2026" if cut_start else "") + label[cut_start : len(label) - cut_end] + ("\u2026" if cut_end else "")
+        for label in labels
+    ]
 
 
 def _ellipsize(text: str, width: int) -> str:
@@ -127,7 +129,7 @@ def _ellipsize(text: str, width: int) -> str:
         return text
     tail = (width - 1) // 2
     head = width - 1 - tail
-    return text[:head] + "\u2026" + text[len(text) - tail:]
+    return text[:head] + "\u2026" + text[len(text) - tail :]
 
 
 def _format_distance(d: float) -> str:
@@ -135,6 +137,7 @@ def _format_distance(d: float) -> str:
 
 
 # --------------------------------------------------------------------------- checks
+
 
 def _as_points(x, what: str, min_points: int = 2) -> np.ndarray:
     try:
@@ -197,8 +200,9 @@ def check_output(path: str | os.PathLike[str]) -> str:
         raise WriteError("cannot write the picture: empty file name", path=p)
     ext = os.path.splitext(p)[1].lower()
     if ext not in PICTURE_FORMATS:
-        raise ParameterError(f"pictures are written as PNG, SVG or PDF; use a .png, .svg or .pdf file name, "
-                             f"not {ext!r}", path=p)
+        raise ParameterError(
+            f"pictures are written as PNG, SVG or PDF; use a .png, .svg or .pdf file name, not {ext!r}", path=p
+        )
     if os.path.isdir(p):
         raise WriteError("cannot write the picture: it is a directory", path=p)
     folder = os.path.dirname(os.path.abspath(p))
@@ -228,6 +232,7 @@ def _check_renderer(renderer) -> str:
 
 
 # --------------------------------------------------------------------------- geometry
+
 
 def is_coplanar(*point_sets: np.ndarray, tol: float = 1e-6) -> bool:
     """True when all points of all sets lie within ``tol`` times their extent (the largest
@@ -275,7 +280,7 @@ def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows: principal axes of the curve by decreasing spread, right-handed, deterministic
     signs; and the spreads (variances)."""
     _, cov = _moments(points)
-    values, vectors = np.linalg.eigh(cov)                 # ascending
+    values, vectors = np.linalg.eigh(cov)  # ascending
     e1, e3 = _canonical(vectors[:, 2]), _canonical(vectors[:, 0])
     e2 = np.cross(e3, e1)
     return np.array([e1, e2, e3]), values[::-1]
@@ -285,9 +290,9 @@ def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class ScenePanel:
     """One panel of a :class:`Scene`: the query alone, or a match over it."""
 
-    title: str                 # first line
-    subtitle: str              # second line
-    points: np.ndarray         # view coordinates (m, 3): x right, y up, z towards the viewer
+    title: str  # first line
+    subtitle: str  # second line
+    points: np.ndarray  # view coordinates (m, 3): x right, y up, z towards the viewer
     start: np.ndarray
     forward: np.ndarray
     is_query: bool
@@ -305,12 +310,12 @@ class Scene:
     size: tuple
     rows: int
     cols: int
-    font_pt: float             # panel title font size (points; 1 pt = 100/72 px at dpi 100)
-    title_px: int              # title band height of a panel
-    pad_px: int                # padding around the data box of a panel
-    window: tuple              # (x0, x1, y0, y1) view limits of a panel's data box, same for all
-    zrange: tuple              # depth range of everything drawn
-    arrow: float               # arrow length, view units
+    font_pt: float  # panel title font size (points; 1 pt = 100/72 px at dpi 100)
+    title_px: int  # title band height of a panel
+    pad_px: int  # padding around the data box of a panel
+    window: tuple  # (x0, x1, y0, y1) view limits of a panel's data box, same for all
+    zrange: tuple  # depth range of everything drawn
+    arrow: float  # arrow length, view units
 
     @property
     def cell(self) -> tuple[float, float]:
@@ -360,10 +365,10 @@ def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size
     extent = float(np.ptp(everything, axis=0).max()) or 1.0
     centre, _ = _moments(query)
     if planar and np.abs(everything[:, 2] - centre[2]).max() <= 1e-6 * extent:
-        view = np.eye(3)                                        # already in the x, y plane
+        view = np.eye(3)  # already in the x, y plane
     else:
         axes, spread = _principal_axes(query)
-        if spread[1] <= 1e-12 * max(spread[0], 1e-300):        # a straight query: use everything
+        if spread[1] <= 1e-12 * max(spread[0], 1e-300):  # a straight query: use everything
             vt = np.linalg.svd(everything - everything.mean(axis=0), full_matrices=True)[2]
             e1, e3 = _canonical(vt[0]), _canonical(vt[2])
             axes = np.array([e1, np.cross(e3, e1), e3])
@@ -381,18 +386,29 @@ def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size
     q_start, q_forward = q[0], to_view(points_at(query, [START_STEP])[0])
     # shortened together: long names that differ in the middle keep that middle
     qlabel, *match_labels = short_labels([query_id] + [p.id for p in panels])
-    scene_panels = [ScenePanel(title=f"query: {qlabel}",
-                           subtitle=_key(planar, bool(panels)),
-                           points=q, start=q_start, forward=q_forward, is_query=True)]
+    scene_panels = [
+        ScenePanel(
+            title=f"query: {qlabel}",
+            subtitle=_key(planar, bool(panels)),
+            points=q,
+            start=q_start,
+            forward=q_forward,
+            is_query=True,
+        )
+    ]
     for rank, p in enumerate(panels, 1):
-        flags = [f for f, on in (("reversed", p.reversed), ("mirrored", p.mirrored), (p.note, bool(p.note)))
-                 if on]
-        scene_panels.append(ScenePanel(
-            title=f"{rank}. {match_labels[rank - 1]}",
-            subtitle="  \u00b7  ".join([f"d = {_format_distance(p.distance)}"] + flags),
-            points=to_view(p.points), start=to_view(p.start), forward=to_view(p.forward), is_query=False))
-    allv = np.vstack([sp.points for sp in scene_panels]
-                     + [np.array([sp.start for sp in scene_panels])])
+        flags = [f for f, on in (("reversed", p.reversed), ("mirrored", p.mirrored), (p.note, bool(p.note))) if on]
+        scene_panels.append(
+            ScenePanel(
+                title=f"{rank}. {match_labels[rank - 1]}",
+                subtitle="  \u00b7  ".join([f"d = {_format_distance(p.distance)}"] + flags),
+                points=to_view(p.points),
+                start=to_view(p.start),
+                forward=to_view(p.forward),
+                is_query=False,
+            )
+        )
+    allv = np.vstack([sp.points for sp in scene_panels] + [np.array([sp.start for sp in scene_panels])])
     lo, hi = allv.min(axis=0), allv.max(axis=0)
     dw, dh = max(hi[0] - lo[0], 1e-12 * extent), max(hi[1] - lo[1], 1e-12 * extent)
     # room for the arrows and markers around the curves
@@ -409,10 +425,22 @@ def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size
     units_per_px = 2 * half / bw
     hw, hh = bw / 2 * units_per_px, bh / 2 * units_per_px
     cx, cy = (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2
-    return Scene(planar=planar, query=q, query_start=q_start, query_forward=q_forward,
-                  panels=scene_panels, size=tuple(size), rows=rows, cols=cols, font_pt=font,
-                  title_px=title_px, pad_px=pad, window=(cx - hw, cx + hw, cy - hh, cy + hh),
-                  zrange=(float(lo[2]), float(hi[2])), arrow=_ARROW * max(dw, dh) / (1 + 0.12))
+    return Scene(
+        planar=planar,
+        query=q,
+        query_start=q_start,
+        query_forward=q_forward,
+        panels=scene_panels,
+        size=tuple(size),
+        rows=rows,
+        cols=cols,
+        font_pt=font,
+        title_px=title_px,
+        pad_px=pad,
+        window=(cx - hw, cx + hw, cy - hh, cy + hh),
+        zrange=(float(lo[2]), float(hi[2])),
+        arrow=_ARROW * max(dw, dh) / (1 + 0.12),
+    )
 
 
 def _key(planar: bool, matches: bool) -> str:
@@ -430,8 +458,9 @@ def _screen_direction(start: np.ndarray, forward: np.ndarray) -> np.ndarray | No
     n = float(np.hypot(*d))
     full = float(np.linalg.norm(forward - start))
     if full == 0.0 or n < 0.05 * full:
-        return None                   # along the line of sight: no readable arrow
+        return None  # along the line of sight: no readable arrow
     return d / n
+
 
 class _Unavailable(RuntimeError):
     """A renderer that cannot work here; the message says why (shown as is)."""

@@ -11,6 +11,7 @@ from .layout import _MATCH_COLOR, _NOTE_COLOR, _QUERY_COLOR, Scene, _TEXT_COLOR,
 
 # --------------------------------------------------------------------------- matplotlib
 
+
 def _new_figure(size, **kwargs):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -58,8 +59,8 @@ def _depth_pieces(points: np.ndarray, pieces: int = 240):
     paths, depth = [], []
     n = len(dense) - 1
     for i in range(0, n, per):
-        j = min(i + per + 1, n)           # one sub-edge of overlap with the next piece
-        chunk = dense[i:j + 1]
+        j = min(i + per + 1, n)  # one sub-edge of overlap with the next piece
+        chunk = dense[i : j + 1]
         paths.append(chunk[:, :2])
         depth.append(float(chunk[:, 2].mean()))
     return paths, np.array(depth)
@@ -70,13 +71,20 @@ def _draw_curve_mpl(ax, pts, color, lw_pt, *, depth: bool, zrange, zorder: float
 
     if not depth:
         closed = np.vstack([pts, pts[:1]])
-        ax.plot(closed[:, 0], closed[:, 1], color=color, lw=lw_pt, solid_joinstyle="round",
-                solid_capstyle="round", zorder=zorder)
+        ax.plot(
+            closed[:, 0],
+            closed[:, 1],
+            color=color,
+            lw=lw_pt,
+            solid_joinstyle="round",
+            solid_capstyle="round",
+            zorder=zorder,
+        )
         return
     paths, z = _depth_pieces(pts)
     z0, z1 = zrange
     near = (z - z0) / (z1 - z0) if z1 > z0 else np.ones_like(z)
-    order = np.argsort(z, kind="stable")                      # far first
+    order = np.argsort(z, kind="stable")  # far first
     colors = _mix(color, 0.5 * (1.0 - near))
     widths = lw_pt * (0.75 + 0.5 * near)
     segs, cols, lws = [], [], []
@@ -88,8 +96,9 @@ def _draw_curve_mpl(ax, pts, color, lw_pt, *, depth: bool, zrange, zorder: float
         segs.append(paths[i])
         cols.append(colors[i])
         lws.append(widths[i])
-    ax.add_collection(LineCollection(segs, colors=cols, linewidths=lws, capstyle="butt",
-                                     joinstyle="round", zorder=zorder))
+    ax.add_collection(
+        LineCollection(segs, colors=cols, linewidths=lws, capstyle="butt", joinstyle="round", zorder=zorder)
+    )
 
 
 def _mark_mpl(ax, start, forward, color, arrow_len, *, filled: bool, zorder: float):
@@ -98,10 +107,29 @@ def _mark_mpl(ax, start, forward, color, arrow_len, *, filled: bool, zorder: flo
     d = _screen_direction(start, forward)
     if d is not None:
         end = start[:2] + arrow_len * d
-        ax.add_patch(FancyArrowPatch(tuple(start[:2]), tuple(end), arrowstyle="-|>", mutation_scale=17,
-                                     lw=2.2, color=color, shrinkA=0, shrinkB=0, zorder=zorder))
-    ax.plot([start[0]], [start[1]], marker="o", ms=8.5, mew=2.0, zorder=zorder + 0.1,
-            mfc=color if filled else "white", mec="white" if filled else color)
+        ax.add_patch(
+            FancyArrowPatch(
+                tuple(start[:2]),
+                tuple(end),
+                arrowstyle="-|>",
+                mutation_scale=17,
+                lw=2.2,
+                color=color,
+                shrinkA=0,
+                shrinkB=0,
+                zorder=zorder,
+            )
+        )
+    ax.plot(
+        [start[0]],
+        [start[1]],
+        marker="o",
+        ms=8.5,
+        mew=2.0,
+        zorder=zorder + 0.1,
+        mfc=color if filled else "white",
+        mec="white" if filled else color,
+    )
 
 
 def _draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
@@ -122,25 +150,40 @@ def _draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
         ax.set_aspect("equal", adjustable="box")
         ax.set_axis_off()
         if panel.is_query:
-            _draw_curve_mpl(ax, panel.points, _QUERY_COLOR, 2.2, depth=depth, zrange=scene.zrange,
-                            zorder=2, halo=True)
+            _draw_curve_mpl(ax, panel.points, _QUERY_COLOR, 2.2, depth=depth, zrange=scene.zrange, zorder=2, halo=True)
             _mark_mpl(ax, panel.start, panel.forward, _QUERY_COLOR, scene.arrow, filled=False, zorder=5)
         else:
-            _draw_curve_mpl(ax, scene.query, _UNDER_COLOR, 1.2, depth=False, zrange=scene.zrange,
-                            zorder=1, halo=False)
-            _draw_curve_mpl(ax, panel.points, _MATCH_COLOR, 2.2, depth=depth, zrange=scene.zrange,
-                            zorder=2, halo=True)
-            _mark_mpl(ax, scene.query_start, scene.query_forward, _UNDER_COLOR, scene.arrow,
-                      filled=False, zorder=4)
+            _draw_curve_mpl(ax, scene.query, _UNDER_COLOR, 1.2, depth=False, zrange=scene.zrange, zorder=1, halo=False)
+            _draw_curve_mpl(ax, panel.points, _MATCH_COLOR, 2.2, depth=depth, zrange=scene.zrange, zorder=2, halo=True)
+            _mark_mpl(ax, scene.query_start, scene.query_forward, _UNDER_COLOR, scene.arrow, filled=False, zorder=4)
             _mark_mpl(ax, panel.start, panel.forward, _MATCH_COLOR, scene.arrow, filled=True, zorder=5)
         top = 1 - r * ch / H
         cx = (c + 0.5) * cw / W
         line = 1.3 * scene.font_pt * 100 / 72 / H
-        texts.append(fig.text(cx, top - 4 / H, panel.title, ha="center", va="top", fontsize=scene.font_pt,
-                              color=_TEXT_COLOR, fontweight="bold" if panel.is_query else "normal"))
+        texts.append(
+            fig.text(
+                cx,
+                top - 4 / H,
+                panel.title,
+                ha="center",
+                va="top",
+                fontsize=scene.font_pt,
+                color=_TEXT_COLOR,
+                fontweight="bold" if panel.is_query else "normal",
+            )
+        )
         if panel.subtitle:
-            texts.append(fig.text(cx, top - 4 / H - line, panel.subtitle, ha="center", va="top",
-                                  fontsize=scene.font_pt * 0.92, color=_NOTE_COLOR))
+            texts.append(
+                fig.text(
+                    cx,
+                    top - 4 / H - line,
+                    panel.subtitle,
+                    ha="center",
+                    va="top",
+                    fontsize=scene.font_pt * 0.92,
+                    color=_NOTE_COLOR,
+                )
+            )
     _fit_texts(fig, texts, cw - 6)
     return _png_bytes(fig, fmt)
 

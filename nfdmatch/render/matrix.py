@@ -10,11 +10,21 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ParameterError, RenderError, WriteError
-from .layout import (_NOTE_COLOR, MATRIX_LABEL_WIDTH, RenderResult, _check_size, _reason, _write, check_output,
-                     picture_format, short_labels)
+from .layout import (
+    _NOTE_COLOR,
+    MATRIX_LABEL_WIDTH,
+    RenderResult,
+    _check_size,
+    _reason,
+    _write,
+    check_output,
+    picture_format,
+    short_labels,
+)
 from .matplotlib_backend import _new_figure, _png_bytes
 
 # --------------------------------------------------------------------------- matrix
+
 
 def matrix_size(n: int) -> tuple[int, int]:
     """The default (width, height) in pixels of the picture of an n x n matrix."""
@@ -22,8 +32,14 @@ def matrix_size(n: int) -> tuple[int, int]:
     return min(side + 120, 3000), side
 
 
-def render_matrix(matrix: np.ndarray, labels: Sequence[str], path: str | os.PathLike[str], *,
-                  size: tuple[int, int] | None = None, title: str | None = None) -> RenderResult:
+def render_matrix(
+    matrix: np.ndarray,
+    labels: Sequence[str],
+    path: str | os.PathLike[str],
+    *,
+    size: tuple[int, int] | None = None,
+    title: str | None = None,
+) -> RenderResult:
     """Draw an all-pairs distance matrix as a grey-level grid (the paper's Figure 7), with
     matplotlib: darker = smaller distance (black = 0, white = the largest), the curve names
     along both axes (shortened; every k-th one when there are too many to read), a colour bar.
@@ -86,8 +102,9 @@ def _draw_matrix(m: np.ndarray, labels: list[str], size, title, fmt: str = "png"
     ax = fig.add_subplot()
     lo = min(0.0, float(m.min()))
     hi = float(m.max())
-    image = ax.imshow(m, cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1.0, interpolation="nearest",
-                      aspect="equal")
+    image = ax.imshow(
+        m, cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1.0, interpolation="nearest", aspect="equal"
+    )
     ticks = np.arange(0, n, every)
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(FixedLocator(ticks))
@@ -102,7 +119,7 @@ def _draw_matrix(m: np.ndarray, labels: list[str], size, title, fmt: str = "png"
     else:
         for axis in (ax.xaxis, ax.yaxis):
             axis.set_minor_locator(NullLocator())
-    for spine in ax.spines.values():        # a frame, so the palest (farthest) cells show
+    for spine in ax.spines.values():  # a frame, so the palest (farthest) cells show
         spine.set_color("#808080")
         spine.set_linewidth(0.8)
     if title:
@@ -111,6 +128,5 @@ def _draw_matrix(m: np.ndarray, labels: list[str], size, title, fmt: str = "png"
     bar.set_label("distance (darker = more similar)", fontsize=10)
     bar.ax.tick_params(labelsize=9)
     if every > 1:
-        fig.text(0.995, 0.005, f"one label in {every} shown", ha="right", va="bottom", fontsize=8,
-                 color=_NOTE_COLOR)
+        fig.text(0.995, 0.005, f"one label in {every} shown", ha="right", va="bottom", fontsize=8, color=_NOTE_COLOR)
     return _png_bytes(fig, fmt)

@@ -43,10 +43,16 @@ def _probe_pyvista() -> str | None:
     if key in _probe_result:
         return _probe_result[key]
     if not sys.executable:
-        return None                    # cannot start a child: try in-process
+        return None  # cannot start a child: try in-process
     try:
-        proc = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True,
-                              timeout=120, stdin=subprocess.DEVNULL, env=dict(os.environ))
+        proc = subprocess.run(
+            [sys.executable, "-c", _PROBE],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            stdin=subprocess.DEVNULL,
+            env=dict(os.environ),
+        )
     except (OSError, subprocess.SubprocessError) as exc:
         if isinstance(exc, subprocess.TimeoutExpired):
             result = "a test render did not finish in 120 s"
@@ -66,10 +72,12 @@ def probe_reason(returncode: int, stderr: str) -> str:
     lines = [_ANSI.sub("", line).strip() for line in stderr.splitlines()]
     lines = [re.sub(r"^.*?(WARN|ERR|ERROR)\|\s*", "", line) for line in lines if line]
     lines = [re.sub(r"^vtk\w+ \(0x[0-9a-f]+\):\s*", "", line) for line in lines]
-    useful = [line for line in lines
-              if re.search(r"fail|not found|could not|cannot|bad x server|error", line, re.I)]
-    how = (f"a test render crashed (signal {-returncode})" if returncode < 0
-           else f"a test render failed (exit status {returncode})")
+    useful = [line for line in lines if re.search(r"fail|not found|could not|cannot|bad x server|error", line, re.I)]
+    how = (
+        f"a test render crashed (signal {-returncode})"
+        if returncode < 0
+        else f"a test render failed (exit status {returncode})"
+    )
     if useful:
         detail = "; ".join(dict.fromkeys(useful[:2]))
         return f"{how}: {detail[:240]}"
@@ -111,11 +119,13 @@ def _draw_pyvista(scene: Scene) -> bytes:
             raise _Unavailable(problem)
         try:
             from vtkmodules.vtkCommonCore import vtkObject
+
             vtkObject.GlobalWarningDisplayOff()
         except ImportError:
             pass
-        plotter = pv.Plotter(off_screen=True, window_size=list(scene.size), shape=(scene.rows, scene.cols),
-                             border=False)
+        plotter = pv.Plotter(
+            off_screen=True, window_size=list(scene.size), shape=(scene.rows, scene.cols), border=False
+        )
         try:
             _fill_pyvista(pv, plotter, scene)
             img = plotter.screenshot(None, return_img=True)
@@ -139,7 +149,7 @@ def _fill_pyvista(pv, plotter, scene: Scene) -> None:
     fy = (y0 + y1) / 2 + (ch / 2 - (scene.pad_px + bh / 2)) * units_per_px
     z0, z1 = scene.zrange
     depth = max(z1 - z0, x1 - x0, 1e-9)
-    lift = 1e-3 * (x1 - x0)            # planar: draw the match just in front of the query
+    lift = 1e-3 * (x1 - x0)  # planar: draw the match just in front of the query
     tubes = not scene.planar
     n_cells = scene.rows * scene.cols
     for k in range(n_cells):
@@ -154,11 +164,15 @@ def _fill_pyvista(pv, plotter, scene: Scene) -> None:
             else:
                 _curve_pv(pv, plotter, scene.query, _UNDER_COLOR, 2.0, False)
                 _curve_pv(pv, plotter, panel.points + [0, 0, lift], _MATCH_COLOR, 4.0, tubes)
-                _mark_pv(pv, plotter, scene.query_start, scene.query_forward, _UNDER_COLOR, scene, lift,
-                         filled=False)
+                _mark_pv(pv, plotter, scene.query_start, scene.query_forward, _UNDER_COLOR, scene, lift, filled=False)
                 _mark_pv(pv, plotter, panel.start, panel.forward, _MATCH_COLOR, scene, 2 * lift, filled=True)
-            subtitle = ("dots: start, arrows: direction" if panel.is_query and scene.panels[1:]
-                        else panel.subtitle if not panel.is_query else "")
+            subtitle = (
+                "dots: start, arrows: direction"
+                if panel.is_query and scene.panels[1:]
+                else panel.subtitle
+                if not panel.is_query
+                else ""
+            )
             text = panel.title + ("\n" + subtitle if subtitle else "")
             longest = max(len(t) for t in text.splitlines())
             font = min(scene.font_pt * 0.75, (cw - 8) / (0.62 * longest))
@@ -170,8 +184,14 @@ def _fill_pyvista(pv, plotter, scene: Scene) -> None:
 
 
 def _curve_pv(pv, plotter, pts, color, width, tubes: bool) -> None:
-    plotter.add_mesh(pv.lines_from_points(pts, close=True), color=color, line_width=width,
-                     render_lines_as_tubes=tubes, lighting=tubes, reset_camera=False)
+    plotter.add_mesh(
+        pv.lines_from_points(pts, close=True),
+        color=color,
+        line_width=width,
+        render_lines_as_tubes=tubes,
+        lighting=tubes,
+        reset_camera=False,
+    )
 
 
 def _mark_pv(pv, plotter, start, forward, color, scene: Scene, lift: float, *, filled: bool) -> None:
@@ -179,8 +199,10 @@ def _mark_pv(pv, plotter, start, forward, color, scene: Scene, lift: float, *, f
     d = np.asarray(forward, dtype=float) - np.asarray(start, dtype=float)
     n = float(np.linalg.norm(d))
     if n > 0:
-        arrow = pv.Arrow(start=s, direction=d / n, scale=scene.arrow, tip_length=0.35, tip_radius=0.2,
-                         shaft_radius=0.07)
+        arrow = pv.Arrow(
+            start=s, direction=d / n, scale=scene.arrow, tip_length=0.35, tip_radius=0.2, shaft_radius=0.07
+        )
         plotter.add_mesh(arrow, color=color, lighting=not scene.planar, reset_camera=False)
-    plotter.add_points(s[None, :], color=color, point_size=14 if filled else 12,
-                       render_points_as_spheres=True, reset_camera=False)
+    plotter.add_points(
+        s[None, :], color=color, point_size=14 if filled else 12, render_points_as_spheres=True, reset_camera=False
+    )

@@ -20,5 +20,14 @@ from .memory import MemoryIndex
 from .rank import rank_curves
 from .rerank import diffused_similarity, rerank_index
 
-__all__ = ["rank_curves", "search_index", "distance_matrix", "similarity_order", "SearchStats", "MemoryIndex",
-           "BATCH_ROWS", "diffused_similarity", "rerank_index"]
+__all__ = [
+    "rank_curves",
+    "search_index",
+    "distance_matrix",
+    "similarity_order",
+    "SearchStats",
+    "MemoryIndex",
+    "BATCH_ROWS",
+    "diffused_similarity",
+    "rerank_index",
+]

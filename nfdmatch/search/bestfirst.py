@@ -50,8 +50,10 @@ class TopK:
         self.k, self.max_distance = k, max_distance
         self.dist = np.zeros(0)
         self.rows = np.zeros(0, dtype=np.int64)
-        self.extra = {key: np.zeros(0, dtype=t) for key, t in
-                      (("shift", float), ("reversed", bool), ("mirrored", bool), ("position", np.int64))}
+        self.extra = {
+            key: np.zeros(0, dtype=t)
+            for key, t in (("shift", float), ("reversed", bool), ("mirrored", bool), ("position", np.int64))
+        }
 
     def threshold(self) -> float:
         limit = np.inf if self.max_distance is None else self.max_distance
@@ -97,7 +99,7 @@ class _Sorted:
     _MAX_RUNS = 16
 
     def __init__(self):
-        self._runs: list[list] = []          # [bound, rows, slots, pos]
+        self._runs: list[list] = []  # [bound, rows, slots, pos]
 
     def head(self) -> float:
         best = np.inf
@@ -117,11 +119,21 @@ class _Sorted:
             self._runs.append([bound[order], rows[order], slots[order], 0])
         if len(self._runs) > self._MAX_RUNS:
             runs = self._runs
-            b = np.concatenate([r[0][r[3]:] for r in runs])
+            b = np.concatenate([r[0][r[3] :] for r in runs])
             keep = np.flatnonzero(b <= limit)
             order = keep[np.argsort(b[keep], kind="stable")]
-            self._runs = [[b[order], np.concatenate([r[1][r[3]:] for r in runs])[order],
-                           np.concatenate([r[2][r[3]:] for r in runs])[order], 0]] if len(order) else []
+            self._runs = (
+                [
+                    [
+                        b[order],
+                        np.concatenate([r[1][r[3] :] for r in runs])[order],
+                        np.concatenate([r[2][r[3] :] for r in runs])[order],
+                        0,
+                    ]
+                ]
+                if len(order)
+                else []
+            )
 
     def take(self, count: int, limit: float):
         """Up to about ``count`` rows from the front with a bound at most ``limit`` (at least
@@ -132,15 +144,15 @@ class _Sorted:
             end = min(pos + count, int(np.searchsorted(bound, limit, side="right")))
             ends.append(end)
             total += end - pos
-        if total == 0:                         # nothing within limit: the single smallest
+        if total == 0:  # nothing within limit: the single smallest
             i = int(np.argmin([r[0][r[3]] for r in self._runs]))
             ends = [r[3] for r in self._runs]
             ends[i] += 1
         elif total > count:
             # the count smallest of the runs' fronts: a prefix of each run
-            cut = np.partition(np.concatenate([r[0][r[3]:e] for r, e in zip(self._runs, ends)]), count - 1)[count - 1]
-            ends = [r[3] + int(np.searchsorted(r[0][r[3]:e], cut, side="right")) for r, e in zip(self._runs, ends)]
-        parts = [(r[0][r[3]:e], r[1][r[3]:e], r[2][r[3]:e]) for r, e in zip(self._runs, ends) if e > r[3]]
+            cut = np.partition(np.concatenate([r[0][r[3] : e] for r, e in zip(self._runs, ends)]), count - 1)[count - 1]
+            ends = [r[3] + int(np.searchsorted(r[0][r[3] : e], cut, side="right")) for r, e in zip(self._runs, ends)]
+        parts = [(r[0][r[3] : e], r[1][r[3] : e], r[2][r[3] : e]) for r, e in zip(self._runs, ends) if e > r[3]]
         for r, e in zip(self._runs, ends):
             r[3] = e
         self._runs = [r for r in self._runs if r[3] < len(r[0])]
@@ -149,9 +161,19 @@ class _Sorted:
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
 
-def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table, top: "TopK", *,
-               search, method: str, direction: str, mirror: bool, samples: int,
-               truncate: bool = True) -> QueryWork:
+def search_one(
+    query_coefficients: np.ndarray,
+    query_features: np.ndarray,
+    table,
+    top: "TopK",
+    *,
+    search,
+    method: str,
+    direction: str,
+    mirror: bool,
+    samples: int,
+    truncate: bool = True,
+) -> QueryWork:
     """Fill ``top`` with the query's exact nearest rows of ``table``.
 
     Parameters
@@ -177,8 +199,8 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
     sizes = (table.start[1:] - table.start[:-1])[corder]
     n_cells = len(corder)
     ci = 0
-    queues = [_Sorted()]        # [0]: opened, by invariant bound; [i > 0]: by stage i's bound
-    stages = None               # the truncated stages, once the first cell shows what is stored
+    queues = [_Sorted()]  # [0]: opened, by invariant bound; [i > 0]: by stage i's bound
+    stages = None  # the truncated stages, once the first cell shows what is stored
     # a table that hands out every harmonic with the cell needs no other read for the exact
     # distances (format 2, memory); else their rows' descriptors are read on demand
     complete = None
@@ -192,14 +214,14 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
         q_at = int(np.argmin(heads))
         queue_head = heads[q_at]
         head = min(cell_head, queue_head)
-        if head > thr or head == np.inf:          # every row bounded above the k-th, or none left
+        if head > thr or head == np.inf:  # every row bounded above the k-th, or none left
             break
         if cell_head <= queue_head:
             # open every cell that may hold a row bounded below the next pending row (none
             # when nothing is pending), and at least _OPEN_ROWS positions; never a cell the
             # threshold rules out
             j, opened = ci, 0
-            limit = queue_head                        # inf: nothing pending
+            limit = queue_head  # inf: nothing pending
             while j < n_cells and cbs[j] <= thr and (opened < open_rows or cbs[j] <= limit < np.inf):
                 opened += sizes[j]
                 j += 1
@@ -229,9 +251,14 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
             _, rows, slots = queues[q_at].take(batch[q_at], limit)
             if len(rows) >= _TRUNCATE_FROM or q_at > 0:
                 Kp, grid = stages[q_at]
-                tb = truncated_lower_bounds(query_coefficients, table.coefficients_at_positions(slots, Kp),
-                                            direction=direction,
-                                            mirror=mirror, harmonics=Kp, grid=grid)
+                tb = truncated_lower_bounds(
+                    query_coefficients,
+                    table.coefficients_at_positions(slots, Kp),
+                    direction=direction,
+                    mirror=mirror,
+                    harmonics=Kp,
+                    grid=grid,
+                )
                 if q_at == 0:
                     work.truncated += len(rows)
                 else:
@@ -248,13 +275,26 @@ def search_one(query_coefficients: np.ndarray, query_features: np.ndarray, table
             elif q_at < len(stages):
                 batch[q_at] = min(batch[q_at] * 2, MAX_BATCH)
         coefficients = table.coefficients_at_positions(slots) if complete else table.coefficients(rows)
-        _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr,
-               slots if complete else None)
+        _exact(
+            query_coefficients,
+            rows,
+            coefficients,
+            top,
+            work,
+            search,
+            method,
+            direction,
+            mirror,
+            samples,
+            thr,
+            slots if complete else None,
+        )
     return work
 
 
-def _exact(query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr,
-           positions=None):
+def _exact(
+    query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr, positions=None
+):
     extra = {"refine_below": thr} if method == "exact" else {}
     r = search(query_coefficients, coefficients, samples, direction=direction, mirror=mirror, **extra)
     if positions is not None:

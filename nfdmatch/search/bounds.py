@@ -23,9 +23,19 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["feature_vector", "feature_split", "head_harmonics", "squared_norms", "cell_lower_bounds",
-           "row_lower_bounds", "truncated_lower_bounds", "truncated_stages", "TRUNCATED_HARMONICS", "TRUNCATED_GRID",
-           "TRUNCATED_STAGES"]
+__all__ = [
+    "feature_vector",
+    "feature_split",
+    "head_harmonics",
+    "squared_norms",
+    "cell_lower_bounds",
+    "row_lower_bounds",
+    "truncated_lower_bounds",
+    "truncated_stages",
+    "TRUNCATED_HARMONICS",
+    "TRUNCATED_GRID",
+    "TRUNCATED_STAGES",
+]
 
 #: harmonics kept by the truncated bound, and its shift grid (multiple of 4, > 2 K'):
 #: on random smooth curves max(truncated, invariant) / exact has median ~0.93 at (4, 24),
@@ -38,7 +48,7 @@ TRUNCATED_GRID = 24
 #: distance (~2 us, ~5 us and ~16 us per row; docs/performance.md)
 TRUNCATED_STAGES = ((TRUNCATED_HARMONICS, TRUNCATED_GRID), (8, 48))
 #: float32 unit roundoff
-_U32 = 2.0 ** -24
+_U32 = 2.0**-24
 #: rows whose squared norms are computed at a time (bounds the float64 copy)
 _NORM_BLOCK = 65536
 
@@ -89,10 +99,10 @@ def squared_norms(features: np.ndarray, split: int) -> np.ndarray:
     """(m, 2) float64 squared norms of the two parts of float32 features (m, D), computed in
     float64 from the float32 values (what :func:`row_lower_bounds` expects)."""
     out = np.empty((len(features), 2))
-    for a in range(0, len(features), _NORM_BLOCK):       # blocks: no (m, D) float64 copy
-        F = np.asarray(features[a:a + _NORM_BLOCK], dtype=np.float64)
-        out[a:a + _NORM_BLOCK, 0] = np.einsum("ij,ij->i", F[:, :split], F[:, :split])
-        out[a:a + _NORM_BLOCK, 1] = np.einsum("ij,ij->i", F[:, split:], F[:, split:])
+    for a in range(0, len(features), _NORM_BLOCK):  # blocks: no (m, D) float64 copy
+        F = np.asarray(features[a : a + _NORM_BLOCK], dtype=np.float64)
+        out[a : a + _NORM_BLOCK, 0] = np.einsum("ij,ij->i", F[:, :split], F[:, :split])
+        out[a : a + _NORM_BLOCK, 1] = np.einsum("ij,ij->i", F[:, split:], F[:, split:])
     return out
 
 
@@ -143,8 +153,15 @@ def row_lower_bounds(query: np.ndarray, split: int, features: np.ndarray, sqnorm
     return np.maximum(out, 0.0, out=out)
 
 
-def truncated_lower_bounds(A: np.ndarray, B: np.ndarray, *, direction: str = "invariant", mirror: bool = False,
-                           harmonics: int = TRUNCATED_HARMONICS, grid: int = TRUNCATED_GRID) -> np.ndarray:
+def truncated_lower_bounds(
+    A: np.ndarray,
+    B: np.ndarray,
+    *,
+    direction: str = "invariant",
+    mirror: bool = False,
+    harmonics: int = TRUNCATED_HARMONICS,
+    grid: int = TRUNCATED_GRID,
+) -> np.ndarray:
     """(m,) float64 lower bounds of the exact distance from the first harmonics only.
 
     Parameters
@@ -171,10 +188,10 @@ def truncated_lower_bounds(A: np.ndarray, B: np.ndarray, *, direction: str = "in
     As, Bs = np.asarray(A[:Kp], dtype=np.complex128), np.asarray(B[:, :Kp], dtype=np.complex128)
     fmax = grid_maximum(As, Bs, grid, direction=direction, mirror=mirror)
     k = np.arange(1, Kp + 1)
-    na = np.sqrt((As.real ** 2 + As.imag ** 2).sum(axis=1))
+    na = np.sqrt((As.real**2 + As.imag**2).sum(axis=1))
     nb = np.sqrt(np.einsum("mkj,mkj->mk", Bs.real, Bs.real) + np.einsum("mkj,mkj->mk", Bs.imag, Bs.imag))
     slack = ((np.pi * k / grid) ** 2 * na * nb).sum(axis=1)
-    squared = 2.0 * (na ** 2).sum() + 2.0 * (nb ** 2).sum(axis=1)
+    squared = 2.0 * (na**2).sum() + 2.0 * (nb**2).sum(axis=1)
     # F is a sum of products accurate to rounding: a relative 1e-12 of the squares covers it
     d2 = squared - 2.0 * (fmax + slack) - 1e-12 * squared
     return np.sqrt(np.maximum(d2, 0.0))

@@ -62,16 +62,15 @@ def _assign(X: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """(m,) int64 nearest centre of each row; X (m, D) float32, centres (c, D) float32."""
     sq = np.einsum("ij,ij->i", centres, centres)
     labels = np.empty(len(X), dtype=np.int64)
-    minus_twice = np.ascontiguousarray((centres * np.float32(-2.0)).T)     # exact: a power of two
+    minus_twice = np.ascontiguousarray((centres * np.float32(-2.0)).T)  # exact: a power of two
     for a in range(0, len(X), _ASSIGN_BLOCK):
-        d = X[a:a + _ASSIGN_BLOCK] @ minus_twice
+        d = X[a : a + _ASSIGN_BLOCK] @ minus_twice
         d += sq[None, :]
-        labels[a:a + _ASSIGN_BLOCK] = np.argmin(d, axis=1)
+        labels[a : a + _ASSIGN_BLOCK] = np.argmin(d, axis=1)
     return labels
 
 
-def _kmeans(X: np.ndarray, k: int, rng: np.random.Generator, iterations: int,
-            sample: int | None = None) -> np.ndarray:
+def _kmeans(X: np.ndarray, k: int, rng: np.random.Generator, iterations: int, sample: int | None = None) -> np.ndarray:
     """(m,) int64 labels of Lloyd's k-means (random distinct rows as the start), trained on
     ``sample`` rows when given, then every row assigned once."""
     m = len(X)
@@ -92,8 +91,7 @@ def _kmeans(X: np.ndarray, k: int, rng: np.random.Generator, iterations: int,
     return _assign(X, centres)
 
 
-def build_cells(features: np.ndarray, split: int, *, rows_per_cell: int = ROWS_PER_CELL,
-                seed: int = 0) -> Cells:
+def build_cells(features: np.ndarray, split: int, *, rows_per_cell: int = ROWS_PER_CELL, seed: int = 0) -> Cells:
     """Partition rows into cells of about ``rows_per_cell`` rows by their features.
 
     Parameters
@@ -120,16 +118,16 @@ def build_cells(features: np.ndarray, split: int, *, rows_per_cell: int = ROWS_P
     by_coarse = np.argsort(coarse_labels, kind="stable")
     bounds = np.searchsorted(coarse_labels[by_coarse], np.arange(coarse + 1))
     for g in range(coarse):
-        rows = by_coarse[bounds[g]:bounds[g + 1]]
+        rows = by_coarse[bounds[g] : bounds[g + 1]]
         if len(rows) == 0:
             continue
         k = max(1, int(round(len(rows) / rows_per_cell)))
         fine = _kmeans(X[rows], k, rng, _FINE_ITERATIONS, sample=_FINE_SAMPLE_PER_CELL * k)
-        order = np.argsort(fine, kind="stable")          # rows stay ascending within a cell
+        order = np.argsort(fine, kind="stable")  # rows stay ascending within a cell
         cuts = np.searchsorted(fine[order], np.arange(k + 1))
         for j in range(k):
             if cuts[j + 1] > cuts[j]:
-                members.append(rows[order[cuts[j]:cuts[j + 1]]])
+                members.append(rows[order[cuts[j] : cuts[j + 1]]])
     sizes = np.array([len(m) for m in members], dtype=np.int64)
     start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     row = np.concatenate(members).astype(np.int64)
@@ -144,9 +142,9 @@ def build_cells(features: np.ndarray, split: int, *, rows_per_cell: int = ROWS_P
     # squared distances to the centre per part, in blocks (no (N, D) float64 copy)
     d2 = np.empty((N, 2))
     for a in range(0, N, _ASSIGN_BLOCK):
-        diff = F[a:a + _ASSIGN_BLOCK].astype(np.float64) - centre[cell_of[a:a + _ASSIGN_BLOCK]]
-        d2[a:a + _ASSIGN_BLOCK, 0] = np.einsum("ij,ij->i", diff[:, :split], diff[:, :split])
-        d2[a:a + _ASSIGN_BLOCK, 1] = np.einsum("ij,ij->i", diff[:, split:], diff[:, split:])
+        diff = F[a : a + _ASSIGN_BLOCK].astype(np.float64) - centre[cell_of[a : a + _ASSIGN_BLOCK]]
+        d2[a : a + _ASSIGN_BLOCK, 0] = np.einsum("ij,ij->i", diff[:, :split], diff[:, :split])
+        d2[a : a + _ASSIGN_BLOCK, 1] = np.einsum("ij,ij->i", diff[:, split:], diff[:, split:])
     radius = np.sqrt(np.maximum.reduceat(d2, start[:-1], axis=0))
     # rounded up: the float64 arithmetic above may land a few ulps below the true radius
     radius = radius * (1 + 1e-12) + 1e-12

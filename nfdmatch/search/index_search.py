@@ -72,11 +72,21 @@ def check_search_parameters(top: int | None, max_distance: float | None, method:
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
 
-def search_index(index, queries: Sequence[Curve], *, top: int | None = 10, max_distance: float | None = None,
-                 method: str = DEFAULT_METHOD, direction: str = DEFAULT_DIRECTION, mirror: bool = False,
-                 prune: bool = True, progress: Callable[[int, int], None] | None = None,
-                 weights: ArrayLike | None = None, threads: int | None = None,
-                 truncate: bool = True) -> tuple[list[list[RankedMatch]], SearchStats]:
+def search_index(
+    index,
+    queries: Sequence[Curve],
+    *,
+    top: int | None = 10,
+    max_distance: float | None = None,
+    method: str = DEFAULT_METHOD,
+    direction: str = DEFAULT_DIRECTION,
+    mirror: bool = False,
+    prune: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+    weights: ArrayLike | None = None,
+    threads: int | None = None,
+    truncate: bool = True,
+) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k nearest curves of an index for each query curve, exactly.
 
     Parameters
@@ -117,25 +127,38 @@ def search_index(index, queries: Sequence[Curve], *, top: int | None = 10, max_d
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     threads = threads or min(os.cpu_count() or 1, 4)
     t0 = time.perf_counter()
-    qcoef = descriptors_batch(queries, samples=index.samples, harmonics=index.harmonics,
-                              scale=index.scale_mode).coefficients
+    qcoef = descriptors_batch(
+        queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
+    ).coefficients
     tops = [TopK(top, max_distance) for _ in queries]
     search = exact_search if method == "exact" else paper_search
     stats = SearchStats(queries=len(queries), rows=index.n_curves, pruned=prune)
     if not prune:
-        stats.exact = _exhaustive(index, qcoef, tops, search, direction=direction, mirror=mirror,
-                                  weights=weights, progress=progress)
+        stats.exact = _exhaustive(
+            index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights, progress=progress
+        )
     elif index.n_curves and len(queries):
         table = index.search_table()
         stats.cell_count = table.n_cells
         qfeat = feature_vector(qcoef)
 
         def answer(qi):
-            work = search_one(qcoef[qi], qfeat[qi], table, tops[qi], search=search, method=method,
-                              direction=direction, mirror=mirror, samples=index.samples, truncate=truncate)
+            work = search_one(
+                qcoef[qi],
+                qfeat[qi],
+                table,
+                tops[qi],
+                search=search,
+                method=method,
+                direction=direction,
+                mirror=mirror,
+                samples=index.samples,
+                truncate=truncate,
+            )
             # on the query's own thread: the recomputation is per query and runs in parallel
-            _recompute(index, qcoef[qi], tops[qi], search, direction=direction, mirror=mirror, weights=weights,
-                       table=table)
+            _recompute(
+                index, qcoef[qi], tops[qi], search, direction=direction, mirror=mirror, weights=weights, table=table
+            )
             return work
 
         done = 0
@@ -198,10 +221,20 @@ def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
         order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[i]))
         if top is not None:
             order = order[:top]
-        results.append([RankedMatch(rank=rank, id=ids[i], distance=float(tk.dist[i]),
-                                    shift=float(tk.extra["shift"][i]), reversed=bool(tk.extra["reversed"][i]),
-                                    mirrored=bool(tk.extra["mirrored"][i]), row=int(tk.rows[i]))
-                        for rank, i in enumerate(order, start=1)])
+        results.append(
+            [
+                RankedMatch(
+                    rank=rank,
+                    id=ids[i],
+                    distance=float(tk.dist[i]),
+                    shift=float(tk.extra["shift"][i]),
+                    reversed=bool(tk.extra["reversed"][i]),
+                    mirrored=bool(tk.extra["mirrored"][i]),
+                    row=int(tk.rows[i]),
+                )
+                for rank, i in enumerate(order, start=1)
+            ]
+        )
     return results
 
 
@@ -225,21 +258,33 @@ def _recompute(index, query, tk, search, *, direction, mirror, weights, table=No
     rows = tk.rows[order]
     positions = tk.extra["position"][order]
     if table is not None and len(positions) and positions.min() >= 0:
+
         def coefficients(a, b):
             return table.coefficients_at_positions(positions[a:b])
     else:
+
         def coefficients(a, b):
             return index.coefficients_at(rows[a:b])
+
     parts = []
     with reference_path():
         for a in range(0, len(rows), EXHAUSTIVE_ROWS):
-            parts.append(search(query, coefficients(a, a + EXHAUSTIVE_ROWS), index.samples, direction=direction,
-                                mirror=mirror, weights=weights))
+            parts.append(
+                search(
+                    query,
+                    coefficients(a, a + EXHAUSTIVE_ROWS),
+                    index.samples,
+                    direction=direction,
+                    mirror=mirror,
+                    weights=weights,
+                )
+            )
     dist = np.concatenate([p["distance"] for p in parts])
     keep = dist <= (np.inf if tk.max_distance is None else tk.max_distance)
     tk.rows, tk.dist = rows[keep], dist[keep]
-    tk.extra = {key: (positions if key == "position" else np.concatenate([p[key] for p in parts]))[keep]
-                for key in tk.extra}
+    tk.extra = {
+        key: (positions if key == "position" else np.concatenate([p[key] for p in parts]))[keep] for key in tk.extra
+    }
 
 
 def _exhaustive(index, qcoef, tops, search, *, direction, mirror, weights, progress) -> int:
@@ -250,9 +295,15 @@ def _exhaustive(index, qcoef, tops, search, *, direction, mirror, weights, progr
         rows = np.arange(start, start + len(coefficients))
         for qi, tk in enumerate(tops):
             for a in range(0, len(rows), EXHAUSTIVE_ROWS):
-                r = search(qcoef[qi], coefficients[a:a + EXHAUSTIVE_ROWS], index.samples,
-                           direction=direction, mirror=mirror, weights=weights)
-                tk.add(r["distance"], rows[a:a + EXHAUSTIVE_ROWS], r)
+                r = search(
+                    qcoef[qi],
+                    coefficients[a : a + EXHAUSTIVE_ROWS],
+                    index.samples,
+                    direction=direction,
+                    mirror=mirror,
+                    weights=weights,
+                )
+                tk.add(r["distance"], rows[a : a + EXHAUSTIVE_ROWS], r)
         done += len(rows)
         if progress is not None:
             progress(done, index.n_curves)

@@ -20,10 +20,18 @@ if TYPE_CHECKING:
 BATCH_ROWS = 2048
 
 
-def distance_matrix(curves: Sequence[Curve | np.ndarray], *, samples: int = DEFAULT_SAMPLES,
-                    harmonics: int = DEFAULT_HARMONICS, scale: str = DEFAULT_SCALE, method: str = "exact",
-                    direction: str = "invariant", mirror: bool = False, weights: ArrayLike | None = None,
-                    progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+def distance_matrix(
+    curves: Sequence[Curve | np.ndarray],
+    *,
+    samples: int = DEFAULT_SAMPLES,
+    harmonics: int = DEFAULT_HARMONICS,
+    scale: str = DEFAULT_SCALE,
+    method: str = "exact",
+    direction: str = "invariant",
+    mirror: bool = False,
+    weights: ArrayLike | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> np.ndarray:
     """All-pairs distances of ``curves``.
 
     Parameters
@@ -55,8 +63,14 @@ def distance_matrix(curves: Sequence[Curve | np.ndarray], *, samples: int = DEFA
         # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
         for start in range(i + 1, N, BATCH_ROWS):
             stop = min(start + BATCH_ROWS, N)
-            r = search(batch.coefficients[i], batch.coefficients[start:stop], samples, weights=weights,
-                       direction=direction, mirror=mirror)
+            r = search(
+                batch.coefficients[i],
+                batch.coefficients[start:stop],
+                samples,
+                weights=weights,
+                direction=direction,
+                mirror=mirror,
+            )
             matrix[i, start:stop] = r["distance"]
         done += N - 1 - i
         if progress is not None:

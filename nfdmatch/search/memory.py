@@ -17,16 +17,25 @@ class MemoryIndex:
     ``search_table``; ``scale`` a deprecated alias of ``scale_mode``), so that
     :func:`search_index` serves both ``rank`` (no index file) and ``query``."""
 
-    def __init__(self, curves, *, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                 scale: str = DEFAULT_SCALE, rows_per_cell: int | None = None):
+    def __init__(
+        self,
+        curves,
+        *,
+        samples: int = DEFAULT_SAMPLES,
+        harmonics: int = DEFAULT_HARMONICS,
+        scale: str = DEFAULT_SCALE,
+        rows_per_cell: int | None = None,
+    ):
         from ..descriptors import descriptors_batch
         from ..matching import invariants
 
         self.samples, self.harmonics, self.scale_mode = samples, harmonics, scale
         batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
         self._ids = [c.id for c in curves]
-        self._rows = {"coefficients": batch.coefficients,
-                      **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()}}
+        self._rows = {
+            "coefficients": batch.coefficients,
+            **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()},
+        }
         self.n_curves = len(curves)
         #: None: every row in one cell; else cells of about this many rows (as an index file)
         self.rows_per_cell = rows_per_cell
@@ -38,8 +47,7 @@ class MemoryIndex:
 
     def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True):
         for start in range(0, self.n_curves, rows):
-            yield start, {k: v[start:start + rows] for k, v in self._rows.items()
-                          if columns is None or k in columns}
+            yield start, {k: v[start : start + rows] for k, v in self._rows.items() if columns is None or k in columns}
 
     def ids_at(self, rows) -> list[str]:
         return [self._ids[int(r)] for r in rows]

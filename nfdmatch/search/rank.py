@@ -17,10 +17,20 @@ if TYPE_CHECKING:
     from ..curve import Curve
 
 
-def rank_curves(query: Curve | ArrayLike, curves: Sequence[Curve], *, top: int | None = None,
-                max_distance: float | None = None, samples: int = DEFAULT_SAMPLES, harmonics: int = DEFAULT_HARMONICS,
-                scale: str = DEFAULT_SCALE, method: str = "exact", direction: str = "invariant",
-                mirror: bool = False, weights: ArrayLike | None = None) -> list[RankedMatch]:
+def rank_curves(
+    query: Curve | ArrayLike,
+    curves: Sequence[Curve],
+    *,
+    top: int | None = None,
+    max_distance: float | None = None,
+    samples: int = DEFAULT_SAMPLES,
+    harmonics: int = DEFAULT_HARMONICS,
+    scale: str = DEFAULT_SCALE,
+    method: str = "exact",
+    direction: str = "invariant",
+    mirror: bool = False,
+    weights: ArrayLike | None = None,
+) -> list[RankedMatch]:
     """Rank ``curves`` by distance to ``query``.
 
     Parameters
@@ -43,10 +53,18 @@ def rank_curves(query: Curve | ArrayLike, curves: Sequence[Curve], *, top: int |
     if not curves:
         if top is not None and top < 1:
             raise ParameterError(f"top must be at least 1, got {top}")
-        descriptors(query, samples=samples, harmonics=harmonics, scale=scale)   # validates
+        descriptors(query, samples=samples, harmonics=harmonics, scale=scale)  # validates
         return []
     memory = MemoryIndex(curves, samples=samples, harmonics=harmonics, scale=scale)
-    results, _ = search_index(memory, [query], top=top if top is not None or max_distance is not None
-                              else len(curves), max_distance=max_distance, method=method,
-                              direction=direction, mirror=mirror, weights=weights, prune=weights is None)
+    results, _ = search_index(
+        memory,
+        [query],
+        top=top if top is not None or max_distance is not None else len(curves),
+        max_distance=max_distance,
+        method=method,
+        direction=direction,
+        mirror=mirror,
+        weights=weights,
+        prune=weights is None,
+    )
     return results[0]

@@ -37,8 +37,16 @@ if TYPE_CHECKING:
     from ..records import RankedMatch
     from .index_search import SearchStats
 
-__all__ = ["diffused_similarity", "rerank_scores", "rerank_index", "SCALE_NEIGHBOURS", "ALPHA", "MIX",
-           "MIN_DEPTH", "DEFAULT_DEPTH"]
+__all__ = [
+    "diffused_similarity",
+    "rerank_scores",
+    "rerank_index",
+    "SCALE_NEIGHBOURS",
+    "ALPHA",
+    "MIX",
+    "MIN_DEPTH",
+    "DEFAULT_DEPTH",
+]
 
 #: neighbours per node in the affinity graph; the k-th one's distance is the node's scale
 SCALE_NEIGHBOURS = 8
@@ -73,8 +81,9 @@ def _pagerank_cosine(P: np.ndarray, alpha: float) -> np.ndarray:
     return A @ A.T
 
 
-def diffused_similarity(distances: ArrayLike, *, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA,
-                        mix: float = MIX) -> np.ndarray:
+def diffused_similarity(
+    distances: ArrayLike, *, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA, mix: float = MIX
+) -> np.ndarray:
     """The re-ranked similarity of every pair of a collection.
 
     Parameters
@@ -94,21 +103,30 @@ def diffused_similarity(distances: ArrayLike, *, k: int = SCALE_NEIGHBOURS, alph
         return np.zeros((0, 0))
     off = D.copy()
     np.fill_diagonal(off, np.inf)
-    order = np.argsort(off, axis=1, kind="stable")[:, :min(k, N - 1)]
+    order = np.argsort(off, axis=1, kind="stable")[:, : min(k, N - 1)]
     s = _scales(np.take_along_axis(off, order, axis=1), k)
-    W = np.exp(-D ** 2 / (s[:, None] * s[None, :]))
+    W = np.exp(-(D**2) / (s[:, None] * s[None, :]))
     mask = np.zeros((N, N), dtype=bool)
     mask[np.arange(N)[:, None], order] = True
     np.fill_diagonal(mask, True)
     P = np.where(mask, W, 0.0)
     P /= P.sum(axis=1, keepdims=True)
     S = (1 - mix) * _pagerank_cosine(P, alpha) + mix * W
-    return (S + S.T) / 2          # symmetric to rounding: the cosine and W are, up to round-off
+    return (S + S.T) / 2  # symmetric to rounding: the cosine and W are, up to round-off
 
 
-def rerank_scores(query_distances, candidates, graph_rows, graph_distances, *, merged=None,
-                  outside_scale=None, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA,
-                  mix: float = MIX) -> np.ndarray:
+def rerank_scores(
+    query_distances,
+    candidates,
+    graph_rows,
+    graph_distances,
+    *,
+    merged=None,
+    outside_scale=None,
+    k: int = SCALE_NEIGHBOURS,
+    alpha: float = ALPHA,
+    mix: float = MIX,
+) -> np.ndarray:
     """Diffused scores of a query's candidates, from its exact distances and the stored graph.
 
     Parameters
@@ -154,16 +172,15 @@ def rerank_scores(query_distances, candidates, graph_rows, graph_distances, *, m
         entries = [(node_of.get(int(r), -1), int(r), float(d)) for r, d in zip(gr[c], gd[c]) if r >= 0]
         if not merged.any():
             entries.append((0, -1, float(qd[c])))
-        entries.sort(key=lambda e: e[2])        # stable: the stored order breaks ties
+        entries.sort(key=lambda e: e[2])  # stable: the stored order breaks ties
         lists.append(entries[:k])
     s = np.array([max(lst[-1][2], 1e-12) if lst else 1.0 for lst in lists])
     outside = sorted({row for lst in lists for node, row, _ in lst if node < 0})
     s_out = {}
     if outside and outside_scale is not None:
-        s_out = dict(zip(outside, np.maximum(np.asarray(outside_scale(np.array(outside)), dtype=np.float64),
-                                               1e-12)))
+        s_out = dict(zip(outside, np.maximum(np.asarray(outside_scale(np.array(outside)), dtype=np.float64), 1e-12)))
     P = np.zeros((n, n))
-    total = np.ones(n)                          # the self-loop, weight 1
+    total = np.ones(n)  # the self-loop, weight 1
     for i, lst in enumerate(lists):
         P[i, i] = 1.0
         for node, row, d in lst:
@@ -174,16 +191,22 @@ def rerank_scores(query_distances, candidates, graph_rows, graph_distances, *, m
                 P[i, node] += w
     P /= total[:, None]
     cos = _pagerank_cosine(P, alpha)[0, 1:]
-    direct = np.exp(-qd[keep] ** 2 / (s[0] * s[1:]))
+    direct = np.exp(-(qd[keep] ** 2) / (s[0] * s[1:]))
     out = np.full(M, np.nan)
     out[keep] = (1 - mix) * cos + mix * direct
     return out
 
 
-def rerank_index(index, queries: Sequence[Curve], *, top: int = 10, depth: int = DEFAULT_DEPTH,
-                 exclude: Callable[[str, str], bool] | None = None,
-                 progress: Callable[[int, int], None] | None = None,
-                 threads: int | None = None) -> tuple[list[list[RankedMatch]], SearchStats]:
+def rerank_index(
+    index,
+    queries: Sequence[Curve],
+    *,
+    top: int = 10,
+    depth: int = DEFAULT_DEPTH,
+    exclude: Callable[[str, str], bool] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    threads: int | None = None,
+) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k best curves of an index for each query by diffused score.
 
     Parameters
@@ -219,13 +242,19 @@ def rerank_index(index, queries: Sequence[Curve], *, top: int = 10, depth: int =
     t0 = time.perf_counter()
     reader = index.graph_reader()
     if reader is None:
-        raise IndexFormatError("the index has no neighbour graph, which --rerank needs: build it with "
-                               f"`nfdmatch index build ... --index {index.path} --graph`", path=index.path)
+        raise IndexFormatError(
+            "the index has no neighbour graph, which --rerank needs: build it with "
+            f"`nfdmatch index build ... --index {index.path} --graph`",
+            path=index.path,
+        )
     stored_k = index.graph_k()
     if stored_k < SCALE_NEIGHBOURS:
-        raise IndexFormatError(f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
-                               f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
-                               f"--graph {SCALE_NEIGHBOURS}` or more", path=index.path)
+        raise IndexFormatError(
+            f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
+            f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
+            f"--graph {SCALE_NEIGHBOURS}` or more",
+            path=index.path,
+        )
     exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
     results = []
     for q, found in zip(queries, exact):
@@ -236,12 +265,14 @@ def rerank_index(index, queries: Sequence[Curve], *, top: int = 10, depth: int =
         qd = np.array([m.distance for m in found])
         merged = np.array([exclude is not None and bool(exclude(q.id, m.id)) for m in found])
         gr, gd = reader(rows)
-        scores = rerank_scores(qd, rows, gr, gd, merged=merged,
-                               outside_scale=lambda r: _kth(reader(r)[1], SCALE_NEIGHBOURS))
+        scores = rerank_scores(
+            qd, rows, gr, gd, merged=merged, outside_scale=lambda r: _kth(reader(r)[1], SCALE_NEIGHBOURS)
+        )
         idx = [i for i in range(len(found)) if not merged[i]]
         idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i].rank))
-        results.append([found[i].replace(rank=rank, score=float(scores[i]))
-                        for rank, i in enumerate(idx[:top], start=1)])
+        results.append(
+            [found[i].replace(rank=rank, score=float(scores[i])) for rank, i in enumerate(idx[:top], start=1)]
+        )
     stats.seconds = time.perf_counter() - t0
     return results, stats
 

@@ -35,6 +35,7 @@ def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     steps[0] = lo[nonempty][0]
     return np.cumsum(steps)
 
+
 #: once reads would pass this fraction of the positions, the table is read whole at once
 _READ_ALL_FRACTION = 0.25
 #: the same for the descriptors, read apart (most rows a search bounds never need them)
@@ -71,9 +72,19 @@ class SearchTable:
     Thread-safe: the search answers several queries on threads over one table.
     """
 
-    def __init__(self, harmonics: int, start, centre, radius, read_positions: Callable,
-                 read_coefficients: Callable, read_descriptors: Callable | None = None, *,
-                 read_runs: Callable | None = None, read_descriptor_runs: Callable | None = None):
+    def __init__(
+        self,
+        harmonics: int,
+        start,
+        centre,
+        radius,
+        read_positions: Callable,
+        read_coefficients: Callable,
+        read_descriptors: Callable | None = None,
+        *,
+        read_runs: Callable | None = None,
+        read_descriptor_runs: Callable | None = None,
+    ):
         self.harmonics = harmonics
         self.split = feature_split(harmonics)
         self.start = np.asarray(start, dtype=np.int64)
@@ -85,11 +96,13 @@ class SearchTable:
         self._read_descriptors = read_descriptors
         self._read_runs = read_runs or (lambda runs: _concatenated([read_positions(a, b) for a, b in runs]))
         if read_descriptor_runs is None and read_descriptors is not None:
+
             def read_descriptor_runs(runs):
                 return np.concatenate([read_descriptors(a, b) for a, b in runs])
+
         self._read_descriptor_runs = read_descriptor_runs
-        self._cells: dict[int, tuple] = {}     # cell -> (row, features, sqnorm)
-        self._all = None                       # the same for every position, once read whole
+        self._cells: dict[int, tuple] = {}  # cell -> (row, features, sqnorm)
+        self._all = None  # the same for every position, once read whole
         self._desc: dict[int, np.ndarray] = {}  # cell -> descriptors
         self._desc_all = None
         self._desc_read = 0
@@ -99,8 +112,9 @@ class SearchTable:
         self.bytes_read = 0
 
     @classmethod
-    def single_cell(cls, harmonics: int, features: np.ndarray, coefficients: np.ndarray,
-                    read_coefficients: Callable) -> "SearchTable":
+    def single_cell(
+        cls, harmonics: int, features: np.ndarray, coefficients: np.ndarray, read_coefficients: Callable
+    ) -> "SearchTable":
         """Every row in one cell, in row order (a format-1 index, curves in memory).
 
         harmonics : K; features : (N, 2K + 3) float features (rounded to float32 here, as an
@@ -113,12 +127,25 @@ class SearchTable:
         sq = squared_norms(F, feature_split(harmonics))
         rows = np.arange(N, dtype=np.int64)
         # radius inf: the one cell's bound is 0, every row gets its own bound
-        return cls(harmonics, [0, N], np.zeros((1, F.shape[1])), np.full((1, 2), np.inf),
-                   lambda a, b: (rows[a:b], F[a:b], sq[a:b], coefficients[a:b]), read_coefficients)
+        return cls(
+            harmonics,
+            [0, N],
+            np.zeros((1, F.shape[1])),
+            np.full((1, 2), np.inf),
+            lambda a, b: (rows[a:b], F[a:b], sq[a:b], coefficients[a:b]),
+            read_coefficients,
+        )
 
     @classmethod
-    def from_cells(cls, harmonics: int, features: np.ndarray, coefficients: np.ndarray, read_coefficients: Callable, *,
-                   rows_per_cell: int) -> "SearchTable":
+    def from_cells(
+        cls,
+        harmonics: int,
+        features: np.ndarray,
+        coefficients: np.ndarray,
+        read_coefficients: Callable,
+        *,
+        rows_per_cell: int,
+    ) -> "SearchTable":
         """Cells built in memory (:func:`~nfdmatch.search.cells.build_cells`), as an index
         file stores them; arguments as :meth:`single_cell`."""
         from .cells import build_cells
@@ -130,8 +157,14 @@ class SearchTable:
         sq = squared_norms(F, split)
         row = cells.row
         coefficients = np.asarray(coefficients)[row]
-        return cls(harmonics, cells.start, cells.centre, cells.radius,
-                   lambda a, b: (row[a:b], F[a:b], sq[a:b], coefficients[a:b]), read_coefficients)
+        return cls(
+            harmonics,
+            cells.start,
+            cells.centre,
+            cells.radius,
+            lambda a, b: (row[a:b], F[a:b], sq[a:b], coefficients[a:b]),
+            read_coefficients,
+        )
 
     def subset(self, cells) -> "SearchTable":
         """The table of the given cells only (ascending cell numbers, or a ``(first, stop)``
@@ -147,9 +180,15 @@ class SearchTable:
             offset = int(self.start[first])
             read, read_descriptors = self._read_positions, self._read_descriptors
             shifted = None if read_descriptors is None else (lambda a, b: read_descriptors(a + offset, b + offset))
-            return SearchTable(self.harmonics, self.start[first:stop + 1] - offset, self.centre[first:stop],
-                               self.radius[first:stop], lambda a, b: read(a + offset, b + offset),
-                               self._read_coefficients, shifted)
+            return SearchTable(
+                self.harmonics,
+                self.start[first : stop + 1] - offset,
+                self.centre[first:stop],
+                self.radius[first:stop],
+                lambda a, b: read(a + offset, b + offset),
+                self._read_coefficients,
+                shifted,
+            )
         cells = np.asarray(cells, dtype=np.int64)
         if len(cells) == 0 or cells.min() < 0 or cells.max() >= C or (np.diff(cells) <= 0).any():
             raise IndexError(f"cells must be ascending numbers in 0..{C - 1}")
@@ -160,10 +199,11 @@ class SearchTable:
             i, j = int(np.searchsorted(start, a, side="right")) - 1, int(np.searchsorted(start, b, side="left"))
             got = self.cell_rows(cells[i:j])
             lo = a - int(start[i])
-            return tuple(x[lo:lo + (b - a)] for x in got)
+            return tuple(x[lo : lo + (b - a)] for x in got)
 
-        return SearchTable(self.harmonics, start, self.centre[cells], self.radius[cells], read_cells,
-                           self._read_coefficients)
+        return SearchTable(
+            self.harmonics, start, self.centre[cells], self.radius[cells], read_cells, self._read_coefficients
+        )
 
     @property
     def n_cells(self) -> int:
@@ -268,7 +308,7 @@ class SearchTable:
             first = int(np.searchsorted(self.start, a, side="left"))
             last = int(np.searchsorted(self.start, b, side="left"))
             for c in range(first, last):
-                self._desc.setdefault(c, got[at + int(self.start[c]) - a:at + int(self.start[c + 1]) - a])
+                self._desc.setdefault(c, got[at + int(self.start[c]) - a : at + int(self.start[c + 1]) - a])
             at += b - a
 
     def _load_all_descriptors(self) -> None:
