@@ -517,3 +517,19 @@ def test_a_flipped_bit_in_the_file_table_is_named_on_open(index_copy):
             f"Error: {index_copy}: corrupted nfdmatch index: checksum mismatch in the file "
             "table (/files; the file is damaged)\n"
         )
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.complex64])
+def test_the_non_finite_scan_finds_the_first_bad_row_and_nothing_in_large_finite_values(dtype):
+    from nfdmatch.index.reader import first_nonfinite
+
+    big = np.finfo(np.float32 if dtype != np.float64 else np.float64).max / 2
+    values = np.full((50, 3), big, dtype=dtype)  # their sum overflows: the exact scan decides
+    assert first_nonfinite(values, 100) is None
+    for bad in (np.nan, np.inf, -np.inf):
+        for row in (0, 17, 49):
+            spoiled = values.copy()
+            spoiled[row, 1] = bad
+            spoiled[min(row + 1, 49), 2] = bad
+            assert first_nonfinite(spoiled, 100) == 100 + row
+            assert first_nonfinite(spoiled, np.arange(50) * 2) == 2 * row

@@ -375,23 +375,33 @@ def test_ahead_of_time_kernels_equal_the_numpy_path(monkeypatch, rng, samples, h
         assert np.array_equal(got["reversed"][g], ref["reversed"][g])
 
 
-def test_ahead_of_time_grid_maximum_equals_the_numpy_path(monkeypatch, rng):
+def test_ahead_of_time_grid_bound_equals_the_numpy_path(monkeypatch, rng):
     from nfdmatch import matching
 
     kernels = _aot_kernels()
     rows, _ = _kernel_rows(rng, 128, 16)
-    for grid, direction, mirror in ((24, "invariant", False), (16, "strict", True), (10, "invariant", True)):
-        monkeypatch.setattr(
-            matching.dispatch, "_kernel_state", {"module": None, "failed": None, "work": 0, "mode": "off", "aot": None}
-        )
-        ref = matching.grid_maximum(rows[1, :4], rows[:, :4], grid, direction=direction, mirror=mirror)
-        monkeypatch.setattr(
-            matching.dispatch,
-            "_kernel_state",
-            {"module": None, "failed": None, "work": 0, "mode": "aot", "aot": kernels},
-        )
-        got = matching.grid_maximum(rows[1, :4], rows[:, :4], grid, direction=direction, mirror=mirror)
-        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+    for harmonics, grid, direction, mirror in (
+        (4, 24, "invariant", False),
+        (8, 48, "strict", True),
+        (5, 15, "invariant", True),
+    ):
+        A, B = rows[1, :harmonics], rows[:, :harmonics]
+        slack = np.full(len(B), 1e-3)
+        for need_of in (lambda v: np.full(len(v), -np.inf), lambda v: 0.99 * v):
+            monkeypatch.setattr(
+                matching.dispatch,
+                "_kernel_state",
+                {"module": None, "failed": None, "work": 0, "mode": "off", "aot": None},
+            )
+            need = need_of(matching.grid_maximum(A, B, grid, direction=direction, mirror=mirror))
+            ref = matching.grid_bound(A, B, grid, 9 * slack, slack, need, direction=direction, mirror=mirror)
+            monkeypatch.setattr(
+                matching.dispatch,
+                "_kernel_state",
+                {"module": None, "failed": None, "work": 0, "mode": "aot", "aot": kernels},
+            )
+            got = matching.grid_bound(A, B, grid, 9 * slack, slack, need, direction=direction, mirror=mirror)
+            np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
 
 
 def test_a_stale_ahead_of_time_build_is_not_used(monkeypatch, tmp_path):

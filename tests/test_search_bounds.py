@@ -57,17 +57,36 @@ def _pairs(rng, count):
     strict=st.booleans(),
     harmonics=st.integers(1, 8),
     grid=st.sampled_from([8, 12, 24, 32, 48]),
+    limit_quantile=st.sampled_from([None, 0.0, 0.1, 0.5, 0.9]),
 )
-def test_truncated_bound_never_exceeds_the_exact_distance(seed, mirror, strict, harmonics, grid):
+def test_truncated_bound_never_exceeds_the_exact_distance(seed, mirror, strict, harmonics, grid, limit_quantile):
+    """With or without a limit (a search's k-th distance: coarse to fine, grids divisible by
+    3), at any limit."""
     rng = np.random.default_rng(seed)
     A, B = _pairs(rng, 24)
     direction = "strict" if strict else "invariant"
     exact = exact_search(A, B, N, direction=direction, mirror=mirror)["distance"]
-    bound = truncated_lower_bounds(A, B, direction=direction, mirror=mirror, harmonics=harmonics, grid=grid)
+    limit = None if limit_quantile is None else float(np.quantile(exact, limit_quantile))
+    bound = truncated_lower_bounds(
+        A, B, direction=direction, mirror=mirror, harmonics=harmonics, grid=grid, limit=limit
+    )
     assert np.all(bound <= exact * (1 + 1e-9) + 1e-12), np.max(bound - exact)
     # and it is the truncated distance up to the stated slack: never above it either
     truncated = exact_search(A[:harmonics], B[:, :harmonics], N, direction=direction, mirror=mirror)["distance"]
     assert np.all(bound <= truncated * (1 + 1e-9) + 1e-12)
+
+
+def test_a_limit_spends_the_fine_grid_only_where_it_decides():
+    """Rows far above the limit keep a (looser) coarse bound, still above the limit; rows
+    below it get the fine grid's bound or better."""
+    rng = np.random.default_rng(11)
+    A, B = _pairs(rng, 90)
+    full = truncated_lower_bounds(A, B)
+    limit = float(np.quantile(full, 0.3))
+    limited = truncated_lower_bounds(A, B, limit=limit)
+    assert np.all(limited[full > limit * 1.5] > limit)
+    assert np.all(limited[full <= limit] >= full[full <= limit] - 1e-12)
+    assert np.any(limited < full - 1e-6)  # coarse bounds somewhere: the work was skipped
 
 
 def test_truncated_bound_is_tight_on_unrelated_curves():
@@ -102,23 +121,44 @@ def test_the_finer_stage_is_tighter_on_unrelated_curves():
     assert np.median(fine[far] / exact[far]) > np.median(coarse[far] / exact[far])
 
 
-def test_grid_maximum_compiled_equals_numpy():
+@pytest.mark.parametrize("harmonics", [3, 4, 8])  # the general kernel and the specialised ones
+def test_grid_bound_compiled_equals_numpy(harmonics):
     rng = np.random.default_rng(3)
-    A, B = _pairs(rng, 40)
-    from nfdmatch.matching import _kernels
-    from nfdmatch.matching.dispatch import _folded_basis
+    A, B = _pairs(rng, 70)  # more than a block of rows
+    from nfdmatch.matching import _kernels, grid_bound, reference_path
+    from nfdmatch.matching.common import _integer_shift_basis
 
-    from nfdmatch.matching import reference_path
-
+    m = len(B)
+    slack = rng.uniform(0, 0.05, m)
     for mirror in (False, True):
         for direction, D in (("invariant", 2), ("strict", 1)):
             with reference_path():
-                reference = grid_maximum(A[:4], B[:, :4], 24, direction=direction, mirror=mirror)
-            basis, quarter = _folded_basis(4, 24)
-            compiled = _kernels.grid_maximum_rows(
-                np.conj(A[:4]), np.ascontiguousarray(B[:, :4]), D, basis, quarter, 24, mirror
-            )
-            assert np.allclose(compiled, reference, rtol=1e-12, atol=1e-12)
+                values = grid_maximum(A[:harmonics], B[:, :harmonics], 48, direction=direction, mirror=mirror)
+            for ratio, need in ((1, np.full(m, -np.inf)), (3, np.full(m, np.inf)), (3, values * 0.97), (3, values)):
+                with reference_path():
+                    reference = grid_bound(
+                        A[:harmonics],
+                        B[:, :harmonics],
+                        48,
+                        9 * slack,
+                        slack,
+                        need,
+                        ratio=ratio,
+                        direction=direction,
+                        mirror=mirror,
+                    )
+                compiled = _kernels.grid_bound_rows(
+                    np.conj(A[:harmonics]),
+                    np.ascontiguousarray(B[:, :harmonics]),
+                    D,
+                    np.array(_integer_shift_basis(harmonics, 48)),
+                    ratio,
+                    mirror,
+                    9 * slack,
+                    slack,
+                    need,
+                )
+                assert np.allclose(compiled, reference, rtol=1e-12, atol=1e-12)
 
 
 @settings(max_examples=30, deadline=None)

@@ -36,7 +36,9 @@ _EXACT_SIGNATURE = (
     "void(c16[:,::1], c16[:,::1], f8[::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, i8, b1, f8, "
     "f8[::1], f8[::1], f8[:,:,::1], b1[::1], b1[::1], i8, i8)"
 )
-_GRID_SIGNATURE = "void(c16[:,::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, f8[::1], i8, i8)"
+_BOUND_SIGNATURE = "void(c16[:,::1], c16[:,:,::1], i8, f8[:,::1], i8, b1, f8[::1], f8[::1], f8[::1], f8[::1], i8, i8)"
+#: the grid bound's versions: specialised for the truncated stages' K' (4, 8), and any K'
+_BOUND_HARMONICS = (0, 4, 8)
 
 
 def source_digest() -> str:
@@ -115,9 +117,14 @@ def build(output_dir: str | None = None) -> str:
             hi,
         )
 
-    @cc.export("grid_maximum_rows", _GRID_SIGNATURE)
-    def grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi):
-        k._grid_maximum_rows(Aw, B, D, basis, quarter, n, mirror, fmax, lo, hi)
+    def bound_export(kernel):  # one wrapper per kernel (a closure in the loop would bind the last)
+        def grid_bound_rows(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi):
+            kernel(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi)
+
+        return grid_bound_rows
+
+    for harmonics in _BOUND_HARMONICS:
+        cc.export(f"grid_bound_rows_{harmonics}", _BOUND_SIGNATURE)(bound_export(k.grid_bound_kernel(harmonics)))
 
     digest = source_digest()
     with warnings.catch_warnings():
@@ -132,7 +139,7 @@ def build(output_dir: str | None = None) -> str:
 
 class _Kernels:
     """The compiled module behind the interface of :mod:`._kernels` (``exact_rows``,
-    ``grid_maximum_rows``); ``workers`` is accepted and ignored (the GIL is held)."""
+    ``grid_bound_rows``); ``workers`` is accepted and ignored (the GIL is held)."""
 
     threads = False
 
@@ -170,14 +177,14 @@ class _Kernels:
             )
         return dist, shift, rot, reversed_, mirrored
 
-    def grid_maximum_rows(self, Aw, B, D, basis, quarter, n, mirror, workers=1):
+    def grid_bound_rows(self, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers=1):
         N = B.shape[0]
-        fmax = np.empty(N)
+        out = np.empty(N)
         if N:
-            self._module.grid_maximum_rows(
-                Aw, B, int(D), _writable(basis, n), bool(quarter), int(n), bool(mirror), fmax, 0, N
-            )
-        return fmax
+            K = Aw.shape[0]
+            kernel = getattr(self._module, f"grid_bound_rows_{K if K in _BOUND_HARMONICS else 0}")
+            kernel(Aw, B, int(D), basis, int(ratio), bool(mirror), slack_coarse, slack_fine, need, out, 0, N)
+        return out
 
 
 _writable_cache: dict[tuple, np.ndarray] = {}

@@ -144,7 +144,7 @@ def _compiled_kernels(work: int):
             # the same ski-rental, against the ahead-of-time kernels: a long run (an all-pairs
             # matrix, a graph, a big batch) pays for the threaded ones once it has done as
             # much work as their import costs; one core gains nothing from them
-            if state["work"] < _JIT_AFTER_AOT or (os.cpu_count() or 1) < 2:
+            if state["work"] < _JIT_AFTER_AOT or cpu_count() < 2:
                 return aot
             return state["module"] if _load_jit(warn=False) else aot
         if state["work"] < _NUMBA_AMORTIZE:
@@ -194,6 +194,17 @@ def load_threaded_kernels() -> bool:
     return _load_jit(warn=False)
 
 
+_cpu_count: list[int] = []
+
+
+def cpu_count() -> int:
+    """os.cpu_count(), looked up once (it reads /proc or /sys on every call: ~50 us, paid per
+    kernel call of a search otherwise)."""
+    if not _cpu_count:
+        _cpu_count.append(os.cpu_count() or 1)
+    return _cpu_count[0]
+
+
 def _warm_up(kernels) -> None:
     """Compile (or load from numba's cache) the kernel on a tiny input with the argument
     types exact_search passes, so that a failure shows here, once."""
@@ -201,7 +212,13 @@ def _warm_up(kernels) -> None:
     B = np.ones((1, 2, 3), dtype=np.complex128)
     basis, quarter = _folded_basis(2, 8)
     kernels.exact_rows(A, A, np.ones(2), B, 1, basis, quarter, 8, False, 1, True, 1.0)
-    kernels.grid_maximum_rows(A, B, 1, basis, quarter, 8, False)
+    from .common import _integer_shift_basis
+
+    one = np.ones(1)
+    for harmonics in (2, 4, 8):  # the general grid bound and the ones specialised for K'
+        Ah = np.ones((harmonics, 3), dtype=np.complex128)
+        Bh = np.ones((1, harmonics, 3), dtype=np.complex128)
+        kernels.grid_bound_rows(Ah, Bh, 2, np.array(_integer_shift_basis(harmonics, 24)), 3, False, one, one, one)
 
 
 def compile_kernels(ahead_of_time: bool = True) -> bool:

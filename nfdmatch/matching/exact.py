@@ -131,7 +131,7 @@ def exact_search(
     if kernels is not None:
         # compiled: every stage per row in one call (F per row stays in cache)
         workers = (
-            min(os.cpu_count() or 1, dispatch._MAX_THREADS)
+            min(dispatch.cpu_count(), dispatch._MAX_THREADS)
             if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread()
             else 1
         )
@@ -237,25 +237,83 @@ def grid_maximum(
     ``2 |A|^2 + 2 |B|^2 - 2 max F`` is the squared distance at the best grid shift.
     The integer stage of :func:`exact_search` alone (no refinement, no rotation).
     """
+    N = np.shape(B)[0]
+    zero = np.zeros(N)
+    return grid_bound(A, B, grid, zero, zero, np.full(N, -np.inf), ratio=1, direction=direction, mirror=mirror)
+
+
+def grid_bound(
+    A: np.ndarray,
+    B: np.ndarray,
+    grid: int,
+    slack_coarse: np.ndarray,
+    slack_fine: np.ndarray,
+    need: np.ndarray,
+    *,
+    ratio: int = 3,
+    direction: str = "invariant",
+    mirror: bool = False,
+) -> np.ndarray:
+    """Per row, the largest of F over a coarse grid plus a slack, with the coarse points that
+    matter replaced by the fine grid around them (a coarse-to-fine maximum).
+
+    Parameters
+    ----------
+    A : (K, 3) complex, the query's half-band; B : (N, K, 3) complex rows.
+    grid : n, the fine grid's shifts (as :func:`grid_maximum`); ``ratio`` (odd, dividing n):
+        the coarse grid is every ratio-th of them, c = 0, ratio, 2 ratio, ...
+    slack_coarse, slack_fine : (N,) float64 added to F at coarse / fine points.
+    need : (N,) float64: a coarse point c whose F + slack_coarse reaches need (or is NaN) is
+        *refined*: its interval's fine points c - ratio // 2 .. c + ratio // 2 (mod n) count,
+        each with F + slack_fine, instead.
+
+    Returns
+    -------
+    (N,) float64: max(F(c) + slack_coarse over coarse points not refined, F(s) + slack_fine
+    over the fine points of refined ones), both directions when ``direction`` is invariant.
+    With need = -inf every point is refined: the fine grid's max of F + slack_fine. NaN
+    propagates. What makes it an upper bound of F over all shifts is the caller's slack
+    (:func:`nfdmatch.search.bounds.truncated_lower_bounds`).
+    """
     A = np.asarray(A, dtype=np.complex128)
     B = np.asarray(B, dtype=np.complex128)
     N, K, _ = B.shape
     _check_direction(direction)
+    if grid % ratio or ratio % 2 == 0:
+        raise ValueError(f"ratio must be odd and divide grid, got ratio {ratio}, grid {grid}")
     D = 2 if direction == "invariant" else 1
     Aw = np.conj(A)
-    kernels = _compiled_kernels(N * D * grid + dispatch._CALL_WORK) if N else None
+    slack_coarse, slack_fine, need = (
+        np.ascontiguousarray(x, dtype=np.float64) for x in (slack_coarse, slack_fine, need)
+    )
+    kernels = _compiled_kernels(N * D * grid // ratio + dispatch._CALL_WORK) if N else None
     if kernels is not None:
         workers = (
-            min(os.cpu_count() or 1, dispatch._MAX_THREADS)
+            min(dispatch.cpu_count(), dispatch._MAX_THREADS)
             if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread()
             else 1
         )
-        basis, quarter = _folded_basis(K, grid)
-        return kernels.grid_maximum_rows(
-            np.ascontiguousarray(Aw), np.ascontiguousarray(B), D, basis, quarter, grid, bool(mirror), workers
+        return kernels.grid_bound_rows(
+            np.ascontiguousarray(Aw),
+            np.ascontiguousarray(B),
+            D,
+            np.array(_integer_shift_basis(K, grid)),  # writable, as the compiled signatures take
+            int(ratio),
+            bool(mirror),
+            slack_coarse,
+            slack_fine,
+            need,
+            workers,
         )
+    if not N:
+        return np.zeros(0)
     Bv = np.stack([v for v, _ in _direction_variants(B, direction)])  # (D, N, K, 3)
     P = np.einsum("drkj,ki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
     F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, grid)).reshape(9, D, N, grid), mirror)
-    return F.max(axis=(0, 2)) if N else np.zeros(0)
+    coarse = F[:, :, ::ratio]  # (D, N, n / ratio)
+    refined = (coarse + slack_coarse[None, :, None] >= need[None, :, None]) | np.isnan(coarse)
+    owner = ((np.arange(grid) + ratio // 2) // ratio) % (grid // ratio)  # fine point -> its interval
+    fine_part = np.where(refined[:, :, owner], F + slack_fine[None, :, None], -np.inf)
+    coarse_part = np.where(refined, -np.inf, coarse + slack_coarse[None, :, None])
+    return np.maximum(fine_part.max(axis=(0, 2)), coarse_part.max(axis=(0, 2)))

@@ -258,6 +258,7 @@ def search_one(
                     mirror=mirror,
                     harmonics=Kp,
                     grid=grid,
+                    limit=thr,
                 )
                 if q_at == 0:
                     work.truncated += len(rows)

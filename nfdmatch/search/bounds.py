@@ -47,6 +47,8 @@ TRUNCATED_GRID = 24
 #: noisy copy's 10th distance, (4, 24) leaves 400-2,500 and (8, 48) then 25-60 for the exact
 #: distance (~2 us, ~5 us and ~16 us per row; docs/performance.md)
 TRUNCATED_STAGES = ((TRUNCATED_HARMONICS, TRUNCATED_GRID), (8, 48))
+#: the coarse grid of the truncated bound takes every third shift of its fine grid
+_COARSE_RATIO = 3
 #: float32 unit roundoff
 _U32 = 2.0**-24
 #: rows whose squared norms are computed at a time (bounds the float64 copy)
@@ -161,6 +163,7 @@ def truncated_lower_bounds(
     mirror: bool = False,
     harmonics: int = TRUNCATED_HARMONICS,
     grid: int = TRUNCATED_GRID,
+    limit: float | None = None,
 ) -> np.ndarray:
     """(m,) float64 lower bounds of the exact distance from the first harmonics only.
 
@@ -169,29 +172,44 @@ def truncated_lower_bounds(
     A : (K, 3) complex128 query half-band; B : (m, K, 3) complex rows.
     direction, mirror : as the search (the bound covers the same alignments).
     harmonics, grid : K' harmonics kept; start shifts evaluated on ``grid`` points.
+    limit : only whether a bound exceeds ``limit`` matters (a search's k-th distance): a row
+        whose coarse grid already proves it gets a bound above ``limit`` from the coarse grid
+        alone (cheaper; still a lower bound). None: every row's fine-grid bound.
 
     Proof of the slack: F(s) = max_R tr(R^T H(s)) with H(s) = sum_{k<=K'} 2 Re(conj(B_k)
     A_k^T e^{2 pi i k s/n}). At the best shift s*, with its best rotation R*, f(s) =
     tr(R*^T H(s)) touches F from below at s*, so f'(s*) = 0, and |f''| <= L2 =
     sum_k 2 (2 pi k/n)^2 |A_k| |B_k| (each term's nuclear norm is at most 2 |A_k| |B_k|).
-    The nearest grid point g is within h/2 = n/(2 grid) of s*, so F(g) >= f(g) >= F(s*) -
-    L2 h^2/8, i.e. max F <= max_grid F + sum_k |A_k| |B_k| (pi k/grid)^2. The truncated
-    distance is d_S^2 = |A_S|^2 + |B_S|^2 - 2 max F (both directions, mirrored when allowed),
+    A grid point g within h/2 = n/(2 G) of s* (G points) has F(g) >= f(g) >= F(s*) -
+    L2 h^2/8, i.e. F(s*) <= F(g) + S_G with S_G = sum_k |A_k| |B_k| (pi k/G)^2. The truncated
+    distance is d_S^2 = |A_S|^2 + |B_S|^2 - 2 F(s*) (both directions, mirrored when allowed),
     and d_S <= d.
+
+    Coarse to fine (:func:`nfdmatch.matching.grid_bound`): the coarse grid is every third
+    point of the fine one (G / 3 points), so its intervals [c - 1.5, c + 1.5] (in fine steps)
+    cover the circle and each holds exactly the fine points c - 1, c, c + 1. s* lies in some
+    coarse interval c*. If c* is refined, its fine points include one within half a fine step
+    of s*: F(s*) <= that point's F + S_G. If not, F(s*) <= F(c*) + S_{G/3}. So the larger of
+    the refined intervals' F + S_G and the other coarse points' F + S_{G/3} bounds F(s*),
+    whichever intervals are refined; a coarse point is refined when its own value could
+    bring the bound to ``limit``.
     """
-    from ..matching import grid_maximum
+    from ..matching import grid_bound
 
     B = np.asarray(B)
     if len(B) == 0:
         return np.zeros(0)
     Kp = min(harmonics, A.shape[0])
     As, Bs = np.asarray(A[:Kp], dtype=np.complex128), np.asarray(B[:, :Kp], dtype=np.complex128)
-    fmax = grid_maximum(As, Bs, grid, direction=direction, mirror=mirror)
     k = np.arange(1, Kp + 1)
     na = np.sqrt((As.real**2 + As.imag**2).sum(axis=1))
     nb = np.sqrt(np.einsum("mkj,mkj->mk", Bs.real, Bs.real) + np.einsum("mkj,mkj->mk", Bs.imag, Bs.imag))
-    slack = ((np.pi * k / grid) ** 2 * na * nb).sum(axis=1)
+    slack = nb @ ((np.pi * k / grid) ** 2 * na)
     squared = 2.0 * (na**2).sum() + 2.0 * (nb**2).sum(axis=1)
+    ratio = _COARSE_RATIO if grid % _COARSE_RATIO == 0 else 1
+    # the bound exceeds limit once F + slack < need (the formula below)
+    need = np.full(len(Bs), -np.inf) if limit is None else ((1.0 - 1e-12) * squared - limit * limit) / 2.0
+    fmax = grid_bound(As, Bs, grid, slack * ratio**2, slack, need, ratio=ratio, direction=direction, mirror=mirror)
     # F is a sum of products accurate to rounding: a relative 1e-12 of the squares covers it
-    d2 = squared - 2.0 * (fmax + slack) - 1e-12 * squared
+    d2 = squared - 2.0 * fmax - 1e-12 * squared
     return np.sqrt(np.maximum(d2, 0.0))
