@@ -5,7 +5,6 @@ best local maxima refined to a sub-sample shift), and its integer stage alone on
 
 from __future__ import annotations
 
-import os
 import threading
 
 import numpy as np
