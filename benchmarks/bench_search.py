@@ -183,9 +183,17 @@ class Version:
 
     def __init__(self, label, source):
         self.label, self.source = label, source
+        # as an installed package runs: from bytecode (an environment with
+        # PYTHONDONTWRITEBYTECODE would compile every module from source in every process)
+        subprocess.run([sys.executable, "-m", "compileall", "-q", os.path.join(source, "nfdmatch")], check=True)
+
+    def env(self, **extra):
+        env = dict(os.environ, PYTHONPATH=self.source, **extra)
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        return env
 
     def run(self, args, io_file=None):
-        env = dict(os.environ, PYTHONPATH=self.source)
+        env = self.env()
         env["NFDMATCH_BENCH_IO"] = io_file or os.devnull
         t0 = time.perf_counter()
         proc = subprocess.Popen(
@@ -213,7 +221,7 @@ class Version:
 
 def _peak_rss(version, args):
     """(seconds, peak RSS bytes, stdout) of one process."""
-    env = dict(os.environ, PYTHONPATH=version.source, NFDMATCH_BENCH_IO=os.devnull)
+    env = version.env(NFDMATCH_BENCH_IO=os.devnull)
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-P", "-m", "nfdmatch"] + list(args),
