@@ -26,8 +26,12 @@ __all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS"]
 #: rows per exact call of the exhaustive search: bounds the (rows x shifts x 9) working set
 EXHAUSTIVE_ROWS = 2048
 #: seconds a process spends importing numba and loading the just-in-time kernels (measured
-#: 0.4-0.5 s on 2 cores): a batch switches to them when the rest of it would take twice that
-_THREADED_KERNELS_IMPORT = 0.45
+#: 0.5 s on 2 cores)
+_THREADED_KERNELS_IMPORT = 0.5
+#: the part of a batch's time that threads save: the Python between kernel calls holds the
+#: GIL, and two threads answer a random-curve batch ~1.4x faster than one (measured), i.e.
+#: save ~30%; a batch switches when the rest of it would save more than the import costs
+_THREADS_SAVE = 0.25
 
 
 @dataclass
@@ -184,7 +188,7 @@ def search_index(
                 account(answer(first))
                 first += 1
                 pace = (time.perf_counter() - started) / first
-                if (len(queries) - first) * pace > 2 * _THREADED_KERNELS_IMPORT and dispatch.load_threaded_kernels():
+                if (len(queries) - first) * pace * _THREADS_SAVE > _THREADED_KERNELS_IMPORT and dispatch.load_threaded_kernels():
                     break
             if first == len(queries) or not dispatch.threads_help():
                 threads = 1
