@@ -188,7 +188,9 @@ def search_index(
                 account(answer(first))
                 first += 1
                 pace = (time.perf_counter() - started) / first
-                if (len(queries) - first) * pace * _THREADS_SAVE > _THREADED_KERNELS_IMPORT and dispatch.load_threaded_kernels():
+                if (
+                    len(queries) - first
+                ) * pace * _THREADS_SAVE > _THREADED_KERNELS_IMPORT and dispatch.load_threaded_kernels():
                     break
             if first == len(queries) or not dispatch.threads_help():
                 threads = 1
