@@ -101,13 +101,10 @@ class SearchTable:
                 return np.concatenate([read_descriptors(a, b) for a, b in runs])
 
         self._read_descriptor_runs = read_descriptor_runs
-        # what was read, by position (allocated at the first read; np.empty only takes memory
-        # for the pages written): row (N,) int64, features (N, D) float32, sqnorm (N, 2)
-        # float64, descriptors (N, K'', 3); and which cells hold them
-        self._row = self._features = self._sqnorm = self._desc = None
-        self._have = np.zeros(self.n_cells, dtype=bool)
-        self._desc_have = np.zeros(self.n_cells, dtype=bool)
-        self._cell_of = None  # (N,) int32 cell of each position, once needed
+        self._cells: dict[int, tuple] = {}  # cell -> (row, features, sqnorm)
+        self._all = None  # the same for every position, once read whole
+        self._desc: dict[int, np.ndarray] = {}  # cell -> descriptors
+        self._desc_all = None
         self._desc_read = 0
         self._positions_read = 0
         self._lock = threading.Lock()
@@ -235,18 +232,26 @@ class SearchTable:
         :data:`_READ_ALL_FRACTION` of the table, the whole table is read at once.
         """
         cells = np.asarray(cells, dtype=np.int64)
-        missing = cells[~self._have[cells]]
-        if len(missing):
-            wanted = int((self.start[missing + 1] - self.start[missing]).sum())
-            if self._positions_read + wanted > _READ_ALL_FRACTION * self.n_positions:
-                self._load_all()
-            else:
-                self._read_cells(np.sort(missing).tolist())
+        if self._all is None:
+            missing = [int(c) for c in cells if int(c) not in self._cells]
+            if missing:
+                wanted = int((self.start[np.array(missing) + 1] - self.start[np.array(missing)]).sum())
+                if self._positions_read + wanted > _READ_ALL_FRACTION * self.n_positions:
+                    self._load_all()
+                else:
+                    self._read_cells(sorted(missing))
         if len(cells) == 1:
             a, b = int(self.start[cells[0]]), int(self.start[cells[0] + 1])
-            return np.arange(a, b, dtype=np.int64), self._row[a:b], self._features[a:b], self._sqnorm[a:b]
-        positions = _ranges(self.start[cells], self.start[cells + 1])
-        return positions, self._row[positions], self._features[positions], self._sqnorm[positions]
+            positions = np.arange(a, b, dtype=np.int64)
+            if self._all is not None:
+                return (positions,) + tuple(x[a:b] for x in self._all[:3])
+            return (positions,) + self._cells[int(cells[0])]
+        lo, hi = self.start[cells], self.start[cells + 1]
+        positions = _ranges(lo, hi)
+        if self._all is not None:
+            return (positions,) + tuple(x[positions] for x in self._all[:3])
+        parts = [self._cells[int(c)] for c in cells]
+        return (positions,) + tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
     def coefficients_at_positions(self, positions: np.ndarray, harmonics: int | None = None) -> np.ndarray:
         """(m, K', 3) complex descriptors (as stored) at positions of opened cells: the
@@ -254,24 +259,27 @@ class SearchTable:
         are read here, for the cells holding ``positions`` (all at once once the reads
         would pass :data:`_READ_ALL_DESCRIPTORS_FRACTION` of the table)."""
         positions = np.asarray(positions, dtype=np.int64)
-        if len(positions) and not self._desc_have.all():
-            if self._cell_of is None:
-                sizes = self.start[1:] - self.start[:-1]
-                self._cell_of = np.repeat(np.arange(self.n_cells, dtype=np.int32), sizes)
-            cells = self._cell_of[positions]
-            wanted_cells = np.zeros(self.n_cells, dtype=bool)
-            wanted_cells[cells[~self._desc_have[cells]]] = True
-            missing = np.flatnonzero(wanted_cells)
-            if len(missing):
-                wanted = int((self.start[missing + 1] - self.start[missing]).sum())
-                if self._desc_read + wanted > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
-                    self._load_all_descriptors()
-                else:
-                    self._read_cell_descriptors(missing.tolist())
         h = self._coefficient_shape[0] if harmonics is None else min(harmonics, self._coefficient_shape[0])
-        if self._desc is None:  # nothing asked yet
-            return np.empty((0, h, 3), dtype=self._coefficient_dtype)
-        return self._desc[positions, :h]
+        if self._desc_all is not None:
+            return self._desc_all[positions, :h]
+        out = np.empty((len(positions), h, 3), dtype=self._coefficient_dtype)
+        if not len(positions):
+            return out
+        cell = np.searchsorted(self.start, positions, side="right") - 1
+        order = np.argsort(cell, kind="stable")
+        bounds = np.flatnonzero(np.diff(cell[order])) + 1
+        groups = np.split(order, bounds)
+        missing = sorted({int(cell[g[0]]) for g in groups} - self._desc.keys())
+        if missing:
+            wanted = int((self.start[np.array(missing) + 1] - self.start[np.array(missing)]).sum())
+            if self._desc_read + wanted > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
+                self._load_all_descriptors()
+                return self._desc_all[positions, :h]
+            self._read_cell_descriptors(missing)
+        for group in groups:
+            c = int(cell[group[0]])
+            out[group] = self._desc[c][positions[group] - self.start[c], :h]
+        return out
 
     def _runs(self, cells: list[int]) -> list[list[int]]:
         """Position ranges covering ``cells`` (ascending), nearby cells joined."""
@@ -284,13 +292,9 @@ class SearchTable:
                 runs.append([a, b])
         return runs
 
-    def _cells_in(self, a: int, b: int) -> slice:
-        """The cells whose positions lie in [a, b) (runs start and end on cell bounds)."""
-        return slice(int(np.searchsorted(self.start, a, side="left")), int(np.searchsorted(self.start, b, side="left")))
-
     def _read_cell_descriptors(self, cells: list[int]) -> None:
         with self._lock:
-            runs = self._runs([c for c in cells if not self._desc_have[c]])
+            runs = self._runs([c for c in cells if c not in self._desc])
             if not runs:
                 return
             got = self._read_descriptor_runs(runs)
@@ -298,61 +302,49 @@ class SearchTable:
             self._store_descriptors(runs, got)
 
     def _store_descriptors(self, runs, got) -> None:
-        if self._desc is None:
-            self._coefficient_shape, self._coefficient_dtype = tuple(got.shape[1:]), got.dtype
-            self._desc = np.empty((self.n_positions,) + self._coefficient_shape, dtype=got.dtype)
         at = 0
         for a, b in runs:
-            self._desc[a:b] = got[at : at + b - a]
             self._desc_read += b - a
-            self._desc_have[self._cells_in(a, b)] = True
+            first = int(np.searchsorted(self.start, a, side="left"))
+            last = int(np.searchsorted(self.start, b, side="left"))
+            for c in range(first, last):
+                self._desc.setdefault(c, got[at + int(self.start[c]) - a : at + int(self.start[c + 1]) - a])
             at += b - a
 
     def _load_all_descriptors(self) -> None:
         with self._lock:
-            if not self._desc_have.all():
+            if self._desc_all is None:
                 got = self._read_descriptors(0, self.n_positions)
                 self.bytes_read += got.nbytes
-                self._coefficient_shape, self._coefficient_dtype = tuple(got.shape[1:]), got.dtype
-                self._desc = got
-                self._desc_have[:] = True
+                self._desc_all = got
 
     def _read_cells(self, cells: list[int]) -> None:
         """Read ``cells`` (ascending) in runs of nearby positions, all runs in one call;
-        keep every cell read."""
+        cache every cell read."""
         with self._lock:
-            runs = self._runs([c for c in cells if not self._have[c]])
-            if not runs:
-                return
+            runs = self._runs(cells)
             got = self._complete(self._read_runs(runs))
             self.bytes_read += sum(x.nbytes for x in got if x is not None)
-            if self._row is None:
-                N = self.n_positions
-                self._row = np.empty(N, dtype=np.int64)
-                self._features = np.empty((N,) + got[1].shape[1:], dtype=np.float32)
-                self._sqnorm = np.empty((N, 2))
             at = 0
             for a, b in runs:
-                for buffer, values in zip((self._row, self._features, self._sqnorm), got[:3]):
-                    buffer[a:b] = values[at : at + b - a]
                 self._positions_read += b - a
-                self._have[self._cells_in(a, b)] = True
+                first = int(np.searchsorted(self.start, a, side="left"))
+                last = int(np.searchsorted(self.start, b, side="left"))
+                for c in range(first, last):
+                    lo, hi = at + int(self.start[c]) - a, at + int(self.start[c + 1]) - a
+                    self._cells[c] = tuple(x[lo:hi] for x in got[:3])
                 at += b - a
             if got[3] is not None:
                 self._store_descriptors(runs, got[3])
 
     def _load_all(self) -> None:
         with self._lock:
-            if not self._have.all():
+            if self._all is None:
                 got = self._complete(self._read_positions(0, self.n_positions))
                 self.bytes_read += sum(x.nbytes for x in got if x is not None)
-                self._row = np.asarray(got[0], dtype=np.int64)
-                self._features = np.asarray(got[1], dtype=np.float32)
-                self._sqnorm = got[2]
-                self._have[:] = True
-                if got[3] is not None and not self._desc_have.all():
-                    self._desc = got[3]
-                    self._desc_have[:] = True
+                self._all = tuple(got[:3])
+                if got[3] is not None and self._desc_all is None:
+                    self._desc_all = got[3]
 
     def _complete(self, got) -> list:
         """A read's (row, features, sqnorm, coefficients) with the squared norms computed
