@@ -183,14 +183,18 @@ def search_index(
             # the kernels compiled ahead of time hold the GIL: answer on this thread, and
             # switch to the just-in-time kernels (threads in parallel) once the queries left
             # would take long enough, at the pace so far, to pay for importing them
-            started = time.perf_counter()
+            # (at the pace of the last query: the first one also reads most of what the
+            # others find cached)
             while first < len(queries):
+                started = time.perf_counter()
                 account(answer(first))
                 first += 1
-                pace = (time.perf_counter() - started) / first
+                pace = time.perf_counter() - started
                 if (
-                    len(queries) - first
-                ) * pace * _THREADS_SAVE > _THREADED_KERNELS_IMPORT and dispatch.load_threaded_kernels():
+                    first > 1
+                    and (len(queries) - first) * pace * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
+                    and dispatch.load_threaded_kernels()
+                ):
                     break
             if first == len(queries) or not dispatch.threads_help():
                 threads = 1
