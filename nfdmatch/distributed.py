@@ -693,6 +693,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
             positions = tops[qi].extra["position"][own_rows(qi)]
             if len(positions) and positions.min() >= 0:
                 held[qi] = table.coefficients_at_positions(positions)
+
     if rng is not None and rng[0] == "rows":
         from .search.index_search import EXHAUSTIVE_ROWS
 

@@ -557,3 +557,24 @@ def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0].startswith("RuntimeError") and out.stdout.split()[-1] == "True", out.stdout
+
+
+def test_a_long_run_switches_to_the_threaded_kernels_unless_its_caller_holds_them(monkeypatch, rng):
+    """Past _JIT_AFTER_AOT units of work the ahead-of-time kernels give way to the threaded
+    ones (a matrix, a graph build); a caller that decides that switch itself (a batch on one
+    thread) keeps them while it holds ``no_switch_by_work``."""
+    from nfdmatch import matching
+    from nfdmatch.matching import dispatch
+
+    kernels = _aot_kernels()
+    state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": kernels}
+    monkeypatch.setattr(dispatch, "_kernel_state", state)
+    monkeypatch.setattr(dispatch, "_JIT_AFTER_AOT", 1)
+    monkeypatch.setattr(dispatch, "cpu_count", lambda: 2)
+    rows, _ = _kernel_rows(rng, 128, 16)
+    with dispatch.no_switch_by_work():
+        for _ in range(3):
+            matching.grid_maximum(rows[1, :4], rows[:, :4], 24)
+    assert state["module"] is None and state["work"] > 1
+    matching.grid_maximum(rows[1, :4], rows[:, :4], 24)
+    assert state["module"] is not None  # the threaded kernels now serve

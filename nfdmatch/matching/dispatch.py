@@ -62,6 +62,23 @@ def reference_path():
         _reference.on = before
 
 
+_held = threading.local()
+
+
+@contextmanager
+def no_switch_by_work():
+    """Within this block, calls on this thread keep to the ahead-of-time kernels when those
+    serve them: no switch to the just-in-time ones by the work done so far. For a caller
+    that makes that choice itself (``search_index`` answering a batch on one thread loads
+    them only when its threads would gain more than their import costs)."""
+    before = getattr(_held, "on", False)
+    _held.on = True
+    try:
+        yield
+    finally:
+        _held.on = before
+
+
 def _mode_from_environment(value: str) -> str:
     mode = value.strip().lower()
     if mode in ("0", "off", "no", "false", "numpy"):
@@ -144,7 +161,7 @@ def _compiled_kernels(work: int):
             # the same ski-rental, against the ahead-of-time kernels: a long run (an all-pairs
             # matrix, a graph, a big batch) pays for the threaded ones once it has done as
             # much work as their import costs; one core gains nothing from them
-            if state["work"] < _JIT_AFTER_AOT or cpu_count() < 2:
+            if state["work"] < _JIT_AFTER_AOT or cpu_count() < 2 or getattr(_held, "on", False):
                 return aot
             return state["module"] if _load_jit(warn=False) else aot
         if state["work"] < _NUMBA_AMORTIZE:

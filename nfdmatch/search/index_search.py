@@ -29,9 +29,9 @@ EXHAUSTIVE_ROWS = 2048
 #: 0.5 s on 2 cores)
 _THREADED_KERNELS_IMPORT = 0.5
 #: the part of a batch's time that threads save: the Python between kernel calls holds the
-#: GIL, and two threads answer a random-curve batch ~1.4x faster than one (measured), i.e.
-#: save ~30%; a batch switches when the rest of it would save more than the import costs
-_THREADS_SAVE = 0.25
+#: GIL (measured on 2 cores: 13% for 1,000 queries of 1M family curves, up to ~30% for
+#: random curves); a batch switches when the rest of it would save more than the import
+_THREADS_SAVE = 0.15
 
 
 @dataclass
@@ -183,16 +183,19 @@ def search_index(
             # the kernels compiled ahead of time hold the GIL: answer on this thread, and
             # switch to the just-in-time kernels (threads in parallel) once the queries left
             # would take long enough, at the pace so far, to pay for importing them
-            # (at the pace of the last query: the first one also reads most of what the
-            # others find cached)
+            # (at the median pace of the queries after the first, which also reads most of
+            # what the others find cached; queries of one batch vary 3x)
+            paces = []
             while first < len(queries):
                 started = time.perf_counter()
-                account(answer(first))
+                with dispatch.no_switch_by_work():  # the switch is decided here
+                    work = answer(first)
+                account(work)
                 first += 1
-                pace = time.perf_counter() - started
+                paces.append(time.perf_counter() - started)
                 if (
-                    first > 1
-                    and (len(queries) - first) * pace * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
+                    len(paces) > 2
+                    and (len(queries) - first) * float(np.median(paces[1:])) * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
                     and dispatch.load_threaded_kernels()
                 ):
                     break
