@@ -300,7 +300,8 @@ def measure(version, work, name, queries, repeat):
     version.run(["--help"], io_file=io_file)
     help_bytes = int(open(io_file).read())
     batch_args = ["query", *queries, "--index", index, "--top", "10", "--format", "csv", "--stats"]
-    batch, _, _, (outb, errb) = version.timed(batch_args, max(1, repeat // 2))
+    # as many runs as the single query: a median of two swung 2x between runs here
+    batch, _, _, (outb, errb) = version.timed(batch_args, repeat)
     version.run(batch_args, io_file=io_file)
     batch_bytes = int(open(io_file).read())
     return {
