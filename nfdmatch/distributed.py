@@ -55,6 +55,9 @@ RANGE_BYTES = 2 << 30
 #: bytes per index row of a search table held in memory, at K = 16 (35 float32 features,
 #: 2 float64 norms, 4 x 3 complex64 harmonics, an int64 row)
 _TABLE_ROW_BYTES = 260
+#: seconds between checks, while a query waits for its range tasks, that the workers they
+#: are pinned to are still there
+_PIN_CHECK_SECONDS = 2.0
 #: times Dask re-runs a task that raised (a worker that died is rescheduled by the scheduler
 #: itself, up to ``distributed.scheduler.allowed-failures`` times)
 RETRIES = 2
@@ -439,6 +442,7 @@ class Cluster:
         from distributed import as_completed
 
         futures = {}
+        pinned = {}  # future -> (its task's arguments, the worker it is pinned to)
         # one job (the whole index, or the window round): blocks spread over every thread
         size = QUERY_BLOCK if len(jobs) > 1 else max(1, min(QUERY_BLOCK, -(-len(qcoef) // (4 * self.threads))))
         try:
@@ -447,7 +451,7 @@ class Cluster:
                 where = [self.workers[p % len(self.workers)]] if self.workers and len(jobs) > 1 else None
                 for a in range(0, len(qs), size):
                     block = qs[a : a + size]
-                    fut = self.client.submit(
+                    args = (
                         _search_range,
                         path,
                         stamp,
@@ -455,39 +459,71 @@ class Cluster:
                         np.ascontiguousarray(qcoef[block]),
                         None if seeds is None else [seeds[q] for q in block],
                         params,
-                        retries=RETRIES,
-                        pure=False,
-                        workers=where,
-                        allow_other_workers=where is not None,
+                    )
+                    fut = self.client.submit(
+                        *args, retries=RETRIES, pure=False, workers=where, allow_other_workers=where is not None
                     )
                     futures[fut] = block
-            for fut in as_completed(list(futures), loop=self.client.loop):
-                block = futures.pop(fut)
-                try:
-                    answer = fut.result()
-                except NfdError:
-                    raise
-                except Exception as exc:
-                    raise ClusterError(
-                        f"a search task failed on every try: {type(exc).__name__}: {_first_line(exc)}"
-                    ) from None
-                for qi, part in zip(block, answer["tops"]):
-                    if len(part["rows"]):
-                        if "coef" in part and self._held is not None:
-                            held = self._held[qi]
-                            part["position"] = np.arange(held[1], held[1] + len(part["rows"]))
-                            held[0].append(part.pop("coef"))
-                            held[1] += len(part["rows"])
-                        tops[qi].add(part["dist"], part["rows"], part)
-                for key in ("exact", "truncated", "fine", "scanned", "cells", "bytes_read"):
-                    setattr(stats, key, getattr(stats, key) + int(answer[key]))
-                done += len(block)
-                if progress is not None:
-                    progress(done, total)
+                    if where is not None:
+                        pinned[fut] = (args, where[0])
+            arriving = as_completed(list(futures), loop=self.client.loop)
+            checked = time.monotonic()
+            while futures:
+                if pinned and not arriving.has_ready():
+                    # pinned tasks: look now and then for workers that left (see _unpin_lost)
+                    if time.monotonic() - checked > _PIN_CHECK_SECONDS:
+                        for again in self._unpin_lost(futures, pinned):
+                            arriving.add(again)
+                        checked = time.monotonic()
+                    time.sleep(0.01)
+                    continue
+                for fut in arriving.next_batch(block=True):
+                    if fut not in futures:  # cancelled and submitted again
+                        continue
+                    block = futures.pop(fut)
+                    try:
+                        answer = fut.result()
+                    except NfdError:
+                        raise
+                    except Exception as exc:
+                        raise ClusterError(
+                            f"a search task failed on every try: {type(exc).__name__}: {_first_line(exc)}"
+                        ) from None
+                    for qi, part in zip(block, answer["tops"]):
+                        if len(part["rows"]):
+                            if "coef" in part and self._held is not None:
+                                held = self._held[qi]
+                                part["position"] = np.arange(held[1], held[1] + len(part["rows"]))
+                                held[0].append(part.pop("coef"))
+                                held[1] += len(part["rows"])
+                            tops[qi].add(part["dist"], part["rows"], part)
+                    for key in ("exact", "truncated", "fine", "scanned", "cells", "bytes_read"):
+                        setattr(stats, key, getattr(stats, key) + int(answer[key]))
+                    done += len(block)
+                    if progress is not None:
+                        progress(done, total)
         finally:
             if futures:
                 self.client.cancel(list(futures))
         return done
+
+    def _unpin_lost(self, futures: dict, pinned: dict) -> list:
+        """Submit again, on any worker, the waiting tasks pinned to a worker that has left.
+        Dask leaves such a task "unrunnable" for good when every worker was lost at once:
+        workers that join later are checked against the old address, whatever
+        ``allow_other_workers`` says (a 1M-curve query waited forever after an out-of-memory
+        kill of both workers)."""
+        alive = set(self.client.scheduler_info(n_workers=-1).get("workers", {}))
+        if alive:
+            self.workers = sorted(alive)
+        resubmitted = []
+        for fut in [f for f in futures if f in pinned and pinned[f][1] not in alive and f.status == "pending"]:
+            args, _ = pinned.pop(fut)
+            again = self.client.submit(*args, retries=RETRIES, pure=False)
+            futures[again] = futures.pop(fut)
+            fut.cancel()
+            resubmitted.append(again)
+        return resubmitted
 
 
 # --------------------------------------------------------------------------- build tasks

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import socket
+import time
 import sys
 
 import h5py
@@ -405,3 +406,46 @@ def test_without_dask_the_scheduler_option_says_what_to_install(library, tmp_pat
     # without --scheduler, nothing changes
     code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--jobs", "1")
     assert code == 3
+
+
+def test_a_ranged_query_finishes_when_every_worker_it_was_pinned_to_is_gone(client, library, tmp_path_factory):
+    """Range tasks are pinned to a worker. When every worker leaves at once (an
+    out-of-memory kill of all of them), Dask keeps tasks pinned to the old addresses
+    "unrunnable" even after new workers join; the query re-submits them unpinned instead
+    of waiting forever."""
+    import threading
+
+    folder, queries = library
+    index = tmp_path_factory.getbasetemp() / "pinned-index.h5"
+    if not index.exists():
+        build_index([str(folder)], str(index), jobs=1)
+    # by distance only: no first round, the range tasks are submitted (pinned) at once
+    options = dict(top=None, max_distance=0.2)
+    with open_index(index) as idx:
+        local, _ = search_index(idx, queries, **options)
+    cluster_object = client.cluster
+    with connect(client) as c:
+        old = list(c.workers)
+        client.retire_workers(old)
+        cluster_object.scale(0)
+        deadline = time.monotonic() + 30
+        while client.scheduler_info(n_workers=-1)["workers"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        got = {}
+
+        def run():
+            try:
+                got["result"] = c.search_index(str(index), queries, parts=2, **options)
+            except Exception as exc:  # reported below
+                got["error"] = exc
+
+        searching = threading.Thread(target=run, daemon=True)
+        searching.start()
+        time.sleep(1.0)  # the tasks are queued, pinned to workers that no longer exist
+        cluster_object.scale(2)
+        client.wait_for_workers(2, timeout=60)
+        searching.join(timeout=90)
+        assert not searching.is_alive(), "the query still waits for tasks pinned to workers that left"
+        assert "error" not in got, got.get("error")
+        remote, _ = got["result"]
+        _same_rows(remote, local)
