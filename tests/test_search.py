@@ -181,3 +181,82 @@ def test_a_batch_on_the_ahead_of_time_kernels_switches_to_threads_only_when_it_p
     assert (state["module"] is not None) == switch
     full, _ = search_index(index, queries, top=5, prune=False)
     _same(pruned, full)
+
+
+def test_a_table_reads_only_the_first_harmonics_for_the_first_bound_and_all_of_them_once():
+    """``head_harmonics``: a request for the first H harmonics reads only those (one call
+    per batch of cells); a request for more reads every harmonic; a cell held with every
+    harmonic serves a later request for the first ones without reading."""
+    from nfdmatch.search.table import SearchTable
+
+    rng = np.random.default_rng(3)
+    N, K, H = 40, 6, 4
+    coefficients = (rng.standard_normal((N, K, 3)) + 1j * rng.standard_normal((N, K, 3))).astype(np.complex64)
+    features = rng.random((N, 2 * K + 3)).astype(np.float32)
+    start = np.arange(0, N + 1, 10)
+    calls = []
+
+    def read_descriptors(a, b, harmonics=None):
+        calls.append((a, b, harmonics))
+        return coefficients[a:b, : harmonics or K]
+
+    table = SearchTable(
+        K,
+        start,
+        np.zeros((4, 2 * K + 3)),
+        np.full((4, 2), np.inf),
+        lambda a, b: (np.arange(a, b), features[a:b], None, None),
+        lambda rows: coefficients[rows],
+        read_descriptors,
+        head_harmonics=H,
+    )
+    positions = np.array([12, 3, 15])
+    table.open_cells(np.array([0, 1]))
+    assert np.array_equal(table.coefficients_at_positions(positions, H), coefficients[positions, :H])
+    assert {h for *_, h in calls} == {H}
+    calls.clear()
+    assert np.array_equal(table.coefficients_at_positions(positions), coefficients[positions])
+    assert calls and {h for *_, h in calls} == {None}
+    table.open_cells(np.array([2]))
+    calls.clear()
+    assert np.array_equal(table.coefficients_at_positions(np.array([21, 22]), 2 * K), coefficients[[21, 22]])
+    assert np.array_equal(table.coefficients_at_positions(np.array([29, 20]), H), coefficients[[29, 20], :H])
+    assert [h for *_, h in calls] == [None]  # cell 2 held whole: its first harmonics need no read
+
+
+def test_an_index_file_stores_the_first_harmonics_apart_and_its_search_reads_them_alone(tmp_path, monkeypatch):
+    """Unrelated curves (loose invariant bounds: the first truncated bound runs on many
+    rows): it reads /search/coefficients' first chunk of harmonics only, and answers as the
+    exhaustive search does."""
+    from nfdmatch import write_curves
+    from nfdmatch.index import build_index, open_index
+    from nfdmatch.search import cells as cells_module
+    from nfdmatch.search import table as table_module
+    from nfdmatch.search.bounds import TRUNCATED_HARMONICS
+
+    monkeypatch.setattr(cells_module, "ROWS_PER_CELL", 8)
+    rng = np.random.default_rng(11)
+    curves = [random_rigid_motion(smooth_curve_samplings(rng, [80], n_harmonics=6)[0], rng) for _ in range(600)]
+    write_curves(str(tmp_path / "lib.obj"), curves)
+    build_index([str(tmp_path / "lib.obj")], str(tmp_path / "idx.h5"), jobs=1)
+    widths = []
+    read_runs = table_module.SearchTable._read_cell_descriptors
+    load_all = table_module.SearchTable._load_all_descriptors
+    monkeypatch.setattr(
+        table_module.SearchTable,
+        "_read_cell_descriptors",
+        lambda self, tier, cells: (widths.append(tier.harmonics), read_runs(self, tier, cells))[1],
+    )
+    monkeypatch.setattr(
+        table_module.SearchTable,
+        "_load_all_descriptors",
+        lambda self, tier: (widths.append(tier.harmonics), load_all(self, tier))[1],
+    )
+    queries = _variants(rng, [Curve(c, id=str(i)) for i, c in enumerate(curves)], 3)
+    with open_index(str(tmp_path / "idx.h5")) as idx:
+        stored = idx._h5["search/coefficients"]
+        assert stored.chunks[1] == TRUNCATED_HARMONICS < stored.shape[1]
+        pruned, stats = search_index(idx, queries, top=5)
+        assert TRUNCATED_HARMONICS in widths and stats.truncated > 0
+        full, _ = search_index(idx, queries, top=5, prune=False)
+    _same(pruned, full)

@@ -44,19 +44,21 @@ _PLAIN_FILTERS = {h5py.h5z.FILTER_FLETCHER32, h5py.h5z.FILTER_SHUFFLE}
 _CHUNK_ROWS = 4096
 
 
-def read_runs(ds, runs):
+def read_runs(ds, runs, columns: slice | None = None):
     """Rows ``[a, b)`` of dataset ``ds`` for each ``(a, b)`` of ``runs``, concatenated (a
-    read per run: HDF5 reads a union of hyperslabs ~10x slower than the runs one by one).
-    Variable-length strings come back as a list of str."""
+    read per run: HDF5 reads a union of hyperslabs ~10x slower than the runs one by one);
+    ``columns``: only that slice of the second axis. Variable-length strings come back as
+    a list of str."""
     runs = [(int(a), int(b)) for a, b in runs if b > a]
     if h5py.check_string_dtype(ds.dtype) is not None:
         strings = ds.asstr()
         return [v for a, b in runs for v in strings[a:b].tolist()]
+    tail = () if columns is None else (columns,)
     if len(runs) == 1:
-        return ds[runs[0][0] : runs[0][1]]
+        return ds[(slice(*runs[0]),) + tail]
     if not runs:
-        return np.empty((0,) + tuple(ds.shape[1:]), dtype=ds.dtype)
-    return np.concatenate([ds[a:b] for a, b in runs])
+        return np.empty((0,) + tuple(ds.shape[1:]), dtype=ds.dtype)[(slice(None),) + tail]
+    return np.concatenate([ds[(slice(a, b),) + tail] for a, b in runs])
 
 
 def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
@@ -84,9 +86,10 @@ def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
     return out
 
 
-def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHUNK_ROWS):
+def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHUNK_ROWS, chunk_columns: int = 0):
     """Create dataset ``name`` in ``group`` holding ``data`` (rows along axis 0), with the
-    checksums of the format: numbers chunked with Fletcher-32; strings (HDF5 does not filter
+    checksums of the format: numbers chunked with Fletcher-32 (``chunk_rows`` rows and, if
+    given, ``chunk_columns`` along the second axis per chunk); strings (HDF5 does not filter
     variable-length data) plain, plus their ``NAME_crc32`` block checksums."""
     data = np.asarray(data) if dtype is None else np.asarray(data, dtype=dtype if dtype is not _STR else object)
     if dtype is _STR:
@@ -95,6 +98,8 @@ def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHU
         return ds
     rows = max(1, min(chunk_rows, data.shape[0] if data.ndim else 1))
     chunks = (rows,) + tuple(max(1, x) for x in data.shape[1:]) if data.ndim else None
+    if chunk_columns and data.ndim > 1:
+        chunks = (rows, max(1, min(chunk_columns, data.shape[1]))) + chunks[2:]
     # an empty dataset can be chunked only when resizable
     maxshape = (None,) + data.shape[1:] if data.ndim and not data.shape[0] else None
     return group.create_dataset(

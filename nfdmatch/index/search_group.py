@@ -33,7 +33,7 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None, 
     Deterministic: the same curves give the same group (seeded k-means). ``id_crcs``: the
     ``/curves/id_crc32`` blocks of the ids as written (None: read the ids back).
     """
-    from ..search.bounds import feature_split, squared_norms
+    from ..search.bounds import TRUNCATED_HARMONICS, feature_split, squared_norms
     from ..search.cells import ROWS_PER_CELL, build_cells
 
     curves = h5["curves"]
@@ -62,8 +62,10 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None, 
         create_checked(g, name, data)  # read whole when a search starts
     for name, data in (("row", cells.row), ("features", features), ("sqnorm", sqnorm), ("coefficients", coefficients)):
         # read cell by cell (~128 positions): small chunks, so that a query reads (and
-        # checksums) ~36 KB per cell rather than a 4096-row chunk
-        create_checked(g, name, data, chunk_rows=_POSITION_CHUNK_ROWS)
+        # checksums) ~36 KB per cell rather than a 4096-row chunk; the descriptors in
+        # chunks of the first truncated bound's harmonics, which it reads alone
+        columns = TRUNCATED_HARMONICS if name == "coefficients" else 0
+        create_checked(g, name, data, chunk_rows=_POSITION_CHUNK_ROWS, chunk_columns=columns)
     _finish_checksums(h5, id_crcs)
     return cells.count
 
@@ -169,9 +171,10 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
         _finite_runs("features", features, runs)
         return row, features, None, None
 
-    def read_descriptor_runs(runs):
+    def read_descriptor_runs(runs, harmonics=None):
         where = f"/search/coefficients, positions {runs[0][0]}..{runs[-1][1] - 1}"
-        coefficients = guard(lambda: np.asarray(read_runs_of(ds_coefficients, runs)), where)
+        columns = None if harmonics is None else slice(0, harmonics)
+        coefficients = guard(lambda: np.asarray(read_runs_of(ds_coefficients, runs, columns)), where)
         return _finite_runs("coefficients", coefficients, runs)
 
     def _finite_runs(name, values, runs):
@@ -185,6 +188,10 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
             fail(f"non-finite value (NaN or Inf) in /search/{name}, position {bad}")
         return values
 
+    # descriptors stored in chunks of fewer harmonics than K (written so since December
+    # 2026; any chunking is valid): the first chunk's harmonics can be read alone
+    chunks = ds_coefficients.chunks
+    head = int(chunks[1]) if chunks is not None and len(chunks) > 1 and 0 < chunks[1] < harmonics else 0
     centre = finite("centre", np.asarray(g["centre"][...], dtype=np.float64), 0)
     radius = finite("radius", np.asarray(g["radius"][...], dtype=np.float64), 0)
     return SearchTable(
@@ -194,7 +201,8 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
         radius,
         lambda a, b: read_runs([(a, b)]),
         read_coefficients,
-        lambda a, b: read_descriptor_runs([(a, b)]),
+        lambda a, b, harmonics=None: read_descriptor_runs([(a, b)], harmonics),
         read_runs=read_runs,
         read_descriptor_runs=read_descriptor_runs,
+        head_harmonics=head,
     )

@@ -40,9 +40,22 @@ def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 _READ_ALL_FRACTION = 0.25
 #: the same for the descriptors, read apart (most rows a search bounds never need them)
 _READ_ALL_DESCRIPTORS_FRACTION = 0.5
-#: cells closer than this many positions are read in one call (an HDF5 read costs ~0.1 ms
-#: of overhead, about as much as reading a few thousand positions' bytes)
-_COALESCE_GAP = 2048
+#: an HDF5 read call costs about as much as reading this many more bytes (~60 us of
+#: overhead per call and dataset against ~0.7 GB/s for checksummed chunks, measured): cells
+#: closer than that are read in one call, the positions between them with them
+_CALL_BYTES = 280 * 1024
+
+
+class _Tier:
+    """Descriptors read so far at one width: ``harmonics`` first harmonics of each row
+    (None: all of them), by cell or (``all``) for every position."""
+
+    def __init__(self, harmonics: int | None):
+        self.harmonics = harmonics
+        self.how = {} if harmonics is None else {"harmonics": harmonics}
+        self.cells: dict[int, np.ndarray] = {}  # cell -> (m, H, 3) descriptors
+        self.all = None
+        self.read = 0  # positions read
 
 
 class SearchTable:
@@ -68,6 +81,11 @@ class SearchTable:
         row).
     read_runs, read_descriptor_runs : optional, the same for a list of ``(a, b)`` ranges at
         once (concatenated): an index file reads them in one HDF5 call.
+    head_harmonics : H > 0 when the descriptor readers also take ``harmonics=H`` and then
+        return only the first H harmonics for fewer bytes (an index whose descriptors are
+        stored in chunks of H harmonics): the first truncated bound, which needs no more,
+        is then served from those (a search bounds many rows there, and computes exact
+        distances for few).
 
     Thread-safe: the search answers several queries on threads over one table.
     """
@@ -84,6 +102,7 @@ class SearchTable:
         *,
         read_runs: Callable | None = None,
         read_descriptor_runs: Callable | None = None,
+        head_harmonics: int = 0,
     ):
         self.harmonics = harmonics
         self.split = feature_split(harmonics)
@@ -97,15 +116,14 @@ class SearchTable:
         self._read_runs = read_runs or (lambda runs: _concatenated([read_positions(a, b) for a, b in runs]))
         if read_descriptor_runs is None and read_descriptors is not None:
 
-            def read_descriptor_runs(runs):
-                return np.concatenate([read_descriptors(a, b) for a, b in runs])
+            def read_descriptor_runs(runs, **how):
+                return np.concatenate([read_descriptors(a, b, **how) for a, b in runs])
 
         self._read_descriptor_runs = read_descriptor_runs
         self._cells: dict[int, tuple] = {}  # cell -> (row, features, sqnorm)
         self._all = None  # the same for every position, once read whole
-        self._desc: dict[int, np.ndarray] = {}  # cell -> descriptors
-        self._desc_all = None
-        self._desc_read = 0
+        self._full = _Tier(None)  # descriptors, every harmonic the table holds
+        self._head = _Tier(head_harmonics) if head_harmonics and read_descriptors is not None else None
         self._positions_read = 0
         self._lock = threading.Lock()
         self._coefficient_shape, self._coefficient_dtype = (harmonics, 3), np.complex64
@@ -179,7 +197,11 @@ class SearchTable:
                 raise IndexError(f"cells [{first}, {stop}) outside 0..{C}")
             offset = int(self.start[first])
             read, read_descriptors = self._read_positions, self._read_descriptors
-            shifted = None if read_descriptors is None else (lambda a, b: read_descriptors(a + offset, b + offset))
+            shifted = (
+                None
+                if read_descriptors is None
+                else (lambda a, b, **how: read_descriptors(a + offset, b + offset, **how))
+            )
             return SearchTable(
                 self.harmonics,
                 self.start[first : stop + 1] - offset,
@@ -188,6 +210,7 @@ class SearchTable:
                 lambda a, b: read(a + offset, b + offset),
                 self._read_coefficients,
                 shifted,
+                head_harmonics=self._head.harmonics if self._head is not None else 0,
             )
         cells = np.asarray(cells, dtype=np.int64)
         if len(cells) == 0 or cells.min() < 0 or cells.max() >= C or (np.diff(cells) <= 0).any():
@@ -257,11 +280,17 @@ class SearchTable:
         """(m, K', 3) complex descriptors (as stored) at positions of opened cells: the
         first ``harmonics`` (default: all the table holds, K''). Descriptors not read yet
         are read here, for the cells holding ``positions`` (all at once once the reads
-        would pass :data:`_READ_ALL_DESCRIPTORS_FRACTION` of the table)."""
+        would pass :data:`_READ_ALL_DESCRIPTORS_FRACTION` of the table); only their first
+        H harmonics when those are enough and the table reads them apart
+        (``head_harmonics``)."""
         positions = np.asarray(positions, dtype=np.int64)
         h = self._coefficient_shape[0] if harmonics is None else min(harmonics, self._coefficient_shape[0])
-        if self._desc_all is not None:
-            return self._desc_all[positions, :h]
+        full, head = self._full, self._head
+        if full.all is not None:
+            return full.all[positions, :h]
+        tier = head if head is not None and h <= head.harmonics else full
+        if tier.all is not None:
+            return tier.all[positions, :h]
         out = np.empty((len(positions), h, 3), dtype=self._coefficient_dtype)
         if not len(positions):
             return out
@@ -269,60 +298,75 @@ class SearchTable:
         order = np.argsort(cell, kind="stable")
         bounds = np.flatnonzero(np.diff(cell[order])) + 1
         groups = np.split(order, bounds)
-        missing = sorted({int(cell[g[0]]) for g in groups} - self._desc.keys())
+        missing = sorted({int(cell[g[0]]) for g in groups} - full.cells.keys() - tier.cells.keys())
         if missing:
             wanted = int((self.start[np.array(missing) + 1] - self.start[np.array(missing)]).sum())
-            if self._desc_read + wanted > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
-                self._load_all_descriptors()
-                return self._desc_all[positions, :h]
-            self._read_cell_descriptors(missing)
+            if tier.read + wanted > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
+                self._load_all_descriptors(tier)
+                return tier.all[positions, :h]
+            self._read_cell_descriptors(tier, missing)
         for group in groups:
             c = int(cell[group[0]])
-            out[group] = self._desc[c][positions[group] - self.start[c], :h]
+            held = full.cells.get(c)
+            if held is None:
+                held = tier.cells[c] if c in tier.cells else head.cells[c]
+            out[group] = held[positions[group] - self.start[c], :h]
         return out
 
-    def _runs(self, cells: list[int]) -> list[list[int]]:
-        """Position ranges covering ``cells`` (ascending), nearby cells joined."""
+    def _runs(self, cells: list[int], row_bytes: int, datasets: int = 1) -> list[list[int]]:
+        """Position ranges covering ``cells`` (ascending), cells joined when the positions
+        between them (``row_bytes`` each) cost less to read than one more call on each of
+        ``datasets`` datasets."""
+        gap = datasets * _CALL_BYTES // max(1, row_bytes)
         runs: list[list[int]] = []
         for c in cells:
             a, b = int(self.start[c]), int(self.start[c + 1])
-            if runs and a - runs[-1][1] <= _COALESCE_GAP:
+            if runs and a - runs[-1][1] <= gap:
                 runs[-1][1] = max(runs[-1][1], b)
             else:
                 runs.append([a, b])
         return runs
 
-    def _read_cell_descriptors(self, cells: list[int]) -> None:
+    def _descriptor_bytes(self, tier: "_Tier") -> int:
+        """Bytes per position of the descriptors ``tier`` reads."""
+        harmonics = tier.harmonics or self._coefficient_shape[0]
+        return harmonics * 3 * np.dtype(self._coefficient_dtype).itemsize
+
+    def _position_bytes(self) -> int:
+        """Bytes per position of a cell read (row number and features)."""
+        return 8 + 4 * self.centre.shape[1]
+
+    def _read_cell_descriptors(self, tier: "_Tier", cells: list[int]) -> None:
         with self._lock:
-            runs = self._runs([c for c in cells if c not in self._desc])
+            runs = self._runs([c for c in cells if c not in tier.cells], self._descriptor_bytes(tier))
             if not runs:
                 return
-            got = self._read_descriptor_runs(runs)
+            got = self._read_descriptor_runs(runs, **tier.how)
             self.bytes_read += got.nbytes
-            self._store_descriptors(runs, got)
+            self._store_descriptors(tier, runs, got)
 
-    def _store_descriptors(self, runs, got) -> None:
+    def _store_descriptors(self, tier: "_Tier", runs, got) -> None:
         at = 0
         for a, b in runs:
-            self._desc_read += b - a
+            tier.read += b - a
             first = int(np.searchsorted(self.start, a, side="left"))
             last = int(np.searchsorted(self.start, b, side="left"))
             for c in range(first, last):
-                self._desc.setdefault(c, got[at + int(self.start[c]) - a : at + int(self.start[c + 1]) - a])
+                tier.cells.setdefault(c, got[at + int(self.start[c]) - a : at + int(self.start[c + 1]) - a])
             at += b - a
 
-    def _load_all_descriptors(self) -> None:
+    def _load_all_descriptors(self, tier: "_Tier") -> None:
         with self._lock:
-            if self._desc_all is None:
-                got = self._read_descriptors(0, self.n_positions)
+            if tier.all is None:
+                got = self._read_descriptors(0, self.n_positions, **tier.how)
                 self.bytes_read += got.nbytes
-                self._desc_all = got
+                tier.all = got
 
     def _read_cells(self, cells: list[int]) -> None:
         """Read ``cells`` (ascending) in runs of nearby positions, all runs in one call;
         cache every cell read."""
         with self._lock:
-            runs = self._runs(cells)
+            runs = self._runs(cells, self._position_bytes(), 2)
             got = self._complete(self._read_runs(runs))
             self.bytes_read += sum(x.nbytes for x in got if x is not None)
             at = 0
@@ -335,7 +379,7 @@ class SearchTable:
                     self._cells[c] = tuple(x[lo:hi] for x in got[:3])
                 at += b - a
             if got[3] is not None:
-                self._store_descriptors(runs, got[3])
+                self._store_descriptors(self._full, runs, got[3])
 
     def _load_all(self) -> None:
         with self._lock:
@@ -343,8 +387,8 @@ class SearchTable:
                 got = self._complete(self._read_positions(0, self.n_positions))
                 self.bytes_read += sum(x.nbytes for x in got if x is not None)
                 self._all = tuple(got[:3])
-                if got[3] is not None and self._desc_all is None:
-                    self._desc_all = got[3]
+                if got[3] is not None and self._full.all is None:
+                    self._full.all = got[3]
 
     def _complete(self, got) -> list:
         """A read's (row, features, sqnorm, coefficients) with the squared norms computed
