@@ -197,6 +197,7 @@ def search_one(
     corder = np.argsort(cb, kind="stable")
     cbs = cb[corder]
     sizes = (table.start[1:] - table.start[:-1])[corder]
+    reach = np.cumsum(sizes)  # positions in the cells up to each one, in bound order
     n_cells = len(corder)
     ci = 0
     queues = [_Sorted()]  # [0]: opened, by invariant bound; [i > 0]: by stage i's bound
@@ -229,7 +230,11 @@ def search_one(
             cells = corder[ci:j]
             ci = j
             work.cells += len(cells)
-            positions, rows, F, sq = table.open_cells(cells)
+            # the positions this search may still open (every cell bounded below the k-th
+            # distance so far): a table reads itself whole early when that is most of it
+            within = int(np.searchsorted(cbs, thr, side="right"))
+            expect = int(reach[within - 1]) if np.isfinite(thr) and within else 0
+            positions, rows, F, sq = table.open_cells(cells, expect=expect)
             if stages is None:
                 stored = table.stored_harmonics
                 complete = stored == query_coefficients.shape[0]
@@ -253,7 +258,7 @@ def search_one(
                 Kp, grid = stages[q_at]
                 tb = truncated_lower_bounds(
                     query_coefficients,
-                    table.coefficients_at_positions(slots, Kp),
+                    table.coefficients_at_positions(slots, Kp, expect=len(rows) + len(queues[q_at])),
                     direction=direction,
                     mirror=mirror,
                     harmonics=Kp,

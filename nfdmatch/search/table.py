@@ -244,7 +244,7 @@ class SearchTable:
         positions, rows, F, sq = self.open_cells(cells)
         return rows, F, sq, self.coefficients_at_positions(positions)
 
-    def open_cells(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def open_cells(self, cells: np.ndarray, expect: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What a search needs to bound the rows of the given cells: ``(positions (m,)
         int64, row (m,) int64, features (m, D) float32, sqnorm (m, 2) float64)``; their
         descriptors stay in the table (:meth:`coefficients_at_positions`).
@@ -252,13 +252,16 @@ class SearchTable:
         Cells not read yet are read in few calls: runs of cells whose positions are close
         are read as one range (each call costs far more than the bytes between them), and
         every cell of a range is kept for later queries. Once the reads would pass
-        :data:`_READ_ALL_FRACTION` of the table, the whole table is read at once.
+        :data:`_READ_ALL_FRACTION` of the table, the whole table is read at once; so also
+        when the caller ``expect``\ s to open that many positions in all (a hint: the cells
+        its threshold does not rule out yet), rather than reading runs first.
         """
         cells = np.asarray(cells, dtype=np.int64)
         if self._all is None:
             missing = [int(c) for c in cells if int(c) not in self._cells]
             if missing:
                 wanted = int((self.start[np.array(missing) + 1] - self.start[np.array(missing)]).sum())
+                wanted = max(wanted, expect - self._positions_read)
                 if self._positions_read + wanted > _READ_ALL_FRACTION * self.n_positions:
                     self._load_all()
                 else:
@@ -276,13 +279,16 @@ class SearchTable:
         parts = [self._cells[int(c)] for c in cells]
         return (positions,) + tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
-    def coefficients_at_positions(self, positions: np.ndarray, harmonics: int | None = None) -> np.ndarray:
+    def coefficients_at_positions(
+        self, positions: np.ndarray, harmonics: int | None = None, expect: int = 0
+    ) -> np.ndarray:
         """(m, K', 3) complex descriptors (as stored) at positions of opened cells: the
         first ``harmonics`` (default: all the table holds, K''). Descriptors not read yet
         are read here, for the cells holding ``positions`` (all at once once the reads
         would pass :data:`_READ_ALL_DESCRIPTORS_FRACTION` of the table); only their first
         H harmonics when those are enough and the table reads them apart
-        (``head_harmonics``)."""
+        (``head_harmonics``). ``expect``: as for :meth:`open_cells`, the rows the caller
+        expects to ask for at this width in all."""
         positions = np.asarray(positions, dtype=np.int64)
         h = self._coefficient_shape[0] if harmonics is None else min(harmonics, self._coefficient_shape[0])
         full, head = self._full, self._head
@@ -301,6 +307,7 @@ class SearchTable:
         missing = sorted({int(cell[g[0]]) for g in groups} - full.cells.keys() - tier.cells.keys())
         if missing:
             wanted = int((self.start[np.array(missing) + 1] - self.start[np.array(missing)]).sum())
+            wanted = max(wanted, expect - tier.read)
             if tier.read + wanted > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
                 self._load_all_descriptors(tier)
                 return tier.all[positions, :h]
