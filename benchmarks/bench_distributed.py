@@ -15,7 +15,8 @@ Curves as in bench_index.py: families of a random smooth curve (members re-sampl
 one member per family is kept apart as a query. Workers are warmed (modules imported, numba
 kernels loaded) before timing; the cluster start-up is reported on its own row. Each query
 batch is run once untimed first, locally and on each cluster, so that every process has
-the cells it needs cached (a worker serving many batches); builds are one cold run each.
+the cells it needs cached (a worker serving many batches); builds are one run each, into a
+new index, each after reading every curve file once (the same page cache for every row).
 """
 
 from __future__ import annotations
@@ -47,6 +48,25 @@ def _warm():
     compile_kernels()
 
 
+def _read_through(folder: str) -> None:
+    """Read every file under ``folder`` once, so that each build row starts with the same
+    page cache (the files just read): else the first build pays the disk and the others
+    whatever the kernel kept, and the rows compare cache states, not the two paths."""
+    for root, _, names in os.walk(folder):
+        for name in names:
+            with open(os.path.join(root, name), "rb") as fh:
+                while fh.read(1 << 24):
+                    pass
+
+
+class _nothing:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--curves", type=int, default=100_000)
@@ -63,6 +83,7 @@ def main():
     ap.add_argument(
         "--queries-only", action="store_true", help="no build rows: one local build (untimed) for the query rows"
     )
+    ap.add_argument("--builds-only", action="store_true", help="no query rows")
     args = ap.parse_args()
 
     from nfdmatch import read_curves, write_curves
@@ -102,6 +123,7 @@ def main():
             if n == args.workers[0]:
                 build_index([src], index, jobs=max(args.workers))
             continue
+        _read_through(src)
         t0 = time.perf_counter()
         report = build_index([src], index, jobs=n)
         local_build[n] = time.perf_counter() - t0
@@ -114,9 +136,9 @@ def main():
             )
         )
     reference = os.path.join(work, f"local-{args.workers[0]}.h5")
-    with open_index(reference) as idx:
-        search_index(idx, qcurves, top=10)  # cells cached, as in a long-lived worker
-        for n in args.workers:
+    with open_index(reference) if not args.builds_only else _nothing() as idx:
+        search_index(idx, qcurves, top=10) if idx is not None else None  # cells cached, as in a long-lived worker
+        for n in args.workers if idx is not None else []:
             # on a thread other than the main one, as a Dask task runs: a call on the main
             # thread splits its rows over the cores (threads=1 would then use 2 cores)
             local_query[n] = float("inf")
@@ -142,6 +164,7 @@ def main():
             )
             if not args.queries_only:
                 index = os.path.join(work, f"dask-{n}.h5")
+                _read_through(src)
                 t0 = time.perf_counter()
                 report = cluster.build_index([src], index)
                 dt = time.perf_counter() - t0
@@ -153,7 +176,7 @@ def main():
                         f"{dt / local_build[n]:.2f}",
                     )
                 )
-            for parts in sorted({1, n}):
+            for parts in sorted({1, n}) if not args.builds_only else []:
                 cluster.search_index(reference, qcurves, top=10, parts=parts)  # the workers' caches warm
                 dt = float("inf")
                 for _ in range(args.repeat):

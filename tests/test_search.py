@@ -260,3 +260,24 @@ def test_an_index_file_stores_the_first_harmonics_apart_and_its_search_reads_the
         assert TRUNCATED_HARMONICS in widths and stats.truncated > 0
         full, _ = search_index(idx, queries, top=5, prune=False)
     _same(pruned, full)
+
+
+def test_a_batch_answered_on_one_thread_does_not_import_numpy_ma():
+    """Deciding when to switch kernels takes the median pace of the queries: np.median
+    imports numpy.ma on first use (25 ms of a command's start-up)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from nfdmatch import Curve\n"
+        "from nfdmatch.search import MemoryIndex, search_index\n"
+        "t = np.linspace(0, 2 * np.pi, 64, endpoint=False)[:, None]\n"
+        "curves = [Curve(np.hstack([np.cos(t), np.sin(k * t), np.sin(3 * t) / k]), id=str(k)) for k in range(1, 9)]\n"
+        "search_index(MemoryIndex(curves), curves, top=2, threads=2)\n"
+        "print('numpy.ma' in sys.modules)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_NUMBA"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.strip() == "False"

@@ -195,7 +195,7 @@ def search_index(
                 paces.append(time.perf_counter() - started)
                 if (
                     len(paces) > 2
-                    and (len(queries) - first) * float(np.median(paces[1:])) * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
+                    and (len(queries) - first) * _median(paces[1:]) * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
                     and dispatch.load_threaded_kernels()
                 ):
                     break
@@ -222,6 +222,13 @@ def search_index(
     results = ranked_rows(index, tops, top)
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def _median(values: list[float]) -> float:
+    """The median of a short list (``np.median`` imports numpy.ma on first use: 25 ms)."""
+    ordered = sorted(values)
+    middle = len(ordered) // 2
+    return ordered[middle] if len(ordered) % 2 else 0.5 * (ordered[middle - 1] + ordered[middle])
 
 
 def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:

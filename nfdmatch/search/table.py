@@ -253,7 +253,7 @@ class SearchTable:
         are read as one range (each call costs far more than the bytes between them), and
         every cell of a range is kept for later queries. Once the reads would pass
         :data:`_READ_ALL_FRACTION` of the table, the whole table is read at once; so also
-        when the caller ``expect``\ s to open that many positions in all (a hint: the cells
+        when the caller expects (``expect``) to open that many positions in all (a hint: the cells
         its threshold does not rule out yet), rather than reading runs first.
         """
         cells = np.asarray(cells, dtype=np.int64)
