@@ -281,3 +281,39 @@ def test_a_batch_answered_on_one_thread_does_not_import_numpy_ma():
     env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_NUMBA"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_a_table_told_of_more_queries_reads_whole_what_they_would_read_most_of():
+    """``expect_more``: the first query's reads, times the queries left, decide: a width of
+    descriptors it read a tenth of is read whole for 9 more queries, not for 1."""
+    from nfdmatch.search.table import SearchTable
+
+    rng = np.random.default_rng(5)
+    N, K = 100, 6
+    coefficients = (rng.standard_normal((N, K, 3)) + 1j * rng.standard_normal((N, K, 3))).astype(np.complex64)
+    features = rng.random((N, 2 * K + 3)).astype(np.float32)
+    calls = []
+
+    def table():
+        def read_descriptors(a, b, harmonics=None):
+            calls.append((a, b))
+            return coefficients[a:b, : harmonics or K]
+
+        return SearchTable(
+            K,
+            np.arange(0, N + 1, 10),
+            np.zeros((10, 2 * K + 3)),
+            np.full((10, 2), np.inf),
+            lambda a, b: (np.arange(a, b), features[a:b], None, None),
+            lambda rows: coefficients[rows],
+            read_descriptors,
+        )
+
+    for more, whole in ((1, False), (9, True)):
+        t = table()
+        t.open_cells(np.array([3]))
+        t.coefficients_at_positions(np.array([31, 35]))
+        calls.clear()
+        t.expect_more(more)
+        assert (calls == [(0, N)]) is whole
+        assert np.array_equal(t.coefficients_at_positions(np.array([95, 2])), coefficients[[95, 2]])

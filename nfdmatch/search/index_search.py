@@ -175,6 +175,10 @@ def search_index(
             stats.scanned += work.scanned
             stats.cells += work.cells
             done += 1
+            if done == 1 and len(queries) > 1:
+                # what one query read, times the queries left: read whole now what a batch
+                # would read most of in runs
+                table.expect_more(len(queries) - 1)
             if progress is not None:
                 progress(done, len(queries))
 

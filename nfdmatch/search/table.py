@@ -279,6 +279,21 @@ class SearchTable:
         parts = [self._cells[int(c)] for c in cells]
         return (positions,) + tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
+    def expect_more(self, queries: int) -> None:
+        """The caller will answer ``queries`` more queries like those answered so far (a
+        batch, after its first): the cells' features, and each width of descriptors, whose
+        reads so far repeated that many times would pass the read-all fraction are read
+        whole now, in one call, rather than in runs by every query."""
+        if not self.n_positions or queries <= 0:
+            return
+        if self._all is None and self._read_descriptors is not None:
+            if self._positions_read * (1 + queries) > _READ_ALL_FRACTION * self.n_positions:
+                self._load_all()
+        for tier in (self._head, self._full):
+            if tier is not None and tier.all is None and self._read_descriptors is not None:
+                if tier.read * (1 + queries) > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
+                    self._load_all_descriptors(tier)
+
     def coefficients_at_positions(
         self, positions: np.ndarray, harmonics: int | None = None, expect: int = 0
     ) -> np.ndarray:
