@@ -317,3 +317,31 @@ def test_a_table_told_of_more_queries_reads_whole_what_they_would_read_most_of()
         t.expect_more(more)
         assert (calls == [(0, N)]) is whole
         assert np.array_equal(t.coefficients_at_positions(np.array([95, 2])), coefficients[[95, 2]])
+
+
+def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
+    """``skip_cells`` (the cluster's second round, which leaves out the cells of the first):
+    the answer is the exhaustive one over the rows of the cells not skipped."""
+    from nfdmatch.descriptors import descriptors_batch
+    from nfdmatch.matching import exact_search
+    from nfdmatch.search.bestfirst import TopK, search_one
+    from nfdmatch.search.bounds import feature_vector
+
+    curves = _family_curves(rng, 8, 4, 0.01)
+    index = MemoryIndex(curves, rows_per_cell=4)
+    table = index.search_table()
+    skip = np.sort(rng.choice(table.n_cells, table.n_cells // 2, replace=False))
+    skipped_rows = np.concatenate([table.cell_rows(np.array([c]))[0] for c in skip])
+    kept = np.setdiff1d(np.arange(len(curves)), skipped_rows)
+    for query in _variants(rng, curves, 3):
+        A = descriptors_batch(
+            [query], samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
+        ).coefficients[0]
+        A = np.asarray(A, dtype=np.complex128)
+        top = TopK(5, None)
+        options = dict(method="exact", direction="invariant", mirror=False, samples=index.samples)
+        search_one(A, feature_vector(A), table, top, search=exact_search, skip_cells=skip, **options)
+        everything = exact_search(A, index.coefficients_at(kept), index.samples)["distance"]
+        best = kept[np.argsort(everything, kind="stable")[:5]]
+        assert set(top.rows.tolist()) == set(best.tolist())
+        assert np.allclose(np.sort(top.dist)[:5], np.sort(everything)[:5], rtol=1e-9, atol=1e-12)

@@ -173,6 +173,7 @@ def search_one(
     mirror: bool,
     samples: int,
     truncate: bool = True,
+    skip_cells: np.ndarray | None = None,
 ) -> QueryWork:
     """Fill ``top`` with the query's exact nearest rows of ``table``.
 
@@ -184,6 +185,8 @@ def search_one(
     search : the distance function (``exact_search`` or ``paper_search``).
     truncate : use the truncated-harmonic bounds between the invariant bound and the exact
         distance.
+    skip_cells : cells of ``table`` never to open (int array; searched before, their rows
+        are accounted for in ``top`` already): the search answers for the other cells.
 
     Queues in one best-first order: unopened cells (by cell bound), rows of opened cells
     (by invariant bound), then one queue per truncated-harmonic stage
@@ -195,6 +198,10 @@ def search_one(
     work = QueryWork()
     cb = cell_lower_bounds(query_features, table.split, table.centre, table.radius)
     corder = np.argsort(cb, kind="stable")
+    if skip_cells is not None and len(skip_cells):
+        opened = np.ones(len(cb), dtype=bool)
+        opened[skip_cells] = False
+        corder = corder[opened[corder]]
     cbs = cb[corder]
     sizes = (table.start[1:] - table.start[:-1])[corder]
     reach = np.cumsum(sizes)  # positions in the cells up to each one, in bound order
