@@ -791,6 +791,8 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                     skip = inside - lo
                 _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, skip_cells=skip, **options))
                 keep_descriptors(qi, sub)
+                if qi == 0:
+                    sub.expect_more(len(tops) - 1)  # as search_index does after a first query
             out["bytes_read"] = sub.bytes_read - before
     if params.get("final"):
         # this task's answer is the query's answer: its distances from the reference path,

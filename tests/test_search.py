@@ -183,14 +183,16 @@ def test_a_batch_on_the_ahead_of_time_kernels_switches_to_threads_only_when_it_p
     _same(pruned, full)
 
 
-def test_a_table_reads_only_the_first_harmonics_for_the_first_bound_and_all_of_them_once():
-    """``head_harmonics``: a request for the first H harmonics reads only those (one call
-    per batch of cells); a request for more reads every harmonic; a cell held with every
-    harmonic serves a later request for the first ones without reading."""
+def test_a_table_reads_only_the_first_harmonics_for_the_first_bound_and_all_of_them_once(monkeypatch):
+    """``head_harmonics``: a request for the first H harmonics, from a search expecting
+    many such rows, reads only those; a request for more reads every harmonic; a cell held
+    with every harmonic serves a later request for the first ones without reading; a
+    search expecting few rows reads their cells whole at once."""
+    from nfdmatch.search import table as table_module
     from nfdmatch.search.table import SearchTable
 
     rng = np.random.default_rng(3)
-    N, K, H = 40, 6, 4
+    N, K, H = 100, 6, 4
     coefficients = (rng.standard_normal((N, K, 3)) + 1j * rng.standard_normal((N, K, 3))).astype(np.complex64)
     features = rng.random((N, 2 * K + 3)).astype(np.float32)
     start = np.arange(0, N + 1, 10)
@@ -203,8 +205,8 @@ def test_a_table_reads_only_the_first_harmonics_for_the_first_bound_and_all_of_t
     table = SearchTable(
         K,
         start,
-        np.zeros((4, 2 * K + 3)),
-        np.full((4, 2), np.inf),
+        np.zeros((N // 10, 2 * K + 3)),
+        np.full((N // 10, 2), np.inf),
         lambda a, b: (np.arange(a, b), features[a:b], None, None),
         lambda rows: coefficients[rows],
         read_descriptors,
@@ -212,7 +214,9 @@ def test_a_table_reads_only_the_first_harmonics_for_the_first_bound_and_all_of_t
     )
     positions = np.array([12, 3, 15])
     table.open_cells(np.array([0, 1]))
-    assert np.array_equal(table.coefficients_at_positions(positions, H), coefficients[positions, :H])
+    monkeypatch.setattr(table_module, "_HEAD_FROM_ROWS", 5)  # "many" for a table of 100 rows
+    many = 5
+    assert np.array_equal(table.coefficients_at_positions(positions, H, expect=many), coefficients[positions, :H])
     assert {h for *_, h in calls} == {H}
     calls.clear()
     assert np.array_equal(table.coefficients_at_positions(positions), coefficients[positions])
@@ -220,8 +224,14 @@ def test_a_table_reads_only_the_first_harmonics_for_the_first_bound_and_all_of_t
     table.open_cells(np.array([2]))
     calls.clear()
     assert np.array_equal(table.coefficients_at_positions(np.array([21, 22]), 2 * K), coefficients[[21, 22]])
-    assert np.array_equal(table.coefficients_at_positions(np.array([29, 20]), H), coefficients[[29, 20], :H])
+    assert np.array_equal(
+        table.coefficients_at_positions(np.array([29, 20]), H, expect=many), coefficients[[29, 20], :H]
+    )
     assert [h for *_, h in calls] == [None]  # cell 2 held whole: its first harmonics need no read
+    table.open_cells(np.array([3]))
+    calls.clear()  # few rows expected: their cells are read whole at once
+    assert np.array_equal(table.coefficients_at_positions(np.array([33]), H, expect=2), coefficients[[33], :H])
+    assert [h for *_, h in calls] == [None]
 
 
 def test_an_index_file_stores_the_first_harmonics_apart_and_its_search_reads_them_alone(tmp_path, monkeypatch):
@@ -235,6 +245,7 @@ def test_an_index_file_stores_the_first_harmonics_apart_and_its_search_reads_the
     from nfdmatch.search.bounds import TRUNCATED_HARMONICS
 
     monkeypatch.setattr(cells_module, "ROWS_PER_CELL", 8)
+    monkeypatch.setattr(table_module, "_HEAD_FROM_ROWS", 16)  # a small index: "many rows" scaled down
     rng = np.random.default_rng(11)
     curves = [random_rigid_motion(smooth_curve_samplings(rng, [80], n_harmonics=6)[0], rng) for _ in range(600)]
     write_curves(str(tmp_path / "lib.obj"), curves)
