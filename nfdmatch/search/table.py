@@ -45,9 +45,10 @@ _READ_ALL_DESCRIPTORS_FRACTION = 0.5
 #: query) the exact distances soon need the rest, and a second read of the same cells cost
 #: more than the bytes saved (a 1,000-query cluster batch went from 5-7 s to 9-11 s)
 _HEAD_FROM_ROWS = 2048
-#: an HDF5 read call costs about as much as reading this many more bytes (~60 us of
-#: overhead per call and dataset against ~0.7 GB/s for checksummed chunks, measured): cells
-#: closer than that are read in one call, the positions between them with them
+#: an HDF5 read call costs about as much as reading this many more bytes: cells closer than
+#: that are read in one call, the positions between them with them. Chosen by timing queries
+#: in new processes (48 KB, from ~60 us per call measured in a loop at ~0.7 GB/s, was
+#: slower: a new process pays more per call than a warm loop)
 _CALL_BYTES = 280 * 1024
 
 
@@ -289,13 +290,12 @@ class SearchTable:
         batch, after its first): the cells' features, and each width of descriptors, whose
         reads so far repeated that many times would pass the read-all fraction are read
         whole now, in one call, rather than in runs by every query."""
-        if not self.n_positions or queries <= 0:
-            return
-        if self._all is None and self._read_descriptors is not None:
-            if self._positions_read * (1 + queries) > _READ_ALL_FRACTION * self.n_positions:
-                self._load_all()
+        if not self.n_positions or queries <= 0 or self._read_descriptors is None:
+            return  # (a table in memory reads nothing)
+        if self._all is None and self._positions_read * (1 + queries) > _READ_ALL_FRACTION * self.n_positions:
+            self._load_all()
         for tier in (self._head, self._full):
-            if tier is not None and tier.all is None and self._read_descriptors is not None:
+            if tier is not None and tier.all is None:
                 if tier.read * (1 + queries) > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
                     self._load_all_descriptors(tier)
 
