@@ -45,38 +45,36 @@ _kernel_state = {"module": None, "failed": None, "work": 0}
 _kernel_lock = threading.Lock()
 #: per thread: True inside :func:`reference_path`
 _reference = threading.local()
+#: per thread: True inside :func:`no_switch_by_work`
+_held = threading.local()
 
 
 @contextmanager
+def _on_this_thread(flag: threading.local):
+    """``flag.on`` True on this thread within the block (nested blocks restore it)."""
+    before = getattr(flag, "on", False)
+    flag.on = True
+    try:
+        yield
+    finally:
+        flag.on = before
+
+
 def reference_path():
     """Within this block, exact_search and grid_maximum on this thread take the numpy path
     (the reference), whatever the process has loaded. Which path a call takes otherwise
     depends on the work the process has done so far, which with queries on threads depends
     on timing; the two paths agree to ~1e-15 but not bit for bit, so a search recomputes the
     distances it reports here to print the same digits run after run."""
-    before = getattr(_reference, "on", False)
-    _reference.on = True
-    try:
-        yield
-    finally:
-        _reference.on = before
+    return _on_this_thread(_reference)
 
 
-_held = threading.local()
-
-
-@contextmanager
 def no_switch_by_work():
     """Within this block, calls on this thread keep to the ahead-of-time kernels when those
     serve them: no switch to the just-in-time ones by the work done so far. For a caller
     that makes that choice itself (``search_index`` answering a batch on one thread loads
     them only when its threads would gain more than their import costs)."""
-    before = getattr(_held, "on", False)
-    _held.on = True
-    try:
-        yield
-    finally:
-        _held.on = before
+    return _on_this_thread(_held)
 
 
 def _mode_from_environment(value: str) -> str:
