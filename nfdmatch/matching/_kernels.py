@@ -63,11 +63,11 @@ compile at ~10-15 s instead of ~20 s (+45 s with prange).
 from __future__ import annotations
 
 import math
-import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
+
+from ._threads import split_rows
 
 _TINY = float(np.finfo(np.float64).tiny)
 _THIRD = 1.0 / 3.0
@@ -326,32 +326,6 @@ def _integer_rows(Aw, B, D, basis, quarter, n, mirror, C, cand, val, fminus, fpl
             val[r, c] = top_val[c]
             fminus[r, c] = F[dd * n + (s - 1) % n]
             fplus[r, c] = F[dd * n + (s + 1) % n]
-
-
-_executor = None
-_executor_workers = 0
-_executor_lock = threading.Lock()
-
-
-def _split(run, N, workers):
-    """run(lo, hi) over rows 0..N: at once, or in ``workers`` blocks on a thread pool (the
-    kernels release the GIL; the blocks write disjoint rows of the outputs)."""
-    global _executor, _executor_workers
-    if N == 0:
-        return
-    if workers <= 1 or N < 2 * workers:
-        run(0, N)
-        return
-    with _executor_lock:
-        if _executor_workers < workers - 1:
-            _executor = ThreadPoolExecutor(workers - 1, thread_name_prefix="nfdmatch-kernels")
-            _executor_workers = workers - 1
-        pool = _executor
-    bounds = [N * t // workers for t in range(workers + 1)]
-    futures = [pool.submit(run, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:])]
-    run(bounds[0], bounds[1])  # the first block on the calling thread
-    for future in futures:
-        future.result()
 
 
 # ----------------------------------------------------------------------------- refinement
@@ -720,7 +694,7 @@ def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limi
     A, Aw = conj(A) w (K, 3) complex128; w (K,) float64; B (N, K, 3) complex128 (direction 1
     is conj(B)); basis, quarter from matching._folded_basis; C candidates per row;
     refine_limit: refine the rows whose refined distance^2 could be at most this (inf: all);
-    ``workers``: threads sharing the rows (see ``_split``). Returns (distance, shift,
+    ``workers``: threads sharing the rows (see ``split_rows``). Returns (distance, shift,
     rotation, reversed, mirrored) over the rows.
     """
     N = B.shape[0]
@@ -729,7 +703,7 @@ def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limi
     rot = np.empty((N, 3, 3))
     reversed_ = np.zeros(N, dtype=np.bool_)
     mirrored = np.zeros(N, dtype=np.bool_)
-    _split(
+    split_rows(
         lambda lo, hi: _exact_rows(
             A,
             Aw,
@@ -894,11 +868,11 @@ def grid_bound_rows(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, ne
 
     Aw = conj(A[:K']) (K', 3) complex128; B (N, K', 3) complex128; basis (2K', n) float64
     from matching._integer_shift_basis; ratio divides n; slack_coarse, slack_fine, need
-    (N,) float64; ``workers``: threads sharing the rows (see ``_split``)."""
+    (N,) float64; ``workers``: threads sharing the rows (see ``split_rows``)."""
     N = B.shape[0]
     out = np.empty(N)
     kernel = grid_bound_kernel(Aw.shape[0])
-    _split(
+    split_rows(
         lambda lo, hi: kernel(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi), N, workers
     )
     return out
