@@ -408,11 +408,59 @@ def test_a_stale_ahead_of_time_build_is_not_used(monkeypatch, tmp_path):
     from nfdmatch.matching import aot
 
     stamp = tmp_path / "stamp"
-    stamp.write_text("0" * 64 + "\n")  # built from another kernel source
+    stamp.write_text("0" * 64 + "\nnogil\n")  # built from another kernel source
     monkeypatch.setattr(aot, "_STAMP", str(stamp))
     assert aot.load() is None
-    stamp.write_text(aot.source_digest() + "\n")
-    assert aot.load() is not None
+    stamp.write_text(aot.source_digest() + "\nnogil\n")
+    assert aot.load().threads
+    for held in ("gil\n", ""):  # built holding the GIL; a stamp from before the flag
+        stamp.write_text(aot.source_digest() + "\n" + held)
+        assert aot.load() is not None and not aot.load().threads
+
+
+def _big_bound_call(rows: int = 200_000):
+    """Arguments of a grid-bound call on ``rows`` random rows (~0.3 s on one core)."""
+    from nfdmatch.matching.common import _integer_shift_basis
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((4, 3)) + 1j * rng.standard_normal((4, 3))
+    B = rng.standard_normal((rows, 4, 3)) + 1j * rng.standard_normal((rows, 4, 3))
+    slack = np.full(rows, 1e-3)
+    return np.conj(A), B, 2, np.array(_integer_shift_basis(4, 24)), 3, False, 9 * slack, slack, np.zeros(rows)
+
+
+def test_the_ahead_of_time_kernels_release_the_gil():
+    """While one thread is inside a kernel, Python runs on another (the build's flag works)."""
+    import threading
+
+    kernels = _aot_kernels()
+    assert kernels.threads
+    args = _big_bound_call()
+    finished = threading.Event()
+    worker = threading.Thread(target=lambda: (kernels.grid_bound_rows(*args), finished.set()))
+    turns = 0
+    worker.start()
+    while not finished.is_set():  # holding the GIL, the kernel would leave no turn to take
+        turns += 1
+    worker.join()
+    assert turns > 1000
+
+
+def test_the_ahead_of_time_kernels_split_over_threads_give_the_same_rows():
+    kernels = _aot_kernels()
+    args = _big_bound_call(5000)
+    assert np.array_equal(kernels.grid_bound_rows(*args, workers=1), kernels.grid_bound_rows(*args, workers=2))
+    rng = np.random.default_rng(4)
+    rows, _ = _kernel_rows(rng, 128, 16)
+    B = np.concatenate([rows] * 40)
+    from nfdmatch.matching.dispatch import _folded_basis
+
+    basis, quarter = _folded_basis(16, 128)
+    A = rows[2]
+    call = (A, np.conj(A), np.ones(16), B, 2, basis, quarter, 128, False, 4, True, np.inf)
+    one, two = kernels.exact_rows(*call, workers=1), kernels.exact_rows(*call, workers=2)
+    for a, b in zip(one, two):
+        assert np.array_equal(a, b)
 
 
 def test_a_process_does_not_import_numba_when_the_ahead_of_time_kernels_serve():
@@ -560,13 +608,23 @@ def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
 
 
 def test_a_long_run_switches_to_the_threaded_kernels_unless_its_caller_holds_them(monkeypatch, rng):
-    """Past _JIT_AFTER_AOT units of work the ahead-of-time kernels give way to the threaded
-    ones (a matrix, a graph build); a caller that decides that switch itself (a batch on one
-    thread) keeps them while it holds ``no_switch_by_work``."""
+    """Past _JIT_AFTER_AOT units of work, ahead-of-time kernels built holding the GIL give way
+    to the threaded ones (a matrix, a graph build); a caller that decides that switch itself
+    (a batch on one thread) keeps them while it holds ``no_switch_by_work``. Kernels that
+    release the GIL are threaded already: they keep serving."""
     from nfdmatch import matching
-    from nfdmatch.matching import dispatch
+    from nfdmatch.matching import aot, dispatch
 
-    kernels = _aot_kernels()
+    releasing = _aot_kernels()
+    state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": releasing}
+    monkeypatch.setattr(dispatch, "_kernel_state", state)
+    monkeypatch.setattr(dispatch, "_JIT_AFTER_AOT", 1)
+    monkeypatch.setattr(dispatch, "cpu_count", lambda: 2)
+    rows, _ = _kernel_rows(rng, 128, 16)
+    for _ in range(3):
+        matching.grid_maximum(rows[1, :4], rows[:, :4], 24)
+    assert state["module"] is None and state["work"] > 1
+    kernels = aot._Kernels(releasing._module, threads=False)
     state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": kernels}
     monkeypatch.setattr(dispatch, "_kernel_state", state)
     monkeypatch.setattr(dispatch, "_JIT_AFTER_AOT", 1)

@@ -163,14 +163,15 @@ def test_bad_arguments(rng):
 
 @pytest.mark.parametrize("switch", [True, False])
 def test_a_batch_on_the_ahead_of_time_kernels_switches_to_threads_only_when_it_pays(monkeypatch, rng, switch):
-    """The ahead-of-time kernels hold the GIL: a batch answers on one thread and loads the
-    just-in-time kernels (threads in parallel) once the queries left would pay for their
-    import; either way the answer is the exhaustive one."""
+    """Ahead-of-time kernels built holding the GIL (a numba that refuses the flag): a batch
+    answers on one thread and loads the just-in-time kernels (threads in parallel) once the
+    queries left would pay for their import; either way the answer is the exhaustive one."""
     from nfdmatch.matching import aot, dispatch
     from nfdmatch.search import index_search
 
-    kernels = aot.load()
-    assert kernels is not None, "the ahead-of-time kernels are not built: run make install"
+    built = aot.load()
+    assert built is not None, "the ahead-of-time kernels are not built: run make install"
+    kernels = aot._Kernels(built._module, threads=False)
     state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": kernels}
     monkeypatch.setattr(dispatch, "_kernel_state", state)
     monkeypatch.setattr(index_search, "_THREADED_KERNELS_IMPORT", 0.0 if switch else 1e9)
@@ -179,6 +180,35 @@ def test_a_batch_on_the_ahead_of_time_kernels_switches_to_threads_only_when_it_p
     index = MemoryIndex(curves, rows_per_cell=8)
     pruned, _ = search_index(index, queries, top=5, threads=2)
     assert (state["module"] is not None) == switch
+    full, _ = search_index(index, queries, top=5, prune=False)
+    _same(pruned, full)
+
+
+def test_a_batch_on_ahead_of_time_kernels_releasing_the_gil_runs_on_threads_without_numba(monkeypatch, rng):
+    """The kernels ``make install`` builds release the GIL: a batch answers its queries on
+    threads at once, never importing numba's just-in-time kernels, and the answer is the
+    exhaustive one."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from nfdmatch.matching import aot, dispatch
+
+    kernels = aot.load()
+    assert kernels is not None and kernels.threads, "make install builds kernels that release the GIL"
+    state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": kernels}
+    monkeypatch.setattr(dispatch, "_kernel_state", state)
+    pools = []
+
+    class CountingPool(ThreadPoolExecutor):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            pools.append(self)
+
+    monkeypatch.setattr("concurrent.futures.ThreadPoolExecutor", CountingPool)
+    curves = _family_curves(rng, 20, 4, 0.01)
+    queries = _variants(rng, curves, 6)
+    index = MemoryIndex(curves, rows_per_cell=8)
+    pruned, _ = search_index(index, queries, top=5, threads=2)
+    assert pools and state["module"] is None
     full, _ = search_index(index, queries, top=5, prune=False)
     _same(pruned, full)
 

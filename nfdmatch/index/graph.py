@@ -492,7 +492,7 @@ def _run(rows, work, threads, done):
 
     threads = threads or min(os.cpu_count() or 1, 4)
     if threads > 1 and not dispatch.threads_help():
-        # the kernels compiled ahead of time hold the GIL: threads need the just-in-time
+        # kernels compiled ahead of time holding the GIL (aot.py): threads need the just-in-time
         # ones, worth their import (~0.45 s) for a graph of more than a few rows
         if len(rows) < _THREADED_ROWS or not dispatch.load_threaded_kernels():
             threads = 1

@@ -10,9 +10,13 @@ source it was built from; :func:`load` returns it only when the stamp matches th
 (an edited ``_kernels.py`` is never served by a stale build). Without it the search works
 as before (numpy, then the just-in-time kernels once a process has done enough exact work).
 
-The compiled functions hold the GIL (``numba.pycc`` has no ``nogil``): they serve one thread
-of work at full speed; :mod:`.dispatch` switches a long multi-threaded run to the
-just-in-time kernels, which release it.
+The compiled functions release the GIL, as the just-in-time ones do, so queries on threads
+and a call's rows split over threads (:func:`._threads.split_rows`) run in parallel without
+importing numba. ``numba.pycc`` has no ``nogil`` option (numba issue #6382): its module
+compiler builds every export with a fresh ``Flags()``, and :func:`_releasing_gil` hands it
+flags with ``release_gil`` set while the module compiles. Should a numba version refuse
+that, the module is built holding the GIL, the stamp says so, and :mod:`.dispatch` switches
+a long multi-threaded run to the just-in-time kernels instead.
 """
 
 from __future__ import annotations
@@ -21,8 +25,11 @@ import hashlib
 import importlib
 import os
 import sys
+from contextlib import contextmanager
 
 import numpy as np
+
+from ._threads import split_rows
 
 __all__ = ["MODULE", "build", "load", "source_digest"]
 
@@ -59,13 +66,32 @@ def build(output_dir: str | None = None) -> str:
     Raises whatever numba raises when it cannot."""
     import warnings
 
+    out = output_dir or _HERE
+    digest = source_digest()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # numba.pycc announces its deprecation
-        from numba.pycc import CC
+        try:
+            with _releasing_gil():
+                cc = _module_compiler(out)
+                cc.compile()
+            gil = _NOGIL
+        except Exception:  # a numba whose module compiler refuses the flag: hold the GIL
+            cc = _module_compiler(out)
+            cc.compile()
+            gil = _GIL
+    stamp = os.path.join(out, MODULE + ".stamp")
+    with open(stamp + ".part", "w") as f:
+        f.write(f"{digest}\n{gil}\n")
+    os.replace(stamp + ".part", stamp)
+    return os.path.join(out, cc.output_file)
+
+
+def _module_compiler(out: str):
+    """numba.pycc's compiler of the extension module into ``out``, every kernel exported."""
+    from numba.pycc import CC
 
     from . import _kernels as k
 
-    out = output_dir or _HERE
     cc = CC(MODULE)
     cc.output_dir = out
     cc.verbose = False
@@ -125,26 +151,45 @@ def build(output_dir: str | None = None) -> str:
 
     for harmonics in _BOUND_HARMONICS:
         cc.export(f"grid_bound_rows_{harmonics}", _BOUND_SIGNATURE)(bound_export(k.grid_bound_kernel(harmonics)))
+    return cc
 
-    digest = source_digest()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        cc.compile()
-    stamp = os.path.join(out, MODULE + ".stamp")
-    with open(stamp + ".part", "w") as f:
-        f.write(digest + "\n")
-    os.replace(stamp + ".part", stamp)
-    return cc.output_file if hasattr(cc, "output_file") else out
+
+#: the stamp's second line: whether the module's functions release the GIL
+_NOGIL, _GIL = "nogil", "gil"
+
+
+@contextmanager
+def _releasing_gil():
+    """While compiling, every function ``numba.pycc`` exports releases the GIL: its module
+    compiler creates the compile flags with ``Flags()`` (numba.pycc.compiler, numba 0.5x-0.6x);
+    this swaps in a subclass that sets ``release_gil``, as ``@njit(nogil=True)`` does."""
+    from numba.pycc import compiler
+
+    base = compiler.Flags
+
+    class Flags(base):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.release_gil = True
+
+    compiler.Flags = Flags
+    try:
+        yield
+    finally:
+        compiler.Flags = base
 
 
 class _Kernels:
     """The compiled module behind the interface of :mod:`._kernels` (``exact_rows``,
-    ``grid_bound_rows``); ``workers`` is accepted and ignored (the GIL is held)."""
+    ``grid_bound_rows``); ``threads``: its functions release the GIL, and ``workers`` then
+    splits a call's rows over threads (else it is ignored)."""
 
-    threads = False
-
-    def __init__(self, module):
+    def __init__(self, module, threads: bool):
         self._module = module
+        self.threads = threads
+
+    def _workers(self, workers: int) -> int:
+        return workers if self.threads else 1
 
     def exact_rows(self, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers=1):
         N = B.shape[0]
@@ -153,14 +198,15 @@ class _Kernels:
         rot = np.empty((N, 3, 3))
         reversed_ = np.zeros(N, dtype=np.bool_)
         mirrored = np.zeros(N, dtype=np.bool_)
-        if N:
-            self._module.exact_rows(
+        basis = _writable(basis, n)
+        split_rows(
+            lambda lo, hi: self._module.exact_rows(
                 A,
                 Aw,
                 w,
                 B,
                 int(D),
-                _writable(basis, n),
+                basis,
                 bool(quarter),
                 int(n),
                 bool(mirror),
@@ -172,18 +218,25 @@ class _Kernels:
                 rot,
                 reversed_,
                 mirrored,
-                0,
-                N,
-            )
+                lo,
+                hi,
+            ),
+            N,
+            self._workers(workers),
+        )
         return dist, shift, rot, reversed_, mirrored
 
     def grid_bound_rows(self, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers=1):
         N = B.shape[0]
         out = np.empty(N)
-        if N:
-            K = Aw.shape[0]
-            kernel = getattr(self._module, f"grid_bound_rows_{K if K in _BOUND_HARMONICS else 0}")
-            kernel(Aw, B, int(D), basis, int(ratio), bool(mirror), slack_coarse, slack_fine, need, out, 0, N)
+        K = Aw.shape[0]
+        kernel = getattr(self._module, f"grid_bound_rows_{K if K in _BOUND_HARMONICS else 0}")
+        D, ratio, mirror = int(D), int(ratio), bool(mirror)
+        split_rows(
+            lambda lo, hi: kernel(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi),
+            N,
+            self._workers(workers),
+        )
         return out
 
 
@@ -206,13 +259,13 @@ def load():
     """The compiled kernels when a build for the current source is present, else None."""
     try:
         with open(_STAMP) as f:
-            stamp = f.read().strip()
+            stamp = f.read().split()
     except OSError:
         return None
     try:
-        if stamp != source_digest():
+        if not stamp or stamp[0] != source_digest():
             return None
         module = importlib.import_module(f"{__package__}.{MODULE}")
     except (ImportError, OSError):
         return None
-    return _Kernels(module)
+    return _Kernels(module, threads=stamp[1:2] == [_NOGIL])

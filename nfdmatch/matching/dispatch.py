@@ -156,10 +156,11 @@ def _compiled_kernels(work: int):
             return aot
         state["work"] += work
         if aot is not None:
-            # the same ski-rental, against the ahead-of-time kernels: a long run (an all-pairs
-            # matrix, a graph, a big batch) pays for the threaded ones once it has done as
-            # much work as their import costs; one core gains nothing from them
-            if state["work"] < _JIT_AFTER_AOT or cpu_count() < 2 or getattr(_held, "on", False):
+            # built releasing the GIL (aot.py), they are the threaded kernels already; else
+            # the same ski-rental, against them: a long run (an all-pairs matrix, a graph, a
+            # big batch) pays for the threaded ones once it has done as much work as their
+            # import costs; one core gains nothing from them
+            if aot.threads or state["work"] < _JIT_AFTER_AOT or cpu_count() < 2 or getattr(_held, "on", False):
                 return aot
             return state["module"] if _load_jit(warn=False) else aot
         if state["work"] < _NUMBA_AMORTIZE:
@@ -195,7 +196,7 @@ def _load_jit(warn: bool) -> bool:
 
 def threads_help() -> bool:
     """Whether exact work spread over threads runs in parallel: False when the calls would
-    go to the ahead-of-time kernels, which hold the GIL (threads would only take turns)."""
+    go to ahead-of-time kernels built holding the GIL (threads would only take turns)."""
     kernels = _compiled_kernels(0) if _numba_mode() != "off" else None
     return kernels is None or getattr(kernels, "threads", True)
 

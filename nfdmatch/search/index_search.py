@@ -183,8 +183,14 @@ def search_index(
                 progress(done, len(queries))
 
         first = 0
-        if threads > 1 and len(queries) > 1 and not dispatch.threads_help():
-            # the kernels compiled ahead of time hold the GIL: answer on this thread, and
+        if threads > 1 and len(queries) > 1:
+            # the first query alone: what it reads is what expect_more scales to the batch
+            # (queries already running beside it would count double)
+            with dispatch.no_switch_by_work():  # a switch to threads is decided below
+                account(answer(0))
+            first = 1
+        if threads > 1 and first < len(queries) and not dispatch.threads_help():
+            # kernels compiled ahead of time holding the GIL (aot.py): answer on this thread, and
             # switch to the just-in-time kernels (threads in parallel) once the queries left
             # would take long enough, at the pace so far, to pay for importing them
             # (at the median pace of the queries after the first, which also reads most of
@@ -198,8 +204,8 @@ def search_index(
                 first += 1
                 paces.append(time.perf_counter() - started)
                 if (
-                    len(paces) > 2
-                    and (len(queries) - first) * _median(paces[1:]) * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
+                    len(paces) > 1
+                    and (len(queries) - first) * _median(paces) * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
                     and dispatch.load_threaded_kernels()
                 ):
                     break
