@@ -1056,3 +1056,18 @@ def test_readers_and_a_second_build_while_a_build_runs(big, tmp_path):
     with open_index(idx_path) as idx:
         assert idx.samples == 128 and idx.created == before["created"]
         _assert_rows_equal(idx.read_rows(0, idx.n_curves), before["rows"])
+
+
+def test_scattered_runs_of_strings_read_in_one_call_give_each_run_in_order(tmp_path):
+    """``read_runs`` on a string dataset: several runs are one HDF5 read of their union
+    (the ids of a batch's matches), decoded as ``asstr()`` decodes, in run order."""
+    from nfdmatch.index.schema import read_runs
+
+    values = [f"lib/курва-{i}.obj#{i % 7}" if i % 3 else f"c{i}" for i in range(1000)]
+    with h5py.File(tmp_path / "s.h5", "w") as f:
+        f.create_dataset("id", data=values, dtype=h5py.string_dtype(), chunks=(256,))
+    runs = [(3, 7), (100, 101), (255, 290), (500, 532), (999, 1000)]
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        got = read_runs(f["id"], runs)
+        assert got == [v for a, b in runs for v in values[a:b]]
+        assert read_runs(f["id"], [(10, 12)]) == values[10:12]

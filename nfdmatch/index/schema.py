@@ -51,6 +51,8 @@ def read_runs(ds, runs, columns: slice | None = None):
     a list of str."""
     runs = [(int(a), int(b)) for a, b in runs if b > a]
     if h5py.check_string_dtype(ds.dtype) is not None:
+        if len(runs) > 1:
+            return _read_string_runs(ds, runs)
         strings = ds.asstr()
         return [v for a, b in runs for v in strings[a:b].tolist()]
     tail = () if columns is None else (columns,)
@@ -59,6 +61,20 @@ def read_runs(ds, runs, columns: slice | None = None):
     if not runs:
         return np.empty((0,) + tuple(ds.shape[1:]), dtype=ds.dtype)[(slice(None),) + tail]
     return np.concatenate([ds[(slice(a, b),) + tail] for a, b in runs])
+
+
+def _read_string_runs(ds, runs) -> list[str]:
+    """Variable-length strings of the (ascending, disjoint) ``runs`` of a 1-D dataset in one
+    HDF5 call on their union: a string read costs ~40-250 us whatever its length (type
+    conversion, global heap), so the ids of a batch's matches, 10-200 scattered blocks,
+    cost one call instead of one per block. Decoded as ``ds.asstr()`` does (UTF-8, strict)."""
+    space = ds.id.get_space()
+    space.select_none()
+    for a, b in runs:
+        space.select_hyperslab((a,), (b - a,), op=h5py.h5s.SELECT_OR)
+    out = np.empty(sum(b - a for a, b in runs), dtype=object)
+    ds.id.read(h5py.h5s.create_simple(out.shape), space, out)
+    return [v.decode("utf-8") for v in out.tolist()]
 
 
 def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:

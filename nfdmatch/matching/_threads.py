@@ -5,7 +5,6 @@ that both kernel modules use it."""
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 __all__ = ["split_rows"]
 
@@ -25,6 +24,8 @@ def split_rows(run, N: int, workers: int) -> None:
         return
     with _executor_lock:
         if _executor_workers < workers - 1:
+            from concurrent.futures import ThreadPoolExecutor  # (2-3 ms of a start-up otherwise)
+
             _executor = ThreadPoolExecutor(workers - 1, thread_name_prefix="nfdmatch-kernels")
             _executor_workers = workers - 1
         pool = _executor

@@ -21,7 +21,6 @@ a long multi-threaded run to the just-in-time kernels instead.
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import os
 import sys
@@ -49,14 +48,19 @@ _BOUND_HARMONICS = (0, 4, 8)
 
 
 def source_digest() -> str:
-    """sha256 of the kernel source, this module and the Python version: what a build is for
-    (the built module needs neither numba nor its version once compiled)."""
-    h = hashlib.sha256()
+    """What a build is for: the CRC-32 and length of the kernel source and of this module, and
+    the Python version (the built module needs neither numba nor its version once compiled).
+    It guards against a stale build after an edit, not against tampering; every query
+    checks it, and ``hashlib`` alone costs a process ~6 ms to import (OpenSSL)."""
+    import zlib
+
+    parts = []
     for name in ("_kernels.py", "aot.py"):
         with open(os.path.join(_HERE, name), "rb") as f:
-            h.update(f.read())
-    h.update(sys.version.encode())
-    return h.hexdigest()
+            data = f.read()
+        parts.append(f"{zlib.crc32(data):08x}{len(data):x}")
+    parts.append(f"{zlib.crc32(sys.version.encode()):08x}")
+    return "-".join(parts)
 
 
 def build(output_dir: str | None = None) -> str:

@@ -245,8 +245,12 @@ def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
     """Each :class:`~nfdmatch.search.bestfirst.TopK` as the matches :func:`search_index`
     returns: sorted by distance, distances within ``TIE`` by id, at most ``top``."""
     results = []
+    # every query's ids in one read (a read of strings costs the same for one row or many)
+    found = np.concatenate([tk.rows for tk in tops]) if tops else np.zeros(0, dtype=np.int64)
+    every_id = index.ids_at(found) if len(found) else []
+    at = 0
     for tk in tops:
-        ids = index.ids_at(tk.rows) if len(tk.rows) else []
+        ids, at = every_id[at : at + len(tk.rows)], at + len(tk.rows)
         # distances equal to 1e-9 are ties (below the numerical noise of the pipeline): by id
         order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[i]))
         if top is not None:
