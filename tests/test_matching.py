@@ -342,6 +342,24 @@ def test_numba_path_equals_numpy_path(monkeypatch, rng, samples, harmonics, opti
             np.testing.assert_allclose(got["rotation"][g], ref["rotation"][g], atol=1e-8)
 
 
+@pytest.mark.parametrize("options", [{}, {"mirror": True}, {"direction": "strict"}])
+def test_the_reference_path_gives_a_row_the_same_digits_whatever_rows_come_with_it(rng, options):
+    """Bit for bit: a row's distance, shift and rotation on the numpy reference path do not
+    depend on the batch it is computed in (a search recomputes its reported rows together)."""
+    from nfdmatch.matching import reference_path
+
+    rows, _ = _kernel_rows(rng, 128, 16)
+    B = np.concatenate([rows, rows[::-1] * np.exp(0.3j)])
+    with reference_path():
+        for query in (0, 4, 11):
+            whole = exact_search(rows[query], B, 128, **options)
+            for N in (1, 2, 3, 4, 7):
+                for first in (0, 5):
+                    part = exact_search(rows[query], B[first : first + N], 128, **options)
+                    for key in ("distance", "shift", "rotation", "reversed", "mirrored"):
+                        assert np.array_equal(part[key], whole[key][first : first + N]), (key, N, first)
+
+
 def _aot_kernels():
     """The ahead-of-time kernels, which ``make install`` builds (a missing build is a failure:
     the README's set-up promises them)."""

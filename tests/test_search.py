@@ -386,3 +386,17 @@ def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
         best = kept[np.argsort(everything, kind="stable")[:5]]
         assert set(top.rows.tolist()) == set(best.tolist())
         assert np.allclose(np.sort(top.dist)[:5], np.sort(everything)[:5], rtol=1e-9, atol=1e-12)
+
+
+def test_a_match_reports_the_same_digits_whatever_top_asks_for(rng):
+    """The reported distances are recomputed on the numpy reference path together: a row's
+    digits must not depend on how many rows come with it (``--top 1`` and ``--top 8`` print
+    the same distance for the best match)."""
+    curves = _family_curves(rng, 6, 5, 0.02)
+    queries = _variants(rng, curves, 4)
+    index = MemoryIndex(curves, rows_per_cell=8)
+    wide, _ = search_index(index, queries, top=8)
+    for top in (1, 2, 3, 5):
+        narrow, _ = search_index(index, queries, top=top)
+        for n, w in zip(narrow, wide):
+            assert [(r.id, r.distance, r.shift) for r in n] == [(r.id, r.distance, r.shift) for r in w[:top]]

@@ -103,16 +103,6 @@ def _trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:
     return s1 + s2 + third
 
 
-_SMALL_BATCH = 32
-
-
-def _trace_svd(M: np.ndarray, mirror: bool) -> np.ndarray:
-    """Same as :func:`_trace_soa` for (..., 3, 3) matrices through LAPACK (faster for a few)."""
-    sv = np.linalg.svd(M, compute_uv=False)
-    third = sv[..., 2] if mirror else np.copysign(sv[..., 2], np.linalg.det(M))
-    return sv[..., 0] + sv[..., 1] + third
-
-
 def kabsch_trace(M: np.ndarray, mirror: bool = False) -> np.ndarray:
     """max over rotations R of tr(R M), in closed form, for a stack of 3x3 matrices.
 

@@ -11,7 +11,6 @@ import numpy as np
 
 from .common import (
     _REFINE_CANDIDATES,
-    _SMALL_BATCH,
     _check_direction,
     _direction_variants,
     _integer_shift_basis,
@@ -19,7 +18,6 @@ from .common import (
     _search_inputs,
     _shift_basis,
     _trace_soa,
-    _trace_svd,
 )
 from . import dispatch
 from .dispatch import _compiled_kernels, _folded_basis
@@ -61,8 +59,9 @@ def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
 
     def evaluate(points):  # (C, m) -> (C, m)
         M = np.matmul(Pc, _shift_basis(points, K, n))  # (C, 9, m)
-        if M.shape[0] * M.shape[2] <= _SMALL_BATCH:  # LAPACK beats ~100 numpy calls here
-            return _trace_svd(M.transpose(0, 2, 1).reshape(*points.shape, 3, 3), mirror)
+        # one formula whatever the batch (LAPACK's SVD was faster below ~32 matrices, but
+        # gave other last digits: a row's reported distance then depended on how many rows
+        # it was recomputed with, e.g. on --top)
         return _trace_soa(np.moveaxis(M, 1, 0), mirror)
 
     x1, _, _ = _parabola(s0, 1.0, f_minus, f_0, f_plus)
