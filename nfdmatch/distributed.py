@@ -386,11 +386,8 @@ class Cluster:
                     from .search.index_search import _recompute
 
                     search = exact_search if method == "exact" else paper_search
-                    for qi, tk in enumerate(tops):
-                        held = _Held(self._held[qi][0]) if self._held[qi][0] else None
-                        _recompute(
-                            idx, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=None, table=held
-                        )
+                    held = [_Held(self._held[qi][0]) if self._held[qi][0] else None for qi in range(len(tops))]
+                    _recompute(idx, qcoef, tops, search, direction=direction, mirror=mirror, weights=None, tables=held)
                     self._held = None
             results = _ranked(idx, tops, top)
         finally:
@@ -799,17 +796,16 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
         # exactly as search_index reports them (from the descriptors of the table searched)
         from .search.index_search import _recompute
 
-        for qi, tk in enumerate(tops):
-            _recompute(
-                idx,
-                qcoef[qi],
-                tk,
-                search,
-                direction=params["direction"],
-                mirror=params["mirror"],
-                weights=None,
-                table=searched,
-            )
+        _recompute(
+            idx,
+            qcoef,
+            tops,
+            search,
+            direction=params["direction"],
+            mirror=params["mirror"],
+            weights=None,
+            tables=searched,
+        )
     out["tops"] = []
     for q, tk in enumerate(tops):
         keep = own_rows(q)
@@ -840,9 +836,10 @@ class _Held:
 
 
 def _worker_kernels() -> None:
-    """On a worker: with several threads, the exact kernels that release the GIL (the ones
-    compiled ahead of time hold it, so tasks on threads would take turns); with one thread
-    the process's default choice (:mod:`nfdmatch.matching.dispatch`) stands."""
+    """On a worker: with several threads, exact kernels that release the GIL (those compiled
+    ahead of time do, unless their build had to hold it: tasks on threads would then take
+    turns); with one thread the process's default choice (:mod:`nfdmatch.matching.dispatch`)
+    stands."""
     try:
         from distributed import get_worker
 

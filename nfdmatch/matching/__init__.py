@@ -35,7 +35,7 @@ from ..errors import ParameterError
 from .bounds import invariants, lower_bound
 from .common import DEFAULT_DIRECTION, DEFAULT_METHOD, DIRECTIONS, METHODS, STRICT_DIRECTION, kabsch_trace
 from .dispatch import compile_kernels, reference_path, use_kernels
-from .exact import exact_search, grid_bound, grid_maximum
+from .exact import exact_search, exact_search_pairs, grid_bound, grid_maximum
 from .paper import paper_search
 
 if TYPE_CHECKING:
@@ -48,6 +48,7 @@ __all__ = [
     "distance",
     "match_descriptors",
     "exact_search",
+    "exact_search_pairs",
     "grid_bound",
     "grid_maximum",
     "paper_search",

@@ -13,6 +13,7 @@ from .common import (
     _REFINE_CANDIDATES,
     _check_direction,
     _direction_variants,
+    _weights,
     _integer_shift_basis,
     _kabsch_rotation,
     _search_inputs,
@@ -153,9 +154,51 @@ def exact_search(
             workers,
         )
         return {"distance": dist, "shift": shift, "rotation": R, "reversed": reversed_, "mirrored": mirrored}
+    # the numpy path takes the query per row (the same arrays exact_search_pairs takes), so
+    # that a row's digits are the same whichever query batch computed it
+    return _exact_numpy(np.repeat(A[None], N, axis=0), B, w, n, direction, mirror, C, refine, refine_below)
+
+
+def exact_search_pairs(
+    A: np.ndarray,
+    B: np.ndarray,
+    samples: int,
+    *,
+    weights=None,
+    direction: str = "invariant",
+    mirror: bool = False,
+):
+    """:func:`exact_search` of row i of ``A`` against row i of ``B``, every row at once, on the
+    numpy reference path: bit for bit what ``exact_search(A[i], B[i:i + 1], samples)`` gives
+    there (inside :func:`~nfdmatch.matching.reference_path`), whatever the other rows. For
+    recomputing the rows many queries report in one pass instead of one pass per query.
+
+    Parameters
+    ----------
+    A, B : (N, K, 3) complex, query and row half-bands, pair by pair.
+    samples, weights, direction, mirror : as :func:`exact_search`.
+
+    Returns the same dict as :func:`exact_search`, over the N pairs.
+    """
+    A = np.asarray(A, dtype=np.complex128)
+    B = np.asarray(B, dtype=np.complex128)
+    if A.shape != B.shape or A.ndim != 3 or A.shape[2] != 3:
+        raise ValueError(f"A and B must be (N, K, 3) alike, got {A.shape} and {B.shape}")
+    _check_direction(direction)
+    w, n = _weights(weights, B.shape[1]), int(samples)
+    D = 2 if direction == "invariant" else 1
+    return _exact_numpy(A, B, w, n, direction, mirror, min(_REFINE_CANDIDATES, D * n), True, None)
+
+
+def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
+    """The numpy path of :func:`exact_search` (the reference) with the query given per row:
+    A, B (N, K, 3) complex128, w (K,) float64; C candidates per row."""
+    N, K, _ = B.shape
+    D = 2 if direction == "invariant" else 1
+    Aw = np.conj(A) * w[None, :, None]  # (N, K, 3)
     Bv = np.stack([v for v, _ in _direction_variants(B, direction)])  # (D, N, K, 3)
     # P[j, i, d, r, k] = 2 w_k B_k[j] conj(A_k[i]): M(s)[j, i] = Re sum_k P e^{2 pi i k s / n}
-    P = np.einsum("drkj,ki->jidrk", Bv, Aw)
+    P = np.einsum("drkj,rki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
     F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, n)).reshape(9, D, N, n), mirror)  # (D, N, n)
     F = F.transpose(1, 0, 2)  # (N, D, n)
@@ -174,10 +217,10 @@ def exact_search(
         todo = np.ones(N * C, dtype=bool)
         if refine_below is not None and np.isfinite(refine_below):
             k = np.arange(1, K + 1)
-            norm_a = np.linalg.norm(A, axis=1)
-            norm_b = np.linalg.norm(B, axis=2)  # (N, K)
+            norm_a = np.linalg.norm(A, axis=2)  # (N, K)
+            norm_b = np.linalg.norm(B, axis=2)
             curvature = (2.0 * w * (2.0 * np.pi * k / n) ** 2 * norm_a * norm_b).sum(axis=1)
-            squared = 2.0 * (w * norm_a**2).sum() + 2.0 * (w * norm_b**2).sum(axis=1)
+            squared = 2.0 * (w * norm_a**2).sum(axis=1) + 2.0 * (w * norm_b**2).sum(axis=1)
             lower2 = squared - 2.0 * (Fmax + curvature / 8.0)
             todo = np.repeat(lower2 <= refine_below**2 * (1 + 1e-9) + 1e-12, C)
         if todo.any():
@@ -200,9 +243,9 @@ def exact_search(
 
     Bsel = np.where((direction_idx == 1)[:, None, None], np.conj(B), B)  # (N, K, 3)
     Bs = Bsel * np.exp((2j * np.pi / n) * np.outer(shift, np.arange(1, K + 1)))[:, :, None]
-    Mbest = 2.0 * np.einsum("nkj,ki->nji", Bs, Aw).real
+    Mbest = 2.0 * np.einsum("nkj,nki->nji", Bs, Aw).real
     R = _kabsch_rotation(Mbest, mirror)
-    resid = A[None] - np.einsum("nij,nkj->nki", R, Bs)
+    resid = A - np.einsum("nij,nkj->nki", R, Bs)
     dist = np.sqrt(2.0 * np.einsum("k,nk->n", w, np.sum(resid.real**2 + resid.imag**2, axis=2)))
     mirrored = np.linalg.det(R) < 0
     shift = np.mod(shift, n)

@@ -159,10 +159,6 @@ def search_index(
                 samples=index.samples,
                 truncate=truncate,
             )
-            # on the query's own thread: the recomputation is per query and runs in parallel
-            _recompute(
-                index, qcoef[qi], tops[qi], search, direction=direction, mirror=mirror, weights=weights, table=table
-            )
             return work
 
         done = 0
@@ -224,11 +220,11 @@ def search_index(
         else:
             for qi in rest:
                 account(answer(qi))
+        _recompute(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights, tables=table)
         stats.bytes_read = table.bytes_read
 
     if not prune:
-        for qi, tk in enumerate(tops):
-            _recompute(index, qcoef[qi], tk, search, direction=direction, mirror=mirror, weights=weights)
+        _recompute(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights)
     results = ranked_rows(index, tops, top)
     stats.seconds = time.perf_counter() - t0
     return results, stats
@@ -272,53 +268,78 @@ def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
     return results
 
 
-def _recompute(index, query, tk, search, *, direction, mirror, weights, table=None) -> None:
-    """Replace the distances, shifts and flags of the rows a query found by the numpy
-    reference path's, in a fixed order on this thread.
+def _recompute(index, queries, tops, search, *, direction, mirror, weights, tables=None) -> None:
+    """Replace the distances, shifts and flags of the rows the queries found by the numpy
+    reference path's, in a fixed order.
 
     The search itself may have used the compiled kernels for some rows and numpy for others
     (the switch depends on the work done so far, and on timing when queries run on threads);
     the two agree to ~1e-15 but not bit for bit, so without this the last printed digits
     change from run to run. The reference is the exact distance, so nothing is lost; rows
     pushed past ``max_distance`` by the recomputation are dropped as the search would have.
-    The descriptors come from ``table`` (the search's, already read) when it holds them all,
-    else from the index (a scattered read: up to a whole HDF5 chunk per row).
+    Every query's rows go through one pass of :func:`~nfdmatch.matching.exact_search_pairs`
+    (the numpy path's cost is mostly per call: one pass for a batch, not one per query),
+    which gives each row the digits a pass of its own would.
+
+    queries : (Q, K, 3) descriptors; tops : Q :class:`TopK`; tables : None, one search table
+    for every query, or one per query (or None): the descriptors come from the query's table
+    (the search's, already read) when it holds them all, else from the index (a scattered
+    read: up to a whole HDF5 chunk per row).
     """
-    from ..matching import reference_path
+    from ..matching import exact_search_pairs, reference_path
 
-    if not len(tk.rows):
-        return
-    order = np.argsort(tk.rows, kind="stable")
-    rows = tk.rows[order]
-    positions = tk.extra["position"][order]
-    if table is not None and len(positions) and positions.min() >= 0:
-
-        def coefficients(a, b):
-            return table.coefficients_at_positions(positions[a:b])
-    else:
-
-        def coefficients(a, b):
-            return index.coefficients_at(rows[a:b])
-
-    parts = []
-    with reference_path():
-        for a in range(0, len(rows), EXHAUSTIVE_ROWS):
-            parts.append(
-                search(
-                    query,
-                    coefficients(a, a + EXHAUSTIVE_ROWS),
-                    index.samples,
-                    direction=direction,
-                    mirror=mirror,
-                    weights=weights,
-                )
+    per_query = tables if isinstance(tables, (list, tuple)) else [tables] * len(tops)
+    found = []  # (query, rows, positions, coefficients) in row order
+    for qi, (tk, table) in enumerate(zip(tops, per_query)):
+        if not len(tk.rows):
+            continue
+        order = np.argsort(tk.rows, kind="stable")
+        rows, positions = tk.rows[order], tk.extra["position"][order]
+        if table is not None and positions.min() >= 0:
+            coefficients = np.concatenate(
+                [
+                    table.coefficients_at_positions(positions[a : a + EXHAUSTIVE_ROWS])
+                    for a in range(0, len(rows), EXHAUSTIVE_ROWS)
+                ]
             )
-    dist = np.concatenate([p["distance"] for p in parts])
-    keep = dist <= (np.inf if tk.max_distance is None else tk.max_distance)
-    tk.rows, tk.dist = rows[keep], dist[keep]
-    tk.extra = {
-        key: (positions if key == "position" else np.concatenate([p[key] for p in parts]))[keep] for key in tk.extra
-    }
+        else:
+            coefficients = np.concatenate(
+                [index.coefficients_at(rows[a : a + EXHAUSTIVE_ROWS]) for a in range(0, len(rows), EXHAUSTIVE_ROWS)]
+            )
+        found.append((qi, rows, positions, coefficients))
+    if not found:
+        return
+    if search is exact_search:
+        A = np.concatenate([np.repeat(np.asarray(queries[qi])[None], len(rows), axis=0) for qi, rows, _, _ in found])
+        B = np.concatenate([c for _, _, _, c in found])
+        parts = [
+            exact_search_pairs(
+                A[a : a + EXHAUSTIVE_ROWS],
+                B[a : a + EXHAUSTIVE_ROWS],
+                index.samples,
+                direction=direction,
+                mirror=mirror,
+                weights=weights,
+            )
+            for a in range(0, len(B), EXHAUSTIVE_ROWS)
+        ]
+        every = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        at, results = 0, []
+        for _, rows, _, _ in found:
+            results.append({key: v[at : at + len(rows)] for key, v in every.items()})
+            at += len(rows)
+    else:  # the paper's step: one call per query, on the path it always takes
+        with reference_path():
+            results = [
+                search(queries[qi], c, index.samples, direction=direction, mirror=mirror, weights=weights)
+                for qi, _, _, c in found
+            ]
+    for (qi, rows, positions, _), r in zip(found, results):
+        tk = tops[qi]
+        dist = r["distance"]
+        keep = dist <= (np.inf if tk.max_distance is None else tk.max_distance)
+        tk.rows, tk.dist = rows[keep], dist[keep]
+        tk.extra = {key: (positions if key == "position" else r[key])[keep] for key in tk.extra}
 
 
 def _exhaustive(index, qcoef, tops, search, *, direction, mirror, weights, progress) -> int:
