@@ -295,6 +295,53 @@ def _plane_rotations(a1: np.ndarray, rms: np.ndarray) -> tuple[np.ndarray, np.nd
     return R, degenerate
 
 
+def _arc_lengths(seg: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(len(seg) + 1,) float64: at curve i's vertex ``starts[i] + j`` (j = 0..counts[i]), the
+    running sum of its first j segments, from 0 at its first vertex; each curve's sum is the
+    one ``np.cumsum`` gives for that curve alone (a sum is sequential: padding after a
+    curve's segments changes none of its values). Positions between curves are unused."""
+    local = np.zeros(len(seg) + 1)
+    N, longest, total = len(counts), int(counts.max()), int(counts.sum())
+    if N * longest <= 4 * total + 4096:  # curves of similar lengths: one padded 2-D sum
+        curve = np.repeat(np.arange(N), counts)
+        within = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+        source = np.repeat(starts, counts) + within
+        padded = np.zeros((N, longest))
+        padded[curve, within] = seg[source]
+        local[source + 1] = np.cumsum(padded, axis=1)[curve, within]
+    else:  # one very long curve among short ones: curve by curve
+        for a, c in zip(starts.tolist(), counts.tolist()):
+            local[a + 1 : a + c + 1] = np.cumsum(seg[a : a + c])
+    return local
+
+
+#: vectorized one-vertex moves of :func:`_segments_at` before it searches curve by curve
+_MOVES = 8
+
+
+def _segments_at(local, seg, starts, targets, first_vertex, last) -> np.ndarray:
+    """For each target arc length (of the curve whose vertices run from ``first_vertex`` to
+    ``last + 1``), the last vertex at or before it within the curve, clipped to its segments:
+    found on the batch's running arc length (monotone, one search), then moved to agree with
+    each curve's own arc lengths ``local`` (the two differ by rounding only)."""
+    running = np.concatenate([[0.0], np.cumsum(seg)])
+    idx = np.searchsorted(running, running[first_vertex] + targets, side="right") - 1
+    idx = np.clip(idx, first_vertex, last)
+    for _ in range(_MOVES):
+        up = (idx < last) & (local[np.minimum(idx + 1, len(local) - 1)] <= targets)
+        down = (idx > first_vertex) & (local[idx] > targets)
+        if not (up.any() or down.any()):
+            return idx
+        idx = idx + up - down
+    # rounding moved a search by many vertices (runs of near-zero segments): exactly, per curve
+    samples = len(targets) // len(starts)
+    for i, a in enumerate(starts.tolist()):
+        lo, hi = i * samples, (i + 1) * samples
+        found = np.searchsorted(local[a : last[lo] + 2], targets[lo:hi], side="right") - 1 + a
+        idx[lo:hi] = np.clip(found, a, last[lo])
+    return idx
+
+
 def descriptors_batch(
     curves: Sequence[Curve | np.ndarray],
     *,
@@ -348,14 +395,16 @@ def descriptors_batch(
     seg = np.linalg.norm(step, axis=1)
     starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])  # index of each curve's first vertex
     seg[starts[1:] - 1] = 0.0  # no segment between curves
-    cum = np.concatenate([[0.0], np.cumsum(seg)])  # global arc length, monotone
-    lengths = cum[starts + counts] - cum[starts]
-    targets = cum[starts][:, None] + np.arange(samples)[None, :] * (lengths / samples)[:, None]
-    idx = np.searchsorted(cum, targets.ravel(), side="right") - 1
+    # each curve's arc length from its own first vertex: a curve's samples must not depend
+    # on the curves batched with it (a running sum over the batch would round differently)
+    local = _arc_lengths(seg, starts, counts)
+    lengths = local[starts + counts]
+    targets = (np.arange(samples)[None, :] * (lengths / samples)[:, None]).ravel()  # (N * samples,)
+    first_vertex = starts.repeat(samples)
     last = (starts + counts - 1).repeat(samples)  # last segment of each curve
-    idx = np.clip(idx, starts.repeat(samples), last)
-    seglen = cum[idx + 1] - cum[idx]
-    t = (targets.ravel() - cum[idx]) / np.where(seglen > 0, seglen, 1.0)
+    idx = _segments_at(local, seg, starts, targets, first_vertex, last)
+    seglen = local[idx + 1] - local[idx]
+    t = (targets - local[idx]) / np.where(seglen > 0, seglen, 1.0)
     # coordinate-major (3, N * samples): contiguous gathers, and FFTs along the last axis
     sampled = (unit.T[:, idx] + t * step.T[:, idx]).reshape(3, N, samples)
     # real samples: rfft gives A_0 .. A_{n//2}, all that is used (A_{-k} = conj A_k)

@@ -3,6 +3,7 @@ query's frame (the data behind `show`), against the plain definitions."""
 
 from __future__ import annotations
 
+import importlib
 import os
 
 import numpy as np
@@ -31,6 +32,27 @@ def test_single_descriptors_are_row_of_batch(rng):
         np.testing.assert_allclose(d.rotation, batch.rotation[i], atol=1e-12)
         np.testing.assert_allclose(d.centroid, batch.centroid[i], atol=1e-9)
         assert d.scale == pytest.approx(batch.scale[i], rel=1e-12)
+
+
+def test_a_curve_gets_the_same_descriptors_bit_for_bit_whatever_is_batched_with_it(rng, monkeypatch):
+    """A query's (and an indexed curve's) descriptors must not depend on the other curves of
+    its batch: the arc length is summed per curve, not over the batch. Curves of mixed
+    lengths, repeated vertices (zero-length segments), and one very long curve among short
+    ones (summed curve by curve)."""
+    curves = [random_rigid_motion(random_smooth_curve(rng, n_vertices=int(n)), rng) for n in rng.integers(8, 300, 7)]
+    repeated = np.repeat(curves[0], rng.integers(1, 4, len(curves[0])), axis=0)  # runs of equal vertices
+    long = random_smooth_curve(rng, n_vertices=40_000)
+    together_first = descriptors_batch(curves + [repeated])
+    for batch in (curves + [repeated], [repeated] + curves[::-1], curves[:3] + [long] + curves[3:]):
+        together = descriptors_batch(batch)
+        for i, c in enumerate(batch):
+            alone = descriptors_batch([c])
+            for key in ("coefficients", "rotation", "centroid", "scale"):
+                assert np.array_equal(getattr(together, key)[i], getattr(alone, key)[0]), (i, key)
+    # the samples found curve by curve (when the batch's search is far off) are the same
+    # (nfdmatch.descriptors is also the name of a function: the module through importlib)
+    monkeypatch.setattr(importlib.import_module("nfdmatch.descriptors"), "_MOVES", 0)
+    assert np.array_equal(descriptors_batch(curves + [repeated]).coefficients, together_first.coefficients)
 
 
 @pytest.mark.parametrize("tilt", [0.0, 1e-9, 1e-6, 1e-3])

@@ -400,3 +400,17 @@ def test_a_match_reports_the_same_digits_whatever_top_asks_for(rng):
         narrow, _ = search_index(index, queries, top=top)
         for n, w in zip(narrow, wide):
             assert [(r.id, r.distance, r.shift) for r in n] == [(r.id, r.distance, r.shift) for r in w[:top]]
+
+
+def test_a_batch_reports_each_query_as_a_search_of_its_own_would(rng):
+    """The batch recomputes every query's reported rows in one pass: the digits are those
+    of each query searched alone."""
+    curves = _family_curves(rng, 6, 5, 0.02)
+    queries = _variants(rng, curves, 5)
+    index = MemoryIndex(curves, rows_per_cell=8)
+    together, _ = search_index(index, queries, top=4)
+    for q, expect in zip(queries, together):
+        alone, _ = search_index(index, [q], top=4)
+        assert [(r.id, r.distance, r.shift, r.reversed) for r in alone[0]] == [
+            (r.id, r.distance, r.shift, r.reversed) for r in expect
+        ]
