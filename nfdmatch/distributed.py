@@ -857,10 +857,8 @@ def _worker_kernels() -> None:
 def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:
     """Ascending numbers of the cells of lowest bound for the query holding at least
     ``positions`` rows (or every cell): the first round's window, the same on every worker."""
-    from .search.bounds import cell_lower_bounds
-
     sizes = table.start[1:] - table.start[:-1]
-    order = np.argsort(cell_lower_bounds(query_features, table.split, table.centre, table.radius), kind="stable")
+    order = np.argsort(table.cell_bounds(query_features), kind="stable")
     n = int(np.searchsorted(np.cumsum(sizes[order]), positions)) + 1
     return np.sort(order[:n])
 

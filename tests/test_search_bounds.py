@@ -200,18 +200,22 @@ def test_cells_partition_the_rows_and_their_radii_hold(seed, rows, per_cell):
     cells = build_cells(F, split, rows_per_cell=per_cell)
     assert sorted(cells.row.tolist()) == list(range(rows))
     assert cells.start[0] == 0 and cells.start[-1] == rows and np.all(np.diff(cells.start) > 0)
-    q = rng.normal(size=9)
-    cb = cell_lower_bounds(q, split, cells.centre, cells.radius)
-    for c in range(cells.count):
-        members = cells.row[cells.start[c] : cells.start[c + 1]]
-        assert np.all(np.diff(members) > 0)  # ascending within a cell
-        X = F[members].astype(np.float64)
-        assert np.all(np.linalg.norm(X[:, :split] - cells.centre[c, :split], axis=1) <= cells.radius[c, 0])
-        assert np.all(np.linalg.norm(X[:, split:] - cells.centre[c, split:], axis=1) <= cells.radius[c, 1])
-        true = np.maximum(
-            np.linalg.norm(X[:, :split] - q[:split], axis=1), np.linalg.norm(X[:, split:] - q[split:], axis=1)
-        )
-        assert np.all(cb[c] <= true)
+    # a random query, and one at a centre: the centres' norms (the search table's path)
+    # cancel in |c|^2 + |q|^2 - 2 c.q there, and their slack must cover it
+    for q in (rng.normal(size=9), cells.centre[int(rng.integers(cells.count))] * (1 + 1e-9)):
+        cb = cell_lower_bounds(q, split, cells.centre, cells.radius)
+        by_norms = cell_lower_bounds(q, split, cells.centre, cells.radius, squared_norms(cells.centre, split))
+        assert np.all(by_norms <= cb + 1e-12) and np.all(by_norms >= cb - 1e-6)
+        for c in range(cells.count):
+            members = cells.row[cells.start[c] : cells.start[c + 1]]
+            assert np.all(np.diff(members) > 0)  # ascending within a cell
+            X = F[members].astype(np.float64)
+            assert np.all(np.linalg.norm(X[:, :split] - cells.centre[c, :split], axis=1) <= cells.radius[c, 0])
+            assert np.all(np.linalg.norm(X[:, split:] - cells.centre[c, split:], axis=1) <= cells.radius[c, 1])
+            true = np.maximum(
+                np.linalg.norm(X[:, :split] - q[:split], axis=1), np.linalg.norm(X[:, split:] - q[split:], axis=1)
+            )
+            assert np.all(cb[c] <= true) and np.all(by_norms[c] <= true)
     again = build_cells(F, split, rows_per_cell=per_cell)
     assert np.array_equal(again.row, cells.row) and np.array_equal(again.centre, cells.centre)
 

@@ -312,7 +312,6 @@ def _search_seeded(i, read_coefficients, table, top, samples, helpers=None):
     from ..matching import exact_search
     from ..search.bestfirst import TIE, margin
     from ..search.bounds import (
-        cell_lower_bounds,
         feature_vector,
         row_lower_bounds,
         truncated_lower_bounds,
@@ -321,7 +320,7 @@ def _search_seeded(i, read_coefficients, table, top, samples, helpers=None):
 
     q = np.asarray(read_coefficients([i])[0], dtype=np.complex128)
     qf = feature_vector(q[None])[0]
-    cb = cell_lower_bounds(qf, table.split, table.centre, table.radius)
+    cb = table.cell_bounds(qf)
     corder = np.argsort(cb, kind="stable")
     sizes = (table.start[1:] - table.start[:-1])[corder]
     # every cell of bound 0 (the row's own cell is one, and several overlap) and at least

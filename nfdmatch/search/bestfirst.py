@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .bounds import cell_lower_bounds, row_lower_bounds, truncated_lower_bounds, truncated_stages
+from .bounds import row_lower_bounds, truncated_lower_bounds, truncated_stages
 
 __all__ = ["TopK", "QueryWork", "search_one", "margin"]
 
@@ -196,7 +196,7 @@ def search_one(
     every head exceeds the k-th distance.
     """
     work = QueryWork()
-    cb = cell_lower_bounds(query_features, table.split, table.centre, table.radius)
+    cb = table.cell_bounds(query_features)
     corder = np.argsort(cb, kind="stable")
     if skip_cells is not None and len(skip_cells):
         opened = np.ones(len(cb), dtype=bool)

@@ -49,8 +49,9 @@ TRUNCATED_GRID = 24
 TRUNCATED_STAGES = ((TRUNCATED_HARMONICS, TRUNCATED_GRID), (8, 48))
 #: the coarse grid of the truncated bound takes every third shift of its fine grid
 _COARSE_RATIO = 3
-#: float32 unit roundoff
+#: float32 and float64 unit roundoff
 _U32 = 2.0**-24
+_U64 = 2.0**-53
 #: rows whose squared norms are computed at a time: bounds the float64 copy, small enough
 #: to stay in cache (a 65,536-row block took 3x as long in a new process: page faults)
 _NORM_BLOCK = 8192
@@ -109,15 +110,41 @@ def squared_norms(features: np.ndarray, split: int) -> np.ndarray:
     return out
 
 
-def cell_lower_bounds(query: np.ndarray, split: int, centre: np.ndarray, radius: np.ndarray) -> np.ndarray:
+def cell_lower_bounds(
+    query: np.ndarray, split: int, centre: np.ndarray, radius: np.ndarray, centre_sqnorm: np.ndarray | None = None
+) -> np.ndarray:
     """(C,) float64 lower bound of the invariant bound of every row of each cell.
 
-    query : (D,) float64 features; centre : (C, D) float64; radius : (C, 2) float64.
+    query : (D,) float64 features; centre : (C, D) float64; radius : (C, 2) float64;
+    centre_sqnorm : (C, 2) float64, the centres' squared norms in the two subspaces
+    (:func:`squared_norms`; a search table keeps them), or None.
+
+    With the norms, the distances come from ``|c|^2 + |q|^2 - 2 c.q`` (one matrix-vector
+    product per subspace, no (C, D) difference array: ~2.5x faster), less a proven rounding
+    slack: each of the three terms is within gamma_m (|c|^2 + |q|^2) of its value (the dot
+    product's error is at most gamma_m |c| |q|), and the two additions add 4 u of it; so
+    the result never exceeds the distance to the centre.
     """
-    d = centre - query[None, :]
-    a = np.sqrt(np.einsum("ij,ij->i", d[:, :split], d[:, :split])) - radius[:, 0]
-    b = np.sqrt(np.einsum("ij,ij->i", d[:, split:], d[:, split:])) - radius[:, 1]
-    return np.maximum(np.maximum(a, b), 0.0)
+    if centre_sqnorm is None:
+        d = centre - query[None, :]
+        a = np.sqrt(np.einsum("ij,ij->i", d[:, :split], d[:, :split])) - radius[:, 0]
+        b = np.sqrt(np.einsum("ij,ij->i", d[:, split:], d[:, split:])) - radius[:, 1]
+        return np.maximum(np.maximum(a, b), 0.0)
+    out = None
+    for lo, hi, col in ((0, split, 0), (split, centre.shape[1], 1)):
+        q = query[lo:hi]
+        qq = float(q @ q)
+        both = centre_sqnorm[:, col] + qq
+        d2 = both - 2.0 * (centre[:, lo:hi] @ q)
+        slack = (3.0 * _gamma64(hi - lo) + 4.0 * _U64) * 1.01 * both
+        d = np.sqrt(np.maximum(d2 - slack, 0.0)) - radius[:, col]
+        out = d if out is None else np.maximum(out, d)
+    return np.maximum(out, 0.0, out=out)
+
+
+def _gamma64(n: int) -> float:
+    """Higham's gamma_n for float64: the relative error bound of an n-term dot product."""
+    return n * _U64 / (1 - n * _U64)
 
 
 def _gamma(n: int) -> float:

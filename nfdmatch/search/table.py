@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from .bounds import feature_split, squared_norms
+from .bounds import cell_lower_bounds, feature_split, squared_norms
 
 __all__ = ["SearchTable"]
 
@@ -115,6 +115,7 @@ class SearchTable:
         self.start = np.asarray(start, dtype=np.int64)
         self.centre = np.asarray(centre, dtype=np.float64)
         self.radius = np.asarray(radius, dtype=np.float64)
+        self._centre_sqnorm = None
         self.n_positions = int(self.start[-1]) if len(self.start) else 0
         self._read_positions = read_positions
         self._read_coefficients = read_coefficients
@@ -237,6 +238,13 @@ class SearchTable:
     @property
     def n_cells(self) -> int:
         return len(self.start) - 1
+
+    def cell_bounds(self, query_features: np.ndarray) -> np.ndarray:
+        """(C,) :func:`~nfdmatch.search.bounds.cell_lower_bounds` of every cell for a query's
+        (D,) float64 features (the centres' squared norms computed once per table)."""
+        if self._centre_sqnorm is None:
+            self._centre_sqnorm = squared_norms(self.centre, self.split)
+        return cell_lower_bounds(query_features, self.split, self.centre, self.radius, self._centre_sqnorm)
 
     @property
     def stored_harmonics(self) -> int:
