@@ -414,3 +414,19 @@ def test_a_batch_reports_each_query_as_a_search_of_its_own_would(rng):
         assert [(r.id, r.distance, r.shift, r.reversed) for r in alone[0]] == [
             (r.id, r.distance, r.shift, r.reversed) for r in expect
         ]
+
+
+def test_the_recomputation_in_small_passes_gives_the_same_answers(rng, monkeypatch):
+    """The reported rows are recomputed in passes of at most EXHAUSTIVE_ROWS rows, queries
+    packed together and split across passes: the size of the passes changes no digit."""
+    from nfdmatch.search import index_search
+
+    curves = _family_curves(rng, 6, 5, 0.02)
+    queries = _variants(rng, curves, 5)
+    index = MemoryIndex(curves, rows_per_cell=8)
+    whole, _ = search_index(index, queries, top=7)
+    monkeypatch.setattr(index_search, "EXHAUSTIVE_ROWS", 3)
+    small, _ = search_index(index, queries, top=7)
+    assert [[(r.id, r.distance, r.shift) for r in q] for q in small] == [
+        [(r.id, r.distance, r.shift) for r in q] for q in whole
+    ]

@@ -277,9 +277,10 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
     the two agree to ~1e-15 but not bit for bit, so without this the last printed digits
     change from run to run. The reference is the exact distance, so nothing is lost; rows
     pushed past ``max_distance`` by the recomputation are dropped as the search would have.
-    Every query's rows go through one pass of :func:`~nfdmatch.matching.exact_search_pairs`
-    (the numpy path's cost is mostly per call: one pass for a batch, not one per query),
-    which gives each row the digits a pass of its own would.
+    The rows of every query go through passes of :func:`~nfdmatch.matching.exact_search_pairs`
+    of up to ``EXHAUSTIVE_ROWS`` rows, queries packed together (the numpy path's cost is
+    mostly per call), each row with the digits a pass of its own would give; a pass's
+    descriptors are read for it alone (memory stays bounded however many rows match).
 
     queries : (Q, K, 3) descriptors; tops : Q :class:`TopK`; tables : None, one search table
     for every query, or one per query (or None): the descriptors come from the query's table
@@ -289,56 +290,63 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
     from ..matching import exact_search_pairs, reference_path
 
     per_query = tables if isinstance(tables, (list, tuple)) else [tables] * len(tops)
-    found = []  # (query, rows, positions, coefficients) in row order
-    for qi, (tk, table) in enumerate(zip(tops, per_query)):
-        if not len(tk.rows):
-            continue
-        order = np.argsort(tk.rows, kind="stable")
-        rows, positions = tk.rows[order], tk.extra["position"][order]
+    found = {}  # query -> (rows, positions) in row order, and its results as they come
+    for qi, tk in enumerate(tops):
+        if len(tk.rows):
+            order = np.argsort(tk.rows, kind="stable")
+            found[qi] = (tk.rows[order], tk.extra["position"][order])
+
+    def coefficients(qi, a, b):
+        rows, positions = found[qi]
+        table = per_query[qi]
         if table is not None and positions.min() >= 0:
-            coefficients = np.concatenate(
-                [
-                    table.coefficients_at_positions(positions[a : a + EXHAUSTIVE_ROWS])
-                    for a in range(0, len(rows), EXHAUSTIVE_ROWS)
-                ]
+            return table.coefficients_at_positions(positions[a:b])
+        return index.coefficients_at(rows[a:b])
+
+    # pieces (query, a, b) of at most EXHAUSTIVE_ROWS rows, packed in order into passes
+    passes, current, size = [], [], 0
+    for qi, (rows, _) in found.items():
+        for a in range(0, len(rows), EXHAUSTIVE_ROWS):
+            b = min(len(rows), a + EXHAUSTIVE_ROWS)
+            if current and size + (b - a) > EXHAUSTIVE_ROWS:
+                passes.append(current)
+                current, size = [], 0
+            current.append((qi, a, b))
+            size += b - a
+    if current:
+        passes.append(current)
+    results = {qi: [] for qi in found}
+    for pieces in passes:
+        if search is exact_search:
+            B = [coefficients(qi, a, b) for qi, a, b in pieces]
+            A = np.concatenate(
+                [np.repeat(np.asarray(queries[qi])[None], len(c), axis=0) for (qi, _, _), c in zip(pieces, B)]
             )
-        else:
-            coefficients = np.concatenate(
-                [index.coefficients_at(rows[a : a + EXHAUSTIVE_ROWS]) for a in range(0, len(rows), EXHAUSTIVE_ROWS)]
+            r = exact_search_pairs(
+                A, np.concatenate(B), index.samples, direction=direction, mirror=mirror, weights=weights
             )
-        found.append((qi, rows, positions, coefficients))
-    if not found:
-        return
-    if search is exact_search:
-        A = np.concatenate([np.repeat(np.asarray(queries[qi])[None], len(rows), axis=0) for qi, rows, _, _ in found])
-        B = np.concatenate([c for _, _, _, c in found])
-        parts = [
-            exact_search_pairs(
-                A[a : a + EXHAUSTIVE_ROWS],
-                B[a : a + EXHAUSTIVE_ROWS],
-                index.samples,
-                direction=direction,
-                mirror=mirror,
-                weights=weights,
-            )
-            for a in range(0, len(B), EXHAUSTIVE_ROWS)
-        ]
-        every = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-        at, results = 0, []
-        for _, rows, _, _ in found:
-            results.append({key: v[at : at + len(rows)] for key, v in every.items()})
-            at += len(rows)
-    else:  # the paper's step: one call per query, on the path it always takes
-        with reference_path():
-            results = [
-                search(queries[qi], c, index.samples, direction=direction, mirror=mirror, weights=weights)
-                for qi, _, _, c in found
-            ]
-    for (qi, rows, positions, _), r in zip(found, results):
+            at = 0
+            for qi, a, b in pieces:
+                results[qi].append({key: v[at : at + b - a] for key, v in r.items()})
+                at += b - a
+        else:  # the paper's step: one call per piece, on the path it always takes
+            with reference_path():
+                for qi, a, b in pieces:
+                    results[qi].append(
+                        search(
+                            queries[qi],
+                            coefficients(qi, a, b),
+                            index.samples,
+                            direction=direction,
+                            mirror=mirror,
+                            weights=weights,
+                        )
+                    )
+    for qi, (rows, positions) in found.items():
         tk = tops[qi]
-        dist = r["distance"]
-        keep = dist <= (np.inf if tk.max_distance is None else tk.max_distance)
-        tk.rows, tk.dist = rows[keep], dist[keep]
+        r = {key: np.concatenate([part[key] for part in results[qi]]) for key in results[qi][0]}
+        keep = r["distance"] <= (np.inf if tk.max_distance is None else tk.max_distance)
+        tk.rows, tk.dist = rows[keep], r["distance"][keep]
         tk.extra = {key: (positions if key == "position" else r[key])[keep] for key in tk.extra}
 
 
