@@ -157,7 +157,9 @@ def connect(scheduler, timeout: float = DEFAULT_TIMEOUT) -> "Cluster":
                         n_workers=workers,
                         threads_per_worker=1,
                         processes=True,
-                        dashboard_address=None,
+                        # its HTTP routes on a free port: None still binds 8787, and
+                        # warns when another cluster on this machine holds it
+                        dashboard_address=":0",
                         silence_logs=logging.ERROR,
                     )
             except Exception as exc:

@@ -38,7 +38,7 @@ def client():
 
     with (
         LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=50
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=50
         ) as cluster,
         Client(cluster, set_as_default=False) as c,
     ):
@@ -287,7 +287,7 @@ def test_a_worker_with_two_threads_answers_on_kernels_that_release_the_gil(libra
     with open_index(index) as idx:
         local, _ = search_index(idx, queries, top=5)
     with (
-        LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None, silence_logs=50) as lc,
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=":0", silence_logs=50) as lc,
         Client(lc, set_as_default=False) as c,
         connect(c) as cluster,
     ):
