@@ -13,7 +13,6 @@ from .common import (
     _REFINE_CANDIDATES,
     _check_direction,
     _direction_variants,
-    _weights,
     _integer_shift_basis,
     _kabsch_rotation,
     _search_inputs,
@@ -180,12 +179,9 @@ def exact_search_pairs(
 
     Returns the same dict as :func:`exact_search`, over the N pairs.
     """
-    A = np.asarray(A, dtype=np.complex128)
-    B = np.asarray(B, dtype=np.complex128)
+    A, B, w, n = _search_inputs(A, B, samples, weights, direction)
     if A.shape != B.shape or A.ndim != 3 or A.shape[2] != 3:
         raise ValueError(f"A and B must be (N, K, 3) alike, got {A.shape} and {B.shape}")
-    _check_direction(direction)
-    w, n = _weights(weights, B.shape[1]), int(samples)
     D = 2 if direction == "invariant" else 1
     return _exact_numpy(A, B, w, n, direction, mirror, min(_REFINE_CANDIDATES, D * n), True, None)
 

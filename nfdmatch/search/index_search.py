@@ -290,7 +290,7 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
     from ..matching import exact_search_pairs, reference_path
 
     per_query = tables if isinstance(tables, (list, tuple)) else [tables] * len(tops)
-    found = {}  # query -> (rows, positions) in row order, and its results as they come
+    found = {}  # query -> (rows, positions) of its reported rows, in row order
     for qi, tk in enumerate(tops):
         if len(tk.rows):
             order = np.argsort(tk.rows, kind="stable")
