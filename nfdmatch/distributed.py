@@ -30,7 +30,7 @@ import numpy as np
 
 from ._version import __version__
 from .errors import NfdError, ParameterError
-from .search.bestfirst import TopK
+from .search.engine import TopK
 
 __all__ = ["ClusterError", "Cluster", "connect", "DEFAULT_TIMEOUT", "TASK_BYTES", "INSTALL_HINT"]
 
@@ -372,7 +372,7 @@ class Cluster:
         idx = open_index(index) if own else index
         try:
             from .descriptors import descriptors_batch
-            from .search.bestfirst import TopK
+            from .search.engine import TopK
 
             path = os.path.abspath(idx.path)
             stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
@@ -708,7 +708,7 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     reversed (m,) bool, mirrored (m,) bool}], exact, truncated, scanned, cells,
     bytes_read}`` (plain arrays and ints)."""
     from .matching import exact_search, paper_search
-    from .search.bestfirst import search_one
+    from .search.engine import search_one
     from .search.bounds import feature_vector
 
     _worker_kernels()

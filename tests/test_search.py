@@ -365,7 +365,7 @@ def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
     the answer is the exhaustive one over the rows of the cells not skipped."""
     from nfdmatch.descriptors import descriptors_batch
     from nfdmatch.matching import exact_search
-    from nfdmatch.search.bestfirst import TopK, search_one
+    from nfdmatch.search.engine import TopK, search_one
     from nfdmatch.search.bounds import feature_vector
 
     curves = _family_curves(rng, 8, 4, 0.01)

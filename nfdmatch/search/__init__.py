@@ -2,7 +2,7 @@
 
 The modules, in the order a query passes through them: ``index_search`` answers a batch of
 queries (:func:`search_index`, :class:`SearchStats`, the exhaustive reference path);
-``bestfirst`` is one query's best-first loop (cells, then rows by invariant bound, then the
+``engine`` is one query's best-first loop (cells, then rows by invariant bound, then the
 truncated-harmonic bound, then exact distances); ``bounds`` holds the lower bounds it prunes
 with and their proofs; ``cells`` partitions rows by their features (built with an index);
 ``table`` is what a search reads (:class:`SearchTable`: an index's stored cells, or one cell

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, dispatch, exact_search, paper_search
 from ..records import RankedMatch
-from .bestfirst import TIE, TopK, search_one
+from .engine import TIE, TopK, search_one
 from .bounds import feature_vector
 
 if TYPE_CHECKING:
@@ -119,7 +119,7 @@ def search_index(
     :class:`SearchStats`.
 
     Pruned search: one best-first order over the whole index per query
-    (:func:`nfdmatch.search.bestfirst.search_one`): cells by their bound, rows by their
+    (:func:`nfdmatch.search.engine.search_one`): cells by their bound, rows by their
     invariant bound, then the truncated-harmonic bound, then exact distances, stopping when
     the next bound exceeds the k-th distance. No false dismissals: every bound is proven
     never to exceed the exact distance.
@@ -238,7 +238,7 @@ def _median(values: list[float]) -> float:
 
 
 def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
-    """Each :class:`~nfdmatch.search.bestfirst.TopK` as the matches :func:`search_index`
+    """Each :class:`~nfdmatch.search.engine.TopK` as the matches :func:`search_index`
     returns: sorted by distance, distances within ``TIE`` by id, at most ``top``."""
     results = []
     # every query's ids in one read (a read of strings costs the same for one row or many)
