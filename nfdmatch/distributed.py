@@ -707,26 +707,19 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     Returns ``{"tops": [per query {rows (m,) int64, dist (m,) float64, shift (m,) float64,
     reversed (m,) bool, mirrored (m,) bool}], exact, truncated, scanned, cells,
     bytes_read}`` (plain arrays and ints)."""
-    from .matching import exact_search, paper_search
-    from .search.engine import search_one
     from .search.bounds import feature_vector
+    from .search.engine import Cascade, search_block
 
     _worker_kernels()
     entry = _worker_index(path, stamp)
     idx, cache = entry[0], entry[2]
-    search = exact_search if params["method"] == "exact" else paper_search
+    cascade = Cascade(idx.samples, params["method"], params["direction"], params["mirror"])
+    search = cascade.distance
     tops = [
         _SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
         for q in range(len(qcoef))
     ]
     out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
-    options = dict(
-        search=search,
-        method=params["method"],
-        direction=params["direction"],
-        mirror=params["mirror"],
-        samples=idx.samples,
-    )
     searched = None  # the table searched, when one range holds every row
     # per query: the descriptors of its rows (for the client's recomputation), taken right
     # after its search. Holding each query's table until the end instead kept every query's
@@ -779,10 +772,22 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
             # query copied every cell it opened
             before = table.bytes_read
             everything = np.arange(table.n_cells)
-            for qi, tk in enumerate(tops):
-                outside = np.setdiff1d(everything, _window(table, qfeat[qi], params["window"]), assume_unique=True)
-                _account(out, search_one(qcoef[qi], qfeat[qi], table, tk, skip_cells=outside, **options))
-                keep_descriptors(qi, table)
+            outside = [
+                np.setdiff1d(everything, _window(table, qfeat[qi], params["window"]), assume_unique=True)
+                for qi in range(len(tops))
+            ]
+            work = search_block(
+                table,
+                qcoef,
+                qfeat,
+                tops,
+                cascade,
+                skip_cells=outside,
+                threads=1,
+                done=lambda qi, _: keep_descriptors(qi, table),
+                expect_more=False,
+            )
+            _account(out, work)
             out["bytes_read"] += table.bytes_read - before
         else:
             _, lo, hi = rng
@@ -795,7 +800,8 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                 sub = cache[key]
             searched = sub
             before = sub.bytes_read
-            for qi, tk in enumerate(tops):
+            asked, skips = [], []
+            for qi in range(len(tops)):
                 skip = None
                 if seeds is not None:
                     # the window's cells were searched in the first round: their rows within
@@ -807,10 +813,19 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
                     if len(inside) == hi - lo:
                         continue
                     skip = inside - lo
-                _account(out, search_one(qcoef[qi], qfeat[qi], sub, tk, skip_cells=skip, **options))
-                keep_descriptors(qi, sub)
-                if qi == 0:
-                    sub.expect_more(len(tops) - 1)  # as search_index does after a first query
+                asked.append(qi)
+                skips.append(skip)
+            work = search_block(
+                sub,
+                qcoef[asked],
+                qfeat[asked],
+                [tops[qi] for qi in asked],
+                cascade,
+                skip_cells=skips,
+                threads=1,
+                done=lambda i, _: keep_descriptors(asked[i], sub),
+            )
+            _account(out, work)
             out["bytes_read"] = sub.bytes_read - before
     if params.get("final"):
         # this task's answer is the query's answer: its distances from the reference path,

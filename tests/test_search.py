@@ -161,29 +161,6 @@ def test_bad_arguments(rng):
             search_index(index, [Curve(np.eye(3))], **kwargs)
 
 
-@pytest.mark.parametrize("switch", [True, False])
-def test_a_batch_on_the_ahead_of_time_kernels_switches_to_threads_only_when_it_pays(monkeypatch, rng, switch):
-    """Ahead-of-time kernels built holding the GIL (a numba that refuses the flag): a batch
-    answers on one thread and loads the just-in-time kernels (threads in parallel) once the
-    queries left would pay for their import; either way the answer is the exhaustive one."""
-    from nfdmatch.matching import aot, dispatch
-    from nfdmatch.search import index_search
-
-    built = aot.load()
-    assert built is not None, "the ahead-of-time kernels are not built: run make install"
-    kernels = aot._Kernels(built._module, threads=False)
-    state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": kernels}
-    monkeypatch.setattr(dispatch, "_kernel_state", state)
-    monkeypatch.setattr(index_search, "_THREADED_KERNELS_IMPORT", 0.0 if switch else 1e9)
-    curves = _family_curves(rng, 20, 4, 0.01)
-    queries = _variants(rng, curves, 6)
-    index = MemoryIndex(curves, rows_per_cell=8)
-    pruned, _ = search_index(index, queries, top=5, threads=2)
-    assert (state["module"] is not None) == switch
-    full, _ = search_index(index, queries, top=5, prune=False)
-    _same(pruned, full)
-
-
 def test_a_batch_on_ahead_of_time_kernels_releasing_the_gil_runs_on_threads_without_numba(monkeypatch, rng):
     """The kernels ``make install`` builds release the GIL: a batch answers its queries on
     threads at once, never importing numba's just-in-time kernels, and the answer is the
@@ -365,8 +342,8 @@ def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
     the answer is the exhaustive one over the rows of the cells not skipped."""
     from nfdmatch.descriptors import descriptors_batch
     from nfdmatch.matching import exact_search
-    from nfdmatch.search.engine import TopK, search_one
     from nfdmatch.search.bounds import feature_vector
+    from nfdmatch.search.engine import Cascade, TopK, search_block
 
     curves = _family_curves(rng, 8, 4, 0.01)
     index = MemoryIndex(curves, rows_per_cell=4)
@@ -380,8 +357,7 @@ def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
         ).coefficients[0]
         A = np.asarray(A, dtype=np.complex128)
         top = TopK(5, None)
-        options = dict(method="exact", direction="invariant", mirror=False, samples=index.samples)
-        search_one(A, feature_vector(A), table, top, search=exact_search, skip_cells=skip, **options)
+        search_block(table, A[None], feature_vector(A[None]), [top], Cascade(index.samples), skip_cells=[skip])
         everything = exact_search(A, index.coefficients_at(kept), index.samples)["distance"]
         best = kept[np.argsort(everything, kind="stable")[:5]]
         assert set(top.rows.tolist()) == set(best.tolist())

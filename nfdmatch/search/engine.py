@@ -1,4 +1,8 @@
-"""The best-first loop: one query's exact k nearest rows of a :class:`SearchTable`.
+"""The search engine: every query's exact k nearest rows of a :class:`SearchTable`, for a
+block of queries (:func:`search_block`). Every search of the package runs here: a batch of
+queries (:func:`~nfdmatch.search.search_index`), the k-NN graph of an index
+(:mod:`.graph`), a range of cells on a Dask worker (:mod:`nfdmatch.distributed`); they
+differ only in their inputs (the table, the queries, rows already known, cells to skip).
 
 Rows are taken in increasing lower-bound order across the whole table: cells in the order
 of their own bound, the rows of opened cells merged by their invariant bound, exact
@@ -10,13 +14,15 @@ out, so the result is the exhaustive one; the order only decides how little is c
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 from .bounds import row_lower_bounds, truncated_lower_bounds, truncated_stages
 
-__all__ = ["TopK", "QueryWork", "search_one", "margin"]
+__all__ = ["TopK", "QueryWork", "Cascade", "search_block", "margin", "TIE"]
 
 #: a bound prunes a row only when it exceeds the k-th distance by this much: the exact
 #: distance is a numerical optimum, the stored features are float32
@@ -87,6 +93,121 @@ class QueryWork:
     fine: int = 0
     exact: int = 0
     extra: dict = field(default_factory=dict)
+
+    def add(self, other: "QueryWork") -> None:
+        """Count ``other``'s work in this one."""
+        for f in fields(self):
+            if f.name != "extra":
+                setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+
+@dataclass(frozen=True)
+class Cascade:
+    """What a search computes, the same for every query of a block: the distance
+    (``method``, ``direction``, ``mirror`` as in :func:`nfdmatch.distance`; ``samples``: n of
+    the index) and whether the truncated-harmonic bounds run between the invariant bound and
+    the exact distance (``truncate``: an option for measuring their effect)."""
+
+    samples: int
+    method: str = "exact"
+    direction: str = "invariant"
+    mirror: bool = False
+    truncate: bool = True
+
+    @property
+    def distance(self):
+        """The distance function of ``method``: ``exact_search`` or ``paper_search``."""
+        from ..matching import exact_search, paper_search
+
+        return exact_search if self.method == "exact" else paper_search
+
+
+#: queries of a block from which a process holding ahead-of-time kernels built with the GIL
+#: loads the just-in-time ones to answer on threads (their import costs ~0.45 s)
+_THREADED_QUERIES = 64
+
+
+def search_block(
+    table,
+    query_coefficients: np.ndarray,
+    query_features: np.ndarray,
+    nearest: Sequence["TopK"],
+    cascade: Cascade,
+    *,
+    skip_cells: Sequence[np.ndarray | None] | None = None,
+    threads: int | None = None,
+    done: Callable[[int, QueryWork], None] | None = None,
+    expect_more: bool = True,
+) -> QueryWork:
+    """Fill ``nearest[i]`` with query i's exact nearest rows of ``table``; returns the work
+    of all queries summed.
+
+    Parameters
+    ----------
+    table : :class:`~nfdmatch.search.table.SearchTable`.
+    query_coefficients : (Q, K, 3) complex128; query_features : (Q, D) float64
+        (:func:`~nfdmatch.search.bounds.feature_vector`).
+    nearest : Q :class:`TopK` (their k and max_distance set each threshold). A TopK may hold
+        rows already (seeds found elsewhere: they count towards its k-th distance from the
+        start, so the search prunes as if it had seen them).
+    cascade : :class:`Cascade`.
+    skip_cells : per query, cells never to open (searched before, their rows accounted for
+        in the query's TopK already), or None.
+    threads : queries answered in parallel (default: the cores, at most 4).
+    done : ``done(i, work)`` after query i, on the calling thread, in query order when one
+        thread answers, else as queries finish.
+    expect_more : the first query is answered alone, and what it read the table repeats for
+        the rest of the block in one read
+        (:meth:`~nfdmatch.search.table.SearchTable.expect_more`); False when the queries
+        read unlike parts of the table (each its own window of cells).
+    """
+    from ..matching import dispatch
+
+    Q = len(nearest)
+    total = QueryWork()
+    threads = threads or min(os.cpu_count() or 1, 4)
+
+    def answer(qi):
+        return _search_one(
+            query_coefficients[qi],
+            query_features[qi],
+            table,
+            nearest[qi],
+            cascade,
+            None if skip_cells is None else skip_cells[qi],
+        )
+
+    def account(qi, work):
+        total.add(work)
+        if qi == 0 and Q > 1 and expect_more:
+            # what one query read, times the queries left: read whole now what the block
+            # would read most of in runs
+            table.expect_more(Q - 1)
+        if done is not None:
+            done(qi, work)
+
+    if Q == 0:
+        return total
+    account(0, answer(0))
+    rest = range(1, Q)
+    if threads > 1 and not dispatch.threads_help():
+        # kernels compiled ahead of time holding the GIL (aot.py): threads need the
+        # just-in-time ones, worth their import for a block of more than a few queries
+        if len(rest) < _THREADED_QUERIES or not dispatch.load_threaded_kernels():
+            threads = 1
+    if threads > 1 and len(rest) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        from threadpoolctl import threadpool_limits
+
+        # one BLAS thread per query thread: idle OpenBLAS workers spin and steal the cores
+        with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(threads) as pool:
+            for qi, work in zip(rest, pool.map(answer, rest)):
+                account(qi, work)
+    else:
+        for qi in rest:
+            account(qi, answer(qi))
+    return total
 
 
 class _Sorted:
@@ -161,40 +282,27 @@ class _Sorted:
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
 
-def search_one(
+def _search_one(
     query_coefficients: np.ndarray,
     query_features: np.ndarray,
     table,
     top: "TopK",
-    *,
-    search,
-    method: str,
-    direction: str,
-    mirror: bool,
-    samples: int,
-    truncate: bool = True,
+    cascade: Cascade,
     skip_cells: np.ndarray | None = None,
 ) -> QueryWork:
-    """Fill ``top`` with the query's exact nearest rows of ``table``.
-
-    Parameters
-    ----------
-    query_coefficients : (K, 3) complex128; query_features : (D,) float64.
-    table : :class:`~nfdmatch.search.table.SearchTable`.
-    top : :class:`TopK` to fill (its k and max_distance set the threshold).
-    search : the distance function (``exact_search`` or ``paper_search``).
-    truncate : use the truncated-harmonic bounds between the invariant bound and the exact
-        distance.
-    skip_cells : cells of ``table`` never to open (int array; searched before, their rows
-        are accounted for in ``top`` already): the search answers for the other cells.
+    """Fill ``top`` with one query's exact nearest rows of ``table`` (arguments: one query of
+    :func:`search_block`).
 
     Queues in one best-first order: unopened cells (by cell bound), rows of opened cells
     (by invariant bound), then one queue per truncated-harmonic stage
     (:func:`~nfdmatch.search.bounds.truncated_stages`, by that stage's bound). Each step
     works on the queue with the smallest head: opens cells, computes the next stage's bound
     for a batch of rows, or (from the last queue) exact distances; the search ends when
-    every head exceeds the k-th distance.
+    every head exceeds the k-th distance. Nothing is skipped that a bound does not rule
+    out, so the result is the exhaustive one; the order only decides how little is computed.
     """
+    search, method, direction, mirror = cascade.distance, cascade.method, cascade.direction, cascade.mirror
+    samples, truncate = cascade.samples, cascade.truncate
     work = QueryWork()
     cb = table.cell_bounds(query_features)
     corder = np.argsort(cb, kind="stable")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -11,9 +10,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import ParameterError
-from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, dispatch, exact_search, paper_search
+from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, exact_search, paper_search
 from ..records import RankedMatch
-from .engine import TIE, TopK, search_one
+from .engine import TIE, Cascade, TopK, search_block
 from .bounds import feature_vector
 
 if TYPE_CHECKING:
@@ -25,13 +24,6 @@ __all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS"]
 
 #: rows per exact call of the exhaustive search: bounds the (rows x shifts x 9) working set
 EXHAUSTIVE_ROWS = 2048
-#: seconds a process spends importing numba and loading the just-in-time kernels (measured
-#: 0.5 s on 2 cores)
-_THREADED_KERNELS_IMPORT = 0.5
-#: the part of a batch's time that threads save: the Python between kernel calls holds the
-#: GIL (measured on 2 cores: 13% for 1,000 queries of 1M family curves, up to ~30% for
-#: random curves); a batch switches when the rest of it would save more than the import
-_THREADS_SAVE = 0.15
 
 
 @dataclass
@@ -119,7 +111,7 @@ def search_index(
     :class:`SearchStats`.
 
     Pruned search: one best-first order over the whole index per query
-    (:func:`nfdmatch.search.engine.search_one`): cells by their bound, rows by their
+    (:func:`nfdmatch.search.engine.search_block`): cells by their bound, rows by their
     invariant bound, then the truncated-harmonic bound, then exact distances, stopping when
     the next bound exceeds the k-th distance. No false dismissals: every bound is proven
     never to exceed the exact distance.
@@ -129,7 +121,6 @@ def search_index(
     check_search_parameters(top, max_distance, method)
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
-    threads = threads or min(os.cpu_count() or 1, 4)
     t0 = time.perf_counter()
     qcoef = descriptors_batch(
         queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
@@ -144,82 +135,18 @@ def search_index(
     elif index.n_curves and len(queries):
         table = index.search_table()
         stats.cell_count = table.n_cells
-        qfeat = feature_vector(qcoef)
 
-        def answer(qi):
-            work = search_one(
-                qcoef[qi],
-                qfeat[qi],
-                table,
-                tops[qi],
-                search=search,
-                method=method,
-                direction=direction,
-                mirror=mirror,
-                samples=index.samples,
-                truncate=truncate,
-            )
-            return work
-
-        done = 0
-
-        def account(work):
-            nonlocal done
-            stats.exact += work.exact
-            stats.truncated += work.truncated
-            stats.fine += work.fine
-            stats.scanned += work.scanned
-            stats.cells += work.cells
-            done += 1
-            if done == 1 and len(queries) > 1:
-                # what one query read, times the queries left: read whole now what a batch
-                # would read most of in runs
-                table.expect_more(len(queries) - 1)
+        def done(qi, work):
+            nonlocal answered
+            answered += 1
             if progress is not None:
-                progress(done, len(queries))
+                progress(answered, len(queries))
 
-        first = 0
-        if threads > 1 and len(queries) > 1:
-            # the first query alone: what it reads is what expect_more scales to the batch
-            # (queries already running beside it would count double)
-            with dispatch.no_switch_by_work():  # a switch to threads is decided below
-                account(answer(0))
-            first = 1
-        if threads > 1 and first < len(queries) and not dispatch.threads_help():
-            # kernels compiled ahead of time holding the GIL (aot.py): answer on this thread, and
-            # switch to the just-in-time kernels (threads in parallel) once the queries left
-            # would take long enough, at the pace so far, to pay for importing them
-            # (at the median pace of the queries after the first, which also reads most of
-            # what the others find cached; queries of one batch vary 3x)
-            paces = []
-            while first < len(queries):
-                started = time.perf_counter()
-                with dispatch.no_switch_by_work():  # the switch is decided here
-                    work = answer(first)
-                account(work)
-                first += 1
-                paces.append(time.perf_counter() - started)
-                if (
-                    len(paces) > 1
-                    and (len(queries) - first) * _median(paces) * _THREADS_SAVE > _THREADED_KERNELS_IMPORT
-                    and dispatch.load_threaded_kernels()
-                ):
-                    break
-            if first == len(queries) or not dispatch.threads_help():
-                threads = 1
-        rest = range(first, len(queries))
-        if threads > 1 and len(rest) > 1:
-            from concurrent.futures import ThreadPoolExecutor
-
-            from threadpoolctl import threadpool_limits
-
-            # one BLAS thread per query thread: idle OpenBLAS workers spin and steal the cores
-            with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(threads) as pool:
-                for work in pool.map(answer, rest):
-                    account(work)
-        else:
-            for qi in rest:
-                account(answer(qi))
+        answered = 0
+        cascade = Cascade(index.samples, method, direction, mirror, truncate)
+        work = search_block(table, qcoef, feature_vector(qcoef), tops, cascade, threads=threads, done=done)
+        for key in ("exact", "truncated", "fine", "scanned", "cells"):
+            setattr(stats, key, getattr(work, key))
         _recompute(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights, tables=table)
         stats.bytes_read = table.bytes_read
 
@@ -228,13 +155,6 @@ def search_index(
     results = ranked_rows(index, tops, top)
     stats.seconds = time.perf_counter() - t0
     return results, stats
-
-
-def _median(values: list[float]) -> float:
-    """The median of a short list (``np.median`` imports numpy.ma on first use: 25 ms)."""
-    ordered = sorted(values)
-    middle = len(ordered) // 2
-    return ordered[middle] if len(ordered) % 2 else 0.5 * (ordered[middle - 1] + ordered[middle])
 
 
 def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
