@@ -8,7 +8,7 @@ noisy machine. Oracles (tests/oracle.py): (1) every integer shift x Kabsch (SVD)
 the distance computed directly per shift; (1v) the same fully vectorized (batched SVD
 over all shifts, no Python loop), a stronger baseline; (2) a 1/32-sample shift grid.
 
-The exact rows are the numpy path (NFDMATCH_NUMBA=0); the compiled kernels
+The exact rows are the numpy path (NFDMATCH_KERNELS=numpy); the compiled kernels
 (nfdmatch/_kernels.py, numba) are timed separately when numba is installed: one call per
 pair and batched, on one thread and with the rows split over threads (what a call from the
 main thread does), with their agreement with the numpy path.
@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-os.environ["NFDMATCH_NUMBA"] = "0"  # the exact rows below: numpy path; numba: see numba_rows()
+os.environ["NFDMATCH_KERNELS"] = "numpy"  # the exact rows below: numpy path; numba: see numba_rows()
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 import oracle  # noqa: E402
 
@@ -148,13 +148,11 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
         print("\nnumba kernels: numba is not installed (pip install numba)")
         return
     fresh = "numba" not in sys.modules
-    matching.dispatch._kernel_state.update(module=None, failed=None, work=0)
-    matching.use_kernels("numba")
     t0 = time.perf_counter()
-    matching.dispatch._compiled_kernels(0)
+    chosen = matching.use_kernels("numba")
     load = time.perf_counter() - t0
-    if matching.dispatch._kernel_state["module"] is None:
-        print(f"\nnumba kernels unavailable: {matching.dispatch._kernel_state['failed']!r}")
+    if chosen.name != "numba":
+        print(f"\nnumba kernels unavailable: {chosen.reason}")
         return
     import numba
 
@@ -165,12 +163,12 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
         got.append(r)
         dt += t
     per_numba = dt / len(pairs) * 1e3
-    workers = min(os.cpu_count() or 1, matching.dispatch._MAX_THREADS)
-    saved = matching.dispatch._THREAD_ROWS
+    workers = min(os.cpu_count() or 1, matching.kernels._MAX_THREADS)
+    saved = matching.kernels._THREAD_ROWS
 
     def run(mode, threshold=saved, **kw):
         matching.use_kernels({"0": "numpy", "1": "numba"}[mode])
-        matching.dispatch._THREAD_ROWS = threshold
+        matching.kernels._THREAD_ROWS = threshold
         dt = timed(lambda: exact_search(q, rows, N, **kw))[1]
         if mode == "0":
             time.sleep(0.3)  # OpenBLAS worker threads spin for a while after a GEMM
@@ -186,7 +184,7 @@ def numba_rows(pairs, rows, q, per, exact_numpy, repeat=5):
             figures[label][0].append(run(mode, threshold))
             figures[label][1].append(run(mode, threshold, refine=False))
     figures = {label: (float(np.median(a)), float(np.median(b))) for label, (a, b) in figures.items()}
-    matching.dispatch._THREAD_ROWS = saved
+    matching.kernels._THREAD_ROWS = saved
     matching.use_kernels("numba")
     batch = exact_search(q, rows, N)
     matching.use_kernels("numpy")

@@ -710,7 +710,6 @@ def _search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params
     from .search.bounds import feature_vector
     from .search.engine import Cascade, search_block
 
-    _worker_kernels()
     entry = _worker_index(path, stamp)
     idx, cache = entry[0], entry[2]
     cascade = Cascade(idx.samples, params["method"], params["direction"], params["mirror"])
@@ -869,25 +868,6 @@ class _Held:
 
     def coefficients_at_positions(self, positions: np.ndarray) -> np.ndarray:
         return self._coef[positions]
-
-
-def _worker_kernels() -> None:
-    """On a worker: with several threads, exact kernels that release the GIL (those compiled
-    ahead of time do, unless their build had to hold it: tasks on threads would then take
-    turns); with one thread the process's default choice (:mod:`nfdmatch.matching.dispatch`)
-    stands."""
-    try:
-        from distributed import get_worker
-
-        worker = get_worker()
-        threads = getattr(getattr(worker, "state", None), "nthreads", None) or getattr(worker, "nthreads", 1)
-    except Exception:  # not on a worker (called directly)
-        return
-    if threads > 1:
-        from .matching import dispatch
-
-        if not dispatch.threads_help():
-            dispatch.load_threaded_kernels()
 
 
 def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:

@@ -192,6 +192,9 @@ def test_query_exhaustive_gives_the_pruned_answer_and_stats_say_what_was_done(li
     code, pruned, err = run("query", query, "--index", index, "--top", "5", "--format", "csv", "--details", "--stats")
     assert code == 0, err
     assert "exact distances" in err and "rows bounded in" in err and "MiB read" in err
+    assert "kernels: aot (compiled ahead of time for this source)" in err  # make install built them
+    code, verbose, err = run("-v", "query", query, "--index", index, "--top", "5", "--format", "csv", "--details")
+    assert code == 0 and verbose == pruned and "kernels: aot (" in err
     code, full, err = run(
         "query", query, "--index", index, "--top", "5", "--format", "csv", "--details", "--exhaustive", "--stats"
     )

@@ -269,16 +269,15 @@ def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_
     assert any(len(r) > 1 for r in local)
 
 
-def _threads_help():
-    from nfdmatch.matching import dispatch
+def _kernels_run_on_threads():
+    from nfdmatch.matching.kernels import current
 
-    return dispatch.threads_help()
+    return current().threads
 
 
 def test_a_worker_with_two_threads_answers_on_kernels_that_release_the_gil(library, tmp_path):
     """A worker running two tasks at once runs them on kernels that release the GIL (those
-    compiled ahead of time, or, were they built holding it, the just-in-time ones); the
-    answer is still the local one, row for row."""
+    compiled ahead of time); the answer is still the local one, row for row."""
     from distributed import Client, LocalCluster
 
     folder, queries = library
@@ -294,7 +293,7 @@ def test_a_worker_with_two_threads_answers_on_kernels_that_release_the_gil(libra
         assert cluster.threads == 2
         remote, _ = cluster.search_index(str(index), queries, top=5)
         _same_rows(remote, local)
-        assert all(c.run(_threads_help).values())
+        assert all(c.run(_kernels_run_on_threads).values())
         remote, _ = cluster.search_index(str(index), queries, top=5, parts=2)
         _same_rows(remote, local)
 

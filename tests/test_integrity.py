@@ -54,12 +54,12 @@ def random_index(tmp_path_factory):
 
 
 def test_query_output_is_byte_identical_run_to_run(random_index):
-    """Fresh processes, the compiled kernels forced on, off and left to decide (which path a
-    row takes then depends on timing): the same bytes every time."""
+    """Fresh processes on each kind of kernels (ahead of time, numba, numpy, the rule's
+    choice): the same bytes every time."""
     args = ["query", str(random_index / "queries"), "--index", str(random_index / "lib.h5"), "--top", "10", "--details"]
     outputs = []
-    for mode in ("0", "1", "auto", "auto", "auto"):
-        proc = _run(args, env={"NFDMATCH_NUMBA": mode})
+    for mode in ("numpy", "numba", "aot", "auto", "auto"):
+        proc = _run(args, env={"NFDMATCH_KERNELS": mode})
         assert proc.returncode == 0, proc.stderr.decode()
         outputs.append(proc.stdout)
     assert len(outputs[0].splitlines()) == 1 + 4 * 10

@@ -167,12 +167,10 @@ def test_a_batch_on_ahead_of_time_kernels_releasing_the_gil_runs_on_threads_with
     exhaustive one."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from nfdmatch.matching import aot, dispatch
+    from nfdmatch.matching import kernels
 
-    kernels = aot.load()
-    assert kernels is not None and kernels.threads, "make install builds kernels that release the GIL"
-    state = {"module": None, "failed": None, "work": 0, "mode": "auto", "aot": kernels}
-    monkeypatch.setattr(dispatch, "_kernel_state", state)
+    monkeypatch.setattr(kernels, "_chosen", kernels.choose("auto"))
+    assert kernels.current().name == "aot" and kernels.current().threads, "make install builds them"
     pools = []
 
     class CountingPool(ThreadPoolExecutor):
@@ -185,7 +183,7 @@ def test_a_batch_on_ahead_of_time_kernels_releasing_the_gil_runs_on_threads_with
     queries = _variants(rng, curves, 6)
     index = MemoryIndex(curves, rows_per_cell=8)
     pruned, _ = search_index(index, queries, top=5, threads=2)
-    assert pools and state["module"] is None
+    assert pools and kernels.current().name == "aot"
     full, _ = search_index(index, queries, top=5, prune=False)
     _same(pruned, full)
 
@@ -296,7 +294,7 @@ def test_a_batch_answered_on_one_thread_does_not_import_numpy_ma():
         "search_index(MemoryIndex(curves), curves, top=2, threads=2)\n"
         "print('numpy.ma' in sys.modules)\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_NUMBA"}
+    env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_KERNELS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.strip() == "False"
 

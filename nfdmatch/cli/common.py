@@ -85,6 +85,9 @@ class NfdGroup(click.Group):
         finally:
             if ctx.parent is None and ctx.invoked_subcommand:
                 detail(f"{ctx.invoked_subcommand}: {time.perf_counter() - started:.2f} s")
+                kernels = sys.modules.get("nfdmatch.matching.kernels")  # loaded only by exact work
+                if kernels is not None and kernels.chosen() is not None:
+                    detail(f"kernels: {kernels.chosen().describe()}")
             if restore is not None:
                 restore()
 

@@ -678,5 +678,6 @@ def query(
                 f"{stats.per_query(stats.exact):.0f} exact distances, "
                 f"{stats.per_query(stats.bytes_read) / 2**20:.2f} MiB read"
             )
+            + (f"; kernels: {stats.kernels}" if stats.kernels else "")
         )
     inputs.finish()

@@ -2,8 +2,9 @@
 and the lower bounds used for pruning (pure numpy, vectorized over batches of rows).
 
 Modules: :mod:`.common` (names, Kabsch trace, shift bases), :mod:`.exact`, :mod:`.paper`,
-:mod:`.bounds`, :mod:`.dispatch` (numpy or the numba kernels of :mod:`._kernels`); this one
-holds the public API (:class:`Match`, :func:`distance`, :func:`match_descriptors`).
+:mod:`.bounds`, :mod:`.kernels` (which implementation: numpy, or the kernels of
+:mod:`._kernels` compiled ahead of time or by numba); this one holds the public API
+(:class:`Match`, :func:`distance`, :func:`match_descriptors`).
 
 Conventions. ``A``, ``B`` are stored half-bands ``(K, 3) complex128`` (frequencies
 1..K; the negative frequencies are the conjugates). With weights ``w_k`` (applied
@@ -34,7 +35,7 @@ from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, Des
 from ..errors import ParameterError
 from .bounds import invariants, lower_bound
 from .common import DEFAULT_DIRECTION, DEFAULT_METHOD, DIRECTIONS, METHODS, STRICT_DIRECTION, kabsch_trace
-from .dispatch import compile_kernels, reference_path, use_kernels
+from .kernels import NUMPY, Kernels, compile_kernels, use_kernels
 from .exact import exact_search, exact_search_pairs, grid_bound, grid_maximum
 from .paper import paper_search
 
@@ -54,7 +55,8 @@ __all__ = [
     "paper_search",
     "compile_kernels",
     "use_kernels",
-    "reference_path",
+    "Kernels",
+    "NUMPY",
     "kabsch_trace",
     "invariants",
     "lower_bound",
@@ -155,10 +157,15 @@ def match_descriptors(
     if (da.samples, da.harmonics, da.scale_mode) != (db.samples, db.harmonics, db.scale_mode):
         raise ParameterError("descriptors were computed with different parameters")
     if method == "exact":
-        with reference_path():
-            r = exact_search(
-                da.coefficients, db.coefficients, da.samples, weights=weights, direction=direction, mirror=mirror
-            )
+        r = exact_search(
+            da.coefficients,
+            db.coefficients,
+            da.samples,
+            weights=weights,
+            direction=direction,
+            mirror=mirror,
+            kernels=NUMPY,
+        )
     elif method == "paper":
         r = paper_search(
             da.coefficients, db.coefficients, da.samples, weights=weights, direction=direction, mirror=mirror

@@ -4,9 +4,10 @@ that both kernel modules use it."""
 
 from __future__ import annotations
 
+import atexit
 import threading
 
-__all__ = ["split_rows"]
+__all__ = ["split_rows", "shutdown"]
 
 _executor = None
 _executor_workers = 0
@@ -26,6 +27,10 @@ def split_rows(run, N: int, workers: int) -> None:
         if _executor_workers < workers - 1:
             from concurrent.futures import ThreadPoolExecutor  # (2-3 ms of a start-up otherwise)
 
+            if _executor is not None:
+                _executor.shutdown(wait=True)
+            else:
+                atexit.register(shutdown)
             _executor = ThreadPoolExecutor(workers - 1, thread_name_prefix="nfdmatch-kernels")
             _executor_workers = workers - 1
         pool = _executor
@@ -34,3 +39,13 @@ def split_rows(run, N: int, workers: int) -> None:
     run(bounds[0], bounds[1])  # the first block on the calling thread
     for future in futures:
         future.result()
+
+
+def shutdown() -> None:
+    """Stop the pool's threads (at exit, or by a program that is done with the kernels; a
+    later call to :func:`split_rows` starts a new pool)."""
+    global _executor, _executor_workers
+    with _executor_lock:
+        if _executor is not None:
+            _executor.shutdown(wait=True)
+        _executor, _executor_workers = None, 0

@@ -7,16 +7,16 @@ than a whole single query needs. ``make install`` (through :func:`compile_kernel
 compiles the two entry points ahead of time with ``numba.pycc`` into
 ``nfdmatch/matching/_kernels_aot*.so``, next to a stamp holding the digest of the kernel
 source it was built from; :func:`load` returns it only when the stamp matches the source
-(an edited ``_kernels.py`` is never served by a stale build). Without it the search works
-as before (numpy, then the just-in-time kernels once a process has done enough exact work).
+(an edited ``_kernels.py`` is never served by a stale build). Without it a process uses the
+just-in-time kernels, or numpy (:mod:`.kernels`: the rule).
 
 The compiled functions release the GIL, as the just-in-time ones do, so queries on threads
 and a call's rows split over threads (:func:`._threads.split_rows`) run in parallel without
 importing numba. ``numba.pycc`` has no ``nogil`` option (numba issue #6382): its module
 compiler builds every export with a fresh ``Flags()``, and :func:`_releasing_gil` hands it
 flags with ``release_gil`` set while the module compiles. Should a numba version refuse
-that, the module is built holding the GIL, the stamp says so, and :mod:`.dispatch` switches
-a long multi-threaded run to the just-in-time kernels instead.
+that, the module is built holding the GIL, the stamp says so, and a search on these kernels
+answers on one thread (:mod:`.kernels`).
 """
 
 from __future__ import annotations
@@ -249,7 +249,7 @@ _writable_cache: dict[tuple, np.ndarray] = {}
 
 def _writable(basis: np.ndarray, n: int) -> np.ndarray:
     """The compiled signatures take writable arrays; the shared bases (one per K and n,
-    :func:`.dispatch._folded_basis`) are read-only: a writable copy of each, kept."""
+    :func:`.kernels._folded_basis`) are read-only: a writable copy of each, kept."""
     if basis.flags.writeable:
         return basis
     key = (basis.shape, int(n))

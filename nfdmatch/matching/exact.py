@@ -5,8 +5,6 @@ best local maxima refined to a sub-sample shift), and its integer stage alone on
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 
 from .common import (
@@ -19,8 +17,7 @@ from .common import (
     _shift_basis,
     _trace_soa,
 )
-from . import dispatch
-from .dispatch import _compiled_kernels, _folded_basis
+from .kernels import Kernels, _folded_basis, current
 
 
 # --------------------------------------------------------------------------- exact
@@ -92,6 +89,7 @@ def exact_search(
     mirror: bool = False,
     refine: bool = True,
     refine_below: float | None = None,
+    kernels: Kernels | None = None,
 ):
     """The global optimum over start shift x rotation for one query against many rows.
 
@@ -108,6 +106,9 @@ def exact_search(
         current k-th distance); the others keep their integer-shift distance, which is then
         known to stay above ``refine_below``. The bound: refining gains at most C2/8 on the
         objective, C2 = sum_k 2 w_k (2 pi k / n)^2 |A_k| |B_k| bounding |F''(s)|.
+    kernels : :class:`~nfdmatch.matching.kernels.Kernels` to compute with (default: the
+        process's, :func:`~nfdmatch.matching.kernels.current`); ``kernels.NUMPY`` gives
+        the reference digits.
 
     Returns
     -------
@@ -125,19 +126,15 @@ def exact_search(
     D = 2 if direction == "invariant" else 1
     C = min(_REFINE_CANDIDATES if refine else 1, D * n)
     Aw = np.conj(A) * w[:, None]
-    kernels = _compiled_kernels(N * D * n + dispatch._CALL_WORK) if N else None
-    if kernels is not None:
+    kernels = kernels or current()
+    if N and kernels.module is not None:
         # compiled: every stage per row in one call (F per row stays in cache)
-        workers = (
-            min(dispatch.cpu_count(), dispatch._MAX_THREADS)
-            if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread()
-            else 1
-        )
+        workers = kernels.workers(N)
         limit = np.inf
         if refine and refine_below is not None and np.isfinite(refine_below):
             limit = refine_below**2 * (1 + 1e-9) + 1e-12
         basis, quarter = _folded_basis(K, n)
-        dist, shift, R, reversed_, mirrored = kernels.exact_rows(
+        dist, shift, R, reversed_, mirrored = kernels.module.exact_rows(
             np.ascontiguousarray(A),
             np.ascontiguousarray(Aw),
             np.ascontiguousarray(w, dtype=np.float64),
@@ -169,7 +166,7 @@ def exact_search_pairs(
 ):
     """:func:`exact_search` of row i of ``A`` against row i of ``B``, every row at once, on the
     numpy reference path: bit for bit what ``exact_search(A[i], B[i:i + 1], samples)`` gives
-    there (inside :func:`~nfdmatch.matching.reference_path`), whatever the other rows. For
+    there (``kernels=NUMPY``), whatever the other rows. For
     recomputing the rows many queries report in one pass instead of one pass per query.
 
     Parameters
@@ -290,6 +287,7 @@ def grid_bound(
     ratio: int = 3,
     direction: str = "invariant",
     mirror: bool = False,
+    kernels: Kernels | None = None,
 ) -> np.ndarray:
     """Per row, the largest of F over a coarse grid plus a slack, with the coarse points that
     matter replaced by the fine grid around them (a coarse-to-fine maximum).
@@ -310,7 +308,8 @@ def grid_bound(
     over the fine points of refined ones), both directions when ``direction`` is invariant.
     With need = -inf every point is refined: the fine grid's max of F + slack_fine. NaN
     propagates. What makes it an upper bound of F over all shifts is the caller's slack
-    (:func:`nfdmatch.search.bounds.truncated_lower_bounds`).
+    (:func:`nfdmatch.search.bounds.truncated_lower_bounds`). ``kernels`` as
+    :func:`exact_search`.
     """
     A = np.asarray(A, dtype=np.complex128)
     B = np.asarray(B, dtype=np.complex128)
@@ -323,14 +322,10 @@ def grid_bound(
     slack_coarse, slack_fine, need = (
         np.ascontiguousarray(x, dtype=np.float64) for x in (slack_coarse, slack_fine, need)
     )
-    kernels = _compiled_kernels(N * D * grid // ratio + dispatch._CALL_WORK) if N else None
-    if kernels is not None:
-        workers = (
-            min(dispatch.cpu_count(), dispatch._MAX_THREADS)
-            if N >= dispatch._THREAD_ROWS and threading.current_thread() is threading.main_thread()
-            else 1
-        )
-        return kernels.grid_bound_rows(
+    kernels = kernels or current()
+    if N and kernels.module is not None:
+        workers = kernels.workers(N)
+        return kernels.module.grid_bound_rows(
             np.ascontiguousarray(Aw),
             np.ascontiguousarray(B),
             D,

@@ -122,11 +122,6 @@ class Cascade:
         return exact_search if self.method == "exact" else paper_search
 
 
-#: queries of a block from which a process holding ahead-of-time kernels built with the GIL
-#: loads the just-in-time ones to answer on threads (their import costs ~0.45 s)
-_THREADED_QUERIES = 64
-
-
 def search_block(
     table,
     query_coefficients: np.ndarray,
@@ -161,7 +156,7 @@ def search_block(
         (:meth:`~nfdmatch.search.table.SearchTable.expect_more`); False when the queries
         read unlike parts of the table (each its own window of cells).
     """
-    from ..matching import dispatch
+    from ..matching.kernels import current
 
     Q = len(nearest)
     total = QueryWork()
@@ -190,11 +185,8 @@ def search_block(
         return total
     account(0, answer(0))
     rest = range(1, Q)
-    if threads > 1 and not dispatch.threads_help():
-        # kernels compiled ahead of time holding the GIL (aot.py): threads need the
-        # just-in-time ones, worth their import for a block of more than a few queries
-        if len(rest) < _THREADED_QUERIES or not dispatch.load_threaded_kernels():
-            threads = 1
+    if not current().threads:
+        threads = 1  # kernels built holding the GIL (aot.py): threads would take turns
     if threads > 1 and len(rest) > 1:
         from concurrent.futures import ThreadPoolExecutor
 

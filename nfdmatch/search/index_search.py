@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, exact_search, paper_search
+from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
 from .engine import TIE, Cascade, TopK, search_block
 from .bounds import feature_vector
@@ -34,7 +35,8 @@ class SearchStats:
     ``scanned`` (rows whose invariant bound was computed), ``cells`` (cells opened),
     ``bytes_read`` (features and descriptors read from the index), ``seconds``,
     ``pruned`` (False for an exhaustive search), ``cell_count`` (cells in the index: 1 when
-    the index has none, e.g. format 1)."""
+    the index has none, e.g. format 1), ``kernels`` (which computed the exact distances,
+    and why: :meth:`nfdmatch.matching.Kernels.describe`)."""
 
     queries: int = 0
     rows: int = 0
@@ -47,6 +49,7 @@ class SearchStats:
     seconds: float = 0.0
     pruned: bool = True
     cell_count: int = 0
+    kernels: str = ""
 
     @property
     def exact_fraction(self) -> float:
@@ -153,6 +156,7 @@ def search_index(
     if not prune:
         _recompute(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights)
     results = ranked_rows(index, tops, top)
+    stats.kernels = current_kernels().describe()
     stats.seconds = time.perf_counter() - t0
     return results, stats
 
@@ -192,10 +196,10 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
     """Replace the distances, shifts and flags of the rows the queries found by the numpy
     reference path's, in a fixed order.
 
-    The search itself may have used the compiled kernels for some rows and numpy for others
-    (the switch depends on the work done so far, and on timing when queries run on threads);
-    the two agree to ~1e-15 but not bit for bit, so without this the last printed digits
-    change from run to run. The reference is the exact distance, so nothing is lost; rows
+    The search itself used the process's kernels (:mod:`nfdmatch.matching.kernels`), which
+    agree with numpy to ~1e-15 but not bit for bit (and a row left unrefined above the
+    threshold differs more), so without this the last printed digits would depend on the
+    install and on the threshold. The reference is the exact distance, so nothing is lost; rows
     pushed past ``max_distance`` by the recomputation are dropped as the search would have.
     The rows of every query go through passes of :func:`~nfdmatch.matching.exact_search_pairs`
     of up to ``EXHAUSTIVE_ROWS`` rows, queries packed together (the numpy path's cost is
@@ -207,7 +211,7 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
     (the search's, already read) when it holds them all, else from the index (a scattered
     read: up to a whole HDF5 chunk per row).
     """
-    from ..matching import exact_search_pairs, reference_path
+    from ..matching import exact_search_pairs
 
     per_query = tables if isinstance(tables, (list, tuple)) else [tables] * len(tops)
     found = {}  # query -> (rows, positions) of its reported rows, in row order
@@ -249,19 +253,18 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
             for qi, a, b in pieces:
                 results[qi].append({key: v[at : at + b - a] for key, v in r.items()})
                 at += b - a
-        else:  # the paper's step: one call per piece, on the path it always takes
-            with reference_path():
-                for qi, a, b in pieces:
-                    results[qi].append(
-                        search(
-                            queries[qi],
-                            coefficients(qi, a, b),
-                            index.samples,
-                            direction=direction,
-                            mirror=mirror,
-                            weights=weights,
-                        )
+        else:  # the paper's step (numpy only): one call per piece
+            for qi, a, b in pieces:
+                results[qi].append(
+                    search(
+                        queries[qi],
+                        coefficients(qi, a, b),
+                        index.samples,
+                        direction=direction,
+                        mirror=mirror,
+                        weights=weights,
                     )
+                )
     for qi, (rows, positions) in found.items():
         tk = tops[qi]
         r = {key: np.concatenate([part[key] for part in results[qi]]) for key in results[qi][0]}

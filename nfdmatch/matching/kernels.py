@@ -1,0 +1,217 @@
+"""Which implementation computes exact distances in this process: one choice, made once,
+with its reason, named by ``--stats`` and ``-v``.
+
+The rule (:func:`choose`), for the setting ``NFDMATCH_KERNELS`` (``auto``, the default;
+``aot``, ``numba`` or ``numpy`` to force one):
+
+1. **aot**: the kernels of :mod:`._kernels` compiled ahead of time (:mod:`.aot`, built by
+   ``make install``), when present and built from this source: no import cost;
+2. **numba**: else the same kernels compiled just in time, when numba imports and they
+   compile (or load from numba's cache): ~0.45 s per process;
+3. **numpy**: else the numpy reference path.
+
+The choice is process-wide state and says so: :func:`current` returns it (deciding on first
+use from the environment), :func:`use_kernels` makes it explicitly. Nothing switches later:
+no counters of work done, no timing, no per-thread flags. A caller that needs the reference
+digits passes ``kernels=NUMPY`` to the distance functions (a search recomputes the rows it
+reports so, whatever the process uses: the compiled kernels agree with numpy to ~1e-15, not
+bit for bit).
+
+A call splits its rows over threads (:meth:`Kernels.workers`) when its kernels release the
+GIL, the call has enough rows and it is made on the main thread (a search answering queries
+on threads has its cores busy already). The split's thread pool is shut down at exit
+(:func:`._threads.shutdown`).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from ..errors import ParameterError
+
+__all__ = [
+    "Kernels",
+    "NUMPY",
+    "ENVIRONMENT",
+    "CHOICES",
+    "choose",
+    "chosen",
+    "current",
+    "use_kernels",
+    "compile_kernels",
+]
+
+#: the one setting: which kernels a process uses (read when the first exact distance needs it)
+ENVIRONMENT = "NFDMATCH_KERNELS"
+CHOICES = ("auto", "aot", "numba", "numpy")
+#: rows from which a call made on the main thread splits its rows over threads
+_THREAD_ROWS = 256
+_MAX_THREADS = 4
+
+
+@dataclass(frozen=True)
+class Kernels:
+    """An implementation of the exact distance's inner loops.
+
+    ``name``: ``"aot"``, ``"numba"`` or ``"numpy"``; ``module``: what serves the calls
+    (``exact_rows``, ``grid_bound_rows``), None for numpy (the callers' own code);
+    ``threads``: calls on several threads run in parallel (the compiled kernels release the
+    GIL; an ahead-of-time build that could not, does not); ``reason``: why this one, in words
+    (for ``-v`` and ``--stats``)."""
+
+    name: str
+    module: object | None
+    threads: bool
+    reason: str
+
+    def workers(self, rows: int) -> int:
+        """Threads a call of ``rows`` rows splits its rows over (1: no split)."""
+        if (
+            self.module is None
+            or not self.threads
+            or rows < _THREAD_ROWS
+            or threading.current_thread() is not threading.main_thread()
+        ):
+            return 1
+        return min(cpu_count(), _MAX_THREADS)
+
+    def describe(self) -> str:
+        """One line: the name and the reason."""
+        return f"{self.name} ({self.reason})"
+
+
+#: the numpy reference path
+NUMPY = Kernels("numpy", None, True, "the numpy reference path")
+
+#: the process's choice (None: not made yet); set by :func:`current` or :func:`use_kernels`
+_chosen: Kernels | None = None
+_lock = threading.Lock()
+
+
+def choose(setting: str = "auto") -> Kernels:
+    """The kernels the rule gives for ``setting`` (one of :data:`CHOICES`), loading them;
+    never fails: what cannot be loaded falls to the next rule, with the reason."""
+    setting = (setting or "auto").strip().lower()
+    if setting not in CHOICES:
+        raise ParameterError(f"{ENVIRONMENT} must be one of {', '.join(CHOICES)}, got {setting!r}")
+    if setting == "numpy":
+        return Kernels("numpy", None, True, f"{ENVIRONMENT}=numpy")
+    why = []
+    if setting in ("auto", "aot"):
+        from . import aot
+
+        built = aot.load()
+        if built is not None:
+            held = "" if built.threads else "; built holding the GIL: one thread"
+            return Kernels("aot", built, built.threads, f"compiled ahead of time for this source{held}")
+        why.append("no ahead-of-time build for this source (make install builds it)")
+    if setting in ("auto", "numba"):
+        try:
+            from . import _kernels
+
+            _warm_up(_kernels)
+        except Exception as exc:  # ImportError, numba errors (no writable cache): numpy it is
+            why.append(f"numba unavailable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})")
+        else:
+            return Kernels("numba", _kernels, True, "; ".join(why + ["compiled just in time by numba"]))
+    return Kernels("numpy", None, True, "; ".join(why) or "the numpy reference path")
+
+
+def chosen() -> Kernels | None:
+    """The kernels this process chose, or None while no exact distance needed a choice."""
+    return _chosen
+
+
+def current() -> Kernels:
+    """The kernels this process uses: chosen on first use by the rule for ``NFDMATCH_KERNELS``
+    (:func:`choose`), unless :func:`use_kernels` chose them."""
+    global _chosen
+    if _chosen is None:
+        with _lock:
+            if _chosen is None:
+                _chosen = choose(os.environ.get(ENVIRONMENT, "auto"))
+    return _chosen
+
+
+def use_kernels(setting: str | Kernels) -> Kernels:
+    """Choose the kernels of this process explicitly (a setting of :data:`CHOICES`, or a
+    :class:`Kernels`); returns what serves from now on (the rule's fallback when the one
+    asked for cannot be loaded: see its ``reason``)."""
+    global _chosen
+    got = setting if isinstance(setting, Kernels) else choose(setting)
+    with _lock:
+        _chosen = got
+    return got
+
+
+_cpu_count: list[int] = []
+
+
+def cpu_count() -> int:
+    """os.cpu_count(), looked up once (it reads /proc or /sys on every call: ~50 us, paid per
+    kernel call of a search otherwise)."""
+    if not _cpu_count:
+        _cpu_count.append(os.cpu_count() or 1)
+    return _cpu_count[0]
+
+
+def _warm_up(kernels) -> None:
+    """Compile (or load from numba's cache) the kernel on a tiny input with the argument
+    types exact_search passes, so that a failure shows here, once."""
+    A = np.ones((2, 3), dtype=np.complex128)
+    B = np.ones((1, 2, 3), dtype=np.complex128)
+    basis, quarter = _folded_basis(2, 8)
+    kernels.exact_rows(A, A, np.ones(2), B, 1, basis, quarter, 8, False, 1, True, 1.0)
+    from .common import _integer_shift_basis
+
+    one = np.ones(1)
+    for harmonics in (2, 4, 8):  # the general grid bound and the ones specialised for K'
+        Ah = np.ones((harmonics, 3), dtype=np.complex128)
+        Bh = np.ones((1, harmonics, 3), dtype=np.complex128)
+        kernels.grid_bound_rows(Ah, Bh, 2, np.array(_integer_shift_basis(harmonics, 24)), 3, False, one, one, one)
+
+
+def compile_kernels(ahead_of_time: bool = True) -> bool:
+    """Compile (or load from numba's cache) the just-in-time kernels now and keep them for
+    this process; with ``ahead_of_time``, also build the extension module of :mod:`.aot`
+    when it is missing or stale (~30 s). ``make install`` runs it once, so that neither the
+    first query of a new install nor any single query pays for compiling or importing
+    numba. Returns False when numba cannot be used (the numpy path then serves every
+    search)."""
+    try:
+        from . import _kernels
+
+        _warm_up(_kernels)
+    except Exception:  # ImportError, numba errors: the numpy path serves
+        return False
+    if ahead_of_time:
+        from . import aot
+
+        if aot.load() is None:
+            try:
+                aot.build()
+            except Exception:  # no C compiler, numba.pycc gone: the JIT serves
+                pass
+    return True
+
+
+@lru_cache(maxsize=32)
+def _folded_basis(K: int, n: int) -> tuple[np.ndarray, bool]:
+    """The integer-shift basis for the kernels: (2K, width) columns s = 0..n/4 (when n is
+    divisible by 4, ``quarter``) or 0..n/2 of [2 cos(2 pi k s / n); -2 sin(2 pi k s / n)], the
+    angle reduced exactly ((k s) mod n), zero-padded to a multiple of 8 columns."""
+    quarter = n % 4 == 0
+    count = n // 4 + 1 if quarter else n // 2 + 1
+    width = -(-count // 8) * 8
+    s = np.arange(count)
+    theta = (2.0 * np.pi / n) * ((np.arange(1, K + 1)[:, None] * s[None, :]) % n)
+    basis = np.zeros((2 * K, width))
+    basis[:K, :count] = 2.0 * np.cos(theta)
+    basis[K:, :count] = -2.0 * np.sin(theta)
+    basis.setflags(write=False)
+    return basis, quarter
