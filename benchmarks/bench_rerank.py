@@ -250,7 +250,7 @@ def shipped(cols, knot_data, work):
         stored = read_curves(os.path.join(folder, "curves.obj"))
         with open_index(os.path.join(work, name.replace(" ", "_") + ".h5")) as idx:
             res, _ = rerank_index(
-                idx, stored, top=100 if len(stored) > 100 else len(stored) - 1, depth=100, exclude=lambda q, m: q == m
+                idx, stored, top=100 if len(stored) > 100 else len(stored) - 1, depth=100, exclude_self=True
             )
         pos = {s.id: i for i, s in enumerate(stored)}
         N = len(stored)

@@ -3,9 +3,16 @@
 Public API::
 
     from nfdmatch import read_curves, read_curve, descriptors, distance
+    from nfdmatch import build_index, open_index
+
+    report = build_index(["curves/"], "curves.h5")
+    with open_index("curves.h5") as index:
+        matches = index.search("query.obj", k=5)   # one list per query curve
 
 Zhang & Fiume, "Shape Matching of 3-D Contours using Normalized Fourier
 Descriptors" (SMI 2002), with an exact shift x rotation search.
+
+The index side (h5py) loads on first use of its names: ``import nfdmatch`` does not import it.
 """
 
 from ._version import __version__
@@ -14,6 +21,7 @@ from .descriptors import Descriptors, descriptors
 from .errors import NfdError
 from .formats import read_curve, read_curves, write_curves
 from .matching import Match, distance, match_descriptors
+from .records import RankedMatch
 
 __all__ = [
     "__version__",
@@ -21,10 +29,37 @@ __all__ = [
     "Descriptors",
     "Match",
     "NfdError",
+    "RankedMatch",
     "descriptors",
     "distance",
     "match_descriptors",
     "read_curve",
     "read_curves",
     "write_curves",
+    "build_index",
+    "open_index",
+    "Index",
+    "BuildReport",
 ]
+
+#: names loaded on first use, and their modules
+_LAZY = {
+    "build_index": "nfdmatch.index",
+    "BuildReport": "nfdmatch.index",
+    "open_index": "nfdmatch.index",
+    "Index": "nfdmatch.index",
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -8,7 +8,10 @@ import numpy as np
 
 from .errors import CurveError
 
-__all__ = ["Curve", "clean_points", "as_points"]
+__all__ = ["Curve", "clean_points", "as_points", "STDIN_ID"]
+
+#: the id of a curve read from stdin (``-`` on the command line): it names no file
+STDIN_ID = "<stdin>"
 
 
 @dataclass(frozen=True)

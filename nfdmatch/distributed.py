@@ -338,6 +338,7 @@ class Cluster:
         progress=None,
         parts: int | None = None,
         window: int | None = None,
+        exclude_self: bool = False,
     ):
         """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
 
@@ -345,7 +346,7 @@ class Cluster:
         ----------
         index : the index path, or an open :class:`nfdmatch.index.Index` (its ``path`` is
             what the workers open: a path every worker sees).
-        queries, top, max_distance, method, direction, mirror, prune : as in
+        queries, top, max_distance, method, direction, mirror, prune, exclude_self : as in
             :func:`~nfdmatch.search.search_index`.
         progress : ``progress(done, total)`` in units of (query, range) pairs answered
             (with several ranges, the first round counts as one more range).
@@ -368,6 +369,9 @@ class Cluster:
 
         check_search_parameters(top, max_distance, method)
         t0 = time.perf_counter()
+        asked = top
+        if exclude_self and top is not None:
+            top += 1  # the query's own curve is dropped below
         own = not hasattr(index, "search_table")
         idx = open_index(index) if own else index
         try:
@@ -411,6 +415,10 @@ class Cluster:
                     _recompute(idx, qcoef, tops, search, direction=direction, mirror=mirror, weights=None, tables=held)
                     self._held = None
             results = _ranked(idx, tops, top)
+            if exclude_self:
+                from .search.index_search import without_self
+
+                results = without_self(idx, queries, results, asked)
         finally:
             if own:
                 idx.close()

@@ -174,7 +174,7 @@ def test_rerank_improves_a_family_collection(families_index):
     family = {stored_id(c.id): f for c, f in zip(stored, labels)}
     with open_index(folder / "i.h5") as idx:
         plain, _ = search_index(idx, stored, top=11)
-        reranked, _ = rerank_index(idx, stored, top=10, depth=100, exclude=lambda q, m: stored_id(q) == m)
+        reranked, _ = rerank_index(idx, stored, top=10, depth=100, exclude_self=True)
 
     def precision(results):
         hits = []
@@ -200,7 +200,7 @@ def test_local_diffusion_matches_the_full_one_on_a_small_index(tmp_path, rng):
 
     position = {rel(c.id): i for i, c in enumerate(stored)}
     with open_index(tmp_path / "i.h5") as idx:
-        results, _ = rerank_index(idx, stored, top=89, depth=100, exclude=lambda q, m: rel(q) == m)
+        results, _ = rerank_index(idx, stored, top=89, depth=100, exclude_self=True)
     for i, res in enumerate(results):
         assert len(res) == 89 and all(m.id != rel(stored[i].id) for m in res)
         got = np.array([m.score for m in res])

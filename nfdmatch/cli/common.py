@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import click
 
+from ..curve import STDIN_ID
 from ..errors import NfdError, NoCurvesError, WriteError
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
@@ -41,8 +42,6 @@ ROW_FORMATS = ("table", "csv", "tsv", "json", "jsonl")
 FORMAT_OF_EXTENSION = {".csv": "csv", ".tsv": "tsv", ".json": "json", ".jsonl": "jsonl", ".txt": "table"}
 #: the extensions of picture files (``show``, ``matrix``); any other ``-o`` gets rows
 PICTURE_EXTENSIONS = (".png", ".svg", ".pdf")
-#: the id of a curve read from stdin (``-`` on the command line)
-STDIN_ID = "<stdin>"
 
 QUIET, NORMAL, VERBOSE = 0, 1, 2
 _VERBOSITY = "nfdmatch.verbosity"
@@ -492,37 +491,6 @@ exclude_self_option = click.option(
     help="Drop the query itself from its matches: a match with the query's id, or the same curve of "
     "the same file (however the path is spelled).",
 )
-
-
-def curve_key(curve_id: str) -> str:
-    """The file (resolved: symlinks, relative spellings) and curve an id names."""
-    from ..formats import split_selector
-
-    path, selected = split_selector(curve_id)
-    return os.path.realpath(path) + ("" if selected is None else f"#{selected}")
-
-
-def exclude_self(query_id: str, matches: list, top: int, locate=None) -> list:
-    """``matches`` (ranked :class:`~nfdmatch.records.RankedMatch` es) without those naming
-    the query's curve, ranks renumbered, at most ``top``. The caller asks the search for one
-    match more. ``locate``: id -> a path that opens it here (an index's ids are relative to
-    its folder)."""
-    if query_id == STDIN_ID:
-        return matches[:top]
-    return [
-        m.replace(rank=rank)
-        for rank, m in enumerate([m for m in matches if not is_query(query_id, m.id, locate)][:top], start=1)
-    ]
-
-
-def is_query(query_id: str, match_id: str, locate=None) -> bool:
-    """Whether ``match_id`` names the query's curve: the same id, or the same curve of the
-    same file however the path is spelled (never for stdin). ``locate`` as in
-    :func:`exclude_self`."""
-    if query_id == STDIN_ID:
-        return False
-    where = locate or (lambda i: i)
-    return match_id == query_id or curve_key(where(match_id)) == curve_key(query_id)
 
 
 def match_row(query_id: str, m) -> dict:

@@ -10,7 +10,6 @@ from ..descriptors import DEFAULT_SAMPLES
 from .common import (
     deliver,
     descriptor_options,
-    exclude_self,
     exclude_self_option,
     format_option,
     input_format_option,
@@ -174,15 +173,14 @@ def rank(
     ranked = rank_curves(
         query,
         inputs.curves,
-        top=top + exclude_self_,
+        top=top,
         max_distance=max_distance,
         samples=samples,
         harmonics=harmonics,
         scale=scale,
+        exclude_self=exclude_self_,
         **matching(method, strict_direction, mirror),
     )
-    if exclude_self_:
-        ranked = exclude_self(query.id, ranked, top)
     write_rows(
         [match_row(query.id, m) for m in ranked], match_columns(details), output_format, output, group_by="query"
     )

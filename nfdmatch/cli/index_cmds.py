@@ -14,13 +14,11 @@ from .common import (
     EXIT_ERROR,
     deliver,
     error,
-    exclude_self,
     exclude_self_option,
     format_option,
     finish,
     index_option,
     input_format_option,
-    is_query,
     match_columns,
     match_row,
     matching,
@@ -623,17 +621,13 @@ def query(
             if rerank:
                 from ..search.rerank import rerank_index
 
-                def is_self(query_id, match_id):
-                    # the same rule as --exclude-self without --rerank
-                    return is_query(query_id, match_id, idx.locate)
-
                 results, stats = rerank_index(
                     idx,
                     inputs.curves,
                     top=top,
                     depth=rerank_depth,
                     progress=progress,
-                    exclude=is_self if exclude_self_ else None,
+                    exclude_self=exclude_self_,
                 )
             else:
                 extra = {} if cluster is None else {"parts": ranges}
@@ -641,10 +635,11 @@ def query(
                 results, stats = run(
                     idx,
                     inputs.curves,
-                    top=top + exclude_self_,
+                    top=top,
                     max_distance=max_distance,
                     progress=progress,
                     prune=not exhaustive,
+                    exclude_self=exclude_self_,
                     **extra,
                     **matching(method, strict_direction, mirror),
                 )
@@ -652,8 +647,6 @@ def query(
             finish_bar()
             if cluster is not None:
                 cluster.close()
-        if exclude_self_ and not rerank:
-            results = [exclude_self(q.id, res, top, idx.locate) for q, res in zip(inputs.curves, results)]
     columns = match_columns(details)
     if rerank:
         columns.insert(columns.index("distance") + 1, "score")

@@ -403,6 +403,32 @@ class Index:
         out["id"] = np.asarray(self._id_blocks(a, b), dtype=object)
         return out
 
+    def __len__(self) -> int:
+        """The curves (rows) of the index."""
+        return self.n_curves
+
+    def search(
+        self, queries, k: int | None = 10, max_distance: float | None = None, exclude_self: bool = False, **options
+    ):
+        """Each query's k nearest curves of the index, exactly (:func:`nfdmatch.search.knn.search`).
+
+        queries : a :class:`~nfdmatch.Curve`, an (n, 3) array, a path (every curve of the
+            file; ``"file#i"`` for one), or a sequence of them.
+        k : matches per query (None: every match within ``max_distance``).
+        max_distance : only matches at most this far.
+        exclude_self : drop each query's own curve (same id, or the same curve of the same
+            file however the path is spelled).
+        options : ``method``, ``direction``, ``mirror``, ``pose`` (default True),
+            ``threads``, ``prune``.
+
+        Returns one list of :class:`~nfdmatch.records.RankedMatch` per query curve (rank,
+        id, distance, row, and ``pose``: the :class:`~nfdmatch.Match` mapping the match onto
+        the query), sorted by distance then id.
+        """
+        from ..search.knn import search
+
+        return search(self, queries, k=k, max_distance=max_distance, exclude_self=exclude_self, **options)
+
     def graph_k(self) -> int:
         """Neighbours per row of the index's stored neighbour graph (``index build --graph``);
         0 when it has none."""

@@ -85,6 +85,7 @@ def search_index(
     weights: ArrayLike | None = None,
     threads: int | None = None,
     truncate: bool = True,
+    exclude_self: bool = False,
 ) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k nearest curves of an index for each query curve, exactly.
 
@@ -105,6 +106,9 @@ def search_index(
         ``prune=False``.
     threads : queries answered in parallel (default: the cores, at most 4).
     truncate : use the truncated-harmonic bound (an option for measuring its effect).
+    exclude_self : drop each query's own curve from its matches
+        (:func:`~nfdmatch.search.knn.is_self`: the same id, or the same curve of the same
+        file however the path is spelled; ids of an index resolved by its ``locate``).
 
     Returns
     -------
@@ -122,6 +126,23 @@ def search_index(
     from ..descriptors import descriptors_batch
 
     check_search_parameters(top, max_distance, method)
+    if exclude_self:
+        asked = top
+        results, stats = search_index(
+            index,
+            queries,
+            top=None if top is None else top + 1,
+            max_distance=max_distance,
+            method=method,
+            direction=direction,
+            mirror=mirror,
+            prune=prune,
+            progress=progress,
+            weights=weights,
+            threads=threads,
+            truncate=truncate,
+        )
+        return without_self(index, queries, results, asked), stats
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     t0 = time.perf_counter()
@@ -159,6 +180,15 @@ def search_index(
     stats.kernels = current_kernels().describe()
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def without_self(index, queries, results: list[list[RankedMatch]], top: int | None) -> list[list[RankedMatch]]:
+    """Each query's matches without its own curve (:func:`~nfdmatch.search.knn.drop_self`),
+    at most ``top``: the answer of a search asked for ``top + 1``."""
+    from .knn import drop_self
+
+    locate = getattr(index, "locate", None)
+    return [drop_self(q.id, found, top, locate) for q, found in zip(queries, results)]
 
 
 def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:

@@ -30,6 +30,7 @@ def rank_curves(
     direction: str = "invariant",
     mirror: bool = False,
     weights: ArrayLike | None = None,
+    exclude_self: bool = False,
 ) -> list[RankedMatch]:
     """Rank ``curves`` by distance to ``query``.
 
@@ -39,6 +40,7 @@ def rank_curves(
     curves : sequence of :class:`~nfdmatch.curve.Curve`.
     top : keep the best ``top`` (all when None).
     max_distance : drop matches farther than this.
+    exclude_self : drop the query's own curve (as :func:`~nfdmatch.search.search_index`).
     Other parameters as in :func:`nfdmatch.distance`.
 
     Returns
@@ -66,5 +68,6 @@ def rank_curves(
         mirror=mirror,
         weights=weights,
         prune=weights is None,
+        exclude_self=exclude_self,
     )
     return results[0]

@@ -203,7 +203,7 @@ def rerank_index(
     *,
     top: int = 10,
     depth: int = DEFAULT_DEPTH,
-    exclude: Callable[[str, str], bool] | None = None,
+    exclude_self: bool = False,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
 ) -> tuple[list[list[RankedMatch]], SearchStats]:
@@ -215,8 +215,8 @@ def rerank_index(
     queries : sequence of :class:`~nfdmatch.curve.Curve`.
     top : matches per query (at most ``depth``).
     depth : M, the query's exact candidates (the pruned exact search's top M), >= 100.
-    exclude : optional ``exclude(query_id, match_id) -> bool``: matches that are the query
-        itself; they are merged with the query in the graph and left out of the results.
+    exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is merged
+        with the query in the graph and left out of the results.
     progress, threads : as in :func:`~nfdmatch.search.search_index`.
 
     Returns
@@ -234,6 +234,7 @@ def rerank_index(
     Deterministic: the same index and queries give the same rows and scores.
     """
     from .index_search import search_index
+    from .knn import is_self
 
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < MIN_DEPTH:
         raise ParameterError(f"rerank depth must be an integer of at least {MIN_DEPTH}, got {depth!r}")
@@ -256,6 +257,7 @@ def rerank_index(
             path=index.path,
         )
     exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
+    locate = getattr(index, "locate", None)
     results = []
     for q, found in zip(queries, exact):
         if not found:
@@ -263,7 +265,7 @@ def rerank_index(
             continue
         rows = np.array([m.row for m in found], dtype=np.int64)
         qd = np.array([m.distance for m in found])
-        merged = np.array([exclude is not None and bool(exclude(q.id, m.id)) for m in found])
+        merged = np.array([exclude_self and is_self(q.id, m.id, locate) for m in found], dtype=bool)
         gr, gd = reader(rows)
         scores = rerank_scores(
             qd, rows, gr, gd, merged=merged, outside_scale=lambda r: _kth(reader(r)[1], SCALE_NEIGHBOURS)

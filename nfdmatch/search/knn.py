@@ -1,0 +1,125 @@
+"""The k nearest curves of an index for each query, as a Python user asks for them
+(:meth:`nfdmatch.index.Index.search`), and the rule that drops a query's own curve from its
+matches (``exclude_self``, shared by every search that offers it).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..curve import STDIN_ID, Curve
+from ..errors import ParameterError
+from ..records import RankedMatch
+
+__all__ = ["as_queries", "is_self", "drop_self", "search"]
+
+
+def as_queries(queries) -> list[Curve]:
+    """Query curves from what a user holds: one or a sequence of :class:`~nfdmatch.Curve`,
+    (n, 3) or (n, 2) float arrays (ids ``<array i>``) and paths (str or PathLike: every curve
+    of the file; ``"file#i"`` for one)."""
+    from ..formats import read_curve, read_curves, split_selector
+
+    if isinstance(queries, (Curve, str, os.PathLike)) or (isinstance(queries, np.ndarray) and queries.ndim == 2):
+        queries = [queries]
+    out: list[Curve] = []
+    for i, q in enumerate(queries):
+        if isinstance(q, Curve):
+            out.append(q)
+        elif isinstance(q, (str, os.PathLike)):
+            _, selected = split_selector(str(q))
+            out.extend([read_curve(q)] if selected is not None else read_curves(q))
+        else:
+            out.append(Curve(np.asarray(q, dtype=np.float64), id=f"<array {i}>"))
+    return out
+
+
+def _curve_key(curve_id: str) -> str:
+    """The file (resolved: symlinks, relative spellings) and curve an id names."""
+    from ..formats import split_selector
+
+    path, selected = split_selector(curve_id)
+    return os.path.realpath(path) + ("" if selected is None else f"#{selected}")
+
+
+def is_self(query_id: str, match_id: str, locate=None) -> bool:
+    """Whether ``match_id`` names the query's curve: the same id, or the same curve of the
+    same file however the path is spelled (never for stdin). ``locate``: id -> a path that
+    opens it here (an index's ids are relative to its folder: ``Index.locate``)."""
+    if query_id == STDIN_ID:
+        return False
+    where = locate or (lambda i: i)
+    return match_id == query_id or _curve_key(where(match_id)) == _curve_key(query_id)
+
+
+def drop_self(query_id: str, matches: list[RankedMatch], k: int | None, locate=None) -> list[RankedMatch]:
+    """``matches`` (ranked) without those naming the query's curve (:func:`is_self`), ranks
+    renumbered, at most ``k``. The search asked for one match more."""
+    kept = [m for m in matches if not is_self(query_id, m.id, locate)]
+    return [m.replace(rank=rank) for rank, m in enumerate(kept[:k] if k is not None else kept, start=1)]
+
+
+def search(
+    index,
+    queries,
+    *,
+    k: int | None = 10,
+    max_distance: float | None = None,
+    exclude_self: bool = False,
+    pose: bool = True,
+    **options,
+) -> list[list[RankedMatch]]:
+    """Each query's k nearest curves of ``index`` (an open :class:`~nfdmatch.index.Index`).
+
+    queries : a :class:`~nfdmatch.Curve`, an (n, 3) array, a path, or a sequence of them
+        (:func:`as_queries`).
+    k : matches per query (None: every match within ``max_distance``).
+    max_distance : only matches at most this far.
+    exclude_self : drop each query's own curve (:func:`is_self`: same id, or the same curve
+        of the same file however the path is spelled).
+    pose : give each match its alignment onto the query (``RankedMatch.pose``: a
+        :class:`~nfdmatch.Match` with rotation, scale, translation, start shift and
+        direction), from the descriptors and pose the index stores.
+    options : ``method``, ``direction``, ``mirror``, ``prune``, ``threads`` as
+        :func:`~nfdmatch.search.search_index`.
+
+    Returns one list per query curve, sorted by distance then id.
+    """
+    from .index_search import search_index
+
+    if k is None and max_distance is None:
+        raise ParameterError("give k or max_distance (or both)")
+    curves = as_queries(queries)
+    results, _ = search_index(index, curves, top=k, max_distance=max_distance, exclude_self=exclude_self, **options)
+    if pose:
+        results = [_posed(index, q, found, options) for q, found in zip(curves, results)]
+    return results
+
+
+def _posed(index, query: Curve, found: Sequence[RankedMatch], options: dict) -> list[RankedMatch]:
+    """``found`` with each match's alignment onto ``query`` (its stored descriptors)."""
+    from ..descriptors import DescriptorBatch, descriptors
+    from ..matching import match_descriptors
+
+    if not found:
+        return list(found)
+    dq = descriptors(query, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode)
+    how = {key: options[key] for key in ("method", "direction", "mirror") if key in options}
+    out = []
+    for m in found:
+        r = index.read_rows(m.row, m.row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
+        db = DescriptorBatch(
+            r["coefficients"],
+            r["rotation"],
+            r["centroid"],
+            r["scale"],
+            r["plane_degenerate"],
+            index.samples,
+            index.harmonics,
+            index.scale_mode,
+        ).row(0, m.id)
+        out.append(m.replace(pose=match_descriptors(dq, db, **how)))
+    return out
