@@ -1,5 +1,6 @@
 """Curves rebuilt from their first K harmonics, and how far each is from its input: the
-data behind ``nfdmatch reconstruct`` (what the descriptor sees of a curve)."""
+data behind ``nfdmatch reconstruct`` (what the descriptor sees of a curve). In the layer of
+pictures (docs/architecture.md), as :mod:`nfdmatch.show`: it measures with the distance."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from dataclasses import dataclass
 from .curve import Curve
 from .descriptors import DEFAULT_SAMPLES, descriptors, reconstruct
 from .errors import ParameterError
+from .matching import distance
 
 __all__ = ["Reconstruction", "reconstruct_curves", "reconstruction_samples"]
 
@@ -51,8 +53,6 @@ def reconstruct_curves(
     normalized : rebuild in the normalized frame (centred, unit scale, limit plane on z = 0)
         instead of the input's pose.
     """
-    from .matching import distance
-
     n = reconstruction_samples(harmonics, samples)
     out = []
     for curve in curves:

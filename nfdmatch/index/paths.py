@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 
 from ..errors import escape_name
+from ..formats import split_selector
 
 
 def index_file(index_path: str) -> str:
@@ -47,8 +48,6 @@ def stored(location: str, base: str) -> str:
 def source_location(source: str) -> str:
     """The real location of a source as given: a folder resolved (``lib``, ``./lib/``,
     ``/abs/lib`` and a link to it are one place); a file (or ``file#i``) by its folder."""
-    from ..formats import split_selector
-
     path, selected = split_selector(source)
     if selected is not None and os.path.isfile(path):
         return _real_parent(path) + f"#{selected}"

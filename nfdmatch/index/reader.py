@@ -8,6 +8,11 @@ import h5py
 import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
+from ..search.bounds import head_harmonics
+from ..search.knn import search as search_index_for
+from ..search.table import SearchTable
+from .graph import graph_k, read_graph_rows
+from .paths import index_folder, openable
 from .schema import (
     _STATUS,
     CRC_ROWS,
@@ -18,8 +23,11 @@ from .schema import (
     _short,
     block_crcs,
     default_index_path,
+    first_nonfinite,
     read_runs,
+    unique_rows,
 )
+from .search_group import search_table
 
 #: stored numbers that must be finite (the /curves ones; /search is checked as it is read)
 _FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "inv_sv", "inv_block")
@@ -28,39 +36,6 @@ _FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "
 #: rows per chunk of :meth:`Index.iter_chunks` (``nfdmatch.search.memory.CHUNK_ROWS`` is the
 #: same for curves in memory)
 ITER_CHUNK_ROWS = 65536
-
-
-def first_nonfinite(values, rows) -> int | None:
-    """The row (of ``rows``, (m,) ints, or a start row) of the first non-finite entry of
-    ``values`` (m, ...) float or complex, or None when all are finite."""
-    values = np.asarray(values)
-    if values.dtype.kind not in "fc" or not values.size:
-        return None
-    flat = values.reshape(len(values), -1)
-    if values.dtype.kind == "c" and flat.flags.c_contiguous:
-        flat = flat.view(values.real.dtype)  # isfinite on the parts: ~3x faster
-    # the common case in one cheap pass: a sum is finite only if every term is (NaN and inf
-    # propagate; an overflow to inf only sends the values to the exact check below)
-    with np.errstate(over="ignore", invalid="ignore"):
-        if np.isfinite(flat.sum()):
-            return None
-    bad = ~np.isfinite(flat).all(axis=1)
-    if not bad.any():
-        return None
-    i = int(np.argmax(bad))
-    return int(rows[i]) if np.ndim(rows) else int(rows) + i
-
-
-def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(rows, return_inverse=True)`` for (m,) int64 rows, without importing
-    ``numpy.ma`` (np.unique does: ~25 ms of a query's start-up)."""
-    order = np.argsort(rows, kind="stable")
-    ordered = rows[order]
-    first = np.ones(len(rows), dtype=bool)
-    first[1:] = ordered[1:] != ordered[:-1]
-    inverse = np.empty(len(rows), dtype=np.int64)
-    inverse[order] = np.cumsum(first) - 1
-    return ordered[first], inverse
 
 
 def read_error(exc: BaseException, where: str) -> str:
@@ -283,7 +258,6 @@ class Index:
         directory: a relative stored path is relative to the index's folder. An index that does
         not record its sources stored paths relative to its build's working directory: ids
         are then returned as they are."""
-        from .paths import index_folder, openable
 
         if os.path.isabs(curve_id) or self.sources() is None:
             return curve_id
@@ -425,22 +399,16 @@ class Index:
         id, distance, row, and ``pose``: the :class:`~nfdmatch.Match` mapping the match onto
         the query), sorted by distance then id.
         """
-        from ..search.knn import search
-
-        return search(self, queries, k=k, max_distance=max_distance, exclude_self=exclude_self, **options)
+        return search_index_for(self, queries, k=k, max_distance=max_distance, exclude_self=exclude_self, **options)
 
     def graph_k(self) -> int:
         """Neighbours per row of the index's stored neighbour graph (``index build --graph``);
         0 when it has none."""
-        from .graph import graph_k
-
         return graph_k(self)
 
     def graph_reader(self):
         """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,
         in the order of ``rows``; None when the index has no graph (docs/index-format.md)."""
-        from .graph import read_graph_rows
-
         return read_graph_rows(self)
 
     def search_table(self):
@@ -450,7 +418,6 @@ class Index:
         if self._h5 is None:
             raise IndexFormatError("the index is closed", path=self.path)
         if self.format_version >= 2:
-            from .search_group import search_table
 
             def fail(message):
                 raise IndexFormatError(f"corrupted nfdmatch index: {message}", path=self.path)
@@ -459,9 +426,6 @@ class Index:
                 lambda: search_table(self._h5, self.n_curves, self.harmonics, self.coefficients_at, fail, self._read),
                 "/search",
             )
-        from ..search.table import SearchTable
-
-        from ..search.bounds import head_harmonics
 
         def features():
             # the first harmonics only (the truncated bound's input): the exact distances

@@ -6,20 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .schema import CHECKSUMS, create_checked
+from ..search.bounds import TRUNCATED_HARMONICS, feature_split, squared_norms
+from ..search import cells as search_cells
+from ..search.table import SearchTable
+from .schema import CHECKSUMS, CRC_ROWS, create_checked, first_nonfinite, write_string_checks
 from .schema import read_runs as read_runs_of
 
-__all__ = ["write_search_group", "check_search_group", "search_table", "SEARCH_DATASETS"]
+__all__ = ["write_search_group", "search_table"]
 
-#: /search datasets: name -> (dtype, shape as a function of N rows, C cells, D feature columns)
-SEARCH_DATASETS = {
-    "row": (np.int64, lambda N, C, D: (N,)),
-    "cell_start": (np.int64, lambda N, C, D: (C + 1,)),
-    "centre": (np.float64, lambda N, C, D: (C, D)),
-    "radius": (np.float64, lambda N, C, D: (C, 2)),
-    "features": (np.float32, lambda N, C, D: (N, D)),
-    "sqnorm": (np.float64, lambda N, C, D: (N, 2)),
-}
 #: /search/coefficients: (N, K, 3) complex64, checked apart (K from the harmonics)
 #: rows read back from /curves at a time while gathering the features
 _READ_ROWS = 1 << 18
@@ -33,8 +27,6 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None, 
     Deterministic: the same curves give the same group (seeded k-means). ``id_crcs``: the
     ``/curves/id_crc32`` blocks of the ids as written (None: read the ids back).
     """
-    from ..search.bounds import TRUNCATED_HARMONICS, feature_split, squared_norms
-    from ..search.cells import ROWS_PER_CELL, build_cells
 
     curves = h5["curves"]
     N = curves["inv_sv"].shape[0] if "inv_sv" in curves else 0
@@ -45,7 +37,8 @@ def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None, 
         b = min(N, a + _READ_ROWS)
         features[a:b, :split] = curves["inv_sv"][a:b]
         features[a:b, split:] = curves["inv_block"][a:b]
-    cells = build_cells(features, split, rows_per_cell=rows_per_cell or ROWS_PER_CELL)
+    # (the default read when called: a test sets it for a small index)
+    cells = search_cells.build_cells(features, split, rows_per_cell=rows_per_cell or search_cells.ROWS_PER_CELL)
     features = features[cells.row]
     sqnorm = squared_norms(features, split)
     # one (N, K, 3) array in position order, filled block by block through the inverse
@@ -75,7 +68,6 @@ def _finish_checksums(h5, id_crcs=None) -> None:
     appends them in pieces and gives their blocks' CRCs as ``id_crcs``; without them they
     are read back, ~1 s per million rows), then the root attribute that makes readers
     require every checksum."""
-    from .schema import CRC_ROWS, write_string_checks
 
     ids = h5["curves/id"] if "curves/id" in h5 else None
     values: list[str] = []
@@ -90,45 +82,6 @@ def _finish_checksums(h5, id_crcs=None) -> None:
     h5.attrs["checksums"] = CHECKSUMS
 
 
-def check_search_group(h5, N: int, harmonics: int, get=None) -> str | None:
-    """Why the file's ``/search`` group is not valid for N rows and K harmonics, or None.
-
-    ``get(name)`` returns dataset ``/search/NAME`` after checking how it is stored (raising
-    the reader's error otherwise); by default, plain lookup."""
-    g = h5.get("search")
-    if g is None or not hasattr(g, "keys"):
-        return "missing group /search"
-    if get is None:
-        get = g.get
-    D = 2 * harmonics + 3
-    start = get("cell_start")
-    if start is None or len(start.shape) != 1 or start.shape[0] < 1:
-        return "missing or bad dataset /search/cell_start"
-    C = start.shape[0] - 1
-    cells = g.attrs.get("cells")
-    if cells is not None and (not isinstance(cells, (int, np.integer)) or int(cells) != C):
-        return f"/search attribute cells {cells!r} does not match /search/cell_start ({C} cells)"
-    for name, (_dtype, shape) in SEARCH_DATASETS.items():
-        ds = get(name)
-        if ds is None or not hasattr(ds, "shape"):
-            return f"missing dataset /search/{name}"
-        if tuple(ds.shape) != shape(N, C, D):
-            return f"/search/{name} has shape {ds.shape}, expected {shape(N, C, D)}"
-    coefficients = get("coefficients")
-    want = (N, harmonics, 3)
-    if (
-        coefficients is None
-        or not hasattr(coefficients, "shape")
-        or tuple(coefficients.shape) != want
-        or coefficients.dtype.kind != "c"
-    ):
-        return f"missing or bad dataset /search/coefficients (expected complex, shape {want})"
-    starts = np.asarray(start[...], dtype=np.int64)
-    if starts[0] != 0 or starts[-1] != N or (np.diff(starts) < 0).any():
-        return "/search/cell_start does not run from 0 to the row count without decreasing"
-    return None
-
-
 def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None):
     """A :class:`~nfdmatch.search.table.SearchTable` reading ``/search`` cell by cell.
 
@@ -136,8 +89,6 @@ def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None
     non-finite values); ``guard(fn, where)`` runs a read and turns its failure (e.g. a
     checksum mismatch) into the reader's error (default: run it as is).
     """
-    from ..search.table import SearchTable
-    from .reader import first_nonfinite
 
     if guard is None:
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import IndexFormatError
+from ..search.bounds import feature_split, squared_norms
 from .schema import CRC_ROWS, STRING_DATASETS, _open_checked, _Problem, _short, block_crcs
 
 __all__ = ["Finding", "VerifyReport", "verify_index"]
@@ -147,8 +148,6 @@ def verify_index(path) -> VerifyReport:
 
 
 def _verify(h5, meta, files, report) -> None:
-    from ..search.bounds import feature_split, squared_norms
-
     K = meta["harmonics"]
     whole = np.asarray
     # what the cross-checks below need, per dataset (the rest is checked block by block and dropped)
