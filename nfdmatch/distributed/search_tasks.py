@@ -1,0 +1,284 @@
+"""Search tasks on the workers: a block of queries over a range of an index's cells (or, for
+the first round, over each query's window of cells), answered by the one search engine."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..search.engine import TopK
+from .settings import ClusterError
+
+
+def index_ranges(idx, parts: int, prune: bool):
+    """``(ranges, cell_count)``: the index split into at most ``parts`` ranges of about equal
+    rows. A pruned search takes ranges of search cells ``("cells", first, stop)`` (format
+    2; format 1 has one cell holding every row), an exhaustive one ranges of rows
+    ``("rows", start, stop)``."""
+    N = idx.n_curves
+    if not prune:
+        edges = np.linspace(0, N, min(parts, N) + 1).round().astype(np.int64)
+        return [("rows", int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a], 0
+    if idx.format_version < 2:
+        return [("cells", 0, 1)], 1
+    start = np.asarray(idx._read(lambda: idx._h5["search"]["cell_start"][...]), dtype=np.int64)
+    C = len(start) - 1
+    parts = max(1, min(parts, C))
+    # cut where the cumulative positions pass each 1/parts of the rows
+    cuts = np.searchsorted(start, np.linspace(0, N, parts + 1)[1:-1], side="left")
+    edges = np.unique(np.concatenate([[0], cuts, [C]]))
+    return [("cells", int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a], C
+
+
+#: per worker process: open indexes and their search tables, keyed by path and stamp, so the
+#: blocks of queries of one batch (and the next batches) reuse the cells already read
+_OPEN: dict = {}
+
+
+def _worker_index(path: str, stamp: tuple):
+    from ..index import open_index
+
+    key = (path, stamp)
+    entry = _OPEN.get(key)
+    if entry is None:
+        for old_key in [k for k in _OPEN if k[0] == path]:  # a replaced index: drop the old one
+            _OPEN.pop(old_key)[0].close()
+        idx = open_index(path)
+        got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
+        if got != tuple(stamp):
+            idx.close()
+            raise ClusterError(
+                "the index a worker opened is not the one the client opened (replaced by a "
+                "build meanwhile, or another file at that path on the worker): query again",
+                path=path,
+            )
+        entry = _OPEN[key] = [idx, None, {}]
+    return entry
+
+
+class _SeededTopK(TopK):
+    """A TopK holding rows found elsewhere (seeds) from the start: a row of this range that
+    is also a seed is not added twice (it would count twice towards the K-th distance)."""
+
+    def __init__(self, k, max_distance, seed: dict | None):
+        super().__init__(k, max_distance)
+        self._seen = np.zeros(0, dtype=np.int64)
+        if seed is not None and len(seed["rows"]):
+            super().add(
+                np.asarray(seed["dist"], dtype=np.float64),
+                np.asarray(seed["rows"], dtype=np.int64),
+                {key: np.asarray(seed[key]) for key in self.extra if key in seed},
+            )
+            self._seen = np.sort(np.asarray(seed["rows"], dtype=np.int64))
+
+    def add(self, dist, rows, result) -> None:
+        if len(self._seen):
+            new = ~_member(rows, self._seen)
+            dist, rows = dist[new], rows[new]
+            result = {key: result[key][new] for key in self.extra if key in result}
+        super().add(dist, rows, result)
+
+
+def _member(rows: np.ndarray, sorted_rows: np.ndarray) -> np.ndarray:
+    """(m,) bool: which ``rows`` are in ``sorted_rows`` (ascending)."""
+    if len(sorted_rows) == 0:
+        return np.zeros(len(rows), dtype=bool)
+    at = np.minimum(np.searchsorted(sorted_rows, rows), len(sorted_rows) - 1)
+    return sorted_rows[at] == rows
+
+
+def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params: dict) -> dict:
+    """On a worker: each query's exact top K among the rows of one range of the index.
+
+    rng : ``("cells", first, stop)``, ``("rows", start, stop)`` (exhaustive), or None: the
+        window round (each query over its own :data:`WINDOW_ROWS` positions of lowest cell
+        bound, for seeds).
+    qcoef : (Q, K, 3) complex128 query descriptors; seeds : None or per query a dict like
+        one entry of the answer (rows found elsewhere: they count towards the K-th distance,
+        so the search prunes as if it had seen them; only this range's rows are returned).
+
+    Returns ``{"tops": [per query {rows (m,) int64, dist (m,) float64, shift (m,) float64,
+    reversed (m,) bool, mirrored (m,) bool}], exact, truncated, scanned, cells,
+    bytes_read}`` (plain arrays and ints)."""
+    from ..search.bounds import feature_vector
+    from ..search.engine import Cascade, search_block
+
+    entry = _worker_index(path, stamp)
+    idx, cache = entry[0], entry[2]
+    cascade = Cascade(idx.samples, params["method"], params["direction"], params["mirror"])
+    search = cascade.distance
+    tops = [
+        _SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
+        for q in range(len(qcoef))
+    ]
+    out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
+    searched = None  # the table searched, when one range holds every row
+    # per query: the descriptors of its rows (for the client's recomputation), taken right
+    # after its search. Holding each query's table until the end instead kept every query's
+    # cells alive at once: a block of 256 queries over half of a 1M-curve index grew a
+    # worker past 11 GB
+    held = [None] * len(tops)
+    want_coef = not params.get("final")
+
+    def own_rows(q):
+        """Which of query q's rows this task found (not seeds found elsewhere)."""
+        tk = tops[q]
+        if seeds is None:
+            return np.ones(len(tk.rows), dtype=bool)
+        return ~_member(tk.rows, np.sort(np.asarray(seeds[q]["rows"], dtype=np.int64)))
+
+    def keep_descriptors(qi, table):
+        if want_coef and len(tops[qi].rows):
+            positions = tops[qi].extra["position"][own_rows(qi)]
+            if len(positions) and positions.min() >= 0:
+                held[qi] = table.coefficients_at_positions(positions)
+
+    if rng is not None and rng[0] == "rows":
+        from ..search.index_search import EXHAUSTIVE_ROWS
+
+        kind, lo, hi = rng
+        for a in range(lo, hi, EXHAUSTIVE_ROWS * 8):
+            b = min(hi, a + EXHAUSTIVE_ROWS * 8)
+            coefficients = idx.read_rows(a, b, ("coefficients",), upcast=False)["coefficients"]
+            out["bytes_read"] += coefficients.nbytes
+            rows = np.arange(a, b)
+            for qi, tk in enumerate(tops):
+                for s in range(0, len(rows), EXHAUSTIVE_ROWS):
+                    r = search(
+                        qcoef[qi],
+                        coefficients[s : s + EXHAUSTIVE_ROWS],
+                        idx.samples,
+                        direction=params["direction"],
+                        mirror=params["mirror"],
+                    )
+                    tk.add(r["distance"], rows[s : s + EXHAUSTIVE_ROWS], r)
+        out["exact"] = (hi - lo) * len(tops)
+    else:
+        if entry[1] is None:
+            entry[1] = idx.search_table()
+        table = entry[1]
+        qfeat = feature_vector(qcoef)
+        if rng is None:  # the window round
+            # each query over its window's cells of the whole table (the other cells
+            # skipped), through the one table's reads and cache: a table of its own per
+            # query copied every cell it opened
+            before = table.bytes_read
+            everything = np.arange(table.n_cells)
+            outside = [
+                np.setdiff1d(everything, _window(table, qfeat[qi], params["window"]), assume_unique=True)
+                for qi in range(len(tops))
+            ]
+            work = search_block(
+                table,
+                qcoef,
+                qfeat,
+                tops,
+                cascade,
+                skip_cells=outside,
+                threads=1,
+                done=lambda qi, _: keep_descriptors(qi, table),
+                expect_more=False,
+            )
+            _account(out, work)
+            out["bytes_read"] += table.bytes_read - before
+        else:
+            _, lo, hi = rng
+            key = ("range", lo, hi)
+            if (lo, hi) == (0, table.n_cells):
+                sub = table  # the whole index: no second table
+            else:
+                if key not in cache:
+                    cache[key] = table.subset((lo, hi))
+                sub = cache[key]
+            searched = sub
+            before = sub.bytes_read
+            asked, skips = [], []
+            for qi in range(len(tops)):
+                skip = None
+                if seeds is not None:
+                    # the window's cells were searched in the first round: their rows within
+                    # the K-th are all among the seeds already (skipped, not copied out into
+                    # a table of the other cells per query: at 1M that copy was most of a
+                    # query's time)
+                    window = _window(table, qfeat[qi], params["window"])
+                    inside = window[(window >= lo) & (window < hi)]
+                    if len(inside) == hi - lo:
+                        continue
+                    skip = inside - lo
+                asked.append(qi)
+                skips.append(skip)
+            work = search_block(
+                sub,
+                qcoef[asked],
+                qfeat[asked],
+                [tops[qi] for qi in asked],
+                cascade,
+                skip_cells=skips,
+                threads=1,
+                done=lambda i, _: keep_descriptors(asked[i], sub),
+            )
+            _account(out, work)
+            out["bytes_read"] = sub.bytes_read - before
+    if params.get("final"):
+        # this task's answer is the query's answer: its distances from the reference path,
+        # exactly as search_index reports them (from the descriptors of the table searched)
+        from ..search.index_search import _recompute
+
+        _recompute(
+            idx,
+            qcoef,
+            tops,
+            search,
+            direction=params["direction"],
+            mirror=params["mirror"],
+            weights=None,
+            tables=searched,
+        )
+    out["tops"] = []
+    for q, tk in enumerate(tops):
+        keep = own_rows(q)
+        out["tops"].append(
+            {
+                "rows": tk.rows[keep].astype(np.int64),
+                "dist": np.asarray(tk.dist[keep], np.float64),
+                "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
+                "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
+                "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool),
+            }
+        )
+        if held[q] is not None:
+            # the rows' descriptors, for the client's recomputation (no scattered index reads)
+            out["tops"][-1]["coef"] = held[q]
+    return out
+
+
+class HeldDescriptors:
+    """A query's descriptors sent by the workers, behind the one method of a search table
+    that :func:`nfdmatch.search.index_search._recompute` uses."""
+
+    def __init__(self, parts: list) -> None:
+        self._coef = np.concatenate(parts)
+
+    def coefficients_at_positions(self, positions: np.ndarray) -> np.ndarray:
+        return self._coef[positions]
+
+
+def _window(table, query_features: np.ndarray, positions: int) -> np.ndarray:
+    """Ascending numbers of the cells of lowest bound for the query holding at least
+    ``positions`` rows (or every cell): the first round's window, the same on every worker."""
+    sizes = table.start[1:] - table.start[:-1]
+    order = np.argsort(table.cell_bounds(query_features), kind="stable")
+    n = int(np.searchsorted(np.cumsum(sizes[order]), positions)) + 1
+    return np.sort(order[:n])
+
+
+def _account(out: dict, work) -> None:
+    for key in ("exact", "truncated", "fine", "scanned", "cells"):
+        out[key] += getattr(work, key)
+
+
+def ranked(idx, tops, top) -> list[list]:
+    """The :class:`~nfdmatch.records.RankedMatch` es of :func:`nfdmatch.search.search_index`
+    from merged TopKs (the same code)."""
+    from ..search.index_search import ranked_rows
+
+    return ranked_rows(idx, tops, top)

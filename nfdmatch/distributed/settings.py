@@ -1,0 +1,51 @@
+"""What the cluster side shares: its settings (task sizes, the window, retries) and its error."""
+
+from __future__ import annotations
+
+from ..errors import NfdError
+
+__all__ = [
+    "ClusterError",
+    "DEFAULT_TIMEOUT",
+    "TASK_BYTES",
+    "TASK_FILES",
+    "QUERY_BLOCK",
+    "WINDOW_ROWS",
+    "RANGE_BYTES",
+    "RETRIES",
+    "INSTALL_HINT",
+]
+
+#: seconds to reach the scheduler and see a worker before giving up (``--scheduler-timeout``)
+DEFAULT_TIMEOUT = 10.0
+#: bytes of input files per build task at most: big enough that a task's overhead (~1 ms on
+#: the scheduler, a round trip) is small next to reading and describing, small enough that
+#: a retried task redoes little and that every worker gets several tasks
+TASK_BYTES = 16 << 20
+#: files per build task at most (many tiny files: keeps progress and retries fine-grained)
+TASK_FILES = 2048
+#: build tasks per worker thread at least, when the files allow (load balance)
+TASKS_PER_THREAD = 4
+#: queries per search task at most: progress granularity and the size of one task's answer
+QUERY_BLOCK = 256
+#: positions of a query's first-round window (its cells of lowest bound over the whole
+#: index): enough to hold its near neighbours, whose distances then seed every range
+WINDOW_ROWS = 2048
+#: a search table (features, norms, first harmonics, row numbers of every row) up to this
+#: size is searched whole by each worker; a bigger one is split in ranges, one per thread
+RANGE_BYTES = 2 << 30
+#: bytes per index row of a search table held in memory, at K = 16 (35 float32 features,
+#: 2 float64 norms, 4 x 3 complex64 harmonics, an int64 row)
+TABLE_ROW_BYTES = 260
+#: seconds between checks, while a query waits for its range tasks, that the workers they
+#: are pinned to are still there
+PIN_CHECK_SECONDS = 2.0
+#: times Dask re-runs a task that raised (a worker that died is rescheduled by the scheduler
+#: itself, up to ``distributed.scheduler.allowed-failures`` times)
+RETRIES = 2
+INSTALL_HINT = "pip install 'nfdmatch[distributed]' (dask and distributed)"
+
+
+class ClusterError(NfdError, RuntimeError):
+    """The cluster cannot be used: dask missing, scheduler unreachable, no workers, workers
+    running another nfdmatch or index format version, a task that failed on every retry."""
