@@ -186,6 +186,14 @@ class Version:
         # as an installed package runs: from bytecode (an environment with
         # PYTHONDONTWRITEBYTECODE would compile every module from source in every process)
         subprocess.run([sys.executable, "-m", "compileall", "-q", os.path.join(source, "nfdmatch")], check=True)
+        # each version on its own compiled kernels, as `make install` leaves them (a worktree
+        # of another commit has none: it would run on slower ones and flatter the new code)
+        subprocess.run(
+            [sys.executable, "-P", "-c", "from nfdmatch.matching import compile_kernels; compile_kernels()"],
+            env=self.env(),
+            cwd=source,
+            check=True,
+        )
 
     def env(self, **extra):
         env = dict(os.environ, PYTHONPATH=self.source, **extra)
