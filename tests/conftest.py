@@ -62,43 +62,6 @@ def run_cli(*args, env=None, input=None):
     return result.exit_code, result.stdout, result.stderr
 
 
-#: test modules that are end-to-end runs as a whole (subprocesses, signals, worker pools,
-#: fuzzing, pictures, Dask clusters): marked ``slow``, so that ``make test-fast`` (``-m "not
-#: slow"``) runs the unit tests in under a minute; ``make test`` runs everything
-SLOW_MODULES = {
-    "test_fuzz_formats",
-    "test_pool",
-    "test_distributed",
-    "test_render",
-    "test_cli_pictures",
-    "test_pictures",
-    "test_walkthrough",
-    "test_read_limits",
-    "test_rerank",
-    "test_integrity",
-    "test_extract",
-    "test_vtk_reader",
-}
-#: single slow tests in otherwise fast modules (each several seconds: real processes, big inputs)
-SLOW_TESTS = {
-    "test_readers_and_a_second_build_while_a_build_runs",
-    "test_kill_9_during_a_build_leaves_the_previous_index",
-    "test_exact_matches_the_brute_force_oracles_on_100_random_pairs",
-    "test_search_work_does_not_grow_with_the_index_for_a_near_duplicate",
-    "test_progress_bars_only_on_a_terminal_and_not_with_quiet",
-    "test_the_readme_makefile_runs_and_a_second_run_rebuilds_nothing",
-    "test_numba_without_a_cache_directory_falls_back_to_numpy",
-    "test_pruned_equals_exhaustive_on_an_index_file_with_cells",
-}
-
-
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else ""
-        if module in SLOW_MODULES or item.originalname in SLOW_TESTS:
-            item.add_marker(pytest.mark.slow)
-
-
 @pytest.fixture
 def reads(monkeypatch):
     """Paths read by in-process (jobs=1) builds: the index's reader of curve files, counted."""

@@ -16,6 +16,9 @@ from oracle import random_rigid_motion, random_smooth_curve, reverse, start_shif
 from nfdmatch import read_curve, read_curves, write_curves
 from conftest import ROOT, run_cli as run
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 SAMPLES = os.path.join(ROOT, "sample_curves")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -274,6 +274,7 @@ def test_tables_fit_the_terminal_and_fold_the_query_column(index, library):
 # --------------------------------------------------------------------------- progress
 
 
+@pytest.mark.slow
 def test_progress_bars_only_on_a_terminal_and_not_with_quiet(index, monkeypatch):
     from nfdmatch.cli import common
 
@@ -298,6 +299,7 @@ def readme_makefile() -> str:
     return re.search(r"```make\n(.*?)```", section, re.S).group(1)
 
 
+@pytest.mark.slow
 def test_the_readme_makefile_runs_and_a_second_run_rebuilds_nothing(tmp_path):
     (tmp_path / "Makefile").write_text(readme_makefile())
     shutil.copytree(LIBRARY, tmp_path / "curves")

@@ -11,25 +11,25 @@ import sys
 import h5py
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 pytest.importorskip("distributed")
 
+from conftest import run_cli  # noqa: E402
 from oracle import random_rigid_motion, smooth_curve_samplings, start_shift  # noqa: E402
 
 from nfdmatch import Curve, read_curves, write_curves  # noqa: E402
-from nfdmatch.cli import main  # noqa: E402
 from nfdmatch.distributed import ClusterError, connect  # noqa: E402
 from nfdmatch.index import build_index, open_index  # noqa: E402
 from nfdmatch.search import search_index  # noqa: E402
+
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
 
 #: attributes that record when a file was written, not what it holds
 _TIMES = {"created", "updated"}
 
 
-def run(*args, env=None):
-    result = CliRunner(env=env).invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
+run = run_cli
 
 
 @pytest.fixture(scope="module")

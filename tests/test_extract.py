@@ -12,13 +12,14 @@ import sys
 import numpy as np
 import pytest
 import trimesh
-from click.testing import CliRunner
 
-from nfdmatch.cli import main
 from nfdmatch.errors import MeshError, ParameterError, ReadError, UnknownFormatError
 from nfdmatch.extract import Contour, extract_contours, find_mesh_files, mesh_stem, section_levels, write_contours
 from nfdmatch.formats import read_curves
 from conftest import run_cli as run
+
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
 
 R_CYL, H_CYL, CYL_SIDES = 0.8, 8.0, 64  # a long cylinder along z
 R_MAJOR, R_MINOR = 2.0, 0.5  # a torus around z
@@ -421,13 +422,9 @@ def test_cli_extract_then_index_and_query(meshes, tmp_path):
         assert curve.n_vertices == r["vertices"]
 
     index = tmp_path / "i.h5"
-    result = CliRunner().invoke(
-        main,
-        ["index", "build", str(out_dir), "--index", str(index), "--jobs", "1", "--format", "json"],
-        catch_exceptions=False,
-    )
-    assert result.exit_code == 0, result.stderr
-    summary = json.loads(result.stdout)
+    code, out, err = run("index", "build", out_dir, "--index", index, "--jobs", "1", "--format", "json")
+    assert code == 0, err
+    summary = json.loads(out)
     assert summary["curves"] == len(rows) and summary["failed"] == 0
 
     query = torus_rows[0]["file"]  # the spiric section at x = -2

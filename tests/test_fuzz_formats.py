@@ -22,6 +22,9 @@ import fuzzing
 from nfdmatch.errors import MAX_MESSAGE_CHARS, NfdError
 from nfdmatch.formats import read_curves
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 MUTANTS_PER_FORMAT = 250  # 16 formats: 4,000 mutants, about 15 s
 
 

@@ -967,6 +967,7 @@ def _temps(folder):
     return [n for n in os.listdir(folder) if n.startswith(".idx.h5.tmp-")]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc and kill -9")
 def test_kill_9_during_a_build_leaves_the_previous_index(big, tmp_path):
     idx_path = tmp_path / "idx.h5"
@@ -1013,6 +1014,7 @@ def test_kill_9_during_a_build_leaves_the_previous_index(big, tmp_path):
     assert any("temporary file(s) left by an interrupted build" in n for n in report.notices)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses fork and flock")
 def test_readers_and_a_second_build_while_a_build_runs(big, tmp_path):
     idx_path = tmp_path / "idx.h5"

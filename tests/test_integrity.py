@@ -9,18 +9,22 @@ import shutil
 import subprocess
 import sys
 
+from types import SimpleNamespace
+
 import h5py
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
+from conftest import run_cli
 from oracle import random_smooth_curve
 
 from nfdmatch import Curve, write_curves
-from nfdmatch.cli import main
 from nfdmatch.errors import IndexFormatError
 from nfdmatch.index import build_index, open_index
 from nfdmatch.index.verify import verify_index
+
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
@@ -102,8 +106,9 @@ def _flip(path, dataset, chunk=0, at=None):
 
 
 def _cli(*args):
-    result = CliRunner().invoke(main, list(args), catch_exceptions=False)
-    return result
+    """run_cli's answer with the names of click's result (exit_code, stdout, stderr)."""
+    code, out, err = run_cli(*args)
+    return SimpleNamespace(exit_code=code, stdout=out, stderr=err)
 
 
 def test_a_built_index_checksums_every_dataset(built):

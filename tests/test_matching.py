@@ -31,6 +31,7 @@ def _pair_figures(a, b, scale="a1"):
     return exact, paper, o1, o2, max(bounds.values())
 
 
+@pytest.mark.slow
 def test_exact_matches_the_brute_force_oracles_on_100_random_pairs():
     rng = np.random.default_rng(20021)
     rows = []
@@ -617,6 +618,7 @@ def test_importing_and_a_small_distance_do_not_import_numba():
     assert out.stdout.strip() == "False"
 
 
+@pytest.mark.slow
 def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
     """numba raises when no cache directory is usable (read-only install, no writable home):
     exact_search must not fail, it stays on numpy."""

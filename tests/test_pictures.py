@@ -19,6 +19,9 @@ from nfdmatch.errors import ParameterError
 from nfdmatch.search import distance_matrix, rank_curves
 from nfdmatch.show import matches_from_curves
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 # --------------------------------------------------------------------------- single == batch
 

@@ -15,12 +15,14 @@ import time
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from conftest import run_cli
 
 import nfdmatch.index.pool as pool
-from nfdmatch.cli import main
 from nfdmatch.errors import ParameterError, WorkerError
 from nfdmatch.index import build_index, open_index
+
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
@@ -60,9 +62,7 @@ def _ids(index_path):
         return sorted(os.path.normpath(os.path.join(home, i)) for i in idx.ids())
 
 
-def _invoke(*args, env=None):
-    result = CliRunner(env=env).invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
+_invoke = run_cli
 
 
 # --------------------------------------------------------------------------- batches

@@ -20,6 +20,9 @@ from nfdmatch.formats import read_curve, read_curves, supported_extensions, writ
 from nfdmatch.formats import _chain
 from nfdmatch.sources import find_curve_files, read_all, walk_folder
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 SQUARE = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]]
 
 

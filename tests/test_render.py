@@ -29,6 +29,9 @@ from nfdmatch.render import (
     short_labels,
 )
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 SMALL = (640, 360)
 

@@ -11,21 +11,21 @@ import os
 import h5py
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
+from conftest import run_cli
 from oracle import random_rigid_motion, smooth_curve_samplings
 
 from nfdmatch import Curve, write_curves
-from nfdmatch.cli import main
 from nfdmatch.errors import IndexFormatError, ParameterError
 from nfdmatch.index import build_index, open_index
 from nfdmatch.search import distance_matrix, search_index
 from nfdmatch.search.rerank import diffused_similarity, rerank_index
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
 
-def run(*args):
-    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    return result.exit_code, result.stdout, result.stderr
+
+run = run_cli
 
 
 def family_curves(rng, families=16, members=12, spread=0.25, harmonics=5):

@@ -76,6 +76,7 @@ def test_pruned_search_equals_exhaustive_ranking(seed, top, families, members, n
     _same(pruned, full)
 
 
+@pytest.mark.slow
 @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(seed=st.integers(0, 2**32 - 1), top=st.integers(1, 15), max_distance=st.sampled_from([None, 0.05, 0.3]))
 def test_pruned_equals_exhaustive_on_an_index_file_with_cells(seed, top, max_distance, tmp_path_factory, monkeypatch):
@@ -101,6 +102,7 @@ def test_pruned_equals_exhaustive_on_an_index_file_with_cells(seed, top, max_dis
     assert stats.cells <= stats.cell_count * len(queries)
 
 
+@pytest.mark.slow
 def test_search_work_does_not_grow_with_the_index_for_a_near_duplicate(rng):
     """One best-first order over all rows: adding unrelated rows (here, in front of the
     query's family) changes neither the answer nor the number of exact distances much."""

@@ -21,6 +21,9 @@ from nfdmatch.formats import read_curves
 from nfdmatch.formats import vtk as vtk_format
 from nfdmatch.formats import _vtk_read
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 def _mesh(pv):
     """PolyData with polylines (closed and not), chained 2-point segments, a triangle and

@@ -14,6 +14,9 @@ import pytest
 
 from conftest import ROOT, run_cli as run
 
+#: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def meshes(tmp_path_factory):
