@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from .matching import EXACT, INVARIANT
 from .curve import Curve
 from .descriptors import START_STEP, DescriptorBatch, Descriptors, descriptors, points_at, reconstruct
 from .errors import CurveError, NfdError
@@ -57,8 +58,8 @@ def align_match(
     ranked: RankedMatch,
     *,
     source: str,
-    method: str = "exact",
-    direction: str = "invariant",
+    method: str = EXACT,
+    direction: str = INVARIANT,
     mirror: bool = False,
     alignment: Match | None = None,
 ) -> ShownMatch:
@@ -86,8 +87,8 @@ def matches_from_curves(
     samples: int,
     harmonics: int,
     scale: str,
-    method: str = "exact",
-    direction: str = "invariant",
+    method: str = EXACT,
+    direction: str = INVARIANT,
     mirror: bool = False,
 ) -> list[ShownMatch]:
     """Matches of a ranking over curves held in memory.
@@ -127,8 +128,8 @@ def matches_from_index(
     results: list[RankedMatch],
     index,
     *,
-    method: str = "exact",
-    direction: str = "invariant",
+    method: str = EXACT,
+    direction: str = INVARIANT,
     mirror: bool = False,
     read_curve: Callable[[str], Curve] | None = None,
     points: int = 256,
@@ -189,8 +190,8 @@ def show_ranked(
     samples: int | None = None,
     harmonics: int | None = None,
     scale: str | None = None,
-    method: str = "exact",
-    direction: str = "invariant",
+    method: str = EXACT,
+    direction: str = INVARIANT,
     mirror: bool = False,
 ) -> list[ShownMatch]:
     """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
@@ -216,8 +217,8 @@ def show_searched(
     index,
     *,
     top: int,
-    method: str = "exact",
-    direction: str = "invariant",
+    method: str = EXACT,
+    direction: str = INVARIANT,
     mirror: bool = False,
     read_curve: Callable[[str], Curve] | None = None,
 ) -> tuple[list[ShownMatch], list[str]]:

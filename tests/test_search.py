@@ -343,7 +343,7 @@ def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
     from nfdmatch.descriptors import descriptors_batch
     from nfdmatch.matching import exact_search
     from nfdmatch.search.bounds import feature_vector
-    from nfdmatch.search.engine import Cascade, TopK, search_block
+    from nfdmatch.search.engine import Cascade, BestRows, search_block
 
     curves = _family_curves(rng, 8, 4, 0.01)
     index = MemoryIndex(curves, rows_per_cell=4)
@@ -356,7 +356,7 @@ def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
             [query], samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
         ).coefficients[0]
         A = np.asarray(A, dtype=np.complex128)
-        top = TopK(5, None)
+        top = BestRows(5, None)
         search_block(table, A[None], feature_vector(A[None]), [top], Cascade(index.samples), skip_cells=[skip])
         everything = exact_search(A, index.coefficients_at(kept), index.samples)["distance"]
         best = kept[np.argsort(everything, kind="stable")[:5]]

@@ -7,9 +7,10 @@ import time
 
 import numpy as np
 
+from ..matching import EXACT, INVARIANT
 from .._version import __version__
 from ..errors import NfdError, ParameterError
-from ..search.engine import TopK
+from ..search.engine import BestRows
 from .build_tasks import batches, compute_batches, failed_answer, file_size
 from .search_tasks import HeldDescriptors, index_ranges, ranked, search_range
 from .settings import (
@@ -289,8 +290,8 @@ class Cluster:
         *,
         top: int | None = 10,
         max_distance: float | None = None,
-        method: str = "exact",
-        direction: str = "invariant",
+        method: str = EXACT,
+        direction: str = INVARIANT,
         mirror: bool = False,
         prune: bool = True,
         progress=None,
@@ -334,12 +335,12 @@ class Cluster:
         idx = open_index(index) if own else index
         try:
             from ..descriptors import descriptors_batch
-            from ..search.engine import TopK
+            from ..search.engine import BestRows
 
             path = os.path.abspath(idx.path)
             stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
             stats = SearchStats(queries=len(queries), rows=idx.n_curves, pruned=prune)
-            tops = [TopK(top, max_distance) for _ in queries]
+            tops = [BestRows(top, max_distance) for _ in queries]
             if idx.n_curves and len(queries):
                 qcoef = descriptors_batch(
                     queries, samples=idx.samples, harmonics=idx.harmonics, scale=idx.scale_mode
@@ -368,7 +369,7 @@ class Cluster:
                     from ..matching import exact_search, paper_search
                     from ..search.index_search import _recompute
 
-                    search = exact_search if method == "exact" else paper_search
+                    search = exact_search if method == EXACT else paper_search
                     held = [
                         HeldDescriptors(self._held[qi][0]) if self._held[qi][0] else None for qi in range(len(tops))
                     ]
@@ -409,7 +410,7 @@ class Cluster:
         # per query: the descriptors the workers sent with their rows, and their count
         self._held = [[[], 0] for _ in range(Q)]
         if seeded:
-            found = [TopK(params["top"], params["max_distance"]) for _ in range(Q)]
+            found = [BestRows(params["top"], params["max_distance"]) for _ in range(Q)]
             done = self._round(
                 [(None, everyone, None)], path, stamp, qcoef, found, stats, progress, total, done, params
             )

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..search.engine import TopK
+from ..search.engine import BestRows
 from .settings import ClusterError
 
 
@@ -55,8 +55,8 @@ def _worker_index(path: str, stamp: tuple):
     return entry
 
 
-class _SeededTopK(TopK):
-    """A TopK holding rows found elsewhere (seeds) from the start: a row of this range that
+class SeededBestRows(BestRows):
+    """A BestRows holding rows found elsewhere (seeds) from the start: a row of this range that
     is also a seed is not added twice (it would count twice towards the K-th distance)."""
 
     def __init__(self, k, max_distance, seed: dict | None):
@@ -107,7 +107,7 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
     cascade = Cascade(idx.samples, params["method"], params["direction"], params["mirror"])
     search = cascade.distance
     tops = [
-        _SeededTopK(params["top"], params["max_distance"], None if seeds is None else seeds[q])
+        SeededBestRows(params["top"], params["max_distance"], None if seeds is None else seeds[q])
         for q in range(len(qcoef))
     ]
     out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
@@ -278,7 +278,7 @@ def _account(out: dict, work) -> None:
 
 def ranked(idx, tops, top) -> list[list]:
     """The :class:`~nfdmatch.records.RankedMatch` es of :func:`nfdmatch.search.search_index`
-    from merged TopKs (the same code)."""
+    from merged BestRows objects (the same code)."""
     from ..search.index_search import ranked_rows
 
     return ranked_rows(idx, tops, top)

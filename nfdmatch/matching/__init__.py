@@ -34,7 +34,18 @@ import numpy as np
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, Descriptors, descriptors
 from ..errors import ParameterError
 from .bounds import invariants, lower_bound
-from .common import DEFAULT_DIRECTION, DEFAULT_METHOD, DIRECTIONS, METHODS, STRICT_DIRECTION, kabsch_trace
+from .common import (
+    DEFAULT_DIRECTION,
+    DEFAULT_METHOD,
+    DIRECTIONS,
+    EXACT,
+    INVARIANT,
+    METHODS,
+    PAPER,
+    STRICT,
+    STRICT_DIRECTION,
+    kabsch_trace,
+)
 from .kernels import NUMPY, Kernels, compile_kernels, use_kernels
 from .exact import exact_search, exact_search_pairs, grid_bound, grid_maximum
 from .paper import paper_search
@@ -65,6 +76,10 @@ __all__ = [
     "DEFAULT_METHOD",
     "DEFAULT_DIRECTION",
     "STRICT_DIRECTION",
+    "EXACT",
+    "PAPER",
+    "INVARIANT",
+    "STRICT",
 ]
 
 
@@ -156,7 +171,7 @@ def match_descriptors(
     that `distance`, `show` and their pictures are the same bytes on every install."""
     if (da.samples, da.harmonics, da.scale_mode) != (db.samples, db.harmonics, db.scale_mode):
         raise ParameterError("descriptors were computed with different parameters")
-    if method == "exact":
+    if method == EXACT:
         r = exact_search(
             da.coefficients,
             db.coefficients,

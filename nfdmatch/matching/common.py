@@ -13,7 +13,10 @@ from ..errors import ParameterError
 METHODS = ("exact", "paper")
 DIRECTIONS = ("invariant", "strict")
 #: the method and direction of every matching function and command unless told otherwise
-DEFAULT_METHOD, DEFAULT_DIRECTION = METHODS[0], DIRECTIONS[0]
+#: the names, one constant each (a parameter spells them through these)
+EXACT, PAPER = METHODS
+INVARIANT, STRICT = DIRECTIONS
+DEFAULT_METHOD, DEFAULT_DIRECTION = EXACT, INVARIANT
 #: the direction that does not match a curve traversed backwards (``--strict-direction``)
 STRICT_DIRECTION = DIRECTIONS[1]
 _REFINE_CANDIDATES = 3  # integer local maxima refined per row

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .common import INVARIANT
 from .common import (
     _REFINE_CANDIDATES,
     _check_direction,
@@ -85,7 +86,7 @@ def exact_search(
     samples: int,
     *,
     weights=None,
-    direction: str = "invariant",
+    direction: str = INVARIANT,
     mirror: bool = False,
     refine: bool = True,
     refine_below: float | None = None,
@@ -123,7 +124,7 @@ def exact_search(
     """
     A, B, w, n = _search_inputs(A, B, samples, weights, direction)
     N, K, _ = B.shape
-    D = 2 if direction == "invariant" else 1
+    D = 2 if direction == INVARIANT else 1
     C = min(_REFINE_CANDIDATES if refine else 1, D * n)
     Aw = np.conj(A) * w[:, None]
     kernels = kernels or current()
@@ -161,7 +162,7 @@ def exact_search_pairs(
     samples: int,
     *,
     weights=None,
-    direction: str = "invariant",
+    direction: str = INVARIANT,
     mirror: bool = False,
 ):
     """:func:`exact_search` of row i of ``A`` against row i of ``B``, every row at once, on the
@@ -179,7 +180,7 @@ def exact_search_pairs(
     A, B, w, n = _search_inputs(A, B, samples, weights, direction)
     if A.shape != B.shape or A.ndim != 3 or A.shape[2] != 3:
         raise ValueError(f"A and B must be (N, K, 3) alike, got {A.shape} and {B.shape}")
-    D = 2 if direction == "invariant" else 1
+    D = 2 if direction == INVARIANT else 1
     return _exact_numpy(A, B, w, n, direction, mirror, min(_REFINE_CANDIDATES, D * n), True, None)
 
 
@@ -187,7 +188,7 @@ def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
     """The numpy path of :func:`exact_search` (the reference) with the query given per row:
     A, B (N, K, 3) complex128, w (K,) float64; C candidates per row."""
     N, K, _ = B.shape
-    D = 2 if direction == "invariant" else 1
+    D = 2 if direction == INVARIANT else 1
     Aw = np.conj(A) * w[None, :, None]  # (N, K, 3)
     Bv = np.stack([v for v, _ in _direction_variants(B, direction)])  # (D, N, K, 3)
     # P[j, i, d, r, k] = 2 w_k B_k[j] conj(A_k[i]): M(s)[j, i] = Re sum_k P e^{2 pi i k s / n}
@@ -253,7 +254,7 @@ def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
 
 
 def grid_maximum(
-    A: np.ndarray, B: np.ndarray, grid: int, *, direction: str = "invariant", mirror: bool = False
+    A: np.ndarray, B: np.ndarray, grid: int, *, direction: str = INVARIANT, mirror: bool = False
 ) -> np.ndarray:
     """max over ``grid`` equally spaced start shifts, both directions (when ``direction`` is
     invariant) and all rotations of the correlation objective, per row.
@@ -285,7 +286,7 @@ def grid_bound(
     need: np.ndarray,
     *,
     ratio: int = 3,
-    direction: str = "invariant",
+    direction: str = INVARIANT,
     mirror: bool = False,
     kernels: Kernels | None = None,
 ) -> np.ndarray:
@@ -317,7 +318,7 @@ def grid_bound(
     _check_direction(direction)
     if grid % ratio or ratio % 2 == 0:
         raise ValueError(f"ratio must be odd and divide grid, got ratio {ratio}, grid {grid}")
-    D = 2 if direction == "invariant" else 1
+    D = 2 if direction == INVARIANT else 1
     Aw = np.conj(A)
     slack_coarse, slack_fine, need = (
         np.ascontiguousarray(x, dtype=np.float64) for x in (slack_coarse, slack_fine, need)

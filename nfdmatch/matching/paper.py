@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .common import INVARIANT
 from .common import _search_inputs
 
 
@@ -32,7 +33,7 @@ def _bisector_angle(c1: np.ndarray) -> np.ndarray:
 
 
 def paper_search(
-    A: np.ndarray, B: np.ndarray, samples: int, *, weights=None, direction: str = "invariant", mirror: bool = False
+    A: np.ndarray, B: np.ndarray, samples: int, *, weights=None, direction: str = INVARIANT, mirror: bool = False
 ):
     """The paper's matching step (Zhang & Fiume 2002, section 4.2.3), one query against many rows.
 
@@ -46,9 +47,9 @@ def paper_search(
     """
     A, B, w, n = _search_inputs(A, B, samples, weights, direction)
     N, K, _ = B.shape
-    names = ["forward"] + (["reversed"] if direction == "invariant" else [])
+    names = ["forward"] + (["reversed"] if direction == INVARIANT else [])
     if mirror:
-        names += ["mirrored"] + (["mirrored_reversed"] if direction == "invariant" else [])
+        names += ["mirrored"] + (["mirrored_reversed"] if direction == INVARIANT else [])
     k = np.arange(1, K + 1)
     shifts = np.arange(n)
     phase = np.exp(2j * np.pi * np.outer(shifts, k) / n)  # (n, K)

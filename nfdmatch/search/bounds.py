@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..matching import INVARIANT
+
 __all__ = [
     "feature_vector",
     "feature_split",
@@ -187,7 +189,7 @@ def truncated_lower_bounds(
     A: np.ndarray,
     B: np.ndarray,
     *,
-    direction: str = "invariant",
+    direction: str = INVARIANT,
     mirror: bool = False,
     harmonics: int = TRUNCATED_HARMONICS,
     grid: int = TRUNCATED_GRID,

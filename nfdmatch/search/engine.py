@@ -20,9 +20,10 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from ..matching import EXACT, INVARIANT
 from .bounds import row_lower_bounds, truncated_lower_bounds, truncated_stages
 
-__all__ = ["TopK", "QueryWork", "Cascade", "search_block", "margin", "TIE"]
+__all__ = ["BestRows", "QueryWork", "Cascade", "search_block", "margin", "TIE"]
 
 #: a bound prunes a row only when it exceeds the k-th distance by this much: the exact
 #: distance is a numerical optimum, the stored features are float32
@@ -45,7 +46,7 @@ def margin(threshold: float) -> float:
     return threshold * (1 + _PRUNE_RELATIVE) + _PRUNE_ABSOLUTE
 
 
-class TopK:
+class BestRows:
     """The best rows seen so far for one query: every row within the k-th distance (ties kept).
 
     ``extra`` holds per row the alignment (shift, reversed, mirrored) and ``position``: where
@@ -109,8 +110,8 @@ class Cascade:
     the exact distance (``truncate``: an option for measuring their effect)."""
 
     samples: int
-    method: str = "exact"
-    direction: str = "invariant"
+    method: str = EXACT
+    direction: str = INVARIANT
     mirror: bool = False
     truncate: bool = True
 
@@ -119,14 +120,14 @@ class Cascade:
         """The distance function of ``method``: ``exact_search`` or ``paper_search``."""
         from ..matching import exact_search, paper_search
 
-        return exact_search if self.method == "exact" else paper_search
+        return exact_search if self.method == EXACT else paper_search
 
 
 def search_block(
     table,
     query_coefficients: np.ndarray,
     query_features: np.ndarray,
-    nearest: Sequence["TopK"],
+    nearest: Sequence["BestRows"],
     cascade: Cascade,
     *,
     skip_cells: Sequence[np.ndarray | None] | None = None,
@@ -142,12 +143,12 @@ def search_block(
     table : :class:`~nfdmatch.search.table.SearchTable`.
     query_coefficients : (Q, K, 3) complex128; query_features : (Q, D) float64
         (:func:`~nfdmatch.search.bounds.feature_vector`).
-    nearest : Q :class:`TopK` (their k and max_distance set each threshold). A TopK may hold
+    nearest : Q :class:`BestRows` (their k and max_distance set each threshold). A BestRows may hold
         rows already (seeds found elsewhere: they count towards its k-th distance from the
         start, so the search prunes as if it had seen them).
     cascade : :class:`Cascade`.
     skip_cells : per query, cells never to open (searched before, their rows accounted for
-        in the query's TopK already), or None.
+        in the query's BestRows already), or None.
     threads : queries answered in parallel (default: the cores, at most 4).
     done : ``done(i, work)`` after query i, on the calling thread, in query order when one
         thread answers, else as queries finish.
@@ -212,24 +213,24 @@ class _Sorted:
     _MAX_RUNS = 16
 
     def __init__(self):
-        self._runs: list[list] = []  # [bound, rows, slots, pos]
+        self._runs: list[list] = []  # [bound, rows, positions, front]
 
     def head(self) -> float:
         best = np.inf
-        for bound, _, _, pos in self._runs:
-            if bound[pos] < best:
-                best = bound[pos]
+        for bound, _, _, front in self._runs:
+            if bound[front] < best:
+                best = bound[front]
         return float(best)
 
     def __len__(self) -> int:
         return sum(len(r[0]) - r[3] for r in self._runs)
 
-    def merge(self, bound, rows, slots, limit: float) -> None:
+    def merge(self, bound, rows, positions, limit: float) -> None:
         """Add rows; every waiting row bounded above ``limit`` (the current pruning
         threshold, which only decreases) may be dropped: it can never be needed."""
         if len(bound):
             order = np.argsort(bound, kind="stable")
-            self._runs.append([bound[order], rows[order], slots[order], 0])
+            self._runs.append([bound[order], rows[order], positions[order], 0])
         if len(self._runs) > self._MAX_RUNS:
             runs = self._runs
             b = np.concatenate([r[0][r[3] :] for r in runs])
@@ -250,13 +251,13 @@ class _Sorted:
 
     def take(self, count: int, limit: float):
         """Up to about ``count`` rows from the front with a bound at most ``limit`` (at least
-        one): ``(bound, rows, slots)``; ties at the cut may add a few."""
+        one): ``(bound, rows, positions)``; ties at the cut may add a few."""
         ends = []
         total = 0
-        for bound, _, _, pos in self._runs:
-            end = min(pos + count, int(np.searchsorted(bound, limit, side="right")))
+        for bound, _, _, front in self._runs:
+            end = min(front + count, int(np.searchsorted(bound, limit, side="right")))
             ends.append(end)
-            total += end - pos
+            total += end - front
         if total == 0:  # nothing within limit: the single smallest
             i = int(np.argmin([r[0][r[3]] for r in self._runs]))
             ends = [r[3] for r in self._runs]
@@ -278,7 +279,7 @@ def _search_one(
     query_coefficients: np.ndarray,
     query_features: np.ndarray,
     table,
-    top: "TopK",
+    top: "BestRows",
     cascade: Cascade,
     skip_cells: np.ndarray | None = None,
 ) -> QueryWork:
@@ -360,12 +361,12 @@ def _search_one(
         if q_at < len(stages) and np.isfinite(thr):
             # the next stage's bound for a batch of this queue's rows (straight to exact
             # while no k-th distance exists: nothing could be pruned yet)
-            _, rows, slots = queues[q_at].take(batch[q_at], limit)
+            _, rows, positions = queues[q_at].take(batch[q_at], limit)
             if len(rows) >= _TRUNCATE_FROM or q_at > 0:
                 Kp, grid = stages[q_at]
                 tb = truncated_lower_bounds(
                     query_coefficients,
-                    table.coefficients_at_positions(slots, Kp, expect=len(rows) + len(queues[q_at])),
+                    table.coefficients_at_positions(positions, Kp, expect=len(rows) + len(queues[q_at])),
                     direction=direction,
                     mirror=mirror,
                     harmonics=Kp,
@@ -377,17 +378,17 @@ def _search_one(
                 else:
                     work.fine += len(rows)
                 keep = tb <= thr
-                queues[q_at + 1].merge(tb[keep], rows[keep], slots[keep], thr)
+                queues[q_at + 1].merge(tb[keep], rows[keep], positions[keep], thr)
                 batch[q_at] = min(batch[q_at] * 2, MAX_BATCH)
                 continue
         else:
             size = exact_batch if q_at == len(stages) and q_at > 0 else batch[q_at]
-            _, rows, slots = queues[q_at].take(size, limit)
+            _, rows, positions = queues[q_at].take(size, limit)
             if q_at == len(stages) and q_at > 0:
                 exact_batch = min(exact_batch * 2, EXACT_BATCH)
             elif q_at < len(stages):
                 batch[q_at] = min(batch[q_at] * 2, MAX_BATCH)
-        coefficients = table.coefficients_at_positions(slots) if complete else table.coefficients(rows)
+        coefficients = table.coefficients_at_positions(positions) if complete else table.coefficients(rows)
         _exact(
             query_coefficients,
             rows,
@@ -400,7 +401,7 @@ def _search_one(
             mirror,
             samples,
             thr,
-            slots if complete else None,
+            positions if complete else None,
         )
     return work
 
@@ -408,7 +409,7 @@ def _search_one(
 def _exact(
     query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr, positions=None
 ):
-    extra = {"refine_below": thr} if method == "exact" else {}
+    extra = {"refine_below": thr} if method == EXACT else {}
     r = search(query_coefficients, coefficients, samples, direction=direction, mirror=mirror, **extra)
     if positions is not None:
         r["position"] = positions

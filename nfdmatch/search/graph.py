@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .bounds import feature_vector, head_harmonics
-from .engine import TIE, Cascade, TopK, search_block
+from .engine import TIE, Cascade, BestRows, search_block
 from .table import SearchTable
 
 __all__ = ["neighbour_lists"]
@@ -57,7 +57,7 @@ def neighbour_lists(
     search(
         searched,
         table,
-        lambda block: [TopK(k + 1, None) for _ in block],
+        lambda block: [BestRows(k + 1, None) for _ in block],
         lambda i, rows, d: _store(i, rows, d, ids, neighbour, distance, k),
     )
     changed = 0
@@ -81,7 +81,7 @@ def neighbour_lists(
                 changed += not np.array_equal(before, neighbour[i])
 
         # a copied list changes only where a fresh row comes within its k-th distance
-        search(check, small, lambda block: [TopK(k, float(distance[i, -1]) + TIE) for i in block], merge)
+        search(check, small, lambda block: [BestRows(k, float(distance[i, -1]) + TIE) for i in block], merge)
     return len(searched), changed
 
 

@@ -9,11 +9,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..matching import EXACT
 from ..errors import ParameterError
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, exact_search, paper_search
 from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
-from .engine import TIE, Cascade, TopK, search_block
+from .engine import TIE, Cascade, BestRows, search_block
 from .bounds import feature_vector
 
 if TYPE_CHECKING:
@@ -149,8 +150,8 @@ def search_index(
     qcoef = descriptors_batch(
         queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
     ).coefficients
-    tops = [TopK(top, max_distance) for _ in queries]
-    search = exact_search if method == "exact" else paper_search
+    tops = [BestRows(top, max_distance) for _ in queries]
+    search = exact_search if method == EXACT else paper_search
     stats = SearchStats(queries=len(queries), rows=index.n_curves, pruned=prune)
     if not prune:
         stats.exact = _exhaustive(
@@ -192,7 +193,7 @@ def without_self(index, queries, results: list[list[RankedMatch]], top: int | No
 
 
 def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
-    """Each :class:`~nfdmatch.search.engine.TopK` as the matches :func:`search_index`
+    """Each :class:`~nfdmatch.search.engine.BestRows` as the matches :func:`search_index`
     returns: sorted by distance, distances within ``TIE`` by id, at most ``top``."""
     results = []
     # every query's ids in one read (a read of strings costs the same for one row or many)
@@ -236,7 +237,7 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
     mostly per call), each row with the digits a pass of its own would give; a pass's
     descriptors are read for it alone (memory stays bounded however many rows match).
 
-    queries : (Q, K, 3) descriptors; tops : Q :class:`TopK`; tables : None, one search table
+    queries : (Q, K, 3) descriptors; tops : Q :class:`BestRows`; tables : None, one search table
     for every query, or one per query (or None): the descriptors come from the query's table
     (the search's, already read) when it holds them all, else from the index (a scattered
     read: up to a whole HDF5 chunk per row).

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..matching import EXACT, INVARIANT, METHODS
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
 from ..errors import ParameterError
 from ..matching import exact_search, paper_search
@@ -26,8 +27,8 @@ def distance_matrix(
     samples: int = DEFAULT_SAMPLES,
     harmonics: int = DEFAULT_HARMONICS,
     scale: str = DEFAULT_SCALE,
-    method: str = "exact",
-    direction: str = "invariant",
+    method: str = EXACT,
+    direction: str = INVARIANT,
     mirror: bool = False,
     weights: ArrayLike | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -52,12 +53,12 @@ def distance_matrix(
     """
     from ..descriptors import descriptors_batch
 
-    if method not in ("exact", "paper"):
+    if method not in METHODS:
         raise ParameterError(f"method must be exact or paper, got {method!r}")
     batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
     N = len(batch)
     matrix = np.zeros((N, N))
-    search = exact_search if method == "exact" else paper_search
+    search = exact_search if method == EXACT else paper_search
     total, done = N * (N - 1) // 2, 0
     for i in range(N - 1):
         # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
+from ..matching import EXACT, INVARIANT
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, descriptors
 from ..errors import ParameterError
 from ..records import RankedMatch
@@ -26,8 +27,8 @@ def rank_curves(
     samples: int = DEFAULT_SAMPLES,
     harmonics: int = DEFAULT_HARMONICS,
     scale: str = DEFAULT_SCALE,
-    method: str = "exact",
-    direction: str = "invariant",
+    method: str = EXACT,
+    direction: str = INVARIANT,
     mirror: bool = False,
     weights: ArrayLike | None = None,
     exclude_self: bool = False,
