@@ -16,10 +16,11 @@ import numpy as np
 
 from .matching import EXACT, INVARIANT
 from .curve import Curve
-from .descriptors import START_STEP, DescriptorBatch, Descriptors, descriptors, points_at, reconstruct
+from .descriptors import START_STEP, Descriptors, descriptors, points_at, reconstruct
 from .errors import CurveError, NfdError
 from .matching import Match, match_descriptors
 from .records import RankedMatch, ShownMatch
+from .search.knn import stored_descriptors
 
 __all__ = [
     "ShownMatch",
@@ -108,21 +109,6 @@ def matches_from_curves(
     return shown
 
 
-def _stored_descriptors(index, row: int, curve_id: str) -> Descriptors:
-    """The descriptors an index keeps for one row (true size and pose included)."""
-    r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
-    return DescriptorBatch(
-        r["coefficients"],
-        r["rotation"],
-        r["centroid"],
-        r["scale"],
-        r["plane_degenerate"],
-        index.samples,
-        index.harmonics,
-        index.scale_mode,
-    ).row(0, curve_id)
-
-
 def matches_from_index(
     query: Curve,
     results: list[RankedMatch],
@@ -165,7 +151,7 @@ def matches_from_index(
                 shown.append(align_match(dq, db, curve.points, ranked, source="file", alignment=m))
                 continue
             reason = f"the file changed since it was indexed (distance now {m.distance:.4g})"
-        db = _stored_descriptors(index, ranked.row, curve_id)
+        db = stored_descriptors(index, ranked.row, curve_id)
         shown.append(
             align_match(
                 dq,

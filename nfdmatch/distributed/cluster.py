@@ -367,13 +367,15 @@ class Cluster:
                     # the reported distances from the reference path, as a local search does,
                     # from the descriptors the workers sent with their rows (else read here)
                     from ..matching import exact_search, paper_search
-                    from ..search.index_search import _recompute
+                    from ..search.index_search import recompute_reported
 
                     search = exact_search if method == EXACT else paper_search
                     held = [
                         HeldDescriptors(self._held[qi][0]) if self._held[qi][0] else None for qi in range(len(tops))
                     ]
-                    _recompute(idx, qcoef, tops, search, direction=direction, mirror=mirror, weights=None, tables=held)
+                    recompute_reported(
+                        idx, qcoef, tops, search, direction=direction, mirror=mirror, weights=None, tables=held
+                    )
                     self._held = None
             results = ranked(idx, tops, top)
             if exclude_self:

@@ -133,25 +133,17 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
                 held[qi] = table.coefficients_at_positions(positions)
 
     if rng is not None and rng[0] == "rows":
-        from ..search.index_search import EXHAUSTIVE_ROWS
+        from ..search.index_search import EXHAUSTIVE_ROWS, exhaustive_rows
 
         kind, lo, hi = rng
-        for a in range(lo, hi, EXHAUSTIVE_ROWS * 8):
-            b = min(hi, a + EXHAUSTIVE_ROWS * 8)
-            coefficients = idx.read_rows(a, b, ("coefficients",), upcast=False)["coefficients"]
-            out["bytes_read"] += coefficients.nbytes
-            rows = np.arange(a, b)
-            for qi, tk in enumerate(tops):
-                for s in range(0, len(rows), EXHAUSTIVE_ROWS):
-                    r = search(
-                        qcoef[qi],
-                        coefficients[s : s + EXHAUSTIVE_ROWS],
-                        idx.samples,
-                        direction=params["direction"],
-                        mirror=params["mirror"],
-                    )
-                    tk.add(r["distance"], rows[s : s + EXHAUSTIVE_ROWS], r)
-        out["exact"] = (hi - lo) * len(tops)
+        step = EXHAUSTIVE_ROWS * 8
+        chunks = (
+            (a, idx.read_rows(a, min(hi, a + step), ("coefficients",), upcast=False)["coefficients"])
+            for a in range(lo, hi, step)
+        )
+        out["exact"], out["bytes_read"] = exhaustive_rows(
+            qcoef, tops, chunks, search, idx.samples, direction=params["direction"], mirror=params["mirror"]
+        )
     else:
         if entry[1] is None:
             entry[1] = idx.search_table()
@@ -221,9 +213,9 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
     if params.get("final"):
         # this task's answer is the query's answer: its distances from the reference path,
         # exactly as search_index reports them (from the descriptors of the table searched)
-        from ..search.index_search import _recompute
+        from ..search.index_search import recompute_reported
 
-        _recompute(
+        recompute_reported(
             idx,
             qcoef,
             tops,
@@ -253,7 +245,7 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
 
 class HeldDescriptors:
     """A query's descriptors sent by the workers, behind the one method of a search table
-    that :func:`nfdmatch.search.index_search._recompute` uses."""
+    that :func:`nfdmatch.search.index_search.recompute_reported` uses."""
 
     def __init__(self, parts: list) -> None:
         self._coef = np.concatenate(parts)

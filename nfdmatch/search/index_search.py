@@ -154,8 +154,21 @@ def search_index(
     search = exact_search if method == EXACT else paper_search
     stats = SearchStats(queries=len(queries), rows=index.n_curves, pruned=prune)
     if not prune:
-        stats.exact = _exhaustive(
-            index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights, progress=progress
+        chunks = (
+            (start, chunk["coefficients"])
+            for start, chunk in index.iter_chunks(EXHAUSTIVE_ROWS * 8, ("coefficients",), upcast=False)
+        )
+        stats.exact, _ = exhaustive_rows(
+            qcoef,
+            tops,
+            chunks,
+            search,
+            index.samples,
+            direction=direction,
+            mirror=mirror,
+            weights=weights,
+            progress=progress,
+            total=index.n_curves,
         )
     elif index.n_curves and len(queries):
         table = index.search_table()
@@ -172,11 +185,13 @@ def search_index(
         work = search_block(table, qcoef, feature_vector(qcoef), tops, cascade, threads=threads, done=done)
         for key in ("exact", "truncated", "fine", "scanned", "cells"):
             setattr(stats, key, getattr(work, key))
-        _recompute(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights, tables=table)
+        recompute_reported(
+            index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights, tables=table
+        )
         stats.bytes_read = table.bytes_read
 
     if not prune:
-        _recompute(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights)
+        recompute_reported(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights)
     results = ranked_rows(index, tops, top)
     stats.kernels = current_kernels().describe()
     stats.seconds = time.perf_counter() - t0
@@ -223,7 +238,7 @@ def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
     return results
 
 
-def _recompute(index, queries, tops, search, *, direction, mirror, weights, tables=None) -> None:
+def recompute_reported(index, queries, tops, search, *, direction, mirror, weights, tables=None) -> None:
     """Replace the distances, shifts and flags of the rows the queries found by the numpy
     reference path's, in a fixed order.
 
@@ -304,18 +319,23 @@ def _recompute(index, queries, tops, search, *, direction, mirror, weights, tabl
         tk.extra = {key: (positions if key == "position" else r[key])[keep] for key in tk.extra}
 
 
-def _exhaustive(index, qcoef, tops, search, *, direction, mirror, weights, progress) -> int:
-    """Every exact distance, index rows in order (no bound consulted); returns their count."""
-    done = 0
-    for start, chunk in index.iter_chunks(EXHAUSTIVE_ROWS * 8, ("coefficients",), upcast=False):
-        coefficients = chunk["coefficients"]
+def exhaustive_rows(
+    qcoef, tops, chunks, search, samples: int, *, direction, mirror, weights=None, progress=None, total=None
+) -> tuple[int, int]:
+    """Every exact distance between the queries and the rows of ``chunks`` (no bound
+    consulted): ``chunks`` yields ``(first row, (m, K, 3) descriptors)`` in order; each
+    query's distances go into its :class:`BestRows` in ``tops``. Returns ``(distances,
+    bytes read)``. ``progress(rows done, total)`` after each chunk."""
+    done = nbytes = 0
+    for start, coefficients in chunks:
+        nbytes += coefficients.nbytes
         rows = np.arange(start, start + len(coefficients))
         for qi, tk in enumerate(tops):
             for a in range(0, len(rows), EXHAUSTIVE_ROWS):
                 r = search(
                     qcoef[qi],
                     coefficients[a : a + EXHAUSTIVE_ROWS],
-                    index.samples,
+                    samples,
                     direction=direction,
                     mirror=mirror,
                     weights=weights,
@@ -323,5 +343,5 @@ def _exhaustive(index, qcoef, tops, search, *, direction, mirror, weights, progr
                 tk.add(r["distance"], rows[a : a + EXHAUSTIVE_ROWS], r)
         done += len(rows)
         if progress is not None:
-            progress(done, index.n_curves)
-    return done * len(tops)
+            progress(done, total)
+    return done * len(tops), nbytes

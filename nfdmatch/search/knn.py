@@ -14,7 +14,7 @@ from ..curve import STDIN_ID, Curve
 from ..errors import ParameterError
 from ..records import RankedMatch
 
-__all__ = ["as_queries", "is_self", "drop_self", "search"]
+__all__ = ["as_queries", "is_self", "drop_self", "search", "stored_descriptors"]
 
 
 def as_queries(queries) -> list[Curve]:
@@ -101,25 +101,29 @@ def search(
 
 def _posed(index, query: Curve, found: Sequence[RankedMatch], options: dict) -> list[RankedMatch]:
     """``found`` with each match's alignment onto ``query`` (its stored descriptors)."""
-    from ..descriptors import DescriptorBatch, descriptors
+    from ..descriptors import descriptors
     from ..matching import match_descriptors
 
     if not found:
         return list(found)
     dq = descriptors(query, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode)
     how = {key: options[key] for key in ("method", "direction", "mirror") if key in options}
-    out = []
-    for m in found:
-        r = index.read_rows(m.row, m.row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
-        db = DescriptorBatch(
-            r["coefficients"],
-            r["rotation"],
-            r["centroid"],
-            r["scale"],
-            r["plane_degenerate"],
-            index.samples,
-            index.harmonics,
-            index.scale_mode,
-        ).row(0, m.id)
-        out.append(m.replace(pose=match_descriptors(dq, db, **how)))
-    return out
+    return [m.replace(pose=match_descriptors(dq, stored_descriptors(index, m.row, m.id), **how)) for m in found]
+
+
+def stored_descriptors(index, row: int, curve_id: str):
+    """The :class:`~nfdmatch.descriptors.Descriptors` an index keeps for one row (true size
+    and pose included: its rotation, centroid and scale)."""
+    from ..descriptors import DescriptorBatch
+
+    r = index.read_rows(row, row + 1, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate"])
+    return DescriptorBatch(
+        r["coefficients"],
+        r["rotation"],
+        r["centroid"],
+        r["scale"],
+        r["plane_degenerate"],
+        index.samples,
+        index.harmonics,
+        index.scale_mode,
+    ).row(0, curve_id)
