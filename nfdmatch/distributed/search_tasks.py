@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..search.engine import BestRows
+from ..search.bounds import feature_vector
+from ..search.engine import BestRows, Cascade, QueryWork, search_block
 from .settings import ClusterError
 
 
@@ -99,13 +100,9 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
     Returns ``{"tops": [per query {rows (m,) int64, dist (m,) float64, shift (m,) float64,
     reversed (m,) bool, mirrored (m,) bool}], exact, truncated, scanned, cells,
     bytes_read}`` (plain arrays and ints)."""
-    from ..search.bounds import feature_vector
-    from ..search.engine import Cascade, search_block
-
     entry = _worker_index(path, stamp)
     idx, cache = entry[0], entry[2]
     cascade = Cascade(idx.samples, params["method"], params["direction"], params["mirror"])
-    search = cascade.distance
     tops = [
         SeededBestRows(params["top"], params["max_distance"], None if seeds is None else seeds[q])
         for q in range(len(qcoef))
@@ -133,83 +130,20 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
                 held[qi] = table.coefficients_at_positions(positions)
 
     if rng is not None and rng[0] == "rows":
-        from ..search.index_search import EXHAUSTIVE_ROWS, exhaustive_rows
-
-        kind, lo, hi = rng
-        step = EXHAUSTIVE_ROWS * 8
-        chunks = (
-            (a, idx.read_rows(a, min(hi, a + step), ("coefficients",), upcast=False)["coefficients"])
-            for a in range(lo, hi, step)
-        )
-        out["exact"], out["bytes_read"] = exhaustive_rows(
-            qcoef, tops, chunks, search, idx.samples, direction=params["direction"], mirror=params["mirror"]
-        )
+        out["exact"], out["bytes_read"] = _rows_round(idx, rng, qcoef, tops, cascade)
     else:
         if entry[1] is None:
             entry[1] = idx.search_table()
         table = entry[1]
         qfeat = feature_vector(qcoef)
-        if rng is None:  # the window round
-            # each query over its window's cells of the whole table (the other cells
-            # skipped), through the one table's reads and cache: a table of its own per
-            # query copied every cell it opened
-            before = table.bytes_read
-            everything = np.arange(table.n_cells)
-            outside = [
-                np.setdiff1d(everything, _window(table, qfeat[qi], params["window"]), assume_unique=True)
-                for qi in range(len(tops))
-            ]
-            work = search_block(
-                table,
-                qcoef,
-                qfeat,
-                tops,
-                cascade,
-                skip_cells=outside,
-                threads=1,
-                done=lambda qi, _: keep_descriptors(qi, table),
-                expect_more=False,
-            )
-            _account(out, work)
-            out["bytes_read"] += table.bytes_read - before
+        if rng is None:
+            work = _window_round(table, qcoef, qfeat, tops, cascade, params, keep_descriptors)
         else:
-            _, lo, hi = rng
-            key = ("range", lo, hi)
-            if (lo, hi) == (0, table.n_cells):
-                sub = table  # the whole index: no second table
-            else:
-                if key not in cache:
-                    cache[key] = table.subset((lo, hi))
-                sub = cache[key]
-            searched = sub
-            before = sub.bytes_read
-            asked, skips = [], []
-            for qi in range(len(tops)):
-                skip = None
-                if seeds is not None:
-                    # the window's cells were searched in the first round: their rows within
-                    # the K-th are all among the seeds already (skipped, not copied out into
-                    # a table of the other cells per query: at 1M that copy was most of a
-                    # query's time)
-                    window = _window(table, qfeat[qi], params["window"])
-                    inside = window[(window >= lo) & (window < hi)]
-                    if len(inside) == hi - lo:
-                        continue
-                    skip = inside - lo
-                asked.append(qi)
-                skips.append(skip)
-            work = search_block(
-                sub,
-                qcoef[asked],
-                qfeat[asked],
-                [tops[qi] for qi in asked],
-                cascade,
-                skip_cells=skips,
-                threads=1,
-                done=lambda i, _: keep_descriptors(asked[i], sub),
+            searched, work = _cells_round(
+                table, cache, rng, qcoef, qfeat, tops, seeds, cascade, params, keep_descriptors
             )
-            _account(out, work)
-            out["bytes_read"] = sub.bytes_read - before
+        _account(out, work)
+        out["bytes_read"] = work.extra["bytes_read"]
     if params.get("final"):
         # this task's answer is the query's answer: its distances from the reference path,
         # exactly as search_index reports them (from the descriptors of the table searched)
@@ -219,7 +153,7 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
             idx,
             qcoef,
             tops,
-            search,
+            cascade.distance,
             direction=params["direction"],
             mirror=params["mirror"],
             weights=None,
@@ -241,6 +175,87 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
             # the rows' descriptors, for the client's recomputation (no scattered index reads)
             out["tops"][-1]["coef"] = held[q]
     return out
+
+
+def _rows_round(idx, rng, qcoef, tops, cascade: Cascade) -> tuple[int, int]:
+    """Every exact distance to the rows ``("rows", lo, hi)`` (an exhaustive search):
+    ``(distances, bytes read)``."""
+    from ..search.index_search import EXHAUSTIVE_ROWS, exhaustive_rows
+
+    _, lo, hi = rng
+    step = EXHAUSTIVE_ROWS * 8
+    chunks = (
+        (a, idx.read_rows(a, min(hi, a + step), ("coefficients",), upcast=False)["coefficients"])
+        for a in range(lo, hi, step)
+    )
+    return exhaustive_rows(
+        qcoef, tops, chunks, cascade.distance, idx.samples, direction=cascade.direction, mirror=cascade.mirror
+    )
+
+
+def _window_round(table, qcoef, qfeat, tops, cascade: Cascade, params: dict, keep) -> QueryWork:
+    """The first round: each query over its window's cells of the whole table (the other
+    cells skipped), through the one table's reads and cache (a table of its own per query
+    copied every cell it opened). ``work.extra["bytes_read"]``: what it read."""
+    before = table.bytes_read
+    everything = np.arange(table.n_cells)
+    outside = [
+        np.setdiff1d(everything, _window(table, qfeat[qi], params["window"]), assume_unique=True)
+        for qi in range(len(tops))
+    ]
+    work = search_block(
+        table,
+        qcoef,
+        qfeat,
+        tops,
+        cascade,
+        skip_cells=outside,
+        threads=1,
+        done=lambda qi, _: keep(qi, table),
+        expect_more=False,
+    )
+    work.extra["bytes_read"] = table.bytes_read - before
+    return work
+
+
+def _cells_round(table, cache, rng, qcoef, qfeat, tops, seeds, cascade: Cascade, params: dict, keep):
+    """The queries over the cells ``("cells", lo, hi)``; with seeds, each query skips the
+    cells of its window (searched in the first round: their rows within the K-th are all
+    among the seeds already). Returns ``(the range's table, work)``, ``work.extra
+    ["bytes_read"]`` what it read."""
+    _, lo, hi = rng
+    if (lo, hi) == (0, table.n_cells):
+        sub = table  # the whole index: no second table
+    else:
+        if ("range", lo, hi) not in cache:
+            cache["range", lo, hi] = table.subset((lo, hi))
+        sub = cache["range", lo, hi]
+    before = sub.bytes_read
+    asked, skips = [], []
+    for qi in range(len(tops)):
+        skip = None
+        if seeds is not None:
+            # skipped, not copied out into a table of the other cells per query: at 1M that
+            # copy was most of a query's time
+            window = _window(table, qfeat[qi], params["window"])
+            inside = window[(window >= lo) & (window < hi)]
+            if len(inside) == hi - lo:
+                continue
+            skip = inside - lo
+        asked.append(qi)
+        skips.append(skip)
+    work = search_block(
+        sub,
+        qcoef[asked],
+        qfeat[asked],
+        [tops[qi] for qi in asked],
+        cascade,
+        skip_cells=skips,
+        threads=1,
+        done=lambda i, _: keep(asked[i], sub),
+    )
+    work.extra["bytes_read"] = sub.bytes_read - before
+    return sub, work
 
 
 class HeldDescriptors:

@@ -9,9 +9,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..matching import EXACT
 from ..errors import ParameterError
-from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, exact_search, paper_search
+from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, exact_search
 from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
 from .engine import TIE, Cascade, BestRows, search_block
@@ -127,75 +126,60 @@ def search_index(
     from ..descriptors import descriptors_batch
 
     check_search_parameters(top, max_distance, method)
-    if exclude_self:
-        asked = top
-        results, stats = search_index(
-            index,
-            queries,
-            top=None if top is None else top + 1,
-            max_distance=max_distance,
-            method=method,
-            direction=direction,
-            mirror=mirror,
-            prune=prune,
-            progress=progress,
-            weights=weights,
-            threads=threads,
-            truncate=truncate,
-        )
-        return without_self(index, queries, results, asked), stats
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     t0 = time.perf_counter()
+    asked = top
+    if exclude_self and top is not None:
+        top += 1  # the query's own curve is dropped below
     qcoef = descriptors_batch(
         queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
     ).coefficients
     tops = [BestRows(top, max_distance) for _ in queries]
-    search = exact_search if method == EXACT else paper_search
+    cascade = Cascade(index.samples, method, direction, mirror, truncate)
     stats = SearchStats(queries=len(queries), rows=index.n_curves, pruned=prune)
+    table = None
     if not prune:
         chunks = (
             (start, chunk["coefficients"])
             for start, chunk in index.iter_chunks(EXHAUSTIVE_ROWS * 8, ("coefficients",), upcast=False)
         )
         stats.exact, _ = exhaustive_rows(
-            qcoef,
-            tops,
-            chunks,
-            search,
-            index.samples,
-            direction=direction,
-            mirror=mirror,
-            weights=weights,
-            progress=progress,
-            total=index.n_curves,
-        )
+            qcoef, tops, chunks, cascade.distance, index.samples, direction=direction, mirror=mirror,
+            weights=weights, progress=progress, total=index.n_curves,
+        )  # fmt: skip
     elif index.n_curves and len(queries):
-        table = index.search_table()
-        stats.cell_count = table.n_cells
-
-        def done(qi, work):
-            nonlocal answered
-            answered += 1
-            if progress is not None:
-                progress(answered, len(queries))
-
-        answered = 0
-        cascade = Cascade(index.samples, method, direction, mirror, truncate)
-        work = search_block(table, qcoef, feature_vector(qcoef), tops, cascade, threads=threads, done=done)
-        for key in ("exact", "truncated", "fine", "scanned", "cells"):
-            setattr(stats, key, getattr(work, key))
-        recompute_reported(
-            index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights, tables=table
-        )
-        stats.bytes_read = table.bytes_read
-
-    if not prune:
-        recompute_reported(index, qcoef, tops, search, direction=direction, mirror=mirror, weights=weights)
+        table = _pruned(index, qcoef, tops, cascade, stats, threads, progress)
+    recompute_reported(
+        index, qcoef, tops, cascade.distance, direction=direction, mirror=mirror, weights=weights, tables=table
+    )
     results = ranked_rows(index, tops, top)
+    if exclude_self:
+        results = without_self(index, queries, results, asked)
     stats.kernels = current_kernels().describe()
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def _pruned(index, qcoef, tops, cascade: Cascade, stats: SearchStats, threads, progress):
+    """The pruned search of every query (:func:`~nfdmatch.search.engine.search_block`) over
+    the index's search table, its work counted in ``stats``; returns the table (it holds the
+    descriptors of the rows found)."""
+    table = index.search_table()
+    stats.cell_count = table.n_cells
+    answered = 0
+
+    def done(qi, work):
+        nonlocal answered
+        answered += 1
+        if progress is not None:
+            progress(answered, len(tops))
+
+    work = search_block(table, qcoef, feature_vector(qcoef), tops, cascade, threads=threads, done=done)
+    for key in ("exact", "truncated", "fine", "scanned", "cells"):
+        setattr(stats, key, getattr(work, key))
+    stats.bytes_read = table.bytes_read
+    return table
 
 
 def without_self(index, queries, results: list[list[RankedMatch]], top: int | None) -> list[list[RankedMatch]]:
