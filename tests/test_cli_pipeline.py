@@ -275,12 +275,12 @@ def test_tables_fit_the_terminal_and_fold_the_query_column(index, library):
 
 
 def test_progress_bars_only_on_a_terminal_and_not_with_quiet(index, monkeypatch):
-    from nfdmatch.cli import common
+    from nfdmatch.cli import output
 
     args = ("query", QUERIES, "--index", index, "--format", "csv")
     code, stdout, err = run(*args)
     assert code == 0 and err == ""
-    monkeypatch.setattr(common, "stderr_is_terminal", lambda: True)
+    monkeypatch.setattr(output, "stderr_is_terminal", lambda: True)
     code, stdout_tty, err = run(*args)
     assert code == 0 and "searching" in err and stdout_tty == stdout
     code, _, err = run(*args, "-q")

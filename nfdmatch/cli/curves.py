@@ -7,24 +7,19 @@ import json
 import click
 
 from ..descriptors import DEFAULT_SAMPLES
-from .common import (
-    deliver,
+from .inputs import exclude_self, read_inputs, read_one
+from .options import (
     descriptor_options,
-    exclude_self,
     exclude_self_option,
     format_option,
     input_format_option,
-    match_columns,
-    match_row,
     matching,
     matching_options,
     output_option,
-    read_inputs,
-    read_one,
     rows_format_option,
     say,
-    write_rows,
 )
+from .output import deliver, match_columns, match_row, write_rows
 from .group import main
 
 
@@ -99,7 +94,7 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
       nfdmatch describe sample_curves/library/ --harmonics 8 -o descriptors.csv
     """
     from ..descriptors import descriptors_batch, validate_parameters
-    from .common import resolve_format
+    from .output import resolve_format
 
     validate_parameters(samples, harmonics, scale)
     inputs = read_inputs(files, glob=glob_pattern, input_format=input_format)

@@ -7,7 +7,8 @@ import sys
 import click
 
 from ..errors import NfdError
-from .common import EXIT_ERROR, detail, error, finish, format_option, note, report_errors, say, write_rows
+from .options import EXIT_ERROR, detail, error, finish, format_option, note, report_errors, say
+from .output import write_rows
 from .group import main
 
 

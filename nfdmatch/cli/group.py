@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from .. import __version__
-from .common import NfdGroup, verbosity_options
+from .options import NfdGroup, verbosity_options
 
 
 @click.group(cls=NfdGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -10,30 +10,24 @@ import click
 
 from ..defaults import DEFAULT_GRAPH_K, DEFAULT_RERANK_DEPTH
 from ..matching import DEFAULT_METHOD
-from .common import (
+from .inputs import exclude_self, is_query, read_inputs
+from .options import (
     EXIT_ERROR,
-    deliver,
     error,
-    exclude_self,
     exclude_self_option,
-    format_option,
     finish,
+    format_option,
     index_option,
     input_format_option,
-    is_query,
-    match_columns,
-    match_row,
     matching,
     matching_options,
     note,
     optional_descriptor_options,
     output_option,
-    progress_bar,
-    read_inputs,
     rows_format_option,
     say,
-    write_rows,
 )
+from .output import deliver, match_columns, match_row, progress_bar, write_rows
 from .cluster import open_cluster, ranges_option, scheduler_options
 from .group import main
 
@@ -498,7 +492,8 @@ def index_export(index_path, output_format, output):
 
 
 def _deliver_bytes(data: bytes, output: str) -> None:
-    from .common import detail, write_if_changed
+    from .options import detail
+    from .output import write_if_changed
 
     detail(f"wrote {output}" if write_if_changed(output, data) else f"{output} unchanged")
 

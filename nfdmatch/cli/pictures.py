@@ -7,10 +7,9 @@ import os
 
 import click
 
-from .common import (
+from .inputs import read_inputs
+from .options import (
     descriptor_options,
-    deliver,
-    delimited_text,
     error,
     finish,
     format_option,
@@ -21,13 +20,10 @@ from .common import (
     note,
     optional_descriptor_options,
     output_option,
-    progress_bar,
-    read_inputs,
     say,
     some_failed,
-    split_outputs,
-    write_rows,
 )
+from .output import delimited_text, deliver, progress_bar, split_outputs, write_rows
 from .group import main
 
 
@@ -288,7 +284,7 @@ def matrix(
       nfdmatch matrix sample_curves/library -o matrix.png -o matrix.json
     """
     from ..search import distance_matrix, similarity_order
-    from .common import resolve_format
+    from .output import resolve_format
 
     pictures, rows_output = split_outputs(output)
     _check_pictures(pictures)  # before the O(N^2) work, not after it

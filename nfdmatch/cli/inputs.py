@@ -1,0 +1,144 @@
+"""Reading a command's inputs: :func:`read_inputs` (files, folders, ``-`` for stdin) and
+:func:`read_one`. One policy: every input that can be read is answered, each bad one is
+named on stderr, :func:`~nfdmatch.cli.options.finish` exits 3 when some failed, and nothing
+read at all is exit 1. Also which match is the query itself (``--exclude-self``)."""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+
+import click
+
+from ..errors import NfdError, NoCurvesError
+from .options import NothingRead, _count_failures, detail, error, finish, report_errors
+
+#: the id of a curve read from stdin (``-`` on the command line)
+STDIN_ID = "<stdin>"
+
+
+@dataclass
+class Inputs:
+    """What :func:`read_inputs` read: ``curves`` in input order, ``errors`` (each already
+    named on stderr) and ``total``, the number of inputs (files found plus bad sources)."""
+
+    curves: list
+    errors: list = field(default_factory=list)
+    total: int = 0
+
+    def finish(self, what: str = "inputs") -> None:
+        finish(len(self.errors), self.total, what)
+
+
+def _stdin_curves(input_format: str | None) -> list:
+    """The curves of the file on stdin, read as ``input_format``; ids ``<stdin>``, ``<stdin>#i``."""
+    from ..curve import Curve
+    from ..formats import FORMATS, read_curves
+
+    if input_format is None:
+        raise click.UsageError("reading a curve from stdin ('-') needs --input-format")
+    data = sys.stdin.buffer.read()
+    fd, temp = tempfile.mkstemp(suffix=FORMATS[input_format][0])
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        try:
+            curves = read_curves(temp, format=input_format)
+        except NfdError as exc:
+            raise type(exc)(exc.message, path=STDIN_ID, line=exc.line, curve=exc.curve) from None
+    finally:
+        os.remove(temp)
+    if len(curves) == 1:
+        return [Curve(curves[0].points, id=STDIN_ID)]
+    return [Curve(c.points, id=f"{STDIN_ID}#{i}") for i, c in enumerate(curves)]
+
+
+def read_one(spec: str, input_format: str | None = None):
+    """One curve (``FILE``, ``FILE#I`` or ``-``): a curve the command cannot do without."""
+    if spec == "-":
+        curves = _stdin_curves(input_format)
+        if len(curves) != 1:
+            raise click.UsageError(f"stdin holds {len(curves)} curves; one is expected here")
+        curve = curves[0]
+    else:
+        from ..formats import read_curve
+
+        curve = read_curve(spec, format=input_format)
+    detail(f"read {curve.id} ({len(curve.points)} vertices)")
+    return curve
+
+
+def read_inputs(specs, *, glob: str | None = None, input_format: str | None = None) -> Inputs:
+    """Read every curve of the files and folders ``specs`` (``-``: stdin).
+
+    A missing file, an empty folder (no curve file, or none matching ``glob``) and a file
+    that cannot be read are each named on stderr and counted as failed inputs; raises
+    :class:`NothingRead` (exit 1) when no curve was read at all."""
+    from ..sources import find_curve_files, read_all
+
+    seen: set[str] = set()
+    curves, errors, total = [], [], 0
+    for spec in dict.fromkeys(str(s) for s in specs):  # stdin is read once
+        if spec == "-":
+            total += 1
+            try:
+                curves += _stdin_curves(input_format)
+            except NfdError as exc:
+                errors.append(exc)
+                error(exc)
+            continue
+        try:
+            found = find_curve_files([spec], glob=glob)
+            if not found:
+                raise NoCurvesError("no curve files found" + (f" matching {glob!r}" if glob else ""), path=spec)
+        except NfdError as exc:
+            total += 1
+            errors.append(exc)
+            error(exc)
+            continue
+        new = [path for path in found if os.path.normpath(path) not in seen]
+        seen.update(os.path.normpath(path) for path in new)
+        total += len(new)
+        read, read_errors = read_all(new, format=input_format)
+        curves += read
+        errors += read_errors
+        report_errors(read_errors)
+    if errors:
+        _count_failures(len(errors))
+    if not curves:
+        raise NothingRead()
+    detail(f"read {len(curves)} curve{'' if len(curves) == 1 else 's'} from {total - len(errors)} of {total} inputs")
+    return Inputs(curves, errors, total)
+
+
+def curve_key(curve_id: str) -> str:
+    """The file (resolved: symlinks, relative spellings) and curve an id names."""
+    from ..formats import split_selector
+
+    path, selected = split_selector(curve_id)
+    return os.path.realpath(path) + ("" if selected is None else f"#{selected}")
+
+
+def exclude_self(query_id: str, matches: list, top: int, locate=None) -> list:
+    """``matches`` (ranked :class:`~nfdmatch.records.RankedMatch` es) without those naming
+    the query's curve, ranks renumbered, at most ``top``. The caller asks the search for one
+    match more. ``locate``: id -> a path that opens it here (an index's ids are relative to
+    its folder)."""
+    if query_id == STDIN_ID:
+        return matches[:top]
+    return [
+        m.replace(rank=rank)
+        for rank, m in enumerate([m for m in matches if not is_query(query_id, m.id, locate)][:top], start=1)
+    ]
+
+
+def is_query(query_id: str, match_id: str, locate=None) -> bool:
+    """Whether ``match_id`` names the query's curve: the same id, or the same curve of the
+    same file however the path is spelled (never for stdin). ``locate`` as in
+    :func:`exclude_self`."""
+    if query_id == STDIN_ID:
+        return False
+    where = locate or (lambda i: i)
+    return match_id == query_id or curve_key(where(match_id)) == curve_key(query_id)
