@@ -224,7 +224,7 @@ def check_writable(path: str) -> str:
 
 def output_option(
     help="Write the rows to FILE (whole, and only when the command succeeds; an identical "
-    "file is left untouched) instead of stdout.",
+    "file keeps its bytes, with a fresh mtime) instead of stdout; '-': stdout.",
     multiple=False,
     required=False,
 ):

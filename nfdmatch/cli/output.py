@@ -9,7 +9,6 @@ import io
 import json
 import os
 import sys
-import tempfile
 
 import click
 
@@ -196,43 +195,22 @@ def deliver(text: str, output: str | None) -> None:
     if write_if_changed(output, text.encode("utf-8")):
         detail(f"wrote {output}")
     else:
-        detail(f"{output} unchanged")
+        detail(f"{output} unchanged (mtime refreshed)")
 
 
 def write_if_changed(path: str, data: bytes) -> bool:
-    """Write ``data`` to ``path`` through a temporary file in the same folder that then
-    replaces it, so ``path`` is never seen half written; a file that already holds
-    exactly ``data`` is left untouched (mtime kept, so Make rebuilds nothing downstream).
-    Returns True when ``path`` was (re)written. I/O problems raise :class:`WriteError`."""
+    """Write ``data`` to ``path`` whole (:func:`nfdmatch._io.write_file`: a temporary file in
+    the same folder, flushed, then renamed over it), so ``path`` is never seen half written;
+    a file that already holds exactly ``data`` is kept but gets a fresh mtime (a command
+    that succeeds leaves its outputs newer than its inputs: Make settles). Returns True when
+    the bytes changed. I/O problems raise :class:`WriteError`."""
+    from .._io import write_file
+
     check_writable(path)
     try:
-        if os.path.getsize(path) == len(data):
-            with open(path, "rb") as f:
-                if f.read() == data:
-                    return False
-    except OSError:
-        pass
-    folder, name = os.path.split(os.path.abspath(path))
-    temp = None
-    try:
-        fd, temp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        try:
-            mode = os.stat(path).st_mode & 0o7777
-        except OSError:
-            umask = os.umask(0)
-            os.umask(umask)
-            mode = 0o666 & ~umask
-        os.chmod(temp, mode)  # mkstemp makes 0600; keep the file readable as usual
-        os.replace(temp, path)
-        temp = None
+        return write_file(path, data)
     except OSError as exc:
         raise WriteError(f"cannot write the file ({exc.strerror or exc})", path=path) from None
-    finally:
-        if temp is not None and os.path.exists(temp):
-            os.remove(temp)
-    return True
 
 
 def stderr_is_terminal() -> bool:

@@ -390,6 +390,13 @@ def build_index(
             or any(it.path != it.old.path for it in items if it.old)
         )
         if not needs_write:
+            # nothing to change: the index is not rewritten, but it is made newer than its
+            # sources (under the build's lock), as Make expects of a command that succeeded:
+            # else a rule `index.h5: $(CURVES)` reruns after every `touch`, forever
+            try:
+                os.utime(real_index)
+            except OSError:
+                pass  # not ours to touch (read-only, another owner): the index is still right
             if progress is not None:
                 progress(0, 0)
             for item in items:

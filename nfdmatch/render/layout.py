@@ -212,7 +212,7 @@ def check_output(path: str | os.PathLike[str]) -> str:
 
 
 def _write(path: str, data: bytes) -> None:
-    """Write the picture whole; an identical existing file is left untouched (mtime included)."""
+    """Write the picture whole (nfdmatch._io); an identical existing file is kept, with a fresh mtime."""
     from ..formats._chain import write_if_changed
 
     def produce(temp: str) -> None:
