@@ -679,7 +679,9 @@ def test_dry_run_writes_nothing_and_reports_the_plan(lib, tmp_path, rng, reads):
     reads.clear()
     calls = []
     report = build_index([str(lib)], idx_path, dry_run=True, jobs=1, progress=lambda d, t: calls.append((d, t)))
-    assert reads == []  # planning never parses
+    # the files the build would read are read (a broken one must be reported failed, the
+    # curve count is the result's); the touched one with the same bytes is only hashed
+    assert sorted(reads) == sorted([a, new, multi])
     assert report.dry_run and not report.written
     k = {p: os.path.relpath(p, tmp_path) for p in (a, b, new, multi, single, str(lib / "sub" / "two.vtp"))}
     assert report.changes == sorted(
@@ -694,10 +696,13 @@ def test_dry_run_writes_nothing_and_reports_the_plan(lib, tmp_path, rng, reads):
         key=lambda x: x[1],
     )
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (1, 2, 1, 2, 0)
-    assert report.curves == 8
     assert calls[0] == (0, 4) and calls[-1] == (4, 4)
     assert idx_path.read_bytes() == data and os.stat(idx_path).st_mtime_ns == stamp
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "lib"]
+    # what the dry run said is what the build does, the curve count included
+    real = build_index([str(lib)], idx_path, jobs=1)
+    assert real.changes == report.changes and real.curves == report.curves != 8
+    assert real.failures == report.failures == []
 
 
 def test_no_sources_is_an_error_without_an_index(tmp_path, lib):

@@ -70,13 +70,59 @@ def read_one(spec: str, input_format: str | None = None):
     return curve
 
 
-def read_inputs(specs, *, glob: str | None = None, input_format: str | None = None) -> Inputs:
+#: files read between two updates of a progress bar
+_PROGRESS_CHUNK = 64
+
+
+def read_inputs(
+    specs, *, glob: str | None = None, input_format: str | None = None, progress: str | None = None
+) -> Inputs:
     """Read every curve of the files and folders ``specs`` (``-``: stdin).
 
     A missing file, an empty folder (no curve file, or none matching ``glob``) and a file
     that cannot be read are each named on stderr and counted as failed inputs; raises
-    :class:`NothingRead` (exit 1) when no curve was read at all."""
+    :class:`NothingRead` (exit 1) when no curve was read at all. ``progress``: the label
+    of a progress bar over the files read (on a terminal only, :func:`progress_bar`)."""
     from ..sources import find_curve_files, read_all
+
+    update, finish_bar = (None, None) if progress is None else _progress_bar(progress)
+    try:
+        return _read_inputs(specs, glob, input_format, update, find_curve_files, read_all)
+    finally:
+        if finish_bar is not None:
+            finish_bar()
+
+
+def _progress_bar(label: str):
+    from .output import progress_bar
+
+    return progress_bar(label)
+
+
+def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) -> Inputs:
+    expected = None
+    if update is not None:  # the files to read, for the bar's total (a second walk: cheap beside reading)
+        expected = 0
+        for spec in dict.fromkeys(str(s) for s in specs):
+            try:
+                expected += 1 if spec == "-" else len(find_curve_files([spec], glob=glob))
+            except NfdError:
+                pass
+        update(0, expected)
+    done = 0
+
+    def read_files(paths):
+        nonlocal done
+        if update is None:
+            return read_all(paths, format=input_format)
+        read, read_errors = [], []
+        for start in range(0, len(paths), _PROGRESS_CHUNK):
+            chunk_read, chunk_errors = read_all(paths[start : start + _PROGRESS_CHUNK], format=input_format)
+            read += chunk_read
+            read_errors += chunk_errors
+            done += len(paths[start : start + _PROGRESS_CHUNK])
+            update(done, max(expected, done))
+        return read, read_errors
 
     seen: set[str] = set()
     curves, errors, total = [], [], 0
@@ -101,7 +147,7 @@ def read_inputs(specs, *, glob: str | None = None, input_format: str | None = No
         new = [path for path in found if os.path.normpath(path) not in seen]
         seen.update(os.path.normpath(path) for path in new)
         total += len(new)
-        read, read_errors = read_all(new, format=input_format)
+        read, read_errors = read_files(new)
         curves += read
         errors += read_errors
         report_errors(read_errors)

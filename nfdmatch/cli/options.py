@@ -111,18 +111,55 @@ _VERBOSITY_OPTIONS = (
 )
 
 
+_COLOR = "nfdmatch.color"
+COLOR_CHOICES = ("auto", "always", "never")
+_COLOR_HELP = (
+    "Styles (colour, bold) in tables and progress bars: auto, on a terminal unless $NO_COLOR is set "
+    "(then none at all, bold included); always; never."
+)
+
+
+def _set_color(ctx, param, value):
+    if value is not None:
+        ctx.meta[_COLOR] = value
+
+
+def _color_kwargs() -> dict:
+    return dict(
+        type=click.Choice(COLOR_CHOICES), default=None, expose_value=False, callback=_set_color, help=_COLOR_HELP
+    )
+
+
 def _verbosity_params() -> list[click.Option]:
     return [
         click.Option(list(names), is_flag=True, expose_value=False, callback=_set_verbosity, help=text)
         for names, text in _VERBOSITY_OPTIONS
-    ]
+    ] + [click.Option(["--color"], **_color_kwargs())]
 
 
 def verbosity_options(f):
-    """``-q``/``-v`` on the group itself (``nfdmatch -q query ...``)."""
+    """``-q``/``-v`` and ``--color`` on the group itself (``nfdmatch -q query ...``)."""
+    f = click.option("--color", **_color_kwargs())(f)
     for names, text in reversed(_VERBOSITY_OPTIONS):
         f = click.option(*names, is_flag=True, expose_value=False, callback=_set_verbosity, help=text)(f)
     return f
+
+
+def use_color(terminal: bool) -> bool:
+    """Whether to style output going to a stream (``terminal``: it is one): ``--color
+    always``/``never`` decide; ``auto`` (the default) styles a terminal unless ``$NO_COLOR``
+    is set to anything but the empty string (no-color.org: then no colour, and here no bold
+    either: no escape sequence at all)."""
+    ctx = click.get_current_context(silent=True)
+    choice = "auto"
+    while ctx is not None:  # the command's own --color, else the group's
+        if _COLOR in ctx.meta:
+            choice = ctx.meta[_COLOR]
+            break
+        ctx = ctx.parent
+    if choice != "auto":
+        return choice == "always"
+    return terminal and not os.environ.get("NO_COLOR")
 
 
 def verbosity() -> int:
@@ -201,10 +238,19 @@ def rows_format_option(f):
     )
 
 
+#: ``-o -``: stdout, as ``-`` is stdin where a file is read
+STDOUT = "-"
+
+
 def _check_output_path(ctx, param, value):
-    """Fail before any work when an output file cannot be written (exit 1, named)."""
+    """Fail before any work when an output file cannot be written (exit 1, named). ``-o -``
+    is stdout: None for a single ``-o``; kept as ``-`` among several (:func:`split_outputs`)."""
+    if value == STDOUT:
+        return None
     paths = value if isinstance(value, tuple) else (() if value is None else (value,))
     for path in paths:
+        if path == STDOUT:
+            continue
         if "{" in path:  # a pattern (show): its folder is checked
             path = path.split("{", 1)[0] + "x"
         check_writable(path)
@@ -359,6 +405,20 @@ def index_option(f):
 
 
 # --------------------------------------------------------------------------- rows
+
+#: how ``query``/``rank`` spell the query and match columns (``--paths``)
+PATH_SPELLINGS = ("id", "absolute", "relative")
+
+paths_option = click.option(
+    "--paths",
+    "paths",
+    type=click.Choice(PATH_SPELLINGS),
+    default="id",
+    show_default=True,
+    help="How the query and match columns name files: id (the query as given, the match as stored: "
+    "relative to the index's folder), absolute (both absolute: rows that work from any folder, "
+    "e.g. piped to xargs), relative (both relative to the working directory).",
+)
 
 exclude_self_option = click.option(
     "--exclude-self",

@@ -13,24 +13,88 @@ import sys
 import click
 
 from ..errors import WriteError
-from .options import NORMAL, check_writable, detail, error, some_failed, verbosity
+from .options import NORMAL, ROW_FORMATS, STDOUT, check_writable, detail, error, some_failed, use_color, verbosity
 
-#: the row format a ``-o FILE`` gets from its extension when --format is not given
-FORMAT_OF_EXTENSION = {".csv": "csv", ".tsv": "tsv", ".json": "json", ".jsonl": "jsonl", ".txt": "table"}
+#: the format a ``-o FILE`` gets from its extension when --format is not given (each
+#: command accepts those of its formats); any other extension is a usage error
+FORMAT_OF_EXTENSION = {
+    ".csv": "csv",
+    ".tsv": "tsv",
+    ".json": "json",
+    ".jsonl": "jsonl",
+    ".npz": "npz",
+    ".txt": "text",
+}
 #: the extensions of picture files (``show``, ``matrix``); any other ``-o`` gets rows
 PICTURE_EXTENSIONS = (".png", ".svg", ".pdf")
 
 
-def split_outputs(paths) -> tuple[list[str], str | None]:
+def split_outputs(paths, formats=ROW_FORMATS) -> tuple[list[str], str | None]:
     """``-o`` paths of a picture command: pictures by extension (.png, .svg, .pdf), rows
-    for the one other path."""
+    for the one other path (None: stdout; ``-o -`` is stdout too). An extension that is
+    neither a picture's nor one of ``formats`` is a usage error naming both."""
     pictures = [p for p in paths if os.path.splitext(p)[1].lower() in PICTURE_EXTENSIONS]
     rows = [p for p in paths if p not in pictures]
     if len(rows) > 1:
         raise click.UsageError(
             f"one -o for the rows at most (pictures end in {', '.join(PICTURE_EXTENSIONS)}); got {', '.join(rows)}"
         )
-    return pictures, (rows[0] if rows else None)
+    row_output = rows[0] if rows and rows[0] != STDOUT else None
+    if row_output is not None:
+        ext = os.path.splitext(row_output)[1].lower()
+        if FORMAT_OF_EXTENSION.get(ext) not in formats:
+            known = [e for e, f in FORMAT_OF_EXTENSION.items() if f in formats]
+            raise click.UsageError(
+                f"-o {row_output}: {_extension_text(ext)} is neither a picture ({', '.join(PICTURE_EXTENSIONS)}) "
+                f"nor rows ({', '.join(known)})"
+            )
+    return pictures, row_output
+
+
+def _extension_text(ext: str) -> str:
+    return f"the extension {ext!r}" if ext else "no extension"
+
+
+def resolve_format(
+    fmt: str | None, output: str | None, formats=ROW_FORMATS, *, terminal: str = "table", piped: str = "csv"
+) -> str:
+    """The output format: as given (``--format``), else by the extension of ``output``
+    (:data:`FORMAT_OF_EXTENSION`, among ``formats``: any other extension is a usage error
+    naming the extensions and formats, as a box-drawing table in ``out.txt`` would
+    surprise), else ``terminal`` when stdout is a terminal and ``piped`` otherwise.
+    Commands call it before any work, so that the usage error comes first."""
+    if fmt is not None:
+        return fmt
+    if output is not None:
+        ext = os.path.splitext(output)[1].lower()
+        found = FORMAT_OF_EXTENSION.get(ext)
+        if found in formats:
+            return found
+        known = [e for e, f in FORMAT_OF_EXTENSION.items() if f in formats]
+        raise click.UsageError(
+            f"cannot tell the format of -o {output} from {_extension_text(ext)}: name the file "
+            f"{', '.join(known)}, or give --format {'|'.join(formats)}"
+        )
+    return terminal if stdout_is_terminal() else piped
+
+
+def path_speller(mode: str, locate=None):
+    """``id -> id`` as ``--paths`` asks: ``id`` leaves it; ``absolute`` / ``relative`` (to the
+    working directory) spell the file of the id, ``#i`` kept. ``locate``: a stored id -> a
+    path that opens it from here (an index's ids are relative to its folder). Ids that are
+    no file (stdin) stay as they are."""
+    if mode == "id":
+        return lambda curve_id: curve_id
+    from .inputs import STDIN_ID
+
+    def spell(curve_id: str) -> str:
+        if curve_id.startswith(STDIN_ID):
+            return curve_id
+        where = locate(curve_id) if locate is not None else curve_id
+        full = os.path.abspath(where)
+        return full if mode == "absolute" else os.path.relpath(full)
+
+    return spell
 
 
 def match_row(query_id: str, m) -> dict:
@@ -53,16 +117,6 @@ def match_columns(details: bool) -> list[str]:
     return ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
 
 
-def resolve_format(fmt: str | None, output: str | None) -> str:
-    """The row format: as given, else by the extension of ``output``, else a table on a
-    terminal and CSV otherwise."""
-    if fmt is not None:
-        return fmt
-    if output is not None:
-        return FORMAT_OF_EXTENSION.get(os.path.splitext(output)[1].lower(), "csv")
-    return "table" if sys.stdout.isatty() else "csv"
-
-
 def write_rows(
     rows: list[dict], columns: list[str], fmt: str | None, output: str | None = None, *, group_by: str | None = None
 ) -> None:
@@ -71,7 +125,10 @@ def write_rows(
     ``group_by``: in a table, a heading per value of this column instead of the column."""
     fmt = resolve_format(fmt, output)
     if fmt == "table":
-        text = render_table(rows, columns, group_by=group_by, terminal=output is None and sys.stdout.isatty())
+        terminal = output is None and stdout_is_terminal()
+        text = render_table(
+            rows, columns, group_by=group_by, terminal=terminal, styled=output is None and use_color(terminal)
+        )
     elif fmt in ("csv", "tsv"):
         text = delimited_text(columns, ([_cell_text(row.get(c)) for c in columns] for row in rows), fmt)
     elif fmt == "json":
@@ -125,10 +182,12 @@ def render_table(
     group_by: str | None = None,
     terminal: bool = False,
     width: int | None = None,
+    styled: bool | None = None,
 ) -> str:
     """A rich table as text that fits ``width`` (default: the terminal's): the folder all
     paths of a column share is said once above the table, long ids wrap inside their cell,
-    and with ``group_by`` each value of that column heads its own table."""
+    and with ``group_by`` each value of that column heads its own table. ``styled``
+    (default: ``terminal``): bold and dim as escape sequences; else none at all."""
     import shutil
 
     from rich.console import Console
@@ -140,8 +199,14 @@ def render_table(
     paths = [c for c in shown if c in PATH_COLUMNS]
     folder = common_folder([str(row.get(c) or "") for row in rows for c in paths])
     buf = io.StringIO()
+    styled = terminal if styled is None else styled
     console = Console(
-        file=buf, width=width, force_terminal=terminal, no_color=not terminal, highlight=False, soft_wrap=False
+        file=buf,
+        width=width,
+        force_terminal=styled,
+        color_system="standard" if styled else None,  # None: no escape sequence (NO_COLOR: no bold either)
+        highlight=False,
+        soft_wrap=False,
     )
     if folder and len(folder) > 1:
         console.print(f"[dim]paths under[/dim] {folder}", markup=True, overflow="fold")
@@ -187,7 +252,7 @@ def deliver(text: str, output: str | None) -> None:
     A file is written only when the command succeeds: after an input failed (exit 3 to
     come) it is left as it was, so that Make does not take a partial answer for done."""
     if output is None:
-        click.echo(text, nl=False)
+        click.echo(text, nl=False, color=True)  # escapes only in a styled table (--color decides)
         return
     if some_failed():
         error(f"{output} not written: some inputs could not be read")
@@ -217,6 +282,10 @@ def stderr_is_terminal() -> bool:
     return sys.stderr.isatty()
 
 
+def stdout_is_terminal() -> bool:
+    return sys.stdout.isatty()
+
+
 def progress_bar(description: str):
     """(callback, finish) for a rich progress bar on stderr, only when stderr is a terminal
     and not ``-q``."""
@@ -231,7 +300,7 @@ def progress_bar(description: str):
         BarColumn(),
         MofNCompleteColumn(),
         TimeRemainingColumn(),
-        console=Console(stderr=True, force_terminal=True),
+        console=Console(stderr=True, force_terminal=True, color_system="standard" if use_color(True) else None),
         transient=True,
         auto_refresh=False,
     )

@@ -23,7 +23,7 @@ from .options import (
     say,
     some_failed,
 )
-from .output import delimited_text, deliver, progress_bar, split_outputs, write_rows
+from .output import delimited_text, deliver, progress_bar, resolve_format, split_outputs, write_rows
 from .group import main
 
 
@@ -166,6 +166,7 @@ def show(
     from ..show import show_ranked, show_searched
 
     pictures, rows_output = split_outputs(output)
+    output_format = resolve_format(output_format, rows_output)
     if len(pictures) != 1:
         raise click.UsageError(
             "show draws one picture per query: give one -o FILE.png (.svg, .pdf), a pattern for several queries"
@@ -284,12 +285,11 @@ def matrix(
       nfdmatch matrix sample_curves/library -o matrix.png -o matrix.json
     """
     from ..search import distance_matrix, similarity_order
-    from .output import resolve_format
 
-    pictures, rows_output = split_outputs(output)
+    formats = ("csv", "tsv", "json")
+    pictures, rows_output = split_outputs(output, formats)
     _check_pictures(pictures)  # before the O(N^2) work, not after it
-    fmt = resolve_format(output_format, rows_output)
-    fmt = "csv" if fmt not in ("csv", "tsv", "json") else fmt
+    fmt = resolve_format(output_format, rows_output, formats, terminal="csv")
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
