@@ -78,6 +78,7 @@ SLOW_MODULES = {
     "test_integrity",
     "test_extract",
     "test_vtk_reader",
+    "test_readme_examples",
 }
 #: single slow tests in otherwise fast modules (each several seconds: real processes, big inputs)
 SLOW_TESTS = {
