@@ -25,13 +25,13 @@ class Reconstruction:
         vertices (m, 3) float64.
     harmonics : int, K.
     distance : float, the distance (default matching parameters) from the rebuilt curve to
-        the input; None for a normalized reconstruction (it is not in the input's pose).
+        the input (the distance ignores pose and size: the same for a normalized one).
     """
 
     source_id: str
     curve: Curve
     harmonics: int
-    distance: float | None
+    distance: float
 
 
 def reconstruction_samples(harmonics: int, samples: int | None = None) -> int:
@@ -62,7 +62,7 @@ def reconstruct_curves(
                 source_id=curve.id,
                 curve=Curve(pts, id=f"{curve.id} K={harmonics}"),
                 harmonics=harmonics,
-                distance=None if normalized else float(distance(curve, pts).distance),
+                distance=float(distance(curve, pts).distance),  # invariant: the same for the normalized pose
             )
         )
     return out

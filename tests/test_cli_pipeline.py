@@ -46,16 +46,18 @@ def leftovers(folder) -> list[str]:
 # --------------------------------------------------------------------------- -o FILE
 
 
-def test_query_output_file_is_written_whole_and_an_identical_rerun_keeps_its_mtime(index, tmp_path):
+def test_query_output_file_is_written_whole_and_an_identical_rerun_refreshes_its_mtime(index, tmp_path):
     out = tmp_path / "matches.csv"
     code, stdout, err = run("query", TREFOIL, "--index", index, "--top", 3, "-o", out)
     assert code == 0 and stdout == "" and err == ""
     rows = list(csv.DictReader(io.StringIO(out.read_text())))
     assert [r["rank"] for r in rows] == ["1", "2", "3"] and rows[0]["match"].endswith("trefoil.csv")
     os.utime(out, ns=(1_000_000_000, 1_000_000_000))
+    inode = os.stat(out).st_ino
     code, stdout, err = run("query", TREFOIL, "--index", index, "--top", 3, "-o", out, "-v")
     assert code == 0 and stdout == "" and f"{out} unchanged" in err
-    assert os.stat(out).st_mtime_ns == 1_000_000_000
+    # the same file (bytes kept), newer than its inputs: a Make rule on it settles
+    assert os.stat(out).st_ino == inode and os.stat(out).st_mtime_ns > os.stat(index).st_mtime_ns
     # different content replaces it; the format follows the extension
     code, stdout, _ = run("query", TREFOIL, "--index", index, "--top", 2, "-o", out.with_suffix(".json"))
     assert code == 0 and [r["rank"] for r in json.loads(out.with_suffix(".json").read_text())] == [1, 2]
@@ -93,7 +95,8 @@ def test_every_row_command_writes_to_o_what_it_prints(command, index, tmp_path):
     args = [*command, "--index", index] if command[0] == "index" else command
     code, printed, err = run(*args)
     assert code == 0, err
-    out = tmp_path / ("out.json" if "json" in command else "out.csv")
+    # the extension says the format (distance's text is .txt: a .csv would be a usage error)
+    out = tmp_path / ("out.json" if "json" in command else "out.txt" if command[0] == "distance" else "out.csv")
     code, stdout, err = run(*args, "-o", out)
     assert code == 0 and stdout == "" and err == ""
     assert out.read_text() == printed
@@ -276,18 +279,27 @@ def test_tables_fit_the_terminal_and_fold_the_query_column(index, library):
 
 @pytest.mark.slow
 def test_progress_bars_only_on_a_terminal_and_not_with_quiet(index, monkeypatch):
-    from nfdmatch.cli import common
+    from nfdmatch.cli import output
 
     args = ("query", QUERIES, "--index", index, "--format", "csv")
     code, stdout, err = run(*args)
     assert code == 0 and err == ""
-    monkeypatch.setattr(common, "stderr_is_terminal", lambda: True)
+    monkeypatch.setattr(output, "stderr_is_terminal", lambda: True)
     code, stdout_tty, err = run(*args)
     assert code == 0 and "searching" in err and stdout_tty == stdout
     code, _, err = run(*args, "-q")
     assert code == 0 and err == ""
     code, _, err = run("matrix", os.path.join(LIBRARY, "knotess"))
     assert code == 0 and "distances" in err
+    # rank and describe too (issue 25: 3,000 files took seconds in silence), over the files
+    # read, with the same rows as without a terminal
+    for command in (["rank", TREFOIL, LIBRARY, "--top", "3"], ["describe", LIBRARY, "-k", "2"]):
+        code, rows_tty, err = run(*command)
+        assert code == 0 and "reading curves" in err and "21/21" in err, command
+        assert run(*command, "-q")[1:] == (rows_tty, "")
+        monkeypatch.setattr(output, "stderr_is_terminal", lambda: False)
+        assert run(*command) == (0, rows_tty, "")
+        monkeypatch.setattr(output, "stderr_is_terminal", lambda: True)
 
 
 # --------------------------------------------------------------------------- the README's Makefile
@@ -309,17 +321,58 @@ def test_the_readme_makefile_runs_and_a_second_run_rebuilds_nothing(tmp_path):
         "NFDMATCH": f"{sys.executable} -m nfdmatch",
         "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]),
     }
-    first = subprocess.run(["make"], cwd=tmp_path, env=env, capture_output=True, text=True)
+
+    def make():
+        return subprocess.run(["make"], cwd=tmp_path, env=env, capture_output=True, text=True)
+
+    targets = ("curves.h5", "report.csv")
+
+    def mtimes():
+        return {p: os.stat(tmp_path / p).st_mtime_ns for p in targets}
+
+    first = make()
     assert first.returncode == 0, first.stderr
     report = tmp_path / "report.csv"
     rows = list(csv.DictReader(open(report)))
     assert {r["query"] for r in rows} == {f"queries/{q}" for q in os.listdir(QUERIES)}
-    mtimes = {p: os.stat(tmp_path / p).st_mtime_ns for p in ("curves.h5", "report.csv")}
-    second = subprocess.run(["make"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    before = mtimes()
+    second = make()
     assert second.returncode == 0 and "Nothing to be done" in second.stdout + second.stderr
-    assert {p: os.stat(tmp_path / p).st_mtime_ns for p in mtimes} == mtimes
+    assert mtimes() == before
+
+    # a touch, an edit, a deletion: one run rebuilds (both targets newer than before), the
+    # next one does nothing. The targets are first made older than any change, so that a
+    # change in the same clock tick as the last build still counts as newer.
+    def changed_then_settles(change):
+        for p in targets:
+            os.utime(tmp_path / p, ns=(before[p] - 10**10, before[p] - 10**10))
+        old = mtimes()
+        change()
+        run1 = make()
+        assert run1.returncode == 0, run1.stderr
+        assert "index build" in run1.stdout and "query" in run1.stdout
+        new = mtimes()
+        assert all(new[p] > old[p] for p in targets)
+        for p in targets:  # outputs newer than every input, as Make reads it
+            assert all(
+                new[p] >= os.stat(os.path.join(d, f)).st_mtime_ns
+                for d, _, files in os.walk(tmp_path / "curves")
+                for f in files
+            )
+        run2 = make()
+        assert run2.returncode == 0 and "Nothing to be done" in run2.stdout + run2.stderr, run2.stdout
+        assert mtimes() == new
+
+    changed_then_settles(lambda: os.utime(tmp_path / "curves" / "circle.tsv"))  # the same bytes
+    # a file that is not a curve: the folder changed, the index has nothing to change
+    changed_then_settles(lambda: (tmp_path / "curves" / "NOTES.md").write_text("scanned on the 3rd\n"))
+    changed_then_settles(lambda: (tmp_path / "curves" / "circle.tsv").write_text("0 0\n2 0\n2 1\n0 1\n"))
+    changed_then_settles(lambda: os.remove(tmp_path / "curves" / "knotess" / "4_1.csv"))  # in a subfolder
+    assert "knotess/4_1.csv" not in (tmp_path / "report.csv").read_text()
+    before = mtimes()
+
     # a bad query: make fails, the report is not replaced by a partial one
     (tmp_path / "queries" / "bad.csv").write_text("x,y,z\n1,2,3\n")
-    third = subprocess.run(["make"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    third = make()
     assert third.returncode != 0 and "bad.csv" in third.stderr
-    assert os.stat(report).st_mtime_ns == mtimes["report.csv"]
+    assert os.stat(report).st_mtime_ns == before["report.csv"]

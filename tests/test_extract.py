@@ -486,18 +486,21 @@ def test_a_plane_through_vertices_gives_those_vertices_once(tmp_path):
 
 
 @pytest.mark.parametrize("fmt", ["obj", "csv", "vtp"])
-def test_rerun_leaves_unchanged_files_untouched(meshes, tmp_path, fmt):
-    """Make-style pipelines: a second extraction rewrites nothing that did not change."""
+def test_rerun_keeps_unchanged_files_with_fresh_mtimes(meshes, tmp_path, fmt):
+    """Make-style pipelines: a second extraction rewrites nothing that did not change, but
+    leaves every output newer than its inputs (fresh mtimes: Make settles)."""
     out = tmp_path / "out"
     code, _, err = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--output-format", fmt)
     assert code == 0, err
     before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
     for p in out.iterdir():
         os.utime(p, ns=(1, 1))  # as if written long ago
+    inodes = {p.name: p.stat().st_ino for p in out.iterdir()}
     code, _, err = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--output-format", fmt)
     assert code == 0, err
     assert sorted(p.name for p in out.iterdir()) == sorted(before)  # no temporary files left
-    assert {p.stat().st_mtime_ns for p in out.iterdir()} == {1}
+    assert {p.name: p.stat().st_ino for p in out.iterdir()} == inodes  # the same files, not rewritten
+    assert all(p.stat().st_mtime_ns > 1 for p in out.iterdir())
     # the same mesh moved sideways: same names (same levels along z), new content, rewritten
     moved = tmp_path / "moved"
     moved.mkdir()
@@ -508,3 +511,41 @@ def test_rerun_leaves_unchanged_files_untouched(meshes, tmp_path, fmt):
     assert code == 0, err
     assert sorted(p.name for p in out.iterdir()) == sorted(before)
     assert all(p.stat().st_mtime_ns != 1 for p in out.iterdir())
+
+
+# --------------------------------------------------------------------------- --list FILE (issue 25, item 8)
+
+
+def test_a_second_output_is_a_usage_error_not_a_folder(meshes, tmp_path):
+    code, out, err = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "c", "-o", tmp_path / "c.list")
+    assert code == 2 and out == "" and "--list" in err
+    assert os.listdir(tmp_path) == []
+
+
+def test_list_file_is_written_whole_as_its_extension_says(meshes, tmp_path):
+    out = tmp_path / "contours"
+    listing = tmp_path / "contours.list"
+    code, stdout, err = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--list", listing)
+    assert code == 0 and stdout == "", err
+    paths = listing.read_text().splitlines()
+    assert len(paths) == 3 and all(os.path.isfile(p) for p in paths)
+    assert sorted(os.path.basename(p) for p in paths) == sorted(n for n in os.listdir(out) if not n.startswith("."))
+    os.utime(listing, ns=(1, 1))  # an identical rerun: the list is newer than its mesh (Make)
+    assert run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--list", listing)[0] == 0
+    assert listing.stat().st_mtime_ns > os.stat(meshes / "cylinder.stl").st_mtime_ns
+    rows_file = tmp_path / "contours.csv"
+    code, stdout, _ = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--list", rows_file)
+    assert code == 0 and stdout == ""
+    rows = list(csv.DictReader(io.StringIO(rows_file.read_text())))
+    assert [r["file"] for r in rows] == paths and rows[0]["kind"] == "section"
+    assert [n for n in os.listdir(tmp_path) if n.startswith(".")] == []
+
+
+def test_list_file_is_not_written_when_a_mesh_failed(meshes, tmp_path):
+    bad = tmp_path / "bad.stl"
+    bad.write_bytes(b"solid nothing\nendsolid\n")
+    listing = tmp_path / "contours.list"
+    code, _, err = run(
+        "extract", meshes / "cylinder.stl", bad, "-o", tmp_path / "c", "--sections", 3, "--list", listing
+    )
+    assert code == 3 and "bad.stl" in err and not listing.exists()

@@ -458,7 +458,8 @@ def test_unchanged_rerun_reads_nothing(lib, tmp_path, reads):
     idx_path = tmp_path / "idx.h5"
     build_index([str(lib)], idx_path, jobs=1)
     before = _snapshot(idx_path)
-    stamp = os.stat(idx_path).st_mtime_ns
+    os.utime(idx_path, ns=(1, 1))  # as if built long ago
+    inode = os.stat(idx_path).st_ino
     reads.clear()
     # contents changed, but size and mtime restored: by design not even opened
     a = lib / "a.csv"
@@ -469,7 +470,8 @@ def test_unchanged_rerun_reads_nothing(lib, tmp_path, reads):
     assert reads == []
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (0, 0, 0, 5, 0)
     assert report.curves == 8 and not report.written
-    assert os.stat(idx_path).st_mtime_ns == stamp
+    # not rewritten (the same file), but newer than its sources: Make sees the build ran
+    assert os.stat(idx_path).st_ino == inode and os.stat(idx_path).st_mtime_ns > os.stat(a).st_mtime_ns
     after = _snapshot(idx_path)
     assert after["ids"] == before["ids"] and after["files"] == before["files"]
     _assert_rows_equal(after["rows"], before["rows"])
@@ -677,7 +679,9 @@ def test_dry_run_writes_nothing_and_reports_the_plan(lib, tmp_path, rng, reads):
     reads.clear()
     calls = []
     report = build_index([str(lib)], idx_path, dry_run=True, jobs=1, progress=lambda d, t: calls.append((d, t)))
-    assert reads == []  # planning never parses
+    # the files the build would read are read (a broken one must be reported failed, the
+    # curve count is the result's); the touched one with the same bytes is only hashed
+    assert sorted(reads) == sorted([a, new, multi])
     assert report.dry_run and not report.written
     k = {p: os.path.relpath(p, tmp_path) for p in (a, b, new, multi, single, str(lib / "sub" / "two.vtp"))}
     assert report.changes == sorted(
@@ -692,10 +696,13 @@ def test_dry_run_writes_nothing_and_reports_the_plan(lib, tmp_path, rng, reads):
         key=lambda x: x[1],
     )
     assert (report.added, report.updated, report.removed, report.unchanged, report.failed) == (1, 2, 1, 2, 0)
-    assert report.curves == 8
     assert calls[0] == (0, 4) and calls[-1] == (4, 4)
     assert idx_path.read_bytes() == data and os.stat(idx_path).st_mtime_ns == stamp
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "lib"]
+    # what the dry run said is what the build does, the curve count included
+    real = build_index([str(lib)], idx_path, jobs=1)
+    assert real.changes == report.changes and real.curves == report.curves != 8
+    assert real.failures == report.failures == []
 
 
 def test_no_sources_is_an_error_without_an_index(tmp_path, lib):

@@ -186,7 +186,8 @@ def test_an_empty_or_unmounted_source_does_not_wipe_the_index(lib, tmp_path):
     assert code == 1 and summary["shrink"] == {"removed": 5, "of": 5, "allowed": False}
     assert summary["written"] is False and "refusing to build" in summary["refused"]
     code, out, err = run("index", "build", empty, "--index", index, "--dry-run")
-    assert code == 0 and "a build would refuse to remove 5 of 5 files" in err
+    # the dry run says so, and exits as the build would (issue 25, item 10)
+    assert code == 1 and "a build would refuse to remove 5 of 5 files" in err
     assert index.read_bytes() == data
     code, out, err = run("index", "build", empty, "--index", index, "--allow-shrink", "--format", "json")
     summary = json.loads(out)

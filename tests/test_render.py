@@ -561,12 +561,35 @@ def test_panel_subtitles_carry_distance_flags_and_note(tmp_path):
     assert not np.array_equal(plain, noted)
 
 
-def test_same_picture_again_leaves_the_file_untouched(tmp_path):
+def test_same_picture_again_keeps_the_file_with_a_fresh_mtime(tmp_path):
     q, panels = _ellipse_scene(2)
     out = tmp_path / "same.png"
     render_matches(q, "e", panels, out, size=SMALL)
     os.utime(out, ns=(1, 1))
+    inode = out.stat().st_ino
     render_matches(q, "e", panels, out, size=SMALL)
-    assert out.stat().st_mtime_ns == 1 and os.listdir(tmp_path) == ["same.png"]
+    assert out.stat().st_mtime_ns > 1 and out.stat().st_ino == inode and os.listdir(tmp_path) == ["same.png"]
     render_matches(q, "e", panels[:1], out, size=SMALL)  # a different picture replaces it
-    assert out.stat().st_mtime_ns != 1 and os.listdir(tmp_path) == ["same.png"]
+    assert out.stat().st_ino != inode and os.listdir(tmp_path) == ["same.png"]
+
+
+def test_long_ids_that_differ_in_the_middle_get_distinct_titles():
+    """Issue 25, item 14: cutting long ids in the middle gave two panels the same title (the
+    section number and the minus sign were cut away)."""
+    stem, tail = "scans/2026-11-28/blade_root_scan", "loop0_cleaned_resampled_v2.obj"
+    ids = [
+        f"{stem}_section-z05_at-1.5_{tail}",
+        f"{stem}_section-z06_at-1.5_{tail}",
+        f"{stem}_section-z05_at1.5_{tail}",
+        f"{stem}_section-z15_at-1.5_{tail}",
+    ]
+    q = ellipse(2.0, 1.0, 120)
+    panels = [_panel(ellipse(2.0, 1.1 + 0.1 * i, 90), curve_id, 0.01 * (i + 1)) for i, curve_id in enumerate(ids)]
+    scene = layout.build_scene(q, "queries/some_rather_long_query_name_from_the_scanner.obj", panels, SMALL)
+    titles = [p.title for p in scene.panels]
+    names = [t.split(". ", 1)[1] for t in titles[1:]]  # the ids, without "rank. "
+    assert len(set(names)) == len(names) and all(len(n) <= layout.LABEL_WIDTH for n in names), titles
+    assert "z06" in titles[2] and "-1.5" in titles[1]
+    # the same for the plain shortening of a few ids
+    labels = short_labels(ids)
+    assert len(set(labels)) == len(ids) and all(len(label) <= layout.LABEL_WIDTH for label in labels)

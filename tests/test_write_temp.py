@@ -83,3 +83,35 @@ def test_publish_replaces(tmp_path):
         fh.write("new")
     publish(temp, str(target))
     assert target.read_text() == "new" and not os.path.exists(temp)
+
+
+# --------------------------------------------------------------------------- nfdmatch._io.write_file
+
+
+def test_write_file_replaces_changed_bytes_and_keeps_identical_ones_with_a_fresh_mtime(tmp_path):
+    from nfdmatch._io import write_file
+
+    target = tmp_path / "report.csv"
+    assert write_file(target, b"a,b\n1,2\n") is True
+    assert target.read_bytes() == b"a,b\n1,2\n" and stat.S_IMODE(target.stat().st_mode) == 0o666 & ~_umask()
+    os.utime(target, ns=(1, 1))  # as if written long ago
+    inode = target.stat().st_ino
+    # the same bytes: the same file (inode), but newer than anything before the call
+    assert write_file(target, b"a,b\n1,2\n") is False
+    assert target.stat().st_ino == inode and target.stat().st_mtime_ns > 1
+    # other bytes: a new file renamed over it
+    assert write_file(target, lambda temp: open(temp, "wb").write(b"a,b\n3,4\n")) is True
+    assert target.read_bytes() == b"a,b\n3,4\n" and target.stat().st_ino != inode
+    assert os.listdir(tmp_path) == ["report.csv"]
+
+
+def test_write_file_flushes_the_temporary_file_before_the_rename(tmp_path, monkeypatch):
+    from nfdmatch import _io
+
+    synced, renamed = [], []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(os.readlink(f"/proc/self/fd/{fd}")), real_fsync(fd)))
+    monkeypatch.setattr(os, "replace", lambda a, b: (renamed.append((list(synced), a)), real_replace(a, b)))
+    _io.write_file(tmp_path / "x.json", b"{}\n")
+    ((synced_before, temp),) = renamed
+    assert temp in synced_before  # the data is on disk before the name points at it

@@ -1,9 +1,10 @@
 """The command-line interface: parses arguments, calls the library, formats the results.
 
 The only package that imports click and rich. One module per command group, and
-``common`` for what they share (output formats, input format, matching options, the
-exit-code policy). Importing it must stay cheap: renderers, mesh and HDF5 libraries are
-imported inside the commands that need them.
+``options`` (the group, shared options, messages, the exit-code policy), ``inputs``
+(reading inputs) and ``output`` (row formats, ``-o``, tables) for what they share.
+Importing it must stay cheap: renderers, mesh and HDF5 libraries are imported inside
+the commands that need them.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from .common import VERBOSE, detail, verbosity
+from .options import VERBOSE, detail, verbosity
 
 #: the default of --scheduler-timeout (nfdmatch.distributed.DEFAULT_TIMEOUT, not imported here
 #: so that the CLI starts without dask)

@@ -3,27 +3,27 @@
 from __future__ import annotations
 
 import json
+import os
 
 import click
 
 from ..descriptors import DEFAULT_SAMPLES
-from .common import (
-    deliver,
+from ..errors import NfdError, WriteError
+from .inputs import read_inputs, read_one
+from .options import (
+    check_writable,
     descriptor_options,
     exclude_self_option,
     format_option,
     input_format_option,
-    match_columns,
-    match_row,
     matching,
     matching_options,
     output_option,
-    read_inputs,
-    read_one,
+    paths_option,
     rows_format_option,
     say,
-    write_rows,
 )
+from .output import deliver, match_columns, match_row, path_speller, resolve_format, write_rows
 from .group import main
 
 
@@ -33,7 +33,7 @@ from .group import main
 @matching_options
 @descriptor_options
 @input_format_option
-@format_option(("text", "json"), default="text")
+@format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
 def distance(
     curve_a, curve_b, method, strict_direction, mirror, samples, harmonics, scale, input_format, output_format, output
@@ -50,6 +50,7 @@ def distance(
     """
     from ..matching import distance as match_distance
 
+    output_format = resolve_format(output_format, output, ("text", "json"), terminal="text", piped="text")
     if curve_a == "-" and curve_b == "-":
         raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
     a = read_one(curve_a, input_format)
@@ -98,14 +99,12 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
       nfdmatch describe sample_curves/library/ --harmonics 8 -o descriptors.csv
     """
     from ..descriptors import descriptors_batch, validate_parameters
-    from .common import resolve_format
 
+    fmt = resolve_format(output_format, output, ("csv", "tsv", "json", "jsonl"), terminal="csv")
     validate_parameters(samples, harmonics, scale)
-    inputs = read_inputs(files, glob=glob_pattern, input_format=input_format)
+    inputs = read_inputs(files, glob=glob_pattern, input_format=input_format, progress="reading curves")
     batch = descriptors_batch(inputs.curves, samples=samples, harmonics=harmonics, scale=scale)
     rows = [_descriptor_row(batch.row(i, c.id)) for i, c in enumerate(inputs.curves)]
-    fmt = resolve_format(output_format, output)
-    fmt = "csv" if fmt == "table" else fmt
     if fmt in ("json", "jsonl"):
         columns = [
             "id",
@@ -132,6 +131,7 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
 @click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only list matches at most this far.")
 @click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
 @click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
+@paths_option
 @exclude_self_option
 @matching_options
 @descriptor_options
@@ -145,6 +145,7 @@ def rank(
     max_distance,
     glob_pattern,
     details,
+    paths,
     exclude_self_,
     method,
     strict_direction,
@@ -168,8 +169,9 @@ def rank(
     """
     from ..search import rank_curves
 
+    output_format = resolve_format(output_format, output)
     query = read_one(query_spec, input_format)
-    inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
+    inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format, progress="reading curves")
     ranked = rank_curves(
         query,
         inputs.curves,
@@ -181,8 +183,13 @@ def rank(
         exclude_self=exclude_self_,
         **matching(method, strict_direction, mirror),
     )
+    spell = path_speller(paths)
     write_rows(
-        [match_row(query.id, m) for m in ranked], match_columns(details), output_format, output, group_by="query"
+        [{**match_row(spell(query.id), m), "match": spell(m.id)} for m in ranked],
+        match_columns(details),
+        output_format,
+        output,
+        group_by="query",
     )
     inputs.finish()
 
@@ -239,14 +246,25 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
     Example:
       nfdmatch reconstruct sample_curves/library/knotess/5_2.csv -k 4 -o 5_2-k4.vtp
     """
-    from ..errors import ParameterError
-    from ..formats import write_curves
+    from .._io import write_file
+    from ..errors import ParameterError, UnknownFormatError
+    from ..formats import FORMATS, format_of, write_curves
     from ..reconstruction import reconstruct_curves, reconstruction_samples
 
     try:
         reconstruction_samples(harmonics, samples)
     except ParameterError as exc:
         raise click.BadParameter(exc.message, param_hint="--harmonics") from None
+    try:  # what OUT will be, before any work (a mesh extension is not a curve file to write)
+        curve_format = format_of(output, curve_format)
+    except UnknownFormatError:
+        ext = os.path.splitext(output)[1].lower()
+        given = f"--output-format {curve_format!r}" if curve_format else (f"{ext!r}" if ext else "no extension")
+        raise click.UsageError(
+            f"-o {output}: {given} is not a curve format reconstruct writes; the extension picks one of "
+            f"{', '.join(e for exts in FORMATS.values() for e in exts)} (or --output-format {'|'.join(FORMATS)})"
+        ) from None
+    check_writable(output)
     if curve_spec == "-":
         curves = [read_one("-", input_format)]
     else:
@@ -259,12 +277,17 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
             else read_curves(path, format=input_format)
         )
     rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points, normalized=normalized)
-    write_curves(output, [r.curve for r in rebuilt], format=curve_format)
+    try:
+        write_file(output, lambda temp: write_curves(temp, [r.curve for r in rebuilt], format=curve_format))
+    except OSError as exc:
+        if isinstance(exc, NfdError):
+            raise
+        raise WriteError(f"cannot write the file ({exc.strerror or exc})", path=output) from None
     rows = [
         {"curve": r.source_id, "harmonics": r.harmonics, "vertices": len(r.curve.points), "distance": r.distance}
         for r in rebuilt
     ]
-    write_rows(rows, ["curve", "harmonics", "vertices"] + ([] if normalized else ["distance"]), output_format)
+    write_rows(rows, ["curve", "harmonics", "vertices", "distance"], output_format)
     say(f"wrote {output}")
 
 

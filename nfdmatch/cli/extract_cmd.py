@@ -2,13 +2,33 @@
 
 from __future__ import annotations
 
+import os
 import sys
 
 import click
 
 from ..errors import NfdError
-from .common import EXIT_ERROR, detail, error, finish, format_option, note, report_errors, say, write_rows
+from .options import (
+    EXIT_ERROR,
+    ROW_FORMATS,
+    _count_failures,
+    check_writable,
+    detail,
+    error,
+    finish,
+    format_option,
+    note,
+    report_errors,
+    say,
+)
+from .output import FORMAT_OF_EXTENSION, deliver, write_rows
 from .group import main
+
+
+def _check_list(ctx, param, value):
+    if value == "-":
+        return None
+    return None if value is None else check_writable(value)
 
 
 @main.command()
@@ -18,8 +38,19 @@ from .group import main
     "--output",
     "out_dir",
     required=True,
+    multiple=True,  # to refuse a second -o, which click would let win silently
     type=click.Path(file_okay=False),
-    help="Folder for the contour files (created if needed).",
+    help="Folder for the contour files (created if needed); once.",
+)
+@click.option(
+    "--list",
+    "list_file",
+    default=None,
+    type=click.Path(dir_okay=False),
+    metavar="FILE",
+    callback=_check_list,
+    help="Write the list of contour files to FILE instead of stdout (whole, and only on success; "
+    "a Make target): rows as its extension says (.csv, .tsv, .json, .jsonl), else one path per line.",
 )
 @click.option(
     "--sections",
@@ -51,7 +82,7 @@ from .group import main
     "(levels moved, mesh deleted); files extract did not write are never touched.",
 )
 @format_option(help_extra=" of the list of written files (default: a table on a terminal, CSV otherwise)")
-def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, output_format):
+def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format, prune, output_format):
     """Write closed contours of triangle meshes (STL, PLY, OBJ, OFF, GLB/GLTF) as curve files.
 
     Each MESH (a file, or a folder searched recursively for mesh files) is cut by N
@@ -79,6 +110,18 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, ou
     from ..errors import ParameterError
     from ..mesh import extract_contours, find_mesh_files, prune_contours, write_contours
 
+    if len(out_dir) > 1:
+        raise click.UsageError(
+            f"-o names the one folder for the contours, given {len(out_dir)} times ({', '.join(out_dir)}); "
+            "the list of files goes to stdout or to --list FILE"
+        )
+    out_dir = out_dir[0]
+    list_format = None
+    if list_file is not None:
+        ext = os.path.splitext(list_file)[1].lower()
+        list_format = output_format or FORMAT_OF_EXTENSION.get(ext)
+        if list_format not in ROW_FORMATS or list_format == "table":
+            list_format = "paths"
     if sections == 0 and not boundaries:
         raise click.UsageError("nothing to extract: --sections 0 needs --boundaries")
     files = find_mesh_files(meshes, exclude=[out_dir])
@@ -91,6 +134,8 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, ou
         except NfdError as exc:
             errors.append(exc)
     report_errors(errors)
+    if errors:
+        _count_failures(len(errors))  # exit 3 to come: --list is not written
     for result in results:
         for message in result.notes:
             note(message)
@@ -112,7 +157,11 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, ou
         }
         for path, c in zip(written, contours)
     ]
-    write_rows(rows, ["file", "mesh", "kind", "axis", "level", "loop", "vertices"], output_format, group_by="mesh")
+    columns = ["file", "mesh", "kind", "axis", "level", "loop", "vertices"]
+    if list_format == "paths":
+        deliver("".join(f"{row['file']}\n" for row in rows), list_file)
+    else:
+        write_rows(rows, columns, list_format or output_format, list_file, group_by="mesh")
     pruned = ""
     if prune:
         result = prune_contours(out_dir, written, keep_meshes=[e.path for e in errors if e.path])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from .. import __version__
-from .common import NfdGroup, verbosity_options
+from .options import NfdGroup, verbosity_options
 
 
 @click.group(cls=NfdGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -27,7 +27,8 @@ def main():
       nfdmatch extract part.stl --sections 20 -o contours/
 
     Every command: -q errors only, -v more detail (stderr); data on stdout, or with
-    -o FILE written whole and only on success (an identical file is left untouched).
+    -o FILE written whole and only on success (an identical file keeps its bytes and
+    gets a fresh mtime, so Make settles); -o - is stdout.
 
     Exit codes: 0 ok, 1 error (nothing could be read), 2 usage error, 3 some inputs
     failed (each named on stderr; the rest was answered).

@@ -10,28 +10,25 @@ import click
 
 from ..defaults import DEFAULT_GRAPH_K, DEFAULT_RERANK_DEPTH
 from ..matching import DEFAULT_METHOD
-from .common import (
+from .inputs import read_inputs
+from .options import (
     EXIT_ERROR,
-    deliver,
     error,
     exclude_self_option,
-    format_option,
     finish,
+    format_option,
     index_option,
     input_format_option,
-    match_columns,
-    match_row,
     matching,
     matching_options,
     note,
     optional_descriptor_options,
     output_option,
-    progress_bar,
-    read_inputs,
+    paths_option,
     rows_format_option,
     say,
-    write_rows,
 )
+from .output import deliver, match_columns, match_row, path_speller, progress_bar, resolve_format, write_rows
 from .cluster import open_cluster, ranges_option, scheduler_options
 from .group import main
 
@@ -154,14 +151,16 @@ def index_build(
     from ..errors import ShrinkRefusedError
     from ..index import build_index
 
+    from ..errors import NfdError
+
     started = datetime.now(timezone.utc)
     cluster = None
-    if scheduler and not dry_run:  # a dry run only plans: nothing for workers to do
-        if jobs is not None:
-            note("--jobs is ignored with --scheduler (the cluster's workers compute the files)")
-        cluster = open_cluster(scheduler, scheduler_timeout)
     progress, finish_bar = progress_bar("indexing files")
     try:
+        if scheduler and not dry_run:  # a dry run reads locally: nothing for workers to do
+            if jobs is not None:
+                note("--jobs is ignored with --scheduler (the cluster's workers compute the files)")
+            cluster = open_cluster(scheduler, scheduler_timeout)
         options = dict(
             samples=samples,
             harmonics=harmonics,
@@ -179,21 +178,17 @@ def index_build(
             report = build_index(list(sources), index_path, jobs=jobs, file_timeout=file_timeout or None, **options)
         else:
             report = cluster.build_index(list(sources), index_path, **options)
-    except ShrinkRefusedError as exc:
-        if output_format == "json":  # cron logs the summary: it says what was refused
-            deliver(
-                json.dumps(
-                    {
-                        "index": index_path,
-                        "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
-                        "refused": str(exc),
-                        "written": False,
-                        "shrink": {"removed": exc.removed, "of": exc.of, "allowed": False},
-                    }
-                )
-                + "\n",
-                None,
-            )
+    except (NfdError, KeyboardInterrupt) as exc:
+        if output_format == "json":  # cron logs one line per run: it says why nothing was written
+            record = {"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"), "written": False}
+            if isinstance(exc, KeyboardInterrupt):
+                record["error"] = "terminated (SIGTERM)" if type(exc).__name__ == "Terminated" else "interrupted"
+            else:
+                record["error"] = str(exc)
+            if isinstance(exc, ShrinkRefusedError):
+                record["refused"] = str(exc)
+                record["shrink"] = {"removed": exc.removed, "of": exc.of, "allowed": False}
+            deliver(json.dumps(record) + "\n", None)
         raise
     finally:
         finish_bar()
@@ -261,18 +256,24 @@ def index_build(
                 f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
                 f"{g.kept} kept; {g.seconds:.2f} s"
             )
-    if not dry_run:
-        # a skipped folder or FIFO counts as a failed input: exit 3, so cron mails it
-        finish(
-            report.failed + len(report.skipped),
-            report.added + report.updated + report.unchanged + report.failed + len(report.skipped),
-            "files",
+    if dry_run and report.shrink and not allow_shrink:  # the build would refuse: so does its dry run
+        error(
+            f"{index_path}: a build would refuse to remove {report.shrink[0]} of {report.shrink[1]} files "
+            f"(pass --allow-shrink)"
         )
+        sys.exit(EXIT_ERROR)
+    # a skipped folder or FIFO counts as a failed input: exit 3, so cron mails it (a dry run
+    # exits as its build would)
+    finish(
+        report.failed + len(report.skipped),
+        report.added + report.updated + report.unchanged + report.failed + len(report.skipped),
+        "files",
+    )
 
 
 @index.command("info")
 @index_option
-@format_option(("text", "json"), default="text")
+@format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
 def index_info(index_path, output_format, output):
     """Describe an index: sources, files, curves, failed files with reasons, parameters, format, times, size.
@@ -288,6 +289,7 @@ def index_info(index_path, output_format, output):
 
     from ..index.graph import graph_k
 
+    output_format = resolve_format(output_format, output, ("text", "json"), terminal="text", piped="text")
     with open_index(index_path) as idx:
         info = idx.info()
         info["graph"] = graph_k(idx)  # neighbours per curve stored for --rerank; 0: none
@@ -393,6 +395,7 @@ def index_ls(index_path, status, list_curves, output_format, output):
     """
     from ..index import open_index
 
+    output_format = resolve_format(output_format, output)
     with open_index(index_path) as idx:
         files = [r for r in idx.files() if status is None or r.status == status]
         if list_curves:
@@ -411,8 +414,8 @@ def index_ls(index_path, status, list_curves, output_format, output):
 
 @index.command("export")
 @index_option
-@format_option(("csv", "jsonl", "npz"), help_extra=" [default: by the extension of -o]")
-@output_option(help="The file to write (.csv, .jsonl or .npz), whole and only on success.", required=True)
+@format_option(("csv", "jsonl", "npz"), help_extra=" [default: by the extension of -o, else csv]")
+@output_option(help="The file to write (.csv, .jsonl or .npz), whole and only on success [default: stdout].")
 def index_export(index_path, output_format, output):
     """Export the stored descriptors and poses of every curve, for use without h5py.
 
@@ -429,15 +432,14 @@ def index_export(index_path, output_format, output):
       nfdmatch index export --index demo.h5 -o demo.npz
     """
     import io
-    import os
 
     import numpy as np
 
     from ..index import open_index
 
-    fmt = output_format or {".csv": "csv", ".jsonl": "jsonl", ".npz": "npz"}.get(os.path.splitext(output)[1].lower())
-    if fmt is None:
-        raise click.UsageError(f"cannot tell the export format from {output!r}: use .csv, .jsonl or .npz, or --format")
+    fmt = resolve_format(output_format, output, ("csv", "jsonl", "npz"), terminal="csv", piped="csv")
+    if fmt == "npz" and output is None and sys.stdout.isatty():
+        raise click.UsageError("npz is binary: give -o FILE.npz (or redirect stdout)")
     with open_index(index_path) as idx:
         rows = idx.read_rows(
             0, idx.n_curves, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate", "file"]
@@ -495,9 +497,14 @@ def index_export(index_path, output_format, output):
     write_rows(flat, list(flat[0]) if flat else ["id"], "csv", output)
 
 
-def _deliver_bytes(data: bytes, output: str) -> None:
-    from .common import detail, write_if_changed
+def _deliver_bytes(data: bytes, output: str | None) -> None:
+    from .options import detail
+    from .output import write_if_changed
 
+    if output is None:  # stdout (not a terminal: checked before)
+        sys.stdout.buffer.write(data)
+        sys.stdout.flush()
+        return
     detail(f"wrote {output}" if write_if_changed(output, data) else f"{output} unchanged")
 
 
@@ -508,6 +515,7 @@ def _deliver_bytes(data: bytes, output: str) -> None:
 @click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only list matches at most this far.")
 @click.option("--glob", "glob_pattern", default=None, help="Only query files in folders whose name matches.")
 @click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
+@paths_option
 @exclude_self_option
 @click.option(
     "--exhaustive",
@@ -543,6 +551,7 @@ def query(
     max_distance,
     glob_pattern,
     details,
+    paths,
     exclude_self_,
     exhaustive,
     show_stats,
@@ -583,6 +592,7 @@ def query(
     from ..index import FORMAT_VERSION, open_index
     from ..search import search_index
 
+    output_format = resolve_format(output_format, output)
     if rerank:
         for given, name in (
             (exhaustive, "--exhaustive"),
@@ -647,11 +657,17 @@ def query(
             finish_bar()
             if cluster is not None:
                 cluster.close()
+        spell_query, spell_match = path_speller(paths), path_speller(paths, idx.locate)
+        match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
     columns = match_columns(details)
     if rerank:
         columns.insert(columns.index("distance") + 1, "score")
     write_rows(
-        [match_row(q.id, m) for q, res in zip(inputs.curves, results) for m in res],
+        [
+            {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
+            for q, res in zip(inputs.curves, results)
+            for m in res
+        ],
         columns,
         output_format,
         output,

@@ -7,10 +7,9 @@ import os
 
 import click
 
-from .common import (
+from .inputs import read_inputs
+from .options import (
     descriptor_options,
-    deliver,
-    delimited_text,
     error,
     finish,
     format_option,
@@ -21,13 +20,10 @@ from .common import (
     note,
     optional_descriptor_options,
     output_option,
-    progress_bar,
-    read_inputs,
     say,
     some_failed,
-    split_outputs,
-    write_rows,
 )
+from .output import delimited_text, deliver, progress_bar, resolve_format, split_outputs, write_rows
 from .group import main
 
 
@@ -170,6 +166,7 @@ def show(
     from ..show import show_ranked, show_searched
 
     pictures, rows_output = split_outputs(output)
+    output_format = resolve_format(output_format, rows_output)
     if len(pictures) != 1:
         raise click.UsageError(
             "show draws one picture per query: give one -o FILE.png (.svg, .pdf), a pattern for several queries"
@@ -288,12 +285,11 @@ def matrix(
       nfdmatch matrix sample_curves/library -o matrix.png -o matrix.json
     """
     from ..search import distance_matrix, similarity_order
-    from .common import resolve_format
 
-    pictures, rows_output = split_outputs(output)
+    formats = ("csv", "tsv", "json")
+    pictures, rows_output = split_outputs(output, formats)
     _check_pictures(pictures)  # before the O(N^2) work, not after it
-    fmt = resolve_format(output_format, rows_output)
-    fmt = "csv" if fmt not in ("csv", "tsv", "json") else fmt
+    fmt = resolve_format(output_format, rows_output, formats, terminal="csv")
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")

@@ -19,13 +19,12 @@ module-level name, so tests can make opening a file fail).
 from __future__ import annotations
 
 import os
-import re
 import stat
-import tempfile
 from collections.abc import Sequence
 
 import numpy as np
 
+from .._io import publish, temp_beside, write_file  # noqa: F401  (re-exported)
 from ..curve import Curve, clean_many, clean_points
 from ..errors import ParameterError, ParseError, ReadError, WriteError, escape_name, excerpt
 
@@ -292,65 +291,10 @@ def points_list(curves, *, path=None) -> list[np.ndarray]:
     return out
 
 
-def temp_beside(path: str, extension: str | None = None) -> str:
-    """Create an empty hidden temporary file in ``path``'s folder and return its name:
-    ``.<name>.<random>.tmp<ext>`` (``<name>`` with characters other than ``A-Z a-z 0-9 . _
-    -`` made ``_``, so that libraries taking only UTF-8 names can write it; the same
-    extension, or ``extension``, so writers that go by it work). Made by :func:`tempfile.mkstemp`:
-    created exclusively (``O_EXCL``: never an existing file, never through a symbolic
-    link another user planted), readable by the owner only until :func:`publish`."""
-    folder, name = os.path.split(os.path.abspath(path))
-    safe = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:80]
-    ext = os.path.splitext(name)[1] if extension is None else extension
-    fd, temp = tempfile.mkstemp(prefix=f".{safe}.", suffix=".tmp" + ext, dir=folder)
-    os.close(fd)
-    return temp
-
-
-def _umask() -> int:
-    try:
-        with open("/proc/self/status", encoding="ascii", errors="replace") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)  # no /proc: read it the only portable way
-    os.umask(mask)
-    return mask
-
-
-def publish(temp: str, path: str) -> None:
-    """Give ``temp`` (from :func:`temp_beside`) the permissions a new file would have (those
-    of the file it replaces, if any) and rename it over ``path``."""
-    try:
-        info = os.stat(path)
-        mode = stat.S_IMODE(info.st_mode) if stat.S_ISREG(info.st_mode) else None
-    except OSError:
-        mode = None
-    os.chmod(temp, mode if mode is not None else 0o666 & ~_umask())
-    os.replace(temp, path)
-
-
-def write_if_changed(path: str, produce) -> bool:
-    """Write a file whole: ``produce(temp)`` writes it to a hidden temporary file beside
-    ``path`` (:func:`temp_beside`: exclusive, same extension, so writers that go by it
-    work), which then replaces ``path`` unless the bytes are the same; the existing file and
-    its mtime are then kept, so make-style pipelines see no change. Returns True when
-    ``path`` was (re)written. Errors of ``produce`` and OSError propagate; the temporary
-    file never stays."""
-    import filecmp
-
-    temp = temp_beside(path)
-    try:
-        produce(temp)
-        if os.path.isfile(path) and filecmp.cmp(temp, path, shallow=False):
-            return False
-        publish(temp, path)
-        return True
-    finally:
-        if os.path.lexists(temp):
-            os.remove(temp)
+# one atomic writer for every file the tool writes (nfdmatch/_io.py); the old names stay
+# importable from here: ``write_if_changed`` is :func:`nfdmatch._io.write_file` (an identical
+# file is kept, with a fresh mtime)
+write_if_changed = write_file
 
 
 def write_text(path, text: str) -> None:

@@ -17,7 +17,7 @@ from ..formats import format_of, split_selector
 from ..sources import _irregular, find_curve_files
 from .lock import _Lock
 from .paths import curve_ids, found_location, index_file, openable, source_location, stored
-from .pool import _run_tasks, _sha256
+from .pool import _run_tasks
 from .reader import Index
 from .graph import GraphStats, graph_changes, write_graph
 from .search_group import write_search_group
@@ -66,7 +66,7 @@ class BuildReport:
     """What :func:`build_index` did (or, for a dry run, would do).
 
     ``added, updated, removed, unchanged, failed`` count FILES; ``curves`` is the number of
-    rows in the index after the build (dry run: in the existing index); ``failures`` lists
+    rows in the index after the build (dry run: in the index the build would write); ``failures`` lists
     ``(file, message)`` of every failed file (new failures and files that stay failed), the
     file as it was opened from the working directory, as its message names it;
     ``changes`` lists ``(action, path)`` for every file, in stored-path order (the path as
@@ -162,7 +162,9 @@ def build_index(
         recorded one).
     input_format : force this reader for every file (not recorded in the index).
     rebuild : recompute every file, even unchanged ones.
-    dry_run : only plan: stat, hash files whose mtime changed, report; write nothing.
+    dry_run : report what the build would do and write nothing: files are read and
+        described as the build would (a broken file is ``failed``, ``curves`` is the
+        result's count), no lock is taken, a shrink is a notice instead of an error.
     jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
         ``file_timeout`` is given).
     wait : seconds to wait for another build's lock (0: fail at once).
@@ -365,7 +367,7 @@ def build_index(
                 report.notices.append(f"removing {len(removed)} of the index's {len(old_files)} files (--allow-shrink)")
 
         if dry_run:
-            _dry_run_report(report, items, removed, old, progress)
+            _dry_run_report(report, items, tasks, removed, old, progress, jobs, file_timeout, runner)
             report.seconds = time.perf_counter() - t0
             return report
 
@@ -390,6 +392,13 @@ def build_index(
             or any(it.path != it.old.path for it in items if it.old)
         )
         if not needs_write:
+            # nothing to change: the index is not rewritten, but it is made newer than its
+            # sources (under the build's lock), as Make expects of a command that succeeded:
+            # else a rule `index.h5: $(CURVES)` reruns after every `touch`, forever
+            try:
+                os.utime(real_index)
+            except OSError:
+                pass  # not ours to touch (read-only, another owner): the index is still right
             if progress is not None:
                 progress(0, 0)
             for item in items:
@@ -465,44 +474,55 @@ def _find(sources: list[str], glob, base: str, skipped: list):
     return sorted(opens), opens, stored_sources, unseen
 
 
-def _dry_run_report(report: BuildReport, items: list[PlanItem], removed, old, progress) -> None:
-    total = len([it for it in items if it.action.reads_file])
-    done = 0
+def _dry_run_report(
+    report: BuildReport, items: list[PlanItem], tasks, removed, old, progress, jobs, file_timeout, runner
+) -> None:
+    """What the build would do, writing nothing: the files it would read are read and
+    described as the build reads them (the same tasks, in worker processes), so that a
+    broken file is reported ``failed`` (not ``added``) and ``curves`` is the count the
+    written index would hold."""
+    total = len(tasks)
     if progress is not None:
         progress(0, total)
+    results: dict[int, dict] = {}
+    stream = _run_tasks(tasks, jobs, None, file_timeout or None) if runner is None else runner(tasks, jobs, None)
+    for i, res in stream:
+        results[i] = res
+        if progress is not None:
+            progress(len(results), total)
     actions = {}
+    curves = 0
     for item in items:
         path, r = item.path, item.old
         if item.action is Action.COPY:
             actions[path] = "unchanged"
-        elif item.action is Action.KEEP_FAILED:
+            curves += r.curve_count
+            continue
+        if item.action is Action.KEEP_FAILED:
             actions[path] = "failed"
             report.failures.append((item.file or path, r.error))
-        elif item.action is Action.COMPUTE:
-            actions[path] = "added" if r is None else "updated"
-            done += 1
-        else:  # Action.HASH
-            try:
-                same = _sha256(item.file or path) == r.sha256
-            except OSError:
-                same = False
-            if same and r.status == "ok":
+            continue
+        res = results[item.task]
+        if res["status"] == "same":  # mtime changed, contents did not
+            if r.status == "ok":
                 actions[path] = "unchanged"
-            elif same:
+                curves += r.curve_count
+            else:
                 actions[path] = "failed"
                 report.failures.append((item.file or path, r.error))
-            else:
-                actions[path] = "updated"
-            done += 1
-        if progress is not None and item.action.reads_file:
-            progress(done, total)
+        elif res["status"] == "ok":
+            actions[path] = "added" if r is None else "updated"
+            curves += len(res["ids"])
+        else:
+            actions[path] = "failed"
+            report.failures.append((item.file or path, res["error"]))
     for path in removed:
         actions[path] = "removed"
     for path in sorted(actions):
         action = actions[path]
         report.changes.append((action, path))
         setattr(report, action, getattr(report, action) + 1)
-    report.curves = 0 if old is None else old.n_curves
+    report.curves = curves
 
 
 def _write(

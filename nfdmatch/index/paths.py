@@ -79,16 +79,24 @@ def curve_ids(path: str, count: int) -> list[str]:
 
 def openable(path: str, base: str) -> str:
     """A path that opens the stored ``path`` (``file#i`` kept) from the working directory:
-    relative to it when the file is below it (messages stay short), else absolute."""
-    full = path if os.path.isabs(path) else os.path.join(base, path)
-    return display(full)
+    a stored absolute path as it is (the spelling ``index ls`` shows, in messages and the
+    build's failures alike, from any working directory: cron runs in ``/``); a stored
+    relative one relative to the working directory when the file is below it (messages
+    stay short), else absolute."""
+    if os.path.isabs(path):
+        return path
+    return display(os.path.join(base, path))
 
 
 def display(path: str) -> str:
-    """An absolute ``path`` as the user would type it from the working directory."""
+    """An absolute ``path`` as the user would type it from the working directory (itself
+    from ``/``, as cron runs: ``abs/x`` there would only hide the leading slash)."""
     try:
-        rel = os.path.relpath(path)
-    except ValueError:
+        cwd = os.getcwd()
+        if os.path.dirname(cwd) == cwd:  # the root
+            return path
+        rel = os.path.relpath(path, cwd)
+    except (ValueError, OSError):
         return path
     if rel == os.pardir or rel.startswith(os.pardir + os.sep):
         return path

@@ -84,7 +84,7 @@ def _write_manifest(d: str, entries: dict) -> None:
             fh.write(text)
 
     try:
-        write_if_changed(target, produce)  # whole, atomically; untouched when the same
+        write_if_changed(target, produce)  # whole, atomically; kept (mtime refreshed) when the same
     except OSError as exc:
         raise WriteError(f"cannot write the manifest ({exc.strerror or exc})", path=target) from None
 

@@ -44,9 +44,10 @@ def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj")
     contours : the contours of one or several meshes (e.g. of several
         :func:`extract_contours` results).
     out_dir : the folder; existing files of the same name are replaced when their
-        content changes and left untouched (mtime kept) when it would not, so that
-        make-style pipelines downstream rebuild only what changed; other files are left
-        alone. Each file is written whole to a hidden temporary file, then renamed. The
+        content changes and kept (same bytes, fresh mtime: a run that succeeds leaves its
+        outputs newer than its inputs, so Make settles) when it would not; other files are
+        left alone. Each file is written whole to a hidden temporary file, flushed, then
+        renamed (nfdmatch._io). The
         folder's manifest (:data:`MANIFEST`) records every file written, for
         :func:`prune_contours`.
     format : a curve format of :data:`nfdmatch.formats.FORMATS` (``"obj"``,

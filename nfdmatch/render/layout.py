@@ -100,7 +100,45 @@ def short_labels(ids: Sequence[str], width: int = LABEL_WIDTH) -> list[str]:
             labels[k] = "/".join(parts[k][-depth:]) + (m.group(0) if m and m.start() > 0 else "")
     if len(labels) > 1 and max(len(label) for label in labels) > width:
         labels = _without_common_affixes(labels)
-    return [_ellipsize(label, width) for label in labels]
+    return _distinct_cuts(labels, ids, width)
+
+
+def _distinct_cuts(labels: list[str], ids: list[str], width: int) -> list[str]:
+    """Each label cut to ``width`` (:func:`_ellipsize`); labels of different ids that the
+    cut made equal are cut around where they differ instead (a section number, a sign in
+    the middle of a long name), so that two panels never carry the same title."""
+    cut = [_ellipsize(label, width) for label in labels]
+    groups: dict[str, set] = {}
+    for text, curve_id in zip(cut, ids):
+        groups.setdefault(text, set()).add(curve_id)
+    for text, members in groups.items():
+        if len(members) < 2:
+            continue
+        clash = [k for k, t in enumerate(cut) if t == text]
+        full = [labels[k] for k in clash]
+        start = len(os.path.commonprefix(full))  # the first character that tells them apart
+        for k in clash:
+            cut[k] = _window(labels[k], start, width)
+    seen: dict[str, set] = {}
+    for text, curve_id in zip(cut, ids):
+        seen.setdefault(text, set()).add(curve_id)
+    # still equal (ids that differ in several far-apart places): whole, however long
+    return [labels[k] if len(seen[t]) > 1 else t for k, t in enumerate(cut)]
+
+
+def _window(text: str, at: int, width: int) -> str:
+    """``width`` characters of ``text`` that include position ``at`` (a third of the way in),
+    with an ellipsis for each side cut away."""
+    width = max(int(width), 5)
+    if len(text) <= width:
+        return text
+    keep = width - 2  # room for an ellipsis on both sides
+    begin = min(max(at - keep // 3, 0), len(text) - (width - 1))
+    if begin == 0:
+        return text[: width - 1] + "\u2026"
+    if begin + width - 1 >= len(text):
+        return "\u2026" + text[len(text) - (width - 1) :]
+    return "\u2026" + text[begin : begin + keep] + "\u2026"
 
 
 _CUT = "_-. /"
@@ -212,7 +250,7 @@ def check_output(path: str | os.PathLike[str]) -> str:
 
 
 def _write(path: str, data: bytes) -> None:
-    """Write the picture whole; an identical existing file is left untouched (mtime included)."""
+    """Write the picture whole (nfdmatch._io); an identical existing file is kept, with a fresh mtime."""
     from ..formats._chain import write_if_changed
 
     def produce(temp: str) -> None:

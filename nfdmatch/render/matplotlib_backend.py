@@ -23,7 +23,7 @@ def _new_figure(size, **kwargs):
 
 def _png_bytes(fig, fmt: str = "png") -> bytes:
     """The figure as PNG, SVG or PDF bytes; the same figure gives the same bytes (no date in
-    the metadata, fixed SVG ids), so an unchanged picture leaves its file untouched."""
+    the metadata, fixed SVG ids), so an unchanged picture keeps its file's bytes."""
     import matplotlib
 
     buf = io.BytesIO()

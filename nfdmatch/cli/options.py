@@ -1,0 +1,432 @@
+"""The options and the behaviour every command shares, defined once so that every command
+behaves the same.
+
+- :class:`NfdGroup`, the group class of ``nfdmatch`` and ``nfdmatch index``: every
+  :class:`~nfdmatch.errors.NfdError` raised while a command runs (its options included)
+  becomes ``Error: <message>`` on stderr and exit 1, never a traceback; ``-q``/``-v``
+  are added to every command.
+- Messages: :func:`note` (hidden by ``-q``), :func:`detail` (shown by ``-v``), :func:`error`
+  (always). stdout carries data only; everything else goes to stderr.
+- The exit-code policy for inputs that failed: :func:`finish` exits 3 when some failed.
+- Shared click options: ``--format`` (:func:`format_option`), ``-o/--output``
+  (:func:`output_option`), input format, descriptor and matching options, ``--index``.
+
+Exit codes: 0 ok, 1 error (bad input or any NfdError), 2 usage error, 3 partial success
+(some inputs failed, the rest was answered), 130 interrupted (SIGINT, Ctrl-C), 143
+terminated (SIGTERM); both without a traceback, after the command cleaned up.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import click
+
+from ..errors import NfdError, WriteError
+
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
+#: 128 + the signal number, as a shell reports a process ended by SIGINT / SIGTERM
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
+ROW_FORMATS = ("table", "csv", "tsv", "json", "jsonl")
+
+QUIET, NORMAL, VERBOSE = 0, 1, 2
+_VERBOSITY = "nfdmatch.verbosity"
+
+
+# --------------------------------------------------------------------------- errors and exit codes
+
+
+class NothingRead(Exception):
+    """Raised by commands when no input could be read (each was already named): exit 1."""
+
+
+class NfdGroup(click.Group):
+    """A click group whose commands all share the error policy and ``-q``/``-v``."""
+
+    group_class = type  # subgroups (``index``) are NfdGroups too
+
+    def add_command(self, cmd, name=None):
+        if not isinstance(cmd, click.Group):
+            cmd.params.extend(_verbosity_params())
+        super().add_command(cmd, name)
+
+    def invoke(self, ctx):
+        started = time.perf_counter()
+        restore = _catch_sigterm() if ctx.parent is None else None
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the library cleaned up on its way out
+            terminated = isinstance(exc, Terminated)
+            error(f"{'terminated (SIGTERM)' if terminated else 'interrupted (SIGINT)'}")
+            sys.exit(EXIT_TERMINATED if terminated else EXIT_INTERRUPTED)
+        except NfdError as exc:
+            error(exc)
+            sys.exit(EXIT_ERROR)
+        except NothingRead:
+            sys.exit(EXIT_ERROR)
+        except BrokenPipeError:  # e.g. `nfdmatch describe ... | head`
+            sys.stderr.close()
+            sys.exit(EXIT_OK)
+        finally:
+            if ctx.parent is None and ctx.invoked_subcommand:
+                detail(f"{ctx.invoked_subcommand}: {time.perf_counter() - started:.2f} s")
+                kernels = sys.modules.get("nfdmatch.matching.kernels")  # loaded only by exact work
+                if kernels is not None and kernels.chosen() is not None:
+                    detail(f"kernels: {kernels.chosen().describe()}")
+            if restore is not None:
+                restore()
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM, so that a command unwinds as on Ctrl-C
+    (temporary files removed, worker processes stopped) and exits 143."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+def _catch_sigterm():
+    """SIGTERM raises :class:`Terminated` while a command runs; returns what restores the
+    previous handler (None off the main thread, where handlers cannot be set)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    return lambda: signal.signal(signal.SIGTERM, previous)
+
+
+def _set_verbosity(ctx, param, value):
+    if value:
+        level = QUIET if param.name == "quiet" else VERBOSE
+        if ctx.meta.get(_VERBOSITY, level) != level:
+            raise click.UsageError("-q/--quiet and -v/--verbose exclude each other", ctx=ctx)
+        ctx.meta[_VERBOSITY] = level
+
+
+_VERBOSITY_OPTIONS = (
+    (("-q", "--quiet"), "Errors only: no notes, summaries or progress on stderr."),
+    (("-v", "--verbose"), "Also say what is read, what is written and how long it took (stderr)."),
+)
+
+
+_COLOR = "nfdmatch.color"
+COLOR_CHOICES = ("auto", "always", "never")
+_COLOR_HELP = (
+    "Styles (colour, bold) in tables and progress bars: auto, on a terminal unless $NO_COLOR is set "
+    "(then none at all, bold included); always; never."
+)
+
+
+def _set_color(ctx, param, value):
+    if value is not None:
+        ctx.meta[_COLOR] = value
+
+
+def _color_kwargs() -> dict:
+    return dict(
+        type=click.Choice(COLOR_CHOICES), default=None, expose_value=False, callback=_set_color, help=_COLOR_HELP
+    )
+
+
+def _verbosity_params() -> list[click.Option]:
+    return [
+        click.Option(list(names), is_flag=True, expose_value=False, callback=_set_verbosity, help=text)
+        for names, text in _VERBOSITY_OPTIONS
+    ] + [click.Option(["--color"], **_color_kwargs())]
+
+
+def verbosity_options(f):
+    """``-q``/``-v`` and ``--color`` on the group itself (``nfdmatch -q query ...``)."""
+    f = click.option("--color", **_color_kwargs())(f)
+    for names, text in reversed(_VERBOSITY_OPTIONS):
+        f = click.option(*names, is_flag=True, expose_value=False, callback=_set_verbosity, help=text)(f)
+    return f
+
+
+def use_color(terminal: bool) -> bool:
+    """Whether to style output going to a stream (``terminal``: it is one): ``--color
+    always``/``never`` decide; ``auto`` (the default) styles a terminal unless ``$NO_COLOR``
+    is set to anything but the empty string (no-color.org: then no colour, and here no bold
+    either: no escape sequence at all)."""
+    ctx = click.get_current_context(silent=True)
+    choice = "auto"
+    while ctx is not None:  # the command's own --color, else the group's
+        if _COLOR in ctx.meta:
+            choice = ctx.meta[_COLOR]
+            break
+        ctx = ctx.parent
+    if choice != "auto":
+        return choice == "always"
+    return terminal and not os.environ.get("NO_COLOR")
+
+
+def verbosity() -> int:
+    ctx = click.get_current_context(silent=True)
+    return NORMAL if ctx is None else ctx.meta.get(_VERBOSITY, NORMAL)
+
+
+def note(message: str, *, prefix: str = "Note: ") -> None:
+    """A message for the user on stderr, unless ``-q``."""
+    if verbosity() >= NORMAL:
+        click.echo(f"{prefix}{message}", err=True)
+
+
+def say(message: str) -> None:
+    """A summary line on stderr (``wrote x``, counts), unless ``-q``."""
+    note(message, prefix="")
+
+
+def detail(message: str) -> None:
+    """A line on stderr only with ``-v``."""
+    if verbosity() >= VERBOSE:
+        click.echo(message, err=True)
+
+
+def error(exc_or_message) -> None:
+    """``Error: <message>`` on stderr, always (the message names the file and line)."""
+    click.echo(f"Error: {exc_or_message}", err=True)
+
+
+def report_errors(errors) -> None:
+    for exc in errors:
+        error(exc)
+
+
+_FAILED = "nfdmatch.failed"
+
+
+def _count_failures(n: int) -> None:
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:
+        ctx.meta[_FAILED] = ctx.meta.get(_FAILED, 0) + n
+
+
+def some_failed() -> bool:
+    """True once an input of this command could not be read."""
+    ctx = click.get_current_context(silent=True)
+    return bool(ctx is not None and ctx.meta.get(_FAILED))
+
+
+def finish(failed: int, total: int, what: str = "inputs") -> None:
+    """The end of every command that reads several inputs: exit 3 when some failed."""
+    if failed:
+        error(f"{failed} of {total} {what} could not be read")
+        sys.exit(EXIT_PARTIAL)
+
+
+# --------------------------------------------------------------------------- options
+
+
+def format_option(formats=ROW_FORMATS, default=None, help_extra=""):
+    """The one ``--format`` option: every command that writes rows or a summary uses it."""
+    return click.option(
+        "--format",
+        "output_format",
+        type=click.Choice(formats),
+        default=default,
+        show_default=default is not None,
+        help="Output format" + help_extra + ".",
+    )
+
+
+# rows formats with the default that every row-writing command has
+def rows_format_option(f):
+    return format_option(help_extra=" (default: by the extension of -o, else a table on a terminal and CSV otherwise)")(
+        f
+    )
+
+
+#: ``-o -``: stdout, as ``-`` is stdin where a file is read
+STDOUT = "-"
+
+
+def _check_output_path(ctx, param, value):
+    """Fail before any work when an output file cannot be written (exit 1, named). ``-o -``
+    is stdout: None for a single ``-o``; kept as ``-`` among several (:func:`split_outputs`)."""
+    if value == STDOUT:
+        return None
+    paths = value if isinstance(value, tuple) else (() if value is None else (value,))
+    for path in paths:
+        if path == STDOUT:
+            continue
+        if "{" in path:  # a pattern (show): its folder is checked
+            path = path.split("{", 1)[0] + "x"
+        check_writable(path)
+    return value
+
+
+def check_writable(path: str) -> str:
+    """``path`` if a file can be written there; else :class:`WriteError`."""
+    if not path:
+        raise WriteError("cannot write: empty file name", path=path)
+    if os.path.isdir(path):
+        raise WriteError("cannot write: it is a directory", path=path)
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        raise WriteError("cannot write: the folder does not exist", path=path)
+    return path
+
+
+def output_option(
+    help="Write the rows to FILE (whole, and only when the command succeeds; an identical "
+    "file keeps its bytes, with a fresh mtime) instead of stdout; '-': stdout.",
+    multiple=False,
+    required=False,
+):
+    """The one ``-o/--output`` option of commands that write rows (and pictures)."""
+    return click.option(
+        "--output",
+        "-o",
+        "output",
+        type=click.Path(dir_okay=False),
+        default=None,
+        multiple=multiple,
+        required=required,
+        metavar="FILE",
+        callback=_check_output_path,
+        help=help,
+    )
+
+
+def input_format_option(f):
+    from ..formats import FORMATS
+
+    return click.option(
+        "--input-format",
+        "input_format",
+        type=click.Choice(sorted(FORMATS)),
+        default=None,
+        help="Read inputs as this format whatever their extension (needed for '-', stdin).",
+    )(f)
+
+
+def descriptor_options(f):
+    from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, SCALES
+
+    f = click.option(
+        "--scale",
+        type=click.Choice(SCALES),
+        default=DEFAULT_SCALE,
+        show_default=True,
+        help="Scale normalization: RMS radius (robust) or |A_1| (the paper).",
+    )(f)
+    f = click.option(
+        "--harmonics",
+        "-k",
+        type=click.IntRange(min=1),
+        default=DEFAULT_HARMONICS,
+        show_default=True,
+        help="Harmonics K: frequencies +-1..+-K are compared.",
+    )(f)
+    f = click.option(
+        "--samples",
+        "-n",
+        type=click.IntRange(min=3),
+        default=DEFAULT_SAMPLES,
+        show_default=True,
+        help="Arc-length samples per curve.",
+    )(f)
+    return f
+
+
+def optional_descriptor_options(what: str):
+    """samples/harmonics/scale without defaults: an index fixes them, files take the defaults."""
+    from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, SCALES
+
+    def decorate(f):
+        f = click.option(
+            "--scale",
+            type=click.Choice(SCALES),
+            default=None,
+            help=f"Scale normalization [default: {what}, else {DEFAULT_SCALE}].",
+        )(f)
+        f = click.option(
+            "--harmonics",
+            "-k",
+            type=click.IntRange(min=1),
+            default=None,
+            help=f"Harmonics K [default: {what}, else {DEFAULT_HARMONICS}].",
+        )(f)
+        f = click.option(
+            "--samples",
+            "-n",
+            type=click.IntRange(min=3),
+            default=None,
+            help=f"Arc-length samples [default: {what}, else {DEFAULT_SAMPLES}].",
+        )(f)
+        return f
+
+    return decorate
+
+
+def matching_options(f):
+    """--method, --strict-direction and --mirror, passed on as ``matching``: a dict of
+    the keyword arguments ``method``, ``direction``, ``mirror`` of the library."""
+    from ..matching import DEFAULT_METHOD, METHODS
+
+    f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(f)
+    f = click.option(
+        "--strict-direction", is_flag=True, help="Do not match a curve traversed in the opposite direction."
+    )(f)
+    f = click.option(
+        "--method",
+        type=click.Choice(list(METHODS)),
+        default=DEFAULT_METHOD,
+        show_default=True,
+        help="exact: global optimum over start shift x rotation; paper: the published step.",
+    )(f)
+    return f
+
+
+def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
+    """The library's matching keyword arguments from the options of :func:`matching_options`."""
+    from ..matching import DEFAULT_DIRECTION, STRICT_DIRECTION
+
+    return {
+        "method": method,
+        "direction": STRICT_DIRECTION if strict_direction else DEFAULT_DIRECTION,
+        "mirror": mirror,
+    }
+
+
+def index_option(f):
+    from ..defaults import DEFAULT_INDEX, INDEX_ENV
+
+    return click.option(
+        "--index",
+        "index_path",
+        envvar=INDEX_ENV,
+        default=DEFAULT_INDEX,
+        show_default=f"${INDEX_ENV} or {DEFAULT_INDEX}",
+        type=click.Path(dir_okay=False),
+        help="The index file.",
+    )(f)
+
+
+# --------------------------------------------------------------------------- rows
+
+#: how ``query``/``rank`` spell the query and match columns (``--paths``)
+PATH_SPELLINGS = ("id", "absolute", "relative")
+
+paths_option = click.option(
+    "--paths",
+    "paths",
+    type=click.Choice(PATH_SPELLINGS),
+    default="id",
+    show_default=True,
+    help="How the query and match columns name files: id (the query as given, the match as stored: "
+    "relative to the index's folder), absolute (both absolute: rows that work from any folder, "
+    "e.g. piped to xargs), relative (both relative to the working directory).",
+)
+
+exclude_self_option = click.option(
+    "--exclude-self",
+    "exclude_self_",
+    is_flag=True,
+    help="Drop the query itself from its matches: a match with the query's id, or the same curve of "
+    "the same file (however the path is spelled).",
+)
