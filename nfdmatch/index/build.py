@@ -558,7 +558,9 @@ def _write(
     try:
         space = None
         try:
-            h5 = h5py.File(tmp, "w", locking=False)
+            # HDF5 1.10 structures: chunk indexes by position (fixed and extensible arrays,
+            # no stored chunk offsets that a flipped byte could move) with checksums
+            h5 = h5py.File(tmp, "w", locking=False, libver=("v110", "v110"))
         except Exception as exc:
             raise WriteError(f"cannot write the index: {_short(exc)}", path=shown) from None
         try:
