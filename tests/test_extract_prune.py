@@ -175,3 +175,16 @@ def test_a_mesh_whose_only_contours_are_refused_exits_3_and_writes_nothing(parts
     with pytest.raises(OverwriteRefusedError, match="not replaced"):
         write_contours(contours, out)
     assert (out / name).read_text() == "v 0 0 0\n"
+
+
+def test_a_manifest_of_deeply_nested_brackets_is_a_note_and_extract_still_writes(parts, tmp_path):
+    """Issue 24, item 5: 100,000 nested brackets gave a RecursionError traceback."""
+    out = tmp_path / "contours"
+    out.mkdir()
+    (out / MANIFEST).write_text("[" * 100_000 + "]" * 100_000)
+    entries, problem = read_manifest(out)
+    assert entries == {} and "nested too deeply" in problem
+    code, _, err = run("extract", parts, "-o", out, "--sections", 2, "--prune")
+    assert code == 0, err
+    assert "cannot read the manifest (nested too deeply); nothing pruned by it" in err
+    assert len(contours_of(out, "rod")) == 2 and len(read_manifest(out)[0]) == len(names(out)) - 1

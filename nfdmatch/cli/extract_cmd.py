@@ -85,7 +85,14 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, fo
       nfdmatch index build contours/ --index parts.h5
     """
     from ..errors import ParameterError
-    from ..mesh import extract_contours, find_mesh_files, prune_contours, refused_targets, write_contours
+    from ..mesh import (
+        extract_contours,
+        find_mesh_files,
+        prune_contours,
+        read_manifest,
+        refused_targets,
+        write_contours,
+    )
 
     if sections == 0 and not boundaries:
         raise click.UsageError("nothing to extract: --sections 0 needs --boundaries")
@@ -103,6 +110,10 @@ def extract(meshes, out_dir, sections, axis, boundaries, curve_format, prune, fo
             note(message)
     contours = [c for result in results for c in result.contours]
     refused = []
+    if contours:
+        problem = read_manifest(out_dir)[1]  # rewritten below: say so once
+        if problem:
+            note(problem)
     if contours and not force:
         # files in the way that extract did not write: their meshes fail (exit 3), the others go on
         refused = refused_targets(contours, out_dir, format=curve_format)
