@@ -156,6 +156,11 @@ def index_build(
     from ..errors import ShrinkRefusedError
     from ..index import build_index
 
+    if "-" in sources:
+        raise click.UsageError(
+            "index build reads files and folders, not stdin ('-'): an index records each file to "
+            "rebuild it incrementally; save the curve to a file and index that"
+        )
     started = datetime.now(timezone.utc)
     cluster = None
     if scheduler and not dry_run:  # a dry run only plans: nothing for workers to do

@@ -158,8 +158,8 @@ def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj",
         try:
             curve = Curve.trusted(c.points, name, c.mesh)
             write_if_changed(target, lambda temp: write_curves(temp, [curve], format=fmt))
-        except WriteError:
-            raise
+        except WriteError as exc:  # named after the file the user asked for, not the hidden temporary one
+            raise WriteError(exc.message, path=target) from None
         except NfdError as exc:
             raise WriteError(f"cannot write the contour: {exc}", path=target) from None
         except OSError as exc:
