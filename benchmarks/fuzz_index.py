@@ -2,6 +2,7 @@
 
     python benchmarks/fuzz_index.py [--tries 2000] [--seed 1] [--timeout 60]
                                     [--index FILE] [--workdir DIR] [--show 5]
+                                    [--sweep [--stride S]]
 
 The index (default: the sample library, ``sample_curves/library``, built into
 ``--workdir``) is damaged ``--tries`` times, each time afresh from the intact file, by one of:
@@ -11,6 +12,9 @@ The index (default: the sample library, ``sample_curves/library``, built into
 * ``meta-bit`` / ``meta-byte``: the same at an offset outside every dataset's stored
   values (the superblock, object headers, chunk indexes, heaps: HDF5's metadata);
 * ``run``: 1 to 16 consecutive bytes set to random values at a uniform offset.
+
+With ``--sweep`` the tries are instead every ``--stride``-th metadata byte in turn (all of
+them with ``--stride 1``), each XORed with a seeded random non-zero value (``sweep``).
 
 Each damaged file is then read by ``nfdmatch query`` (three queries, ``--top 5``) and by
 ``nfdmatch index verify``, in a forked child (a crash is a signal, not a lost run), with
@@ -130,8 +134,10 @@ def main():
     ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated, of {', '.join(KINDS)}")
     ap.add_argument("--workdir", default="/tmp/nfdmatch-fuzz-index")
     ap.add_argument("--show", type=int, default=5, help="SILENT/crash/hang cases listed")
+    ap.add_argument("--sweep", action="store_true", help="flip every --stride-th metadata byte instead")
+    ap.add_argument("--stride", type=int, default=1)
     args = ap.parse_args()
-    kinds = args.kinds.split(",")
+    kinds = ["sweep"] if args.sweep else args.kinds.split(",")
     import nfdmatch.cli  # noqa: F401 - imported once, before the children fork: each try runs the same code
 
     shutil.rmtree(args.workdir, ignore_errors=True)
@@ -158,6 +164,9 @@ def main():
         file=sys.stderr,
     )
     rng = random.Random(args.seed)
+    sweep = meta[:: max(1, args.stride)] if args.sweep else None
+    if sweep is not None:
+        args.tries = len(sweep)
     damaged = os.path.join(args.workdir, "damaged.h5")
     table: dict[str, dict[str, int]] = {k: {} for k in kinds}
     sound_same: dict[str, int] = {k: 0 for k in kinds}
@@ -165,7 +174,12 @@ def main():
     t0 = time.perf_counter()
     for i in range(args.tries):
         kind = kinds[i % len(kinds)]
-        mutant, how = mutate(data, kind, rng, meta)
+        if sweep is not None:
+            mutant, xor = bytearray(data), rng.randrange(1, 256)
+            mutant[sweep[i]] ^= xor
+            how = f"sweep at {sweep[i]} xor 0x{xor:02x}"
+        else:
+            mutant, how = mutate(data, kind, rng, meta)
         with open(damaged, "wb") as fh:
             fh.write(mutant)
         got = in_child(lambda: answer(damaged, queries), args.timeout)
