@@ -373,10 +373,11 @@ def test_a_checksummed_file_with_a_dataset_stripped_of_its_checksum_is_corrupt(i
 
 
 def test_a_huge_error_message_is_cut_where_it_is_stored(tmp_path):
-    # a CSV whose one "number" is 5 MB: the error line, the stored record and `index info` stay short
+    # a CSV whose one "number" is 1 MB (within the 1 MiB line cap): the error line, the stored
+    # record and `index info` stay short
     bad = tmp_path / "lib" / "huge.csv"
     bad.parent.mkdir()
-    bad.write_text("x,y,z\n1,2,3\n4,5,6\n" + "7" * 5_000_000 + "x,8,9\n")
+    bad.write_text("x,y,z\n1,2,3\n4,5,6\n" + "7" * 1_000_000 + "x,8,9\n")
     index = tmp_path / "i.h5"
     result = _cli("index", "build", str(bad.parent), "--index", str(index), "--jobs", "1")
     assert result.exit_code == 3
