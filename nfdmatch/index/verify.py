@@ -153,13 +153,21 @@ def _expected_dtypes(K: int) -> dict:
     """Dataset -> what docs/index-format.md says it holds: a numpy dtype, or ``"string"``
     (variable-length UTF-8)."""
     from .schema import _FILE_FIELDS, _SHA, _STR, _curve_layout
-    from .search_group import SEARCH_DATASETS
 
     files = dict(zip(_FILE_FIELDS, (_STR, np.int64, np.int64, _SHA, np.uint8, _STR, np.int64, np.int64), strict=True))
     out = {f"/files/{name}": dtype for name, dtype in files.items()}
     out.update({f"/curves/{name}": dtype for name, (dtype, _) in _curve_layout(K).items()})
-    out.update({f"/search/{name}": dtype for name, (dtype, _) in SEARCH_DATASETS.items()})
-    out["/search/coefficients"] = np.complex64
+    # the /search table of docs/index-format.md
+    search = {
+        "row": np.int64,
+        "cell_start": np.int64,
+        "centre": np.float64,
+        "radius": np.float64,
+        "features": np.float32,
+        "sqnorm": np.float64,
+        "coefficients": np.complex64,
+    }
+    out.update({f"/search/{name}": dtype for name, dtype in search.items()})
     for group, names in STRING_DATASETS.items():
         for name in names:
             out[f"/{group}/{name}_crc32"] = np.uint32
