@@ -77,7 +77,6 @@ SLOW_MODULES = {
     "test_rerank",
     "test_integrity",
     "test_extract",
-    "test_index_damage",
     "test_vtk_reader",
 }
 #: single slow tests in otherwise fast modules (each several seconds: real processes, big inputs)

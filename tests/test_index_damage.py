@@ -22,6 +22,8 @@ from nfdmatch.errors import IndexFormatError
 from nfdmatch.index import build_index, open_index
 from conftest import run_cli
 
+pytestmark = pytest.mark.slow  # forked children, a few hundred index reads
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 FROZEN_V2 = os.path.join(HERE, "data", "index", "v2-sample.h5")
 

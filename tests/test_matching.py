@@ -505,6 +505,7 @@ def test_a_damaged_compiled_module_is_never_loaded(tmp_path, damage):
     )
 
 
+@pytest.mark.slow  # processes of their own
 def test_a_damaged_compiled_module_means_one_line_on_stderr_and_the_same_answer(tmp_path):
     """End to end, in a process of its own: a copy of the package whose compiled module is
     truncated answers as the intact one (the other kernels) and says why once."""
