@@ -6,10 +6,8 @@ The kernels of :mod:`._kernels` are numba code. Compiled just in time they cost 
 than a whole single query needs. ``make install`` (through :func:`compile_kernels`) also
 compiles the two entry points ahead of time with ``numba.pycc`` into
 ``nfdmatch/matching/_kernels_aot*.so``, next to a stamp holding the digest of the kernel
-source it was built from and the module's own digest; :func:`load` returns it only when the
-stamp matches the source (an edited ``_kernels.py`` is never served by a stale build) and the
-module file still has the digest it was built with (a damaged module would crash the process
-that loads it; it is not loaded, and :func:`unused_reason` says why for the CLI). Without it the search works
+source it was built from; :func:`load` returns it only when the stamp matches the source
+(an edited ``_kernels.py`` is never served by a stale build). Without it the search works
 as before (numpy, then the just-in-time kernels once a process has done enough exact work).
 
 The compiled functions release the GIL, as the just-in-time ones do, so queries on threads
@@ -64,6 +62,11 @@ def source_digest() -> str:
         parts.append(f"{zlib.crc32(data):08x}{len(data):x}")
     parts.append(f"{zlib.crc32(sys.version.encode()):08x}")
     return "-".join(parts)
+
+
+# The stamp also holds the built module's own digest (its third line), checked before every
+# load: a module damaged or replaced since its build is never loaded (load_checked), and the
+# CLI says why in one line (unused_reason).
 
 
 def module_digest(path: str) -> str:
