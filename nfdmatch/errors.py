@@ -122,6 +122,14 @@ class WriteError(NfdError, OSError):
     """A file that cannot be written (missing folder, a directory in the way, no permission)."""
 
 
+class OverwriteRefusedError(WriteError):
+    """A file in the way of one extract writes that extract did not write (its output
+    folder's manifest does not list it, or its content changed since): never replaced
+    without ``force``. ``mesh`` is the mesh whose contour it would have been."""
+
+    mesh: str = ""
+
+
 class IndexFormatError(NfdError, ValueError):
     """A file that is not a readable nfdmatch index: another kind, a newer format, corrupted."""
 

@@ -14,14 +14,21 @@ Used by tests/test_fuzz_formats.py and benchmarks/fuzz_formats.py.
   that goes on with mutant ``i + 1``. Outcomes: ``accepted`` (a list of curves),
   ``error`` (an NfdError: the clear refusal), ``traceback`` (any other exception),
   ``crash``, ``hang``.
+
+For index files (tests/test_index_damage.py, benchmarks/fuzz_index.py): :func:`in_child`
+runs a function in a forked child (a crash is a signal, not a dead run);
+:func:`value_ranges` and :func:`metadata_offsets` tell an HDF5 file's stored values from
+its metadata.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import pickle
 import re
 import select
+import signal
 import subprocess
 import sys
 import time
@@ -358,6 +365,75 @@ def format_table(table: dict[str, Counter]) -> str:
         lines.append(f"{label:18}" + "".join(f"{counts[o]:>11}" for o in OUTCOMES) + f"{sum(counts.values()):>8}")
     lines.append(f"{'all':18}" + "".join(f"{total[o]:>11}" for o in OUTCOMES) + f"{sum(total.values()):>8}")
     return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- index files
+
+
+def in_child(fn, timeout: float):
+    """``fn()`` in a forked child: ``("ok", value)``, ``("signal", name)``, ``("exit", code)``
+    or ``("hang", None)``."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child
+        os.close(r)
+        code = 0
+        try:
+            data = pickle.dumps(fn())
+            with os.fdopen(w, "wb") as fh:
+                fh.write(data)
+        except BaseException:  # noqa: BLE001 - any escape is reported as an exit code
+            code = 70
+        os._exit(code)
+    os.close(w)
+    chunks, deadline = [], time.monotonic() + timeout
+    with os.fdopen(r, "rb") as fh:
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+                return "hang", None
+            ready, _, _ = select.select([fh], [], [], left)
+            if ready:
+                piece = os.read(fh.fileno(), 1 << 20)
+                if not piece:
+                    break
+                chunks.append(piece)
+    _, status = os.waitpid(pid, 0)
+    if os.WIFSIGNALED(status):
+        return "signal", signal.Signals(os.WTERMSIG(status)).name
+    if os.WEXITSTATUS(status) != 0 or not chunks:
+        return "exit", os.WEXITSTATUS(status)
+    return "ok", pickle.loads(b"".join(chunks))
+
+
+def value_ranges(path: str) -> list[tuple[int, int]]:
+    """Byte ranges of the file holding dataset values (chunks, contiguous data): the rest is metadata."""
+    import h5py
+
+    ranges = []
+    with h5py.File(path, "r") as h5:
+
+        def visit(name, obj):
+            if not isinstance(obj, h5py.Dataset):
+                return
+            if obj.chunks is None:
+                off = obj.id.get_offset()
+                if off is not None:
+                    ranges.append((off, off + obj.id.get_storage_size()))
+            else:
+                obj.id.chunk_iter(lambda info: ranges.append((info.byte_offset, info.byte_offset + info.size)))
+
+        h5.visititems(visit)
+    return sorted(ranges)
+
+
+def metadata_offsets(size: int, ranges) -> list[int]:
+    inside = bytearray(size)
+    for a, b in ranges:
+        inside[a:b] = b"\1" * (b - a)
+    return [i for i in range(size) if not inside[i]]
 
 
 if __name__ == "__main__" and len(sys.argv) >= 2 and sys.argv[1] == "child":

@@ -121,3 +121,72 @@ def test_prune_never_follows_a_hostile_manifest(tmp_path):
     (out / MANIFEST).write_text("{not json")
     result = prune_contours(out, [])
     assert result.removed == [] and "cannot read the manifest" in result.notes[0]
+
+
+def test_a_file_extract_did_not_write_is_never_replaced_nor_pruned(parts, tmp_path):
+    """Issue 24, item 1: a user's file under a contour's name was replaced, then pruned."""
+    out = tmp_path / "contours"
+    out.mkdir()
+    # the names this run would write: learn them in a scratch folder
+    scratch = tmp_path / "scratch"
+    code, _, err = run("extract", parts / "rod.stl", "-o", scratch, "--sections", 2, "--axis", "z")
+    assert code == 0, err
+    name = contours_of(scratch, "rod")[0]
+    mine = out / name
+    mine.write_text("# mine\nv 0 0 0\nv 1 0 0\nv 1 1 0\nl 1 2 3 1\n")
+    code, _, err = run("extract", parts, "-o", out, "--sections", 2, "--axis", "z")
+    assert code == 3, err
+    assert f"{mine}: not replaced: extract did not write this file" in err and "--force" in err
+    assert mine.read_text().startswith("# mine")
+    assert contours_of(out, "rod") == [name] and len(contours_of(out, "ring")) == 4  # the other mesh went on
+    code, _, err = run("extract", parts, "-o", out, "--sections", 3, "--axis", "z", "--prune")
+    assert code == 0, err  # three levels: other names, nothing in the way
+    assert mine.read_text().startswith("# mine") and "1 stale contour file removed" not in err
+    assert name not in read_manifest(out)[0]
+    # a contour file of extract's own that the user edited since is not replaced either
+    code, _, err = run("extract", parts, "-o", out, "--sections", 3, "--axis", "z")
+    assert code == 0, err
+    edited = out / contours_of(out, "ring")[-1]
+    edited.write_text(edited.read_text() + "# note\n")
+    code, _, err = run("extract", parts, "-o", out, "--sections", 3, "--axis", "z")
+    assert code == 3 and f"{edited}: not replaced: changed since extract wrote it" in err
+    assert edited.read_text().endswith("# note\n")
+    # --force takes both over; then they are extract's and prune may remove them
+    code, _, err = run("extract", parts, "-o", out, "--sections", 2, "--axis", "z", "--force")
+    assert code == 0, err
+    assert not mine.read_text().startswith("# mine") and name in read_manifest(out)[0]
+
+
+def test_a_mesh_whose_only_contours_are_refused_exits_3_and_writes_nothing(parts, tmp_path):
+    out = tmp_path / "contours"
+    code, _, err = run("extract", parts / "rod.stl", "-o", out, "--sections", 1)
+    assert code == 0, err
+    (name,) = contours_of(out, "rod")
+    os.remove(out / MANIFEST)  # an identical file is extract's output whatever the manifest says
+    code, _, err = run("extract", parts / "rod.stl", "-o", out, "--sections", 1)
+    assert code == 0, err
+    (out / name).write_text("v 0 0 0\n")
+    os.remove(out / MANIFEST)
+    code, _, err = run("extract", parts / "rod.stl", "-o", out, "--sections", 1)
+    assert code == 3 and "1 of 1 meshes not written" in err
+    assert (out / name).read_text() == "v 0 0 0\n"
+    from nfdmatch.errors import OverwriteRefusedError
+    from nfdmatch.extract import extract_contours, write_contours
+
+    contours = extract_contours(parts / "rod.stl", sections=1).contours
+    with pytest.raises(OverwriteRefusedError, match="not replaced"):
+        write_contours(contours, out)
+    assert (out / name).read_text() == "v 0 0 0\n"
+
+
+def test_a_manifest_of_deeply_nested_brackets_is_a_note_and_extract_still_writes(parts, tmp_path):
+    """Issue 24, item 5: 100,000 nested brackets gave a RecursionError traceback."""
+    out = tmp_path / "contours"
+    out.mkdir()
+    (out / MANIFEST).write_text("[" * 100_000 + "]" * 100_000)
+    entries, problem = read_manifest(out)
+    assert entries == {} and "nested too deeply" in problem
+    code, _, err = run("extract", parts, "-o", out, "--sections", 2, "--prune")
+    assert code == 0, err
+    assert "cannot read the manifest (nested too deeply); nothing pruned by it" in err
+    assert len(contours_of(out, "rod")) == 2 and len(read_manifest(out)[0]) == len(names(out)) - 1

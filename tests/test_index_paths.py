@@ -355,3 +355,102 @@ def test_a_non_utf8_file_name_is_indexed_under_an_escaped_id(tmp_path, rng, monk
     assert (report.unchanged, report.written) == (2, False)
     with open_index(tmp_path / "i.h5") as idx:
         assert idx.ids() == ["lib/c\\xff.csv", "lib/ok.csv"]
+
+
+# --------------------------------------------------------------------------- messages (issue 24, item 6)
+
+
+def test_an_unreadable_source_folder_is_said_to_be_unreadable_and_keeps_its_rows(lib, tmp_path, monkeypatch):
+    """It was "refusing to build: it would remove all of the index's 6 files (...; an empty or
+    unmounted folder?)", the permission problem never named."""
+    index = tmp_path / "idx.h5"
+    assert run("index", "build", lib, "--index", index, "-j", 1)[0] == 0
+    with open_index(index) as idx:
+        before = idx.ids()
+    real_scandir = os.scandir
+
+    def scandir(path="."):
+        if os.path.realpath(os.fspath(path)) == os.path.realpath(lib):
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return real_scandir(path)
+
+    monkeypatch.setattr(os, "scandir", scandir)  # root reads any folder: simulate chmod 000
+    code, _, err = run("index", "build", lib, "--index", index, "-j", 1)
+    assert code == 3, err
+    assert f"Error: {lib}: cannot list the folder (Permission denied); its files are skipped" in err
+    assert "unmounted" not in err and "would be removed" not in err
+    with open_index(index) as idx:
+        assert idx.ids() == before
+
+
+def test_an_index_moved_away_from_its_files_says_so_and_how_to_rebuild(lib, tmp_path, monkeypatch):
+    index = tmp_path / "idx.h5"
+    monkeypatch.chdir(tmp_path)
+    assert run("index", "build", "lib", "--index", "idx.h5", "-j", 1)[0] == 0
+    (tmp_path / "sub").mkdir()
+    os.replace(index, tmp_path / "sub" / "idx.h5")
+    code, _, err = run("index", "build", "lib", "--index", "sub/idx.h5", "-j", 1)
+    assert code == 1
+    assert "stored paths are relative to its folder and no longer lead to its files" in err
+    assert "was the index moved? Move it back, or rebuild it here with" in err
+    assert "`nfdmatch index build lib --index sub/idx.h5 --rebuild --allow-shrink`" in err
+    code, _, err = run("index", "build", "--index", "sub/idx.h5", "-j", 1)  # its recorded sources
+    assert code == 1 and "the index records the source 'lib' relative to its folder" in err
+    assert "was the index moved?" in err
+    code, _, err = run("index", "build", "lib", "--index", "sub/idx.h5", "-j", 1, "--rebuild", "--allow-shrink")
+    assert code == 0, err
+
+
+def test_index_build_of_stdin_is_a_usage_error(tmp_path):
+    code, _, err = run("index", "build", "-", "--index", tmp_path / "x.h5")
+    assert code == 2 and "index build reads files and folders, not stdin ('-')" in err
+    assert "no such file" not in err
+
+
+def test_a_disk_full_before_the_index_is_created_is_said_in_our_words(lib, tmp_path, monkeypatch):
+    """At 0 bytes free the lock's pid failed with a traceback, then HDF5's own text was printed
+    ("Unable to synchronously create file (file write failed: time = ..., errno = 28 ...")."""
+
+    def no_space(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    class H5:
+        def __getattr__(self, name):
+            return getattr(h5py, name)
+
+        @staticmethod
+        def File(path, mode="r", **kwargs):
+            if mode == "w":
+                raise OSError(
+                    errno.ENOSPC,
+                    "Unable to synchronously create file (file write failed: time = Thu Dec  3 10:07:25 2026, "
+                    f"filename = '{path}', file descriptor = 5, errno = 28, error message = 'No space left on device')",
+                )
+            return h5py.File(path, mode, **kwargs)
+
+    monkeypatch.setattr(index_lock.os, "pwrite", no_space)
+    monkeypatch.setattr(nindex.build, "h5py", H5())
+    index = tmp_path / "idx.h5"
+    code, out, err = run("index", "build", lib, "--index", index, "-j", 1)
+    assert (code, out) == (1, "")
+    assert err == f"Error: {index}: cannot write the index: No space left on device\n"
+
+
+def test_extract_on_a_full_disk_names_the_contour_not_its_temporary_file(tmp_path, monkeypatch):
+    import trimesh
+
+    from nfdmatch.errors import WriteError as _WriteError
+    from nfdmatch.mesh import naming
+
+    trimesh.creation.cylinder(radius=1.0, height=4.0, sections=32).export(tmp_path / "rod.stl")
+
+    def full(path, curves, format=None):
+        raise _WriteError("cannot write the file (No space left on device)", path=path)
+
+    monkeypatch.setattr(naming, "write_curves", full)
+    code, _, err = run("extract", tmp_path / "rod.stl", "-o", tmp_path / "out", "--sections", 1)
+    assert code == 1
+    name = next(iter(os.listdir(tmp_path / "out")), None)
+    assert name is None  # nothing left behind
+    assert err.startswith(f"Error: {tmp_path / 'out' / 'rod_section-z00_at0_loop0.obj'}: cannot write the file")
+    assert ".tmp" not in err

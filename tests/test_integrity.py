@@ -378,10 +378,11 @@ def test_a_checksummed_file_with_a_dataset_stripped_of_its_checksum_is_corrupt(i
 
 
 def test_a_huge_error_message_is_cut_where_it_is_stored(tmp_path):
-    # a CSV whose one "number" is 5 MB: the error line, the stored record and `index info` stay short
+    # a CSV whose one "number" is 1 MB (within the 1 MiB line cap): the error line, the stored
+    # record and `index info` stay short
     bad = tmp_path / "lib" / "huge.csv"
     bad.parent.mkdir()
-    bad.write_text("x,y,z\n1,2,3\n4,5,6\n" + "7" * 5_000_000 + "x,8,9\n")
+    bad.write_text("x,y,z\n1,2,3\n4,5,6\n" + "7" * 1_000_000 + "x,8,9\n")
     index = tmp_path / "i.h5"
     result = _cli("index", "build", str(bad.parent), "--index", str(index), "--jobs", "1")
     assert result.exit_code == 3
@@ -538,3 +539,73 @@ def test_the_non_finite_scan_finds_the_first_bad_row_and_nothing_in_large_finite
             spoiled[min(row + 1, 49), 2] = bad
             assert first_nonfinite(spoiled, 100) == 100 + row
             assert first_nonfinite(spoiled, np.arange(50) * 2) == 2 * row
+
+
+def _retype(path, dataset, dtype):
+    """Store ``dataset`` again with another type, same values, checksummed as the writer does."""
+    from nfdmatch.index.schema import create_checked
+
+    with h5py.File(path, "r+") as f:
+        data = f[dataset][...]
+        group, name = dataset.rsplit("/", 1)
+        del f[dataset]
+        create_checked(f[group], name, data.astype(dtype))
+
+
+def _rewrite_strings(path, dataset, values):
+    """Replace the strings of ``dataset`` and recompute their CRC-32 blocks (a consistent hand edit)."""
+    from nfdmatch.index.schema import _STR, block_crcs
+
+    with h5py.File(path, "r+") as f:
+        group, name = dataset.rsplit("/", 1)
+        del f[dataset]
+        f[group].create_dataset(name, data=np.array(values, dtype=object), dtype=_STR)
+        del f[f"{dataset}_crc32"]
+        f[group].create_dataset(f"{name}_crc32", data=block_crcs(values), chunks=True, fletcher32=True)
+
+
+def test_verify_recomputes_the_bound_features_from_the_stored_coefficients(index_copy):
+    """Issue 24, item 3: an inv_norm multiplied by 1,000, checksums recomputed, passed verify
+    (and a bound feature too large makes a search skip a true match)."""
+    with h5py.File(index_copy, "r") as f:
+        norm, sv = f["curves/inv_norm"][7], f["curves/inv_sv"][2]
+    _rewrite(index_copy, "curves/inv_norm", 7, norm * 1000)
+    _rewrite(index_copy, "curves/inv_sv", 2, sv * (1 + 1e-4))
+    result = _cli("index", "verify", "--index", str(index_copy))
+    assert result.exit_code == 1
+    lines = result.stdout.splitlines()
+    assert "bad\t/curves/inv_norm\t7\tdiffers from the features of the stored coefficients" in lines
+    assert "bad\t/curves/inv_sv\t2\tdiffers from the features of the stored coefficients" in lines
+
+
+def test_verify_checks_every_dtype_against_the_format(index_copy):
+    """Issue 24, item 3: /curves/file stored as float passed verify."""
+    _retype(index_copy, "curves/file", np.float64)
+    _retype(index_copy, "search/features", np.float64)
+    result = _cli("index", "verify", "--index", str(index_copy))
+    assert result.exit_code == 1
+    lines = result.stdout.splitlines()
+    assert "bad\t/curves/file\t\tstored as float64; the format says int32" in lines
+    assert "bad\t/search/features\t\tstored as float64; the format says float32" in lines
+
+
+def test_verify_refuses_ids_that_leave_the_index_folder_or_differ_from_the_file_table(index_copy):
+    """Issue 24, item 3: ids rewritten to ../../../../etc/passwd, CRC-32 recomputed, passed
+    verify (and query printed them)."""
+    with h5py.File(index_copy, "r") as f:
+        ids = f["curves/id"].asstr()[...].tolist()
+        paths = f["files/path"].asstr()[...].tolist()
+    assert "sources" in h5py.File(index_copy, "r")  # relative paths are the index folder's
+    _rewrite_strings(index_copy, "curves/id", ["../../../../etc/passwd"] + ids[1:])
+    result = _cli("index", "verify", "--index", str(index_copy))
+    assert result.exit_code == 1
+    assert "bad\t/curves/id\t0\tdiffers from the ids of the /files paths (path, path#i)" in result.stdout
+    # the file table rewritten to match: the path itself is refused
+    with h5py.File(index_copy, "r") as f:
+        count = f["files/curve_count"][0]
+    assert count == 1
+    _rewrite_strings(index_copy, "files/path", ["../../../../etc/passwd"] + paths[1:])
+    result = _cli("index", "verify", "--index", str(index_copy))
+    assert result.exit_code == 1
+    assert "bad\t/files/path\t0\trelative paths that lead out of the index's folder (..)" in result.stdout
+    assert "/curves/id" not in result.stdout

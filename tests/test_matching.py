@@ -440,14 +440,99 @@ def test_a_stale_ahead_of_time_build_is_not_used(monkeypatch, tmp_path):
     from nfdmatch.matching import aot
 
     stamp = tmp_path / "stamp"
-    stamp.write_text("0" * 64 + "\nnogil\n")  # built from another kernel source
+    module = aot.module_digest(aot._module_path(aot._HERE))
+    stamp.write_text("0" * 64 + f"\nnogil\n{module}\n")  # built from another kernel source
     monkeypatch.setattr(aot, "_STAMP", str(stamp))
-    assert aot.load() is None
-    stamp.write_text(aot.source_digest() + "\nnogil\n")
+    assert aot.load() is None and aot.unused_reason() is None  # stale: make install's business
+    stamp.write_text(aot.source_digest() + f"\nnogil\n{module}\n")
     assert aot.load().threads
-    for held in ("gil\n", ""):  # built holding the GIL; a stamp from before the flag
-        stamp.write_text(aot.source_digest() + "\n" + held)
-        assert aot.load() is not None and not aot.load().threads
+    stamp.write_text(aot.source_digest() + f"\ngil\n{module}\n")  # built holding the GIL
+    assert aot.load() is not None and not aot.load().threads
+    stamp.write_text(aot.source_digest() + "\nnogil\n")  # a stamp from before the module's digest
+    assert aot.load() is None and "no recorded digest" in aot.unused_reason()
+
+
+def _aot_copy(tmp_path):
+    """A copy of the built module and its stamp in ``tmp_path``: (module path, stamp path)."""
+    import shutil
+
+    from nfdmatch.matching import aot
+
+    _aot_kernels()
+    src = aot._module_path(aot._HERE)
+    dst = tmp_path / os.path.basename(src)
+    shutil.copyfile(src, dst)
+    shutil.copyfile(aot._STAMP, tmp_path / "stamp")
+    return dst, tmp_path / "stamp"
+
+
+@pytest.mark.parametrize("damage", ["truncated to 1,000 bytes", "truncated to half", "20 bytes flipped", "replaced"])
+def test_a_damaged_compiled_module_is_never_loaded(tmp_path, damage):
+    """Issue 24, item 4: a truncated or flipped module crashed the process that loaded it
+    (SIGBUS, SIGSEGV, SIGILL); it is now checked against the digest its build recorded."""
+    from nfdmatch.matching import aot
+
+    module, stamp = _aot_copy(tmp_path)
+    kernels, reason = aot.load_checked(str(tmp_path), str(stamp))  # the intact copy loads
+    assert kernels is not None and reason is None
+    data = bytearray(module.read_bytes())
+    if damage == "truncated to 1,000 bytes":
+        data = data[:1000]
+    elif damage == "truncated to half":
+        data = data[: len(data) // 2]
+    elif damage == "replaced":
+        data = b"\x7fELF" + bytes(len(data) - 4)
+    else:
+        rng = np.random.default_rng(4)
+        for at in rng.choice(len(data), 20, replace=False):
+            data[at] ^= 0x5A
+    module.unlink()  # a new file: the intact copy stays mapped in this process as it was
+    module.write_bytes(bytes(data))
+    kernels, reason = aot.load_checked(str(tmp_path), str(stamp))
+    assert kernels is None
+    assert reason == (
+        f"compiled kernels not used: {module} does not match its build stamp (damaged or replaced "
+        "since it was built); using the other kernels (`make install` rebuilds it)"
+    )
+
+
+@pytest.mark.slow  # processes of their own
+def test_a_damaged_compiled_module_means_one_line_on_stderr_and_the_same_answer(tmp_path):
+    """End to end, in a process of its own: a copy of the package whose compiled module is
+    truncated answers as the intact one (the other kernels) and says why once."""
+    import shutil
+    import subprocess
+    import sys
+
+    import nfdmatch
+    from nfdmatch import Curve, write_curves
+
+    pkg = os.path.dirname(nfdmatch.__file__)
+    shutil.copytree(pkg, tmp_path / "nfdmatch", ignore=shutil.ignore_patterns("__pycache__"))
+    rng = np.random.default_rng(5)
+    write_curves(tmp_path / "lib.obj", [Curve(random_smooth_curve(rng, 60, 4), id=f"c{i}") for i in range(30)])
+    write_curves(tmp_path / "q.csv", random_smooth_curve(rng, 60, 4))
+    env = dict(os.environ, PYTHONPATH=str(tmp_path), NFDMATCH_NUMBA="aot")
+
+    def run(*args):
+        return subprocess.run(
+            [sys.executable, "-m", "nfdmatch", *args], cwd=tmp_path, env=env, capture_output=True, text=True
+        )
+
+    built = run("index", "build", "lib.obj", "--index", "lib.h5")
+    assert built.returncode == 0, built.stderr
+    intact = run("query", "q.csv", "--index", "lib.h5", "--top", "5")
+    assert intact.returncode == 0 and "Warning" not in intact.stderr, intact.stderr
+    from nfdmatch.matching import aot
+
+    so = tmp_path / "nfdmatch" / "matching" / os.path.basename(aot._module_path(aot._HERE))
+    so.write_bytes(so.read_bytes()[:1000])
+    for args in (("query", "q.csv", "--index", "lib.h5", "--top", "5"), ("rank", "q.csv", "lib.obj")):
+        got = run(*args)
+        assert got.returncode == 0, (got.returncode, got.stderr)
+        lines = [line for line in got.stderr.splitlines() if line.startswith("Warning:")]
+        assert len(lines) == 1 and "does not match its build stamp" in lines[0], got.stderr
+    assert run("query", "q.csv", "--index", "lib.h5", "--top", "5").stdout == intact.stdout
 
 
 def _big_bound_call(rows: int = 200_000):

@@ -174,12 +174,12 @@ def test_csv_bulk_and_careful_parsers_agree(tmp_path):
 @pytest.mark.parametrize("layout", ["x,y,z\n0,0,0\n{big},1,2\n1,0,0\n0,1,0\n", "0,0,0\n1,{big},2\n1,0,0\n0,1,0\n"])
 def test_a_huge_token_makes_a_short_message(tmp_path, layout):
     path = tmp_path / "huge.csv"
-    path.write_text(layout.format(big="9" * 5_000_000 + "x"))
+    path.write_text(layout.format(big="9" * 1_000_000 + "x"))  # within the line cap (1 MiB)
     with pytest.raises(ParseError) as info:
         read_curves(str(path))
     message = str(info.value)
     assert len(message) < 400, len(message)
-    assert "[cut: 5000001 characters in all]" in message
+    assert "[cut: 1000001 characters in all]" in message
 
 
 def test_a_huge_obj_token_makes_a_short_message(tmp_path):
@@ -302,3 +302,76 @@ def test_walk_folder_reports_the_top_folder_too(tmp_path, monkeypatch):
     problems = []
     assert list(walk_folder(str(tmp_path), {".csv"}, problems=problems)) == []
     assert [p.path for p in problems] == [str(tmp_path)]
+
+
+def test_a_csv_line_above_the_line_cap_fails_before_it_is_split(tmp_path):
+    from nfdmatch.formats.csv import MAX_LINE_BYTES
+
+    path = tmp_path / "line.csv"
+    path.write_bytes(b"x,y,z\n0,0,0\n" + b"1," * (MAX_LINE_BYTES // 2 + 1) + b"\n1,1,0\n")
+    with pytest.raises(ParseError, match=f"line 3: a line longer than {MAX_LINE_BYTES} bytes"):
+        read_curves(str(path))
+    path.write_bytes(b"0,0,0\n1,0,0\n0,1,0\n" + b"9" * (MAX_LINE_BYTES + 1))  # the last line, no newline
+    with pytest.raises(ParseError, match="line 4: a line longer than"):
+        read_curves(str(path))
+
+
+# the peak resident memory of this process alone: VmHWM starts afresh at exec (ru_maxrss keeps
+# the forking parent's peak on Linux, the test runner's)
+_MEASURED = (
+    "import sys\n"
+    "from nfdmatch.cli import main\n"
+    "try:\n"
+    "    main(sys.argv[1:])\n"
+    "finally:\n"
+    "    hwm = [l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM:')][0]\n"
+    "    sys.stderr.write(f'maxrss_kb={hwm}\\n')\n"
+)
+
+
+def test_one_300_mb_line_on_stdin_fails_while_it_is_read(tmp_path):
+    """Issue 24, item 5: '1,' * 150,000,000 on stdin took 164 s and 1.77 GB before a clear
+    error; the caps are now checked while stdin is copied (1 MiB at a time), so the run stops
+    after the first MiB of the line and its memory stays that of a query's start-up."""
+    index = tmp_path / "lib.h5"
+    from nfdmatch.index import build_index
+
+    build_index([_square(tmp_path / "sq.csv")], str(index))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _MEASURED, "query", "-", "--input-format", "csv", "--index", str(index)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    piece = b"1," * (1 << 19)  # 1 MiB
+    sent = 0
+    try:
+        while sent < 300_000_000:
+            proc.stdin.write(piece)
+            sent += len(piece)
+        proc.stdin.close()
+    except BrokenPipeError:  # the reader stopped early: what the cap is for
+        pass
+    out, err = proc.communicate(timeout=600)
+    err = err.decode()
+    assert proc.returncode == 1, err
+    assert "Error: <stdin>: line 1: a line longer than 1048576 bytes" in err and "Traceback" not in err
+    assert sent < 300_000_000  # not read to the end
+    rss = int(err.split("maxrss_kb=")[1].split()[0]) * 1024
+    assert rss < 300 * 2**20, rss
+
+
+def test_stdin_above_the_size_cap_fails_while_it_is_read(tmp_path):
+    index = tmp_path / "lib.h5"
+    from nfdmatch.index import build_index
+
+    build_index([_square(tmp_path / "sq.csv")], str(index))
+    env = dict(os.environ, NFDMATCH_MAX_FILE_BYTES="1000")
+    proc = subprocess.run(
+        [sys.executable, "-m", "nfdmatch", "query", "-", "--input-format", "obj", "--index", str(index)],
+        input=b"v 0 0 0\n" * 10_000,
+        env=env,
+        capture_output=True,
+    )
+    assert proc.returncode == 1
+    assert "Error: <stdin>: is more than the limit of 1000 bytes" in proc.stderr.decode()

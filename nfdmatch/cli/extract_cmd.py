@@ -10,6 +10,7 @@ import click
 from ..errors import NfdError
 from .options import (
     EXIT_ERROR,
+    EXIT_PARTIAL,
     ROW_FORMATS,
     _count_failures,
     check_writable,
@@ -81,8 +82,14 @@ def _check_list(ctx, param, value):
     help="Remove DIR's contour files written by an earlier extract that this run no longer produces "
     "(levels moved, mesh deleted); files extract did not write are never touched.",
 )
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Replace files in DIR under a contour's name that extract did not write (or that were "
+    "changed since); without it such a file is an error for its mesh (exit 3) and left alone.",
+)
 @format_option(help_extra=" of the list of written files (default: a table on a terminal, CSV otherwise)")
-def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format, prune, output_format):
+def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format, prune, force, output_format):
     """Write closed contours of triangle meshes (STL, PLY, OBJ, OFF, GLB/GLTF) as curve files.
 
     Each MESH (a file, or a folder searched recursively for mesh files) is cut by N
@@ -93,7 +100,9 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
     The folder is then ready for `nfdmatch index build DIR`. DIR/.nfdmatch-extract.json
     records the files extract wrote; with --prune, those this run does not produce
     (stale levels, deleted meshes) are removed, unless changed since, or their mesh
-    failed to read this run.
+    failed to read this run. A file in DIR under a contour's name that extract did
+    not write (or that was changed since) is never replaced without --force: its mesh
+    is reported as an error (exit 3) and its contours are not written.
 
     stdout lists the written files (file, mesh, kind, axis, level, loop, vertices).
     Notes on stderr: open section pieces skipped, meshes that gave nothing. A file
@@ -108,7 +117,14 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
       nfdmatch index build contours/ --index parts.h5
     """
     from ..errors import ParameterError
-    from ..mesh import extract_contours, find_mesh_files, prune_contours, write_contours
+    from ..mesh import (
+        extract_contours,
+        find_mesh_files,
+        prune_contours,
+        read_manifest,
+        refused_targets,
+        write_contours,
+    )
 
     if len(out_dir) > 1:
         raise click.UsageError(
@@ -133,18 +149,31 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
             results.append(extract_contours(path, sections=sections, axis=axis, boundaries=boundaries))
         except NfdError as exc:
             errors.append(exc)
-    report_errors(errors)
-    if errors:
-        _count_failures(len(errors))  # exit 3 to come: --list is not written
     for result in results:
         for message in result.notes:
             note(message)
     contours = [c for result in results for c in result.contours]
+    refused = []
+    if contours:
+        problem = read_manifest(out_dir)[1]  # rewritten below: say so once
+        if problem:
+            note(problem)
+    if contours and not force:
+        # files in the way that extract did not write: their meshes fail (exit 3), the others go on
+        refused = refused_targets(contours, out_dir, format=curve_format)
+        blocked = {exc.mesh for exc in refused}
+        contours = [c for c in contours if c.mesh not in blocked]
+    report_errors(errors + refused)
+    if errors or refused:
+        _count_failures(len(errors) + len(refused))  # exit 3 to come: --list is not written
     if not contours:
+        if refused:
+            error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
+            sys.exit(EXIT_PARTIAL)
         if results:
             error(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
         sys.exit(EXIT_ERROR)
-    written = write_contours(contours, out_dir, format=curve_format)
+    written = write_contours(contours, out_dir, format=curve_format, force=force)
     rows = [
         {
             "file": path,
@@ -164,7 +193,8 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
         write_rows(rows, columns, list_format or output_format, list_file, group_by="mesh")
     pruned = ""
     if prune:
-        result = prune_contours(out_dir, written, keep_meshes=[e.path for e in errors if e.path])
+        kept = [e.path for e in errors if e.path] + [e.mesh for e in refused]
+        result = prune_contours(out_dir, written, keep_meshes=kept)
         for message in result.notes:
             note(message)
         for path in result.removed:
@@ -174,4 +204,8 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
         pruned = f"; {len(result.removed)} stale contour file{'' if len(result.removed) == 1 else 's'} removed"
     meshes_with = len({c.mesh for c in contours})
     say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}{pruned}")
+    if refused:
+        error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
     finish(len(errors), len(files), "meshes")
+    if refused:
+        sys.exit(EXIT_PARTIAL)

@@ -153,6 +153,11 @@ def index_build(
 
     from ..errors import NfdError
 
+    if "-" in sources:
+        raise click.UsageError(
+            "index build reads files and folders, not stdin ('-'): an index records each file to "
+            "rebuild it incrementally; save the curve to a file and index that"
+        )
     started = datetime.now(timezone.utc)
     cluster = None
     progress, finish_bar = progress_bar("indexing files")

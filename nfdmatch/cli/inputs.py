@@ -36,15 +36,15 @@ def _stdin_curves(input_format: str | None) -> list:
     """The curves of the file on stdin, read as ``input_format``; ids ``<stdin>``, ``<stdin>#i``."""
     from ..curve import Curve
     from ..formats import FORMATS, read_curves
+    from ..formats._stream import copy_capped, stdin_line_limit
 
     if input_format is None:
         raise click.UsageError("reading a curve from stdin ('-') needs --input-format")
-    data = sys.stdin.buffer.read()
     fd, temp = tempfile.mkstemp(suffix=FORMATS[input_format][0])
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
         try:
+            with os.fdopen(fd, "wb") as f:  # the caps checked while reading, not after
+                copy_capped(sys.stdin.buffer, f, name=STDIN_ID, line_limit=stdin_line_limit(input_format))
             curves = read_curves(temp, format=input_format)
         except NfdError as exc:
             raise type(exc)(exc.message, path=STDIN_ID, line=exc.line, curve=exc.curve) from None

@@ -70,6 +70,8 @@ class NfdGroup(click.Group):
             sys.stderr.close()
             sys.exit(EXIT_OK)
         finally:
+            if ctx.parent is None:
+                _say_kernels_unused()
             if ctx.parent is None and ctx.invoked_subcommand:
                 detail(f"{ctx.invoked_subcommand}: {time.perf_counter() - started:.2f} s")
                 kernels = sys.modules.get("nfdmatch.matching.kernels")  # loaded only by exact work
@@ -77,6 +79,15 @@ class NfdGroup(click.Group):
                     detail(f"kernels: {kernels.chosen().describe()}")
             if restore is not None:
                 restore()
+
+
+def _say_kernels_unused() -> None:
+    """One line on stderr when this run found the compiled kernels damaged and used the
+    others (the library only records why: ``matching.aot.unused_reason``)."""
+    aot = sys.modules.get("nfdmatch.matching.aot")  # imported only when a command used it
+    reason = aot.unused_reason() if aot is not None else None
+    if reason:
+        note(reason, prefix="Warning: ")
 
 
 class Terminated(KeyboardInterrupt):

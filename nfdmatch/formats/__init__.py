@@ -23,7 +23,9 @@ can be printed and stored in HDF5; ``source`` keeps the name that opens the file
 
 Reading: regular files only (a FIFO, device or socket is refused without being
 opened) of at most 1 GiB (``nfdmatch.formats._chain.MAX_FILE_BYTES``, or the
-environment variable ``NFDMATCH_MAX_FILE_BYTES``); compressed VTK XML data may
+environment variable ``NFDMATCH_MAX_FILE_BYTES``), a CSV line of at most 1 MiB
+(``nfdmatch.formats.csv.MAX_LINE_BYTES``; both caps are checked while stdin is read,
+:mod:`._stream`); compressed VTK XML data may
 inflate to at most ``max(256 MiB, 16 x the file size)``
 (``nfdmatch.formats._vtk_read.MAX_INFLATED_BYTES`` / ``MAX_INFLATION_RATIO``).
 

@@ -10,7 +10,8 @@ Layout accepted by :func:`read`:
 * delimiter comma, semicolon, tab or runs of whitespace, detected from the
   first data row; whitespace around delimiters is allowed;
 * ``#`` starts a comment (whole line or trailing); blank lines are ignored;
-  UTF-8, a leading byte-order mark is dropped.
+  UTF-8, a leading byte-order mark is dropped;
+* a line holds at most :data:`MAX_LINE_BYTES` (1 MiB) bytes.
 
 :func:`write` writes a header ``x,y,z`` and every coordinate with ``repr``
 (shortest string that round-trips exactly), comma separated (tab for ``.tsv``,
@@ -28,10 +29,16 @@ import numpy as np
 
 from ..errors import CurveError, ParameterError, ParseError, excerpt
 from ._chain import is_number, points_list, read_text_bytes, write_text
+from ._stream import check_line_lengths
 
 __all__ = ["read_points", "write"]
 
 _ANY_DELIMITER = re.compile(r"\s*[,;\t]\s*|\s+")
+
+#: Longest line read, in bytes (1 MiB): a row holds one vertex. Checked before any line is
+#: split, so that one huge line (a hostile input of hundreds of MB) fails in a second instead
+#: of being split into millions of cells.
+MAX_LINE_BYTES = 1 << 20
 
 
 def _unquote(token: str) -> str:
@@ -150,6 +157,7 @@ def read_points(path) -> list[np.ndarray]:
     """
     p = str(path)
     data = read_text_bytes(p)
+    check_line_lengths(data, p, MAX_LINE_BYTES)
     arr = _read_bulk(data, p)
     if arr is not None:
         if arr.shape[1] == 2:

@@ -263,6 +263,14 @@ def build_index(
             sources = [openable(s, base) for s in recorded[0]]
             if glob is None:
                 glob = recorded[1]
+            for s, kept in zip(sources, recorded[0]):
+                if not os.path.lexists(split_selector(s)[0]) and not os.path.isabs(kept):
+                    raise ReadError(
+                        f"no such file or folder: the index records the source {kept!r} relative to its "
+                        f"folder {os.path.dirname(real_index)}; was the index moved? Move it back, or name "
+                        "the sources and rebuild it there (--rebuild --allow-shrink)",
+                        path=s,
+                    )
         found, opens, stored_sources, unseen = _find(sources, glob, base, report.skipped)
         report.sources = stored_sources
         if not found and old is None:
@@ -285,7 +293,7 @@ def build_index(
         if changed:
             report.notices.append(f"parameters changed ({', '.join(changed)}): recomputing all curves")
         recompute_all = bool(rebuild) or bool(changed) or old is None
-        if not found and old is not None:
+        if not found and old is not None and not unseen:
             report.notices.append(
                 f"no curve files found under {', '.join(sources)}: every file would be removed from the index"
             )
@@ -356,11 +364,22 @@ def build_index(
                     if not found
                     else f"{len(found)} files found under {', '.join(sources)}"
                 )
-                refused = ShrinkRefusedError(
-                    f"refusing to build: it {what} ({cause}; an empty or unmounted "
-                    f"folder?); pass --allow-shrink to remove them",
-                    path=index_path,
-                )
+                moved = _moved_index(old_files, removed, found, real_index)
+                if report.skipped:  # the walk could not read some folders: say which and why
+                    guess = f"{report.skipped[0][1]}{' ...' if len(report.skipped) > 1 else ''}"
+                else:
+                    guess = "an empty or unmounted folder?"
+                if moved:
+                    message = (
+                        f"refusing to build: the index's {len(old_files)} stored paths are relative to "
+                        f"its folder and no longer lead to its files from {os.path.dirname(real_index)} "
+                        f"(e.g. {moved}): was the index moved? Move it back, or rebuild it here with "
+                        f"`nfdmatch index build {' '.join(sources)} --index {index_path} --rebuild "
+                        "--allow-shrink`"
+                    )
+                else:
+                    message = f"refusing to build: it {what} ({cause}; {guess}); pass --allow-shrink to remove them"
+                refused = ShrinkRefusedError(message, path=index_path)
                 refused.removed, refused.of = report.shrink
                 raise refused
             else:
@@ -470,7 +489,8 @@ def _find(sources: list[str], glob, base: str, skipped: list):
                 continue  # named once, however many sources reach it
             skipped.append((problem.path, str(problem)))
             if problem.path and os.path.isdir(problem.path):
-                unseen.append(stored(found_location(problem.path, source, real, is_folder), base))
+                # normalized: the source folder itself ("lib" found as "lib/.") holds every row under it
+                unseen.append(stored(os.path.normpath(found_location(problem.path, source, real, is_folder)), base))
     return sorted(opens), opens, stored_sources, unseen
 
 
@@ -578,9 +598,11 @@ def _write(
     try:
         space = None
         try:
-            h5 = h5py.File(tmp, "w", locking=False)
+            # HDF5 1.10 structures: chunk indexes by position (fixed and extensible arrays,
+            # no stored chunk offsets that a flipped byte could move) with checksums
+            h5 = h5py.File(tmp, "w", locking=False, libver=("v110", "v110"))
         except Exception as exc:
-            raise WriteError(f"cannot write the index: {_short(exc)}", path=shown) from None
+            raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
         try:
             space = _Space(h5)
             space.reserve(0)  # the superblock, attributes, small tables
@@ -674,11 +696,43 @@ def _write(
         # h5py reports a failed write (disk full, quota, file-size limit) as OSError, or as
         # RuntimeError when it surfaces while closing the file
         if isinstance(exc, (OSError, RuntimeError)) and not isinstance(exc, NfdError):
-            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else _short(exc)
-            raise WriteError(f"cannot write the index: {why}", path=shown) from None
+            raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
         raise
     report.written = True
     for path in sorted(actions):
         action = actions[path]
         report.changes.append((action, path))
         setattr(report, action, getattr(report, action) + 1)
+
+
+def _write_cause(exc: BaseException) -> str:
+    """Why a write failed, in the system's words ("No space left on device"), not HDF5's
+    ("Unable to synchronously create file (file write failed: time = ..., errno = 28, ...)")."""
+    import re
+
+    code = getattr(exc, "errno", None)
+    if not isinstance(code, int) or code <= 0:
+        found = re.search(r"errno = (\d+)", str(exc))
+        code = int(found.group(1)) if found else None
+    if code:
+        extra = ""
+        if isinstance(exc, OSError) and exc.strerror and "ulimit" in exc.strerror:
+            extra = exc.strerror[len(os.strerror(code)) :] if exc.strerror.startswith(os.strerror(code)) else ""
+        return os.strerror(code) + extra
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return _short(exc)
+
+
+def _moved_index(old_files, removed, found, real_index: str) -> str | None:
+    """A removed relative path (as stored) when the index looks moved away from its files:
+    every path it would remove is relative and none of them opens from the index's folder
+    any more, while files were found. None otherwise."""
+    if not found or not removed or len(removed) != len(old_files):
+        return None
+    folder = os.path.dirname(real_index)
+    if any(os.path.isabs(p) for p in removed):
+        return None
+    if any(os.path.lexists(os.path.join(folder, p)) for p in removed[:50]):
+        return None
+    return removed[0]

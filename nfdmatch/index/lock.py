@@ -45,8 +45,11 @@ class _Lock:
                         path=index_path,
                     ) from None
                 time.sleep(min(0.05, left))
-        os.ftruncate(self.fd, 0)
-        os.pwrite(self.fd, f"{os.getpid()}\n".encode(), 0)
+        try:  # the pid is for other builds' messages only: a full disk must not stop this one here
+            os.ftruncate(self.fd, 0)
+            os.pwrite(self.fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:
+            pass
 
     def _holder(self) -> str:
         try:

@@ -119,8 +119,61 @@ def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHU
     # an empty dataset can be chunked only when resizable
     maxshape = (None,) + data.shape[1:] if data.ndim and not data.shape[0] else None
     return group.create_dataset(
-        name, data=data, dtype=dtype or data.dtype, shape=data.shape, chunks=chunks, maxshape=maxshape, fletcher32=True
+        name,
+        data=data,
+        dtype=dtype or data.dtype,
+        shape=data.shape,
+        chunks=chunks,
+        maxshape=maxshape,
+        fletcher32=True,
+        fillvalue=fill_value(dtype or data.dtype),
     )
+
+
+def fill_value(dtype):
+    """The fill value nfdmatch gives a new dataset of ``dtype``: NaN for floats (NaN + NaN j
+    for complex), so that a chunk HDF5 cannot find (damaged chunk index) reads as NaN, which
+    every reader refuses, instead of zeros; None (HDF5's default) for other types."""
+    kind = np.dtype(dtype).kind if dtype is not _STR else "O"
+    if kind == "f":
+        return np.nan
+    if kind == "c":
+        return complex(np.nan, np.nan)
+    return None
+
+
+def _chunk_problem(ds, where: str, walk: bool = True) -> str | None:
+    """Why the chunk index of chunked dataset ``ds`` does not hold exactly one chunk at each
+    position of its chunk grid, or None. A damaged chunk index can lose a chunk or move it
+    (a flipped byte in a chunk's stored offset): HDF5 then returns the fill value for the
+    place it left, with no error, and that is not data. Reads the index only (no chunk).
+    ``walk``: also check every chunk's position (~2-4 us a chunk, needed where the index
+    stores offsets: files of HDF5's older structures); else only the count."""
+    shape, chunks = ds.shape, ds.chunks
+    grid = [-(-n // c) for n, c in zip(shape, chunks)]
+    expected = int(np.prod(grid, dtype=np.int64))
+    dsid = ds.id
+    count = int(dsid.get_num_chunks())
+    if count != expected:
+        return f"{where} has {count} stored chunks, expected {expected} for its shape {shape}: damaged chunk index"
+    if not expected or not walk:
+        return None
+    offsets = []
+    if hasattr(dsid, "chunk_iter"):
+        dsid.chunk_iter(lambda info: offsets.append(info.chunk_offset))
+    else:  # pragma: no cover - HDF5 before 1.12.3
+        offsets = [dsid.get_chunk_info(i).chunk_offset for i in range(count)]
+    if len(offsets) != expected:
+        return f"{where} lists {len(offsets)} chunks, expected {expected}: damaged chunk index"
+    at = np.asarray(offsets, dtype=np.int64).reshape(len(offsets), len(shape))
+    step = np.asarray(chunks, dtype=np.int64)
+    if (at % step).any() or (at < 0).any() or (at >= np.asarray(shape, dtype=np.int64)).any():
+        return f"{where} has a chunk at a position outside its chunk grid: damaged chunk index"
+    cells = at // step
+    flat = np.ravel_multi_index(tuple(cells.T), grid)
+    if len(np.unique(flat)) != expected:
+        return f"{where} has two chunks at one position: damaged chunk index"
+    return None
 
 
 def write_string_checks(group, name: str, values) -> None:
@@ -134,8 +187,9 @@ def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
     Refuses external storage and virtual datasets (their bytes live in other files), a
     declared size the file cannot hold (uncompressed: the allocated storage must cover every
     declared byte; compressed: at most :data:`_MAX_COMPRESSION` times the stored bytes),
-    chunks above :data:`MAX_CHUNK_BYTES`, and, when the file declares checksums, a numeric
-    dataset without Fletcher-32."""
+    chunks above :data:`MAX_CHUNK_BYTES`, when the file declares checksums, a numeric
+    dataset without Fletcher-32, and a chunk index that does not hold exactly one chunk per
+    position of the chunk grid (:func:`_chunk_problem`)."""
     if ds.is_virtual:
         return f"{where} is a virtual dataset (data in other files): refused"
     dcpl = ds.id.get_create_plist()
@@ -163,7 +217,19 @@ def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
             )
     if checksums and not vlen and h5py.h5z.FILTER_FLETCHER32 not in filters:
         return f"{where} has no checksum filter, but the file declares checksums"
+    if ds.chunks is not None:
+        return _chunk_problem(ds, where, walk=not _positional_chunks(ds))
     return None
+
+
+def _positional_chunks(ds) -> bool:
+    """True when ``ds``'s file has HDF5 1.10's structures (superblock version 3, which nfdmatch
+    writes since December 2026): chunk indexes then find a chunk by its position (fixed and
+    extensible arrays; no stored offset a flipped byte could change) and carry checksums."""
+    try:
+        return ds.file.id.get_create_plist().get_version()[0] >= 3
+    except Exception:  # noqa: BLE001 - unknown: walk the chunk index
+        return False
 
 
 def _curve_layout(K: int) -> dict:

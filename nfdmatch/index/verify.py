@@ -3,8 +3,11 @@
 Opening an index checks its structure (schema.py); a query then checks the checksums and
 finiteness of what it reads. This reads everything: every chunk of every dataset (each
 Fletcher-32 checksum verified by HDF5), every 32-row block of strings against its CRC-32,
-every stored float for finiteness, and the derived data against what it is derived from
-(``/curves/file`` against the file table, ``/search`` against ``/curves``).
+every stored float for finiteness, every dataset's type against docs/index-format.md, and
+the derived data against what it is derived from (``/curves/file`` and ``/curves/id``
+against the file table, the bound features ``inv_*`` recomputed from the stored
+coefficients, ``/search`` against ``/curves``), and, in an index that records its sources,
+that no relative path leads out of the index's folder.
 """
 
 from __future__ import annotations
@@ -147,11 +150,154 @@ def verify_index(path) -> VerifyReport:
     return report
 
 
+def _expected_dtypes(K: int) -> dict:
+    """Dataset -> what docs/index-format.md says it holds: a numpy dtype, or ``"string"``
+    (variable-length UTF-8)."""
+    from .schema import _FILE_FIELDS, _SHA, _STR, _curve_layout
+
+    files = dict(zip(_FILE_FIELDS, (_STR, np.int64, np.int64, _SHA, np.uint8, _STR, np.int64, np.int64), strict=True))
+    out = {f"/files/{name}": dtype for name, dtype in files.items()}
+    out.update({f"/curves/{name}": dtype for name, (dtype, _) in _curve_layout(K).items()})
+    # the /search table of docs/index-format.md
+    search = {
+        "row": np.int64,
+        "cell_start": np.int64,
+        "centre": np.float64,
+        "radius": np.float64,
+        "features": np.float32,
+        "sqnorm": np.float64,
+        "coefficients": np.complex64,
+    }
+    out.update({f"/search/{name}": dtype for name, dtype in search.items()})
+    for group, names in STRING_DATASETS.items():
+        for name in names:
+            out[f"/{group}/{name}_crc32"] = np.uint32
+    return {name: ("string" if dtype is _STR else np.dtype(dtype)) for name, dtype in out.items()}
+
+
+def _dtype_text(dtype) -> str:
+    import h5py
+
+    info = h5py.check_string_dtype(dtype)
+    if info is not None:
+        return f"{'variable-length' if info.length is None else f'{info.length}-byte'} {info.encoding} string"
+    return str(dtype.newbyteorder("=") if dtype.byteorder not in "=|" else dtype)
+
+
+def _check_dtypes(groups, K: int, report) -> None:
+    """Every dataset's stored type against docs/index-format.md (any byte order: HDF5 converts)."""
+    import h5py
+
+    expected = _expected_dtypes(K)
+    for group, datasets in groups.items():
+        for name, ds in datasets.items():
+            full = f"/{group}/{name}"
+            want = expected.get(full)
+            if want is None:
+                continue
+            got = ds.dtype
+            if want == "string":
+                info = h5py.check_string_dtype(got)
+                ok = info is not None and info.length is None and info.encoding == "utf-8"
+                shown = "a variable-length UTF-8 string"
+            elif want.kind == "S":  # fixed-length ASCII (h5py marks it as a string type)
+                ok = got.kind == "S" and got.itemsize == want.itemsize
+                shown = f"a {want.itemsize}-byte ASCII string"
+            else:
+                ok = h5py.check_string_dtype(got) is None and got.newbyteorder("=") == want.newbyteorder("=")
+                shown = str(want)
+            if not ok:
+                report.findings.append(Finding(full, "", f"stored as {_dtype_text(got)}; the format says {shown}"))
+
+
+def _escapes(path: str) -> bool:
+    """True when a relative stored path leads out of the index's folder (``..``)."""
+    if os.path.isabs(path):
+        return False
+    parts = path.replace("\\", "/").split("/")
+    depth = 0
+    for part in parts:
+        if part == "..":
+            depth -= 1
+            if depth < 0:
+                return True
+        elif part not in ("", "."):
+            depth += 1
+    return False
+
+
+def _check_paths_and_ids(h5, files, paths, ids, report) -> None:
+    """Ids derived from the file table (``path`` or ``path#i``) and, when the index records
+    its sources (relative paths are then relative to its folder), no relative path that
+    leads out of that folder."""
+    from .paths import curve_ids
+
+    if paths is not None and "sources" in h5:
+        bad = [i for i, p in enumerate(paths) if _escapes(str(p))]
+        if bad:
+            report.findings.append(
+                Finding("/files/path", _rows_text(bad), "relative paths that lead out of the index's folder (..)")
+            )
+    if paths is None or ids is None:
+        return
+    want = [i for p, n in zip(paths, files["curve_count"]) for i in curve_ids(str(p), int(n))]
+    if len(want) != len(ids):
+        return  # the block check of /files reports this
+    bad = [r for r, (got, exp) in enumerate(zip(ids, want)) if got != exp]
+    if bad:
+        report.findings.append(
+            Finding("/curves/id", _rows_text(bad), "differs from the ids of the /files paths (path, path#i)")
+        )
+
+
+def _check_features(values, K: int, report) -> None:
+    """``inv_norm``, ``inv_sv``, ``inv_block`` recomputed from the stored coefficients (the
+    writer's computation, rounded to float32 as stored): a bound feature larger than it
+    should be would make a search skip a true match."""
+    from ..matching import invariants
+
+    coefficients = values.get("/curves/coefficients")
+    if coefficients is None:
+        return
+    names = {"norm": "/curves/inv_norm", "sv": "/curves/inv_sv", "block": "/curves/inv_block"}
+    bad = {name: [] for name in names.values()}
+    N = len(coefficients)
+    for a in range(0, N, _BLOCK_ROWS):
+        b = min(N, a + _BLOCK_ROWS)
+        C = np.asarray(coefficients[a:b], dtype=np.complex128)
+        finite = np.flatnonzero(np.isfinite(C.reshape(b - a, -1)).all(axis=1))  # the others are reported already
+        inv = invariants(C[finite])
+        for key, name in names.items():
+            stored = values.get(name)
+            if stored is None:
+                continue
+            want = inv[key].reshape(len(finite), -1).astype(np.float32).astype(np.float64)
+            got = np.asarray(stored[a:b], dtype=np.float64).reshape(b - a, -1)[finite]
+            # float32 rounding of the same computation: a few units in the last place of the row's largest value
+            tol = 1e-6 * np.maximum(np.abs(want).max(axis=1, initial=0.0), 1e-30)[:, None] + 1e-30
+            with np.errstate(invalid="ignore"):
+                off = ~(np.abs(got - want) <= tol)
+            bad[name] += (a + finite[off.any(axis=1)]).tolist()
+    for name, rows in bad.items():
+        if rows:
+            report.findings.append(
+                Finding(name, _rows_text(rows), "differs from the features of the stored coefficients")
+            )
+
+
 def _verify(h5, meta, files, report) -> None:
     K = meta["harmonics"]
     whole = np.asarray
     # what the cross-checks below need, per dataset (the rest is checked block by block and dropped)
-    needed = {"/curves/file": whole, "/curves/inv_sv": whole, "/curves/inv_block": whole, "/curves/coefficients": whole}
+    needed = {
+        "/curves/file": whole,
+        "/curves/inv_sv": whole,
+        "/curves/inv_block": whole,
+        "/curves/inv_norm": whole,
+        "/curves/coefficients": whole,
+        "/curves/id": list,
+        "/files/path": list,
+    }
     groups = {"files": files["datasets"] | files.get("crc", {}), "curves": meta["datasets"] | meta.get("crc", {})}
     if meta["format_version"] >= 2:
         groups["search"] = {name: h5["search"][name] for name in h5["search"] if hasattr(h5["search"][name], "shape")}
@@ -175,9 +321,12 @@ def _verify(h5, meta, files, report) -> None:
             )
             report.datasets += 1
 
+    _check_dtypes(groups, K, report)
     N, F = meta["n_curves"], meta["n_files"]
     if report.unreadable:  # derived data cannot be compared with unreadable rows
         return
+    _check_paths_and_ids(h5, files, values.get("/files/path"), values.get("/curves/id"), report)
+    _check_features(values, K, report)
     file_col = values["/curves/file"]
     want = np.repeat(np.arange(F), files["curve_count"]) if F else np.zeros(0, dtype=np.int64)
     bad = np.flatnonzero(np.asarray(file_col, dtype=np.int64) != want)
@@ -208,6 +357,12 @@ def _verify(h5, meta, files, report) -> None:
     start = np.asarray(values["/search/cell_start"], dtype=np.int64)
     centre, radius = values["/search/centre"], values["/search/radius"]
     cell = np.repeat(np.arange(len(start) - 1), np.diff(start))
+    # the cells from their rows: within a cell, rows ascend (docs/index-format.md)
+    falls = np.flatnonzero((np.diff(row) < 0) & (cell[1:] == cell[:-1]))
+    if len(falls):
+        report.findings.append(
+            Finding("/search/row", _rows_text(np.unique(cell[falls])), "cells whose rows do not ascend")
+        )
     for part, cols in ((0, slice(0, split)), (1, slice(split, None))):
         dist = np.empty(N)
         for a in range(0, N, _BLOCK_ROWS):  # blocks: no (N, D) float64 copy

@@ -13,7 +13,7 @@ import re
 import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, excerpt
-from .schema import _SHA, _STR, CRC_ROWS, FileRecord, _curve_layout, block_crcs, create_checked
+from .schema import _SHA, _STR, CRC_ROWS, FileRecord, _curve_layout, block_crcs, create_checked, fill_value
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
@@ -160,6 +160,7 @@ class _CurveWriter:
                 chunks=(chunk,) + tail,
                 dtype=dtype,
                 fletcher32=dtype is not _STR,
+                fillvalue=fill_value(dtype),
             )
 
     def append(self, piece: dict) -> None:

@@ -22,6 +22,7 @@ answers on one thread (:mod:`.kernels`).
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import os
 import sys
 from contextlib import contextmanager
@@ -30,7 +31,7 @@ import numpy as np
 
 from ._threads import split_rows
 
-__all__ = ["MODULE", "build", "load", "source_digest"]
+__all__ = ["MODULE", "build", "load", "load_checked", "module_digest", "source_digest", "unused_reason"]
 
 #: the extension module's name (in this package)
 MODULE = "_kernels_aot"
@@ -63,6 +64,40 @@ def source_digest() -> str:
     return "-".join(parts)
 
 
+# The stamp also holds the built module's own digest (its third line), checked before every
+# load: a module damaged or replaced since its build is never loaded (load_checked), and the
+# CLI says why in one line (unused_reason).
+
+
+def module_digest(path: str) -> str:
+    """The built extension module's own digest: CRC-32 and length of its bytes (~1 ms for
+    its ~1 MB). Recorded in the stamp at build time and checked before every load: a module
+    truncated, damaged or replaced since would crash the process that loads it (SIGBUS,
+    SIGSEGV, SIGILL), which no exception handler can catch."""
+    import zlib
+
+    crc, size = 0, 0
+    with open(path, "rb") as f:
+        while True:
+            block = f.read(1 << 20)
+            if not block:
+                break
+            crc = zlib.crc32(block, crc)
+            size += len(block)
+    return f"{crc:08x}{size:x}"
+
+
+def _module_path(folder: str) -> str | None:
+    """The extension module's file in ``folder`` (its platform suffix), or None."""
+    from importlib.machinery import EXTENSION_SUFFIXES
+
+    for suffix in EXTENSION_SUFFIXES:
+        path = os.path.join(folder, MODULE + suffix)
+        if os.path.isfile(path):
+            return path
+    return None
+
+
 def build(output_dir: str | None = None) -> str:
     """Compile the kernels ahead of time into ``output_dir`` (default: this package's folder)
     and write the stamp; returns the extension's path. Takes ~30 s; needs numba and a C
@@ -83,11 +118,12 @@ def build(output_dir: str | None = None) -> str:
             cc = _module_compiler(out)
             cc.compile()
             gil = _GIL
+    built = os.path.join(out, cc.output_file)
     stamp = os.path.join(out, MODULE + ".stamp")
     with open(stamp + ".part", "w") as f:
-        f.write(f"{digest}\n{gil}\n")
+        f.write(f"{digest}\n{gil}\n{module_digest(built)}\n")
     os.replace(stamp + ".part", stamp)
-    return os.path.join(out, cc.output_file)
+    return built
 
 
 def _module_compiler(out: str):
@@ -259,17 +295,74 @@ def _writable(basis: np.ndarray, n: int) -> np.ndarray:
     return got
 
 
-def load():
-    """The compiled kernels when a build for the current source is present, else None."""
+#: why the last :func:`load` in this process returned None although a build is present (the
+#: module does not match its stamp), for the CLI to say once; None when nothing to say
+_unused: list = [None]
+
+
+def unused_reason() -> str | None:
+    """Why this process does not use the ahead-of-time kernels although a build of them is
+    present (a module damaged or replaced since it was built, so not loaded), or None. One
+    line, for the CLI to print on stderr (the library does not print); a missing or stale
+    build (an edited kernel source) is not reported: that is what ``make install`` fixes
+    silently, and the other kernels serve meanwhile."""
+    return _unused[0]
+
+
+def load_checked(folder: str | None = None, stamp_path: str | None = None):
+    """``(kernels, reason)``: the compiled kernels when a build for the current source is
+    present and the module file is the one that build wrote (its digest, :func:`module_digest`,
+    equal to the stamp's), else ``(None, reason)``; ``reason`` is None when there is simply
+    no usable build (none, or one for another source), else one line saying what is wrong
+    with the module (truncated, damaged, replaced: loading it could crash the process). The
+    module is checked before it is loaded, never loaded when the check fails."""
+    folder = folder or _HERE
+    stamp_path = stamp_path or _STAMP
     try:
-        with open(_STAMP) as f:
+        with open(stamp_path) as f:
             stamp = f.read().split()
     except OSError:
-        return None
+        return None, None
     try:
         if not stamp or stamp[0] != source_digest():
-            return None
-        module = importlib.import_module(f"{__package__}.{MODULE}")
-    except (ImportError, OSError):
-        return None
-    return _Kernels(module, threads=stamp[1:2] == [_NOGIL])
+            return None, None
+    except OSError:
+        return None, None
+    path = _module_path(folder)
+    if path is None:
+        return None, None
+    shown = os.path.relpath(path) if not os.path.relpath(path).startswith("..") else path
+    recorded = stamp[2] if len(stamp) > 2 else None
+    try:
+        actual = module_digest(path)
+    except OSError as exc:
+        return None, f"compiled kernels not used: cannot read {shown} ({exc.strerror or exc}); using the other kernels"
+    if recorded is None:
+        return None, (
+            f"compiled kernels not used: {shown} has no recorded digest (built before they were "
+            "checked); using the other kernels (`make install` rebuilds it)"
+        )
+    if actual != recorded:
+        return None, (
+            f"compiled kernels not used: {shown} does not match its build stamp (damaged or "
+            "replaced since it was built); using the other kernels (`make install` rebuilds it)"
+        )
+    try:
+        if folder == _HERE:
+            module = importlib.import_module(f"{__package__}.{MODULE}")
+        else:  # a build elsewhere (the tests check copies through this)
+            spec = importlib.util.spec_from_file_location(MODULE, path)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+    except (ImportError, OSError) as exc:
+        return None, f"compiled kernels not used: {shown} does not load ({exc}); using the other kernels"
+    return _Kernels(module, threads=stamp[1:2] == [_NOGIL]), None
+
+
+def load():
+    """The compiled kernels when a build for the current source is present and its module is
+    intact (:func:`load_checked`), else None; why not, when something is wrong with the
+    module, is then :func:`unused_reason`."""
+    kernels, reason = load_checked()
+    _unused[0] = reason
+    return kernels

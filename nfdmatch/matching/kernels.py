@@ -109,7 +109,7 @@ def choose(setting: str = "auto") -> Kernels:
         if built is not None:
             held = "" if built.threads else "; built holding the GIL: one thread"
             return Kernels("aot", built, built.threads, f"compiled ahead of time for this source{held}")
-        why.append("no ahead-of-time build for this source (make install builds it)")
+        why.append(aot.unused_reason() or "no ahead-of-time build for this source (make install builds it)")
     if setting in ("auto", "numba"):
         try:
             from . import _kernels

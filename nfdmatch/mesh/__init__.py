@@ -69,7 +69,7 @@ from __future__ import annotations
 from .contours import AXES, DEFAULT_SECTIONS, Contour, ExtractResult, mesh_stem
 from .load import find_mesh_files, load_mesh, mesh_extensions
 from .manifest import MANIFEST, PruneResult, prune_contours, read_manifest
-from .naming import write_contours
+from .naming import refused_targets, write_contours
 from .sections import extract_contours, section_levels
 
 __all__ = [
@@ -85,6 +85,7 @@ __all__ = [
     "section_levels",
     "extract_contours",
     "write_contours",
+    "refused_targets",
     "prune_contours",
     "read_manifest",
     "mesh_stem",

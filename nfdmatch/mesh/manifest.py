@@ -49,6 +49,8 @@ def read_manifest(out_dir) -> tuple[dict, str | None]:
         return {}, None
     except (OSError, ValueError) as exc:
         return {}, f"{path}: cannot read the manifest ({type(exc).__name__}); nothing pruned by it"
+    except RecursionError:  # brackets nested deeper than Python's JSON parser goes
+        return {}, f"{path}: cannot read the manifest (nested too deeply); nothing pruned by it"
     files = data.get("files") if isinstance(data, dict) and data.get("format") == _MANIFEST_FORMAT else None
     if not isinstance(files, dict):
         return {}, f"{path}: not an nfdmatch extract manifest; nothing pruned by it"
