@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import enum
 import os
 import time
 from dataclasses import dataclass, field
@@ -11,12 +10,19 @@ import h5py
 import numpy as np
 
 from .._version import __version__
-from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, validate_parameters
-from ..errors import IndexFormatError, InputError, NfdError, ParameterError, ReadError, ShrinkRefusedError, WriteError
-from ..formats import format_of, split_selector
-from ..sources import _irregular, find_curve_files
+from ..errors import IndexFormatError, InputError, NfdError, ReadError, WriteError
 from .lock import _Lock
-from .paths import curve_ids, found_location, index_file, openable, source_location, stored
+from .paths import curve_ids, index_file
+from .plan import (
+    Action,
+    Plan,
+    check_arguments,
+    check_shrink,
+    find_files,
+    parameters,
+    plan_files,
+    recorded_sources,
+)
 from .pool import _run_tasks
 from .reader import Index
 from .graph import GraphStats, graph_changes, write_graph
@@ -27,38 +33,6 @@ from .writer import _CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _S
 
 def _utcnow() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-
-
-class Action(enum.Enum):
-    """What a build does with one found file (decided from the old index's /files row)."""
-
-    #: unchanged size and mtime, indexed before: copy its rows from the old index
-    COPY = "copy"
-    #: unchanged size and mtime, failed before: keep its failure, do not read it again
-    KEEP_FAILED = "keep_failed"
-    #: same size, another mtime: hash it; same contents are kept as they were, else computed
-    HASH = "hash"
-    #: new, resized, unreadable by stat, or every file is recomputed: read and describe it
-    COMPUTE = "compute"
-
-    @property
-    def reads_file(self) -> bool:
-        """True when the file is opened (a task of the worker pool; counted in progress)."""
-        return self in (Action.HASH, Action.COMPUTE)
-
-
-@dataclass(frozen=True)
-class PlanItem:
-    """One found file in the build plan: its stored ``path`` (docs/index-format.md, "Paths
-    and ids"), the ``action``, its ``old`` /files record (None for a file new to the index),
-    the number of its pool ``task`` (None unless ``action.reads_file``) and ``file``, the
-    path that opens it from the working directory (as the walk found it)."""
-
-    path: str
-    action: Action
-    old: FileRecord | None
-    task: int | None
-    file: str = ""
 
 
 @dataclass
@@ -214,34 +188,8 @@ def build_index(
     elif isinstance(sources, (str, bytes, os.PathLike)):
         sources = [sources]
     sources = [os.fsdecode(os.fspath(s)) for s in sources]
-    if jobs is None:
-        jobs = os.cpu_count() or 1
-    if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
-        raise ParameterError(f"jobs must be an integer >= 1, got {jobs!r}")
-    if file_timeout is not None and (
-        isinstance(file_timeout, bool)
-        or not isinstance(file_timeout, (int, float))
-        or not file_timeout >= 0
-        or file_timeout == float("inf")
-    ):
-        raise ParameterError(f"file_timeout must be a finite number of seconds >= 0, got {file_timeout!r}")
-    if input_format is not None:
-        format_of("x", input_format)  # an unknown format name fails before any work
-    for name, value in (("samples", samples), ("harmonics", harmonics)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
-            raise ParameterError(f"{name} must be an integer, got {value!r}")
-    if os.path.isdir(index_path):
-        raise ReadError("is a directory, not an index file", path=index_path)
-    # the real file: a link at index_path is followed, so that its target is what is locked,
-    # read and replaced (two names of one index are one index)
-    real_index = index_file(index_path)
-    base = os.path.dirname(real_index)
-    folder = os.path.dirname(index_path) or "."
-    if not os.path.isdir(folder) or not os.path.isdir(base):
-        raise WriteError(
-            f"cannot write the index: no folder {folder if not os.path.isdir(folder) else base}", path=index_path
-        )
-
+    jobs = check_arguments(jobs, file_timeout, input_format, samples, harmonics)
+    real_index, base = _index_location(index_path)
     report = BuildReport(dry_run=bool(dry_run))
     lock = None if dry_run else _Lock(real_index, wait, name=index_path)
     old = None
@@ -249,207 +197,33 @@ def build_index(
         old = _load_old(index_path, rebuild, report.notices)
         recorded = None if old is None else old.sources()
         if not sources:
-            if old is None:
-                raise InputError(
-                    "no SOURCE given and no index to take them from; name the files or folders to index",
-                    path=index_path,
-                )
-            if recorded is None:
-                raise InputError(
-                    "no SOURCE given and the index does not record its sources (it was built by an "
-                    "older nfdmatch); name them once, later builds remember them",
-                    path=index_path,
-                )
-            sources = [openable(s, base) for s in recorded[0]]
+            sources = recorded_sources(old, recorded, index_path, real_index, base)
             if glob is None:
                 glob = recorded[1]
-            for s, kept in zip(sources, recorded[0]):
-                if not os.path.lexists(split_selector(s)[0]) and not os.path.isabs(kept):
-                    raise ReadError(
-                        f"no such file or folder: the index records the source {kept!r} relative to its "
-                        f"folder {os.path.dirname(real_index)}; was the index moved? Move it back, or name "
-                        "the sources and rebuild it there (--rebuild --allow-shrink)",
-                        path=s,
-                    )
-        found, opens, stored_sources, unseen = _find(sources, glob, base, report.skipped)
+        found, opens, stored_sources, unseen = find_files(sources, glob, base, report.skipped)
         report.sources = stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
-
-        # parameters
-        given = {"samples": samples, "harmonics": harmonics, "scale": scale}
-        defaults = {"samples": DEFAULT_SAMPLES, "harmonics": DEFAULT_HARMONICS, "scale": DEFAULT_SCALE}
-        params = {}
-        changed = []
-        for name in given:
-            previous = getattr(old, name) if old is not None else None
-            params[name] = (
-                given[name] if given[name] is not None else (previous if previous is not None else defaults[name])
-            )
-            if old is not None and given[name] is not None and given[name] != previous:
-                changed.append(f"{name} {previous} -> {given[name]}")
-        params["samples"], params["harmonics"] = int(params["samples"]), int(params["harmonics"])
-        validate_parameters(params["samples"], params["harmonics"], params["scale"])
-        if changed:
-            report.notices.append(f"parameters changed ({', '.join(changed)}): recomputing all curves")
-        recompute_all = bool(rebuild) or bool(changed) or old is None
+        params, changed = parameters(old, samples, harmonics, scale, report.notices)
         if not found and old is not None and not unseen:
             report.notices.append(
                 f"no curve files found under {', '.join(sources)}: every file would be removed from the index"
             )
-
-        # the plan. An index that does not record its sources stored paths relative to its
-        # build's working directory: they are mapped to the stored rule from this one, so
-        # that its unchanged files keep their rows (with new ids) instead of all being
-        # removed and added again
         old_files = [] if old is None else old.files()
-        rekey = old is not None and recorded is None
-        old_rows = {}
-        for i, r in enumerate(old_files):
-            key = stored(source_location(r.path), base) if rekey else r.path
-            old_rows.setdefault(key, (i, r))
-        found_set = set(found)
-        # a folder that could not be listed this time (permissions, I/O) keeps its files'
-        # rows as they were: a fault of the machine must not remove curves
-        held = {
-            key
-            for key, (_, r) in old_rows.items()
-            if key not in found_set and any(key == u or key.startswith(u.rstrip("/") + "/") for u in unseen)
-        }
-        items: list[PlanItem] = []
-        tasks = []
-        for path in sorted(found_set | held):
-            entry = old_rows.get(path)
-            r = entry[1] if entry else None
-            if path in held:
-                items.append(
-                    PlanItem(
-                        path, Action.COPY if r.status == "ok" else Action.KEEP_FAILED, r, None, openable(path, base)
-                    )
-                )
-                continue
-            file = opens[path]
-            try:
-                st = os.stat(file)
-                size, mtime = int(st.st_size), int(st.st_mtime_ns)
-            except OSError:
-                size = mtime = None
-            if r is None or recompute_all or size is None:
-                action, old_sha = Action.COMPUTE, None
-            elif size == r.size and mtime == r.mtime_ns:
-                action, old_sha = (Action.COPY if r.status == "ok" else Action.KEEP_FAILED), None
-            elif size == r.size and r.sha256:
-                action, old_sha = Action.HASH, r.sha256
-            else:
-                action, old_sha = Action.COMPUTE, None
-            task = None
-            if action.reads_file:
-                task = len(tasks)
-                tasks.append((file, input_format, params["samples"], params["harmonics"], params["scale"], old_sha))
-            items.append(PlanItem(path, action, r, task, file))
-        removed = [r.path for key, (_, r) in old_rows.items() if key not in found_set and key not in held]
-
-        # an empty or unmounted source folder must not wipe an index from cron
-        if old_files and (len(removed) == len(old_files) or 2 * len(removed) > len(old_files)):
-            report.shrink = (len(removed), len(old_files))
-            what = (
-                f"would remove {'all' if len(removed) == len(old_files) else len(removed)} of the "
-                f"index's {len(old_files)} files"
-            )
-            if dry_run and not allow_shrink:
-                report.notices.append(f"a build {what}: it will refuse unless --allow-shrink is given")
-            elif not allow_shrink:
-                cause = (
-                    "no curve files found under " + ", ".join(sources)
-                    if not found
-                    else f"{len(found)} files found under {', '.join(sources)}"
-                )
-                moved = _moved_index(old_files, removed, found, real_index)
-                if report.skipped:  # the walk could not read some folders: say which and why
-                    guess = f"{report.skipped[0][1]}{' ...' if len(report.skipped) > 1 else ''}"
-                else:
-                    guess = "an empty or unmounted folder?"
-                if moved:
-                    message = (
-                        f"refusing to build: the index's {len(old_files)} stored paths are relative to "
-                        f"its folder and no longer lead to its files from {os.path.dirname(real_index)} "
-                        f"(e.g. {moved}): was the index moved? Move it back, or rebuild it here with "
-                        f"`nfdmatch index build {' '.join(sources)} --index {index_path} --rebuild "
-                        "--allow-shrink`"
-                    )
-                else:
-                    message = f"refusing to build: it {what} ({cause}; {guess}); pass --allow-shrink to remove them"
-                refused = ShrinkRefusedError(message, path=index_path)
-                refused.removed, refused.of = report.shrink
-                raise refused
-            else:
-                report.notices.append(f"removing {len(removed)} of the index's {len(old_files)} files (--allow-shrink)")
-
+        plan = plan_files(
+            old, old_files, recorded, found, opens, unseen, base, params, bool(rebuild) or changed or old is None,
+            input_format,
+        )  # fmt: skip
+        check_shrink(report, old_files, plan, found, sources, index_path, real_index, dry_run, allow_shrink)
         if dry_run:
-            _dry_run_report(report, items, tasks, removed, old, progress, jobs, file_timeout, runner)
-            report.seconds = time.perf_counter() - t0
-            return report
-
-        stale = _remove_stale_temps(real_index)
-        if stale:
-            report.notices.append(
-                f"removed {len(stale)} temporary file(s) left by an interrupted build: {', '.join(stale)}"
-            )
-        # a format-1 index is rewritten as format 2 (with its cells) even when nothing changed
-        upgrade = old is not None and old.format_version < FORMAT_VERSION
-        if upgrade:
-            report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
-        new_sources = (stored_sources, glob or None)
-        needs_write = (
-            old is None
-            or recompute_all
-            or bool(tasks)
-            or bool(removed)
-            or upgrade
-            or recorded != new_sources
-            or graph_changes(old, graph)
-            or any(it.path != it.old.path for it in items if it.old)
-        )
-        if not needs_write:
-            # nothing to change: the index is not rewritten, but it is made newer than its
-            # sources (under the build's lock), as Make expects of a command that succeeded:
-            # else a rule `index.h5: $(CURVES)` reruns after every `touch`, forever
-            try:
-                os.utime(real_index)
-            except OSError:
-                pass  # not ours to touch (read-only, another owner): the index is still right
-            if progress is not None:
-                progress(0, 0)
-            for item in items:
-                if item.action is Action.COPY:
-                    report.unchanged += 1
-                    report.changes.append(("unchanged", item.path))
-                else:
-                    report.failed += 1
-                    report.changes.append(("failed", item.path))
-                    report.failures.append((item.file or item.path, item.old.error))
-            report.curves = old.n_curves
-            report.seconds = time.perf_counter() - t0
-            return report
-
-        _write(
-            report,
-            real_index,
-            items,
-            tasks,
-            removed,
-            old,
-            params,
-            jobs,
-            lock,
-            progress,
-            file_timeout,
-            sources=new_sources,
-            name=index_path,
-            graph=graph,
-            recompute_all=recompute_all,
-            runner=runner,
-        )
+            _dry_run_report(report, plan, old, progress, jobs, file_timeout, runner)
+        elif _needs_write(old, plan, recorded, (stored_sources, glob or None), graph, real_index, report):
+            _write(
+                report, real_index, plan, old, jobs, lock, progress, file_timeout,
+                sources=(stored_sources, glob or None), name=index_path, graph=graph, runner=runner,
+            )  # fmt: skip
+        else:
+            _unchanged(report, plan, old, real_index, progress)
     finally:
         if old is not None:
             old.close()
@@ -459,48 +233,73 @@ def build_index(
     return report
 
 
-def _find(sources: list[str], glob, base: str, skipped: list):
-    """The curve files under ``sources`` by stored path: ``(sorted stored paths, {stored path:
-    path that opens it, as found}, stored sources, stored paths of folders that could not be
-    listed)``. Two spellings of one file (``lib`` and ``/abs/lib``, a link to ``lib``) are one
-    file, the first spelling opens it. What a walk skips (folders it cannot list, FIFOs and
-    other non-regular files) is appended to ``skipped`` as ``(path, message)``."""
-    opens: dict[str, str] = {}
-    stored_sources: list[str] = []
-    unseen: list[str] = []
-    for source in sources:
-        real = source_location(source)
-        is_folder = os.path.isdir(source)
-        problems: list = []
-        files = find_curve_files([source], glob=glob, problems=problems)  # ReadError: a missing source
-        kind = None if is_folder else _irregular(split_selector(source)[0])
-        if kind is not None:  # a FIFO named directly: opening it would block the build
-            files = []
-            if any(path == source for path, _ in skipped):
-                continue
-            skipped.append((source, str(ReadError(f"is {kind}, not a regular file; skipped", path=source))))
-        key = stored(real, base)
-        if key not in stored_sources:
-            stored_sources.append(key)
-        for file in files:
-            opens.setdefault(stored(found_location(file, source, real, is_folder), base), file)
-        for problem in problems:
-            if any(path == problem.path for path, _ in skipped):
-                continue  # named once, however many sources reach it
-            skipped.append((problem.path, str(problem)))
-            if problem.path and os.path.isdir(problem.path):
-                # normalized: the source folder itself ("lib" found as "lib/.") holds every row under it
-                unseen.append(stored(os.path.normpath(found_location(problem.path, source, real, is_folder)), base))
-    return sorted(opens), opens, stored_sources, unseen
+def _index_location(index_path: str) -> tuple[str, str]:
+    """The real index file (a link at ``index_path`` is followed, so that its target is what
+    is locked, read and replaced: two names of one index are one index) and its folder.
+    Raises ReadError for a folder, WriteError when the folder is missing."""
+    if os.path.isdir(index_path):
+        raise ReadError("is a directory, not an index file", path=index_path)
+    real_index = index_file(index_path)
+    base = os.path.dirname(real_index)
+    folder = os.path.dirname(index_path) or "."
+    if not os.path.isdir(folder) or not os.path.isdir(base):
+        raise WriteError(
+            f"cannot write the index: no folder {folder if not os.path.isdir(folder) else base}", path=index_path
+        )
+    return real_index, base
 
 
-def _dry_run_report(
-    report: BuildReport, items: list[PlanItem], tasks, removed, old, progress, jobs, file_timeout, runner
-) -> None:
+def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str, report: BuildReport) -> bool:
+    """Whether the build must write a new index file (temporary files of an interrupted
+    build are removed first; an upgrade of format 1 is noted)."""
+    stale = _remove_stale_temps(real_index)
+    if stale:
+        report.notices.append(
+            f"removed {len(stale)} temporary file(s) left by an interrupted build: {', '.join(stale)}"
+        )
+    # a format-1 index is rewritten as format 2 (with its cells) even when nothing changed
+    upgrade = old is not None and old.format_version < FORMAT_VERSION
+    if upgrade:
+        report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
+    return (
+        old is None
+        or plan.recompute_all
+        or bool(plan.tasks)
+        or bool(plan.removed)
+        or upgrade
+        or recorded != new_sources
+        or graph_changes(old, graph)
+        or any(it.path != it.old.path for it in plan.items if it.old)
+    )
+
+
+def _unchanged(report: BuildReport, plan: Plan, old, real_index: str, progress) -> None:
+    """Nothing to change: the index is not rewritten, but it is made newer than its sources
+    (under the build's lock), as Make expects of a command that succeeded: else a rule
+    ``index.h5: $(CURVES)`` reruns after every ``touch``, forever."""
+    try:
+        os.utime(real_index)
+    except OSError:
+        pass  # not ours to touch (read-only, another owner): the index is still right
+    if progress is not None:
+        progress(0, 0)
+    for item in plan.items:
+        if item.action is Action.COPY:
+            report.unchanged += 1
+            report.changes.append(("unchanged", item.path))
+        else:
+            report.failed += 1
+            report.changes.append(("failed", item.path))
+            report.failures.append((item.file or item.path, item.old.error))
+    report.curves = old.n_curves
+
+
+def _dry_run_report(report: BuildReport, plan: Plan, old, progress, jobs, file_timeout, runner) -> None:
     """What the build would do, writing nothing: the files it would read are read and
     described as the build reads them (the same tasks, in worker processes), so that a
     broken file is reported ``failed`` (not ``added``) and ``curves`` is the count the
     written index would hold."""
+    items, tasks, removed = plan.items, plan.tasks, plan.removed
     total = len(tasks)
     if progress is not None:
         progress(0, total)
@@ -548,11 +347,8 @@ def _dry_run_report(
 def _write(
     report: BuildReport,
     index_path: str,
-    items: list[PlanItem],
-    tasks,
-    removed,
+    plan: Plan,
     old,
-    params,
     jobs,
     lock,
     progress,
@@ -561,7 +357,6 @@ def _write(
     sources=((), None),
     name=None,
     graph=None,
-    recompute_all=True,
     runner=None,
 ):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
@@ -573,6 +368,7 @@ def _write(
     import secrets
 
     tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}-{secrets.token_hex(4)}.h5")
+    items, tasks, removed, params = plan.items, plan.tasks, plan.removed, plan.params
     K = params["harmonics"]
     results: dict[int, dict] = {}
     total = len(tasks)
@@ -671,7 +467,7 @@ def _write(
             # the cells: features, squared norms, row numbers and first harmonics of every row
             space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
-            report.graph = write_graph(h5, old, graph, reuse=not recompute_all)
+            report.graph = write_graph(h5, old, graph, reuse=not plan.recompute_all)
             report.curves = writer.rows
         except BaseException:
             if space is not None:
@@ -722,17 +518,3 @@ def _write_cause(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror
     return _short(exc)
-
-
-def _moved_index(old_files, removed, found, real_index: str) -> str | None:
-    """A removed relative path (as stored) when the index looks moved away from its files:
-    every path it would remove is relative and none of them opens from the index's folder
-    any more, while files were found. None otherwise."""
-    if not found or not removed or len(removed) != len(old_files):
-        return None
-    folder = os.path.dirname(real_index)
-    if any(os.path.isabs(p) for p in removed):
-        return None
-    if any(os.path.lexists(os.path.join(folder, p)) for p in removed[:50]):
-        return None
-    return removed[0]
