@@ -148,10 +148,8 @@ def index_build(
       nfdmatch index build library/ --index library.h5 --graph
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
     """
-    from ..errors import ShrinkRefusedError
-    from ..index import build_index
-
     from ..errors import NfdError
+    from ..index import build_index
 
     if "-" in sources:
         raise click.UsageError(
@@ -185,15 +183,7 @@ def index_build(
             report = cluster.build_index(list(sources), index_path, **options)
     except (NfdError, KeyboardInterrupt) as exc:
         if output_format == "json":  # cron logs one line per run: it says why nothing was written
-            record = {"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"), "written": False}
-            if isinstance(exc, KeyboardInterrupt):
-                record["error"] = "terminated (SIGTERM)" if type(exc).__name__ == "Terminated" else "interrupted"
-            else:
-                record["error"] = str(exc)
-            if isinstance(exc, ShrinkRefusedError):
-                record["refused"] = str(exc)
-                record["shrink"] = {"removed": exc.removed, "of": exc.of, "allowed": False}
-            deliver(json.dumps(record) + "\n", None)
+            deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
         raise
     finally:
         finish_bar()
@@ -204,63 +194,11 @@ def index_build(
     for _path, message in report.skipped + report.failures:
         error(message)
     if output_format == "json":
-        summary = {
-            "index": index_path,
-            "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
-            "sources": report.sources,
-            "added": report.added,
-            "updated": report.updated,
-            "removed": report.removed,
-            "unchanged": report.unchanged,
-            "failed": report.failed,
-            "failures": [{"path": path, "error": message} for path, message in report.failures],
-            "skipped": [{"path": path, "error": message} for path, message in report.skipped],
-            "curves": report.curves,
-            "seconds": round(report.seconds, 3),
-        }
-        if report.shrink:
-            summary["shrink"] = {"removed": report.shrink[0], "of": report.shrink[1], "allowed": bool(allow_shrink)}
-        if report.graph.k:
-            g = report.graph
-            summary["graph"] = {
-                "k": g.k,
-                "searched": g.searched,
-                "updated": g.updated,
-                "kept": g.kept,
-                "seconds": round(g.seconds, 3),
-            }
-        if dry_run:
-            summary["dry_run"] = True
-            summary["changes"] = [{"action": a, "path": p} for a, p in report.changes if a != "unchanged"]
-        deliver(json.dumps(summary) + "\n", None)
+        deliver(json.dumps(_build_summary(report, index_path, started, allow_shrink)) + "\n", None)
     else:
         if dry_run:
             deliver("".join(f"{action}\t{path}\n" for action, path in report.changes if action != "unchanged"), None)
-        verb = (
-            "would change"
-            if dry_run
-            else (f"indexed into {index_path}" if report.written else f"{index_path} is up to date")
-        )
-        shrunk = (
-            ""
-            if not report.shrink
-            else (
-                f" ({report.shrink[0]} of {report.shrink[1]} files removed: --allow-shrink)"
-                if allow_shrink
-                else f" (a build would refuse to remove {report.shrink[0]} of {report.shrink[1]} files)"
-            )
-        )
-        say(
-            f"{verb}: {report.added} added, {report.updated} updated, {report.removed} removed, "
-            f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
-            f"{report.seconds:.2f} s{shrunk}"
-        )
-        if report.graph.k:
-            g = report.graph
-            say(
-                f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
-                f"{g.kept} kept; {g.seconds:.2f} s"
-            )
+        _say_build(report, index_path, allow_shrink)
     if dry_run and report.shrink and not allow_shrink:  # the build would refuse: so does its dry run
         error(
             f"{index_path}: a build would refuse to remove {report.shrink[0]} of {report.shrink[1]} files "
@@ -274,6 +212,125 @@ def index_build(
         report.added + report.updated + report.unchanged + report.failed + len(report.skipped),
         "files",
     )
+
+
+def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, method, strict, mirror, scheduler) -> None:
+    """Usage errors for options that --rerank cannot take (or that need it)."""
+    if not rerank:
+        if depth != DEFAULT_RERANK_DEPTH:
+            raise click.UsageError("--rerank-depth needs --rerank")
+        return
+    for given, name in (
+        (exhaustive, "--exhaustive"),
+        (max_distance is not None, "--max-distance"),
+        (method != DEFAULT_METHOD, f"--method {method}"),
+        (strict, "--strict-direction"),
+        (mirror, "--mirror"),
+    ):
+        if given:
+            raise click.UsageError(
+                f"--rerank cannot be combined with {name}: the stored graph holds exact, "
+                f"direction-invariant distances without mirror images"
+            )
+    if top > depth:
+        raise click.UsageError(f"--top {top} is more than --rerank-depth {depth}")
+    if scheduler:
+        raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
+
+
+def _stats_line(stats) -> str:
+    """What ``--stats`` says of a search (:class:`~nfdmatch.search.SearchStats`)."""
+    line = (
+        f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
+        f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s"
+    )
+    if stats.pruned:
+        line += (
+            f"; per query: {stats.per_query(stats.scanned):.0f} rows bounded in "
+            f"{stats.per_query(stats.cells):.1f} of {stats.cell_count} cells, "
+            f"{stats.per_query(stats.truncated):.0f} truncated-harmonic bounds "
+            f"(+{stats.per_query(stats.fine):.0f} finer), "
+            f"{stats.per_query(stats.exact):.0f} exact distances, "
+            f"{stats.per_query(stats.bytes_read) / 2**20:.2f} MiB read"
+        )
+    return line + (f"; kernels: {stats.kernels}" if stats.kernels else "")
+
+
+def _failed_build_record(exc: BaseException, index_path: str, started) -> dict:
+    """The JSON line of a build that wrote nothing (an error, an interruption)."""
+    from ..errors import ShrinkRefusedError
+
+    record = {"index": index_path, "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"), "written": False}
+    if isinstance(exc, KeyboardInterrupt):
+        record["error"] = "terminated (SIGTERM)" if type(exc).__name__ == "Terminated" else "interrupted"
+    else:
+        record["error"] = str(exc)
+    if isinstance(exc, ShrinkRefusedError):
+        record["refused"] = str(exc)
+        record["shrink"] = {"removed": exc.removed, "of": exc.of, "allowed": False}
+    return record
+
+
+def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict:
+    """The JSON line of a build that ran (or of its dry run)."""
+    summary = {
+        "index": index_path,
+        "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "sources": report.sources,
+        "added": report.added,
+        "updated": report.updated,
+        "removed": report.removed,
+        "unchanged": report.unchanged,
+        "failed": report.failed,
+        "failures": [{"path": path, "error": message} for path, message in report.failures],
+        "skipped": [{"path": path, "error": message} for path, message in report.skipped],
+        "curves": report.curves,
+        "seconds": round(report.seconds, 3),
+    }
+    if report.shrink:
+        summary["shrink"] = {"removed": report.shrink[0], "of": report.shrink[1], "allowed": bool(allow_shrink)}
+    if report.graph.k:
+        g = report.graph
+        summary["graph"] = {
+            "k": g.k,
+            "searched": g.searched,
+            "updated": g.updated,
+            "kept": g.kept,
+            "seconds": round(g.seconds, 3),
+        }
+    if report.dry_run:
+        summary["dry_run"] = True
+        summary["changes"] = [{"action": a, "path": p} for a, p in report.changes if a != "unchanged"]
+    return summary
+
+
+def _say_build(report, index_path: str, allow_shrink: bool) -> None:
+    """The build's summary in words, on stderr."""
+    verb = (
+        "would change"
+        if report.dry_run
+        else (f"indexed into {index_path}" if report.written else f"{index_path} is up to date")
+    )
+    shrunk = (
+        ""
+        if not report.shrink
+        else (
+            f" ({report.shrink[0]} of {report.shrink[1]} files removed: --allow-shrink)"
+            if allow_shrink
+            else f" (a build would refuse to remove {report.shrink[0]} of {report.shrink[1]} files)"
+        )
+    )
+    say(
+        f"{verb}: {report.added} added, {report.updated} updated, {report.removed} removed, "
+        f"{report.unchanged} unchanged, {report.failed} failed files; {report.curves} curves; "
+        f"{report.seconds:.2f} s{shrunk}"
+    )
+    if report.graph.k:
+        g = report.graph
+        say(
+            f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
+            f"{g.kept} kept; {g.seconds:.2f} s"
+        )
 
 
 @index.command("info")
@@ -598,28 +655,9 @@ def query(
     from ..search import search_index
 
     output_format = resolve_format(output_format, output)
-    if rerank:
-        for given, name in (
-            (exhaustive, "--exhaustive"),
-            (max_distance is not None, "--max-distance"),
-            (method != DEFAULT_METHOD, f"--method {method}"),
-            (strict_direction, "--strict-direction"),
-            (mirror, "--mirror"),
-        ):
-            if given:
-                raise click.UsageError(
-                    f"--rerank cannot be combined with {name}: the stored graph holds exact, "
-                    f"direction-invariant distances without mirror images"
-                )
-        if top > rerank_depth:
-            raise click.UsageError(f"--top {top} is more than --rerank-depth {rerank_depth}")
-        if scheduler:
-            raise click.UsageError(
-                "--rerank runs on this machine (the graph and the top M are small): drop --scheduler"
-            )
-    elif rerank_depth != DEFAULT_RERANK_DEPTH:
-        raise click.UsageError("--rerank-depth needs --rerank")
-
+    _check_rerank_options(
+        rerank, rerank_depth, top, exhaustive, max_distance, method, strict_direction, mirror, scheduler
+    )
     with open_index(index_path) as idx:
         if idx.format_version < FORMAT_VERSION and not exhaustive:
             note(
@@ -679,19 +717,5 @@ def query(
         group_by="query",
     )
     if show_stats:
-        say(
-            f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
-            f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s"
-            + (
-                ""
-                if not stats.pruned
-                else f"; per query: {stats.per_query(stats.scanned):.0f} rows bounded in "
-                f"{stats.per_query(stats.cells):.1f} of {stats.cell_count} cells, "
-                f"{stats.per_query(stats.truncated):.0f} truncated-harmonic bounds "
-                f"(+{stats.per_query(stats.fine):.0f} finer), "
-                f"{stats.per_query(stats.exact):.0f} exact distances, "
-                f"{stats.per_query(stats.bytes_read) / 2**20:.2f} MiB read"
-            )
-            + (f"; kernels: {stats.kernels}" if stats.kernels else "")
-        )
+        say(_stats_line(stats))
     inputs.finish()
