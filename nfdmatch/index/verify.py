@@ -19,7 +19,10 @@ import numpy as np
 
 from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
+from ..matching import invariants
+from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, _open_checked, _Problem, _short, block_crcs
+from .schema import _FILE_FIELDS, _SHA, _STR, _curve_layout
 
 __all__ = ["Finding", "VerifyReport", "verify_index"]
 
@@ -153,8 +156,6 @@ def verify_index(path) -> VerifyReport:
 def _expected_dtypes(K: int) -> dict:
     """Dataset -> what docs/index-format.md says it holds: a numpy dtype, or ``"string"``
     (variable-length UTF-8)."""
-    from .schema import _FILE_FIELDS, _SHA, _STR, _curve_layout
-
     files = dict(zip(_FILE_FIELDS, (_STR, np.int64, np.int64, _SHA, np.uint8, _STR, np.int64, np.int64), strict=True))
     out = {f"/files/{name}": dtype for name, dtype in files.items()}
     out.update({f"/curves/{name}": dtype for name, (dtype, _) in _curve_layout(K).items()})
@@ -230,8 +231,6 @@ def _check_paths_and_ids(h5, files, paths, ids, report) -> None:
     """Ids derived from the file table (``path`` or ``path#i``) and, when the index records
     its sources (relative paths are then relative to its folder), no relative path that
     leads out of that folder."""
-    from .paths import curve_ids
-
     if paths is not None and "sources" in h5:
         bad = [i for i, p in enumerate(paths) if _escapes(str(p))]
         if bad:
@@ -254,8 +253,6 @@ def _check_features(values, K: int, report) -> None:
     """``inv_norm``, ``inv_sv``, ``inv_block`` recomputed from the stored coefficients (the
     writer's computation, rounded to float32 as stored): a bound feature larger than it
     should be would make a search skip a true match."""
-    from ..matching import invariants
-
     coefficients = values.get("/curves/coefficients")
     if coefficients is None:
         return
