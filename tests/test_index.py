@@ -895,7 +895,7 @@ def test_build_over_a_bad_index_file(tmp_path, lib, kind, policy):
 
 def test_lock_fails_at_once_or_waits(lib, tmp_path):
     idx_path = str(tmp_path / "idx.h5")
-    lock = index_lock._Lock(idx_path, 0)
+    lock = index_lock.Lock(idx_path, 0)
     timer = None
     try:
         start = time.monotonic()

@@ -231,7 +231,7 @@ def test_a_symlinked_index_updates_its_target_and_shares_its_lock(lib, tmp_path,
     with open_index(target) as idx:
         assert idx.n_files == 6
     # two names for one index take one lock
-    lock = index_lock._Lock(str(target), 0)
+    lock = index_lock.Lock(str(target), 0)
     try:
         with pytest.raises(IndexLockedError, match=r"real\.h5\.lock"):
             build_index([str(lib)], str(link), jobs=1, rebuild=True)
@@ -253,7 +253,7 @@ def test_disk_full_while_writing_keeps_the_old_index(lib, tmp_path, rng, monkeyp
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     if where == "datasets":
-        monkeypatch.setattr(nindex.build, "_write_files_table", full)
+        monkeypatch.setattr(nindex.build, "write_files_table", full)
     else:
         monkeypatch.setattr(nindex.writer.os, "fsync", full)
     code, out, err = run("index", "build", lib, "--index", index, "-j", 1)

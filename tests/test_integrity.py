@@ -394,11 +394,11 @@ def test_a_huge_error_message_is_cut_where_it_is_stored(tmp_path):
 
 def test_a_crafted_huge_stored_error_is_cut_on_storing(tmp_path):
     from nfdmatch.index.schema import FileRecord
-    from nfdmatch.index.writer import _write_files_table
+    from nfdmatch.index.writer import write_files_table
 
     path = tmp_path / "t.h5"
     with h5py.File(path, "w") as f:
-        _write_files_table(f, [FileRecord("a.csv", 1, 1, "", "failed", "a.csv: " + "9" * 5_000_000, 0, 0)])
+        write_files_table(f, [FileRecord("a.csv", 1, 1, "", "failed", "a.csv: " + "9" * 5_000_000, 0, 0)])
     with h5py.File(path, "r") as f:
         stored = f["files/error"].asstr()[0]
     assert len(stored) < 1100 and stored.endswith("characters in all]")
@@ -554,12 +554,12 @@ def _retype(path, dataset, dtype):
 
 def _rewrite_strings(path, dataset, values):
     """Replace the strings of ``dataset`` and recompute their CRC-32 blocks (a consistent hand edit)."""
-    from nfdmatch.index.schema import _STR, block_crcs
+    from nfdmatch.index.schema import STR, block_crcs
 
     with h5py.File(path, "r+") as f:
         group, name = dataset.rsplit("/", 1)
         del f[dataset]
-        f[group].create_dataset(name, data=np.array(values, dtype=object), dtype=_STR)
+        f[group].create_dataset(name, data=np.array(values, dtype=object), dtype=STR)
         del f[f"{dataset}_crc32"]
         f[group].create_dataset(f"{name}_crc32", data=block_crcs(values), chunks=True, fletcher32=True)
 

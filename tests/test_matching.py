@@ -537,13 +537,13 @@ def test_a_damaged_compiled_module_means_one_line_on_stderr_and_the_same_answer(
 
 def _big_bound_call(rows: int = 200_000):
     """Arguments of a grid-bound call on ``rows`` random rows (~0.3 s on one core)."""
-    from nfdmatch.matching.common import _integer_shift_basis
+    from nfdmatch.matching.common import integer_shift_basis
 
     rng = np.random.default_rng(3)
     A = rng.standard_normal((4, 3)) + 1j * rng.standard_normal((4, 3))
     B = rng.standard_normal((rows, 4, 3)) + 1j * rng.standard_normal((rows, 4, 3))
     slack = np.full(rows, 1e-3)
-    return np.conj(A), B, 2, np.array(_integer_shift_basis(4, 24)), 3, False, 9 * slack, slack, np.zeros(rows)
+    return np.conj(A), B, 2, np.array(integer_shift_basis(4, 24)), 3, False, 9 * slack, slack, np.zeros(rows)
 
 
 def test_the_ahead_of_time_kernels_release_the_gil():
@@ -570,9 +570,9 @@ def test_the_ahead_of_time_kernels_split_over_threads_give_the_same_rows():
     rng = np.random.default_rng(4)
     rows, _ = _kernel_rows(rng, 128, 16)
     B = np.concatenate([rows] * 40)
-    from nfdmatch.matching.kernels import _folded_basis
+    from nfdmatch.matching.kernels import folded_basis
 
-    basis, quarter = _folded_basis(16, 128)
+    basis, quarter = folded_basis(16, 128)
     A = rows[2]
     call = (A, np.conj(A), np.ones(16), B, 2, basis, quarter, 128, False, 4, True, np.inf)
     one, two = kernels.exact_rows(*call, workers=1), kernels.exact_rows(*call, workers=2)
@@ -600,12 +600,12 @@ def test_a_process_does_not_import_numba_when_the_ahead_of_time_kernels_serve():
 def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
     pytest.importorskip("numba")
     from nfdmatch.matching import _kernels
-    from nfdmatch.matching.kernels import _folded_basis
+    from nfdmatch.matching.kernels import folded_basis
 
     rows, _ = _kernel_rows(rng, 128, 16)
     rows = np.ascontiguousarray(np.concatenate([rows] * 4))
     A = np.ascontiguousarray(rows[1])
-    basis, quarter = _folded_basis(16, 128)
+    basis, quarter = folded_basis(16, 128)
     for limit in (np.inf, 0.3):
         one = _kernels.exact_rows(A, np.conj(A), np.ones(16), rows, 2, basis, quarter, 128, False, 3, True, limit)
         three = _kernels.exact_rows(

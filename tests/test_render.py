@@ -340,10 +340,10 @@ def test_auto_falls_back_when_the_default_is_unavailable(tmp_path, monkeypatch):
     other = [r for r in RENDERERS if r != DEFAULT_RENDERER][0]
     monkeypatch.setattr(
         render,
-        "_draw_" + DEFAULT_RENDERER,
+        "draw_" + DEFAULT_RENDERER,
         _broken(ImportError(f"No module named {DEFAULT_RENDERER!r}", name=DEFAULT_RENDERER)),
     )
-    monkeypatch.setattr(render, "_draw_" + other, lambda scene: _tiny_png(scene.size))
+    monkeypatch.setattr(render, "draw_" + other, lambda scene: _tiny_png(scene.size))
     out = tmp_path / "x.png"
     r = render_matches(q, "e", panels, out, size=SMALL)
     assert r.renderer == other
@@ -360,7 +360,7 @@ def _tiny_png(size) -> bytes:
 def test_pyvista_unavailable_auto_falls_back_explicit_raises(tmp_path, monkeypatch):
     q, panels = _ellipse_scene(1)
     monkeypatch.setattr(render, "DEFAULT_RENDERER", "pyvista")
-    monkeypatch.setattr(render, "_draw_pyvista", _broken(render._Unavailable("a test render crashed (signal 11)")))
+    monkeypatch.setattr(render, "draw_pyvista", _broken(render.Unavailable("a test render crashed (signal 11)")))
     out = tmp_path / "x.png"
     r = render_matches(q, "e", panels, out, size=SMALL)
     assert r.renderer == "matplotlib"
@@ -374,15 +374,15 @@ def test_pyvista_unavailable_auto_falls_back_explicit_raises(tmp_path, monkeypat
     assert "signal 11" in msg and "--renderer matplotlib" in msg and str(out) in msg
     assert isinstance(e.value, NfdError) and not out.exists()
     # a failure while drawing (not the machine's off-screen support) is not blamed on the machine
-    monkeypatch.setattr(render, "_draw_pyvista", _broken(ValueError("bad scalars")))
+    monkeypatch.setattr(render, "draw_pyvista", _broken(ValueError("bad scalars")))
     with pytest.raises(RenderError, match=r"pyvista could not draw the picture \(ValueError: bad scalars\)"):
         render_matches(q, "e", panels, out, size=SMALL, renderer="pyvista")
 
 
 def test_every_renderer_failing_is_a_render_error(tmp_path, monkeypatch):
     q, panels = _ellipse_scene(1)
-    monkeypatch.setattr(render, "_draw_pyvista", _broken(ImportError("No module named 'pyvista'", name="pyvista")))
-    monkeypatch.setattr(render, "_draw_matplotlib", _broken(RuntimeError("Agg exploded")))
+    monkeypatch.setattr(render, "draw_pyvista", _broken(ImportError("No module named 'pyvista'", name="pyvista")))
+    monkeypatch.setattr(render, "draw_matplotlib", _broken(RuntimeError("Agg exploded")))
     with pytest.raises(RenderError, match="no renderer could draw") as e:
         render_matches(q, "e", panels, tmp_path / "x.png", size=SMALL)
     assert "pyvista is not installed" in str(e.value) and "Agg exploded" in str(e.value)

@@ -126,7 +126,7 @@ def test_grid_bound_compiled_equals_numpy(harmonics):
     rng = np.random.default_rng(3)
     A, B = _pairs(rng, 70)  # more than a block of rows
     from nfdmatch.matching import NUMPY, _kernels, grid_bound
-    from nfdmatch.matching.common import _integer_shift_basis
+    from nfdmatch.matching.common import integer_shift_basis
 
     m = len(B)
     slack = rng.uniform(0, 0.05, m)
@@ -150,7 +150,7 @@ def test_grid_bound_compiled_equals_numpy(harmonics):
                     np.conj(A[:harmonics]),
                     np.ascontiguousarray(B[:, :harmonics]),
                     D,
-                    np.array(_integer_shift_basis(harmonics, 48)),
+                    np.array(integer_shift_basis(harmonics, 48)),
                     ratio,
                     mirror,
                     9 * slack,

@@ -12,7 +12,7 @@ from .options import (
     EXIT_ERROR,
     EXIT_PARTIAL,
     ROW_FORMATS,
-    _count_failures,
+    count_failures,
     check_writable,
     detail,
     error,
@@ -165,7 +165,7 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
         contours = [c for c in contours if c.mesh not in blocked]
     report_errors(errors + refused)
     if errors or refused:
-        _count_failures(len(errors) + len(refused))  # exit 3 to come: --list is not written
+        count_failures(len(errors) + len(refused))  # exit 3 to come: --list is not written
     if not contours:
         if refused:
             error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")

@@ -14,7 +14,7 @@ import click
 
 from ..curve import STDIN_ID
 from ..errors import NfdError, NoCurvesError
-from .options import NothingRead, _count_failures, detail, error, finish, report_errors
+from .options import NothingRead, count_failures, detail, error, finish, report_errors
 
 #: the id of a curve read from stdin (``-`` on the command line)
 
@@ -152,7 +152,7 @@ def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) 
         errors += read_errors
         report_errors(read_errors)
     if errors:
-        _count_failures(len(errors))
+        count_failures(len(errors))
     if not curves:
         raise NothingRead()
     detail(f"read {len(curves)} curve{'' if len(curves) == 1 else 's'} from {total - len(errors)} of {total} inputs")

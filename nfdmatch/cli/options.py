@@ -211,7 +211,7 @@ def report_errors(errors) -> None:
 _FAILED = "nfdmatch.failed"
 
 
-def _count_failures(n: int) -> None:
+def count_failures(n: int) -> None:
     ctx = click.get_current_context(silent=True)
     if ctx is not None:
         ctx.meta[_FAILED] = ctx.meta.get(_FAILED, 0) + n

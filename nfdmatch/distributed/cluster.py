@@ -237,7 +237,7 @@ class Cluster:
 
     def _run_build_tasks(self, tasks: list[tuple], jobs, lock_fd):
         """The build's task runner on the cluster: yield ``(task_number, result)`` as
-        batches finish (the contract of ``nfdmatch.index.pool._run_tasks``)."""
+        batches finish (the contract of ``nfdmatch.index.pool.run_tasks``)."""
         from distributed import as_completed
 
         from ..index import pool

@@ -11,7 +11,7 @@ import numpy as np
 
 from .._version import __version__
 from ..errors import IndexFormatError, InputError, NfdError, ReadError, WriteError
-from .lock import _Lock
+from .lock import Lock
 from .paths import curve_ids, index_file
 from .plan import (
     Action,
@@ -23,12 +23,12 @@ from .plan import (
     plan_files,
     recorded_sources,
 )
-from .pool import _run_tasks
+from .pool import run_tasks
 from .reader import Index
 from .graph import GraphStats, graph_changes, write_graph
 from .search_group import write_search_group
-from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
-from .writer import _CopyRun, _CurveWriter, _fsync_path, _remove_stale_temps, _Space, _write_files_table, _write_sources
+from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, open_checked, Problem, _short, default_index_path
+from .writer import CopyRun, CurveWriter, fsync_path, remove_stale_temps, Space, write_files_table, write_sources
 
 
 def _utcnow() -> str:
@@ -78,12 +78,12 @@ class BuildReport:
 def _load_old(index_path: str, rebuild: bool, notices: list):
     """The existing index (an :class:`Index`), or None when there is none or it may be replaced."""
     try:
-        h5, meta, files = _open_checked(index_path)
+        h5, meta, files = open_checked(index_path)
     except ReadError:
         if not os.path.exists(index_path):  # nothing there (or a link to a file to be made)
             return None
         raise
-    except _Problem as exc:
+    except Problem as exc:
         if exc.kind == "empty":
             notices.append(f"replacing the empty file at {index_path}")
             return None
@@ -191,7 +191,7 @@ def build_index(
     jobs = check_arguments(jobs, file_timeout, input_format, samples, harmonics)
     real_index, base = _index_location(index_path)
     report = BuildReport(dry_run=bool(dry_run))
-    lock = None if dry_run else _Lock(real_index, wait, name=index_path)
+    lock = None if dry_run else Lock(real_index, wait, name=index_path)
     old = None
     try:
         old = _load_old(index_path, rebuild, report.notices)
@@ -252,7 +252,7 @@ def _index_location(index_path: str) -> tuple[str, str]:
 def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str, report: BuildReport) -> bool:
     """Whether the build must write a new index file (temporary files of an interrupted
     build are removed first; an upgrade of format 1 is noted)."""
-    stale = _remove_stale_temps(real_index)
+    stale = remove_stale_temps(real_index)
     if stale:
         report.notices.append(
             f"removed {len(stale)} temporary file(s) left by an interrupted build: {', '.join(stale)}"
@@ -304,7 +304,7 @@ def _dry_run_report(report: BuildReport, plan: Plan, old, progress, jobs, file_t
     if progress is not None:
         progress(0, total)
     results: dict[int, dict] = {}
-    stream = _run_tasks(tasks, jobs, None, file_timeout or None) if runner is None else runner(tasks, jobs, None)
+    stream = run_tasks(tasks, jobs, None, file_timeout or None) if runner is None else runner(tasks, jobs, None)
     for i, res in stream:
         results[i] = res
         if progress is not None:
@@ -375,7 +375,7 @@ def _write(
     if progress is not None:
         progress(0, total)
     lock_fd = None if lock is None else lock.fd
-    stream = _run_tasks(tasks, jobs, lock_fd, file_timeout or None) if runner is None else runner(tasks, jobs, lock_fd)
+    stream = run_tasks(tasks, jobs, lock_fd, file_timeout or None) if runner is None else runner(tasks, jobs, lock_fd)
     done = 0
 
     def result_of(task: int) -> dict:
@@ -400,7 +400,7 @@ def _write(
         except Exception as exc:
             raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
         try:
-            space = _Space(h5)
+            space = Space(h5)
             space.reserve(0)  # the superblock, attributes, small tables
             attrs = h5.attrs
             attrs["format"] = INDEX_FORMAT
@@ -411,8 +411,8 @@ def _write(
             attrs["scale"] = params["scale"]
             attrs["created"] = old.created if old is not None and old.created else now
             attrs["updated"] = now
-            writer = _CurveWriter(h5, K, space)
-            run = _CopyRun(old, writer)
+            writer = CurveWriter(h5, K, space)
+            run = CopyRun(old, writer)
             for item in items:
                 path, r = item.path, item.old
                 file_row = len(records)
@@ -462,8 +462,8 @@ def _write(
                     report.failures.append((item.file or path, res["error"]))
             run.flush()
             writer.flush()
-            _write_files_table(h5, records, space)
-            _write_sources(h5, *sources)
+            write_files_table(h5, records, space)
+            write_sources(h5, *sources)
             # the cells: features, squared norms, row numbers and first harmonics of every row
             space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
@@ -480,10 +480,10 @@ def _write(
             except Exception:
                 if space is None or not space.abandoned:
                     raise
-        _Space.release(tmp)
-        _fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
+        Space.release(tmp)
+        fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
         os.replace(tmp, index_path)
-        _fsync_path(folder, directory=True)
+        fsync_path(folder, directory=True)
     except BaseException as exc:
         try:
             os.unlink(tmp)

@@ -10,7 +10,7 @@ import time
 from ..errors import IndexLockedError, WriteError
 
 
-class _Lock:
+class Lock:
     """``flock(LOCK_EX)`` on ``INDEX.lock``; released by the kernel when the process dies.
 
     ``index_path`` should be the index's real file (symbolic links resolved), so that every

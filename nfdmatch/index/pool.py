@@ -610,7 +610,7 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
             w.close()
 
 
-def _run_tasks(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None = None):
+def run_tasks(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None = None):
     """Yield ``(task_number, result)`` for every task (in batch order, not task order).
 
     In this process when ``jobs`` is 1 and there is no ``file_timeout`` (a hung or

@@ -14,12 +14,12 @@ from ..search.table import SearchTable
 from .graph import graph_k, read_graph_rows
 from .paths import index_folder, openable
 from .schema import (
-    _STATUS,
+    STATUS,
     CRC_ROWS,
     INDEX_FORMAT,
     FileRecord,
-    _open_checked,
-    _Problem,
+    open_checked,
+    Problem,
     _short,
     block_crcs,
     default_index_path,
@@ -64,8 +64,8 @@ def open_index(path: str | os.PathLike[str] | None = None) -> Index:
     """
     p = default_index_path() if path is None else str(os.fspath(path))
     try:
-        h5, meta, files = _open_checked(p)
-    except _Problem as exc:
+        h5, meta, files = open_checked(p)
+    except Problem as exc:
         raise IndexFormatError(exc.message, path=p) from None
     return Index(p, h5, meta, files)
 
@@ -219,7 +219,7 @@ class Index:
                         int(size[i]),
                         int(mtime[i]),
                         shas[i],
-                        _STATUS.get(int(status[i]), "failed"),
+                        STATUS.get(int(status[i]), "failed"),
                         errors[i],
                         int(starts[i]),
                         int(counts[i]),

@@ -19,11 +19,11 @@ FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-_STR = h5py.string_dtype("utf-8")
+STR = h5py.string_dtype("utf-8")
 _SHA = "S64"
-_STATUS = {0: "ok", 1: "failed"}
+STATUS = {0: "ok", 1: "failed"}
 
-_FILE_FIELDS = ("path", "size", "mtime_ns", "sha256", "status", "error", "curve_start", "curve_count")
+FILE_FIELDS = ("path", "size", "mtime_ns", "sha256", "status", "error", "curve_start", "curve_count")
 
 # --------------------------------------------------------------------------- integrity
 #: root attribute ``checksums``: every dataset has HDF5's Fletcher-32 filter, every string
@@ -107,9 +107,9 @@ def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHU
     checksums of the format: numbers chunked with Fletcher-32 (``chunk_rows`` rows and, if
     given, ``chunk_columns`` along the second axis per chunk); strings (HDF5 does not filter
     variable-length data) plain, plus their ``NAME_crc32`` block checksums."""
-    data = np.asarray(data) if dtype is None else np.asarray(data, dtype=dtype if dtype is not _STR else object)
-    if dtype is _STR:
-        ds = group.create_dataset(name, data=data, dtype=_STR, shape=data.shape)
+    data = np.asarray(data) if dtype is None else np.asarray(data, dtype=dtype if dtype is not STR else object)
+    if dtype is STR:
+        ds = group.create_dataset(name, data=data, dtype=STR, shape=data.shape)
         write_string_checks(group, name, data.tolist())
         return ds
     rows = max(1, min(chunk_rows, data.shape[0] if data.ndim else 1))
@@ -134,7 +134,7 @@ def fill_value(dtype):
     """The fill value nfdmatch gives a new dataset of ``dtype``: NaN for floats (NaN + NaN j
     for complex), so that a chunk HDF5 cannot find (damaged chunk index) reads as NaN, which
     every reader refuses, instead of zeros; None (HDF5's default) for other types."""
-    kind = np.dtype(dtype).kind if dtype is not _STR else "O"
+    kind = np.dtype(dtype).kind if dtype is not STR else "O"
     if kind == "f":
         return np.nan
     if kind == "c":
@@ -232,10 +232,10 @@ def _positional_chunks(ds) -> bool:
         return False
 
 
-def _curve_layout(K: int) -> dict:
+def curve_layout(K: int) -> dict:
     """/curves dataset name -> (storage dtype, shape after the row axis)."""
     return {
-        "id": (_STR, ()),
+        "id": (STR, ()),
         "file": (np.int32, ()),
         "coefficients": (np.complex64, (K, 3)),
         "rotation": (np.float32, (3, 3)),
@@ -269,7 +269,7 @@ class FileRecord:
 # --------------------------------------------------------------------------- opening
 
 
-class _Problem(Exception):
+class Problem(Exception):
     """Why a file is not a readable index; ``kind`` drives what a build may do with it:
     ``empty``, ``not_hdf5``, ``foreign``, ``unopenable`` (HDF5 that does not open: never
     overwritten), ``corrupt``, ``newer``."""
@@ -320,11 +320,11 @@ def _attr_int(attrs, name):
     return int(value)
 
 
-def _open_checked(path: str):
+def open_checked(path: str):
     """Open ``path`` read-only and validate it as a format-1 or format-2 index.
 
     Returns ``(h5py.File, meta dict, files dict of arrays)``.
-    Raises ReadError (missing, directory, unreadable) or _Problem.
+    Raises ReadError (missing, directory, unreadable) or Problem.
     """
     try:
         st = os.stat(path)
@@ -340,25 +340,25 @@ def _open_checked(path: str):
     except OSError as exc:
         raise ReadError(f"cannot read the index: {exc.strerror or exc}", path=path) from None
     if st.st_size == 0:
-        raise _Problem("empty", "empty file, not an nfdmatch index")
+        raise Problem("empty", "empty file, not an nfdmatch index")
     try:
         h5 = h5py.File(path, "r", locking=False)
     except Exception as exc:  # h5py raises OSError, sometimes others, for damaged files
         if not _has_hdf5_signature(path):
-            raise _Problem("not_hdf5", "not an nfdmatch index (not an HDF5 file)") from None
-        raise _Problem("unopenable", f"truncated or corrupted HDF5 file ({_short(exc)})") from None
+            raise Problem("not_hdf5", "not an nfdmatch index (not an HDF5 file)") from None
+        raise Problem("unopenable", f"truncated or corrupted HDF5 file ({_short(exc)})") from None
     try:
         meta, files = _validate(h5)
-    except _Problem:
+    except Problem:
         h5.close()
         raise
     except Exception as exc:
         h5.close()
         if "filter returned failure" in _short(exc):  # a Fletcher-32 mismatch
-            raise _Problem(
+            raise Problem(
                 "corrupt", "corrupted nfdmatch index: checksum mismatch in the file table (/files; the file is damaged)"
             ) from None
-        raise _Problem("corrupt", f"corrupted nfdmatch index ({_short(exc)})") from None
+        raise Problem("corrupt", f"corrupted nfdmatch index ({_short(exc)})") from None
     return h5, meta, files
 
 
@@ -367,12 +367,12 @@ def _validate(h5) -> tuple[dict, dict]:
     fmt = _attr_str(attrs, "format")
     if fmt != INDEX_FORMAT:
         what = "no 'format' attribute" if fmt is None else f"format attribute {fmt!r}"
-        raise _Problem("foreign", f"an HDF5 file but not an nfdmatch index ({what})")
+        raise Problem("foreign", f"an HDF5 file but not an nfdmatch index ({what})")
     version = _attr_int(attrs, "format_version")
     if version is None or version < 1:
-        raise _Problem("corrupt", f"corrupted nfdmatch index: bad format_version {attrs.get('format_version')!r}")
+        raise Problem("corrupt", f"corrupted nfdmatch index: bad format_version {attrs.get('format_version')!r}")
     if version > FORMAT_VERSION:
-        raise _Problem(
+        raise Problem(
             "newer",
             f"written by a newer nfdmatch (format {version}); "
             f"this version reads formats {' and '.join(map(str, READABLE_VERSIONS))}",
@@ -381,12 +381,12 @@ def _validate(h5) -> tuple[dict, dict]:
     try:
         validate_parameters(samples, harmonics, scale)
     except ParameterError as exc:
-        raise _Problem("corrupt", f"corrupted nfdmatch index: {exc.message}") from None
+        raise Problem("corrupt", f"corrupted nfdmatch index: {exc.message}") from None
     if samples > MAX_SAMPLES:
-        raise _Problem("corrupt", f"corrupted nfdmatch index: samples {samples} above the limit {MAX_SAMPLES}")
+        raise Problem("corrupt", f"corrupted nfdmatch index: samples {samples} above the limit {MAX_SAMPLES}")
     checksums_attr = _attr_str(attrs, "checksums")
     if checksums_attr not in (None, CHECKSUMS):
-        raise _Problem("corrupt", f"corrupted nfdmatch index: unknown checksums {checksums_attr!r}")
+        raise Problem("corrupt", f"corrupted nfdmatch index: unknown checksums {checksums_attr!r}")
     checksums = checksums_attr == CHECKSUMS
     file_size = int(h5.id.get_filesize())
     meta = {
@@ -403,40 +403,40 @@ def _validate(h5) -> tuple[dict, dict]:
     def dataset(group, name, tail):
         obj = stored_dataset(h5, f"{group}/{name}", file_size, checksums)
         if len(obj.shape) != 1 + len(tail) or tuple(obj.shape[1:]) != tail:
-            raise _Problem(
+            raise Problem(
                 "corrupt",
                 f"corrupted nfdmatch index: /{group}/{name} has shape {obj.shape}, "
                 f"expected (rows, {', '.join(map(str, tail))})".replace(", )", ")"),
             )
         return obj
 
-    fds = {name: dataset("files", name, ()) for name in _FILE_FIELDS}
+    fds = {name: dataset("files", name, ()) for name in FILE_FIELDS}
     F = fds["path"].shape[0]
     if any(d.shape[0] != F for d in fds.values()):
-        raise _Problem("corrupt", "corrupted nfdmatch index: the /files datasets differ in length")
-    cds = {name: dataset("curves", name, tail) for name, (_, tail) in _curve_layout(harmonics).items()}
+        raise Problem("corrupt", "corrupted nfdmatch index: the /files datasets differ in length")
+    cds = {name: dataset("curves", name, tail) for name, (_, tail) in curve_layout(harmonics).items()}
     N = cds["id"].shape[0]
     if any(d.shape[0] != N for d in cds.values()):
-        raise _Problem("corrupt", "corrupted nfdmatch index: the /curves datasets differ in length")
+        raise Problem("corrupt", "corrupted nfdmatch index: the /curves datasets differ in length")
     if checksums:
         for group, names in STRING_DATASETS.items():
             for name in names:
                 rows = F if group == "files" else N
                 crc = dataset(group, f"{name}_crc32", ())
                 if crc.shape[0] != (rows + CRC_ROWS - 1) // CRC_ROWS or crc.dtype.kind != "u":
-                    raise _Problem(
+                    raise Problem(
                         "corrupt",
                         f"corrupted nfdmatch index: /{group}/{name}_crc32 has shape "
                         f"{crc.shape}, expected ({(rows + CRC_ROWS - 1) // CRC_ROWS},)",
                     )
                 (fds if group == "files" else cds)[f"{name}_crc32"] = crc
     if cds["coefficients"].dtype.kind != "c":
-        raise _Problem("corrupt", "corrupted nfdmatch index: /curves/coefficients is not complex")
+        raise Problem("corrupt", "corrupted nfdmatch index: /curves/coefficients is not complex")
     counts = fds["curve_count"][...].astype(np.int64)
     starts = fds["curve_start"][...].astype(np.int64)
     expected = np.concatenate([[0], np.cumsum(counts)[:-1]]) if F else starts
     if (counts < 0).any() or not np.array_equal(starts, expected) or int(counts.sum()) != N:
-        raise _Problem(
+        raise Problem(
             "corrupt",
             "corrupted nfdmatch index: the /files curve_start/curve_count blocks do not tile the /curves rows",
         )
@@ -445,9 +445,9 @@ def _validate(h5) -> tuple[dict, dict]:
             h5, int(N), harmonics, lambda name: stored_dataset(h5, f"search/{name}", file_size, checksums)
         )
         if problem:
-            raise _Problem("corrupt", f"corrupted nfdmatch index: {problem}")
+            raise Problem("corrupt", f"corrupted nfdmatch index: {problem}")
     files = {
-        "datasets": {k: v for k, v in fds.items() if k in _FILE_FIELDS},
+        "datasets": {k: v for k, v in fds.items() if k in FILE_FIELDS},
         "curve_start": starts,
         "curve_count": counts,
         "crc": {k: v for k, v in fds.items() if k.endswith("_crc32")},
@@ -460,7 +460,7 @@ def _validate(h5) -> tuple[dict, dict]:
 
 def stored_dataset(h5, name: str, file_size: int, checksums: bool):
     """The dataset at ``name`` (no leading slash) if it is a hard link to a dataset stored in
-    this file that passes :func:`check_stored`; else raises _Problem. Links are not followed:
+    this file that passes :func:`check_stored`; else raises Problem. Links are not followed:
     a soft or external link could point anywhere, including into another file."""
     where = f"/{name}"
     link = None
@@ -472,21 +472,21 @@ def stored_dataset(h5, name: str, file_size: int, checksums: bool):
             if link is None:
                 break
             if not isinstance(link, h5py.HardLink):
-                raise _Problem(
+                raise Problem(
                     "corrupt",
                     f"corrupted nfdmatch index: {'/' + '/'.join(parts[: i + 1])} is a "
                     f"{type(link).__name__}, not stored in the file: refused",
                 )
             parent = parent[part]
-    except _Problem:
+    except Problem:
         raise
     except Exception as exc:
-        raise _Problem("corrupt", f"corrupted nfdmatch index: cannot open {where} ({_short(exc)})") from None
+        raise Problem("corrupt", f"corrupted nfdmatch index: cannot open {where} ({_short(exc)})") from None
     if link is None or not isinstance(parent, h5py.Dataset):
-        raise _Problem("corrupt", f"corrupted nfdmatch index: missing dataset {where}")
+        raise Problem("corrupt", f"corrupted nfdmatch index: missing dataset {where}")
     problem = check_stored(parent, where, file_size, checksums)
     if problem:
-        raise _Problem("corrupt", f"corrupted nfdmatch index: {problem}")
+        raise Problem("corrupt", f"corrupted nfdmatch index: {problem}")
     return parent
 
 

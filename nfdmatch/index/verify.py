@@ -21,8 +21,8 @@ from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
 from .paths import curve_ids
-from .schema import CRC_ROWS, STRING_DATASETS, _open_checked, _Problem, _short, block_crcs
-from .schema import _FILE_FIELDS, _SHA, _STR, _curve_layout
+from .schema import CRC_ROWS, STRING_DATASETS, open_checked, Problem, _short, block_crcs
+from .schema import FILE_FIELDS, _SHA, STR, curve_layout
 
 __all__ = ["Finding", "VerifyReport", "verify_index"]
 
@@ -142,8 +142,8 @@ def verify_index(path) -> VerifyReport:
     """
     p = str(os.fspath(path))
     try:
-        h5, meta, files = _open_checked(p)
-    except _Problem as exc:
+        h5, meta, files = open_checked(p)
+    except Problem as exc:
         raise IndexFormatError(exc.message, path=p) from None
     try:
         report = VerifyReport(p, meta["format_version"], meta["checksums"], curves=meta["n_curves"])
@@ -156,9 +156,9 @@ def verify_index(path) -> VerifyReport:
 def _expected_dtypes(K: int) -> dict:
     """Dataset -> what docs/index-format.md says it holds: a numpy dtype, or ``"string"``
     (variable-length UTF-8)."""
-    files = dict(zip(_FILE_FIELDS, (_STR, np.int64, np.int64, _SHA, np.uint8, _STR, np.int64, np.int64), strict=True))
+    files = dict(zip(FILE_FIELDS, (STR, np.int64, np.int64, _SHA, np.uint8, STR, np.int64, np.int64), strict=True))
     out = {f"/files/{name}": dtype for name, dtype in files.items()}
-    out.update({f"/curves/{name}": dtype for name, (dtype, _) in _curve_layout(K).items()})
+    out.update({f"/curves/{name}": dtype for name, (dtype, _) in curve_layout(K).items()})
     # the /search table of docs/index-format.md
     search = {
         "row": np.int64,
@@ -173,7 +173,7 @@ def _expected_dtypes(K: int) -> dict:
     for group, names in STRING_DATASETS.items():
         for name in names:
             out[f"/{group}/{name}_crc32"] = np.uint32
-    return {name: ("string" if dtype is _STR else np.dtype(dtype)) for name, dtype in out.items()}
+    return {name: ("string" if dtype is STR else np.dtype(dtype)) for name, dtype in out.items()}
 
 
 def _dtype_text(dtype) -> str:

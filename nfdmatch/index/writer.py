@@ -1,6 +1,6 @@
 """Writing a new index file: the /curves and /files datasets, fsync, temporary files.
 
-Test hook: ``_write_files_table`` (writes the /files table) is called by tests with
+Test hook: ``write_files_table`` (writes the /files table) is called by tests with
 crafted records and replaced, where :mod:`.build` looks it up, to act out a full disk.
 """
 
@@ -13,7 +13,7 @@ import re
 import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, excerpt
-from .schema import _SHA, _STR, CRC_ROWS, FileRecord, _curve_layout, block_crcs, create_checked, fill_value
+from .schema import _SHA, STR, CRC_ROWS, FileRecord, curve_layout, block_crcs, create_checked, fill_value
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
@@ -29,7 +29,7 @@ _WRITE_ROWS = 65536
 _SLACK = 1 << 20
 
 
-class _Space:
+class Space:
     """Disk space for a new index file, reserved before HDF5 writes into it.
 
     HDF5 does not survive a failed write: after ENOSPC (or EFBIG, EIO) its file can no longer
@@ -128,14 +128,14 @@ def _nbytes(piece: dict) -> int:
     return total
 
 
-class _CurveWriter:
+class CurveWriter:
     """Appends rows to resizable /curves datasets with few large writes.
 
     The datasets are created at the first write, chunked by ``min(CHUNK_ROWS, rows of that
     write)`` rows, so that a small index is not padded to whole large chunks. ``space``: a
-    :class:`_Space` that each write reserves its bytes in first."""
+    :class:`Space` that each write reserves its bytes in first."""
 
-    def __init__(self, h5, K: int, space: "_Space | None" = None):
+    def __init__(self, h5, K: int, space: "Space | None" = None):
         self.group = h5.create_group("curves")
         self.space = space
         self.K = K
@@ -150,7 +150,7 @@ class _CurveWriter:
 
     def _create(self, first_rows: int) -> None:
         self.ds = {}
-        for name, (dtype, tail) in _curve_layout(self.K).items():
+        for name, (dtype, tail) in curve_layout(self.K).items():
             chunk = max(1, min(_SCATTERED_CHUNK_ROWS.get(name, CHUNK_ROWS), first_rows))
             # Fletcher-32 per chunk: a damaged chunk fails when read (HDF5 filters no strings)
             self.ds[name] = self.group.create_dataset(
@@ -159,7 +159,7 @@ class _CurveWriter:
                 maxshape=(None,) + tail,
                 chunks=(chunk,) + tail,
                 dtype=dtype,
-                fletcher32=dtype is not _STR,
+                fletcher32=dtype is not STR,
                 fillvalue=fill_value(dtype),
             )
 
@@ -214,7 +214,7 @@ class _CurveWriter:
         return np.concatenate(parts) if parts else np.zeros(0, dtype=np.uint32)
 
 
-def _write_files_table(h5, records: list[FileRecord], space: "_Space | None" = None) -> None:
+def write_files_table(h5, records: list[FileRecord], space: "Space | None" = None) -> None:
     g = h5.create_group("files")
     F = len(records)
     if space is not None:
@@ -225,28 +225,28 @@ def _write_files_table(h5, records: list[FileRecord], space: "_Space | None" = N
             )
         )
     checked = {
-        "path": ([r.path for r in records], _STR),
+        "path": ([r.path for r in records], STR),
         "size": ([r.size for r in records], np.int64),
         "mtime_ns": ([r.mtime_ns for r in records], np.int64),
         "sha256": ([r.sha256.encode("ascii") for r in records], _SHA),
         "status": ([0 if r.status == "ok" else 1 for r in records], np.uint8),
         # cut here too: a message from outside NfdError (a worker's crash) is stored as is
-        "error": ([excerpt(r.error, MAX_MESSAGE_CHARS) for r in records], _STR),
+        "error": ([excerpt(r.error, MAX_MESSAGE_CHARS) for r in records], STR),
         "curve_start": ([r.curve_start for r in records], np.int64),
         "curve_count": ([r.curve_count for r in records], np.int64),
     }
     for name, (values, dtype) in checked.items():
-        create_checked(g, name, np.array(values, dtype=object if dtype is _STR else dtype).reshape(F), dtype)
+        create_checked(g, name, np.array(values, dtype=object if dtype is STR else dtype).reshape(F), dtype)
 
 
-def _write_sources(h5, paths: list[str], glob: str | None) -> None:
+def write_sources(h5, paths: list[str], glob: str | None) -> None:
     """/sources: the stored sources of this build and its glob (docs/index-format.md)."""
     g = h5.create_group("sources")
-    create_checked(g, "path", np.array(list(paths), dtype=object), _STR)
+    create_checked(g, "path", np.array(list(paths), dtype=object), STR)
     g.attrs["glob"] = glob or ""
 
 
-def _fsync_path(path: str, directory: bool = False, strict: bool = False) -> None:
+def fsync_path(path: str, directory: bool = False, strict: bool = False) -> None:
     """fsync ``path``. ``strict``: a failure raises (the new index's own data: a full disk
     can surface only here); else it is ignored (a folder's fsync is best effort)."""
     try:
@@ -269,7 +269,7 @@ def _temp_pattern(index_path: str):
     return re.compile(rf"^\.{re.escape(name)}\.tmp-\d+-[0-9a-f]+\.h5$")
 
 
-def _remove_stale_temps(index_path: str) -> list[str]:
+def remove_stale_temps(index_path: str) -> list[str]:
     """Temporary files of builds into this index that were killed (call with the lock held)."""
     folder = os.path.dirname(index_path) or "."
     pattern = _temp_pattern(index_path)
@@ -288,10 +288,10 @@ def _remove_stale_temps(index_path: str) -> list[str]:
     return removed
 
 
-class _CopyRun:
+class CopyRun:
     """Rows copied from the old index, merged into contiguous runs (one read per run)."""
 
-    def __init__(self, old, writer: _CurveWriter):
+    def __init__(self, old, writer: CurveWriter):
         self.old, self.writer = old, writer
         self.start = self.stop = 0
         self.file_rows: list[int] = []

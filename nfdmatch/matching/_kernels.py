@@ -4,7 +4,7 @@ Optional: :mod:`nfdmatch.matching` imports this module lazily, only once a proce
 enough exact work to amortize importing numba (~0.2-0.3 s), and falls back to its numpy
 path (the reference) when numba is missing or fails. Nothing else imports it.
 
-Numerics: the formulas of ``matching._trace_soa`` / ``_lmax_soa`` / ``_refine_shifts``
+Numerics: the formulas of ``matching.trace_soa`` / ``_lmax_soa`` / ``_refine_shifts``
 operation for operation (largest eigenvalues of M^T M and of the cofactor Gram by the
 trigonometric formula, sigma3 = det / (sigma1 sigma2), the same clipping, the same three
 parabolic steps), no fastmath, numpy's NaN behaviour for maximum / minimum. What differs,
@@ -148,7 +148,7 @@ def _lmax(s00, s11, s22, s01, s02, s12):
 
 @njit(**_inline)
 def trace1(a, b, c, d, e, f, g, h, i, mirror):
-    """max_R tr(R M), M = [[a, b, c], [d, e, f], [g, h, i]]: matching._trace_soa for one matrix."""
+    """max_R tr(R M), M = [[a, b, c], [d, e, f], [g, h, i]]: matching.trace_soa for one matrix."""
     l1 = _lmax(
         a * a + d * d + g * g,
         b * b + e * e + h * h,
@@ -334,7 +334,7 @@ def _integer_rows(Aw, B, D, basis, quarter, n, mirror, C, cand, val, fminus, fpl
 @njit(**_jit)
 def _evaluate(P, x, m, n, mirror, CR, CI, ZR, ZI, MA, out):
     """out[c] = F at shift x[c] for the candidates c < m with products P (2K, 9, block):
-    matching._shift_basis + _trace_soa, vectorized across candidates."""
+    matching.shift_basis + trace_soa, vectorized across candidates."""
     K = P.shape[0] // 2
     w0 = 2.0 * math.pi / n
     for c in range(m):
@@ -445,7 +445,7 @@ _JACOBI_SWEEPS = 40
 @njit(**_jit)
 def _kabsch(M, mirror, X, V, R):
     """R (3, 3) maximizing tr(R M) over SO(3) (O(3) when mirror); returns True when R is a
-    reflection. matching._kabsch_rotation without LAPACK: one-sided Jacobi on the columns
+    reflection. matching.kabsch_rotation without LAPACK: one-sided Jacobi on the columns
     of X = M V (V proper), sorted by norm; U = [x1 / |x1|, x2 orthogonalized, u1 x u2], so
     U^T M V = diag(s1, s2, s3') with s3' signed like det M; R = V U^T, with u3 flipped when
     mirror and s3' < 0. Where the optimum is not unique (rank < 2, or s3' = 0 with mirror)
@@ -692,7 +692,7 @@ def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limi
     """matching.exact_search's compiled path for all rows of B.
 
     A, Aw = conj(A) w (K, 3) complex128; w (K,) float64; B (N, K, 3) complex128 (direction 1
-    is conj(B)); basis, quarter from matching._folded_basis; C candidates per row;
+    is conj(B)); basis, quarter from matching.folded_basis; C candidates per row;
     refine_limit: refine the rows whose refined distance^2 could be at most this (inf: all);
     ``workers``: threads sharing the rows (see ``split_rows``). Returns (distance, shift,
     rotation, reversed, mirrored) over the rows.
@@ -867,7 +867,7 @@ def grid_bound_rows(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, ne
     """matching.grid_bound's compiled path: (N,) bound per row of B (see grid_bound_rows).
 
     Aw = conj(A[:K']) (K', 3) complex128; B (N, K', 3) complex128; basis (2K', n) float64
-    from matching._integer_shift_basis; ratio divides n; slack_coarse, slack_fine, need
+    from matching.integer_shift_basis; ratio divides n; slack_coarse, slack_fine, need
     (N,) float64; ``workers``: threads sharing the rows (see ``split_rows``)."""
     N = B.shape[0]
     out = np.empty(N)

@@ -285,7 +285,7 @@ _writable_cache: dict[tuple, np.ndarray] = {}
 
 def _writable(basis: np.ndarray, n: int) -> np.ndarray:
     """The compiled signatures take writable arrays; the shared bases (one per K and n,
-    :func:`.kernels._folded_basis`) are read-only: a writable copy of each, kept."""
+    :func:`.kernels.folded_basis`) are read-only: a writable copy of each, kept."""
     if basis.flags.writeable:
         return basis
     key = (basis.shape, int(n))

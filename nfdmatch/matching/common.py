@@ -19,7 +19,7 @@ INVARIANT, STRICT = DIRECTIONS
 DEFAULT_METHOD, DEFAULT_DIRECTION = EXACT, INVARIANT
 #: the direction that does not match a curve traversed backwards (``--strict-direction``)
 STRICT_DIRECTION = DIRECTIONS[1]
-_REFINE_CANDIDATES = 3  # integer local maxima refined per row
+REFINE_CANDIDATES = 3  # integer local maxima refined per row
 
 
 # --------------------------------------------------------------------------- helpers
@@ -38,19 +38,19 @@ def _weights(weights, harmonics: int) -> np.ndarray:
     return w
 
 
-def _check_direction(direction: str) -> None:
+def check_direction(direction: str) -> None:
     if direction not in DIRECTIONS:
         raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
 
 
-def _search_inputs(A, B, samples, weights, direction):
+def search_inputs(A, B, samples, weights, direction):
     """A search's arguments checked once: ``(A (K, 3) complex128, B (N, K, 3) complex128,
     w (K,) float64, n int)``; a single row ``B`` (K, 3) becomes (1, K, 3)."""
     A = np.asarray(A, dtype=np.complex128)
     B = np.asarray(B, dtype=np.complex128)
     if B.ndim == 2:
         B = B[None]
-    _check_direction(direction)
+    check_direction(direction)
     return A, B, _weights(weights, B.shape[1]), int(samples)
 
 
@@ -68,7 +68,7 @@ def _lmax_soa(s00, s11, s22, s01, s02, s12):
     return np.maximum(q + 2.0 * p * np.cos(np.arccos(r) * (1.0 / 3.0)), 0.0)
 
 
-def _trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:
+def trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:
     """max_R tr(R M) for matrices given as m = (9, ...) row-major entries (structure of arrays).
 
     sigma1 from the largest eigenvalue of M^T M, sigma1*sigma2 from the largest of C^T C
@@ -120,10 +120,10 @@ def kabsch_trace(M: np.ndarray, mirror: bool = False) -> np.ndarray:
     ulps of sigma1 even for rank-deficient M.
     """
     M = np.asarray(M, dtype=np.float64)
-    return _trace_soa(np.moveaxis(M.reshape(*M.shape[:-2], 9), -1, 0), mirror)
+    return trace_soa(np.moveaxis(M.reshape(*M.shape[:-2], 9), -1, 0), mirror)
 
 
-def _kabsch_rotation(M: np.ndarray, mirror: bool) -> np.ndarray:
+def kabsch_rotation(M: np.ndarray, mirror: bool) -> np.ndarray:
     """(..., 3, 3) the R maximizing tr(R M) (SO(3), or O(3) when mirror)."""
     U, _, Vh = np.linalg.svd(M)
     V = np.swapaxes(Vh, -1, -2)
@@ -136,8 +136,8 @@ def _kabsch_rotation(M: np.ndarray, mirror: bool) -> np.ndarray:
     return V @ Ut
 
 
-def _direction_variants(B: np.ndarray, direction: str) -> list[tuple[np.ndarray, bool]]:
-    _check_direction(direction)
+def direction_variants(B: np.ndarray, direction: str) -> list[tuple[np.ndarray, bool]]:
+    check_direction(direction)
     variants = [(B, False)]
     if direction == "invariant":
         variants.append((np.conj(B), True))
@@ -145,14 +145,14 @@ def _direction_variants(B: np.ndarray, direction: str) -> list[tuple[np.ndarray,
 
 
 @lru_cache(maxsize=32)
-def _integer_shift_basis(K: int, n: int) -> np.ndarray:
+def integer_shift_basis(K: int, n: int) -> np.ndarray:
     """(2K, n) basis for the integer shifts 0..n-1 (cached: the same for every query)."""
-    basis = _shift_basis(np.arange(n, dtype=np.float64), K, n)
+    basis = shift_basis(np.arange(n, dtype=np.float64), K, n)
     basis.setflags(write=False)
     return basis
 
 
-def _shift_basis(shifts: np.ndarray, K: int, n: int) -> np.ndarray:
+def shift_basis(shifts: np.ndarray, K: int, n: int) -> np.ndarray:
     """(..., 2K, m) real basis: [2 cos(2 pi k s / n); -2 sin(2 pi k s / n)] for shifts (..., m).
 
     With P = [Re P_k, Im P_k] (2K columns), ``P @ basis`` is ``M(s) = 2 Re sum_k P_k e^{2 pi i k s/n}``.

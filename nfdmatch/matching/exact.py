@@ -9,16 +9,16 @@ import numpy as np
 
 from .common import INVARIANT
 from .common import (
-    _REFINE_CANDIDATES,
-    _check_direction,
-    _direction_variants,
-    _integer_shift_basis,
-    _kabsch_rotation,
-    _search_inputs,
-    _shift_basis,
-    _trace_soa,
+    REFINE_CANDIDATES,
+    check_direction,
+    direction_variants,
+    integer_shift_basis,
+    kabsch_rotation,
+    search_inputs,
+    shift_basis,
+    trace_soa,
 )
-from .kernels import Kernels, _folded_basis, current
+from .kernels import Kernels, folded_basis, current
 
 
 # --------------------------------------------------------------------------- exact
@@ -56,11 +56,11 @@ def _refine_shifts(Pc, s0, f_minus, f_0, f_plus, n, mirror):
     rows = np.arange(C)
 
     def evaluate(points):  # (C, m) -> (C, m)
-        M = np.matmul(Pc, _shift_basis(points, K, n))  # (C, 9, m)
+        M = np.matmul(Pc, shift_basis(points, K, n))  # (C, 9, m)
         # one formula whatever the batch (LAPACK's SVD was faster below ~32 matrices, but
         # gave other last digits: a row's reported distance then depended on how many rows
         # it was recomputed with, e.g. on --top)
-        return _trace_soa(np.moveaxis(M, 1, 0), mirror)
+        return trace_soa(np.moveaxis(M, 1, 0), mirror)
 
     x1, _, _ = _parabola(s0, 1.0, f_minus, f_0, f_plus)
     mid = x1[:, None] + _REFINE_MID_OFFSETS
@@ -122,10 +122,10 @@ def exact_search(
     maxima per row are refined continuously; the final distance is the direct residual
     at the optimal rotation (no cancellation).
     """
-    A, B, w, n = _search_inputs(A, B, samples, weights, direction)
+    A, B, w, n = search_inputs(A, B, samples, weights, direction)
     N, K, _ = B.shape
     D = 2 if direction == INVARIANT else 1
-    C = min(_REFINE_CANDIDATES if refine else 1, D * n)
+    C = min(REFINE_CANDIDATES if refine else 1, D * n)
     Aw = np.conj(A) * w[:, None]
     kernels = kernels or current()
     if N and kernels.module is not None:
@@ -134,7 +134,7 @@ def exact_search(
         limit = np.inf
         if refine and refine_below is not None and np.isfinite(refine_below):
             limit = refine_below**2 * (1 + 1e-9) + 1e-12
-        basis, quarter = _folded_basis(K, n)
+        basis, quarter = folded_basis(K, n)
         dist, shift, R, reversed_, mirrored = kernels.module.exact_rows(
             np.ascontiguousarray(A),
             np.ascontiguousarray(Aw),
@@ -177,11 +177,11 @@ def exact_search_pairs(
 
     Returns the same dict as :func:`exact_search`, over the N pairs.
     """
-    A, B, w, n = _search_inputs(A, B, samples, weights, direction)
+    A, B, w, n = search_inputs(A, B, samples, weights, direction)
     if A.shape != B.shape or A.ndim != 3 or A.shape[2] != 3:
         raise ValueError(f"A and B must be (N, K, 3) alike, got {A.shape} and {B.shape}")
     D = 2 if direction == INVARIANT else 1
-    return _exact_numpy(A, B, w, n, direction, mirror, min(_REFINE_CANDIDATES, D * n), True, None)
+    return _exact_numpy(A, B, w, n, direction, mirror, min(REFINE_CANDIDATES, D * n), True, None)
 
 
 def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
@@ -190,11 +190,11 @@ def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
     N, K, _ = B.shape
     D = 2 if direction == INVARIANT else 1
     Aw = np.conj(A) * w[None, :, None]  # (N, K, 3)
-    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])  # (D, N, K, 3)
+    Bv = np.stack([v for v, _ in direction_variants(B, direction)])  # (D, N, K, 3)
     # P[j, i, d, r, k] = 2 w_k B_k[j] conj(A_k[i]): M(s)[j, i] = Re sum_k P e^{2 pi i k s / n}
     P = np.einsum("drkj,rki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
-    F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, n)).reshape(9, D, N, n), mirror)  # (D, N, n)
+    F = trace_soa((Pcat.reshape(-1, 2 * K) @ integer_shift_basis(K, n)).reshape(9, D, N, n), mirror)  # (D, N, n)
     F = F.transpose(1, 0, 2)  # (N, D, n)
 
     local_max = (F >= np.roll(F, 1, axis=2)) & (F >= np.roll(F, -1, axis=2))
@@ -238,7 +238,7 @@ def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
     Bsel = np.where((direction_idx == 1)[:, None, None], np.conj(B), B)  # (N, K, 3)
     Bs = Bsel * np.exp((2j * np.pi / n) * np.outer(shift, np.arange(1, K + 1)))[:, :, None]
     Mbest = 2.0 * np.einsum("nkj,nki->nji", Bs, Aw).real
-    R = _kabsch_rotation(Mbest, mirror)
+    R = kabsch_rotation(Mbest, mirror)
     resid = A - np.einsum("nij,nkj->nki", R, Bs)
     dist = np.sqrt(2.0 * np.einsum("k,nk->n", w, np.sum(resid.real**2 + resid.imag**2, axis=2)))
     mirrored = np.linalg.det(R) < 0
@@ -315,7 +315,7 @@ def grid_bound(
     A = np.asarray(A, dtype=np.complex128)
     B = np.asarray(B, dtype=np.complex128)
     N, K, _ = B.shape
-    _check_direction(direction)
+    check_direction(direction)
     if grid % ratio or ratio % 2 == 0:
         raise ValueError(f"ratio must be odd and divide grid, got ratio {ratio}, grid {grid}")
     D = 2 if direction == INVARIANT else 1
@@ -330,7 +330,7 @@ def grid_bound(
             np.ascontiguousarray(Aw),
             np.ascontiguousarray(B),
             D,
-            np.array(_integer_shift_basis(K, grid)),  # writable, as the compiled signatures take
+            np.array(integer_shift_basis(K, grid)),  # writable, as the compiled signatures take
             int(ratio),
             bool(mirror),
             slack_coarse,
@@ -340,10 +340,10 @@ def grid_bound(
         )
     if not N:
         return np.zeros(0)
-    Bv = np.stack([v for v, _ in _direction_variants(B, direction)])  # (D, N, K, 3)
+    Bv = np.stack([v for v, _ in direction_variants(B, direction)])  # (D, N, K, 3)
     P = np.einsum("drkj,ki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
-    F = _trace_soa((Pcat.reshape(-1, 2 * K) @ _integer_shift_basis(K, grid)).reshape(9, D, N, grid), mirror)
+    F = trace_soa((Pcat.reshape(-1, 2 * K) @ integer_shift_basis(K, grid)).reshape(9, D, N, grid), mirror)
     coarse = F[:, :, ::ratio]  # (D, N, n / ratio)
     refined = (coarse + slack_coarse[None, :, None] >= need[None, :, None]) | np.isnan(coarse)
     owner = ((np.arange(grid) + ratio // 2) // ratio) % (grid // ratio)  # fine point -> its interval

@@ -165,15 +165,15 @@ def _warm_up(kernels) -> None:
     types exact_search passes, so that a failure shows here, once."""
     A = np.ones((2, 3), dtype=np.complex128)
     B = np.ones((1, 2, 3), dtype=np.complex128)
-    basis, quarter = _folded_basis(2, 8)
+    basis, quarter = folded_basis(2, 8)
     kernels.exact_rows(A, A, np.ones(2), B, 1, basis, quarter, 8, False, 1, True, 1.0)
-    from .common import _integer_shift_basis
+    from .common import integer_shift_basis
 
     one = np.ones(1)
     for harmonics in (2, 4, 8):  # the general grid bound and the ones specialised for K'
         Ah = np.ones((harmonics, 3), dtype=np.complex128)
         Bh = np.ones((1, harmonics, 3), dtype=np.complex128)
-        kernels.grid_bound_rows(Ah, Bh, 2, np.array(_integer_shift_basis(harmonics, 24)), 3, False, one, one, one)
+        kernels.grid_bound_rows(Ah, Bh, 2, np.array(integer_shift_basis(harmonics, 24)), 3, False, one, one, one)
 
 
 def compile_kernels(ahead_of_time: bool = True) -> bool:
@@ -201,7 +201,7 @@ def compile_kernels(ahead_of_time: bool = True) -> bool:
 
 
 @lru_cache(maxsize=32)
-def _folded_basis(K: int, n: int) -> tuple[np.ndarray, bool]:
+def folded_basis(K: int, n: int) -> tuple[np.ndarray, bool]:
     """The integer-shift basis for the kernels: (2K, width) columns s = 0..n/4 (when n is
     divisible by 4, ``quarter``) or 0..n/2 of [2 cos(2 pi k s / n); -2 sin(2 pi k s / n)], the
     angle reduced exactly ((k s) mod n), zero-padded to a multiple of 8 columns."""

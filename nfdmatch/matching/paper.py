@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .common import INVARIANT
-from .common import _search_inputs
+from .common import search_inputs
 
 
 # --------------------------------------------------------------------------- paper
@@ -45,7 +45,7 @@ def paper_search(
 
     Returns the same dict as :func:`exact_search`.
     """
-    A, B, w, n = _search_inputs(A, B, samples, weights, direction)
+    A, B, w, n = search_inputs(A, B, samples, weights, direction)
     N, K, _ = B.shape
     names = ["forward"] + (["reversed"] if direction == INVARIANT else [])
     if mirror:

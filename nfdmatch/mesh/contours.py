@@ -16,9 +16,9 @@ AXES = ("x", "y", "z")
 DEFAULT_SECTIONS = 10
 
 _KINDS = ("section", "boundary")
-_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 # trimesh formats that are not triangle meshes (point clouds) or not extensions
-_NOT_MESH_FORMATS = {"xyz", "stl_ascii"}
+NOT_MESH_FORMATS = {"xyz", "stl_ascii"}
 
 
 # ---------------------------------------------------------------------------
@@ -117,7 +117,7 @@ def mesh_stem(path) -> str:
     left empty or starting with ``.`` gets the prefix ``mesh``.
     """
     base = os.path.splitext(os.path.basename(str(os.fspath(path))))[0]
-    stem = _UNSAFE.sub("_", base)
+    stem = UNSAFE.sub("_", base)
     if not stem or stem.startswith("."):
         stem = "mesh" + stem
     return stem

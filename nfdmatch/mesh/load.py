@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import MeshError, NfdError, ReadError, UnknownFormatError
 from ..formats import FORMATS
 from ..formats._chain import check_readable
-from .contours import _NOT_MESH_FORMATS
+from .contours import NOT_MESH_FORMATS
 
 
 def mesh_extensions() -> list[str]:
@@ -22,7 +22,7 @@ def mesh_extensions() -> list[str]:
     """
     from trimesh.exchange.load import mesh_formats
 
-    return sorted("." + f for f in mesh_formats() if f not in _NOT_MESH_FORMATS)
+    return sorted("." + f for f in mesh_formats() if f not in NOT_MESH_FORMATS)
 
 
 def find_mesh_files(sources: Iterable, *, exclude: Iterable = ()) -> list[str]:

@@ -26,7 +26,7 @@ class PruneResult:
     notes: list = field(default_factory=list)
 
 
-def _sha256_file(path: str) -> str | None:
+def sha256_file(path: str) -> str | None:
     import hashlib
 
     try:
@@ -96,7 +96,7 @@ def _record(d: str, produced: dict) -> None:
     entries, _ = read_manifest(d)
     entries = {name: e for name, e in entries.items() if os.path.lexists(os.path.join(d, name))}
     for name, mesh in produced.items():
-        sha = _sha256_file(os.path.join(d, name))
+        sha = sha256_file(os.path.join(d, name))
         if sha is not None:
             entries[name] = {"mesh": os.path.realpath(mesh), "sha256": sha}
     _write_manifest(d, entries)
@@ -128,7 +128,7 @@ def prune_contours(out_dir, written, *, keep_meshes=()) -> PruneResult:
         if not os.path.lexists(path):
             del entries[name]
             continue
-        if os.path.islink(path) or _sha256_file(path) != entry["sha256"]:
+        if os.path.islink(path) or sha256_file(path) != entry["sha256"]:
             result.kept.append((path, "changed since extract wrote it; left alone"))
             del entries[name]  # no longer extract's file
             continue

@@ -9,8 +9,8 @@ from ..curve import Curve
 from ..errors import NfdError, OverwriteRefusedError, WriteError
 from ..formats import FORMATS, format_of, write_curves
 from ..formats._chain import temp_beside, write_if_changed
-from .contours import _UNSAFE, Contour, mesh_stem
-from .manifest import _record, _sha256_file, read_manifest
+from .contours import UNSAFE, Contour, mesh_stem
+from .manifest import _record, sha256_file, read_manifest
 
 
 def _unique_stems(meshes: Sequence[str]) -> dict[str, str]:
@@ -26,7 +26,7 @@ def _unique_stems(meshes: Sequence[str]) -> dict[str, str]:
         stem = base[m]
         if count[stem] > 1:
             ext = os.path.splitext(m)[1].lstrip(".").lower()
-            stem = f"{stem}-{_UNSAFE.sub('_', ext)}" if ext else stem
+            stem = f"{stem}-{UNSAFE.sub('_', ext)}" if ext else stem
         candidate, k = stem, 1
         while candidate in taken:
             k += 1
@@ -81,7 +81,7 @@ def refused_targets(contours: Sequence[Contour], out_dir, *, format: str = "obj"
             continue
         entry = entries.get(os.path.basename(target))
         if not os.path.islink(target) and os.path.isfile(target):
-            if entry is not None and _sha256_file(target) == entry["sha256"]:
+            if entry is not None and sha256_file(target) == entry["sha256"]:
                 continue
             if _same_as_written(c, target, fmt):
                 continue

@@ -38,9 +38,9 @@ and the lighter far side make over/under readable, which pyvista's shaded tubes 
 faintly in an orthographic view (its arrows and text are also coarser). pyvista stays
 available (``renderer="pyvista"``) and is the fallback when matplotlib is missing.
 
-Test hooks: tests replace ``_draw_matplotlib`` / ``_draw_pyvista`` in this module (looked up
+Test hooks: tests replace ``draw_matplotlib`` / ``draw_pyvista`` in this module (looked up
 at call time by :func:`_drawer`) and :func:`.pyvista_backend._probe_pyvista`, and raise
-``_Unavailable`` (a renderer that cannot draw on this machine), to act out a missing or
+``Unavailable`` (a renderer that cannot draw on this machine), to act out a missing or
 crashing renderer. :func:`.layout.build_scene` is public: what a picture shows can be
 checked without drawing it.
 """
@@ -65,12 +65,12 @@ from .layout import (
     MatchPanel,
     RenderResult,
     _as_points,
-    _as_vector,
+    as_vector,
     build_scene,
-    _check_renderer,
-    _check_size,
+    check_renderer,
+    check_size,
     _reason,
-    _Unavailable,
+    Unavailable,
     _write,
     check_output,
     is_coplanar,
@@ -78,9 +78,9 @@ from .layout import (
     short_label,
     short_labels,
 )
-from .matplotlib_backend import _draw_matplotlib
+from .matplotlib_backend import draw_matplotlib
 from .matrix import render_matrix
-from .pyvista_backend import _draw_pyvista
+from .pyvista_backend import draw_pyvista
 
 __all__ = [
     "RENDERERS",
@@ -139,8 +139,8 @@ def render_matches(
     WriteError : the file cannot be written (missing folder, a directory, no permission).
     RenderError : the renderer asked for (or, with auto, both) cannot draw on this machine.
     """
-    _check_renderer(renderer)
-    size = _check_size(size)
+    check_renderer(renderer)
+    size = check_size(size)
     q = _as_points(query, "query", min_points=2)
     checked = []
     for i, p in enumerate(panels):
@@ -155,8 +155,8 @@ def render_matches(
             ShownMatch(
                 match=p.match.replace(id=str(p.id), distance=d, reversed=bool(p.reversed), mirrored=bool(p.mirrored)),
                 points=_as_points(p.points, what),
-                start=_as_vector(p.start, f"{what} start"),
-                forward=_as_vector(p.forward, f"{what} forward"),
+                start=as_vector(p.start, f"{what} start"),
+                forward=as_vector(p.forward, f"{what} forward"),
                 source=p.source,
             )
         )
@@ -191,11 +191,11 @@ def render_matches(
 
 def _drawer(name: str):
     """The drawing function of a renderer (looked up at call time, so tests can replace it)."""
-    return {"matplotlib": _draw_matplotlib, "pyvista": _draw_pyvista}[name]
+    return {"matplotlib": draw_matplotlib, "pyvista": draw_pyvista}[name]
 
 
 def _unavailable(name: str, reason: str, exc: BaseException) -> str:
     other = [r for r in RENDERERS if r != name][0]
-    if name == "pyvista" and isinstance(exc, (_Unavailable, ImportError)):
+    if name == "pyvista" and isinstance(exc, (Unavailable, ImportError)):
         return f"pyvista cannot render off-screen on this machine ({reason}); use --renderer {other}"
     return f"{name} could not draw the picture ({reason}); use --renderer {other}"

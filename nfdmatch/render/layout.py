@@ -26,11 +26,11 @@ MIN_SIDE, MAX_SIDE = 100, 10000
 LABEL_WIDTH = 32
 MATRIX_LABEL_WIDTH = 28
 
-_QUERY_COLOR = "#1f4e9c"  # the query, in its own panel
-_UNDER_COLOR = "#9c9c9c"  # the query under a match
-_MATCH_COLOR = "#d1421b"  # a match
-_TEXT_COLOR = "#1a1a1a"
-_NOTE_COLOR = "#555555"
+QUERY_COLOR = "#1f4e9c"  # the query, in its own panel
+UNDER_COLOR = "#9c9c9c"  # the query under a match
+MATCH_COLOR = "#d1421b"  # a match
+TEXT_COLOR = "#1a1a1a"
+NOTE_COLOR = "#555555"
 _TILT = math.radians(30.0)  # 3-D view: tilt of the camera away from the smallest axis
 _ARROW = 0.11  # arrow length, fraction of the larger side of the view
 
@@ -191,7 +191,7 @@ def _as_points(x, what: str, min_points: int = 2) -> np.ndarray:
     return a
 
 
-def _as_vector(x, what: str) -> np.ndarray:
+def as_vector(x, what: str) -> np.ndarray:
     try:
         v = np.array(x, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError) as exc:
@@ -203,7 +203,7 @@ def _as_vector(x, what: str) -> np.ndarray:
     return v
 
 
-def _check_size(size) -> tuple[int, int]:
+def check_size(size) -> tuple[int, int]:
     try:
         w, h = size
         if isinstance(w, bool) or isinstance(h, bool) or int(w) != w or int(h) != h:
@@ -263,7 +263,7 @@ def _write(path: str, data: bytes) -> None:
         raise WriteError(f"cannot write the picture: {exc.strerror or exc}", path=path) from None
 
 
-def _check_renderer(renderer) -> str:
+def check_renderer(renderer) -> str:
     if renderer != "auto" and renderer not in RENDERERS:
         raise ParameterError(f"renderer must be auto, {' or '.join(RENDERERS)}, got {renderer!r}")
     return renderer
@@ -491,7 +491,7 @@ def _key(planar: bool, matches: bool) -> str:
     return "  \u00b7  ".join(parts)
 
 
-def _screen_direction(start: np.ndarray, forward: np.ndarray) -> np.ndarray | None:
+def screen_direction(start: np.ndarray, forward: np.ndarray) -> np.ndarray | None:
     d = (forward - start)[:2]
     n = float(np.hypot(*d))
     full = float(np.linalg.norm(forward - start))
@@ -500,13 +500,13 @@ def _screen_direction(start: np.ndarray, forward: np.ndarray) -> np.ndarray | No
     return d / n
 
 
-class _Unavailable(RuntimeError):
+class Unavailable(RuntimeError):
     """A renderer that cannot work here; the message says why (shown as is)."""
 
 
 def _reason(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-    if isinstance(exc, _Unavailable):
+    if isinstance(exc, Unavailable):
         return text
     if isinstance(exc, ImportError):
         return f"{getattr(exc, 'name', None) or 'it'} is not installed" + (f": {text}" if text else "")

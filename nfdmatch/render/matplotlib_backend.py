@@ -7,12 +7,12 @@ import io
 
 import numpy as np
 
-from .layout import _MATCH_COLOR, _NOTE_COLOR, _QUERY_COLOR, Scene, _TEXT_COLOR, _UNDER_COLOR, _screen_direction
+from .layout import MATCH_COLOR, NOTE_COLOR, QUERY_COLOR, Scene, TEXT_COLOR, UNDER_COLOR, screen_direction
 
 # --------------------------------------------------------------------------- matplotlib
 
 
-def _new_figure(size, **kwargs):
+def new_figure(size, **kwargs):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -21,7 +21,7 @@ def _new_figure(size, **kwargs):
     return fig
 
 
-def _png_bytes(fig, fmt: str = "png") -> bytes:
+def png_bytes(fig, fmt: str = "png") -> bytes:
     """The figure as PNG, SVG or PDF bytes; the same figure gives the same bytes (no date in
     the metadata, fixed SVG ids), so an unchanged picture keeps its file's bytes."""
     import matplotlib
@@ -104,7 +104,7 @@ def _draw_curve_mpl(ax, pts, color, lw_pt, *, depth: bool, zrange, zorder: float
 def _mark_mpl(ax, start, forward, color, arrow_len, *, filled: bool, zorder: float):
     from matplotlib.patches import FancyArrowPatch
 
-    d = _screen_direction(start, forward)
+    d = screen_direction(start, forward)
     if d is not None:
         end = start[:2] + arrow_len * d
         ax.add_patch(
@@ -132,8 +132,8 @@ def _mark_mpl(ax, start, forward, color, arrow_len, *, filled: bool, zorder: flo
     )
 
 
-def _draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
-    fig = _new_figure(scene.size)
+def draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
+    fig = new_figure(scene.size)
     W, H = scene.size
     cw, ch = scene.cell
     bw, bh = scene.box
@@ -150,13 +150,13 @@ def _draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
         ax.set_aspect("equal", adjustable="box")
         ax.set_axis_off()
         if panel.is_query:
-            _draw_curve_mpl(ax, panel.points, _QUERY_COLOR, 2.2, depth=depth, zrange=scene.zrange, zorder=2, halo=True)
-            _mark_mpl(ax, panel.start, panel.forward, _QUERY_COLOR, scene.arrow, filled=False, zorder=5)
+            _draw_curve_mpl(ax, panel.points, QUERY_COLOR, 2.2, depth=depth, zrange=scene.zrange, zorder=2, halo=True)
+            _mark_mpl(ax, panel.start, panel.forward, QUERY_COLOR, scene.arrow, filled=False, zorder=5)
         else:
-            _draw_curve_mpl(ax, scene.query, _UNDER_COLOR, 1.2, depth=False, zrange=scene.zrange, zorder=1, halo=False)
-            _draw_curve_mpl(ax, panel.points, _MATCH_COLOR, 2.2, depth=depth, zrange=scene.zrange, zorder=2, halo=True)
-            _mark_mpl(ax, scene.query_start, scene.query_forward, _UNDER_COLOR, scene.arrow, filled=False, zorder=4)
-            _mark_mpl(ax, panel.start, panel.forward, _MATCH_COLOR, scene.arrow, filled=True, zorder=5)
+            _draw_curve_mpl(ax, scene.query, UNDER_COLOR, 1.2, depth=False, zrange=scene.zrange, zorder=1, halo=False)
+            _draw_curve_mpl(ax, panel.points, MATCH_COLOR, 2.2, depth=depth, zrange=scene.zrange, zorder=2, halo=True)
+            _mark_mpl(ax, scene.query_start, scene.query_forward, UNDER_COLOR, scene.arrow, filled=False, zorder=4)
+            _mark_mpl(ax, panel.start, panel.forward, MATCH_COLOR, scene.arrow, filled=True, zorder=5)
         top = 1 - r * ch / H
         cx = (c + 0.5) * cw / W
         line = 1.3 * scene.font_pt * 100 / 72 / H
@@ -168,7 +168,7 @@ def _draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
                 ha="center",
                 va="top",
                 fontsize=scene.font_pt,
-                color=_TEXT_COLOR,
+                color=TEXT_COLOR,
                 fontweight="bold" if panel.is_query else "normal",
             )
         )
@@ -181,11 +181,11 @@ def _draw_matplotlib(scene: Scene, fmt: str = "png") -> bytes:
                     ha="center",
                     va="top",
                     fontsize=scene.font_pt * 0.92,
-                    color=_NOTE_COLOR,
+                    color=NOTE_COLOR,
                 )
             )
     _fit_texts(fig, texts, cw - 6)
-    return _png_bytes(fig, fmt)
+    return png_bytes(fig, fmt)
 
 
 def _fit_texts(fig, texts, max_px: float) -> None:

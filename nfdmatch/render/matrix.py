@@ -11,17 +11,17 @@ import numpy as np
 
 from ..errors import ParameterError, RenderError, WriteError
 from .layout import (
-    _NOTE_COLOR,
+    NOTE_COLOR,
     MATRIX_LABEL_WIDTH,
     RenderResult,
-    _check_size,
+    check_size,
     _reason,
     _write,
     check_output,
     picture_format,
     short_labels,
 )
-from .matplotlib_backend import _new_figure, _png_bytes
+from .matplotlib_backend import new_figure, png_bytes
 
 # --------------------------------------------------------------------------- matrix
 
@@ -70,7 +70,7 @@ def render_matrix(
         raise ParameterError(f"matrix: {m.shape[0]} rows but {len(labels)} labels")
     if not np.all(np.isfinite(m)):
         raise ParameterError("matrix: contains NaN or infinite distances")
-    size = matrix_size(m.shape[0]) if size is None else _check_size(size)
+    size = matrix_size(m.shape[0]) if size is None else check_size(size)
     out = check_output(path)
     t0 = time.perf_counter()
     try:
@@ -98,7 +98,7 @@ def _draw_matrix(m: np.ndarray, labels: list[str], size, title, fmt: str = "png"
     if font < 6.0:
         every = math.ceil(6.0 * 1.7 / cell)
         font = min(9.0, every * cell / 1.7)
-    fig = _new_figure(size, layout="constrained")
+    fig = new_figure(size, layout="constrained")
     ax = fig.add_subplot()
     lo = min(0.0, float(m.min()))
     hi = float(m.max())
@@ -128,5 +128,5 @@ def _draw_matrix(m: np.ndarray, labels: list[str], size, title, fmt: str = "png"
     bar.set_label("distance (darker = more similar)", fontsize=10)
     bar.ax.tick_params(labelsize=9)
     if every > 1:
-        fig.text(0.995, 0.005, f"one label in {every} shown", ha="right", va="bottom", fontsize=8, color=_NOTE_COLOR)
-    return _png_bytes(fig, fmt)
+        fig.text(0.995, 0.005, f"one label in {every} shown", ha="right", va="bottom", fontsize=8, color=NOTE_COLOR)
+    return png_bytes(fig, fmt)

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from .layout import _MATCH_COLOR, _QUERY_COLOR, Scene, _TEXT_COLOR, _UNDER_COLOR, _Unavailable
+from .layout import MATCH_COLOR, QUERY_COLOR, Scene, TEXT_COLOR, UNDER_COLOR, Unavailable
 
 # --------------------------------------------------------------------------- pyvista
 
@@ -107,7 +107,7 @@ def _stdout_to_stderr():
         os.close(saved)
 
 
-def _draw_pyvista(scene: Scene) -> bytes:
+def draw_pyvista(scene: Scene) -> bytes:
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     with _stdout_to_stderr(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -116,7 +116,7 @@ def _draw_pyvista(scene: Scene) -> bytes:
 
         problem = _probe_pyvista()
         if problem is not None:
-            raise _Unavailable(problem)
+            raise Unavailable(problem)
         try:
             from vtkmodules.vtkCommonCore import vtkObject
 
@@ -133,7 +133,7 @@ def _draw_pyvista(scene: Scene) -> bytes:
             plotter.close()
     if img is None or img.shape[:2] != (scene.size[1], scene.size[0]):
         got = None if img is None else f"{img.shape[1]}x{img.shape[0]}"
-        raise _Unavailable(f"the off-screen window gave a {got} picture, not {scene.size[0]}x{scene.size[1]}")
+        raise Unavailable(f"the off-screen window gave a {got} picture, not {scene.size[0]}x{scene.size[1]}")
     buf = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(img[:, :, :3])).save(buf, format="PNG")
     return buf.getvalue()
@@ -159,13 +159,13 @@ def _fill_pyvista(pv, plotter, scene: Scene) -> None:
         if k < len(scene.panels):
             panel = scene.panels[k]
             if panel.is_query:
-                _curve_pv(pv, plotter, panel.points, _QUERY_COLOR, 4.0, tubes)
-                _mark_pv(pv, plotter, panel.start, panel.forward, _QUERY_COLOR, scene, lift, filled=False)
+                _curve_pv(pv, plotter, panel.points, QUERY_COLOR, 4.0, tubes)
+                _mark_pv(pv, plotter, panel.start, panel.forward, QUERY_COLOR, scene, lift, filled=False)
             else:
-                _curve_pv(pv, plotter, scene.query, _UNDER_COLOR, 2.0, False)
-                _curve_pv(pv, plotter, panel.points + [0, 0, lift], _MATCH_COLOR, 4.0, tubes)
-                _mark_pv(pv, plotter, scene.query_start, scene.query_forward, _UNDER_COLOR, scene, lift, filled=False)
-                _mark_pv(pv, plotter, panel.start, panel.forward, _MATCH_COLOR, scene, 2 * lift, filled=True)
+                _curve_pv(pv, plotter, scene.query, UNDER_COLOR, 2.0, False)
+                _curve_pv(pv, plotter, panel.points + [0, 0, lift], MATCH_COLOR, 4.0, tubes)
+                _mark_pv(pv, plotter, scene.query_start, scene.query_forward, UNDER_COLOR, scene, lift, filled=False)
+                _mark_pv(pv, plotter, panel.start, panel.forward, MATCH_COLOR, scene, 2 * lift, filled=True)
             subtitle = (
                 "dots: start, arrows: direction"
                 if panel.is_query and scene.panels[1:]
@@ -176,7 +176,7 @@ def _fill_pyvista(pv, plotter, scene: Scene) -> None:
             text = panel.title + ("\n" + subtitle if subtitle else "")
             longest = max(len(t) for t in text.splitlines())
             font = min(scene.font_pt * 0.75, (cw - 8) / (0.62 * longest))
-            plotter.add_text(text, position="upper_edge", font_size=max(5, int(font)), color=_TEXT_COLOR)
+            plotter.add_text(text, position="upper_edge", font_size=max(5, int(font)), color=TEXT_COLOR)
         plotter.enable_parallel_projection()
         plotter.camera_position = [(fx, fy, z1 + 4 * depth), (fx, fy, (z0 + z1) / 2), (0.0, 1.0, 0.0)]
         plotter.camera.parallel_scale = ch / 2 * units_per_px
