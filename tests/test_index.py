@@ -1070,7 +1070,7 @@ def test_readers_and_a_second_build_while_a_build_runs(big, tmp_path):
 def test_scattered_runs_of_strings_read_in_one_call_give_each_run_in_order(tmp_path):
     """``read_runs`` on a string dataset: several runs are one HDF5 read of their union
     (the ids of a batch's matches), decoded as ``asstr()`` decodes, in run order."""
-    from nfdmatch.index.schema import read_runs
+    from nfdmatch.index.arrays import read_runs
 
     values = [f"lib/курва-{i}.obj#{i % 7}" if i % 3 else f"c{i}" for i in range(1000)]
     with h5py.File(tmp_path / "s.h5", "w") as f:

@@ -527,7 +527,7 @@ def test_a_flipped_bit_in_the_file_table_is_named_on_open(index_copy):
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.complex64])
 def test_the_non_finite_scan_finds_the_first_bad_row_and_nothing_in_large_finite_values(dtype):
-    from nfdmatch.index.schema import first_nonfinite
+    from nfdmatch.index.arrays import first_nonfinite
 
     big = np.finfo(np.float32 if dtype != np.float64 else np.float64).max / 2
     values = np.full((50, 3), big, dtype=dtype)  # their sum overflows: the exact scan decides

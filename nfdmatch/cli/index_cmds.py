@@ -1,4 +1,4 @@
-"""The index commands: ``index build``, ``index info``, ``index ls``, ``index export`` and ``query``."""
+"""The index commands: ``index build``, ``index info``, ``index verify``, ``index ls`` and ``index export``."""
 
 from __future__ import annotations
 
@@ -8,28 +8,22 @@ from datetime import datetime, timezone
 
 import click
 
-from ..defaults import DEFAULT_GRAPH_K, DEFAULT_RERANK_DEPTH
-from ..matching import DEFAULT_METHOD
-from .inputs import read_inputs
+from ..defaults import DEFAULT_GRAPH_K
 from .options import (
     EXIT_ERROR,
     error,
-    exclude_self_option,
     finish,
     format_option,
     index_option,
     input_format_option,
-    matching,
-    matching_options,
     note,
     optional_descriptor_options,
     output_option,
-    paths_option,
     rows_format_option,
     say,
 )
-from .output import deliver, match_columns, match_row, path_speller, progress_bar, resolve_format, write_rows
-from .cluster import open_cluster, ranges_option, scheduler_options
+from .output import deliver, progress_bar, resolve_format, write_rows
+from .cluster import open_cluster, scheduler_options
 from .group import main
 
 
@@ -212,48 +206,6 @@ def index_build(
         report.added + report.updated + report.unchanged + report.failed + len(report.skipped),
         "files",
     )
-
-
-def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, method, strict, mirror, scheduler) -> None:
-    """Usage errors for options that --rerank cannot take (or that need it)."""
-    if not rerank:
-        if depth != DEFAULT_RERANK_DEPTH:
-            raise click.UsageError("--rerank-depth needs --rerank")
-        return
-    for given, name in (
-        (exhaustive, "--exhaustive"),
-        (max_distance is not None, "--max-distance"),
-        (method != DEFAULT_METHOD, f"--method {method}"),
-        (strict, "--strict-direction"),
-        (mirror, "--mirror"),
-    ):
-        if given:
-            raise click.UsageError(
-                f"--rerank cannot be combined with {name}: the stored graph holds exact, "
-                f"direction-invariant distances without mirror images"
-            )
-    if top > depth:
-        raise click.UsageError(f"--top {top} is more than --rerank-depth {depth}")
-    if scheduler:
-        raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
-
-
-def _stats_line(stats) -> str:
-    """What ``--stats`` says of a search (:class:`~nfdmatch.search.SearchStats`)."""
-    line = (
-        f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
-        f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s"
-    )
-    if stats.pruned:
-        line += (
-            f"; per query: {stats.per_query(stats.scanned):.0f} rows bounded in "
-            f"{stats.per_query(stats.cells):.1f} of {stats.cell_count} cells, "
-            f"{stats.per_query(stats.truncated):.0f} truncated-harmonic bounds "
-            f"(+{stats.per_query(stats.fine):.0f} finer), "
-            f"{stats.per_query(stats.exact):.0f} exact distances, "
-            f"{stats.per_query(stats.bytes_read) / 2**20:.2f} MiB read"
-        )
-    return line + (f"; kernels: {stats.kernels}" if stats.kernels else "")
 
 
 def _failed_build_record(exc: BaseException, index_path: str, started) -> dict:
@@ -472,250 +424,3 @@ def index_ls(index_path, status, list_curves, output_format, output):
             rows = [{"file": r.path, "status": r.status, "curves": r.curve_count, "error": r.error} for r in files]
             columns = ["file", "status", "curves", "error"]
     write_rows(rows, columns, output_format, output)
-
-
-@index.command("export")
-@index_option
-@format_option(("csv", "jsonl", "npz"), help_extra=" [default: by the extension of -o, else csv]")
-@output_option(help="The file to write (.csv, .jsonl or .npz), whole and only on success [default: stdout].")
-def index_export(index_path, output_format, output):
-    """Export the stored descriptors and poses of every curve, for use without h5py.
-
-    Per curve: id, file, the index's samples, harmonics and scale_mode, then scale and
-    centroid (input units), rotation (3 x 3, as in nfdmatch.Descriptors), plane_degenerate
-    and the normalized coefficients of frequencies +1..+K (x, y, z; those of -k are their
-    complex conjugates). CSV flattens them into columns (centroid_x, rotation_01,
-    k+1_x_re, ...); JSONL nests them; NPZ holds the arrays ids (n,), files (n,), scale (n,),
-    plane_degenerate (n,), centroid (n, 3), rotation (n, 3, 3), coefficients (n, K, 3)
-    complex128, frequencies (K,) and the parameters.
-
-    \b
-    Example:
-      nfdmatch index export --index demo.h5 -o demo.npz
-    """
-    import io
-
-    import numpy as np
-
-    from ..index import open_index
-
-    fmt = resolve_format(output_format, output, ("csv", "jsonl", "npz"), terminal="csv", piped="csv")
-    if fmt == "npz" and output is None and sys.stdout.isatty():
-        raise click.UsageError("npz is binary: give -o FILE.npz (or redirect stdout)")
-    with open_index(index_path) as idx:
-        rows = idx.read_rows(
-            0, idx.n_curves, ["coefficients", "rotation", "centroid", "scale", "plane_degenerate", "file"]
-        )
-        ids = idx.ids()
-        paths = [r.path for r in idx.files()]
-        params = {"samples": idx.samples, "harmonics": idx.harmonics, "scale_mode": idx.scale_mode}
-    files = [paths[i] for i in rows["file"]]
-    frequencies = np.arange(1, params["harmonics"] + 1)
-    if fmt == "npz":
-        buf = io.BytesIO()
-        np.savez_compressed(
-            buf,
-            ids=np.array(ids, dtype=str),
-            files=np.array(files, dtype=str),
-            scale=rows["scale"],
-            plane_degenerate=rows["plane_degenerate"],
-            centroid=rows["centroid"],
-            rotation=rows["rotation"],
-            coefficients=rows["coefficients"],
-            frequencies=frequencies,
-            **{k: np.array(v) for k, v in params.items()},
-        )
-        _deliver_bytes(buf.getvalue(), output)
-        return
-    records = []
-    for i, curve_id in enumerate(ids):
-        records.append(
-            {
-                "id": curve_id,
-                "file": files[i],
-                **params,
-                "scale": float(rows["scale"][i]),
-                "plane_degenerate": bool(rows["plane_degenerate"][i]),
-                "centroid": rows["centroid"][i].tolist(),
-                "rotation": rows["rotation"][i].tolist(),
-                "frequencies": frequencies.tolist(),
-                "coefficients": [[[float(c.real), float(c.imag)] for c in row] for row in rows["coefficients"][i]],
-            }
-        )
-    if fmt == "jsonl":
-        columns = list(records[0]) if records else ["id"]
-        write_rows(records, columns, "jsonl", output)
-        return
-    flat = []
-    for r in records:
-        row = {k: r[k] for k in ("id", "file", "samples", "harmonics", "scale_mode", "scale", "plane_degenerate")}
-        row.update({f"centroid_{ax}": v for ax, v in zip("xyz", r["centroid"])})
-        row.update({f"rotation_{i}{j}": r["rotation"][i][j] for i in range(3) for j in range(3)})
-        for f, coeff in zip(r["frequencies"], r["coefficients"]):
-            for ax, (re, im) in zip("xyz", coeff):
-                row[f"k{f:+d}_{ax}_re"] = re
-                row[f"k{f:+d}_{ax}_im"] = im
-        flat.append(row)
-    write_rows(flat, list(flat[0]) if flat else ["id"], "csv", output)
-
-
-def _deliver_bytes(data: bytes, output: str | None) -> None:
-    from .options import detail
-    from .output import write_if_changed
-
-    if output is None:  # stdout (not a terminal: checked before)
-        sys.stdout.buffer.write(data)
-        sys.stdout.flush()
-        return
-    detail(f"wrote {output}" if write_if_changed(output, data) else f"{output} unchanged")
-
-
-@main.command()
-@click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
-@index_option
-@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Matches per query.")
-@click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only list matches at most this far.")
-@click.option("--glob", "glob_pattern", default=None, help="Only query files in folders whose name matches.")
-@click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
-@paths_option
-@exclude_self_option
-@click.option(
-    "--exhaustive",
-    is_flag=True,
-    help="Compute every exact distance, no pruning (to check a result: the pruned search "
-    "returns the same rows and distances).",
-)
-@click.option("--stats", "show_stats", is_flag=True, help="Print on stderr how many exact distances the search needed.")
-@click.option(
-    "--rerank",
-    is_flag=True,
-    help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
-    "--graph`); adds the column score (higher is closer), distance stays the exact distance.",
-)
-@click.option(
-    "--rerank-depth",
-    type=click.IntRange(min=DEFAULT_RERANK_DEPTH),
-    default=DEFAULT_RERANK_DEPTH,
-    show_default=True,
-    metavar="M",
-    help="With --rerank: the query's exact top M that the diffusion re-orders.",
-)
-@matching_options
-@input_format_option
-@scheduler_options
-@ranges_option
-@rows_format_option
-@output_option()
-def query(
-    queries,
-    index_path,
-    top,
-    max_distance,
-    glob_pattern,
-    details,
-    paths,
-    exclude_self_,
-    exhaustive,
-    show_stats,
-    rerank,
-    rerank_depth,
-    method,
-    strict_direction,
-    mirror,
-    input_format,
-    scheduler,
-    scheduler_timeout,
-    ranges,
-    output_format,
-    output,
-):
-    """Find the curves of the index most similar to each curve in QUERY... .
-
-    QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
-    every curve in them is a query, answered with the index's own samples, harmonics and
-    scale. Rows: query, rank, match, distance (ties ordered by id). The search is exact:
-    rows are visited in increasing order of proven lower bounds (cells of the index, then
-    invariant features, then the first harmonics) and the search stops when the next bound
-    exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
-    Inputs that cannot be read are named on stderr and the others answered (exit 3).
-
-    --rerank: the query's exact top M (--rerank-depth) joined to the neighbour graph stored
-    in the index, a personalised-PageRank diffusion on that neighbourhood, then the top K
-    by the diffused score (docs/rerank.md). Rows gain the column score; deterministic.
-
-    \b
-    Examples:
-      nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
-      nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
-      nfdmatch query library/ --index library.h5 --exclude-self --top 3
-      nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
-      nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
-    """
-    from ..index import FORMAT_VERSION, open_index
-    from ..search import search_index
-
-    output_format = resolve_format(output_format, output)
-    _check_rerank_options(
-        rerank, rerank_depth, top, exhaustive, max_distance, method, strict_direction, mirror, scheduler
-    )
-    with open_index(index_path) as idx:
-        if idx.format_version < FORMAT_VERSION and not exhaustive:
-            note(
-                f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
-                f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
-                f"{idx.path}` upgrades it"
-            )
-        inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
-        if ranges is not None and not scheduler:
-            raise click.UsageError("--ranges needs --scheduler")
-        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
-        progress, finish_bar = progress_bar("searching")
-        try:
-            if rerank:
-                from ..search.rerank import rerank_index
-
-                results, stats = rerank_index(
-                    idx,
-                    inputs.curves,
-                    top=top,
-                    depth=rerank_depth,
-                    progress=progress,
-                    exclude_self=exclude_self_,
-                )
-            else:
-                extra = {} if cluster is None else {"parts": ranges}
-                run = search_index if cluster is None else cluster.search_index
-                results, stats = run(
-                    idx,
-                    inputs.curves,
-                    top=top,
-                    max_distance=max_distance,
-                    progress=progress,
-                    prune=not exhaustive,
-                    exclude_self=exclude_self_,
-                    **extra,
-                    **matching(method, strict_direction, mirror),
-                )
-        finally:
-            finish_bar()
-            if cluster is not None:
-                cluster.close()
-        spell_query, spell_match = path_speller(paths), path_speller(paths, idx.locate)
-        match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
-    columns = match_columns(details)
-    if rerank:
-        columns.insert(columns.index("distance") + 1, "score")
-    write_rows(
-        [
-            {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
-            for q, res in zip(inputs.curves, results)
-            for m in res
-        ],
-        columns,
-        output_format,
-        output,
-        group_by="query",
-    )
-    if show_stats:
-        say(_stats_line(stats))
-    inputs.finish()

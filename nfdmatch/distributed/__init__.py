@@ -21,7 +21,8 @@ Test hook: a worker reports ``nfdmatch._version.__version__`` as its version (re
 :func:`connect` asks); tests change it on workers to act out a version mismatch.
 """
 
-from .cluster import Cluster, connect
+from .cluster import Cluster
+from .connect import connect
 from .settings import DEFAULT_TIMEOUT, INSTALL_HINT, TASK_BYTES, ClusterError
 
 __all__ = ["ClusterError", "Cluster", "connect", "DEFAULT_TIMEOUT", "TASK_BYTES", "INSTALL_HINT"]

@@ -49,3 +49,22 @@ INSTALL_HINT = "pip install 'nfdmatch[distributed]' (dask and distributed)"
 class ClusterError(NfdError, RuntimeError):
     """The cluster cannot be used: dask missing, scheduler unreachable, no workers, workers
     running another nfdmatch or index format version, a task that failed on every retry."""
+
+
+def worker_info() -> dict:
+    """Run on each worker at connect: what must equal the client's (read at call time)."""
+    import sys
+
+    from .. import _version
+    from ..index.schema import FORMAT_VERSION
+
+    return {
+        "nfdmatch": _version.__version__,
+        "format_version": int(FORMAT_VERSION),
+        "python": "%d.%d" % sys.version_info[:2],
+    }
+
+
+def first_line(exc) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__

@@ -37,6 +37,22 @@ __all__ = [
 ]
 
 
+#: the submodules, loaded on first use (the build side stays out of a query's start-up)
+_SUBMODULES = (
+    "build",
+    "plan",
+    "commit",
+    "pool",
+    "writer",
+    "graph",
+    "lock",
+    "verify",
+    "paths",
+    "search_group",
+    "arrays",
+)
+
+
 def __getattr__(name):
     # the build side (worker pool, writer, graph) loads only when a build asks for it: a
     # query's start-up does not pay for it
@@ -44,6 +60,18 @@ def __getattr__(name):
 
     if name in ("build_index", "BuildReport"):
         return getattr(importlib.import_module(f"{__name__}.build"), name)
-    if name in ("build", "pool", "writer", "graph", "lock", "verify", "paths", "search_group"):
+    if name in (
+        "build",
+        "plan",
+        "commit",
+        "pool",
+        "writer",
+        "graph",
+        "lock",
+        "verify",
+        "paths",
+        "search_group",
+        "arrays",
+    ):
         return importlib.import_module(f"{__name__}.{name}")  # submodules, as before the lazy import
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

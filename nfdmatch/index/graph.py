@@ -18,7 +18,7 @@ import numpy as np
 from ..defaults import DEFAULT_GRAPH_K  # neighbours per row when --graph is given without a number
 from ..errors import IndexFormatError
 from ..search.graph import neighbour_lists
-from .schema import unique_rows
+from .arrays import unique_rows
 from .search_group import search_table
 
 __all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "graph_k", "GraphStats", "DEFAULT_GRAPH_K"]

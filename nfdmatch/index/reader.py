@@ -11,6 +11,7 @@ from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterErr
 from ..search.bounds import head_harmonics
 from ..search.knn import search as search_index_for
 from ..search.table import SearchTable
+from .arrays import first_nonfinite, read_runs, unique_rows
 from .graph import graph_k, read_graph_rows
 from .paths import index_folder, openable
 from .schema import (
@@ -23,9 +24,6 @@ from .schema import (
     _short,
     block_crcs,
     default_index_path,
-    first_nonfinite,
-    read_runs,
-    unique_rows,
 )
 from .search_group import search_table
 

@@ -9,8 +9,9 @@ import numpy as np
 from ..search.bounds import TRUNCATED_HARMONICS, feature_split, squared_norms
 from ..search import cells as search_cells
 from ..search.table import SearchTable
-from .schema import CHECKSUMS, CRC_ROWS, create_checked, first_nonfinite, write_string_checks
-from .schema import read_runs as read_runs_of
+from .arrays import first_nonfinite
+from .arrays import read_runs as read_runs_of
+from .schema import CHECKSUMS, CRC_ROWS, create_checked, write_string_checks
 
 __all__ = ["write_search_group", "search_table"]
 

@@ -42,7 +42,7 @@ def main() -> int:
     if not os.path.isdir("sample_curves/library"):
         print("run from the repository root", file=sys.stderr)
         return 1
-    index.build._utcnow = lambda: "2026-01-01T00:00:00Z"
+    index.commit._utcnow = lambda: "2026-01-01T00:00:00Z"
     from nfdmatch.search import cells
 
     cells.ROWS_PER_CELL = 2

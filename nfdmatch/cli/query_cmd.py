@@ -1,0 +1,218 @@
+"""`nfdmatch query`: the k nearest curves of an index for every query curve."""
+
+from __future__ import annotations
+
+
+import click
+
+from ..defaults import DEFAULT_RERANK_DEPTH
+from ..matching import DEFAULT_METHOD
+from .inputs import read_inputs
+from .options import (
+    exclude_self_option,
+    index_option,
+    input_format_option,
+    matching,
+    matching_options,
+    note,
+    output_option,
+    paths_option,
+    rows_format_option,
+    say,
+)
+from .output import match_columns, match_row, path_speller, progress_bar, resolve_format, write_rows
+from .cluster import open_cluster, ranges_option, scheduler_options
+from .group import main
+
+
+@main.command()
+@click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
+@index_option
+@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Matches per query.")
+@click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only list matches at most this far.")
+@click.option("--glob", "glob_pattern", default=None, help="Only query files in folders whose name matches.")
+@click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
+@paths_option
+@exclude_self_option
+@click.option(
+    "--exhaustive",
+    is_flag=True,
+    help="Compute every exact distance, no pruning (to check a result: the pruned search "
+    "returns the same rows and distances).",
+)
+@click.option("--stats", "show_stats", is_flag=True, help="Print on stderr how many exact distances the search needed.")
+@click.option(
+    "--rerank",
+    is_flag=True,
+    help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
+    "--graph`); adds the column score (higher is closer), distance stays the exact distance.",
+)
+@click.option(
+    "--rerank-depth",
+    type=click.IntRange(min=DEFAULT_RERANK_DEPTH),
+    default=DEFAULT_RERANK_DEPTH,
+    show_default=True,
+    metavar="M",
+    help="With --rerank: the query's exact top M that the diffusion re-orders.",
+)
+@matching_options
+@input_format_option
+@scheduler_options
+@ranges_option
+@rows_format_option
+@output_option()
+def query(
+    queries,
+    index_path,
+    top,
+    max_distance,
+    glob_pattern,
+    details,
+    paths,
+    exclude_self_,
+    exhaustive,
+    show_stats,
+    rerank,
+    rerank_depth,
+    method,
+    strict_direction,
+    mirror,
+    input_format,
+    scheduler,
+    scheduler_timeout,
+    ranges,
+    output_format,
+    output,
+):
+    """Find the curves of the index most similar to each curve in QUERY... .
+
+    QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
+    every curve in them is a query, answered with the index's own samples, harmonics and
+    scale. Rows: query, rank, match, distance (ties ordered by id). The search is exact:
+    rows are visited in increasing order of proven lower bounds (cells of the index, then
+    invariant features, then the first harmonics) and the search stops when the next bound
+    exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
+    Inputs that cannot be read are named on stderr and the others answered (exit 3).
+
+    --rerank: the query's exact top M (--rerank-depth) joined to the neighbour graph stored
+    in the index, a personalised-PageRank diffusion on that neighbourhood, then the top K
+    by the diffused score (docs/rerank.md). Rows gain the column score; deterministic.
+
+    \b
+    Examples:
+      nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
+      nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
+      nfdmatch query library/ --index library.h5 --exclude-self --top 3
+      nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
+      nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
+    """
+    from ..index import FORMAT_VERSION, open_index
+    from ..search import search_index
+
+    output_format = resolve_format(output_format, output)
+    _check_rerank_options(
+        rerank, rerank_depth, top, exhaustive, max_distance, method, strict_direction, mirror, scheduler
+    )
+    with open_index(index_path) as idx:
+        if idx.format_version < FORMAT_VERSION and not exhaustive:
+            note(
+                f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
+                f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
+                f"{idx.path}` upgrades it"
+            )
+        inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
+        if ranges is not None and not scheduler:
+            raise click.UsageError("--ranges needs --scheduler")
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
+        progress, finish_bar = progress_bar("searching")
+        try:
+            if rerank:
+                from ..search.rerank import rerank_index
+
+                results, stats = rerank_index(
+                    idx,
+                    inputs.curves,
+                    top=top,
+                    depth=rerank_depth,
+                    progress=progress,
+                    exclude_self=exclude_self_,
+                )
+            else:
+                extra = {} if cluster is None else {"parts": ranges}
+                run = search_index if cluster is None else cluster.search_index
+                results, stats = run(
+                    idx,
+                    inputs.curves,
+                    top=top,
+                    max_distance=max_distance,
+                    progress=progress,
+                    prune=not exhaustive,
+                    exclude_self=exclude_self_,
+                    **extra,
+                    **matching(method, strict_direction, mirror),
+                )
+        finally:
+            finish_bar()
+            if cluster is not None:
+                cluster.close()
+        spell_query, spell_match = path_speller(paths), path_speller(paths, idx.locate)
+        match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
+    columns = match_columns(details)
+    if rerank:
+        columns.insert(columns.index("distance") + 1, "score")
+    write_rows(
+        [
+            {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
+            for q, res in zip(inputs.curves, results)
+            for m in res
+        ],
+        columns,
+        output_format,
+        output,
+        group_by="query",
+    )
+    if show_stats:
+        say(_stats_line(stats))
+    inputs.finish()
+
+
+def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, method, strict, mirror, scheduler) -> None:
+    """Usage errors for options that --rerank cannot take (or that need it)."""
+    if not rerank:
+        if depth != DEFAULT_RERANK_DEPTH:
+            raise click.UsageError("--rerank-depth needs --rerank")
+        return
+    for given, name in (
+        (exhaustive, "--exhaustive"),
+        (max_distance is not None, "--max-distance"),
+        (method != DEFAULT_METHOD, f"--method {method}"),
+        (strict, "--strict-direction"),
+        (mirror, "--mirror"),
+    ):
+        if given:
+            raise click.UsageError(
+                f"--rerank cannot be combined with {name}: the stored graph holds exact, "
+                f"direction-invariant distances without mirror images"
+            )
+    if top > depth:
+        raise click.UsageError(f"--top {top} is more than --rerank-depth {depth}")
+    if scheduler:
+        raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
+
+
+def _stats_line(stats) -> str:
+    """What ``--stats`` says of a search (:class:`~nfdmatch.search.SearchStats`)."""
+    line = (
+        f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "
+        f"({stats.exact_fraction:.2%}), {stats.seconds:.3f} s"
+    )
+    if stats.pruned:
+        line += (
+            f"; per query: {stats.per_query(stats.scanned):.0f} rows bounded in "
+            f"{stats.per_query(stats.cells):.1f} of {stats.cell_count} cells, "
+            f"{stats.per_query(stats.truncated):.0f} truncated-harmonic bounds "
+            f"(+{stats.per_query(stats.fine):.0f} finer), "
+            f"{stats.per_query(stats.exact):.0f} exact distances, "
+            f"{stats.per_query(stats.bytes_read) / 2**20:.2f} MiB read"
+        )
+    return line + (f"; kernels: {stats.kernels}" if stats.kernels else "")

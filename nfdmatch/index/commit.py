@@ -1,0 +1,203 @@
+"""The write step of a build: the new index file written beside the old one (rows copied
+and computed, ``/files``, ``/search``, ``/graph``), synced, then moved into place under the
+build's lock. The old file stays what queries read until the move."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import h5py
+import numpy as np
+
+from .._version import __version__
+from ..errors import NfdError, WriteError
+from .graph import write_graph
+from .paths import curve_ids
+from .plan import Action, Plan
+from .pool import run_tasks
+from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short
+from .search_group import write_search_group
+from .writer import CopyRun, CurveWriter, Space, fsync_path, write_files_table, write_sources
+
+__all__ = ["write_new_index"]
+
+
+def _utcnow() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def write_new_index(
+    report,
+    index_path: str,
+    plan: Plan,
+    old,
+    jobs,
+    lock,
+    progress,
+    file_timeout=None,
+    *,
+    sources=((), None),
+    name=None,
+    graph=None,
+    runner=None,
+):
+    """Write the new index beside ``index_path`` (the real file) and move it into place;
+    ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
+    it (messages)."""
+    shown = index_path if name is None else name
+    folder = os.path.dirname(index_path) or "."
+    name = os.path.basename(index_path)
+    import secrets
+
+    tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}-{secrets.token_hex(4)}.h5")
+    items, tasks, removed, params = plan.items, plan.tasks, plan.removed, plan.params
+    K = params["harmonics"]
+    results: dict[int, dict] = {}
+    total = len(tasks)
+    if progress is not None:
+        progress(0, total)
+    lock_fd = None if lock is None else lock.fd
+    stream = run_tasks(tasks, jobs, lock_fd, file_timeout or None) if runner is None else runner(tasks, jobs, lock_fd)
+    done = 0
+
+    def result_of(task: int) -> dict:
+        nonlocal done
+        while task not in results:
+            i, res = next(stream)
+            results[i] = res
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        return results.pop(task)
+
+    records: list[FileRecord] = []
+    actions: dict[str, str] = {p: "removed" for p in removed}
+    now = _utcnow()
+    try:
+        space = None
+        try:
+            # HDF5 1.10 structures: chunk indexes by position (fixed and extensible arrays,
+            # no stored chunk offsets that a flipped byte could move) with checksums
+            h5 = h5py.File(tmp, "w", locking=False, libver=("v110", "v110"))
+        except Exception as exc:
+            raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
+        try:
+            space = Space(h5)
+            space.reserve(0)  # the superblock, attributes, small tables
+            attrs = h5.attrs
+            attrs["format"] = INDEX_FORMAT
+            attrs["format_version"] = np.int64(FORMAT_VERSION)
+            attrs["nfdmatch_version"] = __version__
+            attrs["samples"] = np.int64(params["samples"])
+            attrs["harmonics"] = np.int64(params["harmonics"])
+            attrs["scale"] = params["scale"]
+            attrs["created"] = old.created if old is not None and old.created else now
+            attrs["updated"] = now
+            writer = CurveWriter(h5, K, space)
+            run = CopyRun(old, writer)
+            for item in items:
+                path, r = item.path, item.old
+                file_row = len(records)
+                start = writer.rows + writer.pending_rows + run.rows
+                # a file whose stored path changed (an index upgraded to recorded sources)
+                # keeps its rows under ids made from the new path
+                new_ids = None if r is None or r.path == path else curve_ids(path, r.curve_count)
+                if item.action is Action.COPY:
+                    run.add(r.curve_start, r.curve_count, file_row, new_ids)
+                    records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "ok", "", start, r.curve_count))
+                    actions[path] = "unchanged"
+                    continue
+                if item.action is Action.KEEP_FAILED:
+                    records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "failed", r.error, start, 0))
+                    actions[path] = "failed"
+                    report.failures.append((item.file or path, r.error))
+                    continue
+                res = result_of(item.task)
+                if res["status"] == "same":  # mtime changed, contents did not
+                    if r.status == "ok":
+                        run.add(r.curve_start, r.curve_count, file_row, new_ids)
+                        records.append(
+                            FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "ok", "", start, r.curve_count)
+                        )
+                        actions[path] = "unchanged"
+                    else:
+                        records.append(
+                            FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "failed", r.error, start, 0)
+                        )
+                        actions[path] = "failed"
+                        report.failures.append((item.file or path, r.error))
+                    continue
+                run.flush()
+                if res["status"] == "ok":
+                    n = len(res["ids"])
+                    piece = dict(res["arrays"])
+                    piece["id"] = np.asarray(curve_ids(path, n), dtype=object)
+                    piece["file"] = np.full(n, file_row, dtype=np.int32)
+                    writer.append(piece)
+                    records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
+                    actions[path] = "added" if r is None else "updated"
+                else:
+                    records.append(
+                        FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "failed", res["error"], start, 0)
+                    )
+                    actions[path] = "failed"
+                    report.failures.append((item.file or path, res["error"]))
+            run.flush()
+            writer.flush()
+            write_files_table(h5, records, space)
+            write_sources(h5, *sources)
+            # the cells: features, squared norms, row numbers and first harmonics of every row
+            space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
+            report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
+            report.graph = write_graph(h5, old, graph, reuse=not plan.recompute_all)
+            report.curves = writer.rows
+        except BaseException:
+            if space is not None:
+                space.abandon()  # HDF5 cannot close a file it failed to write
+            raise
+        finally:
+            stream.close()  # shuts the worker pool down
+            try:
+                h5.close()
+            except Exception:
+                if space is None or not space.abandoned:
+                    raise
+        Space.release(tmp)
+        fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
+        os.replace(tmp, index_path)
+        fsync_path(folder, directory=True)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        # h5py reports a failed write (disk full, quota, file-size limit) as OSError, or as
+        # RuntimeError when it surfaces while closing the file
+        if isinstance(exc, (OSError, RuntimeError)) and not isinstance(exc, NfdError):
+            raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
+        raise
+    report.written = True
+    for path in sorted(actions):
+        action = actions[path]
+        report.changes.append((action, path))
+        setattr(report, action, getattr(report, action) + 1)
+
+
+def _write_cause(exc: BaseException) -> str:
+    """Why a write failed, in the system's words ("No space left on device"), not HDF5's
+    ("Unable to synchronously create file (file write failed: time = ..., errno = 28, ...)")."""
+    import re
+
+    code = getattr(exc, "errno", None)
+    if not isinstance(code, int) or code <= 0:
+        found = re.search(r"errno = (\d+)", str(exc))
+        code = int(found.group(1)) if found else None
+    if code:
+        extra = ""
+        if isinstance(exc, OSError) and exc.strerror and "ulimit" in exc.strerror:
+            extra = exc.strerror[len(os.strerror(code)) :] if exc.strerror.startswith(os.strerror(code)) else ""
+        return os.strerror(code) + extra
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return _short(exc)
