@@ -253,7 +253,7 @@ def test_disk_full_while_writing_keeps_the_old_index(lib, tmp_path, rng, monkeyp
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     if where == "datasets":
-        monkeypatch.setattr(nindex.build, "write_files_table", full)
+        monkeypatch.setattr(nindex.commit, "write_files_table", full)
     else:
         monkeypatch.setattr(nindex.writer.os, "fsync", full)
     code, out, err = run("index", "build", lib, "--index", index, "-j", 1)
@@ -429,7 +429,7 @@ def test_a_disk_full_before_the_index_is_created_is_said_in_our_words(lib, tmp_p
             return h5py.File(path, mode, **kwargs)
 
     monkeypatch.setattr(index_lock.os, "pwrite", no_space)
-    monkeypatch.setattr(nindex.build, "h5py", H5())
+    monkeypatch.setattr(nindex.commit, "h5py", H5())
     index = tmp_path / "idx.h5"
     code, out, err = run("index", "build", lib, "--index", index, "-j", 1)
     assert (code, out) == (1, "")

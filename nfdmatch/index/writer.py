@@ -1,7 +1,7 @@
 """Writing a new index file: the /curves and /files datasets, fsync, temporary files.
 
 Test hook: ``write_files_table`` (writes the /files table) is called by tests with
-crafted records and replaced, where :mod:`.build` looks it up, to act out a full disk.
+crafted records and replaced, where :mod:`.commit` looks it up, to act out a full disk.
 """
 
 from __future__ import annotations
