@@ -170,3 +170,15 @@ def test_a_graph_of_the_wrong_shape_or_k_is_refused(index_copy):
     assert any(ds == "/graph" and "k = 9" in what for ds, _, what in _findings(index_copy))
     code, out, err = _query(index_copy)
     assert code == 1 and "corrupted nfdmatch index: /graph holds" in err
+
+
+def test_check_lists_allows_tied_distances_in_id_order_only():
+    rows = np.array([0, 1])
+    nb = np.array([[1, 2, -1], [0, 2, -1]])
+    d = np.array([[0.5, 0.5 - 4e-10, np.inf], [0.5, 0.7, np.inf]])  # a tie (within 1e-9), by id
+    assert check_lists(rows, nb, d, 3) is None
+    d[0, 1] = 0.5 - 1e-6
+    assert check_lists(rows, nb, d, 3) == "/graph/distance, row 0: distances not ascending (nearest first)"
+    d[0, 1] = 0.6
+    d[1, 2] = 0.8  # padding with a finite distance
+    assert "padding" in check_lists(rows, nb, d, 3)

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..defaults import DEFAULT_GRAPH_K  # neighbours per row when --graph is given without a number
 from ..errors import IndexFormatError
+from ..search.engine import TIE
 from ..search.graph import neighbour_lists
 from .schema import _Problem, create_checked, stored_dataset, unique_rows
 from .search_group import search_table
@@ -62,7 +63,8 @@ def check_lists(rows, neighbour, distance, N: int) -> str | None:
 
     A neighbour outside 0..N-1 other than the padding -1, padding before a real neighbour or
     with a finite distance, a row naming itself or a row twice, a NaN, a negative or
-    infinite distance of a real neighbour, distances that decrease along a list."""
+    infinite distance of a real neighbour, distances that decrease along a list (by more than
+    the ties' 1e-9: tied distances are ordered by id)."""
     problems = list_problems(rows, neighbour, distance, N)
     for what, bad in problems.items():
         if len(bad):
@@ -94,7 +96,8 @@ def list_problems(rows, neighbour, distance, N: int) -> dict:
         negative = (real & (d < 0)).any(axis=1)
         infinite = (real & np.isinf(d)).any(axis=1)
         dr = np.where(real, d, np.inf)
-        descending = (dr[:, 1:] < dr[:, :-1]).any(axis=1) if nb.shape[1] > 1 else np.zeros(len(rows), bool)
+        # ties (distances within TIE) are ordered by id: such a pair may descend by less than TIE
+        descending = (dr[:, 1:] < dr[:, :-1] - TIE).any(axis=1) if nb.shape[1] > 1 else np.zeros(len(rows), bool)
     return {
         "a neighbour outside the index": rows[outside],
         "a row naming itself": rows[myself],
