@@ -188,6 +188,16 @@ def test_rerank_improves_a_family_collection(families_index):
     assert p_rerank >= p_plain + 0.03, (p_plain, p_rerank)
 
 
+def test_a_query_scores_the_same_alone_as_in_a_batch(families_index):
+    folder, _, _ = families_index
+    stored = _read_back(folder / "c")[::9]
+    with open_index(folder / "i.h5") as idx:
+        for exclude_self in (False, True):
+            batch, _ = rerank_index(idx, stored, top=20, exclude_self=exclude_self)
+            alone = [rerank_index(idx, [q], top=20, exclude_self=exclude_self)[0][0] for q in stored]
+            assert batch == alone
+
+
 def _agrees_with_the_matrix(results, S, i, position, every_curve):
     """Query i's re-ranked results against row i of the full matrix S: every score within
     MATRIX_TOLERANCE, and the order that of S but for scores closer than twice that; with

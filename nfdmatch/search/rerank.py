@@ -15,8 +15,9 @@ whether a curve is near the query's neighbours. The method (chosen by measuremen
    has no class structure).
 
 :func:`diffused_similarity` does this on a full distance matrix (``matrix --rerank``);
-:func:`rerank_index` on a query's exact top M joined to an index's stored graph
-(``query --rerank``).
+:func:`rerank_index` orders a query's exact top M by the same scores computed on the
+index's whole stored graph, the PageRank rows by local push (:mod:`.diffusion`), the query
+joining the graph through its exact k nearest (``query --rerank``).
 """
 
 from __future__ import annotations
@@ -140,8 +141,9 @@ def rerank_index(
     queries : sequence of :class:`~nfdmatch.curve.Curve`.
     top : matches per query (at most ``depth``).
     depth : M, the query's exact candidates (the pruned exact search's top M), >= 100.
-    exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is merged
-        with the query in the graph and left out of the results.
+    exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is the
+        query in the graph (its stored row and PageRank) and is left out of the results;
+        the scores are then ``matrix --rerank``'s within :data:`MATRIX_TOLERANCE`.
     progress, threads : as in :func:`~nfdmatch.search.search_index`.
 
     Returns
@@ -153,10 +155,12 @@ def rerank_index(
 
     Raises
     ------
-    IndexFormatError : the index has no graph, or one of fewer than 8 neighbours per row.
+    IndexFormatError : the index has no graph, one of fewer than 8 neighbours per row, or a
+        graph row the walk reads is damaged or not a valid list (docs/index-format.md).
     ParameterError : depth below 100, top above depth.
 
-    Deterministic: the same index and queries give the same rows and scores.
+    Deterministic: the same index and queries give the same rows and scores, and a query
+    gets the same scores alone as in any batch (each source's push is independent).
     """
     from .index_search import search_index
 
@@ -193,11 +197,12 @@ def rerank_index(
     union = np.unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
     vectors = _Vectors(union, *walk.pagerank(union))
     results = []
+    dense = np.zeros(N + 1)
     for found, (rows, qd, merged) in zip(exact, plans):
         if not len(found):
             results.append([])
             continue
-        scores = _query_scores(walk, vectors, rows, qd, merged)
+        scores = _query_scores(walk, vectors, rows, qd, merged, dense)
         idx = [i for i in range(len(found)) if not merged[i]]
         idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i].rank))
         results.append(
@@ -242,21 +247,24 @@ class _Vectors:
         return self.norm[np.searchsorted(self.union, rows)]
 
 
-def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged) -> np.ndarray:
+def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -> np.ndarray:
     """Scores of one query's candidates ``rows`` (exact distances ``qd``, ascending; ``merged``:
-    the candidates that are the query's own stored curve, whose score is NaN)."""
-    k, N = walk.k, walk.N
+    the candidates that are the query's own stored curve, whose score is NaN). ``dense``:
+    (N + 1,) zeros, a work array (left zero)."""
+    k, N, alpha = walk.k, walk.N, walk.alpha
     out = np.full(len(rows), np.nan)
     keep = np.flatnonzero(~merged)
     if not len(keep):
         return out
     cand = rows[keep]
     s_cand = walk.scales(cand)
+    owner, node, value = vectors.entries(cand)
     back = np.zeros(len(keep))  # the candidates' own PageRank at the query (first order)
     if merged.any():
         # the query is a stored row: its PageRank is that row's, its scale that row's
         self_row = rows[np.flatnonzero(merged)[0]]
         _, q_node, q_val = vectors.entries(np.array([self_row]))
+        dense[q_node] = q_val
         s_q = walk.scales([self_row])[0]
     else:
         # the query joins the graph as node N: its k nearest (exact), and the candidates
@@ -274,23 +282,41 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged) -> np.nd
         pick = np.argsort(d, axis=1, kind="stable")[:, :k]
         nb, d = np.take_along_axis(nb, pick, axis=1), np.take_along_axis(d, pick, axis=1)
         with walk.overlay(np.concatenate([[N], into]), np.concatenate([q_nb, nb]), np.concatenate([q_d, d])):
-            _, q_node, q_val = walk.pagerank([N])
             s_q = walk.scales([N])[0]
             s_cand = walk.scales(cand)
-            # first order: a candidate's walk reaches the query through the rows it entered
+            q_targets, q_prob = walk.transitions(np.array([N]))
             targets, prob = walk.transitions(into)
-            to_q = (prob * (targets == N)).sum(axis=1)
-        owner, node, value = vectors.entries(cand)
-        weight = np.zeros(N + 1)
-        weight[into] = walk.alpha * to_q
-        back = np.bincount(owner, weights=weight[node] * value, minlength=len(cand))
-    dense = np.zeros(N + 1)
-    dense[q_node] = q_val
-    owner, node, value = vectors.entries(cand)
+        # first order: a candidate's walk reaches the query through the rows it entered
+        to_q = (prob * (targets == N)).sum(axis=1)
+        dense[into] = alpha * to_q
+        back = np.bincount(owner, weights=dense[node] * value, minlength=len(cand))
+        dense[into] = 0.0
+        # the query's PageRank from its first step: pi_q = ((1 - alpha) e_q + alpha sum_v P_qv
+        # pi_v) / (1 - alpha P_qq), each neighbour's pi_v its stored vector plus its mass at q
+        self_p = float(q_prob[0, 0])  # the self loop comes first
+        nbrs, p_nb = q_targets[0, 1:], q_prob[0, 1:]
+        real = nbrs != N
+        nbrs, p_nb = nbrs[real], p_nb[real]
+        by_row = np.argsort(cand, kind="stable")
+        at = by_row[np.searchsorted(cand[by_row], nbrs)]  # the query's neighbours are candidates
+        v_owner, v_node, v_value = vectors.entries(nbrs)
+        norm = 1.0 / (1 - alpha * self_p)
+        np.add.at(dense, v_node, alpha * p_nb[v_owner] * v_value * norm)
+        dense[N] = ((1 - alpha) + alpha * float((p_nb * back[at]).sum())) * norm
+        q_node = np.concatenate([_unique_nodes(v_node), [N]])
+        q_val = dense[q_node]
     dot = np.bincount(owner, weights=dense[node] * value, minlength=len(cand)) + dense[N] * back
     norm_c = np.sqrt(vectors.norms(cand) ** 2 + back**2)
     norm_q = max(float(np.sqrt((q_val**2).sum())), 1e-300)
+    dense[q_node] = 0.0
     cos = dot / (norm_q * np.maximum(norm_c, 1e-300))
     direct = np.exp(-(qd[keep] ** 2) / (s_q * s_cand))
     out[keep] = (1 - MIX) * cos + MIX * direct
     return out
+
+
+def _unique_nodes(nodes: np.ndarray) -> np.ndarray:
+    nodes = np.sort(nodes)
+    keep = np.ones(len(nodes), dtype=bool)
+    keep[1:] = nodes[1:] != nodes[:-1]
+    return nodes[keep]
