@@ -182,3 +182,11 @@ def test_check_lists_allows_tied_distances_in_id_order_only():
     d[0, 1] = 0.6
     d[1, 2] = 0.8  # padding with a finite distance
     assert "padding" in check_lists(rows, nb, d, 3)
+
+
+def test_cli_verify_names_a_bad_graph_row(index_copy):
+    with h5py.File(index_copy, "a") as f:
+        f["graph/distance"][6, 0] = -f["graph/distance"][6, 0]
+    result = CliRunner().invoke(main, ["index", "verify", "--index", str(index_copy)], catch_exceptions=False)
+    assert result.exit_code == 1
+    assert result.stdout == "bad\t/graph/distance\t6\ta negative distance, 1 rows\n"
