@@ -1,6 +1,7 @@
 """Re-ranking by diffusion: which method, and what it costs (docs/rerank.md).
 
     python benchmarks/bench_rerank.py [--data ../shared/data] [--curves 10000] [--skip-timing | --skip-tables]
+                                      [--skip-methods]
 
 Prints, from the repository root:
 
@@ -232,15 +233,16 @@ def knots_top1(method, Ds, Q):
 def shipped(cols, knot_data, work):
     """query --rerank (library) through an index with a graph: Kimia, mesh, families, knots."""
     from nfdmatch.index import build_index, open_index
+    from nfdmatch.search import search_index
     from nfdmatch.search.rerank import rerank_index
 
     print(
-        "\n## The shipped path: each query's exact top 100 joined to the stored graph "
-        "(index build --graph 10, query --rerank)"
+        "\n## The shipped path: each query's exact top 100 re-ordered by the diffusion over the stored graph "
+        "(index build --graph 10, query --rerank --exclude-self); time: every curve a query, one batch"
     )
     print(
         f"{'collection':24} {'plain P@10':>10} {'rerank P@10':>11} {'plain BE':>9} {'rerank BE':>9}"
-        f"  {'rerank ranks 1..10 (same class)':s}"
+        f" {'plain s':>8} {'rerank s':>8}  {'rerank ranks 1..10 (same class)':s}"
     )
     for name, c in cols.items():
         folder = os.path.join(work, name.replace(" ", "_"))
@@ -249,10 +251,15 @@ def shipped(cols, knot_data, work):
         build_index([folder], os.path.join(work, name.replace(" ", "_") + ".h5"), jobs=2, graph=10)
         stored = read_curves(os.path.join(folder, "curves.obj"))
         with open_index(os.path.join(work, name.replace(" ", "_") + ".h5")) as idx:
+            t = time.perf_counter()
+            search_index(idx, stored, top=min(40, len(stored) - 1), exclude_self=True)
+            t_plain = time.perf_counter() - t
+            t = time.perf_counter()
             res, _ = rerank_index(
                 idx, stored, top=100 if len(stored) > 100 else len(stored) - 1, depth=100, exclude_self=True
             )
-        pos = {s.id: i for i, s in enumerate(stored)}
+            t_rerank = time.perf_counter() - t
+        pos = {os.path.relpath(s.id, work): i for i, s in enumerate(stored)}  # ids relative to the index
         N = len(stored)
         S = np.full((N, N), -np.inf)
         for i, r in enumerate(res):
@@ -262,8 +269,9 @@ def shipped(cols, knot_data, work):
         counts, p10, bull = scores_table(S, c["labels"])
         pc, pp, pb = scores_table(-c["D"], c["labels"])
         print(
-            f"{name:24} {pp:10.3f} {p10:11.3f} {pb:9.3f} {bull:9.3f}  {' '.join(str(x) for x in counts)}"
-            f" = {counts.sum()} (plain {pc.sum()})"
+            f"{name:24} {pp:10.3f} {p10:11.3f} {pb:9.3f} {bull:9.3f} {t_plain:8.1f} {t_rerank:8.1f}"
+            f"  {' '.join(str(x) for x in counts)} = {counts.sum()} (plain {pc.sum()})",
+            flush=True,
         )
     control, smooth, _, _ = knot_data
     folder = os.path.join(work, "knots")
@@ -279,12 +287,10 @@ def shipped(cols, knot_data, work):
 
 def timing(curves, work):
     import bench_index
-    from nfdmatch.index import build_index, open_index
-    from nfdmatch.search import search_index
-    from nfdmatch.search.rerank import rerank_index
+    from nfdmatch.index import build_index
 
     folder = os.path.join(work, f"gen{curves}")
-    queries = bench_index.generate(folder, curves)[:20]
+    queries_all = bench_index.generate(folder, curves)
     t = time.perf_counter()
     plain = build_index([folder], os.path.join(work, "plain.h5"), jobs=2)
     t_plain = time.perf_counter() - t
@@ -313,15 +319,28 @@ def timing(curves, work):
         f"incremental, +{len(extra)} curves: {inc.seconds:.1f} s, graph {inc.graph.seconds:.1f} s "
         f"({inc.graph.searched} searched, {inc.graph.updated} updated, {inc.graph.kept} kept)"
     )
-    with open_index(os.path.join(work, "graph.h5")) as idx:
+    query_timing(os.path.join(work, "graph.h5"), queries_all)
+
+
+def query_timing(index, queries, batch=200, single=20):
+    """Plain query against query --rerank: a batch of ``batch`` queries (--top 40, depth 100)
+    and ``single`` queries one at a time (--top 10), each the best of 3 runs."""
+    from nfdmatch.index import open_index
+    from nfdmatch.search import search_index
+    from nfdmatch.search.rerank import rerank_index
+
+    with open_index(index) as idx:
+        many, few = queries[:batch], queries[:single]
         for label, fn in (
-            ("plain query --top 10", lambda: search_index(idx, queries, top=10)),
-            ("query --rerank --top 10 (M 100)", lambda: rerank_index(idx, queries, top=10)),
-            ("query --rerank --rerank-depth 300", lambda: rerank_index(idx, queries, top=10, depth=300)),
+            (f"plain query --top 40, batch of {len(many)}", lambda: search_index(idx, many, top=40)),
+            (f"query --rerank --top 40, batch of {len(many)}", lambda: rerank_index(idx, many, top=40)),
+            ("plain query --top 10, one query at a time", lambda: [search_index(idx, [q], top=10) for q in few]),
+            ("query --rerank --top 10, one query at a time", lambda: [rerank_index(idx, [q], top=10) for q in few]),
         ):
             fn()
             best = min(_time(fn) for _ in range(3))
-            print(f"{label:36} {1e3 * best / len(queries):7.1f} ms per query ({len(queries)} queries)")
+            n = len(many) if "batch" in label else len(few)
+            print(f"{label:46} {best:7.2f} s, {1e3 * best / n:7.1f} ms per query", flush=True)
 
 
 def _time(fn):
@@ -336,24 +355,41 @@ def main():
     ap.add_argument("--curves", type=int, default=10000, help="generated curves for the timing (default 10000)")
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--skip-tables", action="store_true", help="only the build and query timing")
+    ap.add_argument("--skip-methods", action="store_true", help="tables: the shipped path only")
+    ap.add_argument("--index", help="timing: only the queries, on this index (built with --graph) of generated curves")
     args = ap.parse_args()
     if not os.path.isdir(args.data):
         sys.exit(f"development data not found at {args.data}")
+    if args.index:  # the queries of bench_index.generate(..., len(index)) (same seed: same queries)
+        import bench_index
+        from nfdmatch.index import open_index
+
+        with open_index(args.index) as idx:
+            n = idx.n_curves
+        folder = tempfile.mkdtemp(prefix="bench-rerank-queries-")
+        try:
+            query_timing(args.index, bench_index.generate(folder, n))
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        return
     work = tempfile.mkdtemp(prefix="bench-rerank-")
     try:
         if not args.skip_tables:
-            tables(args.data, work)
+            tables(args.data, work, methods=not args.skip_methods)
         if not args.skip_timing:
             timing(args.curves, work)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def tables(data, work):
+def tables(data, work, methods=True):
     t0 = time.perf_counter()
     cols = collections(data)
     knot_data = knots(data)
     print(f"(distance matrices: {time.perf_counter() - t0:.1f} s)")
+    if not methods:
+        shipped(cols, knot_data, work)
+        return
     print(
         f"\n## Methods on full distance matrices (k = {K} neighbours, alpha = {A}); P@10 = precision at 10, "
         f"BE = bull's-eye; knots = control->smooth top-1 of 148"

@@ -19,7 +19,7 @@ from nfdmatch import Curve, write_curves
 from nfdmatch.errors import IndexFormatError, ParameterError
 from nfdmatch.index import build_index, open_index
 from nfdmatch.search import distance_matrix, search_index
-from nfdmatch.search.rerank import diffused_similarity, rerank_index
+from nfdmatch.search.rerank import MATRIX_TOLERANCE, diffused_similarity, rerank_index
 
 #: end-to-end as a whole (subprocesses, real files, pools): left out by `make test-fast`
 pytestmark = pytest.mark.slow
@@ -188,8 +188,33 @@ def test_rerank_improves_a_family_collection(families_index):
     assert p_rerank >= p_plain + 0.03, (p_plain, p_rerank)
 
 
-def test_local_diffusion_matches_the_full_one_on_a_small_index(tmp_path, rng):
-    curves, _ = family_curves(rng, families=9, members=10)
+def test_a_query_scores_the_same_alone_as_in_a_batch(families_index):
+    folder, _, _ = families_index
+    stored = _read_back(folder / "c")[::9]
+    with open_index(folder / "i.h5") as idx:
+        for exclude_self in (False, True):
+            batch, _ = rerank_index(idx, stored, top=20, exclude_self=exclude_self)
+            alone = [rerank_index(idx, [q], top=20, exclude_self=exclude_self)[0][0] for q in stored]
+            assert batch == alone
+
+
+def _agrees_with_the_matrix(results, S, i, position, every_curve):
+    """Query i's re-ranked results against row i of the full matrix S: every score within
+    MATRIX_TOLERANCE, and the order that of S but for scores closer than twice that; with
+    ``every_curve`` (every other curve was a candidate) also the set of the first answers."""
+    got = np.array([m.score for m in results])
+    want = S[i, [position[m.id] for m in results]]
+    np.testing.assert_allclose(got, want, rtol=0, atol=MATRIX_TOLERANCE)
+    assert np.all(np.diff(got) <= 1e-12)
+    # no inversion beyond the tolerance
+    assert np.all(np.maximum.accumulate(want[::-1])[::-1][1:] - want[:-1] <= 2 * MATRIX_TOLERANCE)
+    others = np.delete(S[i], [i] + [position[m.id] for m in results])
+    if every_curve and len(others):
+        assert others.max() - want.min() <= 2 * MATRIX_TOLERANCE
+
+
+def test_query_rerank_orders_a_stored_curve_as_matrix_rerank(tmp_path, rng):
+    curves, _ = family_curves(rng, families=12, members=10)
     write_parts(tmp_path / "c", curves, 2)
     build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
     stored = _read_back(tmp_path / "c")
@@ -200,12 +225,13 @@ def test_local_diffusion_matches_the_full_one_on_a_small_index(tmp_path, rng):
 
     position = {rel(c.id): i for i, c in enumerate(stored)}
     with open_index(tmp_path / "i.h5") as idx:
-        results, _ = rerank_index(idx, stored, top=89, depth=100, exclude_self=True)
+        results, _ = rerank_index(idx, stored, top=40, depth=100, exclude_self=True)
+        whole, _ = rerank_index(idx, stored[:10], top=100, depth=119, exclude_self=True)
     for i, res in enumerate(results):
-        assert len(res) == 89 and all(m.id != rel(stored[i].id) for m in res)
-        got = np.array([m.score for m in res])
-        np.testing.assert_allclose(got, S[i, [position[m.id] for m in res]], atol=1e-5)
-        assert np.all(np.diff(got) <= 1e-12)
+        assert len(res) == 40 and all(m.id != rel(stored[i].id) for m in res)
+        _agrees_with_the_matrix(res, S, i, position, False)  # the order of the exact top 100
+    for i, res in enumerate(whole):  # every other curve a candidate: the first 100 of the matrix
+        _agrees_with_the_matrix(res, S, i, position, True)
 
 
 def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng):

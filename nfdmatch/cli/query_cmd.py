@@ -94,9 +94,10 @@ def query(
     exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
     Inputs that cannot be read are named on stderr and the others answered (exit 3).
 
-    --rerank: the query's exact top M (--rerank-depth) joined to the neighbour graph stored
-    in the index, a personalised-PageRank diffusion on that neighbourhood, then the top K
-    by the diffused score (docs/rerank.md). Rows gain the column score; deterministic.
+    --rerank: the query's exact top M (--rerank-depth) re-ordered by a personalised-PageRank
+    diffusion over the whole neighbour graph stored in the index (the query joins it through
+    its exact 8 nearest), then the top K by the diffused score (docs/rerank.md). Rows gain
+    the column score; deterministic.
 
     \b
     Examples:

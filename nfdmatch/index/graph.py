@@ -17,11 +17,28 @@ import numpy as np
 
 from ..defaults import DEFAULT_GRAPH_K  # neighbours per row when --graph is given without a number
 from ..errors import IndexFormatError
+from ..search.engine import TIE
 from ..search.graph import neighbour_lists
 from .arrays import unique_rows
+from .schema import Problem, create_checked, stored_dataset
 from .search_group import search_table
 
-__all__ = ["write_graph", "read_graph", "read_graph_rows", "graph_changes", "graph_k", "GraphStats", "DEFAULT_GRAPH_K"]
+__all__ = [
+    "write_graph",
+    "read_graph",
+    "read_graph_rows",
+    "graph_changes",
+    "graph_k",
+    "check_lists",
+    "GraphStats",
+    "DEFAULT_GRAPH_K",
+    "GRAPH_CHECKSUMS",
+]
+
+#: ``/graph`` attribute ``checksums``: its datasets carry Fletcher-32 (docs/index-format.md)
+GRAPH_CHECKSUMS = "fletcher32"
+#: rows per chunk of the /graph datasets: a query reads a few hundred scattered rows
+_CHUNK_ROWS = 256
 
 #: an index up to this many rows is searched from coefficients held in memory (16 MiB per
 #: 100k rows at K = 16); larger ones read the rows each search needs from the file
@@ -41,23 +58,118 @@ class GraphStats:
     seconds: float = 0.0
 
 
-def read_graph(index):
-    """The graph of an open :class:`~nfdmatch.index.Index`: ``(neighbour, distance)``,
-    (N, K) int64 and (N, K) float64, or None when the index has none.
+def check_lists(rows, neighbour, distance, N: int) -> str | None:
+    """Why some of these graph rows are not valid lists (docs/index-format.md, "/graph"), or
+    None: ``rows`` (m,) their row numbers, ``neighbour`` / ``distance`` (m, K).
+
+    A neighbour outside 0..N-1 other than the padding -1, padding before a real neighbour or
+    with a finite distance, a row naming itself or a row twice, a NaN, a negative or
+    infinite distance of a real neighbour, distances that decrease along a list (by more than
+    the ties' 1e-9: tied distances are ordered by id)."""
+    problems = list_problems(rows, neighbour, distance, N)
+    for what, bad in problems.items():
+        if len(bad):
+            name = "neighbour" if what in NEIGHBOUR_PROBLEMS else "distance"
+            return f"/graph/{name}, row {int(bad[0])}: {what}"
+    return None
+
+
+NEIGHBOUR_PROBLEMS = ("a neighbour outside the index", "a row naming itself", "a row named twice")
+
+
+def list_problems(rows, neighbour, distance, N: int) -> dict:
+    """What :func:`check_lists` checks, as ``{problem: (n,) rows that have it}``."""
+    rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+    nb = np.asarray(neighbour, dtype=np.int64)
+    d = np.asarray(distance, dtype=np.float64)
+    pad = nb == -1
+    real = ~pad
+    with np.errstate(invalid="ignore"):
+        outside = ((nb < -1) | (nb >= N)).any(axis=1)
+        myself = (nb == rows[:, None]).any(axis=1)
+        twice = np.zeros(len(rows), dtype=bool)
+        if nb.shape[1] > 1:
+            ordered = np.sort(np.where(real, nb, -1 - np.arange(nb.shape[1])[None, :]), axis=1)
+            twice = (ordered[:, 1:] == ordered[:, :-1]).any(axis=1)
+        nan = np.isnan(d).any(axis=1)
+        # padding only after the real neighbours, with distance inf
+        bad_pad = (real[:, 1:] & pad[:, :-1]).any(axis=1) | (pad & (d != np.inf)).any(axis=1)
+        negative = (real & (d < 0)).any(axis=1)
+        infinite = (real & np.isinf(d)).any(axis=1)
+        dr = np.where(real, d, np.inf)
+        # ties (distances within TIE) are ordered by id: such a pair may descend by less than TIE
+        descending = (dr[:, 1:] < dr[:, :-1] - TIE).any(axis=1) if nb.shape[1] > 1 else np.zeros(len(rows), bool)
+    return {
+        "a neighbour outside the index": rows[outside],
+        "a row naming itself": rows[myself],
+        "a row named twice": rows[twice & ~outside],
+        "NaN": rows[nan],
+        "a negative distance": rows[negative & ~nan],
+        "an infinite distance for a neighbour": rows[infinite],
+        "padding (-1, inf) before a neighbour or with a finite distance": rows[bad_pad & ~nan],
+        "distances not ascending (nearest first)": rows[descending & ~nan & ~negative],
+    }
+
+
+def graph_datasets(index):
+    """``(neighbour, distance)`` datasets of an open index's ``/graph``, checked as a reader
+    checks every dataset (stored in the file, size, Fletcher-32 when the group says it has
+    it, shapes (N, k) with k its attribute), or None when the index has no graph.
 
     Raises IndexFormatError when the group is there but malformed."""
     h5 = index._h5
     if h5 is None or "graph" not in h5:
         return None
+    g = h5["graph"]
+    checksums = _graph_checksums(g)
+    if checksums is None:
+        raise IndexFormatError("corrupted nfdmatch index: /graph has an unknown checksums attribute", path=index.path)
+    file_size = int(h5.id.get_filesize())
+    try:
+        nb = stored_dataset(h5, "graph/neighbour", file_size, checksums)
+        d = stored_dataset(h5, "graph/distance", file_size, checksums)
+    except Problem as exc:
+        raise IndexFormatError(exc.message, path=index.path) from None
+    N = index.n_curves
+    k = _old_graph_k(index)
+    if len(nb.shape) != 2 or nb.shape != d.shape or nb.shape[0] != N or nb.shape[1] != k or k < 1:
+        raise IndexFormatError(
+            f"corrupted nfdmatch index: /graph holds {nb.shape} neighbours and {d.shape} distances "
+            f"for {N} curves and k = {k}",
+            path=index.path,
+        )
+    if nb.dtype.kind not in "iu" or d.dtype.kind != "f":
+        raise IndexFormatError("corrupted nfdmatch index: /graph has the wrong types", path=index.path)
+    return nb, d
+
+
+def _graph_checksums(g) -> bool | None:
+    value = g.attrs.get("checksums")
+    if value is None:
+        return False
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    return True if value == GRAPH_CHECKSUMS else None
+
+
+def read_graph(index):
+    """The graph of an open :class:`~nfdmatch.index.Index`: ``(neighbour, distance)``,
+    (N, K) int64 and (N, K) float64, or None when the index has none.
+
+    Raises IndexFormatError when the group is there but malformed (:func:`graph_datasets`)
+    or a list is not valid (:func:`check_lists`)."""
+    found = graph_datasets(index)
+    if found is None:
+        return None
+    ds_nb, ds_d = found
 
     def read():
-        g = h5["graph"]
-        return np.asarray(g["neighbour"][...], dtype=np.int64), np.asarray(g["distance"][...], dtype=np.float64)
+        return np.asarray(ds_nb[...], dtype=np.int64), np.asarray(ds_d[...], dtype=np.float64)
 
-    nb, dist = index._read(read)
-    N = index.n_curves
-    if nb.ndim != 2 or nb.shape != dist.shape or nb.shape[0] != N or (nb.size and (nb.min() < -1 or nb.max() >= N)):
-        raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
+    nb, dist = index._read(read, "/graph")
+    problem = check_lists(np.arange(len(nb)), nb, dist, index.n_curves)
+    if problem:
+        raise IndexFormatError(f"corrupted nfdmatch index: {problem}", path=index.path)
     return nb, dist
 
 
@@ -151,8 +263,9 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
     g.attrs["method"] = "exact"
     g.attrs["direction"] = "invariant"
     g.attrs["mirror"] = np.int64(0)
-    g.create_dataset("neighbour", data=neighbour)
-    g.create_dataset("distance", data=distance)
+    g.attrs["checksums"] = GRAPH_CHECKSUMS
+    create_checked(g, "neighbour", neighbour, chunk_rows=_CHUNK_ROWS)
+    create_checked(g, "distance", distance, chunk_rows=_CHUNK_ROWS)
     stats.seconds = time.perf_counter() - t0
     return stats
 
@@ -188,26 +301,27 @@ def graph_changes(old, k: int | None) -> bool:
 def read_graph_rows(index):
     """A reader of an open index's graph rows, ``rows -> (neighbour, distance)`` ((m, K)
     int64 / float64, in the order of ``rows``, repeats allowed), or None when the index has
-    no graph. Reads only the rows asked for (a query needs about M + M K of them)."""
-    h5 = index._h5
-    if h5 is None or "graph" not in h5:
+    no graph. Reads only the rows asked for (a query needs about M + M K of them); every
+    row read is checked (:func:`check_lists`): a bad one is an IndexFormatError."""
+    found = graph_datasets(index)
+    if found is None:
         return None
-    g = h5["graph"]
-    ds_nb, ds_d = g.get("neighbour"), g.get("distance")
+    ds_nb, ds_d = found
     N = index.n_curves
-    if ds_nb is None or ds_d is None or len(ds_nb.shape) != 2 or ds_nb.shape != ds_d.shape or ds_nb.shape[0] != N:
-        raise IndexFormatError("corrupted nfdmatch index: /graph does not match /curves", path=index.path)
 
     def read(rows):
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         if len(rows) == 0:
             return np.zeros((0, ds_nb.shape[1]), np.int64), np.zeros((0, ds_nb.shape[1]))
+        if rows.min() < 0 or rows.max() >= N:
+            raise IndexError(f"row out of range 0..{N - 1}")
         uniq, inverse = unique_rows(rows)
-        nb, d = index._read(lambda: (np.asarray(ds_nb[uniq], dtype=np.int64), np.asarray(ds_d[uniq], dtype=np.float64)))
-        if nb.min() < -1 or nb.max() >= N:
-            raise IndexFormatError(
-                "corrupted nfdmatch index: /graph/neighbour holds a row outside the index", path=index.path
-            )
+        nb, d = index._read(
+            lambda: (np.asarray(ds_nb[uniq], dtype=np.int64), np.asarray(ds_d[uniq], dtype=np.float64)), "/graph"
+        )
+        problem = check_lists(uniq, nb, d, N)
+        if problem:
+            raise IndexFormatError(f"corrupted nfdmatch index: {problem}", path=index.path)
         return nb[inverse], d[inverse]
 
     return read

@@ -21,7 +21,7 @@ from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
 from .paths import curve_ids
-from .schema import CRC_ROWS, STRING_DATASETS, open_checked, Problem, _short, block_crcs
+from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
 from .schema import FILE_FIELDS, _SHA, STR, curve_layout
 
 __all__ = ["Finding", "VerifyReport", "verify_index"]
@@ -148,6 +148,7 @@ def verify_index(path) -> VerifyReport:
     try:
         report = VerifyReport(p, meta["format_version"], meta["checksums"], curves=meta["n_curves"])
         _verify(h5, meta, files, report)
+        _verify_graph(h5, meta, report)
     finally:
         h5.close()
     return report
@@ -375,3 +376,108 @@ def _verify(h5, meta, files, report) -> None:
                     f"cells with members outside their radius (positions {_rows_text(bad)})",
                 )
             )
+
+
+# --------------------------------------------------------------------------- /graph
+
+
+def _verify_graph(h5, meta, report) -> None:
+    """``/graph``, when the index has one: how it is stored, its checksums (every chunk
+    read), every list valid (:func:`~.graph.list_problems`), and the lists consistent with
+    each other (docs/index-format.md, "/graph")."""
+    from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, list_problems
+
+    g = h5.get("graph")
+    if g is None:
+        return
+    N = meta["n_curves"]
+    attr = g.attrs.get("checksums")
+    attr = attr.decode("utf-8", "replace") if isinstance(attr, bytes) else attr
+    if attr not in (None, GRAPH_CHECKSUMS):
+        report.findings.append(Finding("/graph", "", f"unknown checksums attribute {attr!r}"))
+        return
+    file_size = int(h5.id.get_filesize())
+    datasets = {}
+    for name in ("neighbour", "distance"):
+        try:
+            datasets[name] = stored_dataset(h5, f"graph/{name}", file_size, attr == GRAPH_CHECKSUMS)
+        except Problem as exc:
+            report.findings.append(
+                Finding(f"/graph/{name}", "", exc.message.removeprefix("corrupted nfdmatch index: "))
+            )
+    if len(datasets) < 2:
+        return
+    nb_ds, d_ds = datasets["neighbour"], datasets["distance"]
+    k = g.attrs.get("k")
+    k = int(k) if isinstance(k, (int, np.integer)) and not isinstance(k, bool) else k
+    shape_ok = len(nb_ds.shape) == 2 and nb_ds.shape == d_ds.shape and nb_ds.shape[0] == N
+    if not shape_ok or not isinstance(k, int) or k != nb_ds.shape[1] or k < 1:
+        report.findings.append(
+            Finding("/graph", "", f"shapes {nb_ds.shape} and {d_ds.shape} do not fit {N} curves and k = {k!r}")
+        )
+        return
+    report.datasets += 2
+    nb = np.empty(nb_ds.shape, dtype=np.int64)
+    dist = np.empty(d_ds.shape, dtype=np.float64)
+    unreadable = False
+    for name, ds, out in (("neighbour", nb_ds, nb), ("distance", d_ds, dist)):
+        for a, b in _blocks(ds):
+            try:
+                out[a:b] = ds[a:b]
+            except Exception as exc:
+                text = _short(exc)
+                what = (
+                    "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
+                )
+                report.findings.append(Finding(f"/graph/{name}", f"{a}..{b - 1}", what))
+                unreadable = True
+    if unreadable:
+        return
+    found = False
+    for what, bad in list_problems(np.arange(N), nb, dist, N).items():
+        if len(bad):
+            name = "/graph/neighbour" if what in NEIGHBOUR_PROBLEMS else "/graph/distance"
+            report.findings.append(Finding(name, _rows_text(bad), f"{what}, {len(bad)} rows"))
+            found = True
+    if found or not N:
+        return
+    bad = _inconsistent_lists(nb, dist)
+    if len(bad):
+        report.findings.append(
+            Finding(
+                "/graph/distance",
+                _rows_text(bad),
+                f"lists inconsistent with each other (a distance that differs both ways, or a row "
+                f"missing from a list it is near enough to be in), {len(bad)} rows",
+            )
+        )
+
+
+#: relative tolerance of the graph's consistency checks (distances from complex64 coefficients)
+_GRAPH_TOL = 1e-5
+
+
+def _inconsistent_lists(nb: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Rows whose list contradicts another's: for every stored edge i -> j at distance d,
+    j -> i, when stored, has the same distance, and when d is below j's K-th distance
+    (beyond rounding), i is in j's list (the lists are exact top-K lists of one metric)."""
+    N, k = nb.shape
+    i = np.repeat(np.arange(N), k)
+    j, d = nb.reshape(-1), dist.reshape(-1)
+    real = j >= 0
+    i, j, d = i[real], j[real], d[real]
+    full = (nb >= 0).all(axis=1)
+    kth = np.where(full, dist[:, -1], np.inf)  # a padded list holds every other row
+    key_ij = i * N + j
+    order = np.argsort(key_ij)
+    sorted_keys = key_ij[order]
+    back = j * N + i
+    at = np.searchsorted(sorted_keys, back)
+    at_c = np.minimum(at, len(sorted_keys) - 1)
+    present = sorted_keys[at_c] == back
+    tol = _GRAPH_TOL * np.maximum(d, 1e-12) + 1e-9
+    differs = present & (np.abs(d[order[at_c]] - d) > tol)
+    with np.errstate(invalid="ignore"):
+        near = np.where(np.isinf(kth[j]), True, d < kth[j] - (_GRAPH_TOL * kth[j] + 1e-9))
+    missing = ~present & near
+    return np.unique(np.concatenate([i[differs], j[missing]]))

@@ -15,12 +15,14 @@ whether a curve is near the query's neighbours. The method (chosen by measuremen
    has no class structure).
 
 :func:`diffused_similarity` does this on a full distance matrix (``matrix --rerank``);
-:func:`rerank_index` on a query's exact top M joined to an index's stored graph
-(``query --rerank``).
+:func:`rerank_index` orders a query's exact top M by the same scores computed on the
+index's whole stored graph, the PageRank rows by local push (:mod:`.diffusion`), the query
+joining the graph through its exact k nearest (``query --rerank``).
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
@@ -29,6 +31,7 @@ import numpy as np
 
 from ..defaults import DEFAULT_RERANK_DEPTH
 from ..errors import IndexFormatError, ParameterError
+from .diffusion import GraphWalk
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -39,12 +42,12 @@ if TYPE_CHECKING:
 
 __all__ = [
     "diffused_similarity",
-    "rerank_scores",
     "rerank_index",
     "SCALE_NEIGHBOURS",
     "ALPHA",
     "MIX",
     "MIN_DEPTH",
+    "MATRIX_TOLERANCE",
     "DEFAULT_DEPTH",
 ]
 
@@ -56,6 +59,11 @@ ALPHA = 0.8
 MIX = 0.2
 #: a query's exact candidates (--rerank-depth): at least, and by default (defined with the CLI's defaults)
 MIN_DEPTH = DEFAULT_DEPTH = DEFAULT_RERANK_DEPTH
+#: ``query --rerank`` of a stored curve with ``exclude_self`` against ``matrix --rerank``: every
+#: score within this (the push leaves residuals below :data:`~.diffusion.TOLERANCE` per node;
+#: measured at most ~1e-4 on Kimia-99 and generated families), so the two orders agree but for
+#: scores closer than twice this
+MATRIX_TOLERANCE = 1e-3
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
 
@@ -115,88 +123,6 @@ def diffused_similarity(
     return (S + S.T) / 2  # symmetric to rounding: the cosine and W are, up to round-off
 
 
-def rerank_scores(
-    query_distances,
-    candidates,
-    graph_rows,
-    graph_distances,
-    *,
-    merged=None,
-    outside_scale=None,
-    k: int = SCALE_NEIGHBOURS,
-    alpha: float = ALPHA,
-    mix: float = MIX,
-) -> np.ndarray:
-    """Diffused scores of a query's candidates, from its exact distances and the stored graph.
-
-    Parameters
-    ----------
-    query_distances : (M,) float, exact distances from the query to the candidates (its
-        exact top M, so its own k nearest are among them).
-    candidates : (M,) int64, the candidates' rows in the collection.
-    graph_rows, graph_distances : (M, G) int64 / float, each candidate's G >= k nearest
-        other rows and their distances, ascending (-1 / inf pad).
-    merged : (M,) bool or None: candidates that are the query itself (a stored copy: its
-        edges become the query's; its score is not used).
-    outside_scale : callable ``rows -> (len(rows),) float`` giving the scale of rows outside
-        the candidates that the candidates link to (their k-th stored distance); None
-        treats such edges as having the linking node's own scale.
-
-    Returns
-    -------
-    (M,) float64 scores, higher is closer (NaN for merged candidates).
-
-    The local graph holds the query and the candidates; a candidate's edges are its stored
-    neighbours that are candidates (an edge leaving the set still counts in the row's total
-    weight, so its walk mass leaks instead of being redistributed) plus the query when the
-    query is among its k nearest. One (M+1) x (M+1) solve.
-    """
-    qd = np.asarray(query_distances, dtype=np.float64)
-    cand = np.asarray(candidates, dtype=np.int64)
-    gr = np.asarray(graph_rows, dtype=np.int64)
-    gd = np.asarray(graph_distances, dtype=np.float64)
-    M = len(cand)
-    merged = np.zeros(M, dtype=bool) if merged is None else np.asarray(merged, dtype=bool)
-    if M == 0:
-        return np.zeros(0)
-    # local nodes: 0 the query (and its stored copies), then the other candidates
-    keep = np.flatnonzero(~merged)
-    node_of = {int(r): 0 for r in cand[merged]}
-    node_of.update({int(cand[c]): i + 1 for i, c in enumerate(keep)})
-    n = len(keep) + 1
-    # each node's k nearest: (node or -1 outside, row, distance)
-    lists = []
-    qorder = keep[np.argsort(qd[keep], kind="stable")][:k]
-    lists.append([(node_of[int(cand[c])], int(cand[c]), float(qd[c])) for c in qorder])
-    for c in keep:
-        entries = [(node_of.get(int(r), -1), int(r), float(d)) for r, d in zip(gr[c], gd[c]) if r >= 0]
-        if not merged.any():
-            entries.append((0, -1, float(qd[c])))
-        entries.sort(key=lambda e: e[2])  # stable: the stored order breaks ties
-        lists.append(entries[:k])
-    s = np.array([max(lst[-1][2], 1e-12) if lst else 1.0 for lst in lists])
-    outside = sorted({row for lst in lists for node, row, _ in lst if node < 0})
-    s_out = {}
-    if outside and outside_scale is not None:
-        s_out = dict(zip(outside, np.maximum(np.asarray(outside_scale(np.array(outside)), dtype=np.float64), 1e-12)))
-    P = np.zeros((n, n))
-    total = np.ones(n)  # the self-loop, weight 1
-    for i, lst in enumerate(lists):
-        P[i, i] = 1.0
-        for node, row, d in lst:
-            sj = s[node] if node >= 0 else s_out.get(row, s[i])
-            w = np.exp(-d * d / (s[i] * sj))
-            total[i] += w
-            if node >= 0:
-                P[i, node] += w
-    P /= total[:, None]
-    cos = _pagerank_cosine(P, alpha)[0, 1:]
-    direct = np.exp(-(qd[keep] ** 2) / (s[0] * s[1:]))
-    out = np.full(M, np.nan)
-    out[keep] = (1 - mix) * cos + mix * direct
-    return out
-
-
 def rerank_index(
     index,
     queries: Sequence[Curve],
@@ -215,8 +141,9 @@ def rerank_index(
     queries : sequence of :class:`~nfdmatch.curve.Curve`.
     top : matches per query (at most ``depth``).
     depth : M, the query's exact candidates (the pruned exact search's top M), >= 100.
-    exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is merged
-        with the query in the graph and left out of the results.
+    exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is the
+        query in the graph (its stored row and PageRank) and is left out of the results;
+        the scores are then ``matrix --rerank``'s within :data:`MATRIX_TOLERANCE`.
     progress, threads : as in :func:`~nfdmatch.search.search_index`.
 
     Returns
@@ -228,13 +155,14 @@ def rerank_index(
 
     Raises
     ------
-    IndexFormatError : the index has no graph, or one of fewer than 8 neighbours per row.
+    IndexFormatError : the index has no graph, one of fewer than 8 neighbours per row, or a
+        graph row the walk reads is damaged or not a valid list (docs/index-format.md).
     ParameterError : depth below 100, top above depth.
 
-    Deterministic: the same index and queries give the same rows and scores.
+    Deterministic: the same index and queries give the same rows and scores, and a query
+    gets the same scores alone as in any batch (each source's push is independent).
     """
     from .index_search import search_index
-    from .knn import is_self
 
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < MIN_DEPTH:
         raise ParameterError(f"rerank depth must be an integer of at least {MIN_DEPTH}, got {depth!r}")
@@ -257,19 +185,24 @@ def rerank_index(
             path=index.path,
         )
     exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
-    locate = getattr(index, "locate", None)
-    results = []
+    is_self = _self_rule(getattr(index, "locate", None))
+    N = index.n_curves
+    walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA)
+    plans = []
     for q, found in zip(queries, exact):
-        if not found:
+        rows = np.array([m.row for m in found], dtype=np.int64)
+        merged = np.array([exclude_self and is_self(q.id, m.id) for m in found], dtype=bool)
+        plans.append((rows, np.array([m.distance for m in found], dtype=np.float64), merged))
+    # every candidate's PageRank on the stored graph, once for the batch
+    union = np.unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
+    vectors = _Vectors(union, *walk.pagerank(union))
+    results = []
+    dense = np.zeros(N + 1)
+    for found, (rows, qd, merged) in zip(exact, plans):
+        if not len(found):
             results.append([])
             continue
-        rows = np.array([m.row for m in found], dtype=np.int64)
-        qd = np.array([m.distance for m in found])
-        merged = np.array([exclude_self and is_self(q.id, m.id, locate) for m in found], dtype=bool)
-        gr, gd = reader(rows)
-        scores = rerank_scores(
-            qd, rows, gr, gd, merged=merged, outside_scale=lambda r: _kth(reader(r)[1], SCALE_NEIGHBOURS)
-        )
+        scores = _query_scores(walk, vectors, rows, qd, merged, dense)
         idx = [i for i in range(len(found)) if not merged[i]]
         idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i].rank))
         results.append(
@@ -279,5 +212,111 @@ def rerank_index(
     return results, stats
 
 
-def _kth(distances: np.ndarray, k: int) -> np.ndarray:
-    return _scales(distances, k)
+def _self_rule(locate):
+    """:func:`~nfdmatch.search.knn.is_self` with each id resolved once per call (a batch
+    asks about the same stored ids query after query)."""
+    from .knn import STDIN_ID, _curve_key
+
+    where = locate or (lambda i: i)
+    stored_key = functools.lru_cache(maxsize=None)(lambda i: _curve_key(where(i)))
+    query_key = functools.lru_cache(maxsize=None)(_curve_key)
+    return lambda q, m: q != STDIN_ID and (m == q or stored_key(m) == query_key(q))
+
+
+class _Vectors:
+    """The PageRank vectors of the stored rows ``union`` (ascending), as returned by
+    :meth:`GraphWalk.pagerank`, with their norms."""
+
+    def __init__(self, union, start, node, value):
+        self.union, self.start, self.node, self.value = union, start, node, value
+        sq = value**2
+        self.norm = np.sqrt(np.add.reduceat(sq, start[:-1])) if len(value) else np.zeros(0)
+
+    def entries(self, rows):
+        """``(owner, node, value)``: the entries of the rows' vectors, ``owner`` the position
+        in ``rows`` each entry belongs to."""
+        pos = np.searchsorted(self.union, rows)
+        a, b = self.start[pos], self.start[pos + 1]
+        lengths = b - a
+        owner = np.repeat(np.arange(len(rows)), lengths)
+        first = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        at = np.arange(lengths.sum()) - np.repeat(first, lengths) + np.repeat(a, lengths)
+        return owner, self.node[at], self.value[at]
+
+    def norms(self, rows):
+        return self.norm[np.searchsorted(self.union, rows)]
+
+
+def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -> np.ndarray:
+    """Scores of one query's candidates ``rows`` (exact distances ``qd``, ascending; ``merged``:
+    the candidates that are the query's own stored curve, whose score is NaN). ``dense``:
+    (N + 1,) zeros, a work array (left zero)."""
+    k, N, alpha = walk.k, walk.N, walk.alpha
+    out = np.full(len(rows), np.nan)
+    keep = np.flatnonzero(~merged)
+    if not len(keep):
+        return out
+    cand = rows[keep]
+    s_cand = walk.scales(cand)
+    owner, node, value = vectors.entries(cand)
+    back = np.zeros(len(keep))  # the candidates' own PageRank at the query (first order)
+    if merged.any():
+        # the query is a stored row: its PageRank is that row's, its scale that row's
+        self_row = rows[np.flatnonzero(merged)[0]]
+        _, q_node, q_val = vectors.entries(np.array([self_row]))
+        dense[q_node] = q_val
+        s_q = walk.scales([self_row])[0]
+    else:
+        # the query joins the graph as node N: its k nearest (exact), and the candidates
+        # whose k nearest it enters (their lists and scales change while it is there)
+        order = keep[np.argsort(qd[keep], kind="stable")][:k]
+        q_nb = np.full((1, k), -1, dtype=np.int64)
+        q_d = np.full((1, k), np.inf)
+        q_nb[0, : len(order)], q_d[0, : len(order)] = rows[order], qd[order]
+        walk.ensure(cand)
+        kth = walk._d[cand, -1]  # inf when the list is padded: the query enters it
+        enter = np.flatnonzero(qd[keep] < kth)
+        into = cand[enter]
+        nb = np.concatenate([walk._nb[into], np.full((len(into), 1), N)], axis=1)
+        d = np.concatenate([walk._d[into], qd[keep][enter, None]], axis=1)
+        pick = np.argsort(d, axis=1, kind="stable")[:, :k]
+        nb, d = np.take_along_axis(nb, pick, axis=1), np.take_along_axis(d, pick, axis=1)
+        with walk.overlay(np.concatenate([[N], into]), np.concatenate([q_nb, nb]), np.concatenate([q_d, d])):
+            s_q = walk.scales([N])[0]
+            s_cand = walk.scales(cand)
+            q_targets, q_prob = walk.transitions(np.array([N]))
+            targets, prob = walk.transitions(into)
+        # first order: a candidate's walk reaches the query through the rows it entered
+        to_q = (prob * (targets == N)).sum(axis=1)
+        dense[into] = alpha * to_q
+        back = np.bincount(owner, weights=dense[node] * value, minlength=len(cand))
+        dense[into] = 0.0
+        # the query's PageRank from its first step: pi_q = ((1 - alpha) e_q + alpha sum_v P_qv
+        # pi_v) / (1 - alpha P_qq), each neighbour's pi_v its stored vector plus its mass at q
+        self_p = float(q_prob[0, 0])  # the self loop comes first
+        nbrs, p_nb = q_targets[0, 1:], q_prob[0, 1:]
+        real = nbrs != N
+        nbrs, p_nb = nbrs[real], p_nb[real]
+        by_row = np.argsort(cand, kind="stable")
+        at = by_row[np.searchsorted(cand[by_row], nbrs)]  # the query's neighbours are candidates
+        v_owner, v_node, v_value = vectors.entries(nbrs)
+        norm = 1.0 / (1 - alpha * self_p)
+        np.add.at(dense, v_node, alpha * p_nb[v_owner] * v_value * norm)
+        dense[N] = ((1 - alpha) + alpha * float((p_nb * back[at]).sum())) * norm
+        q_node = np.concatenate([_unique_nodes(v_node), [N]])
+        q_val = dense[q_node]
+    dot = np.bincount(owner, weights=dense[node] * value, minlength=len(cand)) + dense[N] * back
+    norm_c = np.sqrt(vectors.norms(cand) ** 2 + back**2)
+    norm_q = max(float(np.sqrt((q_val**2).sum())), 1e-300)
+    dense[q_node] = 0.0
+    cos = dot / (norm_q * np.maximum(norm_c, 1e-300))
+    direct = np.exp(-(qd[keep] ** 2) / (s_q * s_cand))
+    out[keep] = (1 - MIX) * cos + MIX * direct
+    return out
+
+
+def _unique_nodes(nodes: np.ndarray) -> np.ndarray:
+    nodes = np.sort(nodes)
+    keep = np.ones(len(nodes), dtype=bool)
+    keep[1:] = nodes[1:] != nodes[:-1]
+    return nodes[keep]
