@@ -185,10 +185,10 @@ def _pruned(index, qcoef, tops, cascade: Cascade, stats: SearchStats, threads, p
 def without_self(index, queries, results: list[list[RankedMatch]], top: int | None) -> list[list[RankedMatch]]:
     """Each query's matches without its own curve (:func:`~nfdmatch.search.knn.drop_self`),
     at most ``top``: the answer of a search asked for ``top + 1``."""
-    from .knn import drop_self
+    from .knn import drop_self, self_rule
 
-    locate = getattr(index, "locate", None)
-    return [drop_self(q.id, found, top, locate) for q, found in zip(queries, results)]
+    rule = self_rule(getattr(index, "locate", None))
+    return [drop_self(q.id, found, top, rule=rule) for q, found in zip(queries, results)]
 
 
 def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:

@@ -5,6 +5,7 @@ matches (``exclude_self``, shared by every search that offers it).
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Sequence
 
@@ -14,7 +15,7 @@ from ..curve import STDIN_ID, Curve
 from ..errors import ParameterError
 from ..records import RankedMatch
 
-__all__ = ["as_queries", "is_self", "drop_self", "search", "stored_descriptors"]
+__all__ = ["as_queries", "self_rule", "is_self", "drop_self", "search", "stored_descriptors"]
 
 
 def as_queries(queries) -> list[Curve]:
@@ -37,28 +38,52 @@ def as_queries(queries) -> list[Curve]:
     return out
 
 
-def _curve_key(curve_id: str) -> str:
-    """The file (resolved: symlinks, relative spellings) and curve an id names."""
+def _curve_key(curve_id: str) -> tuple | None:
+    """The file (its device and inode: however the path is spelled, symbolic links
+    followed) and curve an id names; None when it names no file here. One stat: a batch
+    checks every match of every query."""
     from ..formats import split_selector
 
     path, selected = split_selector(curve_id)
-    return os.path.realpath(path) + ("" if selected is None else f"#{selected}")
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino, selected
+
+
+def self_rule(locate=None):
+    """``rule(query_id, match_id) -> bool``: whether a match names the query's curve: the
+    same id, or the same curve of the same file however the path is spelled (never for
+    stdin). ``locate``: id -> a path that opens it here (an index's ids are relative to its
+    folder: ``Index.locate``). Each id is resolved once per rule (a batch asks about the
+    same ids query after query)."""
+    where = locate or (lambda i: i)
+    stored_key = functools.lru_cache(maxsize=None)(lambda i: _curve_key(where(i)))
+    query_key = functools.lru_cache(maxsize=None)(_curve_key)
+
+    def rule(query_id: str, match_id: str) -> bool:
+        if query_id == STDIN_ID:
+            return False
+        if match_id == query_id:
+            return True
+        mine = query_key(query_id)
+        return mine is not None and stored_key(match_id) == mine
+
+    return rule
 
 
 def is_self(query_id: str, match_id: str, locate=None) -> bool:
-    """Whether ``match_id`` names the query's curve: the same id, or the same curve of the
-    same file however the path is spelled (never for stdin). ``locate``: id -> a path that
-    opens it here (an index's ids are relative to its folder: ``Index.locate``)."""
-    if query_id == STDIN_ID:
-        return False
-    where = locate or (lambda i: i)
-    return match_id == query_id or _curve_key(where(match_id)) == _curve_key(query_id)
+    """One question of :func:`self_rule`."""
+    return self_rule(locate)(query_id, match_id)
 
 
-def drop_self(query_id: str, matches: list[RankedMatch], k: int | None, locate=None) -> list[RankedMatch]:
-    """``matches`` (ranked) without those naming the query's curve (:func:`is_self`), ranks
-    renumbered, at most ``k``. The search asked for one match more."""
-    kept = [m for m in matches if not is_self(query_id, m.id, locate)]
+def drop_self(query_id: str, matches: list[RankedMatch], k: int | None, locate=None, rule=None) -> list[RankedMatch]:
+    """``matches`` (ranked) without those naming the query's curve (:func:`self_rule`;
+    ``rule`` one made already, for a batch), ranks renumbered, at most ``k``. The search
+    asked for one match more."""
+    rule = rule or self_rule(locate)
+    kept = [m for m in matches if not rule(query_id, m.id)]
     return [m.replace(rank=rank) for rank, m in enumerate(kept[:k] if k is not None else kept, start=1)]
 
 

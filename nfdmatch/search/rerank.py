@@ -22,7 +22,6 @@ joining the graph through its exact k nearest (``query --rerank``).
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
@@ -32,6 +31,7 @@ import numpy as np
 from ..defaults import DEFAULT_RERANK_DEPTH
 from ..errors import IndexFormatError, ParameterError
 from .diffusion import GraphWalk
+from .knn import self_rule
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -185,7 +185,7 @@ def rerank_index(
             path=index.path,
         )
     exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
-    is_self = _self_rule(getattr(index, "locate", None))
+    is_self = self_rule(getattr(index, "locate", None))
     N = index.n_curves
     walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA)
     plans = []
@@ -210,17 +210,6 @@ def rerank_index(
         )
     stats.seconds = time.perf_counter() - t0
     return results, stats
-
-
-def _self_rule(locate):
-    """:func:`~nfdmatch.search.knn.is_self` with each id resolved once per call (a batch
-    asks about the same stored ids query after query)."""
-    from .knn import STDIN_ID, _curve_key
-
-    where = locate or (lambda i: i)
-    stored_key = functools.lru_cache(maxsize=None)(lambda i: _curve_key(where(i)))
-    query_key = functools.lru_cache(maxsize=None)(_curve_key)
-    return lambda q, m: q != STDIN_ID and (m == q or stored_key(m) == query_key(q))
 
 
 class _Vectors:
