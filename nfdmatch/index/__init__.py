@@ -60,18 +60,6 @@ def __getattr__(name):
 
     if name in ("build_index", "BuildReport"):
         return getattr(importlib.import_module(f"{__name__}.build"), name)
-    if name in (
-        "build",
-        "plan",
-        "commit",
-        "pool",
-        "writer",
-        "graph",
-        "lock",
-        "verify",
-        "paths",
-        "search_group",
-        "arrays",
-    ):
+    if name in _SUBMODULES:
         return importlib.import_module(f"{__name__}.{name}")  # submodules, as before the lazy import
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
