@@ -13,13 +13,12 @@ from .inputs import read_inputs, read_one
 from .options import (
     check_writable,
     descriptor_options,
-    exclude_self_option,
+    match_list_options,
     format_option,
     input_format_option,
     matching,
     matching_options,
     output_option,
-    paths_option,
     rows_format_option,
     say,
 )
@@ -127,12 +126,7 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
 @main.command()
 @click.argument("query_spec", metavar="QUERY")
 @click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
-@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Number of matches to list.")
-@click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only list matches at most this far.")
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
-@click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
-@paths_option
-@exclude_self_option
+@match_list_options("Number of matches to list.", "Only files in folders whose name matches, e.g. '*.csv'.")
 @matching_options
 @descriptor_options
 @input_format_option

@@ -441,3 +441,29 @@ exclude_self_option = click.option(
     help="Drop the query itself from its matches: a match with the query's id, or the same curve of "
     "the same file (however the path is spelled).",
 )
+
+
+def match_list_options(top_help: str, glob_help: str):
+    """The options of every command that lists a query's matches (``rank``, ``query``):
+    --top, --max-distance, --glob, --details, --paths, --exclude-self."""
+
+    def decorate(f):
+        for option in reversed(
+            (
+                click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help=top_help),
+                click.option(
+                    "--max-distance",
+                    type=click.FloatRange(min=0),
+                    default=None,
+                    help="Only list matches at most this far.",
+                ),
+                click.option("--glob", "glob_pattern", default=None, help=glob_help),
+                click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
+                paths_option,
+                exclude_self_option,
+            )
+        ):
+            f = option(f)
+        return f
+
+    return decorate

@@ -9,14 +9,13 @@ from ..defaults import DEFAULT_RERANK_DEPTH
 from ..matching import DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
-    exclude_self_option,
+    match_list_options,
     index_option,
     input_format_option,
     matching,
     matching_options,
     note,
     output_option,
-    paths_option,
     rows_format_option,
     say,
 )
@@ -28,12 +27,7 @@ from .group import main
 @main.command()
 @click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
 @index_option
-@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Matches per query.")
-@click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only list matches at most this far.")
-@click.option("--glob", "glob_pattern", default=None, help="Only query files in folders whose name matches.")
-@click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored.")
-@paths_option
-@exclude_self_option
+@match_list_options("Matches per query.", "Only query files in folders whose name matches.")
 @click.option(
     "--exhaustive",
     is_flag=True,
