@@ -5,6 +5,7 @@ build's lock. The old file stays what queries read until the move."""
 from __future__ import annotations
 
 import os
+import secrets
 import time
 
 import h5py
@@ -48,8 +49,6 @@ def write_new_index(
     shown = index_path if name is None else name
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
-    import secrets
-
     tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}-{secrets.token_hex(4)}.h5")
     items, tasks, removed, params = plan.items, plan.tasks, plan.removed, plan.params
     K = params["harmonics"]
@@ -85,15 +84,7 @@ def write_new_index(
         try:
             space = Space(h5)
             space.reserve(0)  # the superblock, attributes, small tables
-            attrs = h5.attrs
-            attrs["format"] = INDEX_FORMAT
-            attrs["format_version"] = np.int64(FORMAT_VERSION)
-            attrs["nfdmatch_version"] = __version__
-            attrs["samples"] = np.int64(params["samples"])
-            attrs["harmonics"] = np.int64(params["harmonics"])
-            attrs["scale"] = params["scale"]
-            attrs["created"] = old.created if old is not None and old.created else now
-            attrs["updated"] = now
+            _write_attributes(h5.attrs, params, old, now)
             writer = CurveWriter(h5, K, space)
             run = CopyRun(old, writer)
             for item in items:
@@ -182,6 +173,18 @@ def write_new_index(
         action = actions[path]
         report.changes.append((action, path))
         setattr(report, action, getattr(report, action) + 1)
+
+
+def _write_attributes(attrs, params: dict, old, now: str) -> None:
+    """The root attributes of a new index file (docs/index-format.md)."""
+    attrs["format"] = INDEX_FORMAT
+    attrs["format_version"] = np.int64(FORMAT_VERSION)
+    attrs["nfdmatch_version"] = __version__
+    attrs["samples"] = np.int64(params["samples"])
+    attrs["harmonics"] = np.int64(params["harmonics"])
+    attrs["scale"] = params["scale"]
+    attrs["created"] = old.created if old is not None and old.created else now
+    attrs["updated"] = now
 
 
 def _write_cause(exc: BaseException) -> str:

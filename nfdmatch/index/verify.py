@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
+from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, list_problems
 from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
 from .schema import FILE_FIELDS, _SHA, STR, curve_layout
@@ -385,8 +386,6 @@ def _verify_graph(h5, meta, report) -> None:
     """``/graph``, when the index has one: how it is stored, its checksums (every chunk
     read), every list valid (:func:`~.graph.list_problems`), and the lists consistent with
     each other (docs/index-format.md, "/graph")."""
-    from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, list_problems
-
     g = h5.get("graph")
     if g is None:
         return
