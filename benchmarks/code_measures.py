@@ -83,7 +83,9 @@ def main() -> None:
     for n, m in sorted(long_modules, reverse=True):
         print(f"|   {m} | {n} |")
     print(f"| private names imported across modules | {len(private)} |")
-    print(f"| imports inside functions (nfdmatch.index) | {sum(v for k, v in inner.items() if k.startswith('nfdmatch.index'))} |")
+    print(
+        f"| imports inside functions (nfdmatch.index) | {sum(v for k, v in inner.items() if k.startswith('nfdmatch.index'))} |"
+    )
     print(f"| import circles (top-level imports) | {len(circles)} {circles[:3]} |")
     print(f"| import circles in nfdmatch.index, imports inside functions counted | {len(held)} {held[:3]} |")
 
