@@ -8,7 +8,7 @@ imported inside the commands that need them.
 
 from __future__ import annotations
 
-from . import curves, extract_cmd, index_cmds, pictures  # noqa: F401  (register the commands)
+from . import curves, extract_cmd, index_cmds, join_cmds, pictures  # noqa: F401  (register the commands)
 from .group import main
 
 __all__ = ["main"]

@@ -19,6 +19,7 @@ from .lock import _Lock
 from .paths import curve_ids, found_location, index_file, openable, source_location, stored
 from .pool import _run_tasks, _sha256
 from .reader import Index
+from .changes import write_changes
 from .graph import GraphStats, graph_changes, write_graph
 from .search_group import write_search_group
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _open_checked, _Problem, _short, default_index_path
@@ -553,6 +554,7 @@ def _write(
         return results.pop(task)
 
     records: list[FileRecord] = []
+    fresh: list[tuple[int, int]] = []  # (start, count): rows added or recomputed (/changes)
     actions: dict[str, str] = {p: "removed" for p in removed}
     now = _utcnow()
     try:
@@ -615,6 +617,7 @@ def _write(
                     piece["file"] = np.full(n, file_row, dtype=np.int32)
                     writer.append(piece)
                     records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
+                    fresh.append((start, n))
                     actions[path] = "added" if r is None else "updated"
                 else:
                     records.append(
@@ -626,6 +629,7 @@ def _write(
             writer.flush()
             _write_files_table(h5, records, space)
             _write_sources(h5, *sources)
+            write_changes(h5, fresh)
             # the cells: features, squared norms, row numbers and first harmonics of every row
             space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
