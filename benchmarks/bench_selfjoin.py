@@ -65,10 +65,11 @@ def generate(folder: str, families: int, files: int = 100, vertices: int = 32, s
     return labels
 
 
-def timed(cmd, env=None) -> tuple[float, float, subprocess.CompletedProcess]:
-    """(seconds, peak MB, process) of a command run under /usr/bin/time."""
+def timed(cmd, env) -> tuple[float, float, subprocess.CompletedProcess]:
+    """(seconds, peak MB, process) of a command run under /usr/bin/time, in the working
+    folder (not a source tree: ``python -m`` puts the working folder first on sys.path)."""
     t0 = time.perf_counter()
-    proc = subprocess.run(["/usr/bin/time", "-f", "MAXRSS %M"] + cmd, capture_output=True, text=True, env=env, cwd=ROOT)
+    proc = subprocess.run(["/usr/bin/time", "-f", "MAXRSS %M"] + cmd, capture_output=True, text=True, env=env)
     seconds = time.perf_counter() - t0
     if proc.returncode != 0:
         sys.exit(f"failed ({proc.returncode}): {' '.join(cmd)}\n{proc.stderr}")
@@ -78,7 +79,7 @@ def timed(cmd, env=None) -> tuple[float, float, subprocess.CompletedProcess]:
 
 def tree_env(tree: str) -> dict:
     env = dict(os.environ)
-    env["PYTHONPATH"] = tree
+    env["PYTHONPATH"] = tree  # ahead of the editable install of this tree
     return env
 
 
@@ -143,8 +144,9 @@ def main():
     ap.add_argument("--skip-base", action="store_true", help="this tree only")
     ap.add_argument("--work", default=None, help="folder for the data (default: a temporary one, removed)")
     args = ap.parse_args()
-    work = args.work or tempfile.mkdtemp(prefix="bench-selfjoin-")
+    work = os.path.abspath(args.work or tempfile.mkdtemp(prefix="bench-selfjoin-"))
     os.makedirs(work, exist_ok=True)
+    os.chdir(work)  # the commands run here: not in a source tree
     py = [sys.executable, "-m", "nfdmatch"]
     trees = [("this tree", ROOT)] + ([] if args.skip_base else [(BASE, base_tree(work))])
     rows = []
@@ -154,7 +156,7 @@ def main():
         labels = generate(folder, args.curves // MEMBERS)
         plain = os.path.join(work, f"plain-{args.curves}.h5")
         if not os.path.exists(plain):
-            timed(py + ["index", "build", folder, "--index", plain, "-q"])
+            timed(py + ["index", "build", folder, "--index", plain, "-q"], tree_env(ROOT))
         graphs = {}
         for name, tree in trees:
             target = os.path.join(work, f"graph-{args.curves}-{name.replace(' ', '-')}.h5")
@@ -184,7 +186,9 @@ def main():
         # ---------------------------------------------------------------- pairs and groups
         index = graphs["this tree"]
         D = str(args.max_distance)
-        seconds, mb, proc = timed(py + ["pairs", "--index", index, "--max-distance", D, "--format", "csv"])
+        seconds, mb, proc = timed(
+            py + ["pairs", "--index", index, "--max-distance", D, "--format", "csv"], tree_env(ROOT)
+        )
         count = len(proc.stdout.splitlines()) - 1
         rows.append(
             (
@@ -196,7 +200,9 @@ def main():
         )
         within = sum(MEMBERS * (MEMBERS - 1) // 2 for _ in range(args.curves // MEMBERS))
         rows.append(("pairs inside a family (all of them)", "generated", f"{within:,}", ""))
-        seconds, mb, proc = timed(py + ["groups", "--index", index, "--max-distance", D, "--format", "csv"])
+        seconds, mb, proc = timed(
+            py + ["groups", "--index", index, "--max-distance", D, "--format", "csv"], tree_env(ROOT)
+        )
         got, fam = [], []
         for line in proc.stdout.splitlines()[1:]:
             curve, group = line.split(",")[:2]
@@ -223,7 +229,7 @@ def main():
         generate(small, max(1, args.small // MEMBERS), files=10, seed=12)
         small_index = os.path.join(work, f"small-{args.small}.h5")
         if not os.path.exists(small_index):
-            timed(py + ["index", "build", small, "--index", small_index, "-q"])
+            timed(py + ["index", "build", small, "--index", small_index, "-q"], tree_env(ROOT))
         for name, tree in trees:
             seconds, mb, _ = timed(
                 py + ["query", small, "--index", small_index, "--top", "40", "--format", "csv", "-q"], tree_env(tree)
@@ -242,7 +248,7 @@ def main():
             "idx = open_index(sys.argv[1]); nearest_others(idx.search_table(), idx.coefficients_at, 40, "
             "Cascade(idx.samples)); print(time.perf_counter() - t0)"
         )
-        seconds, mb, proc = timed([sys.executable, "-c", code, small_index])
+        seconds, mb, proc = timed([sys.executable, "-c", code, small_index], tree_env(ROOT))
         rows.append(
             (
                 f"all against all, {args.small:,} curves: the self-join, 40 nearest others",

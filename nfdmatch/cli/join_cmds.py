@@ -20,6 +20,7 @@ from .common import (
     rows_format_option,
     write_rows,
 )
+from .cluster import open_cluster, scheduler_options
 from .group import main
 
 _DISTANCE = click.option(
@@ -49,9 +50,21 @@ def _work(stats, what: str) -> None:
     "(a nightly job: what arrived since).",
 )
 @matching_options
+@scheduler_options
 @rows_format_option
 @output_option()
-def pairs(index_path, max_distance, new_only, method, strict_direction, mirror, output_format, output):
+def pairs(
+    index_path,
+    max_distance,
+    new_only,
+    method,
+    strict_direction,
+    mirror,
+    scheduler,
+    scheduler_timeout,
+    output_format,
+    output,
+):
     """List every pair of curves of the index at most D apart, each once (a < b).
 
     Rows: a, b, distance (the exact distance, sorted by a then b). Computed for the index
@@ -62,18 +75,27 @@ def pairs(index_path, max_distance, new_only, method, strict_direction, mirror, 
     Examples:
       nfdmatch pairs --index curves.h5 --max-distance 0.05 -o duplicates.csv
       nfdmatch pairs --index curves.h5 --max-distance 0.05 --new --format jsonl
+      nfdmatch pairs --index /shared/curves.h5 --max-distance 0.05 --scheduler tcp://head:8786
     """
     from ..index import open_index
     from ..search.join import index_pairs
 
     with open_index(index_path) as idx:
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
         progress, finish_bar = progress_bar("pairs")
         try:
             found, stats = index_pairs(
-                idx, max_distance, new=new_only, progress=progress, **matching(method, strict_direction, mirror)
+                idx,
+                max_distance,
+                new=new_only,
+                progress=progress,
+                cluster=cluster,
+                **matching(method, strict_direction, mirror),
             )
         finally:
             finish_bar()
+            if cluster is not None:
+                cluster.close()
     _work(stats, f"{len(found)} pairs")
     write_rows(
         [{"a": p.a, "b": p.b, "distance": p.distance} for p in found], ["a", "b", "distance"], output_format, output
@@ -91,9 +113,21 @@ def pairs(index_path, max_distance, new_only, method, strict_direction, mirror, 
     help="Only list groups of at least this many curves (2: only the duplicates).",
 )
 @matching_options
+@scheduler_options
 @rows_format_option
 @output_option()
-def groups(index_path, max_distance, min_size, method, strict_direction, mirror, output_format, output):
+def groups(
+    index_path,
+    max_distance,
+    min_size,
+    method,
+    strict_direction,
+    mirror,
+    scheduler,
+    scheduler_timeout,
+    output_format,
+    output,
+):
     """Group the curves of the index into near-duplicate groups.
 
     A group is a connected component of the pairs at most D apart (`nfdmatch pairs`):
@@ -111,13 +145,21 @@ def groups(index_path, max_distance, min_size, method, strict_direction, mirror,
     from ..search.join import index_groups
 
     with open_index(index_path) as idx:
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
         progress, finish_bar = progress_bar("groups")
         try:
             members, stats = index_groups(
-                idx, max_distance, min_size=min_size, progress=progress, **matching(method, strict_direction, mirror)
+                idx,
+                max_distance,
+                min_size=min_size,
+                progress=progress,
+                cluster=cluster,
+                **matching(method, strict_direction, mirror),
             )
         finally:
             finish_bar()
+            if cluster is not None:
+                cluster.close()
     _work(stats, f"{len({m.group for m in members})} groups")
     if resolve_format(output_format, output) == "json":
         listed: dict[int, dict] = {}

@@ -232,8 +232,9 @@ class _Join:
                 if done is not None:
                     done(i)
 
-    def run(self, progress: Callable[[int, int], None] | None = None) -> None:
-        """The seeds (k nearest only), then every cell's step in the table's order."""
+    def run(self, progress: Callable[[int, int], None] | None = None, cells: tuple[int, int] | None = None) -> None:
+        """The seeds (k nearest only), then every cell's step in the table's order (only
+        the steps of the cells ``[first, stop)`` when ``cells`` is given)."""
         from threadpoolctl import threadpool_limits
 
         # one BLAS thread: the products are small, and idle OpenBLAS workers spin and
@@ -245,11 +246,12 @@ class _Join:
         with threadpool_limits(1, user_api="blas"):
             if self.k is not None:
                 self.seed()
-            self._run(progress)
+            self._run(progress, cells)
 
-    def _run(self, progress) -> None:
+    def _run(self, progress, cells) -> None:
         col = self.col
         C = len(col.start) - 1
+        first, stop = (0, C) if cells is None else cells
         has_other = np.add.reduceat(~self.left, col.start[:-1]) > 0 if C else np.zeros(0, bool)
 
         def step(c):
@@ -260,7 +262,8 @@ class _Join:
 
         # the steps may run at once: a pair is taken up by one step only, and a step reads
         # thresholds that only decrease (a stale one prunes less, never wrongly)
-        self._map(step, list(range(C)), None if progress is None else (lambda i: progress(i + 1, C)))
+        steps = list(range(first, stop))
+        self._map(step, steps, None if progress is None else (lambda i: progress(i + 1, len(steps))))
 
     def _step(self, c: int, q: np.ndarray, has_other: np.ndarray) -> None:
         """The queries ``q`` (restricted positions of cell c) against every row they pair
@@ -359,8 +362,14 @@ def _threads(threads: int | None) -> int:
     return max(1, threads or min(os.cpu_count() or 1, 4))
 
 
+def join_input(table, read_coefficients: Callable):
+    """What a join reads, read once: every row's features and descriptors. A join given it
+    instead of the table reads nothing (the several parts of one join on a worker)."""
+    return _Collection(table, read_coefficients)
+
+
 def _prepare(table, read_coefficients, cascade: Cascade, rows) -> tuple[_Collection, np.ndarray]:
-    col = _Collection(table, read_coefficients)
+    col = table if isinstance(table, _Collection) else _Collection(table, read_coefficients)
     if rows is None:
         left = np.ones(col.n, dtype=bool)
     else:
@@ -439,11 +448,15 @@ def pairs_within(
     rows=None,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
+    cells: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, JoinStats]:
     """Every pair of rows of ``table`` at most ``max_distance`` apart, exactly, each once.
 
-    Arguments as :func:`nearest_others`; ``rows``: only pairs with at least one row among
-    them. Returns ``(a, b, distance, stats)``: index rows with a < b, sorted by (a, b), and
+    Arguments as :func:`nearest_others` (``table`` may also be a :func:`join_input`);
+    ``rows``: only pairs with at least one row among them; ``cells``: ``(first, stop)``,
+    only the pairs whose first row (in the table's order) lies in those cells: the parts of
+    a join split by cells (``--scheduler``), whose pairs together are the whole join's.
+    Returns ``(a, b, distance, stats)``: index rows with a < b, sorted by (a, b), and
     the distances (float64).
     """
     if not max_distance >= 0:
@@ -451,7 +464,7 @@ def pairs_within(
     t0 = time.perf_counter()
     col, left = _prepare(table, read_coefficients, cascade, rows)
     join = _Join(col, cascade, left, None, max_distance, _threads(threads))
-    join.run(progress)
+    join.run(progress, cells)
     pa, pb, d = join.pairs()
     keep = d <= max_distance
     ra, rb, d = col.row[pa[keep]], col.row[pb[keep]], d[keep]
@@ -515,6 +528,7 @@ def index_pairs(
     new: bool = False,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
+    cluster=None,
     **options,
 ) -> tuple[list[Pair], JoinStats]:
     """Every pair of curves of an open :class:`~nfdmatch.index.Index` (or a
@@ -523,20 +537,14 @@ def index_pairs(
     new : only pairs with at least one curve that the index's last build added or
         recomputed (``/changes``; ParameterError for an index that does not record them).
     options : ``method``, ``direction``, ``mirror`` as :func:`nfdmatch.distance`.
+    cluster : a :class:`nfdmatch.distributed.Cluster`: the join split by ranges of cells
+        over its workers (the same pairs; an index file every worker sees).
 
     Returns ``(pairs, stats)``: :class:`Pair` sorted by (a, b), ids a < b.
     """
     cascade = _cascade(index, options)
     rows = _new_rows(index) if new else None
-    a, b, d, stats = pairs_within(
-        index.search_table(),
-        index.coefficients_at,
-        max_distance,
-        cascade,
-        rows=rows,
-        progress=progress,
-        threads=threads,
-    )
+    a, b, d, stats = _pairs(index, max_distance, cascade, rows, progress, threads, cluster)
     ids = index.ids_at(np.concatenate([a, b])) if len(a) else []
     ia, ib = ids[: len(a)], ids[len(a) :]
     pairs = [Pair(x, y, float(t)) if x < y else Pair(y, x, float(t)) for x, y, t in zip(ia, ib, d)]
@@ -551,6 +559,7 @@ def index_groups(
     min_size: int = 1,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
+    cluster=None,
     **options,
 ) -> tuple[list[GroupMember], JoinStats]:
     """The near-duplicate groups of an index: the connected components of the pairs within
@@ -561,16 +570,15 @@ def index_groups(
     other members (every pair of the group: those not within ``max_distance`` are computed
     here, ~size^2 / 2 distances for a loose group), ties by id.
 
+    progress, threads, cluster, options : as :func:`index_pairs`.
+
     Returns ``(members, stats)`` sorted by group, then id; groups numbered 1, 2, ... in the
     order of their smallest ids (among the groups listed).
     """
     if min_size < 1:
         raise ParameterError(f"min_size must be at least 1, got {min_size}")
     cascade = _cascade(index, options)
-    table = index.search_table()
-    a, b, d, stats = pairs_within(
-        table, index.coefficients_at, max_distance, cascade, progress=progress, threads=threads
-    )
+    a, b, d, stats = _pairs(index, max_distance, cascade, None, progress, threads, cluster)
     N = index.n_curves
     label = _components(N, a, b)
     ids = index.ids_at(np.arange(N)) if N else []
@@ -592,6 +600,22 @@ def index_groups(
         rep = rows[0] if len(rows) == 1 else _representative(index, cascade, rows, known, ids)
         out.extend(GroupMember(ids[r], number, len(rows), ids[rep]) for r in rows)
     return out, stats
+
+
+def _pairs(index, max_distance, cascade, rows, progress, threads, cluster):
+    if not max_distance >= 0:
+        raise ParameterError(f"max_distance must be a number >= 0, got {max_distance}")
+    if cluster is not None:
+        return cluster.pairs_within(index, max_distance, cascade, rows=rows, progress=progress)
+    return pairs_within(
+        index.search_table(),
+        index.coefficients_at,
+        max_distance,
+        cascade,
+        rows=rows,
+        progress=progress,
+        threads=threads,
+    )
 
 
 def _components(N: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
