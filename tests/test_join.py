@@ -224,3 +224,19 @@ def test_the_graph_of_a_build_equals_the_per_row_search(tmp_path, rng):
         _store(i, top.rows, top.dist, ids, expected_nb, expected_d, 8)
     np.testing.assert_array_equal(nb, expected_nb)
     np.testing.assert_allclose(dist, expected_d, rtol=1e-9, atol=1e-12)
+
+
+def test_pairs_of_curves_in_memory_and_new_without_a_record(rng):
+    from nfdmatch.search.join import index_groups, index_pairs
+
+    index = MemoryIndex(family_curves(rng, 3, 3, 0.0))
+    found, stats = index_pairs(index, 0.05)
+    assert stats.rows == 9 and all(p.a < p.b and p.distance <= 0.05 for p in found)
+    members, _ = index_groups(index, 0.05, min_size=2)
+    assert {m.id for m in members} == {p.a for p in found} | {p.b for p in found}
+    with pytest.raises(ParameterError, match="does not record"):
+        index_pairs(index, 0.05, new=True)
+    with pytest.raises(ParameterError):
+        index_groups(index, 0.05, min_size=0)
+    with pytest.raises(ParameterError):
+        index_pairs(index, 0.05, method="nope")

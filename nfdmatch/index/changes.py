@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import IndexFormatError
+from .schema import create_checked
 
 __all__ = ["write_changes", "read_changes"]
 
@@ -27,7 +28,8 @@ def write_changes(h5, runs: list[tuple[int, int]]) -> None:
         else:
             merged.append([start, start + count])
     g = h5.create_group("changes")
-    g.create_dataset("rows", data=np.asarray(merged, dtype=np.int64).reshape(-1, 2))
+    # with the format's checksums (Fletcher-32), as every dataset of the file
+    create_checked(g, "rows", np.asarray(merged, dtype=np.int64).reshape(-1, 2), np.int64)
 
 
 def read_changes(index) -> np.ndarray | None:

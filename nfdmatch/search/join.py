@@ -510,13 +510,11 @@ def _cascade(index, options: dict) -> Cascade:
 
 
 def _new_rows(index) -> np.ndarray:
-    from ..index.changes import read_changes
-
-    rows = read_changes(index)
+    rows = index.new_rows() if hasattr(index, "new_rows") else None
     if rows is None:
         raise ParameterError(
-            f"{index.path} does not record which curves its last build added: any build that writes "
-            f"it records them (`nfdmatch index build --rebuild` marks every curve as new)"
+            f"{getattr(index, 'path', 'the index')} does not record which curves its last build added: "
+            f"any build that writes it records them (`nfdmatch index build --rebuild` marks every curve as new)"
         )
     return rows
 
