@@ -12,7 +12,7 @@ from .._version import __version__
 from ..errors import NfdError
 from ..search.engine import BestRows
 from .build_tasks import batches, compute_batches, failed_answer, file_size
-from .search_tasks import HeldDescriptors, index_ranges, ranked, search_range
+from .search_tasks import HeldDescriptors, index_ranges, pairs_part, ranked, search_range
 from .settings import (
     PIN_CHECK_SECONDS,
     QUERY_BLOCK,
@@ -262,6 +262,80 @@ class Cluster:
                 idx.close()
         stats.seconds = time.perf_counter() - t0
         return results, stats
+
+    # ----------------------------------------------------------------------- self-join
+
+    def pairs_within(self, index, max_distance: float, cascade, *, rows=None, progress=None, parts=None):
+        """:func:`nfdmatch.search.join.pairs_within` of an open index on the workers, split
+        by ranges of its search cells (a task joins the rows of its cells with every row
+        after them; tasks taken as workers free up): the same pairs as a local run.
+
+        progress : ``progress(cells_done, cells)``; parts : tasks (default: 4 per worker
+        thread, so that the uneven ranges even out). Returns ``(a, b, distance, stats)``
+        as that function."""
+        from distributed import as_completed
+
+        from ..search.join import JoinStats
+
+        t0 = time.perf_counter()
+        path = os.path.abspath(index.path)
+        stamp = (index.n_curves, index.updated, index.samples, index.harmonics, index.scale_mode)
+        C = index.search_table().n_cells
+        stats = JoinStats(rows=index.n_curves, cells=C)
+        stats.left = index.n_curves if rows is None else len(np.unique(rows))
+        n_parts = max(1, min(int(parts or 4 * max(1, self.threads)), C)) if C else 0
+        edges = np.unique(np.round(np.linspace(0, C, n_parts + 1)).astype(np.int64)) if C else np.zeros(0, np.int64)
+        found = []
+        futures = {}
+        done = 0
+        if progress is not None:
+            progress(0, C)
+        try:
+            for first, stop in zip(edges[:-1].tolist(), edges[1:].tolist()):
+                fut = self.client.submit(
+                    pairs_part,
+                    path,
+                    stamp,
+                    first,
+                    stop,
+                    float(max_distance),
+                    cascade,
+                    rows,
+                    retries=RETRIES,
+                    pure=False,
+                )
+                futures[fut] = stop - first
+            for fut in as_completed(list(futures), loop=self.client.loop):
+                cells = futures.pop(fut)
+                try:
+                    answer = fut.result()
+                except NfdError:
+                    raise
+                except Exception as exc:
+                    raise ClusterError(
+                        f"a pairs task failed on every try: {type(exc).__name__}: {first_line(exc)}"
+                    ) from None
+                found.append(answer["pairs"])
+                for key in ("cell_pairs", "bounded", "truncated", "fine", "exact"):
+                    setattr(stats, key, getattr(stats, key) + int(answer[key]))
+                done += cells
+                if progress is not None:
+                    progress(done, C)
+        finally:
+            if futures:
+                self.client.cancel(list(futures))
+        a, b, d = (
+            (np.concatenate([f[i] for f in found]) for i in range(3))
+            if found
+            else (
+                np.zeros(0, np.int64),
+                np.zeros(0, np.int64),
+                np.zeros(0),
+            )
+        )
+        order = np.lexsort((b, a))
+        stats.seconds = time.perf_counter() - t0
+        return a[order], b[order], d[order], stats
 
     def _search_ranges(self, path, stamp, ranges, qcoef, tops, stats, progress, params) -> None:
         """Fill ``tops`` with each query's exact top K over every range.

@@ -56,6 +56,29 @@ def _worker_index(path: str, stamp: tuple):
     return entry
 
 
+def pairs_part(path: str, stamp: tuple, first: int, stop: int, max_distance: float, cascade, rows) -> dict:
+    """On a worker: the pairs within ``max_distance`` whose first row lies in the search
+    cells ``[first, stop)`` (:func:`nfdmatch.search.join.pairs_within`); the index's rows
+    are read once per worker process and kept for its other parts.
+
+    Returns ``{"pairs": (a, b, distance) arrays, cell_pairs, bounded, truncated, fine,
+    exact}``."""
+    from ..search.join import join_input, pairs_within
+
+    entry = _worker_index(path, stamp)
+    idx, cache = entry[0], entry[2]
+    if "join" not in cache:
+        if entry[1] is None:
+            entry[1] = idx.search_table()
+        cache["join"] = join_input(entry[1], idx.coefficients_at)
+    a, b, d, stats = pairs_within(
+        cache["join"], idx.coefficients_at, max_distance, cascade, rows=rows, cells=(first, stop), threads=1
+    )
+    out = {key: getattr(stats, key) for key in ("cell_pairs", "bounded", "truncated", "fine", "exact")}
+    out["pairs"] = (a, b, d)
+    return out
+
+
 class SeededBestRows(BestRows):
     """A BestRows holding rows found elsewhere (seeds) from the start: a row of this range that
     is also a seed is not added twice (it would count twice towards the K-th distance)."""

@@ -13,6 +13,7 @@ import numpy as np
 
 from .._version import __version__
 from ..errors import NfdError, WriteError
+from .changes import write_changes
 from .graph import write_graph
 from .paths import curve_ids
 from .plan import Action, Plan
@@ -71,6 +72,7 @@ def write_new_index(
         return results.pop(task)
 
     records: list[FileRecord] = []
+    fresh: list[tuple[int, int]] = []  # (start, count): rows added or recomputed (/changes)
     actions: dict[str, str] = {p: "removed" for p in removed}
     now = _utcnow()
     try:
@@ -127,6 +129,7 @@ def write_new_index(
                     piece["file"] = np.full(n, file_row, dtype=np.int32)
                     writer.append(piece)
                     records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
+                    fresh.append((start, n))
                     actions[path] = "added" if r is None else "updated"
                 else:
                     records.append(
@@ -138,6 +141,7 @@ def write_new_index(
             writer.flush()
             write_files_table(h5, records, space)
             write_sources(h5, *sources)
+            write_changes(h5, fresh)
             # the cells: features, squared norms, row numbers and first harmonics of every row
             space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())

@@ -12,6 +12,7 @@ from ..search.bounds import head_harmonics
 from ..search.knn import search as search_index_for
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
+from .changes import read_changes
 from .graph import graph_k, read_graph_rows
 from .paths import index_folder, openable
 from .schema import (
@@ -408,6 +409,12 @@ class Index:
         """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,
         in the order of ``rows``; None when the index has no graph (docs/index-format.md)."""
         return read_graph_rows(self)
+
+    def new_rows(self):
+        """The rows (int64, ascending) that the build which wrote the index added or
+        recomputed (``/changes``, what ``pairs --new`` restricts to); None when the index
+        does not record them."""
+        return read_changes(self)
 
     def search_table(self):
         """What a search reads (:class:`~nfdmatch.search.table.SearchTable`): the stored

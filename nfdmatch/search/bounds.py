@@ -8,7 +8,8 @@
    (The norm bound of format 1 is never larger than the singular-value one: the reverse
    triangle inequality on each harmonic's pair of singular values.)
 2. **Cells** (:func:`cell_lower_bounds`): a whole cell of rows at once, from its centre
-   and radius.
+   and radius; for a self-join, a whole pair of cells at once
+   (:func:`cell_pair_lower_bounds`, from both centres and radii).
 3. **Truncated harmonics** (:func:`truncated_lower_bounds`): the exact distance over the
    first K' harmonics only, evaluated on a grid of start shifts with a proven slack; it
    never exceeds the full distance (dropping harmonics lowers the objective at every shift
@@ -32,6 +33,9 @@ __all__ = [
     "squared_norms",
     "cell_lower_bounds",
     "row_lower_bounds",
+    "row_lower_bounds_many",
+    "cell_pair_lower_bounds",
+    "query_radius",
     "truncated_lower_bounds",
     "truncated_stages",
     "TRUNCATED_HARMONICS",
@@ -183,6 +187,74 @@ def row_lower_bounds(query: np.ndarray, split: int, features: np.ndarray, sqnorm
     # q was rounded to float32: its features moved by at most u |q|
     out -= _U32 * float(np.sqrt(q64 @ q64)) * 1.01
     return np.maximum(out, 0.0, out=out)
+
+
+def row_lower_bounds_many(queries: np.ndarray, split: int, features: np.ndarray, sqnorm: np.ndarray) -> np.ndarray:
+    """(m, M) float64: :func:`row_lower_bounds` of each of m queries ((m, D) float64)
+    against the same M rows, in one matrix product per feature part (a self-join bounds a
+    cell's rows against the rows of other cells at once).
+
+    The same proof as :func:`row_lower_bounds`, row by row: the float32 dot products are
+    within gamma_D |x| |q| whatever the summation order, and each query's own float32
+    rounding is subtracted as u |q|; so entry (i, j) never exceeds the distance between
+    query i's features and row j's stored features.
+    """
+    Q32 = np.ascontiguousarray(queries, dtype=np.float32)
+    Q64 = Q32.astype(np.float64)
+    out = None
+    for lo, hi, col in ((0, split, 0), (split, features.shape[1], 1)):
+        qq = np.einsum("ij,ij->i", Q64[:, lo:hi], Q64[:, lo:hi])
+        dots = (Q32[:, lo:hi] @ np.ascontiguousarray(features[:, lo:hi]).T).astype(np.float64)
+        xn = sqnorm[:, col]
+        d2 = xn[None, :] + qq[:, None] - 2.0 * dots
+        d2 -= 2.0 * _gamma(hi - lo) * np.sqrt(xn[None, :] * qq[:, None]) + 1e-15 * (xn[None, :] + qq[:, None])
+        d = np.sqrt(np.maximum(d2, 0.0, out=d2), out=d2)
+        out = d if out is None else np.maximum(out, d, out=out)
+    out -= (_U32 * 1.01) * np.sqrt(np.einsum("ij,ij->i", Q64, Q64))[:, None]
+    return np.maximum(out, 0.0, out=out)
+
+
+def query_radius(queries: np.ndarray, split: int, centre: np.ndarray) -> np.ndarray:
+    """(2,) float64: the largest distance of ``queries`` ((m, D) float64 features) to
+    ``centre`` ((D,) float64) in the two feature parts, rounded up (as a cell's radius):
+    the radius of a cell as seen from its rows' query features (computed from their
+    descriptors, not the stored float32 values the stored radius covers)."""
+    if len(queries) == 0:
+        return np.zeros(2)
+    d = np.asarray(queries, dtype=np.float64) - centre[None, :]
+    r = np.array(
+        [
+            np.sqrt(np.einsum("ij,ij->i", d[:, :split], d[:, :split]).max()),
+            np.sqrt(np.einsum("ij,ij->i", d[:, split:], d[:, split:]).max()),
+        ]
+    )
+    return r * (1 + 1e-12) + 1e-12
+
+
+def cell_pair_lower_bounds(
+    centre: np.ndarray, reach: np.ndarray, split: int, centres: np.ndarray, radii: np.ndarray
+) -> np.ndarray:
+    """(C,) float64 lower bound of the invariant bound (the distance between a query's
+    features and a row's stored features, what :func:`row_lower_bounds` bounds from below)
+    for every query of one cell against every row of each of C cells.
+
+    centre : (D,) float64, the query cell's centre; reach : (2,) float64, the largest
+    distance of its queries' features to it per part (:func:`query_radius`);
+    centres : (C, D) float64; radii : (C, 2) float64, the cells' stored radii.
+
+    Proof: for a query q of the first cell and a row x of cell c, per part p,
+    ``|q - x|_p >= |centre - c|_p - |q - centre|_p - |x - c|_p >= |centre - c|_p - reach_p
+    - radius_p`` (triangle inequality); the invariant bound of the pair is the larger part,
+    so the larger of the two parts' right-hand sides bounds it too. The centre distance is
+    computed from the differences directly: each difference, square, the sum of D terms
+    and the square root round with a relative error of at most gamma_{D+3} together, which
+    the result gives up (it never exceeds the true distance).
+    """
+    d = centres - centre[None, :]
+    shrink = 1.0 - _gamma64(centres.shape[1] + 3)
+    a = np.sqrt(np.einsum("ij,ij->i", d[:, :split], d[:, :split])) * shrink - reach[0] - radii[:, 0]
+    b = np.sqrt(np.einsum("ij,ij->i", d[:, split:], d[:, split:])) * shrink - reach[1] - radii[:, 1]
+    return np.maximum(np.maximum(a, b), 0.0)
 
 
 def truncated_lower_bounds(

@@ -1,10 +1,12 @@
 """The k-nearest-neighbour graph of an index: each row's K nearest other rows, exactly.
 
-Computed by a build (:func:`nfdmatch.index.graph.write_graph` stores it in ``/graph``).
-Incremental: rows copied unchanged from the old index keep their lists when none of their
-neighbours was removed or changed, and only the new rows can enter them; every other row is
-searched in the new index. The result equals a from-scratch build (each list is an exact
-top K, ties by id).
+Computed by a build (:func:`nfdmatch.index.graph.write_graph` stores it in ``/graph``)
+with the self-join (:func:`nfdmatch.search.join.nearest_others`: the rows against each
+other cell by cell, each pair's distance once for both rows). Incremental: rows copied
+unchanged from the old index keep their lists when none of their neighbours was removed or
+changed, and only the new rows can enter them (a search of the new rows for each such
+row); every other row's list comes from the join restricted to those rows. The result
+equals a from-scratch build (each list is an exact top K, ties by id).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 
 from .bounds import feature_vector, head_harmonics
 from .engine import TIE, Cascade, BestRows, search_block
+from .join import nearest_others
 from .table import SearchTable
 
 __all__ = ["neighbour_lists"]
@@ -31,19 +34,20 @@ def neighbour_lists(
     ``fresh_rows`` (new or changed rows, with their (m, D) ``features``) enters them.
     Returns ``(searched, updated)``: rows searched, copied lists that changed.
 
-    Every row is a query of :func:`~nfdmatch.search.engine.search_block` asking for k + 1
-    (the row finds itself), its list the k nearest others, ties by id as a query orders them.
+    The rows of ``todo`` get their lists from the self-join
+    (:func:`~nfdmatch.search.join.nearest_others` restricted to them): the k nearest other
+    rows, ties by id as a query orders them. A copied list is updated by a search
+    (:func:`~nfdmatch.search.engine.search_block`) of the fresh rows only.
     """
-    N = len(todo)
     K = table.harmonics
     cascade = Cascade(samples)
     searched = np.flatnonzero(todo)
-    if len(searched) > 1 and table.n_cells:
-        # rows in the table's order (cell by cell): a block's rows share the cells they open
-        positions, rows, _, _ = table.open_cells(np.arange(table.n_cells))
-        at = np.empty(N, dtype=np.int64)
-        at[rows] = positions
-        searched = searched[np.argsort(at[searched], kind="stable")]
+    if len(searched):
+        order = np.argsort(np.asarray(ids, dtype=object), kind="stable")
+        tie_key = np.empty(len(ids), dtype=np.int64)
+        tie_key[order] = np.arange(len(ids))
+        nb, d, _ = nearest_others(table, read_coefficients, k, cascade, rows=searched, tie_key=tie_key, threads=threads)
+        neighbour[searched], distance[searched] = nb[searched], d[searched]
 
     def search(rows, in_table, tops, store):
         for a in range(0, len(rows), _BLOCK_ROWS):
@@ -54,12 +58,6 @@ def neighbour_lists(
             for i, tk in zip(block, got):
                 store(int(i), tk.rows, tk.dist)
 
-    search(
-        searched,
-        table,
-        lambda block: [BestRows(k + 1, None) for _ in block],
-        lambda i, rows, d: _store(i, rows, d, ids, neighbour, distance, k),
-    )
     changed = 0
     if len(check) and len(fresh_rows):
         head = read_coefficients(fresh_rows)[:, : head_harmonics(K)]

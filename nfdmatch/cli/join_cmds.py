@@ -1,0 +1,168 @@
+"""The whole index against itself: ``pairs`` (near-duplicate pairs) and ``groups`` (their
+connected components); the library's :func:`nfdmatch.search.join.index_pairs` and
+:func:`~nfdmatch.search.join.index_groups`."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from .options import detail, index_option, matching, matching_options, output_option, rows_format_option
+from .output import deliver, progress_bar, resolve_format, write_rows
+from .cluster import open_cluster, scheduler_options
+from .group import main
+
+_DISTANCE = click.option(
+    "--max-distance",
+    type=click.FloatRange(min=0),
+    required=True,
+    metavar="D",
+    help="Two curves at most this exact distance apart are a pair (near-duplicates).",
+)
+
+
+def _work(stats, what: str) -> None:
+    detail(
+        f"{what}: {stats.rows} curves, {stats.cell_pairs} pairs of cells opened, {stats.bounded} pairs bounded, "
+        f"{stats.exact} exact distances; {stats.seconds:.2f} s"
+    )
+
+
+@main.command()
+@index_option
+@_DISTANCE
+@click.option(
+    "--new",
+    "new_only",
+    is_flag=True,
+    help="Only pairs with at least one curve that the index's last build added or recomputed "
+    "(a nightly job: what arrived since).",
+)
+@matching_options
+@scheduler_options
+@rows_format_option
+@output_option()
+def pairs(
+    index_path,
+    max_distance,
+    new_only,
+    method,
+    strict_direction,
+    mirror,
+    scheduler,
+    scheduler_timeout,
+    output_format,
+    output,
+):
+    """List every pair of curves of the index at most D apart, each once (a < b).
+
+    Rows: a, b, distance (the exact distance, sorted by a then b). Computed for the index
+    as a whole: its cells against each other, every pair bounded before its exact distance
+    is computed, so the list is the one all pairwise distances would give.
+
+    \b
+    Examples:
+      nfdmatch pairs --index curves.h5 --max-distance 0.05 -o duplicates.csv
+      nfdmatch pairs --index curves.h5 --max-distance 0.05 --new --format jsonl
+      nfdmatch pairs --index /shared/curves.h5 --max-distance 0.05 --scheduler tcp://head:8786
+    """
+    from ..index import open_index
+    from ..search.join import index_pairs
+
+    with open_index(index_path) as idx:
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
+        progress, finish_bar = progress_bar("pairs")
+        try:
+            found, stats = index_pairs(
+                idx,
+                max_distance,
+                new=new_only,
+                progress=progress,
+                cluster=cluster,
+                **matching(method, strict_direction, mirror),
+            )
+        finally:
+            finish_bar()
+            if cluster is not None:
+                cluster.close()
+    _work(stats, f"{len(found)} pairs")
+    write_rows(
+        [{"a": p.a, "b": p.b, "distance": p.distance} for p in found], ["a", "b", "distance"], output_format, output
+    )
+
+
+@main.command()
+@index_option
+@_DISTANCE
+@click.option(
+    "--min-size",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Only list groups of at least this many curves (2: only the duplicates).",
+)
+@matching_options
+@scheduler_options
+@rows_format_option
+@output_option()
+def groups(
+    index_path,
+    max_distance,
+    min_size,
+    method,
+    strict_direction,
+    mirror,
+    scheduler,
+    scheduler_timeout,
+    output_format,
+    output,
+):
+    """Group the curves of the index into near-duplicate groups.
+
+    A group is a connected component of the pairs at most D apart (`nfdmatch pairs`):
+    single linkage, so a chain of near-duplicates is one group even when its ends are far
+    apart. Rows, one per curve: id, group (1, 2, ... by the groups' smallest ids), size,
+    representative (the member with the smallest total distance to the others, ties by
+    id). --format json gives one object per group with its members as a list.
+
+    \b
+    Examples:
+      nfdmatch groups --index curves.h5 --max-distance 0.05 --min-size 2 -o groups.csv
+      nfdmatch groups --index curves.h5 --max-distance 0.05 --format json
+    """
+    from ..index import open_index
+    from ..search.join import index_groups
+
+    with open_index(index_path) as idx:
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
+        progress, finish_bar = progress_bar("groups")
+        try:
+            members, stats = index_groups(
+                idx,
+                max_distance,
+                min_size=min_size,
+                progress=progress,
+                cluster=cluster,
+                **matching(method, strict_direction, mirror),
+            )
+        finally:
+            finish_bar()
+            if cluster is not None:
+                cluster.close()
+    _work(stats, f"{len({m.group for m in members})} groups")
+    if resolve_format(output_format, output) == "json":
+        listed: dict[int, dict] = {}
+        for m in members:
+            g = listed.setdefault(
+                m.group, {"group": m.group, "size": m.size, "representative": m.representative, "members": []}
+            )
+            g["members"].append(m.id)
+        deliver(json.dumps(list(listed.values()), indent=2) + "\n", output)
+        return
+    write_rows(
+        [{"id": m.id, "group": m.group, "size": m.size, "representative": m.representative} for m in members],
+        ["id", "group", "size", "representative"],
+        output_format,
+        output,
+    )
