@@ -45,6 +45,7 @@ _SUBMODULES = (
     "pool",
     "writer",
     "graph",
+    "graph_build",
     "lock",
     "verify",
     "paths",

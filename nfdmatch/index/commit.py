@@ -14,7 +14,7 @@ import numpy as np
 from .._version import __version__
 from ..errors import NfdError, WriteError
 from .changes import write_changes
-from .graph import write_graph
+from .graph_build import write_graph
 from .paths import curve_ids
 from .plan import Action, Plan
 from .pool import run_tasks

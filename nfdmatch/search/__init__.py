@@ -14,20 +14,32 @@ diffusion over the collection's neighbour graph (:func:`rerank_index`,
 :func:`diffused_similarity`; docs/rerank.md).
 """
 
-from .index_search import SearchStats, search_index
-from .matrix import BATCH_ROWS, distance_matrix, similarity_order
-from .memory import MemoryIndex
-from .rank import rank_curves
-from .rerank import diffused_similarity, rerank_index
+#: the public names and their modules, loaded on first use: the index side imports the
+#: search's table and bounds (and a query its engine) without loading every search
+_LAZY = {
+    "search_index": "index_search",
+    "SearchStats": "index_search",
+    "distance_matrix": "matrix",
+    "similarity_order": "matrix",
+    "BATCH_ROWS": "matrix",
+    "MemoryIndex": "memory",
+    "rank_curves": "rank",
+    "diffused_similarity": "rerank",
+    "rerank_index": "rerank",
+}
 
-__all__ = [
-    "rank_curves",
-    "search_index",
-    "distance_matrix",
-    "similarity_order",
-    "SearchStats",
-    "MemoryIndex",
-    "BATCH_ROWS",
-    "diffused_similarity",
-    "rerank_index",
-]
+__all__ = list(_LAZY)
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -1,6 +1,6 @@
 """The k-nearest-neighbour graph of an index: each row's K nearest other rows, exactly.
 
-Computed by a build (:func:`nfdmatch.index.graph.write_graph` stores it in ``/graph``)
+Computed by a build (:func:`nfdmatch.index.graph_build.write_graph` stores it in ``/graph``)
 with the self-join (:func:`nfdmatch.search.join.nearest_others`: the rows against each
 other cell by cell, each pair's distance once for both rows). Incremental: rows copied
 unchanged from the old index keep their lists when none of their neighbours was removed or

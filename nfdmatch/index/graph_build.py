@@ -1,0 +1,124 @@
+"""The build side of ``/graph``: which rows' lists a build keeps, which it computes (the
+k-NN graph is a search: :func:`nfdmatch.search.graph.neighbour_lists`), and the writing of
+the group into the new index file. Loaded by a build only (a query reads /graph through
+:mod:`.graph`)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..errors import IndexFormatError
+from ..search.graph import neighbour_lists
+from .arrays import unique_rows
+from .graph import GRAPH_CHECKSUMS, GRAPH_CHUNK_ROWS, IN_MEMORY_ROWS, GraphStats, old_graph_k, read_graph
+from .schema import create_checked
+from .search_group import search_table
+
+__all__ = ["write_graph"]
+
+
+def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = None) -> GraphStats:
+    """Write ``/graph`` into the new index file ``h5`` (``/curves``, ``/files``, ``/search``
+    complete); returns :class:`GraphStats`.
+
+    old : the previous :class:`~nfdmatch.index.Index` (open) or None.
+    k : neighbours per row; None keeps the old index's graph K (no graph when it had none);
+        0 writes no graph.
+    reuse : False searches every row (the curves were recomputed: --rebuild, new parameters).
+    """
+    t0 = time.perf_counter()
+    k = old_graph_k(old) if k is None else int(k)
+    stats = GraphStats(k=k)
+    if k <= 0:
+        return stats
+    curves = h5["curves"]
+    N = curves["coefficients"].shape[0]
+    K = int(h5.attrs["harmonics"])
+    samples = int(h5.attrs["samples"])
+    ids = np.asarray(curves["id"].asstr()[...], dtype=object)
+    neighbour = np.full((N, k), -1, dtype=np.int64)
+    distance = np.full((N, k), np.inf)
+
+    old_to_new = _copied_rows(h5, old) if reuse and old_graph_k(old) == k else {}
+    if old_to_new:
+        try:
+            old_nb, old_d = read_graph(old)
+        except IndexFormatError:  # a damaged old graph: computed afresh
+            old_to_new = {}
+    todo = np.ones(N, dtype=bool)
+    check = []  # copied rows whose list only new rows can change
+    if old_to_new:
+        remap = np.full(old.n_curves + 1, -1, dtype=np.int64)  # index -1 (padding) maps to -1
+        for o, n in old_to_new.items():
+            remap[o] = n
+        fresh = np.ones(N, dtype=bool)
+        fresh[list(old_to_new.values())] = False
+        for o, n in old_to_new.items():
+            lst = remap[old_nb[o]]
+            # a list with padding or a neighbour that left is no longer the top K among the
+            # kept rows: search that row again
+            if (old_nb[o] >= 0).all() and (lst >= 0).all():
+                neighbour[n], distance[n] = lst, old_d[o]
+                todo[n] = False
+                check.append(n)
+        check = np.asarray(check, dtype=np.int64)
+    else:
+        fresh = np.ones(N, dtype=bool)
+
+    if N:
+        coefficients = curves["coefficients"][...] if N <= IN_MEMORY_ROWS else None
+
+        def read_coefficients(rows):
+            rows = np.asarray(rows, dtype=np.int64)
+            if coefficients is not None:
+                return coefficients[rows]
+            uniq, inverse = unique_rows(rows)
+            return curves["coefficients"][uniq][inverse]
+
+        def fail(message):
+            raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
+
+        table = search_table(h5, N, K, read_coefficients, fail)
+        fresh_rows = np.flatnonzero(fresh)
+        features = None
+        if len(check) and len(fresh_rows):
+            features = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
+        stats.searched, stats.updated = neighbour_lists(
+            table, read_coefficients, ids, neighbour, distance, todo, check, fresh_rows, features, k, samples, threads
+        )
+        stats.kept = len(check) - stats.updated
+
+    g = h5.create_group("graph")
+    g.attrs["k"] = np.int64(k)
+    g.attrs["method"] = "exact"
+    g.attrs["direction"] = "invariant"
+    g.attrs["mirror"] = np.int64(0)
+    g.attrs["checksums"] = GRAPH_CHECKSUMS
+    create_checked(g, "neighbour", neighbour, chunk_rows=GRAPH_CHUNK_ROWS)
+    create_checked(g, "distance", distance, chunk_rows=GRAPH_CHUNK_ROWS)
+    stats.seconds = time.perf_counter() - t0
+    return stats
+
+
+def _copied_rows(h5, old) -> dict:
+    """old row -> new row for every curve of a file whose contents did not change (same path
+    and SHA-256, indexed both times): its descriptors are the same."""
+    files = h5["files"]
+    paths = files["path"].asstr()[...]
+    sha = files["sha256"][...]
+    status = files["status"][...]
+    start = files["curve_start"][...]
+    count = files["curve_count"][...]
+    new = {str(p): (bytes(s), int(st), int(a), int(c)) for p, s, st, a, c in zip(paths, sha, status, start, count)}
+    out = {}
+    for r in old.files():
+        got = new.get(r.path)
+        if got is None or r.status != "ok" or got[1] != 0 or got[3] != r.curve_count or not r.sha256:
+            continue
+        if got[0].decode("ascii") != r.sha256:
+            continue
+        for j in range(r.curve_count):
+            out[r.curve_start + j] = got[2] + j
+    return out
