@@ -67,25 +67,12 @@ def pairs(
       nfdmatch pairs --index curves.h5 --max-distance 0.05 --new --format jsonl
       nfdmatch pairs --index /shared/curves.h5 --max-distance 0.05 --scheduler tcp://head:8786
     """
-    from ..index import open_index
     from ..search.join import index_pairs
 
-    with open_index(index_path) as idx:
-        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
-        progress, finish_bar = progress_bar("pairs")
-        try:
-            found, stats = index_pairs(
-                idx,
-                max_distance,
-                new=new_only,
-                progress=progress,
-                cluster=cluster,
-                **matching(method, strict_direction, mirror),
-            )
-        finally:
-            finish_bar()
-            if cluster is not None:
-                cluster.close()
+    found, stats = _joined(
+        index_pairs, "pairs", index_path, scheduler, scheduler_timeout, max_distance,
+        new=new_only, **matching(method, strict_direction, mirror),
+    )  # fmt: skip
     _work(stats, f"{len(found)} pairs")
     write_rows(
         [{"a": p.a, "b": p.b, "distance": p.distance} for p in found], ["a", "b", "distance"], output_format, output
@@ -131,25 +118,12 @@ def groups(
       nfdmatch groups --index curves.h5 --max-distance 0.05 --min-size 2 -o groups.csv
       nfdmatch groups --index curves.h5 --max-distance 0.05 --format json
     """
-    from ..index import open_index
     from ..search.join import index_groups
 
-    with open_index(index_path) as idx:
-        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
-        progress, finish_bar = progress_bar("groups")
-        try:
-            members, stats = index_groups(
-                idx,
-                max_distance,
-                min_size=min_size,
-                progress=progress,
-                cluster=cluster,
-                **matching(method, strict_direction, mirror),
-            )
-        finally:
-            finish_bar()
-            if cluster is not None:
-                cluster.close()
+    members, stats = _joined(
+        index_groups, "groups", index_path, scheduler, scheduler_timeout, max_distance,
+        min_size=min_size, **matching(method, strict_direction, mirror),
+    )  # fmt: skip
     _work(stats, f"{len({m.group for m in members})} groups")
     if resolve_format(output_format, output) == "json":
         listed: dict[int, dict] = {}
@@ -166,3 +140,19 @@ def groups(
         output_format,
         output,
     )
+
+
+def _joined(run, label: str, index_path, scheduler, scheduler_timeout, max_distance, **options):
+    """``run(index, max_distance, progress=, cluster=, **options)`` (the library's pairs or
+    groups) over the open index, on a cluster when one is named, with a progress bar."""
+    from ..index import open_index
+
+    with open_index(index_path) as idx:
+        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
+        progress, finish_bar = progress_bar(label)
+        try:
+            return run(idx, max_distance, progress=progress, cluster=cluster, **options)
+        finally:
+            finish_bar()
+            if cluster is not None:
+                cluster.close()

@@ -307,14 +307,7 @@ class Cluster:
                 futures[fut] = stop - first
             for fut in as_completed(list(futures), loop=self.client.loop):
                 cells = futures.pop(fut)
-                try:
-                    answer = fut.result()
-                except NfdError:
-                    raise
-                except Exception as exc:
-                    raise ClusterError(
-                        f"a pairs task failed on every try: {type(exc).__name__}: {first_line(exc)}"
-                    ) from None
+                answer = _task_result(fut, "pairs")
                 found.append(answer["pairs"])
                 for key in ("cell_pairs", "bounded", "truncated", "fine", "exact"):
                     setattr(stats, key, getattr(stats, key) + int(answer[key]))
@@ -419,14 +412,7 @@ class Cluster:
                     if fut not in futures:  # cancelled and submitted again
                         continue
                     block = futures.pop(fut)
-                    try:
-                        answer = fut.result()
-                    except NfdError:
-                        raise
-                    except Exception as exc:
-                        raise ClusterError(
-                            f"a search task failed on every try: {type(exc).__name__}: {first_line(exc)}"
-                        ) from None
+                    answer = _task_result(fut, "search")
                     for qi, part in zip(block, answer["tops"]):
                         if len(part["rows"]):
                             if "coef" in part and self._held is not None:
@@ -462,3 +448,14 @@ class Cluster:
             fut.cancel()
             resubmitted.append(again)
         return resubmitted
+
+
+def _task_result(fut, what: str):
+    """A finished task's answer; a task that failed on every retry is a ClusterError (an
+    NfdError it raised stays what it is)."""
+    try:
+        return fut.result()
+    except NfdError:
+        raise
+    except Exception as exc:
+        raise ClusterError(f"a {what} task failed on every try: {type(exc).__name__}: {first_line(exc)}") from None
