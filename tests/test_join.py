@@ -191,10 +191,11 @@ def test_an_empty_or_single_row_table_and_bad_arguments(rng):
         pairs_within(one.search_table(), one.coefficients_at, 1.0, Cascade(one.samples), rows=[5])
 
 
-def test_the_graph_of_a_build_equals_the_per_row_search(tmp_path, rng):
-    """`index build --graph K` (the self-join) stores the lists a search of every row gives
-    (engine.search_block for k + 1, the row itself dropped, ties by id): families of 6 with
-    K = 8, so every list ends outside its family, over several cells."""
+def test_the_graph_of_a_build_equals_the_per_row_search_and_the_join(tmp_path, rng):
+    """`index build --graph K` stores the lists a search of every row gives
+    (engine.search_block for k + 1, the row itself dropped, ties by id), and the self-join's
+    nearest_others gives the same lists: families of 6 with K = 8, so every list ends outside
+    its family, over several cells."""
     import h5py
 
     from nfdmatch import write_curves
@@ -224,6 +225,15 @@ def test_the_graph_of_a_build_equals_the_per_row_search(tmp_path, rng):
         _store(i, top.rows, top.dist, ids, expected_nb, expected_d, 8)
     np.testing.assert_array_equal(nb, expected_nb)
     np.testing.assert_allclose(dist, expected_d, rtol=1e-9, atol=1e-12)
+    order = np.argsort(ids, kind="stable")
+    tie_key = np.empty(N, dtype=np.int64)
+    tie_key[order] = np.arange(N)
+    with open_index(index) as idx:
+        joined_nb, joined_d, _ = nearest_others(
+            idx.search_table(), idx.coefficients_at, 8, Cascade(idx.samples), tie_key=tie_key, threads=1
+        )
+    np.testing.assert_array_equal(joined_nb, expected_nb)
+    np.testing.assert_allclose(joined_d, expected_d, rtol=1e-9, atol=1e-12)
 
 
 def test_pairs_of_curves_in_memory_and_new_without_a_record(rng):
