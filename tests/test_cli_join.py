@@ -194,7 +194,7 @@ def test_groups_single_linkage_and_min_size(library):
 def test_groups_chain_into_one_by_single_linkage(tmp_path, rng):
     """Three curves a - b - c with a, b and b, c within D but a, c not: one group of 3."""
     from nfdmatch.search import MemoryIndex
-    from nfdmatch.search.join import index_groups, index_pairs
+    from nfdmatch.search.groups import index_groups, index_pairs
 
     t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
     curves = [Curve(np.c_[np.cos(t), (1 + 0.1 * s) * np.sin(t), 0.3 * np.sin(2 * t)], id=f"c{s}") for s in range(3)]

@@ -237,7 +237,7 @@ def test_the_graph_of_a_build_equals_the_per_row_search_and_the_join(tmp_path, r
 
 
 def test_pairs_of_curves_in_memory_and_new_without_a_record(rng):
-    from nfdmatch.search.join import index_groups, index_pairs
+    from nfdmatch.search.groups import index_groups, index_pairs
 
     index = MemoryIndex(family_curves(rng, 3, 3, 0.0))
     found, stats = index_pairs(index, 0.05)

@@ -1,6 +1,6 @@
 """The whole index against itself: ``pairs`` (near-duplicate pairs) and ``groups`` (their
-connected components); the library's :func:`nfdmatch.search.join.index_pairs` and
-:func:`~nfdmatch.search.join.index_groups`."""
+connected components); the library's :func:`nfdmatch.search.groups.index_pairs` and
+:func:`~nfdmatch.search.groups.index_groups`."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def pairs(
       nfdmatch pairs --index curves.h5 --max-distance 0.05 --new --format jsonl
       nfdmatch pairs --index /shared/curves.h5 --max-distance 0.05 --scheduler tcp://head:8786
     """
-    from ..search.join import index_pairs
+    from ..search.groups import index_pairs
 
     found, stats = _joined(
         index_pairs, "pairs", index_path, scheduler, scheduler_timeout, max_distance,
@@ -118,7 +118,7 @@ def groups(
       nfdmatch groups --index curves.h5 --max-distance 0.05 --min-size 2 -o groups.csv
       nfdmatch groups --index curves.h5 --max-distance 0.05 --format json
     """
-    from ..search.join import index_groups
+    from ..search.groups import index_groups
 
     members, stats = _joined(
         index_groups, "groups", index_path, scheduler, scheduler_timeout, max_distance,

@@ -12,6 +12,7 @@ import numpy as np
 from ..defaults import default_index_path  # noqa: F401  (re-exported: nfdmatch.index.default_index_path)
 from ..descriptors import validate_parameters
 from ..errors import ParameterError, ReadError
+from .search_layout import check_search_group
 
 INDEX_FORMAT = "nfdmatch-index"
 FORMAT_VERSION = 2
@@ -455,53 +456,3 @@ def stored_dataset(h5, name: str, file_size: int, checksums: bool):
     if problem:
         raise Problem("corrupt", f"corrupted nfdmatch index: {problem}")
     return parent
-
-
-#: /search datasets: name -> (dtype, shape as a function of N rows, C cells, D feature columns)
-SEARCH_DATASETS = {
-    "row": (np.int64, lambda N, C, D: (N,)),
-    "cell_start": (np.int64, lambda N, C, D: (C + 1,)),
-    "centre": (np.float64, lambda N, C, D: (C, D)),
-    "radius": (np.float64, lambda N, C, D: (C, 2)),
-    "features": (np.float32, lambda N, C, D: (N, D)),
-    "sqnorm": (np.float64, lambda N, C, D: (N, 2)),
-}
-
-
-def check_search_group(h5, N: int, harmonics: int, get=None) -> str | None:
-    """Why the file's ``/search`` group is not valid for N rows and K harmonics, or None.
-
-    ``get(name)`` returns dataset ``/search/NAME`` after checking how it is stored (raising
-    the reader's error otherwise); by default, plain lookup."""
-    g = h5.get("search")
-    if g is None or not hasattr(g, "keys"):
-        return "missing group /search"
-    if get is None:
-        get = g.get
-    D = 2 * harmonics + 3
-    start = get("cell_start")
-    if start is None or len(start.shape) != 1 or start.shape[0] < 1:
-        return "missing or bad dataset /search/cell_start"
-    C = start.shape[0] - 1
-    cells = g.attrs.get("cells")
-    if cells is not None and (not isinstance(cells, (int, np.integer)) or int(cells) != C):
-        return f"/search attribute cells {cells!r} does not match /search/cell_start ({C} cells)"
-    for name, (_dtype, shape) in SEARCH_DATASETS.items():
-        ds = get(name)
-        if ds is None or not hasattr(ds, "shape"):
-            return f"missing dataset /search/{name}"
-        if tuple(ds.shape) != shape(N, C, D):
-            return f"/search/{name} has shape {ds.shape}, expected {shape(N, C, D)}"
-    coefficients = get("coefficients")
-    want = (N, harmonics, 3)
-    if (
-        coefficients is None
-        or not hasattr(coefficients, "shape")
-        or tuple(coefficients.shape) != want
-        or coefficients.dtype.kind != "c"
-    ):
-        return f"missing or bad dataset /search/coefficients (expected complex, shape {want})"
-    starts = np.asarray(start[...], dtype=np.int64)
-    if starts[0] != 0 or starts[-1] != N or (np.diff(starts) < 0).any():
-        return "/search/cell_start does not run from 0 to the row count without decreasing"
-    return None
