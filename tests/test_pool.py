@@ -209,6 +209,13 @@ def _alive(pid):
         return False
 
 
+def _as_a_terminal_starts_it() -> None:
+    """SIGINT at its default in the child, as in a terminal's foreground job: a test run
+    started in the background of a non-interactive shell (``make test &``) inherits SIGINT
+    ignored, and Python then never turns it into KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _cli(args, env=None, **kw):
     full_env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env or {}))
     return subprocess.Popen(
@@ -217,6 +224,7 @@ def _cli(args, env=None, **kw):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_as_a_terminal_starts_it,
         **kw,
     )
 
