@@ -33,6 +33,9 @@ _NORMALIZE = [
     (re.compile(r'"seconds": [0-9.e-]+'), '"seconds": <T>'),
     (re.compile(r"\b\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ"), "<DATE>"),
     (re.compile(r"(size_bytes\t)\d+"), r"\1<N>"),
+    # a distance's last digits are those of the install's kernels (they agree to ~1e-15):
+    # compared to 10 significant digits
+    (re.compile(r"(?<![\w.])\d+\.\d{12,}(?:e-?\d+)?"), lambda m: f"{float(m.group()):.10g}"),
 ]
 
 

@@ -364,10 +364,43 @@ def test_a_search_skipping_cells_answers_for_the_other_cells_exactly(rng):
         assert np.allclose(np.sort(top.dist)[:5], np.sort(everything)[:5], rtol=1e-9, atol=1e-12)
 
 
-def test_a_match_reports_the_same_digits_whatever_top_asks_for(rng):
-    """The reported distances are recomputed on the numpy reference path together: a row's
-    digits must not depend on how many rows come with it (``--top 1`` and ``--top 8`` print
-    the same distance for the best match)."""
+@pytest.fixture(params=["numpy", "numba", "aot"])
+def each_kernels(request):
+    """The process's kernels set to each kind in turn (restored after)."""
+    from nfdmatch.matching import kernels
+
+    before = kernels.current()
+    got = kernels.use_kernels(request.param)
+    if got.name != request.param:
+        kernels.use_kernels(before)
+        pytest.fail(f"{request.param} kernels cannot be loaded: {got.reason}")
+    yield got
+    kernels.use_kernels(before)
+
+
+def test_a_row_computed_by_the_kernels_has_the_same_digits_whatever_rows_come_with_it(rng, each_kernels):
+    """Bit for bit, on each kind of kernels: a row's distance, shift and rotation do not
+    depend on the other rows of the call, their number or the threads (the search reports
+    these digits)."""
+    from nfdmatch.matching import exact_search
+
+    curves = _family_curves(rng, 4, 20, 0.02)
+    B = np.concatenate(
+        [MemoryIndex(curves).coefficients_at(np.arange(len(curves)))] * 8
+    )  # 640 rows: split over threads
+    for query in (0, 7, 33):
+        whole = exact_search(B[query], B, 128, kernels=each_kernels)
+        for N in (1, 2, 5, 300):
+            for first in (0, 3, 41):
+                part = exact_search(B[query], B[first : first + N], 128, kernels=each_kernels)
+                for key in ("distance", "shift", "rotation", "reversed", "mirrored"):
+                    assert np.array_equal(part[key], whole[key][first : first + N]), (key, N, first)
+
+
+def test_a_match_reports_the_same_digits_whatever_top_asks_for(rng, each_kernels):
+    """A row's digits must not depend on how many rows come with it nor on the threshold
+    the search met it at (``--top 1`` and ``--top 8`` print the same distance for the best
+    match), on each kind of kernels."""
     curves = _family_curves(rng, 6, 5, 0.02)
     queries = _variants(rng, curves, 4)
     index = MemoryIndex(curves, rows_per_cell=8)
@@ -376,11 +409,13 @@ def test_a_match_reports_the_same_digits_whatever_top_asks_for(rng):
         narrow, _ = search_index(index, queries, top=top)
         for n, w in zip(narrow, wide):
             assert [(r.id, r.distance, r.shift) for r in n] == [(r.id, r.distance, r.shift) for r in w[:top]]
+    within, _ = search_index(index, queries, top=None, max_distance=wide[0][4].distance)
+    assert [(r.id, r.distance) for r in within[0]] == [(r.id, r.distance) for r in wide[0][:5]]
 
 
-def test_a_batch_reports_each_query_as_a_search_of_its_own_would(rng):
-    """The batch recomputes every query's reported rows in one pass: the digits are those
-    of each query searched alone."""
+def test_a_batch_reports_each_query_as_a_search_of_its_own_would(rng, each_kernels):
+    """The digits of a query in a batch are those of the query searched alone, on each
+    kind of kernels."""
     curves = _family_curves(rng, 6, 5, 0.02)
     queries = _variants(rng, curves, 5)
     index = MemoryIndex(curves, rows_per_cell=8)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import ParameterError
-from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS, exact_search
+from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS
 from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
 from .engine import TIE, Cascade, BestRows, search_block
@@ -223,81 +223,44 @@ def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
 
 
 def recompute_reported(index, queries, tops, search, *, direction, mirror, weights, tables=None) -> None:
-    """Replace the distances, shifts and flags of the rows the queries found by the numpy
-    reference path's, in a fixed order.
+    """Replace the distances, shifts and flags of the rows the queries found by a full
+    computation of each: refined at every candidate shift, whatever the threshold was when
+    the search met the row.
 
-    The search itself used the process's kernels (:mod:`nfdmatch.matching.kernels`), which
-    agree with numpy to ~1e-15 but not bit for bit (and a row left unrefined above the
-    threshold differs more), so without this the last printed digits would depend on the
-    install and on the threshold. The reference is the exact distance, so nothing is lost; rows
-    pushed past ``max_distance`` by the recomputation are dropped as the search would have.
-    The rows of every query go through passes of :func:`~nfdmatch.matching.exact_search_pairs`
-    of up to ``EXHAUSTIVE_ROWS`` rows, queries packed together (the numpy path's cost is
-    mostly per call), each row with the digits a pass of its own would give; a pass's
-    descriptors are read for it alone (memory stays bounded however many rows match).
+    The search skips the refinement of rows that cannot beat its threshold, so a row's
+    figures there depend on the moment it was met (on ``top`` and the other rows). Here
+    each reported row is computed alone by the process's kernels
+    (:mod:`nfdmatch.matching.kernels`: a row's digits do not depend on the other rows of a
+    call, nor on the threads), so the printed digits are the same run to run on one
+    install, whatever ``top``, ``max_distance`` and the other queries; two kinds of kernels
+    agree to ~1e-15. Rows pushed past ``max_distance`` are dropped as the search would have.
+    A query's rows are computed in pieces of up to ``EXHAUSTIVE_ROWS``, each piece's
+    descriptors read for it alone (memory stays bounded however many rows match).
 
-    queries : (Q, K, 3) descriptors; tops : Q :class:`BestRows`; tables : None, one search table
-    for every query, or one per query (or None): the descriptors come from the query's table
+    queries : (Q, K, 3) descriptors; tops : Q :class:`BestRows`; search : the method's
+    search (``exact_search`` or ``paper_search``); tables : None, one search table for
+    every query, or one per query (or None): the descriptors come from the query's table
     (the search's, already read) when it holds them all, else from the index (a scattered
     read: up to a whole HDF5 chunk per row).
     """
-    from ..matching import exact_search_pairs
-
     per_query = tables if isinstance(tables, (list, tuple)) else [tables] * len(tops)
-    found = {}  # query -> (rows, positions) of its reported rows, in row order
     for qi, tk in enumerate(tops):
-        if len(tk.rows):
-            order = np.argsort(tk.rows, kind="stable")
-            found[qi] = (tk.rows[order], tk.extra["position"][order])
-
-    def coefficients(qi, a, b):
-        rows, positions = found[qi]
+        if not len(tk.rows):
+            continue
+        order = np.argsort(tk.rows, kind="stable")
+        rows, positions = tk.rows[order], tk.extra["position"][order]
         table = per_query[qi]
-        if table is not None and positions.min() >= 0:
-            return table.coefficients_at_positions(positions[a:b])
-        return index.coefficients_at(rows[a:b])
-
-    # pieces (query, a, b) of at most EXHAUSTIVE_ROWS rows, packed in order into passes
-    passes, current, size = [], [], 0
-    for qi, (rows, _) in found.items():
+        pieces = []
         for a in range(0, len(rows), EXHAUSTIVE_ROWS):
             b = min(len(rows), a + EXHAUSTIVE_ROWS)
-            if current and size + (b - a) > EXHAUSTIVE_ROWS:
-                passes.append(current)
-                current, size = [], 0
-            current.append((qi, a, b))
-            size += b - a
-    if current:
-        passes.append(current)
-    results = {qi: [] for qi in found}
-    for pieces in passes:
-        if search is exact_search:
-            B = [coefficients(qi, a, b) for qi, a, b in pieces]
-            A = np.concatenate(
-                [np.repeat(np.asarray(queries[qi])[None], len(c), axis=0) for (qi, _, _), c in zip(pieces, B)]
+            if table is not None and positions.min() >= 0:
+                coefficients = table.coefficients_at_positions(positions[a:b])
+            else:
+                coefficients = index.coefficients_at(rows[a:b])
+            pieces.append(
+                search(queries[qi], coefficients, index.samples, direction=direction, mirror=mirror, weights=weights)
             )
-            r = exact_search_pairs(
-                A, np.concatenate(B), index.samples, direction=direction, mirror=mirror, weights=weights
-            )
-            at = 0
-            for qi, a, b in pieces:
-                results[qi].append({key: v[at : at + b - a] for key, v in r.items()})
-                at += b - a
-        else:  # the paper's step (numpy only): one call per piece
-            for qi, a, b in pieces:
-                results[qi].append(
-                    search(
-                        queries[qi],
-                        coefficients(qi, a, b),
-                        index.samples,
-                        direction=direction,
-                        mirror=mirror,
-                        weights=weights,
-                    )
-                )
-    for qi, (rows, positions) in found.items():
-        tk = tops[qi]
-        r = {key: np.concatenate([part[key] for part in results[qi]]) for key in results[qi][0]}
+        r = {key: np.concatenate([part[key] for part in pieces]) for key in pieces[0]}
         keep = r["distance"] <= (np.inf if tk.max_distance is None else tk.max_distance)
         tk.rows, tk.dist = rows[keep], r["distance"][keep]
         tk.extra = {key: (positions if key == "position" else r[key])[keep] for key in tk.extra}
