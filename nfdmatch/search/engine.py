@@ -294,116 +294,150 @@ def _search_one(
     every head exceeds the k-th distance. Nothing is skipped that a bound does not rule
     out, so the result is the exhaustive one; the order only decides how little is computed.
     """
-    search, method, direction, mirror = cascade.distance, cascade.method, cascade.direction, cascade.mirror
-    samples, truncate = cascade.samples, cascade.truncate
-    work = QueryWork()
-    cb = table.cell_bounds(query_features)
-    corder = np.argsort(cb, kind="stable")
-    if skip_cells is not None and len(skip_cells):
-        opened = np.ones(len(cb), dtype=bool)
-        opened[skip_cells] = False
-        corder = corder[opened[corder]]
-    cbs = cb[corder]
-    sizes = (table.start[1:] - table.start[:-1])[corder]
-    reach = np.cumsum(sizes)  # positions in the cells up to each one, in bound order
-    n_cells = len(corder)
-    ci = 0
-    queues = [_Sorted()]  # [0]: opened, by invariant bound; [i > 0]: by stage i's bound
-    stages = None  # the truncated stages, once the first cell shows what is stored
-    # a table that hands out every harmonic with the cell needs no other read for the exact
-    # distances (format 2, memory); else their rows' descriptors are read on demand
-    complete = None
-    batch = [FIRST_BATCH]
-    exact_batch = FIRST_BATCH
-    open_rows = _OPEN_ROWS
+    one = _OneQuery(query_coefficients, query_features, table, top, cascade, skip_cells)
     while True:
         thr = margin(top.threshold())
-        cell_head = cbs[ci] if ci < n_cells else np.inf
-        heads = [q.head() for q in queues]
+        cell_head = one.cell_bounds[one.next_cell] if one.next_cell < len(one.cell_order) else np.inf
+        heads = [q.head() for q in one.queues]
         q_at = int(np.argmin(heads))
-        queue_head = heads[q_at]
-        head = min(cell_head, queue_head)
+        head = min(cell_head, heads[q_at])
         if head > thr or head == np.inf:  # every row bounded above the k-th, or none left
             break
-        if cell_head <= queue_head:
-            # open every cell that may hold a row bounded below the next pending row (none
-            # when nothing is pending), and at least _OPEN_ROWS positions; never a cell the
-            # threshold rules out
-            j, opened = ci, 0
-            limit = queue_head  # inf: nothing pending
-            while j < n_cells and cbs[j] <= thr and (opened < open_rows or cbs[j] <= limit < np.inf):
-                opened += sizes[j]
-                j += 1
-            open_rows = min(2 * open_rows, _MAX_OPEN_ROWS)
-            cells = corder[ci:j]
-            ci = j
-            work.cells += len(cells)
-            # the positions this search may still open (every cell bounded below the k-th
-            # distance so far): a table reads itself whole early when that is most of it
-            within = int(np.searchsorted(cbs, thr, side="right"))
-            expect = int(reach[within - 1]) if np.isfinite(thr) and within else 0
-            positions, rows, F, sq = table.open_cells(cells, expect=expect)
-            if stages is None:
-                stored = table.stored_harmonics
-                complete = stored == query_coefficients.shape[0]
-                stages = truncated_stages(query_coefficients.shape[0], stored) if truncate else []
-                queues += [_Sorted() for _ in stages]
-                batch += [FIRST_BATCH] * len(stages)
-            work.scanned += len(rows)
-            b = row_lower_bounds(query_features, table.split, F, sq)
-            keep = np.flatnonzero(b <= thr)
-            queues[0].merge(b[keep], rows[keep], positions[keep], thr)
+        if cell_head <= heads[q_at]:
+            one.open_cells(thr, heads[q_at])
             continue
         # a batch never reaches past the head of a cheaper queue or of the cells: what is
         # pending there may lower the k-th distance before its rows are needed; except the
         # first bound stage's (its bound is cheap next to a step per few rows)
-        limit = thr if q_at == 0 < len(stages) else min(thr, cell_head, min(heads[:q_at], default=np.inf))
-        if q_at < len(stages) and np.isfinite(thr):
+        stages = len(one.stages)
+        limit = thr if q_at == 0 < stages else min(thr, cell_head, min(heads[:q_at], default=np.inf))
+        if q_at < stages and np.isfinite(thr):
             # the next stage's bound for a batch of this queue's rows (straight to exact
             # while no k-th distance exists: nothing could be pruned yet)
-            _, rows, positions = queues[q_at].take(batch[q_at], limit)
+            _, rows, positions = one.queues[q_at].take(one.batch[q_at], limit)
             if len(rows) >= _TRUNCATE_FROM or q_at > 0:
-                Kp, grid = stages[q_at]
-                tb = truncated_lower_bounds(
-                    query_coefficients,
-                    table.coefficients_at_positions(positions, Kp, expect=len(rows) + len(queues[q_at])),
-                    direction=direction,
-                    mirror=mirror,
-                    harmonics=Kp,
-                    grid=grid,
-                    limit=thr,
-                )
-                if q_at == 0:
-                    work.truncated += len(rows)
-                else:
-                    work.fine += len(rows)
-                keep = tb <= thr
-                queues[q_at + 1].merge(tb[keep], rows[keep], positions[keep], thr)
-                batch[q_at] = min(batch[q_at] * 2, MAX_BATCH)
+                one.bound_stage(q_at, rows, positions, thr)
                 continue
         else:
-            size = exact_batch if q_at == len(stages) and q_at > 0 else batch[q_at]
-            _, rows, positions = queues[q_at].take(size, limit)
-            if q_at == len(stages) and q_at > 0:
-                exact_batch = min(exact_batch * 2, EXACT_BATCH)
-            elif q_at < len(stages):
-                batch[q_at] = min(batch[q_at] * 2, MAX_BATCH)
-        coefficients = table.coefficients_at_positions(positions) if complete else table.coefficients(rows)
-        _exact(
+            rows, positions = one.take_exact(q_at, limit)
+        one.exact(rows, positions, thr)
+    return one.work
+
+
+class _OneQuery:
+    """The state of one query's search (:func:`_search_one`): its cells in bound order, the
+    queues, the truncated stages and batch sizes, and the work done."""
+
+    def __init__(self, query_coefficients, query_features, table, top, cascade, skip_cells):
+        self.q, self.features, self.table, self.top, self.cascade = (
             query_coefficients,
+            query_features,
+            table,
+            top,
+            cascade,
+        )
+        self.work = QueryWork()
+        cb = table.cell_bounds(query_features)
+        corder = np.argsort(cb, kind="stable")
+        if skip_cells is not None and len(skip_cells):
+            opened = np.ones(len(cb), dtype=bool)
+            opened[skip_cells] = False
+            corder = corder[opened[corder]]
+        self.cell_order = corder
+        self.cell_bounds = cb[corder]
+        self.sizes = (table.start[1:] - table.start[:-1])[corder]
+        self.reach = np.cumsum(self.sizes)  # positions in the cells up to each one, in bound order
+        self.next_cell = 0
+        self.queues = [_Sorted()]  # [0]: opened, by invariant bound; [i > 0]: by stage i's bound
+        self.stages = None  # the truncated stages, once the first cell shows what is stored
+        # a table that hands out every harmonic with the cell needs no other read for the
+        # exact distances (format 2, memory); else their rows' descriptors are read on demand
+        self.complete = None
+        self.batch = [FIRST_BATCH]
+        self.exact_batch = FIRST_BATCH
+        self.open_rows = _OPEN_ROWS
+
+    def open_cells(self, thr: float, pending: float) -> None:
+        """Open every cell that may hold a row bounded below the next pending row (bound
+        ``pending``; none when nothing is pending), and at least ``open_rows`` positions;
+        never a cell the threshold rules out."""
+        cbs, sizes, table = self.cell_bounds, self.sizes, self.table
+        j, opened = self.next_cell, 0
+        while j < len(cbs) and cbs[j] <= thr and (opened < self.open_rows or cbs[j] <= pending < np.inf):
+            opened += sizes[j]
+            j += 1
+        self.open_rows = min(2 * self.open_rows, _MAX_OPEN_ROWS)
+        cells = self.cell_order[self.next_cell : j]
+        self.next_cell = j
+        self.work.cells += len(cells)
+        # the positions this search may still open (every cell bounded below the k-th
+        # distance so far): a table reads itself whole early when that is most of it
+        within = int(np.searchsorted(cbs, thr, side="right"))
+        expect = int(self.reach[within - 1]) if np.isfinite(thr) and within else 0
+        positions, rows, F, sq = table.open_cells(cells, expect=expect)
+        if self.stages is None:
+            stored = table.stored_harmonics
+            self.complete = stored == self.q.shape[0]
+            self.stages = truncated_stages(self.q.shape[0], stored) if self.cascade.truncate else []
+            self.queues += [_Sorted() for _ in self.stages]
+            self.batch += [FIRST_BATCH] * len(self.stages)
+        self.work.scanned += len(rows)
+        b = row_lower_bounds(self.features, table.split, F, sq)
+        keep = np.flatnonzero(b <= thr)
+        self.queues[0].merge(b[keep], rows[keep], positions[keep], thr)
+
+    def bound_stage(self, q_at: int, rows, positions, thr: float) -> None:
+        """Stage ``q_at``'s truncated-harmonic bound of a batch of its queue's rows; the rows
+        it does not rule out go on to the next queue."""
+        cascade = self.cascade
+        Kp, grid = self.stages[q_at]
+        tb = truncated_lower_bounds(
+            self.q,
+            self.table.coefficients_at_positions(positions, Kp, expect=len(rows) + len(self.queues[q_at])),
+            direction=cascade.direction,
+            mirror=cascade.mirror,
+            harmonics=Kp,
+            grid=grid,
+            limit=thr,
+        )
+        if q_at == 0:
+            self.work.truncated += len(rows)
+        else:
+            self.work.fine += len(rows)
+        keep = tb <= thr
+        self.queues[q_at + 1].merge(tb[keep], rows[keep], positions[keep], thr)
+        self.batch[q_at] = min(self.batch[q_at] * 2, MAX_BATCH)
+
+    def take_exact(self, q_at: int, limit: float):
+        """``(rows, positions)``: the next batch of queue ``q_at`` for exact distances."""
+        last = q_at == len(self.stages) and q_at > 0
+        size = self.exact_batch if last else self.batch[q_at]
+        _, rows, positions = self.queues[q_at].take(size, limit)
+        if last:
+            self.exact_batch = min(self.exact_batch * 2, EXACT_BATCH)
+        elif q_at < len(self.stages):
+            self.batch[q_at] = min(self.batch[q_at] * 2, MAX_BATCH)
+        return rows, positions
+
+    def exact(self, rows, positions, thr: float) -> None:
+        """The exact distances of ``rows`` into the query's :class:`BestRows`."""
+        c = self.cascade
+        complete = self.complete
+        coefficients = self.table.coefficients_at_positions(positions) if complete else self.table.coefficients(rows)
+        _exact(
+            self.q,
             rows,
             coefficients,
-            top,
-            work,
-            search,
-            method,
-            direction,
-            mirror,
-            samples,
+            self.top,
+            self.work,
+            c.distance,
+            c.method,
+            c.direction,
+            c.mirror,
+            c.samples,
             thr,
             positions if complete else None,
         )
-    return work
 
 
 def _exact(

@@ -140,14 +140,7 @@ def search_index(
     stats = SearchStats(queries=len(queries), rows=index.n_curves, pruned=prune)
     table = None
     if not prune:
-        chunks = (
-            (start, chunk["coefficients"])
-            for start, chunk in index.iter_chunks(EXHAUSTIVE_ROWS * 8, ("coefficients",), upcast=False)
-        )
-        stats.exact, _ = exhaustive_rows(
-            qcoef, tops, chunks, cascade.distance, index.samples, direction=direction, mirror=mirror,
-            weights=weights, progress=progress, total=index.n_curves,
-        )  # fmt: skip
+        stats.exact = _exhaustive(index, qcoef, tops, cascade, weights, progress)
     elif index.n_curves and len(queries):
         table = _pruned(index, qcoef, tops, cascade, stats, threads, progress)
     recompute_reported(
@@ -159,6 +152,20 @@ def search_index(
     stats.kernels = current_kernels().describe()
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def _exhaustive(index, qcoef, tops, cascade: Cascade, weights, progress) -> int:
+    """Every exact distance of the queries to the index's rows (``query --exhaustive``: no
+    bound consulted), into ``tops``; returns the number computed."""
+    chunks = (
+        (start, chunk["coefficients"])
+        for start, chunk in index.iter_chunks(EXHAUSTIVE_ROWS * 8, ("coefficients",), upcast=False)
+    )
+    computed, _ = exhaustive_rows(
+        qcoef, tops, chunks, cascade.distance, index.samples, direction=cascade.direction,
+        mirror=cascade.mirror, weights=weights, progress=progress, total=index.n_curves,
+    )  # fmt: skip
+    return computed
 
 
 def _pruned(index, qcoef, tops, cascade: Cascade, stats: SearchStats, threads, progress):

@@ -164,26 +164,8 @@ def rerank_index(
     """
     from .index_search import search_index
 
-    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < MIN_DEPTH:
-        raise ParameterError(f"rerank depth must be an integer of at least {MIN_DEPTH}, got {depth!r}")
-    if top < 1 or top > depth:
-        raise ParameterError(f"top must be between 1 and the rerank depth ({depth}), got {top}")
     t0 = time.perf_counter()
-    reader = index.graph_reader()
-    if reader is None:
-        raise IndexFormatError(
-            "the index has no neighbour graph, which --rerank needs: build it with "
-            f"`nfdmatch index build ... --index {index.path} --graph`",
-            path=index.path,
-        )
-    stored_k = index.graph_k()
-    if stored_k < SCALE_NEIGHBOURS:
-        raise IndexFormatError(
-            f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
-            f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
-            f"--graph {SCALE_NEIGHBOURS}` or more",
-            path=index.path,
-        )
+    reader = _checked_graph(index, top, depth)
     exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
     is_self = self_rule(getattr(index, "locate", None))
     N = index.n_curves
@@ -210,6 +192,31 @@ def rerank_index(
         )
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def _checked_graph(index, top: int, depth: int):
+    """The index's graph reader, once :func:`rerank_index`'s arguments and the graph are
+    checked."""
+    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < MIN_DEPTH:
+        raise ParameterError(f"rerank depth must be an integer of at least {MIN_DEPTH}, got {depth!r}")
+    if top < 1 or top > depth:
+        raise ParameterError(f"top must be between 1 and the rerank depth ({depth}), got {top}")
+    reader = index.graph_reader()
+    if reader is None:
+        raise IndexFormatError(
+            "the index has no neighbour graph, which --rerank needs: build it with "
+            f"`nfdmatch index build ... --index {index.path} --graph`",
+            path=index.path,
+        )
+    stored_k = index.graph_k()
+    if stored_k < SCALE_NEIGHBOURS:
+        raise IndexFormatError(
+            f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
+            f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
+            f"--graph {SCALE_NEIGHBOURS}` or more",
+            path=index.path,
+        )
+    return reader
 
 
 class _Vectors:

@@ -382,15 +382,21 @@ class SearchTable:
             self.bytes_read += got.nbytes
             self._store_descriptors(tier, runs, got)
 
-    def _store_descriptors(self, tier: "_Tier", runs, got) -> None:
+    def _cells_of_runs(self, runs):
+        """``(cell, lo, hi)`` of every cell the position runs ``[(a, b), ...]`` hold: where
+        its positions lie in the runs' rows read one after the other."""
         at = 0
         for a, b in runs:
-            tier.read += b - a
             first = int(np.searchsorted(self.start, a, side="left"))
             last = int(np.searchsorted(self.start, b, side="left"))
             for c in range(first, last):
-                tier.cells.setdefault(c, got[at + int(self.start[c]) - a : at + int(self.start[c + 1]) - a])
+                yield c, at + int(self.start[c]) - a, at + int(self.start[c + 1]) - a
             at += b - a
+
+    def _store_descriptors(self, tier: "_Tier", runs, got) -> None:
+        tier.read += sum(b - a for a, b in runs)
+        for c, lo, hi in self._cells_of_runs(runs):
+            tier.cells.setdefault(c, got[lo:hi])
 
     def _load_all_descriptors(self, tier: "_Tier") -> None:
         with self._lock:
@@ -406,15 +412,9 @@ class SearchTable:
             runs = self._runs(cells, self._position_bytes(), 2)
             got = self._complete(self._read_runs(runs))
             self.bytes_read += sum(x.nbytes for x in got if x is not None)
-            at = 0
-            for a, b in runs:
-                self._positions_read += b - a
-                first = int(np.searchsorted(self.start, a, side="left"))
-                last = int(np.searchsorted(self.start, b, side="left"))
-                for c in range(first, last):
-                    lo, hi = at + int(self.start[c]) - a, at + int(self.start[c + 1]) - a
-                    self._cells[c] = tuple(x[lo:hi] for x in got[:3])
-                at += b - a
+            self._positions_read += sum(b - a for a, b in runs)
+            for c, lo, hi in self._cells_of_runs(runs):
+                self._cells[c] = tuple(x[lo:hi] for x in got[:3])
             if got[3] is not None:
                 self._store_descriptors(self._full, runs, got[3])
 
