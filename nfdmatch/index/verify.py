@@ -312,9 +312,8 @@ def _verify(h5, meta, files, report) -> None:
 
 
 def _scan_datasets(h5, meta, files, report) -> tuple[dict, dict]:
-    """Scan every dataset of /files, /curves (and /search) once, the checksum datasets
-    first; returns the datasets by group and the values the cross-checks need, by full
-    name (the rest is checked block by block and dropped)."""
+    """Scan every dataset once (checksum datasets first); returns the datasets by group and
+    the values the cross-checks need, by full name (the rest is scanned and dropped)."""
     whole = np.asarray
     needed = {
         "/curves/file": whole,
@@ -351,8 +350,7 @@ def _scan_datasets(h5, meta, files, report) -> tuple[dict, dict]:
 
 
 def _check_search_derived(values, row, split: int, report) -> None:
-    """/search features, squared norms and coefficients equal to what they are derived from
-    (the /curves rows in /search order); the /curves values used are dropped."""
+    """/search features, squared norms and coefficients equal to the /curves rows they copy."""
     features = values["/search/features"]
     derived = np.concatenate([values.pop("/curves/inv_sv"), values.pop("/curves/inv_block")], axis=1)[row]
     checks = (
@@ -370,8 +368,7 @@ def _check_search_derived(values, row, split: int, report) -> None:
 
 
 def _check_cells(values, row, split: int, report) -> None:
-    """The /search cells: rows ascending within a cell, every member within its cell's
-    radius of its centre (each half of the features)."""
+    """The /search cells: rows ascend within a cell, members lie within its radius."""
     features = values["/search/features"]
     N = len(row)
     start = np.asarray(values["/search/cell_start"], dtype=np.int64)
