@@ -82,29 +82,8 @@ def chain_segments(
     nv = len(verts)
     degree = np.bincount(local.ravel(), minlength=nv)
     if degree.max() > 2:
-        v = int(np.flatnonzero(degree > 2)[0])
-        users = np.flatnonzero((local == v).any(axis=1))
-        where = ""
-        if segment_where is not None:
-            shown = ", ".join(segment_where(int(order[u])) for u in users[:5])
-            more = ", ..." if len(users) > 5 else ""
-            where = f" ({shown}{more})"
-        raise ParseError(
-            f"vertex {label(int(verts[v]))} is shared by {int(degree[v])} line segments{where}: "
-            "it is a branching point, but each curve must be a simple loop",
-            path=path,
-        )
-
-    # adjacency: up to two neighbours per vertex (degree is 1 or 2 here)
-    ends = np.concatenate([local[:, 0], local[:, 1]])
-    others = np.concatenate([local[:, 1], local[:, 0]])
-    by_vertex = np.argsort(ends, kind="stable")
-    start = np.searchsorted(ends[by_vertex], np.arange(nv))
-    nbr = np.full((nv, 2), -1, dtype=np.int64)
-    nbr[:, 0] = others[by_vertex[start]]
-    two = degree == 2
-    nbr[two, 1] = others[by_vertex[start[two] + 1]]
-    nbr_l = nbr.tolist()
+        _refuse_branching(local, degree, verts, order, path, label, segment_where)
+    nbr_l = _neighbours(local, degree, nv)
     visited = bytearray(nv)
     result: list[tuple[int, np.ndarray]] = []
 
@@ -134,6 +113,37 @@ def chain_segments(
                 forward = backward[:0:-1] + forward
         result.append((int(order[s]), verts[np.array(forward, dtype=np.int64)]))
     return result
+
+
+def _refuse_branching(local, degree, verts, order, path, label, segment_where) -> None:
+    """The ParseError for the first vertex of degree above 2, naming (where given) the
+    places of up to five of its segments."""
+    v = int(np.flatnonzero(degree > 2)[0])
+    users = np.flatnonzero((local == v).any(axis=1))
+    where = ""
+    if segment_where is not None:
+        shown = ", ".join(segment_where(int(order[u])) for u in users[:5])
+        more = ", ..." if len(users) > 5 else ""
+        where = f" ({shown}{more})"
+    raise ParseError(
+        f"vertex {label(int(verts[v]))} is shared by {int(degree[v])} line segments{where}: "
+        "it is a branching point, but each curve must be a simple loop",
+        path=path,
+    )
+
+
+def _neighbours(local: np.ndarray, degree: np.ndarray, nv: int) -> list[list[int]]:
+    """Adjacency of a graph whose vertices have degree 1 or 2: per vertex its two
+    neighbours (-1 for none), as lists (walked vertex by vertex in Python)."""
+    ends = np.concatenate([local[:, 0], local[:, 1]])
+    others = np.concatenate([local[:, 1], local[:, 0]])
+    by_vertex = np.argsort(ends, kind="stable")
+    start = np.searchsorted(ends[by_vertex], np.arange(nv))
+    nbr = np.full((nv, 2), -1, dtype=np.int64)
+    nbr[:, 0] = others[by_vertex[start]]
+    two = degree == 2
+    nbr[two, 1] = others[by_vertex[start[two] + 1]]
+    return nbr.tolist()
 
 
 def closed_loops(segments) -> tuple[list[np.ndarray], int, int]:

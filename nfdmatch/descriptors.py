@@ -375,6 +375,38 @@ def descriptors_batch(
             scale,
         )
     counts = np.array([len(p) for p in pts_list])
+    unit, offset, extent, pre = _unit_curves(pts_list, counts)
+    sampled = _arc_length_samples(unit, counts, samples)
+    # real samples: rfft gives A_0 .. A_{n//2}, all that is used (A_{-k} = conj A_k)
+    fd = np.fft.rfft(sampled, axis=-1).transpose(1, 2, 0) / samples  # (N, n//2 + 1, 3)
+    # sum over k = 1 .. n-1 of |A_k|^2: twice each k < n/2, once the Nyquist term
+    twice = np.where(2 * np.arange(fd.shape[1]) < samples, 2.0, 1.0)
+    twice[0] = 0.0
+    rms = np.sqrt(np.einsum("k,nk->n", twice, np.sum(np.abs(fd) ** 2, axis=2)))
+    a1 = np.linalg.norm(fd[:, 1], axis=1)
+    divisor = rms if scale == "rms" else np.maximum(a1, rms * 1e-15)
+    coeffs = fd[:, 1 : harmonics + 1] / divisor[:, None, None]
+    R, degenerate = _plane_rotations(fd[:, 1], rms)
+    centroid = (offset + fd[:, 0].real * extent[:, None]) * pre[:, None]
+    size = divisor * extent * pre
+    _check_finite(size, centroid, curves)
+    return DescriptorBatch(
+        coefficients=np.einsum("nij,nkj->nki", R, coeffs),
+        rotation=R,
+        centroid=centroid,
+        scale=size,
+        plane_degenerate=degenerate,
+        samples=int(samples),
+        harmonics=int(harmonics),
+        scale_mode=scale,
+    )
+
+
+def _unit_curves(pts_list, counts):
+    """Every curve closed explicitly (first vertex repeated), all concatenated, each scaled
+    into the unit box about its vertex mean: ``(unit points, vertex means, extents, power-of-
+    two prescales)``; a curve's point ``p`` is ``(unit * extent + mean) * prescale``."""
+    N = len(pts_list)
     # each curve closed explicitly (first vertex repeated), all concatenated: one insert
     flat = np.concatenate(pts_list) if N > 1 else pts_list[0]
     ends = np.cumsum(counts)
@@ -391,6 +423,13 @@ def descriptors_batch(
     centred = closed - offset[curve_of]
     extent = np.maximum.reduceat(np.abs(centred).max(axis=1), first)
     unit = centred / extent[curve_of, None]
+    return unit, offset, extent, pre
+
+
+def _arc_length_samples(unit, counts, samples: int) -> np.ndarray:
+    """``samples`` points per closed curve of ``unit`` (:func:`_unit_curves`), equally
+    spaced in arc length from its first vertex: (3, N, samples), coordinate-major."""
+    N = len(counts)
     step = np.diff(unit, axis=0)
     seg = np.linalg.norm(step, axis=1)
     starts = np.concatenate([[0], np.cumsum(counts + 1)[:-1]])  # index of each curve's first vertex
@@ -406,19 +445,11 @@ def descriptors_batch(
     seglen = local[idx + 1] - local[idx]
     t = (targets - local[idx]) / np.where(seglen > 0, seglen, 1.0)
     # coordinate-major (3, N * samples): contiguous gathers, and FFTs along the last axis
-    sampled = (unit.T[:, idx] + t * step.T[:, idx]).reshape(3, N, samples)
-    # real samples: rfft gives A_0 .. A_{n//2}, all that is used (A_{-k} = conj A_k)
-    fd = np.fft.rfft(sampled, axis=-1).transpose(1, 2, 0) / samples  # (N, n//2 + 1, 3)
-    # sum over k = 1 .. n-1 of |A_k|^2: twice each k < n/2, once the Nyquist term
-    twice = np.where(2 * np.arange(fd.shape[1]) < samples, 2.0, 1.0)
-    twice[0] = 0.0
-    rms = np.sqrt(np.einsum("k,nk->n", twice, np.sum(np.abs(fd) ** 2, axis=2)))
-    a1 = np.linalg.norm(fd[:, 1], axis=1)
-    divisor = rms if scale == "rms" else np.maximum(a1, rms * 1e-15)
-    coeffs = fd[:, 1 : harmonics + 1] / divisor[:, None, None]
-    R, degenerate = _plane_rotations(fd[:, 1], rms)
-    centroid = (offset + fd[:, 0].real * extent[:, None]) * pre[:, None]
-    size = divisor * extent * pre
+    return (unit.T[:, idx] + t * step.T[:, idx]).reshape(3, N, samples)
+
+
+def _check_finite(size, centroid, curves) -> None:
+    """A CurveError for the first curve whose size or position overflowed float64."""
     bad = ~(np.isfinite(size) & np.isfinite(centroid).all(axis=1))
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
@@ -427,13 +458,3 @@ def descriptors_batch(
             "the curve's size or position is beyond float64 (coordinates near 1.8e308): scale the input down",
             path=c.id if isinstance(c, Curve) else None,
         )
-    return DescriptorBatch(
-        coefficients=np.einsum("nij,nkj->nki", R, coeffs),
-        rotation=R,
-        centroid=centroid,
-        scale=size,
-        plane_degenerate=degenerate,
-        samples=int(samples),
-        harmonics=int(harmonics),
-        scale_mode=scale,
-    )

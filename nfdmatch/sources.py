@@ -29,6 +29,7 @@ from pathlib import Path
 
 from .errors import ReadError
 from .formats import supported_extensions
+from .formats._chain import file_kind
 
 __all__ = ["find_curve_files", "walk_folder"]
 
@@ -120,16 +121,7 @@ def _irregular(path: str) -> str | None:
         return None
     if stat.S_ISREG(mode):
         return None
-    for test, kind in (
-        (stat.S_ISFIFO, "a FIFO (named pipe)"),
-        (stat.S_ISSOCK, "a socket"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-        (stat.S_ISDIR, "a directory"),
-    ):
-        if test(mode):
-            return kind
-    return "not a regular file"
+    return file_kind(mode)
 
 
 class UniquePaths:

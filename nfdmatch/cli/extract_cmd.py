@@ -117,14 +117,7 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
       nfdmatch index build contours/ --index parts.h5
     """
     from ..errors import ParameterError
-    from ..mesh import (
-        extract_contours,
-        find_mesh_files,
-        prune_contours,
-        read_manifest,
-        refused_targets,
-        write_contours,
-    )
+    from ..mesh import find_mesh_files, write_contours
 
     if len(out_dir) > 1:
         raise click.UsageError(
@@ -132,37 +125,14 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
             "the list of files goes to stdout or to --list FILE"
         )
     out_dir = out_dir[0]
-    list_format = None
-    if list_file is not None:
-        ext = os.path.splitext(list_file)[1].lower()
-        list_format = output_format or FORMAT_OF_EXTENSION.get(ext)
-        if list_format not in ROW_FORMATS or list_format == "table":
-            list_format = "paths"
+    list_format = _list_format(list_file, output_format)
     if sections == 0 and not boundaries:
         raise click.UsageError("nothing to extract: --sections 0 needs --boundaries")
     files = find_mesh_files(meshes, exclude=[out_dir])
     if not files:
         raise ParameterError(f"no mesh files found in {', '.join(meshes)}")
-    results, errors = [], []
-    for path in files:
-        try:
-            results.append(extract_contours(path, sections=sections, axis=axis, boundaries=boundaries))
-        except NfdError as exc:
-            errors.append(exc)
-    for result in results:
-        for message in result.notes:
-            note(message)
-    contours = [c for result in results for c in result.contours]
-    refused = []
-    if contours:
-        problem = read_manifest(out_dir)[1]  # rewritten below: say so once
-        if problem:
-            note(problem)
-    if contours and not force:
-        # files in the way that extract did not write: their meshes fail (exit 3), the others go on
-        refused = refused_targets(contours, out_dir, format=curve_format)
-        blocked = {exc.mesh for exc in refused}
-        contours = [c for c in contours if c.mesh not in blocked]
+    results, errors = _extract_all(files, sections, axis, boundaries)
+    contours, refused = _writable_contours(results, out_dir, curve_format, force)
     report_errors(errors + refused)
     if errors or refused:
         count_failures(len(errors) + len(refused))  # exit 3 to come: --list is not written
@@ -174,6 +144,66 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
             error(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
         sys.exit(EXIT_ERROR)
     written = write_contours(contours, out_dir, format=curve_format, force=force)
+    _write_list(written, contours, list_file, list_format, output_format)
+    pruned = _prune(out_dir, written, errors, refused) if prune else ""
+    meshes_with = len({c.mesh for c in contours})
+    say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}{pruned}")
+    if refused:
+        error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
+    finish(len(errors), len(files), "meshes")
+    if refused:
+        sys.exit(EXIT_PARTIAL)
+
+
+def _list_format(list_file, output_format):
+    """The format of --list FILE: --format, else its extension's; "paths" (one a line) for
+    a table or an unknown extension; None without --list."""
+    if list_file is None:
+        return None
+    ext = os.path.splitext(list_file)[1].lower()
+    list_format = output_format or FORMAT_OF_EXTENSION.get(ext)
+    if list_format not in ROW_FORMATS or list_format == "table":
+        list_format = "paths"
+    return list_format
+
+
+def _extract_all(files, sections, axis, boundaries):
+    """The contours of every mesh file, and the errors of those that could not be read;
+    each result's notes go to stderr."""
+    from ..mesh import extract_contours
+
+    results, errors = [], []
+    for path in files:
+        try:
+            results.append(extract_contours(path, sections=sections, axis=axis, boundaries=boundaries))
+        except NfdError as exc:
+            errors.append(exc)
+    for result in results:
+        for message in result.notes:
+            note(message)
+    return results, errors
+
+
+def _writable_contours(results, out_dir, curve_format, force):
+    """The contours to write and the errors of the meshes refused: without --force, a mesh
+    with a file in the way that extract did not write fails (exit 3), the others go on."""
+    from ..mesh import read_manifest, refused_targets
+
+    contours = [c for result in results for c in result.contours]
+    refused = []
+    if contours:
+        problem = read_manifest(out_dir)[1]  # rewritten below: say so once
+        if problem:
+            note(problem)
+    if contours and not force:
+        refused = refused_targets(contours, out_dir, format=curve_format)
+        blocked = {exc.mesh for exc in refused}
+        contours = [c for c in contours if c.mesh not in blocked]
+    return contours, refused
+
+
+def _write_list(written, contours, list_file, list_format, output_format) -> None:
+    """The list of the written files: rows (stdout or --list FILE), or paths one a line."""
     rows = [
         {
             "file": path,
@@ -191,21 +221,19 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
         deliver("".join(f"{row['file']}\n" for row in rows), list_file)
     else:
         write_rows(rows, columns, list_format or output_format, list_file, group_by="mesh")
-    pruned = ""
-    if prune:
-        kept = [e.path for e in errors if e.path] + [e.mesh for e in refused]
-        result = prune_contours(out_dir, written, keep_meshes=kept)
-        for message in result.notes:
-            note(message)
-        for path in result.removed:
-            detail(f"removed {path}")
-        for path, why in result.kept:
-            note(f"{path}: not pruned: {why}")
-        pruned = f"; {len(result.removed)} stale contour file{'' if len(result.removed) == 1 else 's'} removed"
-    meshes_with = len({c.mesh for c in contours})
-    say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}{pruned}")
-    if refused:
-        error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
-    finish(len(errors), len(files), "meshes")
-    if refused:
-        sys.exit(EXIT_PARTIAL)
+
+
+def _prune(out_dir, written, errors, refused) -> str:
+    """--prune: remove the stale contour files of earlier runs (keeping those of meshes
+    that failed this run); returns the summary's clause."""
+    from ..mesh import prune_contours
+
+    kept = [e.path for e in errors if e.path] + [e.mesh for e in refused]
+    result = prune_contours(out_dir, written, keep_meshes=kept)
+    for message in result.notes:
+        note(message)
+    for path in result.removed:
+        detail(f"removed {path}")
+    for path, why in result.kept:
+        note(f"{path}: not pruned: {why}")
+    return f"; {len(result.removed)} stale contour file{'' if len(result.removed) == 1 else 's'} removed"

@@ -142,39 +142,42 @@ def index_build(
       nfdmatch index build library/ --index library.h5 --graph
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
     """
-    from ..errors import NfdError
-    from ..index import build_index
-
     if "-" in sources:
         raise click.UsageError(
             "index build reads files and folders, not stdin ('-'): an index records each file to "
             "rebuild it incrementally; save the curve to a file and index that"
         )
     started = datetime.now(timezone.utc)
+    options = dict(
+        samples=samples, harmonics=harmonics, scale=scale, glob=glob_pattern, input_format=input_format,
+        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k,
+    )  # fmt: skip
+    report = _run_build(
+        list(sources), index_path, options, jobs, file_timeout, (scheduler, scheduler_timeout), output_format, started
+    )
+    _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started)
+
+
+def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, cluster_at: tuple, output_format, started):
+    """The build, here or on the cluster ``cluster_at`` (``--scheduler`` and its timeout),
+    under a progress bar. A build that fails or is interrupted still prints its JSON line
+    (with ``--format json``) before the error goes on."""
+    from ..errors import NfdError
+    from ..index import build_index
+
+    scheduler, scheduler_timeout = cluster_at
     cluster = None
     progress, finish_bar = progress_bar("indexing files")
     try:
-        if scheduler and not dry_run:  # a dry run reads locally: nothing for workers to do
+        if scheduler and not options["dry_run"]:  # a dry run reads locally: nothing for workers to do
             if jobs is not None:
                 note("--jobs is ignored with --scheduler (the cluster's workers compute the files)")
             cluster = open_cluster(scheduler, scheduler_timeout)
-        options = dict(
-            samples=samples,
-            harmonics=harmonics,
-            scale=scale,
-            glob=glob_pattern,
-            input_format=input_format,
-            rebuild=rebuild,
-            dry_run=dry_run,
-            wait=wait,
-            progress=progress,
-            allow_shrink=allow_shrink,
-            graph=graph_k,
-        )
         if cluster is None:
-            report = build_index(list(sources), index_path, jobs=jobs, file_timeout=file_timeout or None, **options)
-        else:
-            report = cluster.build_index(list(sources), index_path, **options)
+            return build_index(
+                sources, index_path, jobs=jobs, file_timeout=file_timeout or None, progress=progress, **options
+            )
+        return cluster.build_index(sources, index_path, progress=progress, **options)
     except (NfdError, KeyboardInterrupt) as exc:
         if output_format == "json":  # cron logs one line per run: it says why nothing was written
             deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
@@ -183,6 +186,11 @@ def index_build(
         finish_bar()
         if cluster is not None:
             cluster.close()
+
+
+def _say_build_result(report, index_path, dry_run: bool, allow_shrink: bool, output_format: str, started) -> None:
+    """Notices and failures on stderr, the summary (or a dry run's changes) on stdout, and
+    the exit: 1 for a dry run its build would refuse, else by the failed files."""
     for notice in report.notices:
         note(notice, prefix="Notice: ")
     for _path, message in report.skipped + report.failures:

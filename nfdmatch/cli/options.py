@@ -315,60 +315,49 @@ def input_format_option(f):
     )(f)
 
 
-def descriptor_options(f):
+def _descriptor_option_table():
+    """The three descriptor options, defined once: ``(names, type, default, help, short
+    help)``, in the order --help lists them."""
     from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, SCALES
 
-    f = click.option(
-        "--scale",
-        type=click.Choice(SCALES),
-        default=DEFAULT_SCALE,
-        show_default=True,
-        help="Scale normalization: RMS radius (robust) or |A_1| (the paper).",
-    )(f)
-    f = click.option(
-        "--harmonics",
-        "-k",
-        type=click.IntRange(min=1),
-        default=DEFAULT_HARMONICS,
-        show_default=True,
-        help="Harmonics K: frequencies +-1..+-K are compared.",
-    )(f)
-    f = click.option(
-        "--samples",
-        "-n",
-        type=click.IntRange(min=3),
-        default=DEFAULT_SAMPLES,
-        show_default=True,
-        help="Arc-length samples per curve.",
-    )(f)
+    return (
+        (
+            ("--samples", "-n"),
+            click.IntRange(min=3),
+            DEFAULT_SAMPLES,
+            "Arc-length samples per curve.",
+            "Arc-length samples",
+        ),
+        (
+            ("--harmonics", "-k"),
+            click.IntRange(min=1),
+            DEFAULT_HARMONICS,
+            "Harmonics K: frequencies +-1..+-K are compared.",
+            "Harmonics K",
+        ),
+        (
+            ("--scale",),
+            click.Choice(SCALES),
+            DEFAULT_SCALE,
+            "Scale normalization: RMS radius (robust) or |A_1| (the paper).",
+            "Scale normalization",
+        ),
+    )
+
+
+def descriptor_options(f):
+    """--samples, --harmonics, --scale with the library's defaults (inputs read from files)."""
+    for names, kind, default, text, _ in reversed(_descriptor_option_table()):
+        f = click.option(*names, type=kind, default=default, show_default=True, help=text)(f)
     return f
 
 
 def optional_descriptor_options(what: str):
     """samples/harmonics/scale without defaults: an index fixes them, files take the defaults."""
-    from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, SCALES
 
     def decorate(f):
-        f = click.option(
-            "--scale",
-            type=click.Choice(SCALES),
-            default=None,
-            help=f"Scale normalization [default: {what}, else {DEFAULT_SCALE}].",
-        )(f)
-        f = click.option(
-            "--harmonics",
-            "-k",
-            type=click.IntRange(min=1),
-            default=None,
-            help=f"Harmonics K [default: {what}, else {DEFAULT_HARMONICS}].",
-        )(f)
-        f = click.option(
-            "--samples",
-            "-n",
-            type=click.IntRange(min=3),
-            default=None,
-            help=f"Arc-length samples [default: {what}, else {DEFAULT_SAMPLES}].",
-        )(f)
+        for names, kind, default, _, short in reversed(_descriptor_option_table()):
+            f = click.option(*names, type=kind, default=None, help=f"{short} [default: {what}, else {default}].")(f)
         return f
 
     return decorate

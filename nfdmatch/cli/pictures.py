@@ -160,24 +160,11 @@ def show(
       nfdmatch show q.csv --against library/ --top 8 -o q.svg -o q.csv
       nfdmatch show sample_curves/queries --index demo.h5 -o 'matches-{stem}.png'
     """
-    from functools import partial
-
     from ..render import render_matches
-    from ..show import show_ranked, show_searched
 
     pictures, rows_output = split_outputs(output)
     output_format = resolve_format(output_format, rows_output)
-    if len(pictures) != 1:
-        raise click.UsageError(
-            "show draws one picture per query: give one -o FILE.png (.svg, .pdf), a pattern for several queries"
-        )
-    width_height = _parse_size(size)
-    if against and not sources:
-        raise click.UsageError("--against needs at least one SOURCE file or folder")
-    if not against and (samples or harmonics or scale or glob_pattern):
-        raise click.UsageError(
-            "--samples/--harmonics/--scale/--glob go with --against: the index fixes its own parameters and curves"
-        )
+    width_height = _check_show_arguments(pictures, size, against, sources, (samples, harmonics, scale, glob_pattern))
     query_inputs = read_inputs([query_spec] + ([] if against else list(sources)), input_format=input_format)
     queries = query_inputs.curves
     names = _picture_names(pictures[0], queries)
@@ -185,24 +172,10 @@ def show(
     match = matching(method, strict_direction, mirror)
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = [
-            show_ranked(q, source_inputs.curves, top=top, samples=samples, harmonics=harmonics, scale=scale, **match)
-            for q in queries
-        ]
+        shown = _ranked_drawn(queries, source_inputs.curves, top, (samples, harmonics, scale), match)
     else:
-        from ..formats import read_curve
-        from ..index import open_index
-
         source_inputs = None
-        shown = []
-        with open_index(index_path) as idx:
-            for q in queries:
-                drawn, notes = show_searched(
-                    q, idx, top=top, read_curve=partial(read_curve, format=input_format), **match
-                )
-                shown.append(drawn)
-                for message in notes:
-                    note(message)
+        shown = _searched_drawn(queries, index_path, top, input_format, match)
     results = []
     if some_failed():
         _not_written(names)
@@ -226,6 +199,53 @@ def show(
         _report_picture(result)
     failed = query_inputs.errors + (source_inputs.errors if source_inputs else [])
     finish(len(failed), query_inputs.total + (source_inputs.total if source_inputs else 0))
+
+
+def _check_show_arguments(pictures, size: str, against: bool, sources, against_only: tuple) -> tuple[int, int]:
+    """show's usage errors, in this order: one picture -o, --size (returned parsed),
+    SOURCE... with --against, and the options that go with --against only
+    (``against_only``: samples, harmonics, scale, glob)."""
+    if len(pictures) != 1:
+        raise click.UsageError(
+            "show draws one picture per query: give one -o FILE.png (.svg, .pdf), a pattern for several queries"
+        )
+    width_height = _parse_size(size)
+    if against and not sources:
+        raise click.UsageError("--against needs at least one SOURCE file or folder")
+    if not against and any(against_only):
+        raise click.UsageError(
+            "--samples/--harmonics/--scale/--glob go with --against: the index fixes its own parameters and curves"
+        )
+    return width_height
+
+
+def _ranked_drawn(queries, curves, top: int, descriptor: tuple, match: dict) -> list:
+    """What show draws per query with --against: its ``top`` matches among ``curves``."""
+    from ..show import show_ranked
+
+    samples, harmonics, scale = descriptor
+    return [
+        show_ranked(q, curves, top=top, samples=samples, harmonics=harmonics, scale=scale, **match) for q in queries
+    ]
+
+
+def _searched_drawn(queries, index_path, top: int, input_format, match: dict) -> list:
+    """What show draws per query from the index: its ``top`` matches, their curves read
+    back from their files (notes on stderr for those that cannot be)."""
+    from functools import partial
+
+    from ..formats import read_curve
+    from ..index import open_index
+    from ..show import show_searched
+
+    shown = []
+    with open_index(index_path) as idx:
+        for q in queries:
+            drawn, notes = show_searched(q, idx, top=top, read_curve=partial(read_curve, format=input_format), **match)
+            shown.append(drawn)
+            for message in notes:
+                note(message)
+    return shown
 
 
 @main.command()
@@ -308,26 +328,14 @@ def matrix(
     title = f"{method} distance, {len(ids)} curves"
     values = distances
     if rerank:
-        import numpy as np
-
-        from ..search.rerank import diffused_similarity
-
-        values = diffused_similarity(distances)
-        # pictures and the similarity order want a dissimilarity: 0 on the diagonal
-        distances = np.clip(1 - values, 0, None)
-        np.fill_diagonal(distances, 0.0)
+        values, distances = _reranked(distances)
         title = f"re-ranked similarity ({method} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
         distances = distances[permutation][:, permutation]
         values = values[permutation][:, permutation]
         ids = [ids[i] for i in permutation]
-    if fmt == "json":
-        text = json.dumps({"ids": ids, ("scores" if rerank else "distances"): values.tolist()}, indent=1) + "\n"
-    else:
-        text = delimited_text(
-            ["id"] + ids, ([curve_id] + [repr(float(v)) for v in row] for curve_id, row in zip(ids, values)), fmt
-        )
+    text = _matrix_text(ids, values, fmt, rerank)
     deliver(text, rows_output)
     if some_failed():
         pictures = _not_written(pictures)
@@ -337,3 +345,26 @@ def matrix(
         for path in pictures:
             _report_picture(render_matrix(distances, ids, path, title=title))
     inputs.finish()
+
+
+def _reranked(distances):
+    """``(similarity, dissimilarity)``: the diffused similarity of every pair and, for the
+    pictures and the similarity order, 1 - it (0 on the diagonal)."""
+    import numpy as np
+
+    from ..search.rerank import diffused_similarity
+
+    values = diffused_similarity(distances)
+    distances = np.clip(1 - values, 0, None)
+    np.fill_diagonal(distances, 0.0)
+    return values, distances
+
+
+def _matrix_text(ids, values, fmt: str, rerank: bool) -> str:
+    """The matrix as JSON (``ids`` and ``distances``, or ``scores`` with --rerank) or as
+    CSV/TSV rows (a header row of ids, then each curve's id and row)."""
+    if fmt == "json":
+        return json.dumps({"ids": ids, ("scores" if rerank else "distances"): values.tolist()}, indent=1) + "\n"
+    return delimited_text(
+        ["id"] + ids, ([curve_id] + [repr(float(v)) for v in row] for curve_id, row in zip(ids, values)), fmt
+    )

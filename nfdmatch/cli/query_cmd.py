@@ -101,74 +101,86 @@ def query(
       nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
       nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
     """
-    from ..index import FORMAT_VERSION, open_index
-    from ..search import search_index
+    from ..index import open_index
 
     output_format = resolve_format(output_format, output)
     _check_rerank_options(
         rerank, rerank_depth, top, exhaustive, max_distance, method, strict_direction, mirror, scheduler
     )
     with open_index(index_path) as idx:
-        if idx.format_version < FORMAT_VERSION and not exhaustive:
-            note(
-                f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
-                f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
-                f"{idx.path}` upgrades it"
-            )
+        _note_old_format(idx, exhaustive)
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
-        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
-        progress, finish_bar = progress_bar("searching")
-        try:
-            if rerank:
-                from ..search.rerank import rerank_index
-
-                results, stats = rerank_index(
-                    idx,
-                    inputs.curves,
-                    top=top,
-                    depth=rerank_depth,
-                    progress=progress,
-                    exclude_self=exclude_self_,
-                )
-            else:
-                extra = {} if cluster is None else {"parts": ranges}
-                run = search_index if cluster is None else cluster.search_index
-                results, stats = run(
-                    idx,
-                    inputs.curves,
-                    top=top,
-                    max_distance=max_distance,
-                    progress=progress,
-                    prune=not exhaustive,
-                    exclude_self=exclude_self_,
-                    **extra,
-                    **matching(method, strict_direction, mirror),
-                )
-        finally:
-            finish_bar()
-            if cluster is not None:
-                cluster.close()
+        results, stats = _search_queries(
+            idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
+            top=top, max_distance=max_distance, prune=not exhaustive, exclude_self=exclude_self_,
+            match=matching(method, strict_direction, mirror),
+        )  # fmt: skip
         spell_query, spell_match = path_speller(paths), path_speller(paths, idx.locate)
         match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
-    columns = match_columns(details)
-    if rerank:
-        columns.insert(columns.index("distance") + 1, "score")
-    write_rows(
-        [
-            {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
-            for q, res in zip(inputs.curves, results)
-            for m in res
-        ],
-        columns,
-        output_format,
-        output,
-        group_by="query",
-    )
+    rows = [
+        {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
+        for q, res in zip(inputs.curves, results)
+        for m in res
+    ]
+    write_rows(rows, _columns(details, rerank), output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
+
+
+def _columns(details: bool, rerank: bool) -> list[str]:
+    """The columns of the match rows; with --rerank the score follows the distance."""
+    columns = match_columns(details)
+    if rerank:
+        columns.insert(columns.index("distance") + 1, "score")
+    return columns
+
+
+def _note_old_format(idx, exhaustive: bool) -> None:
+    """A note that a format-1 index (no search cells) bounds every row for each query."""
+    from ..index import FORMAT_VERSION
+
+    if idx.format_version < FORMAT_VERSION and not exhaustive:
+        note(
+            f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
+            f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
+            f"{idx.path}` upgrades it"
+        )
+
+
+def _search_queries(idx, curves, rerank_depth, cluster_at, *, top, max_distance, prune, exclude_self, match):
+    """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank_depth``
+    not None), or searched here or on the cluster ``cluster_at`` (--scheduler, its timeout,
+    --ranges)."""
+    from ..search import search_index
+
+    scheduler, scheduler_timeout, ranges = cluster_at
+    cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
+    progress, finish_bar = progress_bar("searching")
+    try:
+        if rerank_depth is not None:
+            from ..search.rerank import rerank_index
+
+            return rerank_index(idx, curves, top=top, depth=rerank_depth, progress=progress, exclude_self=exclude_self)
+        extra = {} if cluster is None else {"parts": ranges}
+        run = search_index if cluster is None else cluster.search_index
+        return run(
+            idx,
+            curves,
+            top=top,
+            max_distance=max_distance,
+            progress=progress,
+            prune=prune,
+            exclude_self=exclude_self,
+            **extra,
+            **match,
+        )
+    finally:
+        finish_bar()
+        if cluster is not None:
+            cluster.close()
 
 
 def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, method, strict, mirror, scheduler) -> None:

@@ -209,22 +209,9 @@ class Cluster:
         own = not hasattr(index, "search_table")
         idx = open_index(index) if own else index
         try:
-            from ..descriptors import descriptors_batch
-            from ..search.engine import BestRows
-
-            path = os.path.abspath(idx.path)
-            stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
             stats = SearchStats(queries=len(queries), rows=idx.n_curves, pruned=prune)
             tops = [BestRows(top, max_distance) for _ in queries]
             if idx.n_curves and len(queries):
-                qcoef = descriptors_batch(
-                    queries, samples=idx.samples, harmonics=idx.harmonics, scale=idx.scale_mode
-                ).coefficients
-                if parts:
-                    n_parts = int(parts)
-                else:
-                    n_parts = 1 if idx.n_curves * TABLE_ROW_BYTES <= RANGE_BYTES else self.threads
-                ranges, stats.cell_count = index_ranges(idx, n_parts, prune)
                 params = dict(
                     top=top,
                     max_distance=max_distance,
@@ -233,25 +220,7 @@ class Cluster:
                     mirror=mirror,
                     window=int(window or WINDOW_ROWS),
                 )
-                # one range: each query is answered whole by one task, whose worker also
-                # recomputes the distances it reports on the reference path (as a local
-                # search does, from the descriptors it holds), so the client merges nothing
-                params["final"] = len(ranges) == 1
-                self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
-                if not params["final"]:
-                    # the reported distances from the reference path, as a local search does,
-                    # from the descriptors the workers sent with their rows (else read here)
-                    from ..matching import exact_search, paper_search
-                    from ..search.index_search import recompute_reported
-
-                    search = exact_search if method == EXACT else paper_search
-                    held = [
-                        HeldDescriptors(self._held[qi][0]) if self._held[qi][0] else None for qi in range(len(tops))
-                    ]
-                    recompute_reported(
-                        idx, qcoef, tops, search, direction=direction, mirror=mirror, weights=None, tables=held
-                    )
-                    self._held = None
+                self._search_parts(idx, queries, tops, stats, progress, params, prune, parts)
             results = ranked(idx, tops, top)
             if exclude_self:
                 from ..search.index_search import without_self
@@ -262,6 +231,40 @@ class Cluster:
                 idx.close()
         stats.seconds = time.perf_counter() - t0
         return results, stats
+
+    def _search_parts(self, idx, queries, tops, stats, progress, params: dict, prune: bool, parts) -> None:
+        """Search the index's ranges (``parts`` of them, see :meth:`search_index`) on the
+        workers into ``tops``, then recompute the reported distances (several ranges)."""
+        from ..descriptors import descriptors_batch
+
+        path = os.path.abspath(idx.path)
+        stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
+        qcoef = descriptors_batch(
+            queries, samples=idx.samples, harmonics=idx.harmonics, scale=idx.scale_mode
+        ).coefficients
+        if parts:
+            n_parts = int(parts)
+        else:
+            n_parts = 1 if idx.n_curves * TABLE_ROW_BYTES <= RANGE_BYTES else self.threads
+        ranges, stats.cell_count = index_ranges(idx, n_parts, prune)
+        # one range: each query is answered whole by one task, whose worker also
+        # recomputes the distances it reports on the reference path (as a local
+        # search does, from the descriptors it holds), so the client merges nothing
+        params["final"] = len(ranges) == 1
+        self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
+        if params["final"]:
+            return
+        # the reported distances from the reference path, as a local search does,
+        # from the descriptors the workers sent with their rows (else read here)
+        from ..matching import exact_search, paper_search
+        from ..search.index_search import recompute_reported
+
+        search = exact_search if params["method"] == EXACT else paper_search
+        held = [HeldDescriptors(self._held[qi][0]) if self._held[qi][0] else None for qi in range(len(tops))]
+        recompute_reported(
+            idx, qcoef, tops, search, direction=params["direction"], mirror=params["mirror"], weights=None, tables=held
+        )
+        self._held = None
 
     # ----------------------------------------------------------------------- self-join
 

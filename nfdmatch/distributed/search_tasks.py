@@ -124,14 +124,12 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
     reversed (m,) bool, mirrored (m,) bool}], exact, truncated, scanned, cells,
     bytes_read}`` (plain arrays and ints)."""
     entry = _worker_index(path, stamp)
-    idx, cache = entry[0], entry[2]
+    idx = entry[0]
     cascade = Cascade(idx.samples, params["method"], params["direction"], params["mirror"])
     tops = [
         SeededBestRows(params["top"], params["max_distance"], None if seeds is None else seeds[q])
         for q in range(len(qcoef))
     ]
-    out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
-    searched = None  # the table searched, when one range holds every row
     # per query: the descriptors of its rows (for the client's recomputation), taken right
     # after its search. Holding each query's table until the end instead kept every query's
     # cells alive at once: a block of 256 queries over half of a 1M-curve index grew a
@@ -140,11 +138,7 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
     want_coef = not params.get("final")
 
     def own_rows(q):
-        """Which of query q's rows this task found (not seeds found elsewhere)."""
-        tk = tops[q]
-        if seeds is None:
-            return np.ones(len(tk.rows), dtype=bool)
-        return ~_member(tk.rows, np.sort(np.asarray(seeds[q]["rows"], dtype=np.int64)))
+        return _own_rows(tops[q], None if seeds is None else seeds[q])
 
     def keep_descriptors(qi, table):
         if want_coef and len(tops[qi].rows):
@@ -152,21 +146,7 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
             if len(positions) and positions.min() >= 0:
                 held[qi] = table.coefficients_at_positions(positions)
 
-    if rng is not None and rng[0] == "rows":
-        out["exact"], out["bytes_read"] = _rows_round(idx, rng, qcoef, tops, cascade)
-    else:
-        if entry[1] is None:
-            entry[1] = idx.search_table()
-        table = entry[1]
-        qfeat = feature_vector(qcoef)
-        if rng is None:
-            work = _window_round(table, qcoef, qfeat, tops, cascade, params, keep_descriptors)
-        else:
-            searched, work = _cells_round(
-                table, cache, rng, qcoef, qfeat, tops, seeds, cascade, params, keep_descriptors
-            )
-        _account(out, work)
-        out["bytes_read"] = work.extra["bytes_read"]
+    out, searched = _search_one_range(entry, rng, qcoef, tops, seeds, cascade, params, keep_descriptors)
     if params.get("final"):
         # this task's answer is the query's answer: its distances from the reference path,
         # exactly as search_index reports them (from the descriptors of the table searched)
@@ -182,22 +162,53 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
             weights=None,
             tables=searched,
         )
-    out["tops"] = []
-    for q, tk in enumerate(tops):
-        keep = own_rows(q)
-        out["tops"].append(
-            {
-                "rows": tk.rows[keep].astype(np.int64),
-                "dist": np.asarray(tk.dist[keep], np.float64),
-                "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
-                "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
-                "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool),
-            }
-        )
-        if held[q] is not None:
-            # the rows' descriptors, for the client's recomputation (no scattered index reads)
-            out["tops"][-1]["coef"] = held[q]
+    out["tops"] = [_answer(tk, own_rows(q), held[q]) for q, tk in enumerate(tops)]
     return out
+
+
+def _own_rows(tk, seed) -> np.ndarray:
+    """Which of a query's rows this task found (not the ``seed`` rows found elsewhere)."""
+    if seed is None:
+        return np.ones(len(tk.rows), dtype=bool)
+    return ~_member(tk.rows, np.sort(np.asarray(seed["rows"], dtype=np.int64)))
+
+
+def _search_one_range(entry, rng, qcoef, tops, seeds, cascade: Cascade, params, keep_descriptors):
+    """Search the range ``rng`` of the worker's index ``entry`` into ``tops``: its rows
+    exhaustively, or its cells (None: the window round). Returns the work counts and the
+    table searched when one range holds every row (else None)."""
+    idx, cache = entry[0], entry[2]
+    out = {"exact": 0, "truncated": 0, "fine": 0, "scanned": 0, "cells": 0, "bytes_read": 0}
+    searched = None
+    if rng is not None and rng[0] == "rows":
+        out["exact"], out["bytes_read"] = _rows_round(idx, rng, qcoef, tops, cascade)
+        return out, searched
+    if entry[1] is None:
+        entry[1] = idx.search_table()
+    table = entry[1]
+    qfeat = feature_vector(qcoef)
+    if rng is None:
+        work = _window_round(table, qcoef, qfeat, tops, cascade, params, keep_descriptors)
+    else:
+        searched, work = _cells_round(table, cache, rng, qcoef, qfeat, tops, seeds, cascade, params, keep_descriptors)
+    _account(out, work)
+    out["bytes_read"] = work.extra["bytes_read"]
+    return out, searched
+
+
+def _answer(tk, keep: np.ndarray, coef) -> dict:
+    """One query's answer: the rows this task found, as plain arrays, with their
+    descriptors ``coef`` when the client recomputes the distances (no scattered reads)."""
+    answer = {
+        "rows": tk.rows[keep].astype(np.int64),
+        "dist": np.asarray(tk.dist[keep], np.float64),
+        "shift": np.asarray(tk.extra["shift"][keep], dtype=np.float64),
+        "reversed": np.asarray(tk.extra["reversed"][keep], dtype=bool),
+        "mirrored": np.asarray(tk.extra["mirrored"][keep], dtype=bool),
+    }
+    if coef is not None:
+        answer["coef"] = coef
+    return answer
 
 
 def _rows_round(idx, rng, qcoef, tops, cascade: Cascade) -> tuple[int, int]:

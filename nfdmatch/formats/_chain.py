@@ -90,7 +90,8 @@ def max_file_bytes() -> int:
 _os_open = os.open  # a module name, so tests can make opening fail
 
 
-def _file_kind(mode: int) -> str:
+def file_kind(mode: int) -> str:
+    """What a file of ``mode`` (not a regular file) is, for messages: "a FIFO (named pipe)"."""
     for test, name in (
         (stat.S_ISFIFO, "a FIFO (named pipe)"),
         (stat.S_ISSOCK, "a socket"),
@@ -107,7 +108,7 @@ def _refuse_irregular(p: str, mode: int) -> None:
     if stat.S_ISDIR(mode):
         raise ReadError("is a directory, not a file", path=p)
     if not stat.S_ISREG(mode):
-        raise ReadError(f"is {_file_kind(mode)}, not a regular file; only regular files are read", path=p)
+        raise ReadError(f"is {file_kind(mode)}, not a regular file; only regular files are read", path=p)
 
 
 def _io_error(p: str, exc: OSError) -> ReadError:

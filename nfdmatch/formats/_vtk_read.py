@@ -326,6 +326,30 @@ class _Legacy:
     # -- structure ---------------------------------------------------------
 
     def parse(self, path: str) -> Dataset:
+        dataset = self._header(path)
+        found = self._sections(dataset)
+        points, lines, n_other = found["points"], found["lines"], found["n_other"]
+        if points is None:
+            raise _Bad("no POINTS section")
+        if dataset == b"UNSTRUCTURED_GRID":
+            if found["cells"] is None:
+                return Dataset(points, np.zeros(1, np.int64), np.zeros(0, np.int64), 0)
+            offsets, conn = found["cells"]
+            types = found["types"]
+            if types is None:
+                raise _Bad("CELLS without CELL_TYPES")
+            if len(types) != len(offsets) - 1:
+                raise _Bad(f"CELL_TYPES gives {len(types)} types for {len(offsets) - 1} cells")
+            n_other = _n_other(types)
+            offsets, conn = _split_lines(types, offsets, conn)
+            return Dataset(points, offsets, conn, n_other)
+        if lines is None:
+            return Dataset(points, np.zeros(1, np.int64), np.zeros(0, np.int64), n_other)
+        return Dataset(points, lines[0], lines[1], n_other)
+
+    def _header(self, path: str) -> bytes:
+        """The four header lines (version, title, ASCII or BINARY, DATASET); returns the
+        dataset type, POLYDATA or UNSTRUCTURED_GRID (others hold no curves: NoCurvesError)."""
         head = self.line("the header", skip_blank=False)
         m = re.match(rb"#\s*vtk\s+DataFile\s+Version\s+([0-9]+)\.([0-9]+)", head, re.IGNORECASE)
         if not m:
@@ -349,11 +373,13 @@ class _Legacy:
                 "only",
                 path=path,
             )
-        points = None
-        lines = None
-        n_other = 0
-        ug_cells = None
-        types = None
+        return dataset
+
+    def _sections(self, dataset: bytes) -> dict:
+        """The geometry sections up to the attribute data: ``points``, ``lines`` (PolyData
+        LINES), ``n_other`` (polygons and strips), ``cells`` and ``types`` (an
+        UnstructuredGrid's CELLS and CELL_TYPES); None for a section not found."""
+        found = {"points": None, "lines": None, "n_other": 0, "cells": None, "types": None}
         last = ""
         for _ in range(MAX_SECTIONS + 1):
             word = self.peek_word()
@@ -365,53 +391,40 @@ class _Legacy:
                         f"keyword was expected (after {last or 'the header'}: more "
                         "values than declared?)"
                     )
-                break
+                return found
             if word in _ATTRIBUTE_SECTIONS:
-                break
+                return found
             header = self.line("a section").split()
-            key = header[0].upper()
-            last = key.decode("latin-1")
-            if key == b"METADATA":
-                self._skip_metadata()
-            elif key == b"POINTS":
-                if len(header) != 3:
-                    raise _Bad("the POINTS line must be 'POINTS n type'")
-                n = _count(header[1], "the POINTS count")
-                flat = self.values(3 * n, header[2].decode("latin-1"), "POINTS")
-                points = flat.astype(np.float64).reshape(n, 3)
-            elif dataset == b"POLYDATA" and key in _POLYDATA_SECTIONS:
-                offsets, conn = self._cells(header, key.decode())
-                if key == b"LINES":
-                    lines = (offsets, conn)
-                elif key in (b"POLYGONS", b"TRIANGLE_STRIPS"):
-                    n_other += len(offsets) - 1
-            elif dataset == b"UNSTRUCTURED_GRID" and key == b"CELLS":
-                ug_cells = self._cells(header, "CELLS")
-            elif dataset == b"UNSTRUCTURED_GRID" and key == b"CELL_TYPES":
-                if len(header) != 2:
-                    raise _Bad("the CELL_TYPES line must be 'CELL_TYPES n'")
-                n = _count(header[1], "the CELL_TYPES count")
-                types = self.values(n, "int", "CELL_TYPES").astype(np.int64)
-            else:
-                raise _Bad(f"unexpected section {_short(key)!r} in a {dataset.decode('latin-1')} dataset")
+            last = header[0].upper().decode("latin-1")
+            self._section(header, dataset, found)
+        raise _Bad(f"more than {MAX_SECTIONS} sections before the attribute data")
+
+    def _section(self, header: list, dataset: bytes, found: dict) -> None:
+        """Read the section whose header line split into ``header`` into ``found``."""
+        key = header[0].upper()
+        if key == b"METADATA":
+            self._skip_metadata()
+        elif key == b"POINTS":
+            if len(header) != 3:
+                raise _Bad("the POINTS line must be 'POINTS n type'")
+            n = _count(header[1], "the POINTS count")
+            flat = self.values(3 * n, header[2].decode("latin-1"), "POINTS")
+            found["points"] = flat.astype(np.float64).reshape(n, 3)
+        elif dataset == b"POLYDATA" and key in _POLYDATA_SECTIONS:
+            offsets, conn = self._cells(header, key.decode())
+            if key == b"LINES":
+                found["lines"] = (offsets, conn)
+            elif key in (b"POLYGONS", b"TRIANGLE_STRIPS"):
+                found["n_other"] += len(offsets) - 1
+        elif dataset == b"UNSTRUCTURED_GRID" and key == b"CELLS":
+            found["cells"] = self._cells(header, "CELLS")
+        elif dataset == b"UNSTRUCTURED_GRID" and key == b"CELL_TYPES":
+            if len(header) != 2:
+                raise _Bad("the CELL_TYPES line must be 'CELL_TYPES n'")
+            n = _count(header[1], "the CELL_TYPES count")
+            found["types"] = self.values(n, "int", "CELL_TYPES").astype(np.int64)
         else:
-            raise _Bad(f"more than {MAX_SECTIONS} sections before the attribute data")
-        if points is None:
-            raise _Bad("no POINTS section")
-        if dataset == b"UNSTRUCTURED_GRID":
-            if ug_cells is None:
-                return Dataset(points, np.zeros(1, np.int64), np.zeros(0, np.int64), 0)
-            offsets, conn = ug_cells
-            if types is None:
-                raise _Bad("CELLS without CELL_TYPES")
-            if len(types) != len(offsets) - 1:
-                raise _Bad(f"CELL_TYPES gives {len(types)} types for {len(offsets) - 1} cells")
-            n_other = _n_other(types)
-            offsets, conn = _split_lines(types, offsets, conn)
-            return Dataset(points, offsets, conn, n_other)
-        if lines is None:
-            return Dataset(points, np.zeros(1, np.int64), np.zeros(0, np.int64), n_other)
-        return Dataset(points, lines[0], lines[1], n_other)
+            raise _Bad(f"unexpected section {_short(key)!r} in a {dataset.decode('latin-1')} dataset")
 
     def _skip_metadata(self) -> None:
         """METADATA blocks end at the first blank line (or the end of the file)."""
@@ -814,30 +827,65 @@ def _lz4_block(src: bytes, want: int, what: str) -> bytes:
 def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:
     if not data.lstrip()[:1] == b"<":
         raise _Bad("not an XML file")
-    appended = None
-    appended_base64 = True
-    head = data
+    head, appended, appended_base64 = _split_appended(data)
+    root, dtype_name = _xml_root(head, kind, path)
+    xml = _Xml(data, root, kind, appended, appended_base64, path)
+    body = root.find(dtype_name)
+    if body is None:
+        raise _Bad(f"no <{dtype_name}> element")
+    all_points, all_offsets, all_conn = [], [], []
+    n_other = 0
+    base = 0
+    conn_base = 0
+    pieces = body.findall("Piece")
+    if len(pieces) > MAX_PIECES:
+        raise _Bad(f"{len(pieces)} pieces, more than the {MAX_PIECES} accepted")
+    for p, piece in enumerate(pieces):
+        pts, offsets, conn, others = _xml_piece(xml, piece, f"piece {p}", dtype_name)
+        n_other += others
+        all_points.append(pts)
+        all_offsets.append(offsets[1:] + conn_base)
+        all_conn.append(conn + base)
+        base += len(pts)
+        conn_base += len(conn)
+    if not all_points:
+        raise _Bad(f"no <Piece> in <{dtype_name}>")
+    points = np.concatenate(all_points) if len(all_points) > 1 else all_points[0]
+    offsets = np.concatenate([np.zeros(1, np.int64), *all_offsets])
+    conn = np.concatenate(all_conn) if len(all_conn) > 1 else all_conn[0]
+    return Dataset(points, offsets, conn, n_other)
+
+
+def _split_appended(data: bytes) -> tuple[bytes, bytes | None, bool]:
+    """``(XML head, appended data, whether it is base64)``: an <AppendedData> section is cut
+    off (its bytes are not XML) and the head closed; no section: ``(data, None, True)``."""
     start_tag = data.find(b"<AppendedData")
-    if start_tag >= 0:
-        close = data.find(b">", start_tag)
-        if close < 0:
-            raise _Bad("the AppendedData tag is not closed")
-        tag = data[start_tag : close + 1]
-        m = re.search(rb'encoding\s*=\s*"([^"]*)"', tag)
-        encoding = m.group(1) if m else b"raw"
-        if encoding not in (b"raw", b"base64"):
-            raise _Bad(f"AppendedData encoding {_short(encoding)!r} is not raw or base64")
-        appended_base64 = encoding == b"base64"
-        underscore = data.find(b"_", close)
-        if underscore < 0:
-            raise _Bad("AppendedData without the '_' that starts the data")
-        end = data.rfind(b"</AppendedData>")
-        if end < underscore:
-            end = len(data)
-        appended = data[underscore + 1 : end]
-        if appended_base64:
-            appended = appended.rstrip()
-        head = data[:start_tag] + b"</VTKFile>"
+    if start_tag < 0:
+        return data, None, True
+    close = data.find(b">", start_tag)
+    if close < 0:
+        raise _Bad("the AppendedData tag is not closed")
+    tag = data[start_tag : close + 1]
+    m = re.search(rb'encoding\s*=\s*"([^"]*)"', tag)
+    encoding = m.group(1) if m else b"raw"
+    if encoding not in (b"raw", b"base64"):
+        raise _Bad(f"AppendedData encoding {_short(encoding)!r} is not raw or base64")
+    appended_base64 = encoding == b"base64"
+    underscore = data.find(b"_", close)
+    if underscore < 0:
+        raise _Bad("AppendedData without the '_' that starts the data")
+    end = data.rfind(b"</AppendedData>")
+    if end < underscore:
+        end = len(data)
+    appended = data[underscore + 1 : end]
+    if appended_base64:
+        appended = appended.rstrip()
+    return data[:start_tag] + b"</VTKFile>", appended, appended_base64
+
+
+def _xml_root(head: bytes, kind: str, path: str):
+    """The <VTKFile> root element and its dataset type, the one of a .vtp (PolyData) or
+    .vtu (UnstructuredGrid) file; other types hold no curves (NoCurvesError)."""
     try:
         root = ET.fromstring(head)
     except ET.ParseError as exc:
@@ -854,55 +902,39 @@ def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:
         )
     if dtype_name != want:
         raise _Bad(f"a .{kind} file must hold {want}, this one holds {dtype_name}")
-    xml = _Xml(data, root, kind, appended, appended_base64, path)
-    body = root.find(dtype_name)
-    if body is None:
-        raise _Bad(f"no <{dtype_name}> element")
-    all_points, all_offsets, all_conn = [], [], []
+    return root, dtype_name
+
+
+def _xml_piece(xml: _Xml, piece, where: str, dtype_name: str):
+    """One <Piece>: its points, its line cells (offsets from 0, connectivity) and the
+    number of its other cells (polygons, strips, ...)."""
     n_other = 0
-    base = 0
-    conn_base = 0
-    pieces = body.findall("Piece")
-    if len(pieces) > MAX_PIECES:
-        raise _Bad(f"{len(pieces)} pieces, more than the {MAX_PIECES} accepted")
-    for p, piece in enumerate(pieces):
-        where = f"piece {p}"
-        n_points = _count(piece.get("NumberOfPoints", "0"), f"{where} NumberOfPoints")
-        if n_points:
-            pts_el = piece.find("Points/DataArray")
-            pts = xml.array(pts_el, n_points, 3, f"{where} Points").astype(np.float64)
-            pts = pts.reshape(n_points, 3)
-        else:
-            pts = np.zeros((0, 3))
-        if dtype_name == "PolyData":
-            offsets, conn = _xml_cells(xml, piece, "Lines", "NumberOfLines", where)
-            for section, attr in (("Polys", "NumberOfPolys"), ("Strips", "NumberOfStrips")):
-                o, _ = _xml_cells(xml, piece, section, attr, where)
-                n_other += len(o) - 1
-            _xml_cells(xml, piece, "Verts", "NumberOfVerts", where)
-        else:
-            offsets, conn = _xml_cells(xml, piece, "Cells", "NumberOfCells", where)
-            n_cells = len(offsets) - 1
-            types = (
-                _as_index(
-                    xml.array(_named(piece, "Cells", "types"), n_cells, 1, f"{where} cell types"), f"{where} cell types"
-                )
-                if n_cells
-                else np.zeros(0, np.int64)
+    n_points = _count(piece.get("NumberOfPoints", "0"), f"{where} NumberOfPoints")
+    if n_points:
+        pts_el = piece.find("Points/DataArray")
+        pts = xml.array(pts_el, n_points, 3, f"{where} Points").astype(np.float64)
+        pts = pts.reshape(n_points, 3)
+    else:
+        pts = np.zeros((0, 3))
+    if dtype_name == "PolyData":
+        offsets, conn = _xml_cells(xml, piece, "Lines", "NumberOfLines", where)
+        for section, attr in (("Polys", "NumberOfPolys"), ("Strips", "NumberOfStrips")):
+            o, _ = _xml_cells(xml, piece, section, attr, where)
+            n_other += len(o) - 1
+        _xml_cells(xml, piece, "Verts", "NumberOfVerts", where)
+    else:
+        offsets, conn = _xml_cells(xml, piece, "Cells", "NumberOfCells", where)
+        n_cells = len(offsets) - 1
+        types = (
+            _as_index(
+                xml.array(_named(piece, "Cells", "types"), n_cells, 1, f"{where} cell types"), f"{where} cell types"
             )
-            n_other += _n_other(types)
-            offsets, conn = _split_lines(types, offsets, conn)
-        all_points.append(pts)
-        all_offsets.append(offsets[1:] + conn_base)
-        all_conn.append(conn + base)
-        base += n_points
-        conn_base += len(conn)
-    if not all_points:
-        raise _Bad(f"no <Piece> in <{dtype_name}>")
-    points = np.concatenate(all_points) if len(all_points) > 1 else all_points[0]
-    offsets = np.concatenate([np.zeros(1, np.int64), *all_offsets])
-    conn = np.concatenate(all_conn) if len(all_conn) > 1 else all_conn[0]
-    return Dataset(points, offsets, conn, n_other)
+            if n_cells
+            else np.zeros(0, np.int64)
+        )
+        n_other += _n_other(types)
+        offsets, conn = _split_lines(types, offsets, conn)
+    return pts, offsets, conn, n_other
 
 
 def _named(piece, section: str, name: str):

@@ -111,7 +111,12 @@ def bulk_points(data: bytes, path: str) -> np.ndarray | None:
     if b"\x00" in data:
         return None
     arr = _read_bulk(data, path)
-    if arr is not None and arr.shape[1] == 2:
+    return None if arr is None else _with_z(arr)
+
+
+def _with_z(arr: np.ndarray) -> np.ndarray:
+    """(n, 3) vertices: the rows of a 2-column file get z = 0."""
+    if arr.shape[1] == 2:
         arr = np.column_stack([arr, np.zeros(len(arr))])
     return arr
 
@@ -124,20 +129,32 @@ def _delimiter(sample: str) -> str | None:
 
 
 def _columns(header: str, delim: str | None, ncol: int) -> list[int] | None:
-    """Columns x, y(, z) named by the header line; [] if it names none; None if the header
-    does not have ``ncol`` names."""
-    names = [_unquote(t) for t in (header.split(delim) if delim else header.split())]
-    if len(names) != ncol:
-        names = [_unquote(t) for t in _ANY_DELIMITER.split(header) if t]
+    """Columns x, y(, z) named by the header line, else all ``ncol`` if 2 or 3; None if the
+    header does not have ``ncol`` names or names no x, y among other counts."""
+    names = _header_names(header, delim, ncol)
     if len(names) != ncol:
         return None
+    return _named_columns(names) or (list(range(ncol)) if ncol in (2, 3) else None)
+
+
+def _header_names(header: str, delim: str | None, ncol: int) -> list[str]:
+    """The names of a header line, split as the rows are (by ``delim``, None: whitespace),
+    else at any delimiter when that does not give ``ncol`` names."""
+    names = [_unquote(t) for t in header.split(delim)]
+    if len(names) != ncol:
+        names = [_unquote(t) for t in _ANY_DELIMITER.split(header) if t]
+    return names
+
+
+def _named_columns(names: list[str]) -> list[int]:
+    """The columns of x, y (and z) among ``names``, case-insensitively; [] without x and y."""
     lower = [n.lower() for n in names]
     if "x" in lower and "y" in lower:
         cols = [lower.index("x"), lower.index("y")]
         if "z" in lower:
             cols.append(lower.index("z"))
         return cols
-    return list(range(ncol)) if ncol in (2, 3) else None
+    return []
 
 
 def read_points(path) -> list[np.ndarray]:
@@ -160,11 +177,15 @@ def read_points(path) -> list[np.ndarray]:
     check_line_lengths(data, p, MAX_LINE_BYTES)
     arr = _read_bulk(data, p)
     if arr is not None:
-        if arr.shape[1] == 2:
-            arr = np.column_stack([arr, np.zeros(len(arr))])
-        return [arr]
+        return [_with_z(arr)]
     text = data.decode("utf-8")
     del data
+    return [_with_z(_read_careful(text, p))]
+
+
+def _content_lines(text: str) -> list[tuple[int, str]]:
+    """``(line number, text)`` of every line with content: comments cut, stripped, any
+    line ends."""
     if "\r" in text:  # Windows (CRLF) and old Mac (CR) line ends
         text = text.replace("\r\n", "\n").replace("\r", "\n")
     content: list[tuple[int, str]] = []
@@ -175,60 +196,24 @@ def read_points(path) -> list[np.ndarray]:
         s = raw.strip()
         if s:
             content.append((lineno, s))
+    return content
+
+
+def _read_careful(text: str, p: str) -> np.ndarray:
+    """The careful parser: the (n, 2 or 3) vertices of ``text``, row by row, or a
+    ParseError/CurveError naming the first problem and its line."""
+    content = _content_lines(text)
     if not content:
         raise ParseError("no data rows (only comments and blank lines)", path=p)
-
     first_line, first = content[0]
     has_header = not all(is_number(t) for t in _ANY_DELIMITER.split(first) if t)
     data = content[1:] if has_header else content
     if not data:
         raise ParseError("no data rows: the file holds only a header line", path=p, line=first_line)
-
-    sample = data[0][1]
-    delim: str | None
-    if ";" in sample:
-        delim = ";"
-    elif "," in sample:
-        delim = ","
-    elif "\t" in sample:
-        delim = "\t"
-    else:
-        delim = None
-    if delim is None:
-        rows = [s.split() for _, s in data]
-    else:
-        rows = [s.split(delim) for _, s in data]
+    delim = _delimiter(data[0][1])
+    rows = [s.split(delim) for _, s in data]  # delim None: at runs of whitespace
     ncol = len(rows[0])
-
-    cols: list[int]
-    if has_header:
-        names = [_unquote(t) for t in (first.split(delim) if delim else first.split())]
-        if len(names) != ncol:
-            names = [_unquote(t) for t in _ANY_DELIMITER.split(first) if t]
-        if len(names) != ncol:
-            raise ParseError(
-                f"the header (line {first_line}) names {len(names)} columns but line {data[0][0]} holds {ncol} values",
-                path=p,
-                line=data[0][0],
-            )
-        lower = [n.lower() for n in names]
-        if "x" in lower and "y" in lower:
-            cols = [lower.index("x"), lower.index("y")]
-            if "z" in lower:
-                cols.append(lower.index("z"))
-        else:
-            cols = []
-    else:
-        cols = []
-    if not cols:
-        if ncol not in (2, 3):
-            raise ParseError(
-                f"{ncol} columns; expected 3 (x, y, z) or 2 (x, y), or a header line naming the x, y, z columns",
-                path=p,
-                line=data[0][0],
-            )
-        cols = list(range(ncol))
-
+    cols = _careful_columns(first_line, first if has_header else None, delim, ncol, data[0][0], p)
     lengths = np.fromiter((len(r) for r in rows), dtype=np.int64, count=len(rows))
     ragged = np.flatnonzero(lengths != ncol)
     if len(ragged):
@@ -248,9 +233,32 @@ def read_points(path) -> list[np.ndarray]:
     if not finite.all():
         k = int(np.flatnonzero(~finite)[0])
         raise CurveError(f"value is not finite (NaN or Inf): {excerpt(data[k][1])!r}", path=p, line=data[k][0])
-    if arr.shape[1] == 2:
-        arr = np.column_stack([arr, np.zeros(len(arr))])
-    return [arr]
+    return arr
+
+
+def _careful_columns(first_line: int, header: str | None, delim, ncol: int, row_line: int, p: str) -> list[int]:
+    """The columns read: x, y(, z) as the header names them, else all (2 or 3 of them);
+    a ParseError for a header of another count than the first row (line ``row_line``), or
+    a count other than 2 or 3 with no header naming x, y."""
+    cols: list[int] = []
+    if header is not None:
+        names = _header_names(header, delim, ncol)
+        if len(names) != ncol:
+            raise ParseError(
+                f"the header (line {first_line}) names {len(names)} columns but line {row_line} holds {ncol} values",
+                path=p,
+                line=row_line,
+            )
+        cols = _named_columns(names)
+    if not cols:
+        if ncol not in (2, 3):
+            raise ParseError(
+                f"{ncol} columns; expected 3 (x, y, z) or 2 (x, y), or a header line naming the x, y, z columns",
+                path=p,
+                line=row_line,
+            )
+        cols = list(range(ncol))
+    return cols
 
 
 def _raise_first_bad_cell(path, data, table, delim) -> None:

@@ -79,60 +79,7 @@ def read_points(path) -> list[np.ndarray]:
     fast = _read_points_fast(text, p)
     if fast is not None:
         return fast
-    coords: list[tuple[float, float, float]] = []
-    v_lines: list[int] = []
-    elements: list[tuple[int, list[int]]] = []  # (line, 0-based indices)
-    checks: list[tuple[int, int]] = []  # (line, largest positive 1-based index)
-    n_faces = 0
-
-    for lineno, line in _logical_lines(text):
-        tokens = line.split()
-        kw = tokens[0]
-        if kw == "v":
-            vals = tokens[1:]
-            if len(vals) not in (3, 4, 6):
-                raise ParseError(
-                    f"a vertex (`v`) needs 3 coordinates x y z (optionally w), got {len(vals)}", path=p, line=lineno
-                )
-            try:
-                coords.append((float(vals[0]), float(vals[1]), float(vals[2])))
-            except ValueError:
-                bad = next(t for t in vals[:3] if not is_number(t))
-                raise ParseError(f"vertex coordinate is not a number: {excerpt(bad)!r}", path=p, line=lineno) from None
-            v_lines.append(lineno)
-        elif kw == "l":
-            refs = tokens[1:]
-            if len(refs) < 2:
-                raise ParseError(
-                    f"an `l` element needs at least 2 vertex indices, got {len(refs)}", path=p, line=lineno
-                )
-            nv = len(coords)
-            idx: list[int] = []
-            largest = 0
-            for ref in refs:
-                head = ref.split("/", 1)[0]
-                try:
-                    k = int(head)
-                except ValueError:
-                    raise ParseError(f"bad vertex index {excerpt(ref)!r} in `l` element", path=p, line=lineno) from None
-                if k == 0:
-                    raise ParseError("vertex index 0 is invalid (OBJ indices start at 1)", path=p, line=lineno)
-                if k < 0:
-                    if nv + k < 0:
-                        raise ParseError(
-                            f"relative vertex index {k} points before the first vertex ({nv} vertices defined so far)",
-                            path=p,
-                            line=lineno,
-                        )
-                    idx.append(nv + k)
-                else:
-                    idx.append(k - 1)
-                    largest = max(largest, k)
-            elements.append((lineno, idx))
-            checks.append((lineno, largest))
-        elif kw == "f":
-            n_faces += 1
-
+    coords, v_lines, elements, checks, n_faces = _parse(text, p)
     if not elements:
         if n_faces:
             raise NoCurvesError(
@@ -141,20 +88,90 @@ def read_points(path) -> list[np.ndarray]:
                 path=p,
             )
         raise NoCurvesError("no polylines (`l` elements) in the file", path=p)
-
     nv = len(coords)
     for lineno, largest in checks:
         if largest > nv:
             raise ParseError(
                 f"vertex index {largest} is out of range: the file defines {nv} vertices", path=p, line=lineno
             )
-
     V = np.array(coords, dtype=np.float64).reshape(-1, 3)
     finite = np.isfinite(V).all(axis=1)
     if not finite.all():
         k = int(np.flatnonzero(~finite)[0])
         raise CurveError(f"vertex {k + 1} is not finite (NaN or Inf): {V[k].tolist()}", path=p, line=v_lines[k])
+    return _curves(V, elements, p)
 
+
+def _parse(text: str, p: str):
+    """The careful parse of every statement: ``(coords, their line numbers, elements as
+    (line, 0-based indices), (line, largest positive 1-based index) per element, the number
+    of faces)``. Raises ParseError for a bad ``v`` or ``l``."""
+    coords: list[tuple[float, float, float]] = []
+    v_lines: list[int] = []
+    elements: list[tuple[int, list[int]]] = []  # (line, 0-based indices)
+    checks: list[tuple[int, int]] = []  # (line, largest positive 1-based index)
+    n_faces = 0
+    for lineno, line in _logical_lines(text):
+        tokens = line.split()
+        kw = tokens[0]
+        if kw == "v":
+            coords.append(_vertex(tokens[1:], p, lineno))
+            v_lines.append(lineno)
+        elif kw == "l":
+            idx, largest = _element(tokens[1:], len(coords), p, lineno)
+            elements.append((lineno, idx))
+            checks.append((lineno, largest))
+        elif kw == "f":
+            n_faces += 1
+    return coords, v_lines, elements, checks, n_faces
+
+
+def _vertex(vals: list[str], p: str, lineno: int) -> tuple[float, float, float]:
+    """x, y, z of a ``v`` statement's values (w, or r g b colours, ignored)."""
+    if len(vals) not in (3, 4, 6):
+        raise ParseError(
+            f"a vertex (`v`) needs 3 coordinates x y z (optionally w), got {len(vals)}", path=p, line=lineno
+        )
+    try:
+        return (float(vals[0]), float(vals[1]), float(vals[2]))
+    except ValueError:
+        bad = next(t for t in vals[:3] if not is_number(t))
+        raise ParseError(f"vertex coordinate is not a number: {excerpt(bad)!r}", path=p, line=lineno) from None
+
+
+def _element(refs: list[str], nv: int, p: str, lineno: int) -> tuple[list[int], int]:
+    """The 0-based vertex indices of an ``l`` statement (``nv`` vertices defined so far:
+    negative indices count back from there) and its largest positive 1-based index (checked
+    against the whole file's vertices later)."""
+    if len(refs) < 2:
+        raise ParseError(f"an `l` element needs at least 2 vertex indices, got {len(refs)}", path=p, line=lineno)
+    idx: list[int] = []
+    largest = 0
+    for ref in refs:
+        head = ref.split("/", 1)[0]
+        try:
+            k = int(head)
+        except ValueError:
+            raise ParseError(f"bad vertex index {excerpt(ref)!r} in `l` element", path=p, line=lineno) from None
+        if k == 0:
+            raise ParseError("vertex index 0 is invalid (OBJ indices start at 1)", path=p, line=lineno)
+        if k < 0:
+            if nv + k < 0:
+                raise ParseError(
+                    f"relative vertex index {k} points before the first vertex ({nv} vertices defined so far)",
+                    path=p,
+                    line=lineno,
+                )
+            idx.append(nv + k)
+        else:
+            idx.append(k - 1)
+            largest = max(largest, k)
+    return idx, largest
+
+
+def _curves(V: np.ndarray, elements, p: str) -> list[np.ndarray]:
+    """The curves of the elements in file order: polylines as given, 2-index segments
+    chained into loops."""
     polylines: list[tuple[int, np.ndarray]] = []
     segments: list[list[int]] = []
     seg_pos: list[int] = []

@@ -1,4 +1,67 @@
-"""Building and updating an index: the plan (what each file needs) and the build itself."""
+"""Building and updating an index: the plan (what each file needs) and the build itself.
+
+:func:`build_index` in full
+---------------------------
+
+Parameters
+----------
+sources : path or list of paths: files (taken whatever their extension) or folders
+    (recursive; known extensions; hidden files and folders skipped). None or empty:
+    the sources the index records (its last build's), re-scanned.
+index_path : the index file (None: :func:`default_index_path`). Its folder must exist. A
+    symbolic link is followed: its target is replaced (the link stays) and locked.
+samples, harmonics, scale : descriptor parameters; None keeps the existing index's value
+    (defaults 128, 16, "rms" for a new index). An explicit value that differs from the
+    index's recomputes every curve (with a notice).
+glob : fnmatch pattern on file names found in folders (None with no ``sources``: the
+    recorded one).
+input_format : force this reader for every file (not recorded in the index).
+rebuild : recompute every file, even unchanged ones.
+dry_run : report what the build would do and write nothing: files are read and
+    described as the build would (a broken file is ``failed``, ``curves`` is the
+    result's count), no lock is taken, a shrink is a notice instead of an error.
+jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
+    ``file_timeout`` is given).
+wait : seconds to wait for another build's lock (0: fail at once).
+graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --rerank``);
+    None keeps an existing graph's K (no graph for an index without one), 0 drops it.
+progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
+    then as files finish; total counts the files that must be read or hashed (unchanged
+    files are not counted).
+allow_shrink : allow a build that removes more than half of the index's files, or all.
+file_timeout : seconds one file may take to be read and hashed (None or 0: no limit);
+    a file over it fails alone (its worker is killed), the build goes on. With a limit,
+    files are always read in worker processes, even at ``jobs`` 1: a reader stuck in C
+    code cannot be interrupted in this process (the CLI's default is 600 s).
+    Independently of it, a worker process that dies (a reader's crash, the OOM killer)
+    is replaced and its files read again; a file that kills a worker twice fails alone,
+    and deaths that no file explains stop the build (``WorkerError``, nothing written).
+runner : what computes the files to read (None: the local pool); called as
+    ``runner(tasks, jobs, lock_fd)``, it yields ``(task_number, result of
+    pool._compute_file(*task))`` in any order (``nfdmatch.distributed`` plugs Dask in).
+
+Files are stored, and compared with the index's, by the rule of docs/index-format.md
+("Paths and ids"): relative to the index's folder, whatever the working directory and
+the spelling of the sources.
+
+Returns
+-------
+:class:`BuildReport`.
+
+Raises
+------
+ReadError : a source that does not exist; the index path is a directory.
+InputError : no curve files under the sources and no existing index; no sources given
+    and none recorded.
+ShrinkRefusedError : the build would remove more than half of the index's files (or
+    all) and ``allow_shrink`` is False; nothing is written.
+ParameterError : invalid parameters or jobs.
+IndexLockedError : another build holds the lock (after ``wait`` seconds).
+IndexFormatError : the existing file is not a readable index (see docs/index-format.md for
+    which files ``rebuild`` may replace; an HDF5 file of another kind never is).
+WriteError : the index cannot be written (missing folder, no permission, disk full).
+WorkerError : worker processes kept dying for no file's fault (nothing written).
+"""
 
 from __future__ import annotations
 
@@ -113,74 +176,20 @@ def build_index(
     graph=None,
     runner=None,
 ) -> BuildReport:
-    """Build or update the index of every curve under ``sources``.
+    """Build or update the index of every curve under ``sources`` (files, and folders
+    walked; None or empty: the sources the index records) in ``index_path`` (None:
+    :func:`default_index_path`); returns a :class:`BuildReport`.
 
-    Parameters
-    ----------
-    sources : path or list of paths: files (taken whatever their extension) or folders
-        (recursive; known extensions; hidden files and folders skipped). None or empty:
-        the sources the index records (its last build's), re-scanned.
-    index_path : the index file (None: :func:`default_index_path`). Its folder must exist. A
-        symbolic link is followed: its target is replaced (the link stays) and locked.
-    samples, harmonics, scale : descriptor parameters; None keeps the existing index's value
-        (defaults 128, 16, "rms" for a new index). An explicit value that differs from the
-        index's recomputes every curve (with a notice).
-    glob : fnmatch pattern on file names found in folders (None with no ``sources``: the
-        recorded one).
-    input_format : force this reader for every file (not recorded in the index).
-    rebuild : recompute every file, even unchanged ones.
-    dry_run : report what the build would do and write nothing: files are read and
-        described as the build would (a broken file is ``failed``, ``curves`` is the
-        result's count), no lock is taken, a shrink is a notice instead of an error.
-    jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
-        ``file_timeout`` is given).
-    wait : seconds to wait for another build's lock (0: fail at once).
-    graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --rerank``);
-        None keeps an existing graph's K (no graph for an index without one), 0 drops it.
-    progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
-        then as files finish; total counts the files that must be read or hashed (unchanged
-        files are not counted).
-    allow_shrink : allow a build that removes more than half of the index's files, or all.
-
-    Files are stored, and compared with the index's, by the rule of docs/index-format.md
-    ("Paths and ids"): relative to the index's folder, whatever the working directory and
-    the spelling of the sources.
-    file_timeout : seconds one file may take to be read and hashed (None or 0: no limit);
-        a file over it fails alone (its worker is killed), the build goes on. With a limit,
-        files are always read in worker processes, even at ``jobs`` 1: a reader stuck in C
-        code cannot be interrupted in this process (the CLI's default is 600 s).
-        Independently of it, a worker process that dies (a reader's crash, the OOM killer)
-        is replaced and its files read again; a file that kills a worker twice fails alone,
-        and deaths that no file explains stop the build (``WorkerError``, nothing written).
-    runner : what computes the files to read (None: the local pool); called as
-        ``runner(tasks, jobs, lock_fd)``, it yields ``(task_number, result of
-        pool._compute_file(*task))`` in any order (``nfdmatch.distributed`` plugs Dask in).
-
-    Returns
-    -------
-    :class:`BuildReport`.
-
-    Raises
-    ------
-    ReadError : a source that does not exist; the index path is a directory.
-    InputError : no curve files under the sources and no existing index; no sources given
-        and none recorded.
-    ShrinkRefusedError : the build would remove more than half of the index's files (or
-        all) and ``allow_shrink`` is False; nothing is written.
-    ParameterError : invalid parameters or jobs.
-    IndexLockedError : another build holds the lock (after ``wait`` seconds).
-    IndexFormatError : the existing file is not a readable index (see docs/index-format.md for
-        which files ``rebuild`` may replace; an HDF5 file of another kind never is).
-    WriteError : the index cannot be written (missing folder, no permission, disk full).
-    WorkerError : worker processes kept dying for no file's fault (nothing written).
+    ``samples, harmonics, scale``: None keeps the index's values; ``dry_run``: read and
+    describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
+    build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
+    total)``; ``file_timeout``: seconds one file may take; ``runner``: computes the tasks
+    instead of the local pool. Every parameter, the files' paths and the errors raised are
+    described in full in this module's docstring.
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
-    if sources is None:
-        sources = []
-    elif isinstance(sources, (str, bytes, os.PathLike)):
-        sources = [sources]
-    sources = [os.fsdecode(os.fspath(s)) for s in sources]
+    sources = _as_paths(sources)
     jobs = check_arguments(jobs, file_timeout, input_format, samples, harmonics)
     real_index, base = _index_location(index_path)
     report = BuildReport(dry_run=bool(dry_run))
@@ -224,6 +233,15 @@ def build_index(
             lock.release()
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _as_paths(sources) -> list[str]:
+    """``sources`` (None, one path, or several; str, bytes or path-like) as a list of str."""
+    if sources is None:
+        sources = []
+    elif isinstance(sources, (str, bytes, os.PathLike)):
+        sources = [sources]
+    return [os.fsdecode(os.fspath(s)) for s in sources]
 
 
 def _index_location(index_path: str) -> tuple[str, str]:

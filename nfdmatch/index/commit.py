@@ -51,113 +51,11 @@ def write_new_index(
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
     tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}-{secrets.token_hex(4)}.h5")
-    items, tasks, removed, params = plan.items, plan.tasks, plan.removed, plan.params
-    K = params["harmonics"]
-    results: dict[int, dict] = {}
-    total = len(tasks)
-    if progress is not None:
-        progress(0, total)
-    lock_fd = None if lock is None else lock.fd
-    stream = run_tasks(tasks, jobs, lock_fd, file_timeout or None) if runner is None else runner(tasks, jobs, lock_fd)
-    done = 0
-
-    def result_of(task: int) -> dict:
-        nonlocal done
-        while task not in results:
-            i, res = next(stream)
-            results[i] = res
-            done += 1
-            if progress is not None:
-                progress(done, total)
-        return results.pop(task)
-
-    records: list[FileRecord] = []
-    fresh: list[tuple[int, int]] = []  # (start, count): rows added or recomputed (/changes)
-    actions: dict[str, str] = {p: "removed" for p in removed}
+    stream, result_of = _start_tasks(plan.tasks, jobs, lock, progress, file_timeout, runner)
+    actions: dict[str, str] = {p: "removed" for p in plan.removed}
     now = _utcnow()
     try:
-        space = None
-        try:
-            # HDF5 1.10 structures: chunk indexes by position (fixed and extensible arrays,
-            # no stored chunk offsets that a flipped byte could move) with checksums
-            h5 = h5py.File(tmp, "w", locking=False, libver=("v110", "v110"))
-        except Exception as exc:
-            raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
-        try:
-            space = Space(h5)
-            space.reserve(0)  # the superblock, attributes, small tables
-            _write_attributes(h5.attrs, params, old, now)
-            writer = CurveWriter(h5, K, space)
-            run = CopyRun(old, writer)
-            for item in items:
-                path, r = item.path, item.old
-                file_row = len(records)
-                start = writer.rows + writer.pending_rows + run.rows
-                # a file whose stored path changed (an index upgraded to recorded sources)
-                # keeps its rows under ids made from the new path
-                new_ids = None if r is None or r.path == path else curve_ids(path, r.curve_count)
-                if item.action is Action.COPY:
-                    run.add(r.curve_start, r.curve_count, file_row, new_ids)
-                    records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "ok", "", start, r.curve_count))
-                    actions[path] = "unchanged"
-                    continue
-                if item.action is Action.KEEP_FAILED:
-                    records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "failed", r.error, start, 0))
-                    actions[path] = "failed"
-                    report.failures.append((item.file or path, r.error))
-                    continue
-                res = result_of(item.task)
-                if res["status"] == "same":  # mtime changed, contents did not
-                    if r.status == "ok":
-                        run.add(r.curve_start, r.curve_count, file_row, new_ids)
-                        records.append(
-                            FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "ok", "", start, r.curve_count)
-                        )
-                        actions[path] = "unchanged"
-                    else:
-                        records.append(
-                            FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "failed", r.error, start, 0)
-                        )
-                        actions[path] = "failed"
-                        report.failures.append((item.file or path, r.error))
-                    continue
-                run.flush()
-                if res["status"] == "ok":
-                    n = len(res["ids"])
-                    piece = dict(res["arrays"])
-                    piece["id"] = np.asarray(curve_ids(path, n), dtype=object)
-                    piece["file"] = np.full(n, file_row, dtype=np.int32)
-                    writer.append(piece)
-                    records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
-                    fresh.append((start, n))
-                    actions[path] = "added" if r is None else "updated"
-                else:
-                    records.append(
-                        FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "failed", res["error"], start, 0)
-                    )
-                    actions[path] = "failed"
-                    report.failures.append((item.file or path, res["error"]))
-            run.flush()
-            writer.flush()
-            write_files_table(h5, records, space)
-            write_sources(h5, *sources)
-            write_changes(h5, fresh)
-            # the cells: features, squared norms, row numbers and first harmonics of every row
-            space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
-            report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
-            report.graph = write_graph(h5, old, graph, reuse=not plan.recompute_all)
-            report.curves = writer.rows
-        except BaseException:
-            if space is not None:
-                space.abandon()  # HDF5 cannot close a file it failed to write
-            raise
-        finally:
-            stream.close()  # shuts the worker pool down
-            try:
-                h5.close()
-            except Exception:
-                if space is None or not space.abandoned:
-                    raise
+        _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph, now)
         Space.release(tmp)
         fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
         os.replace(tmp, index_path)
@@ -177,6 +75,124 @@ def write_new_index(
         action = actions[path]
         report.changes.append((action, path))
         setattr(report, action, getattr(report, action) + 1)
+
+
+def _start_tasks(tasks, jobs, lock, progress, file_timeout, runner):
+    """Start the workers on the plan's tasks. Returns the stream of ``(task, result)`` (to be
+    closed: that shuts the pool down) and ``result_of(task)``, which reads the stream until
+    that task's result has come (they come in any order); progress counts each arrival."""
+    results: dict[int, dict] = {}
+    total = len(tasks)
+    if progress is not None:
+        progress(0, total)
+    lock_fd = None if lock is None else lock.fd
+    stream = run_tasks(tasks, jobs, lock_fd, file_timeout or None) if runner is None else runner(tasks, jobs, lock_fd)
+    done = 0
+
+    def result_of(task: int) -> dict:
+        nonlocal done
+        while task not in results:
+            i, res = next(stream)
+            results[i] = res
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        return results.pop(task)
+
+    return stream, result_of
+
+
+def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph, now) -> None:
+    """Write the whole new index to ``tmp``: attributes, curve rows, /files, /sources,
+    /changes, /search and /graph. Closes the task stream and the file, also on failure."""
+    K = plan.params["harmonics"]
+    space = None
+    try:
+        # HDF5 1.10 structures: chunk indexes by position (fixed and extensible arrays,
+        # no stored chunk offsets that a flipped byte could move) with checksums
+        h5 = h5py.File(tmp, "w", locking=False, libver=("v110", "v110"))
+    except Exception as exc:
+        raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
+    try:
+        space = Space(h5)
+        space.reserve(0)  # the superblock, attributes, small tables
+        _write_attributes(h5.attrs, plan.params, old, now)
+        writer = CurveWriter(h5, K, space)
+        run = CopyRun(old, writer)
+        records, fresh = _write_rows(plan.items, result_of, writer, run, report, actions)
+        run.flush()
+        writer.flush()
+        write_files_table(h5, records, space)
+        write_sources(h5, *sources)
+        write_changes(h5, fresh)
+        # the cells: features, squared norms, row numbers and first harmonics of every row
+        space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
+        report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
+        report.graph = write_graph(h5, old, graph, reuse=not plan.recompute_all)
+        report.curves = writer.rows
+    except BaseException:
+        if space is not None:
+            space.abandon()  # HDF5 cannot close a file it failed to write
+        raise
+    finally:
+        stream.close()  # shuts the worker pool down
+        try:
+            h5.close()
+        except Exception:
+            if space is None or not space.abandoned:
+                raise
+
+
+def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, actions: dict[str, str]):
+    """The curve rows of every file in plan order: copied from the old index (unchanged
+    files, and files whose mtime changed over the same contents) or computed by the workers.
+    Returns the /files records and the ``(start, count)`` runs of rows added or recomputed
+    (/changes); ``actions`` gets each file's action, ``report.failures`` each failure."""
+    records: list[FileRecord] = []
+    fresh: list[tuple[int, int]] = []
+
+    def failed(item, size, mtime_ns, sha256, error, start) -> None:
+        records.append(FileRecord(item.path, size, mtime_ns, sha256, "failed", error, start, 0))
+        actions[item.path] = "failed"
+        report.failures.append((item.file or item.path, error))
+
+    for item in items:
+        path, r = item.path, item.old
+        file_row = len(records)
+        start = writer.rows + writer.pending_rows + run.rows
+        # a file whose stored path changed (an index upgraded to recorded sources)
+        # keeps its rows under ids made from the new path
+        new_ids = None if r is None or r.path == path else curve_ids(path, r.curve_count)
+        if item.action is Action.COPY:
+            run.add(r.curve_start, r.curve_count, file_row, new_ids)
+            records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "ok", "", start, r.curve_count))
+            actions[path] = "unchanged"
+            continue
+        if item.action is Action.KEEP_FAILED:
+            failed(item, r.size, r.mtime_ns, r.sha256, r.error, start)
+            continue
+        res = result_of(item.task)
+        if res["status"] == "same":  # mtime changed, contents did not
+            if r.status == "ok":
+                run.add(r.curve_start, r.curve_count, file_row, new_ids)
+                records.append(FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "ok", "", start, r.curve_count))
+                actions[path] = "unchanged"
+            else:
+                failed(item, res["size"], res["mtime_ns"], r.sha256, r.error, start)
+            continue
+        run.flush()
+        if res["status"] == "ok":
+            n = len(res["ids"])
+            piece = dict(res["arrays"])
+            piece["id"] = np.asarray(curve_ids(path, n), dtype=object)
+            piece["file"] = np.full(n, file_row, dtype=np.int32)
+            writer.append(piece)
+            records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
+            fresh.append((start, n))
+            actions[path] = "added" if r is None else "updated"
+        else:
+            failed(item, res["size"], res["mtime_ns"], res["sha256"], res["error"], start)
+    return records, fresh
 
 
 def _write_attributes(attrs, params: dict, old, now: str) -> None:

@@ -41,6 +41,42 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
     neighbour = np.full((N, k), -1, dtype=np.int64)
     distance = np.full((N, k), np.inf)
 
+    todo, check, fresh = _keep_old_lists(h5, old, k, reuse, neighbour, distance)
+
+    if N:
+        coefficients = curves["coefficients"][...] if N <= IN_MEMORY_ROWS else None
+
+        def read_coefficients(rows):
+            rows = np.asarray(rows, dtype=np.int64)
+            if coefficients is not None:
+                return coefficients[rows]
+            uniq, inverse = unique_rows(rows)
+            return curves["coefficients"][uniq][inverse]
+
+        def fail(message):
+            raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
+
+        table = search_table(h5, N, K, read_coefficients, fail)
+        fresh_rows = np.flatnonzero(fresh)
+        features = None
+        if len(check) and len(fresh_rows):
+            features = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
+        stats.searched, stats.updated = neighbour_lists(
+            table, read_coefficients, ids, neighbour, distance, todo, check, fresh_rows, features, k, samples, threads
+        )
+        stats.kept = len(check) - stats.updated
+
+    _write_group(h5, k, neighbour, distance)
+    stats.seconds = time.perf_counter() - t0
+    return stats
+
+
+def _keep_old_lists(h5, old, k: int, reuse: bool, neighbour, distance):
+    """Copy into ``neighbour``/``distance`` the old graph's lists of the rows whose curves
+    did not change (when ``reuse`` and the old K is ``k``). Returns ``todo`` (rows to
+    search), ``check`` (copied rows whose lists only new rows can change) and ``fresh``
+    (rows not copied from the old index)."""
+    N = len(neighbour)
     old_to_new = _copied_rows(h5, old) if reuse and old_graph_k(old) == k else {}
     if old_to_new:
         try:
@@ -66,30 +102,11 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
         check = np.asarray(check, dtype=np.int64)
     else:
         fresh = np.ones(N, dtype=bool)
+    return todo, check, fresh
 
-    if N:
-        coefficients = curves["coefficients"][...] if N <= IN_MEMORY_ROWS else None
 
-        def read_coefficients(rows):
-            rows = np.asarray(rows, dtype=np.int64)
-            if coefficients is not None:
-                return coefficients[rows]
-            uniq, inverse = unique_rows(rows)
-            return curves["coefficients"][uniq][inverse]
-
-        def fail(message):
-            raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
-
-        table = search_table(h5, N, K, read_coefficients, fail)
-        fresh_rows = np.flatnonzero(fresh)
-        features = None
-        if len(check) and len(fresh_rows):
-            features = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
-        stats.searched, stats.updated = neighbour_lists(
-            table, read_coefficients, ids, neighbour, distance, todo, check, fresh_rows, features, k, samples, threads
-        )
-        stats.kept = len(check) - stats.updated
-
+def _write_group(h5, k: int, neighbour, distance) -> None:
+    """The /graph group: its attributes and checked datasets."""
     g = h5.create_group("graph")
     g.attrs["k"] = np.int64(k)
     g.attrs["method"] = "exact"
@@ -98,8 +115,6 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
     g.attrs["checksums"] = GRAPH_CHECKSUMS
     create_checked(g, "neighbour", neighbour, chunk_rows=GRAPH_CHUNK_ROWS)
     create_checked(g, "distance", distance, chunk_rows=GRAPH_CHUNK_ROWS)
-    stats.seconds = time.perf_counter() - t0
-    return stats
 
 
 def _copied_rows(h5, old) -> dict:

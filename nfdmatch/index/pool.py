@@ -474,140 +474,186 @@ def _failed(path: str, message: str) -> dict:
     return {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed", "error": message}
 
 
-def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None):
-    """Yield ``(task_number, result)`` as batches finish in worker processes (see the
-    module docstring for deaths, time limits and signals)."""
-    ctx, forked = _context(tasks)
-    env = _environment()
-    queue = collections.deque(_batches(tasks))
-    jobs = max(1, min(jobs, len(queue)))
-    strikes: collections.Counter = collections.Counter()
-    deaths = blamed = 0
-    workers: list[_Worker] = []
-    batches = 0
+class _Pool:
+    """The worker processes of one build and the work not done yet: batches queued (again,
+    after a death), strikes against files whose reader died, deaths counted."""
 
-    def start() -> _Worker:
+    def __init__(self, tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None):
+        self.tasks = tasks
+        self.file_timeout = file_timeout
+        self.ctx, forked = _context(tasks)
+        self.lock_fd = lock_fd if forked else None
+        self.env = _environment()
+        self.queue = collections.deque(_batches(tasks))
+        self.jobs = max(1, min(jobs, len(self.queue)))
+        self.strikes: collections.Counter = collections.Counter()
+        self.deaths = self.blamed = 0
+        self.workers: list[_Worker] = []
+        self.batches = 0
+
+    def start(self) -> _Worker:
         # SIGINT/SIGTERM held back across the fork: a worker gets them only once it ignores them
         old = signal.pthread_sigmask(signal.SIG_BLOCK, _BLOCKED)
         try:
-            w = _Worker(ctx, lock_fd if forked else None)
-            workers.append(w)
+            w = _Worker(self.ctx, self.lock_fd)
+            self.workers.append(w)
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
         return w
 
-    def feed(w: _Worker) -> None:
-        nonlocal batches
-        if not queue:
+    def feed(self, w: _Worker) -> None:
+        """Send ``w`` the next batch queued (``w.batch`` None: nothing left for it)."""
+        if not self.queue:
             w.batch = None
             return
-        w.batch = queue.popleft()
-        w.batch_id, batches = batches, batches + 1
+        w.batch = self.queue.popleft()
+        w.batch_id, self.batches = self.batches, self.batches + 1
         try:
-            w.conn.send((w.batch_id, [(i, tasks[i]) for i in w.batch], env))
+            w.conn.send((w.batch_id, [(i, self.tasks[i]) for i in w.batch], self.env))
         except OSError:  # it died since its last answer: its death is handled by the loop
-            queue.appendleft(w.batch)
+            self.queue.appendleft(w.batch)
             w.batch = []
 
-    def replace(w: _Worker) -> None:
+    def replace(self, w: _Worker) -> None:
         w.close()
-        workers.remove(w)
-        if queue:
-            feed(start())
+        self.workers.remove(w)
+        if self.queue:
+            self.feed(self.start())
 
-    from multiprocessing.connection import wait
+    def busy(self) -> list[_Worker]:
+        """The workers with a batch, after idle ones took work that a death queued again."""
+        for w in self.workers:
+            if w.batch is None and self.queue:
+                self.feed(w)
+        return [w for w in self.workers if w.batch is not None]
 
-    try:
-        for _ in range(jobs):
-            feed(start())
-        while any(w.batch is not None for w in workers):
-            for w in workers:  # a death re-queued work that an idle worker can take
-                if w.batch is None and queue:
-                    feed(w)
-            busy = [w for w in workers if w.batch is not None]
-            timeout = None
-            if file_timeout:
-                now = time.monotonic()
-                ends = []
-                for w in busy:
-                    number, since = w.reading()
-                    ends.append((since if number >= 0 else now) + file_timeout)
-                timeout = min(max(0.01, min(ends) - now), 1.0)
-            ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout))
-            for w in busy:
-                if w.conn in ready or w.proc.sentinel in ready:
-                    msg = None
-                    try:
-                        if w.conn.poll():
-                            msg = w.conn.recv()
-                    except (EOFError, OSError):
-                        msg = None
-                    if msg is not None:
-                        batch = w.batch
-                        feed(w)
-                        _, results, arrays = msg
-                        for i, out in zip(batch, _split(results, arrays)):
-                            yield i, out
-                        continue
-                    # the worker died: blame the file it was reading, queue the rest again
-                    w.proc.join(5)
-                    cause = _signal_name(w.proc.exitcode)
-                    number, _ = w.reading()
-                    batch = w.batch
-                    if number < 0 and len(batch) == 1:  # died describing or sending its one file
-                        number = batch[0]
-                    elif number < 0:  # ... one of these: try them one by one
-                        queue.extendleft([i] for i in reversed(batch))
-                        batch = []
-                    deaths += 1
-                    rest = [i for i in batch if i != number]
-                    if rest:
-                        queue.appendleft(rest)
-                    if number >= 0 and number in batch:
-                        strikes[number] += 1
-                        if strikes[number] >= 2:
-                            blamed += 1
-                            path = tasks[number][0]
-                            yield (
-                                number,
-                                _failed(
-                                    path,
-                                    f"{path}: the process reading it died twice ({cause}); the file crashes its reader",
-                                ),
-                            )
-                        else:
-                            queue.appendleft([number])  # again, alone, in a fresh worker
-                    if deaths > _SPARE_DEATHS + 2 * blamed:
-                        raise WorkerError(
-                            f"worker processes keep dying ({deaths} deaths, last: {cause}), "
-                            f"not because of one file (out of memory?); nothing was written"
-                        )
-                    replace(w)
-                elif file_timeout:
-                    number, since = w.reading()
-                    if number >= 0 and time.monotonic() - since > file_timeout:
-                        batch = w.batch
-                        rest = [i for i in batch if i != number]
-                        if rest:
-                            queue.appendleft(rest)
-                        path = tasks[number][0]
-                        replace(w)
-                        yield (
-                            number,
-                            _failed(
-                                path,
-                                f"{path}: reading it took longer than {file_timeout:g} s "
-                                f"(the per-file time limit, --file-timeout); stopped",
-                            ),
-                        )
-        for w in workers:
+    def wait_time(self, busy: list[_Worker]) -> float | None:
+        """How long to wait for answers: until the first file reaches the time limit (at
+        most a second, at least 10 ms); None without a limit."""
+        if not self.file_timeout:
+            return None
+        now = time.monotonic()
+        ends = []
+        for w in busy:
+            number, since = w.reading()
+            ends.append((since if number >= 0 else now) + self.file_timeout)
+        return min(max(0.01, min(ends) - now), 1.0)
+
+    def died(self, w: _Worker) -> tuple[str, tuple | None]:
+        """The worker died: blame the file it was reading, queue the rest again. Returns the
+        cause and, for a file that killed its reader twice, its ``(task, failed result)``."""
+        w.proc.join(5)
+        cause = _signal_name(w.proc.exitcode)
+        number, _ = w.reading()
+        batch = w.batch
+        if number < 0 and len(batch) == 1:  # died describing or sending its one file
+            number = batch[0]
+        elif number < 0:  # ... one of these: try them one by one
+            self.queue.extendleft([i] for i in reversed(batch))
+            batch = []
+        self.deaths += 1
+        rest = [i for i in batch if i != number]
+        if rest:
+            self.queue.appendleft(rest)
+        if number < 0 or number not in batch:
+            return cause, None
+        self.strikes[number] += 1
+        if self.strikes[number] < 2:
+            self.queue.appendleft([number])  # again, alone, in a fresh worker
+            return cause, None
+        self.blamed += 1
+        path = self.tasks[number][0]
+        return cause, (
+            number,
+            _failed(path, f"{path}: the process reading it died twice ({cause}); the file crashes its reader"),
+        )
+
+    def bury(self, w: _Worker, cause: str) -> None:
+        """Replace a dead worker, unless more have died than the files to blame explain."""
+        if self.deaths > _SPARE_DEATHS + 2 * self.blamed:
+            raise WorkerError(
+                f"worker processes keep dying ({self.deaths} deaths, last: {cause}), "
+                f"not because of one file (out of memory?); nothing was written"
+            )
+        self.replace(w)
+
+    def overtime(self, w: _Worker) -> tuple | None:
+        """``(task, failed result)`` of the file ``w`` has been reading for longer than the
+        time limit (``w`` is replaced, the rest of its batch queued again); else None."""
+        number, since = w.reading()
+        if number < 0 or time.monotonic() - since <= self.file_timeout:
+            return None
+        rest = [i for i in w.batch if i != number]
+        if rest:
+            self.queue.appendleft(rest)
+        path = self.tasks[number][0]
+        self.replace(w)
+        return (
+            number,
+            _failed(
+                path,
+                f"{path}: reading it took longer than {self.file_timeout:g} s "
+                f"(the per-file time limit, --file-timeout); stopped",
+            ),
+        )
+
+    def stop(self) -> None:
+        """Tell every worker there is no more work (they exit)."""
+        for w in self.workers:
             try:
                 w.conn.send(None)
             except OSError:
                 pass
-    finally:
-        for w in workers:
+
+    def close(self) -> None:
+        for w in self.workers:
             w.close()
+
+
+def _answer(w: _Worker):
+    """The worker's answer ``(batch id, results, arrays)``, None if it died instead."""
+    try:
+        if w.conn.poll():
+            return w.conn.recv()
+    except (EOFError, OSError):
+        pass
+    return None
+
+
+def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None):
+    """Yield ``(task_number, result)`` as batches finish in worker processes (see the
+    module docstring for deaths, time limits and signals)."""
+    pool = _Pool(tasks, jobs, lock_fd, file_timeout)
+
+    from multiprocessing.connection import wait
+
+    try:
+        for _ in range(pool.jobs):
+            pool.feed(pool.start())
+        while any(w.batch is not None for w in pool.workers):
+            busy = pool.busy()
+            ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], pool.wait_time(busy)))
+            for w in busy:
+                if w.conn in ready or w.proc.sentinel in ready:
+                    msg = _answer(w)
+                    if msg is not None:
+                        batch = w.batch
+                        pool.feed(w)
+                        _, results, arrays = msg
+                        for i, out in zip(batch, _split(results, arrays)):
+                            yield i, out
+                        continue
+                    cause, failure = pool.died(w)
+                    if failure is not None:
+                        yield failure
+                    pool.bury(w, cause)
+                elif file_timeout:
+                    failure = pool.overtime(w)
+                    if failure is not None:
+                        yield failure
+        pool.stop()
+    finally:
+        pool.close()
 
 
 def run_tasks(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None = None):

@@ -331,7 +331,49 @@ def open_checked(path: str):
 
 
 def _validate(h5) -> tuple[dict, dict]:
-    attrs = h5.attrs
+    """``(meta, files)`` of an open index after checking its attributes, the shapes and
+    lengths of its tables, their checksum datasets, the /files blocks and /search; raises
+    Problem at the first fault."""
+    meta = _root_attributes(h5.attrs)
+    file_size = int(h5.id.get_filesize())
+    checksums = meta["checksums"]
+
+    def dataset(group, name, tail):
+        return _shaped_dataset(h5, group, name, tail, file_size, checksums)
+
+    fds, cds = _tables(dataset, meta["harmonics"], checksums)
+    F, N = fds["path"].shape[0], cds["id"].shape[0]
+    if cds["coefficients"].dtype.kind != "c":
+        raise Problem("corrupt", "corrupted nfdmatch index: /curves/coefficients is not complex")
+    counts = fds["curve_count"][...].astype(np.int64)
+    starts = fds["curve_start"][...].astype(np.int64)
+    expected = np.concatenate([[0], np.cumsum(counts)[:-1]]) if F else starts
+    if (counts < 0).any() or not np.array_equal(starts, expected) or int(counts.sum()) != N:
+        raise Problem(
+            "corrupt",
+            "corrupted nfdmatch index: the /files curve_start/curve_count blocks do not tile the /curves rows",
+        )
+    if meta["format_version"] >= 2:
+        problem = check_search_group(
+            h5, int(N), meta["harmonics"], lambda name: stored_dataset(h5, f"search/{name}", file_size, checksums)
+        )
+        if problem:
+            raise Problem("corrupt", f"corrupted nfdmatch index: {problem}")
+    files = {
+        "datasets": {k: v for k, v in fds.items() if k in FILE_FIELDS},
+        "curve_start": starts,
+        "curve_count": counts,
+        "crc": {k: v for k, v in fds.items() if k.endswith("_crc32")},
+    }
+    meta["crc"] = {k: v for k, v in cds.items() if k.endswith("_crc32")}
+    meta["datasets"] = {k: v for k, v in cds.items() if not k.endswith("_crc32")}
+    meta["n_curves"], meta["n_files"] = int(N), int(F)
+    return meta, files
+
+
+def _root_attributes(attrs) -> dict:
+    """The checked root attributes of an index (format, version, descriptor parameters,
+    checksums) as the start of its ``meta``; raises Problem."""
     fmt = _attr_str(attrs, "format")
     if fmt != INDEX_FORMAT:
         what = "no 'format' attribute" if fmt is None else f"format attribute {fmt!r}"
@@ -355,29 +397,34 @@ def _validate(h5) -> tuple[dict, dict]:
     checksums_attr = _attr_str(attrs, "checksums")
     if checksums_attr not in (None, CHECKSUMS):
         raise Problem("corrupt", f"corrupted nfdmatch index: unknown checksums {checksums_attr!r}")
-    checksums = checksums_attr == CHECKSUMS
-    file_size = int(h5.id.get_filesize())
-    meta = {
+    return {
         "format_version": version,
         "samples": samples,
         "harmonics": harmonics,
         "scale": scale,
-        "checksums": checksums,
+        "checksums": checksums_attr == CHECKSUMS,
         "nfdmatch_version": _attr_str(attrs, "nfdmatch_version") or "",
         "created": _attr_str(attrs, "created") or "",
         "updated": _attr_str(attrs, "updated") or "",
     }
 
-    def dataset(group, name, tail):
-        obj = stored_dataset(h5, f"{group}/{name}", file_size, checksums)
-        if len(obj.shape) != 1 + len(tail) or tuple(obj.shape[1:]) != tail:
-            raise Problem(
-                "corrupt",
-                f"corrupted nfdmatch index: /{group}/{name} has shape {obj.shape}, "
-                f"expected (rows, {', '.join(map(str, tail))})".replace(", )", ")"),
-            )
-        return obj
 
+def _shaped_dataset(h5, group: str, name: str, tail: tuple, file_size: int, checksums: bool):
+    """The stored dataset ``/group/name`` if its shape is ``(rows, *tail)``; raises Problem."""
+    obj = stored_dataset(h5, f"{group}/{name}", file_size, checksums)
+    if len(obj.shape) != 1 + len(tail) or tuple(obj.shape[1:]) != tail:
+        raise Problem(
+            "corrupt",
+            f"corrupted nfdmatch index: /{group}/{name} has shape {obj.shape}, "
+            f"expected (rows, {', '.join(map(str, tail))})".replace(", )", ")"),
+        )
+    return obj
+
+
+def _tables(dataset, harmonics: int, checksums: bool) -> tuple[dict, dict]:
+    """The /files and /curves datasets by name, each table's of one length, with their
+    ``*_crc32`` datasets of the right length when the file has checksums; ``dataset(group,
+    name, tail)`` opens one (:func:`_shaped_dataset`)."""
     fds = {name: dataset("files", name, ()) for name in FILE_FIELDS}
     F = fds["path"].shape[0]
     if any(d.shape[0] != F for d in fds.values()):
@@ -398,32 +445,7 @@ def _validate(h5) -> tuple[dict, dict]:
                         f"{crc.shape}, expected ({(rows + CRC_ROWS - 1) // CRC_ROWS},)",
                     )
                 (fds if group == "files" else cds)[f"{name}_crc32"] = crc
-    if cds["coefficients"].dtype.kind != "c":
-        raise Problem("corrupt", "corrupted nfdmatch index: /curves/coefficients is not complex")
-    counts = fds["curve_count"][...].astype(np.int64)
-    starts = fds["curve_start"][...].astype(np.int64)
-    expected = np.concatenate([[0], np.cumsum(counts)[:-1]]) if F else starts
-    if (counts < 0).any() or not np.array_equal(starts, expected) or int(counts.sum()) != N:
-        raise Problem(
-            "corrupt",
-            "corrupted nfdmatch index: the /files curve_start/curve_count blocks do not tile the /curves rows",
-        )
-    if version >= 2:
-        problem = check_search_group(
-            h5, int(N), harmonics, lambda name: stored_dataset(h5, f"search/{name}", file_size, checksums)
-        )
-        if problem:
-            raise Problem("corrupt", f"corrupted nfdmatch index: {problem}")
-    files = {
-        "datasets": {k: v for k, v in fds.items() if k in FILE_FIELDS},
-        "curve_start": starts,
-        "curve_count": counts,
-        "crc": {k: v for k, v in fds.items() if k.endswith("_crc32")},
-    }
-    meta["crc"] = {k: v for k, v in cds.items() if k.endswith("_crc32")}
-    meta["datasets"] = {k: v for k, v in cds.items() if not k.endswith("_crc32")}
-    meta["n_curves"], meta["n_files"] = int(N), int(F)
-    return meta, files
+    return fds, cds
 
 
 def stored_dataset(h5, name: str, file_size: int, checksums: bool):

@@ -285,9 +285,36 @@ def _check_features(values, K: int, report) -> None:
 
 
 def _verify(h5, meta, files, report) -> None:
+    """Every dataset scanned block by block (readable, finite, checksums), then the
+    cross-checks: dtypes, ids, features, the /files blocks, /search against /curves."""
     K = meta["harmonics"]
+    groups, values = _scan_datasets(h5, meta, files, report)
+    _check_dtypes(groups, K, report)
+    N, F = meta["n_curves"], meta["n_files"]
+    if report.unreadable:  # derived data cannot be compared with unreadable rows
+        return
+    _check_paths_and_ids(h5, files, values.get("/files/path"), values.get("/curves/id"), report)
+    _check_features(values, K, report)
+    file_col = values["/curves/file"]
+    want = np.repeat(np.arange(F), files["curve_count"]) if F else np.zeros(0, dtype=np.int64)
+    bad = np.flatnonzero(np.asarray(file_col, dtype=np.int64) != want)
+    if len(bad):
+        report.findings.append(Finding("/curves/file", _rows_text(bad), "does not match the /files blocks"))
+    if meta["format_version"] < 2 or not N:
+        return
+    split = feature_split(K)
+    row = np.asarray(values["/search/row"], dtype=np.int64)
+    if not np.array_equal(np.sort(row), np.arange(N)):
+        report.findings.append(Finding("/search/row", "", "not a permutation of the /curves rows"))
+        return
+    _check_search_derived(values, row, split, report)
+    _check_cells(values, row, split, report)
+
+
+def _scan_datasets(h5, meta, files, report) -> tuple[dict, dict]:
+    """Scan every dataset once (checksum datasets first); returns the datasets by group and
+    the values the cross-checks need, by full name (the rest is scanned and dropped)."""
     whole = np.asarray
-    # what the cross-checks below need, per dataset (the rest is checked block by block and dropped)
     needed = {
         "/curves/file": whole,
         "/curves/inv_sv": whole,
@@ -319,25 +346,11 @@ def _verify(h5, meta, files, report) -> None:
                 ds, full, report, label="position" if group == "search" else "row", keep=needed.get(full), crc=crc
             )
             report.datasets += 1
+    return groups, values
 
-    _check_dtypes(groups, K, report)
-    N, F = meta["n_curves"], meta["n_files"]
-    if report.unreadable:  # derived data cannot be compared with unreadable rows
-        return
-    _check_paths_and_ids(h5, files, values.get("/files/path"), values.get("/curves/id"), report)
-    _check_features(values, K, report)
-    file_col = values["/curves/file"]
-    want = np.repeat(np.arange(F), files["curve_count"]) if F else np.zeros(0, dtype=np.int64)
-    bad = np.flatnonzero(np.asarray(file_col, dtype=np.int64) != want)
-    if len(bad):
-        report.findings.append(Finding("/curves/file", _rows_text(bad), "does not match the /files blocks"))
-    if meta["format_version"] < 2 or not N:
-        return
-    split = feature_split(K)
-    row = np.asarray(values["/search/row"], dtype=np.int64)
-    if not np.array_equal(np.sort(row), np.arange(N)):
-        report.findings.append(Finding("/search/row", "", "not a permutation of the /curves rows"))
-        return
+
+def _check_search_derived(values, row, split: int, report) -> None:
+    """/search features, squared norms and coefficients equal to the /curves rows they copy."""
     features = values["/search/features"]
     derived = np.concatenate([values.pop("/curves/inv_sv"), values.pop("/curves/inv_block")], axis=1)[row]
     checks = (
@@ -352,7 +365,12 @@ def _verify(h5, meta, files, report) -> None:
         bad = np.flatnonzero(~same.reshape(len(got), -1).all(axis=1))
         if len(bad):
             report.findings.append(Finding(name, _rows_text(bad), "differs from what it is derived from (positions)"))
-    del derived, checks
+
+
+def _check_cells(values, row, split: int, report) -> None:
+    """The /search cells: rows ascend within a cell, members lie within its radius."""
+    features = values["/search/features"]
+    N = len(row)
     start = np.asarray(values["/search/cell_start"], dtype=np.int64)
     centre, radius = values["/search/centre"], values["/search/radius"]
     cell = np.repeat(np.arange(len(start) - 1), np.diff(start))

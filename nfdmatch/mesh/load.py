@@ -104,14 +104,7 @@ def load_mesh(path):
     p = check_readable(str(os.fspath(path)))
     import trimesh
 
-    ext = os.path.splitext(p)[1].lower()
-    known = mesh_extensions()
-    if ext not in known:
-        what = f"unknown mesh file extension {ext!r}" if ext else "no file extension"
-        hint = ""
-        if ext in {e for exts in FORMATS.values() for e in exts}:
-            hint = " (it looks like a curve file: index or query it directly)"
-        raise UnknownFormatError(f"{what}{hint}; mesh formats: {', '.join(known)}", path=p)
+    ext = _mesh_extension(p)
     try:
         if os.path.getsize(p) == 0:
             raise MeshError("not a triangle mesh: the file is empty", path=p)
@@ -135,6 +128,28 @@ def load_mesh(path):
         if ext == ".obj" and _has_obj_lines(p):
             extra += " (an OBJ of 'l' polylines is a curve file: index or query it directly)"
         raise MeshError(f"not a triangle mesh: {parts}{extra}", path=p)
+
+    return _merged_mesh(parts, p)
+
+
+def _mesh_extension(p: str) -> str:
+    """The file's extension, lower case, if trimesh reads it as a mesh; else
+    UnknownFormatError (with a hint for a curve file's extension)."""
+    ext = os.path.splitext(p)[1].lower()
+    known = mesh_extensions()
+    if ext not in known:
+        what = f"unknown mesh file extension {ext!r}" if ext else "no file extension"
+        hint = ""
+        if ext in {e for exts in FORMATS.values() for e in exts}:
+            hint = " (it looks like a curve file: index or query it directly)"
+        raise UnknownFormatError(f"{what}{hint}; mesh formats: {', '.join(known)}", path=p)
+    return ext
+
+
+def _merged_mesh(parts, p: str):
+    """One ``trimesh.Trimesh`` of the ``(vertices, faces)`` parts: coincident vertices
+    merged, faces with a non-finite or repeated vertex dropped; MeshError if none is left."""
+    import trimesh
 
     vertices = np.concatenate([v for v, _ in parts]) if parts else np.zeros((0, 3))
     offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])

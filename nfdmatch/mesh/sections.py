@@ -87,37 +87,7 @@ def extract_contours(
     notes = result.notes
 
     if sections:
-        axis_name, levels = section_levels(mesh.bounds, sections, axis)
-        result.axis, result.levels = axis_name, levels
-        a = AXES.index(axis_name)
-        bounds = np.asarray(mesh.bounds, dtype=np.float64)  # of the vertices used by faces
-        if not bounds[1, a] - bounds[0, a] > 0:
-            notes.append(f"{p}: the mesh is flat along {axis_name} (zero extent): no sections")
-        else:
-            edges = np.asarray(mesh.edges_unique, dtype=np.int64)
-            face_edges = np.asarray(mesh.faces_unique_edges, dtype=np.int64)
-            height = vertices[:, a]
-            face_h = height[faces]
-            face_lo, face_hi = face_h.min(axis=1), face_h.max(axis=1)
-            width = max(2, len(str(sections - 1)))
-            for i, level in enumerate(levels.tolist()):
-                where = f"{p}: section {axis_name}{i:0{width}d} at {level + 0.0:.6g}"
-                loops = _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a, level, where, notes)
-                loops = _orient_ccw(loops, a)
-                result.contours.extend(
-                    Contour(
-                        points=pts,
-                        mesh=p,
-                        kind="section",
-                        axis=axis_name,
-                        level=float(level),
-                        level_index=i,
-                        loop=k,
-                        level_count=sections,
-                        loop_count=len(loops),
-                    )
-                    for k, pts in enumerate(loops)
-                )
+        _add_sections(result, mesh, vertices, faces, sections, axis)
 
     if boundaries:
         loops = _boundary_loops(mesh, f"{p}: boundary", notes)
@@ -131,6 +101,43 @@ def extract_contours(
         asked = " or ".join(w for w, on in (("section loops", sections), ("boundary loops", boundaries)) if on)
         notes.append(f"{p}: nothing extracted (no closed {asked})")
     return result
+
+
+def _add_sections(result: ExtractResult, mesh, vertices, faces, sections: int, axis: str) -> None:
+    """Add to ``result`` the closed loops of the ``sections`` planes across ``axis`` (its
+    axis and levels too; a note for a mesh flat along it)."""
+    p, notes = result.mesh, result.notes
+    axis_name, levels = section_levels(mesh.bounds, sections, axis)
+    result.axis, result.levels = axis_name, levels
+    a = AXES.index(axis_name)
+    bounds = np.asarray(mesh.bounds, dtype=np.float64)  # of the vertices used by faces
+    if not bounds[1, a] - bounds[0, a] > 0:
+        notes.append(f"{p}: the mesh is flat along {axis_name} (zero extent): no sections")
+    else:
+        edges = np.asarray(mesh.edges_unique, dtype=np.int64)
+        face_edges = np.asarray(mesh.faces_unique_edges, dtype=np.int64)
+        height = vertices[:, a]
+        face_h = height[faces]
+        face_lo, face_hi = face_h.min(axis=1), face_h.max(axis=1)
+        width = max(2, len(str(sections - 1)))
+        for i, level in enumerate(levels.tolist()):
+            where = f"{p}: section {axis_name}{i:0{width}d} at {level + 0.0:.6g}"
+            loops = _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a, level, where, notes)
+            loops = _orient_ccw(loops, a)
+            result.contours.extend(
+                Contour(
+                    points=pts,
+                    mesh=p,
+                    kind="section",
+                    axis=axis_name,
+                    level=float(level),
+                    level_index=i,
+                    loop=k,
+                    level_count=sections,
+                    loop_count=len(loops),
+                )
+                for k, pts in enumerate(loops)
+            )
 
 
 def _section_loops(

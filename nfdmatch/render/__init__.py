@@ -142,24 +142,7 @@ def render_matches(
     check_renderer(renderer)
     size = check_size(size)
     q = _as_points(query, "query", min_points=2)
-    checked = []
-    for i, p in enumerate(panels):
-        if not isinstance(p, ShownMatch):
-            raise ParameterError(f"panel {i + 1}: expected a ShownMatch, got {type(p).__name__}")
-        what = f"match {i + 1} ({p.id})"
-        try:
-            d = float(p.distance)
-        except (TypeError, ValueError):
-            raise ParameterError(f"{what}: distance must be a number, got {p.distance!r}") from None
-        checked.append(
-            ShownMatch(
-                match=p.match.replace(id=str(p.id), distance=d, reversed=bool(p.reversed), mirrored=bool(p.mirrored)),
-                points=_as_points(p.points, what),
-                start=as_vector(p.start, f"{what} start"),
-                forward=as_vector(p.forward, f"{what} forward"),
-                source=p.source,
-            )
-        )
+    checked = [_checked_panel(i, p) for i, p in enumerate(panels)]
     out = check_output(path)
     fmt = picture_format(out)
     scene = build_scene(q, str(query_id), checked, size)
@@ -187,6 +170,24 @@ def render_matches(
             note = "; ".join(f"{n} could not draw ({r})" for n, r in failures) + f"; used {name}"
         return RenderResult(path=out, renderer=name, seconds=time.perf_counter() - t0, note=note)
     raise RenderError("no renderer could draw the picture: " + "; ".join(f"{n}: {r}" for n, r in failures), path=out)
+
+
+def _checked_panel(i: int, p) -> ShownMatch:
+    """Panel ``i`` (0-based) checked, as a ShownMatch of plain types and float64 arrays."""
+    if not isinstance(p, ShownMatch):
+        raise ParameterError(f"panel {i + 1}: expected a ShownMatch, got {type(p).__name__}")
+    what = f"match {i + 1} ({p.id})"
+    try:
+        d = float(p.distance)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{what}: distance must be a number, got {p.distance!r}") from None
+    return ShownMatch(
+        match=p.match.replace(id=str(p.id), distance=d, reversed=bool(p.reversed), mirrored=bool(p.mirrored)),
+        points=_as_points(p.points, what),
+        start=as_vector(p.start, f"{what} start"),
+        forward=as_vector(p.forward, f"{what} forward"),
+        source=p.source,
+    )
 
 
 def _drawer(name: str):

@@ -402,20 +402,7 @@ def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size
     everything = np.vstack([query] + match_points)
     extent = float(np.ptp(everything, axis=0).max()) or 1.0
     centre, _ = _moments(query)
-    if planar and np.abs(everything[:, 2] - centre[2]).max() <= 1e-6 * extent:
-        view = np.eye(3)  # already in the x, y plane
-    else:
-        axes, spread = _principal_axes(query)
-        if spread[1] <= 1e-12 * max(spread[0], 1e-300):  # a straight query: use everything
-            vt = np.linalg.svd(everything - everything.mean(axis=0), full_matrices=True)[2]
-            e1, e3 = _canonical(vt[0]), _canonical(vt[2])
-            axes = np.array([e1, np.cross(e3, e1), e3])
-        if planar:
-            view = axes
-        else:
-            e1, e2, e3 = axes
-            c, s = math.cos(_TILT), math.sin(_TILT)
-            view = np.array([e1, c * e2 + s * e3, -s * e2 + c * e3])
+    view = _view_rotation(query, everything, planar, centre, extent)
 
     def to_view(p):
         return (np.asarray(p) - centre) @ view.T
@@ -479,6 +466,24 @@ def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size
         zrange=(float(lo[2]), float(hi[2])),
         arrow=_ARROW * max(dw, dh) / (1 + 0.12),
     )
+
+
+def _view_rotation(query, everything, planar: bool, centre, extent: float) -> np.ndarray:
+    """The (3, 3) rotation into view coordinates: the identity for curves already in the
+    x, y plane; else the query's principal axes (of everything for a straight query),
+    tilted by :data:`_TILT` when the curves are not planar."""
+    if planar and np.abs(everything[:, 2] - centre[2]).max() <= 1e-6 * extent:
+        return np.eye(3)  # already in the x, y plane
+    axes, spread = _principal_axes(query)
+    if spread[1] <= 1e-12 * max(spread[0], 1e-300):  # a straight query: use everything
+        vt = np.linalg.svd(everything - everything.mean(axis=0), full_matrices=True)[2]
+        e1, e3 = _canonical(vt[0]), _canonical(vt[2])
+        axes = np.array([e1, np.cross(e3, e1), e3])
+    if planar:
+        return axes
+    e1, e2, e3 = axes
+    c, s = math.cos(_TILT), math.sin(_TILT)
+    return np.array([e1, c * e2 + s * e3, -s * e2 + c * e3])
 
 
 def _key(planar: bool, matches: bool) -> str:
