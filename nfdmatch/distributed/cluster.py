@@ -248,14 +248,14 @@ class Cluster:
             n_parts = 1 if idx.n_curves * TABLE_ROW_BYTES <= RANGE_BYTES else self.threads
         ranges, stats.cell_count = index_ranges(idx, n_parts, prune)
         # one range: each query is answered whole by one task, whose worker also
-        # recomputes the distances it reports on the reference path (as a local
-        # search does, from the descriptors it holds), so the client merges nothing
+        # recomputes the distances it reports in full (as a local search does, from the
+        # descriptors it holds), so the client merges nothing
         params["final"] = len(ranges) == 1
         self._search_ranges(path, stamp, ranges, qcoef, tops, stats, progress, params)
         if params["final"]:
             return
-        # the reported distances from the reference path, as a local search does,
-        # from the descriptors the workers sent with their rows (else read here)
+        # the reported distances computed in full, as a local search does, from the
+        # descriptors the workers sent with their rows (else read here)
         from ..matching import exact_search, paper_search
         from ..search.index_search import recompute_reported
 

@@ -148,7 +148,7 @@ def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params:
 
     out, searched = _search_one_range(entry, rng, qcoef, tops, seeds, cascade, params, keep_descriptors)
     if params.get("final"):
-        # this task's answer is the query's answer: its distances from the reference path,
+        # this task's answer is the query's answer: its distances computed in full,
         # exactly as search_index reports them (from the descriptors of the table searched)
         from ..search.index_search import recompute_reported
 

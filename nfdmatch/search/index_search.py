@@ -102,13 +102,11 @@ def search_index(
     prune : False computes every exact distance (``query --exhaustive``: the reference the
         pruned search must equal).
     progress : optional callable ``progress(queries_done, queries_total)``.
-    weights : (K,) harmonic weights; the bounds are unweighted, so weights need
-        ``prune=False``.
+    weights : (K,) harmonic weights (the bounds are unweighted: needs ``prune=False``).
     threads : queries answered in parallel (default: the cores, at most 4).
     truncate : use the truncated-harmonic bound (an option for measuring its effect).
-    exclude_self : drop each query's own curve from its matches
-        (:func:`~nfdmatch.search.knn.is_self`: the same id, or the same curve of the same
-        file however the path is spelled; ids of an index resolved by its ``locate``).
+    exclude_self : drop each query's own curve from its matches (the same id, or the same
+        curve of the same file however spelled: :func:`~nfdmatch.search.knn.self_rule`).
 
     Returns
     -------
