@@ -16,7 +16,6 @@ from .options import (
     match_list_options,
     format_option,
     input_format_option,
-    matching,
     matching_options,
     output_option,
     rows_format_option,
@@ -34,9 +33,7 @@ from .group import main
 @input_format_option
 @format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
-def distance(
-    curve_a, curve_b, method, strict_direction, mirror, samples, harmonics, scale, input_format, output_format, output
-):
+def distance(curve_a, curve_b, matching, samples, harmonics, scale, input_format, output_format, output):
     """Similarity distance between two curves A and B, and the alignment of B onto A.
 
     A and B are files (FILE#I for curve I of a multi-curve file; `-` for stdin). The
@@ -54,9 +51,7 @@ def distance(
         raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
     a = read_one(curve_a, input_format)
     b = read_one(curve_b, input_format)
-    m = match_distance(
-        a, b, samples=samples, harmonics=harmonics, scale=scale, **matching(method, strict_direction, mirror)
-    )
+    m = match_distance(a, b, samples=samples, harmonics=harmonics, scale=scale, **matching)
     record = m.to_dict()
     if output_format == "json":
         text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
@@ -141,9 +136,7 @@ def rank(
     details,
     paths,
     exclude_self_,
-    method,
-    strict_direction,
-    mirror,
+    matching,
     samples,
     harmonics,
     scale,
@@ -175,7 +168,7 @@ def rank(
         harmonics=harmonics,
         scale=scale,
         exclude_self=exclude_self_,
-        **matching(method, strict_direction, mirror),
+        **matching,
     )
     spell = path_speller(paths)
     write_rows(

@@ -8,7 +8,7 @@ import json
 
 import click
 
-from .options import detail, index_option, matching, matching_options, output_option, rows_format_option
+from .options import detail, index_option, matching_options, output_option, rows_format_option
 from .output import deliver, progress_bar, resolve_format, write_rows
 from .cluster import open_cluster, scheduler_options
 from .group import main
@@ -47,9 +47,7 @@ def pairs(
     index_path,
     max_distance,
     new_only,
-    method,
-    strict_direction,
-    mirror,
+    matching,
     scheduler,
     scheduler_timeout,
     output_format,
@@ -71,7 +69,7 @@ def pairs(
 
     found, stats = _joined(
         index_pairs, "pairs", index_path, scheduler, scheduler_timeout, max_distance,
-        new=new_only, **matching(method, strict_direction, mirror),
+        new=new_only, **matching,
     )  # fmt: skip
     _work(stats, f"{len(found)} pairs")
     write_rows(
@@ -97,9 +95,7 @@ def groups(
     index_path,
     max_distance,
     min_size,
-    method,
-    strict_direction,
-    mirror,
+    matching,
     scheduler,
     scheduler_timeout,
     output_format,
@@ -122,7 +118,7 @@ def groups(
 
     members, stats = _joined(
         index_groups, "groups", index_path, scheduler, scheduler_timeout, max_distance,
-        min_size=min_size, **matching(method, strict_direction, mirror),
+        min_size=min_size, **matching,
     )  # fmt: skip
     _work(stats, f"{len({m.group for m in members})} groups")
     if resolve_format(output_format, output) == "json":

@@ -18,6 +18,7 @@ terminated (SIGTERM); both without a traceback, after the command cleaned up.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import time
@@ -367,6 +368,12 @@ def matching_options(f):
     """--method, --strict-direction and --mirror, passed on as ``matching``: a dict of
     the keyword arguments ``method``, ``direction``, ``mirror`` of the library."""
     from ..matching import DEFAULT_METHOD, METHODS
+
+    command = f
+
+    @functools.wraps(command)
+    def f(*args, method, strict_direction, mirror, **kwargs):
+        return command(*args, matching=matching(method, strict_direction, mirror), **kwargs)
 
     f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(f)
     f = click.option(

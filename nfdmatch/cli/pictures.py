@@ -15,7 +15,6 @@ from .options import (
     format_option,
     index_option,
     input_format_option,
-    matching,
     matching_options,
     note,
     optional_descriptor_options,
@@ -134,9 +133,7 @@ def show(
     size,
     renderer,
     glob_pattern,
-    method,
-    strict_direction,
-    mirror,
+    matching,
     samples,
     harmonics,
     scale,
@@ -169,13 +166,12 @@ def show(
     queries = query_inputs.curves
     names = _picture_names(pictures[0], queries)
     _check_pictures(names)
-    match = matching(method, strict_direction, mirror)
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, (samples, harmonics, scale), match)
+        shown = _ranked_drawn(queries, source_inputs.curves, top, (samples, harmonics, scale), matching)
     else:
         source_inputs = None
-        shown = _searched_drawn(queries, index_path, top, input_format, match)
+        shown = _searched_drawn(queries, index_path, top, input_format, matching)
     results = []
     if some_failed():
         _not_written(names)
@@ -277,9 +273,7 @@ def matrix(
     sources,
     output,
     glob_pattern,
-    method,
-    strict_direction,
-    mirror,
+    matching,
     samples,
     harmonics,
     scale,
@@ -320,16 +314,16 @@ def matrix(
             harmonics=harmonics,
             scale=scale,
             progress=progress,
-            **matching(method, strict_direction, mirror),
+            **matching,
         )
     finally:
         finish_bar()
     ids = [c.id for c in curves]
-    title = f"{method} distance, {len(ids)} curves"
+    title = f"{matching['method']} distance, {len(ids)} curves"
     values = distances
     if rerank:
         values, distances = _reranked(distances)
-        title = f"re-ranked similarity ({method} distance), {len(ids)} curves"
+        title = f"re-ranked similarity ({matching['method']} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
         distances = distances[permutation][:, permutation]

@@ -6,13 +6,12 @@ from __future__ import annotations
 import click
 
 from ..defaults import DEFAULT_RERANK_DEPTH
-from ..matching import DEFAULT_METHOD
+from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
     match_list_options,
     index_option,
     input_format_option,
-    matching,
     matching_options,
     note,
     output_option,
@@ -68,9 +67,7 @@ def query(
     show_stats,
     rerank,
     rerank_depth,
-    method,
-    strict_direction,
-    mirror,
+    matching,
     input_format,
     scheduler,
     scheduler_timeout,
@@ -104,9 +101,7 @@ def query(
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
-    _check_rerank_options(
-        rerank, rerank_depth, top, exhaustive, max_distance, method, strict_direction, mirror, scheduler
-    )
+    _check_rerank_options(rerank, rerank_depth, top, exhaustive, max_distance, matching, scheduler)
     with open_index(index_path) as idx:
         _note_old_format(idx, exhaustive)
         inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
@@ -115,7 +110,7 @@ def query(
         results, stats = _search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
             top=top, max_distance=max_distance, prune=not exhaustive, exclude_self=exclude_self_,
-            match=matching(method, strict_direction, mirror),
+            match=matching,
         )  # fmt: skip
         spell_query, spell_match = path_speller(paths), path_speller(paths, idx.locate)
         match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
@@ -183,7 +178,7 @@ def _search_queries(idx, curves, rerank_depth, cluster_at, *, top, max_distance,
             cluster.close()
 
 
-def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, method, strict, mirror, scheduler) -> None:
+def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, matching: dict, scheduler) -> None:
     """Usage errors for options that --rerank cannot take (or that need it)."""
     if not rerank:
         if depth != DEFAULT_RERANK_DEPTH:
@@ -192,9 +187,9 @@ def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, method, 
     for given, name in (
         (exhaustive, "--exhaustive"),
         (max_distance is not None, "--max-distance"),
-        (method != DEFAULT_METHOD, f"--method {method}"),
-        (strict, "--strict-direction"),
-        (mirror, "--mirror"),
+        (matching["method"] != DEFAULT_METHOD, f"--method {matching['method']}"),
+        (matching["direction"] != DEFAULT_DIRECTION, "--strict-direction"),
+        (matching["mirror"], "--mirror"),
     ):
         if given:
             raise click.UsageError(
