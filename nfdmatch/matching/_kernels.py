@@ -68,7 +68,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._threads import split_rows
+from . import _threads
 
 _TINY = float(np.finfo(np.float64).tiny)
 _THIRD = 1.0 / 3.0
@@ -717,46 +717,8 @@ def _exact_rows(
 
 
 def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers=1):
-    """matching.exact_search's compiled path for all rows of B.
-
-    A, Aw = conj(A) w (K, 3) complex128; w (K,) float64; B (N, K, 3) complex128 (direction 1
-    is conj(B)); basis, quarter from matching.folded_basis; C candidates per row;
-    refine_limit: refine the rows whose refined distance^2 could be at most this (inf: all);
-    ``workers``: threads sharing the rows (see ``split_rows``). Returns (distance, shift,
-    rotation, reversed, mirrored) over the rows.
-    """
-    N = B.shape[0]
-    dist = np.empty(N)
-    shift = np.empty(N)
-    rot = np.empty((N, 3, 3))
-    reversed_ = np.zeros(N, dtype=np.bool_)
-    mirrored = np.zeros(N, dtype=np.bool_)
-    split_rows(
-        lambda lo, hi: _exact_rows(
-            A,
-            Aw,
-            w,
-            B,
-            D,
-            basis,
-            quarter,
-            n,
-            mirror,
-            C,
-            refine,
-            refine_limit,
-            dist,
-            shift,
-            rot,
-            reversed_,
-            mirrored,
-            lo,
-            hi,
-        ),
-        N,
-        workers,
-    )
-    return dist, shift, rot, reversed_, mirrored
+    """matching.exact_search's compiled path for all rows of B (see ``_threads.exact_rows``)."""
+    return _threads.exact_rows(_exact_rows, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers)
 
 
 # ----------------------------------------------------------------------------- grid bound
@@ -918,15 +880,6 @@ def grid_bound_kernel(harmonics):
 
 
 def grid_bound_rows(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers=1):
-    """matching.grid_bound's compiled path: (N,) bound per row of B (see grid_bound_rows).
-
-    Aw = conj(A[:K']) (K', 3) complex128; B (N, K', 3) complex128; basis (2K', n) float64
-    from matching.integer_shift_basis; ratio divides n; slack_coarse, slack_fine, need
-    (N,) float64; ``workers``: threads sharing the rows (see ``split_rows``)."""
-    N = B.shape[0]
-    out = np.empty(N)
+    """matching.grid_bound's compiled path: (N,) bound per row of B (see ``_threads.grid_bound_rows``)."""
     kernel = grid_bound_kernel(Aw.shape[0])
-    split_rows(
-        lambda lo, hi: kernel(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi), N, workers
-    )
-    return out
+    return _threads.grid_bound_rows(kernel, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers)
