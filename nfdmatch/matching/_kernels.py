@@ -148,9 +148,9 @@ def _lmax(s00, s11, s22, s01, s02, s12):
 
 
 @njit(**_inline)
-def trace1(a, b, c, d, e, f, g, h, i, mirror):
-    """max_R tr(R M), M = [[a, b, c], [d, e, f], [g, h, i]]: matching.trace_soa for one matrix."""
-    l1 = _lmax(
+def _lmax_gram(a, b, c, d, e, f, g, h, i):
+    """matching._lmax_gram_soa for one matrix: the largest eigenvalue of X^T X."""
+    return _lmax(
         a * a + d * d + g * g,
         b * b + e * e + h * h,
         c * c + f * f + i * i,
@@ -158,6 +158,12 @@ def trace1(a, b, c, d, e, f, g, h, i, mirror):
         a * c + d * f + g * i,
         b * c + e * f + h * i,
     )
+
+
+@njit(**_inline)
+def trace1(a, b, c, d, e, f, g, h, i, mirror):
+    """max_R tr(R M), M = [[a, b, c], [d, e, f], [g, h, i]]: matching.trace_soa for one matrix."""
+    l1 = _lmax_gram(a, b, c, d, e, f, g, h, i)
     c00 = e * i - f * h
     c01 = f * g - d * i
     c02 = d * h - e * g
@@ -168,14 +174,7 @@ def trace1(a, b, c, d, e, f, g, h, i, mirror):
     c21 = c * d - a * f
     c22 = a * e - b * d
     det = a * c00 + b * c01 + c * c02
-    l12 = _lmax(
-        c00 * c00 + c10 * c10 + c20 * c20,
-        c01 * c01 + c11 * c11 + c21 * c21,
-        c02 * c02 + c12 * c12 + c22 * c22,
-        c00 * c01 + c10 * c11 + c20 * c21,
-        c00 * c02 + c10 * c12 + c20 * c22,
-        c01 * c02 + c11 * c12 + c21 * c22,
-    )
+    l12 = _lmax_gram(c00, c01, c02, c10, c11, c12, c20, c21, c22)
     s1 = math.sqrt(l1)
     s12 = math.sqrt(l12)
     s2 = s12 / _atleast(s1, _TINY)
