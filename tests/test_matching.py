@@ -597,6 +597,25 @@ def test_a_process_does_not_import_numba_when_the_ahead_of_time_kernels_serve():
     assert out.stdout.split() == ["False", "True"]
 
 
+def test_the_ahead_of_time_exports_forward_to_the_kernels_with_their_own_parameters():
+    """What numba.pycc compiles for each export: a plain function with the kernel's parameters,
+    in order, that calls the kernel with them."""
+    pytest.importorskip("numba")
+    import inspect
+
+    from nfdmatch.matching import _kernels, aot
+
+    for kernel in (_kernels._exact_rows, _kernels.grid_bound_kernel(4), _kernels.grid_bound_kernel(0)):
+        forward = aot._forwarding(kernel)
+        assert inspect.signature(forward).parameters.keys() == inspect.signature(kernel.py_func).parameters.keys()
+    kernel = _kernels.grid_bound_kernel(4)
+    args = _big_bound_call(300)
+    got, want = np.full(300, np.nan), np.full(300, np.nan)
+    aot._forwarding(kernel)(*args, got, 0, 300)
+    kernel(*args, want, 0, 300)
+    assert np.array_equal(got, want) and np.all(np.isfinite(got))
+
+
 def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
     pytest.importorskip("numba")
     from nfdmatch.matching import _kernels

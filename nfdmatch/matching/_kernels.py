@@ -56,8 +56,9 @@ No ``parallel=True``: prange took ~45 s more to compile on first use for what pl
 over row blocks give as well, and numba's workqueue threading layer aborts when parallel
 kernels are entered from two threads at once (search_index runs queries on threads).
 Numba-level inlining only for the trace helpers, ``_products`` and ``_shift_matrices`` (the
-loops over shifts vectorize only then); the rest are plain calls, which keeps the first
-compile at ~10-15 s instead of ~20 s (+45 s with prange).
+loops over shifts vectorize only then) and the grid bound's parts (``_bound_*``: its sums over
+2K' unroll only with the kernel's K' as a constant); the rest are plain calls, which keeps
+the first compile at ~10-15 s instead of ~20 s (+45 s with prange).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._threads import split_rows
+from . import _threads
 
 _TINY = float(np.finfo(np.float64).tiny)
 _THIRD = 1.0 / 3.0
@@ -147,9 +148,9 @@ def _lmax(s00, s11, s22, s01, s02, s12):
 
 
 @njit(**_inline)
-def trace1(a, b, c, d, e, f, g, h, i, mirror):
-    """max_R tr(R M), M = [[a, b, c], [d, e, f], [g, h, i]]: matching.trace_soa for one matrix."""
-    l1 = _lmax(
+def _lmax_gram(a, b, c, d, e, f, g, h, i):
+    """matching._lmax_gram_soa for one matrix: the largest eigenvalue of X^T X."""
+    return _lmax(
         a * a + d * d + g * g,
         b * b + e * e + h * h,
         c * c + f * f + i * i,
@@ -157,6 +158,12 @@ def trace1(a, b, c, d, e, f, g, h, i, mirror):
         a * c + d * f + g * i,
         b * c + e * f + h * i,
     )
+
+
+@njit(**_inline)
+def trace1(a, b, c, d, e, f, g, h, i, mirror):
+    """max_R tr(R M), M = [[a, b, c], [d, e, f], [g, h, i]]: matching.trace_soa for one matrix."""
+    l1 = _lmax_gram(a, b, c, d, e, f, g, h, i)
     c00 = e * i - f * h
     c01 = f * g - d * i
     c02 = d * h - e * g
@@ -167,14 +174,7 @@ def trace1(a, b, c, d, e, f, g, h, i, mirror):
     c21 = c * d - a * f
     c22 = a * e - b * d
     det = a * c00 + b * c01 + c * c02
-    l12 = _lmax(
-        c00 * c00 + c10 * c10 + c20 * c20,
-        c01 * c01 + c11 * c11 + c21 * c21,
-        c02 * c02 + c12 * c12 + c22 * c22,
-        c00 * c01 + c10 * c11 + c20 * c21,
-        c00 * c02 + c10 * c12 + c20 * c22,
-        c01 * c02 + c11 * c12 + c21 * c22,
-    )
+    l12 = _lmax_gram(c00, c01, c02, c10, c11, c12, c20, c21, c22)
     s1 = math.sqrt(l1)
     s12 = math.sqrt(l12)
     s2 = s12 / _atleast(s1, _TINY)
@@ -443,13 +443,8 @@ _JACOBI_SWEEPS = 40
 
 
 @njit(**_jit)
-def _kabsch(M, mirror, X, V, R):
-    """R (3, 3) maximizing tr(R M) over SO(3) (O(3) when mirror); returns True when R is a
-    reflection. matching.kabsch_rotation without LAPACK: one-sided Jacobi on the columns
-    of X = M V (V proper), sorted by norm; U = [x1 / |x1|, x2 orthogonalized, u1 x u2], so
-    U^T M V = diag(s1, s2, s3') with s3' signed like det M; R = V U^T, with u3 flipped when
-    mirror and s3' < 0. Where the optimum is not unique (rank < 2, or s3' = 0 with mirror)
-    the choice may differ from LAPACK's, the trace not."""
+def _jacobi(M, X, V):
+    """One-sided Jacobi for _kabsch: X = M V (V proper), with mutually orthogonal columns."""
     for a in range(3):
         for b in range(3):
             X[a, b] = M[a, b]
@@ -482,7 +477,12 @@ def _kabsch(M, mirror, X, V, R):
             rotated = True
         if not rotated:
             break
-    # sort the columns by norm, descending (insertion sort on 3), keeping V proper
+
+
+@njit(**_jit)
+def _by_norm(X):
+    """The columns of X sorted by norm, descending (insertion sort on 3): (o0, o1, o2, the
+    largest norm, the sign that keeps V proper: -1 after an odd permutation)."""
     nrm0 = math.sqrt(X[0, 0] * X[0, 0] + X[1, 0] * X[1, 0] + X[2, 0] * X[2, 0])
     nrm1 = math.sqrt(X[0, 1] * X[0, 1] + X[1, 1] * X[1, 1] + X[2, 1] * X[2, 1])
     nrm2 = math.sqrt(X[0, 2] * X[0, 2] + X[1, 2] * X[1, 2] + X[2, 2] * X[2, 2])
@@ -498,6 +498,19 @@ def _kabsch(M, mirror, X, V, R):
             nrm0, nrm1 = nrm1, nrm0
     odd = (o0 == 1 and o1 == 0) or (o0 == 2 and o1 == 1) or (o0 == 0 and o1 == 2)  # one swap
     sgn = -1.0 if odd else 1.0
+    return o0, o1, o2, nrm0, sgn
+
+
+@njit(**_jit)
+def _kabsch(M, mirror, X, V, R):
+    """R (3, 3) maximizing tr(R M) over SO(3) (O(3) when mirror); returns True when R is a
+    reflection. matching.kabsch_rotation without LAPACK: one-sided Jacobi on the columns
+    of X = M V (V proper), sorted by norm; U = [x1 / |x1|, x2 orthogonalized, u1 x u2], so
+    U^T M V = diag(s1, s2, s3') with s3' signed like det M; R = V U^T, with u3 flipped when
+    mirror and s3' < 0. Where the optimum is not unique (rank < 2, or s3' = 0 with mirror)
+    the choice may differ from LAPACK's, the trace not."""
+    _jacobi(M, X, V)
+    o0, o1, o2, nrm0, sgn = _by_norm(X)
     x1 = (X[0, o0], X[1, o0], X[2, o0])
     x2 = (X[0, o1], X[1, o1], X[2, o1])
     x3 = (sgn * X[0, o2], sgn * X[1, o2], sgn * X[2, o2])
@@ -595,6 +608,72 @@ def _argmax_row(values, r, C):
     return best
 
 
+@njit(**_jit)
+def _refine_todo(A, w, B, n, fmax, refine_limit, lo, todo):
+    """todo[r] = False where row lo + r cannot reach refine_limit (distance^2) by refining."""
+    m = todo.shape[0]
+    K = A.shape[0]
+    # as exact_search: refining gains at most C2 / 8 on F, C2 bounding |F''|
+    norm_a = np.empty(K)
+    sq_a = 0.0
+    for k in range(K):
+        t = 0.0
+        for j in range(3):
+            t += A[k, j].real * A[k, j].real + A[k, j].imag * A[k, j].imag
+        norm_a[k] = math.sqrt(t)
+        sq_a += w[k] * norm_a[k] ** 2
+    for r in range(m):
+        curvature = 0.0
+        sq_b = 0.0
+        for k in range(K):
+            t = 0.0
+            for j in range(3):
+                b = B[lo + r, k, j]
+                t += b.real * b.real + b.imag * b.imag
+            norm_b = math.sqrt(t)
+            curvature += 2.0 * w[k] * (2.0 * math.pi * (k + 1) / n) ** 2 * norm_a[k] * norm_b
+            sq_b += w[k] * norm_b**2
+        lower2 = (2.0 * sq_a + 2.0 * sq_b) - 2.0 * (fmax[r] + curvature / 8.0)
+        todo[r] = lower2 <= refine_limit
+
+
+@njit(**_jit)
+def _refine_candidates(Aw, B, n, mirror, cand, shifts, val, fminus, fplus, todo, lo):
+    """The candidates of the rows lo + r with todo[r], refined: shifts and val updated."""
+    m, C = cand.shape
+    count = 0
+    for r in range(m):
+        if todo[r]:
+            count += C
+    rows = np.empty(count, dtype=np.int64)
+    dirs = np.empty(count, dtype=np.int64)
+    s0 = np.empty(count)
+    f_m = np.empty(count)
+    f_0 = np.empty(count)
+    f_p = np.empty(count)
+    t = 0
+    for r in range(m):
+        if todo[r]:
+            for c in range(C):
+                rows[t] = lo + r
+                dirs[t] = cand[r, c] // n
+                s0[t] = shifts[r, c]
+                f_m[t] = fminus[r, c]
+                f_0[t] = val[r, c]
+                f_p[t] = fplus[r, c]
+                t += 1
+    new_shift = np.empty(count)
+    new_value = np.empty(count)
+    _refine_rows(Aw, B, rows, dirs, s0, f_m, f_0, f_p, n, mirror, new_shift, new_value, 0, count)
+    t = 0
+    for r in range(m):
+        if todo[r]:
+            for c in range(C):
+                shifts[r, c] = new_shift[t]
+                val[r, c] = new_value[t]
+                t += 1
+
+
 @njit(cache=True, nogil=True, **_jit)
 def _exact_rows(
     A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, dist, shift, rot, reversed_, mirrored, lo, hi
@@ -602,7 +681,6 @@ def _exact_rows(
     """exact_search for rows lo..hi of B, all stages: integer candidates, the refine_below
     test, refinement, the pick, the final alignment (as matching.exact_search's numpy path)."""
     m = hi - lo
-    K = A.shape[0]
     cand = np.empty((m, C), dtype=np.int64)
     val = np.empty((m, C))
     fminus = np.empty((m, C))
@@ -616,59 +694,8 @@ def _exact_rows(
     if refine:
         todo = np.ones(m, dtype=np.bool_)
         if refine_limit < np.inf:
-            # as exact_search: refining gains at most C2 / 8 on F, C2 bounding |F''|
-            norm_a = np.empty(K)
-            sq_a = 0.0
-            for k in range(K):
-                t = 0.0
-                for j in range(3):
-                    t += A[k, j].real * A[k, j].real + A[k, j].imag * A[k, j].imag
-                norm_a[k] = math.sqrt(t)
-                sq_a += w[k] * norm_a[k] ** 2
-            for r in range(m):
-                curvature = 0.0
-                sq_b = 0.0
-                for k in range(K):
-                    t = 0.0
-                    for j in range(3):
-                        b = B[lo + r, k, j]
-                        t += b.real * b.real + b.imag * b.imag
-                    norm_b = math.sqrt(t)
-                    curvature += 2.0 * w[k] * (2.0 * math.pi * (k + 1) / n) ** 2 * norm_a[k] * norm_b
-                    sq_b += w[k] * norm_b**2
-                lower2 = (2.0 * sq_a + 2.0 * sq_b) - 2.0 * (fmax[r] + curvature / 8.0)
-                todo[r] = lower2 <= refine_limit
-        count = 0
-        for r in range(m):
-            if todo[r]:
-                count += C
-        rows = np.empty(count, dtype=np.int64)
-        dirs = np.empty(count, dtype=np.int64)
-        s0 = np.empty(count)
-        f_m = np.empty(count)
-        f_0 = np.empty(count)
-        f_p = np.empty(count)
-        t = 0
-        for r in range(m):
-            if todo[r]:
-                for c in range(C):
-                    rows[t] = lo + r
-                    dirs[t] = cand[r, c] // n
-                    s0[t] = shifts[r, c]
-                    f_m[t] = fminus[r, c]
-                    f_0[t] = val[r, c]
-                    f_p[t] = fplus[r, c]
-                    t += 1
-        new_shift = np.empty(count)
-        new_value = np.empty(count)
-        _refine_rows(Aw, B, rows, dirs, s0, f_m, f_0, f_p, n, mirror, new_shift, new_value, 0, count)
-        t = 0
-        for r in range(m):
-            if todo[r]:
-                for c in range(C):
-                    shifts[r, c] = new_shift[t]
-                    val[r, c] = new_value[t]
-                    t += 1
+            _refine_todo(A, w, B, n, fmax, refine_limit, lo, todo)
+        _refine_candidates(Aw, B, n, mirror, cand, shifts, val, fminus, fplus, todo, lo)
     best_dir = np.empty(m, dtype=np.int64)
     best_shift = np.empty(m)
     for r in range(m):
@@ -689,46 +716,8 @@ def _exact_rows(
 
 
 def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers=1):
-    """matching.exact_search's compiled path for all rows of B.
-
-    A, Aw = conj(A) w (K, 3) complex128; w (K,) float64; B (N, K, 3) complex128 (direction 1
-    is conj(B)); basis, quarter from matching.folded_basis; C candidates per row;
-    refine_limit: refine the rows whose refined distance^2 could be at most this (inf: all);
-    ``workers``: threads sharing the rows (see ``split_rows``). Returns (distance, shift,
-    rotation, reversed, mirrored) over the rows.
-    """
-    N = B.shape[0]
-    dist = np.empty(N)
-    shift = np.empty(N)
-    rot = np.empty((N, 3, 3))
-    reversed_ = np.zeros(N, dtype=np.bool_)
-    mirrored = np.zeros(N, dtype=np.bool_)
-    split_rows(
-        lambda lo, hi: _exact_rows(
-            A,
-            Aw,
-            w,
-            B,
-            D,
-            basis,
-            quarter,
-            n,
-            mirror,
-            C,
-            refine,
-            refine_limit,
-            dist,
-            shift,
-            rot,
-            reversed_,
-            mirrored,
-            lo,
-            hi,
-        ),
-        N,
-        workers,
-    )
-    return dist, shift, rot, reversed_, mirrored
+    """matching.exact_search's compiled path for all rows of B (see ``_threads.exact_rows``)."""
+    return _threads.exact_rows(_exact_rows, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers)
 
 
 # ----------------------------------------------------------------------------- grid bound
@@ -736,6 +725,104 @@ def exact_rows(A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limi
 #: rows per block of the grid bound (its products and shift matrices stay in cache); the
 #: loops over a block's rows (times directions) are the ones that vectorize
 _BOUND_ROWS = 32
+
+
+@njit(**_inline)
+def _bound_products(Aw, B, b0, m, D, K, P):
+    """P (9, 2K, m D): the products of rows b0..b0+m of B (as _products), column d m + r."""
+    for d in range(D):
+        for kk in range(K):
+            for j in range(3):
+                for i in range(3):
+                    a = Aw[kk, i]
+                    for r in range(m):
+                        bk = B[b0 + r, kk, j]
+                        if d == 1:
+                            bk = bk.conjugate()
+                        z = bk * a
+                        P[3 * j + i, kk, d * m + r] = z.real
+                        P[3 * j + i, K + kk, d * m + r] = z.imag
+
+
+@njit(**_inline)
+def _bound_coarse(P, Bc, W, K2, mirror, Mc, Fc):
+    """Fc[c, rd] = F at coarse shift c for the W columns of P, through Mc (9, nc, W)."""
+    for c in range(Bc.shape[1]):
+        for jj in range(9):
+            for rd in range(W):  # vectorizes: the sum over kk unrolls
+                acc = 0.0
+                for kk in range(K2):
+                    acc += P[jj, kk, rd] * Bc[kk, c]
+                Mc[jj, c, rd] = acc
+        for rd in range(W):  # no calls: vectorizes over the block
+            Fc[c, rd] = trace1(
+                Mc[0, c, rd],
+                Mc[1, c, rd],
+                Mc[2, c, rd],
+                Mc[3, c, rd],
+                Mc[4, c, rd],
+                Mc[5, c, rd],
+                Mc[6, c, rd],
+                Mc[7, c, rd],
+                Mc[8, c, rd],
+                mirror,
+            )
+
+
+@njit(**_inline)
+def _bound_select(P, BT, Fc, b0, m, D, K2, ratio, slack_coarse, slack_fine, need, Mf, owner, U):
+    """Per row r of the block: U[r] = the largest F + slack_coarse[b0 + r] over the coarse
+    points not refined; the fine points of the refined ones (all but the centre, which is
+    a coarse point) get their matrices in Mf and their row in owner. Returns their count."""
+    n = BT.shape[0]
+    nc = Fc.shape[0]
+    half = ratio // 2
+    nf = 0
+    for r in range(m):
+        row = b0 + r
+        sc = slack_coarse[row]
+        sf = slack_fine[row]
+        u = _NINF
+        for d in range(D):
+            rd = d * m + r
+            for c in range(nc):
+                f = Fc[c, rd]
+                if f + sc >= need[row] or f != f:
+                    v = f + sf  # the coarse point is one of its fine points
+                    for t in range(1, half + 1):  # the pair c -+ t at once
+                        s1 = (c * ratio - t) % n
+                        s2 = (c * ratio + t) % n
+                        for jj in range(9):
+                            a1 = 0.0
+                            a2 = 0.0
+                            for kk in range(K2):
+                                p = P[jj, kk, rd]
+                                a1 += p * BT[s1, kk]
+                                a2 += p * BT[s2, kk]
+                            Mf[jj, nf] = a1
+                            Mf[jj, nf + 1] = a2
+                        owner[nf] = r
+                        owner[nf + 1] = r
+                        nf += 2
+                else:
+                    v = f + sc
+                if u == u and (v > u or v != v):
+                    u = v
+        U[r] = u
+    return nf
+
+
+@njit(**_inline)
+def _bound_fine(Mf, nf, owner, slack_fine, b0, mirror, Ff, U):
+    """U[r] = max(U[r], F + slack_fine) over the nf fine points of the block (NaN wins)."""
+    for e in range(nf):  # vectorizes
+        Ff[e] = trace1(Mf[0, e], Mf[1, e], Mf[2, e], Mf[3, e], Mf[4, e], Mf[5, e], Mf[6, e], Mf[7, e], Mf[8, e], mirror)
+    for e in range(nf):
+        r = owner[e]
+        v = Ff[e] + slack_fine[b0 + r]
+        u = U[r]
+        if u == u and (v > u or v != v):
+            U[r] = v
 
 
 def _grid_bound_kernel(harmonics):
@@ -753,7 +840,6 @@ def _grid_bound_kernel(harmonics):
         K2 = 2 * K
         n = basis.shape[1]
         nc = n // ratio
-        half = ratio // 2
         R = _BOUND_ROWS
         Bc = np.empty((K2, nc))
         BT = np.empty((n, K2))
@@ -772,81 +858,10 @@ def _grid_bound_kernel(harmonics):
         U = np.empty(R)
         for b0 in range(lo, hi, R):
             m = min(R, hi - b0)
-            W = m * D
-            for d in range(D):
-                for kk in range(K):
-                    for j in range(3):
-                        for i in range(3):
-                            a = Aw[kk, i]
-                            for r in range(m):
-                                bk = B[b0 + r, kk, j]
-                                if d == 1:
-                                    bk = bk.conjugate()
-                                z = bk * a
-                                P[3 * j + i, kk, d * m + r] = z.real
-                                P[3 * j + i, K + kk, d * m + r] = z.imag
-            for c in range(nc):
-                for jj in range(9):
-                    for rd in range(W):  # vectorizes: the sum over kk unrolls
-                        acc = 0.0
-                        for kk in range(K2):
-                            acc += P[jj, kk, rd] * Bc[kk, c]
-                        Mc[jj, c, rd] = acc
-                for rd in range(W):  # no calls: vectorizes over the block
-                    Fc[c, rd] = trace1(
-                        Mc[0, c, rd],
-                        Mc[1, c, rd],
-                        Mc[2, c, rd],
-                        Mc[3, c, rd],
-                        Mc[4, c, rd],
-                        Mc[5, c, rd],
-                        Mc[6, c, rd],
-                        Mc[7, c, rd],
-                        Mc[8, c, rd],
-                        mirror,
-                    )
-            nf = 0
-            for r in range(m):
-                row = b0 + r
-                sc = slack_coarse[row]
-                sf = slack_fine[row]
-                u = _NINF
-                for d in range(D):
-                    rd = d * m + r
-                    for c in range(nc):
-                        f = Fc[c, rd]
-                        if f + sc >= need[row] or f != f:
-                            v = f + sf  # the coarse point is one of its fine points
-                            for t in range(1, half + 1):  # the pair c -+ t at once
-                                s1 = (c * ratio - t) % n
-                                s2 = (c * ratio + t) % n
-                                for jj in range(9):
-                                    a1 = 0.0
-                                    a2 = 0.0
-                                    for kk in range(K2):
-                                        p = P[jj, kk, rd]
-                                        a1 += p * BT[s1, kk]
-                                        a2 += p * BT[s2, kk]
-                                    Mf[jj, nf] = a1
-                                    Mf[jj, nf + 1] = a2
-                                owner[nf] = r
-                                owner[nf + 1] = r
-                                nf += 2
-                        else:
-                            v = f + sc
-                        if u == u and (v > u or v != v):
-                            u = v
-                U[r] = u
-            for e in range(nf):  # vectorizes
-                Ff[e] = trace1(
-                    Mf[0, e], Mf[1, e], Mf[2, e], Mf[3, e], Mf[4, e], Mf[5, e], Mf[6, e], Mf[7, e], Mf[8, e], mirror
-                )
-            for e in range(nf):
-                r = owner[e]
-                v = Ff[e] + slack_fine[b0 + r]
-                u = U[r]
-                if u == u and (v > u or v != v):
-                    U[r] = v
+            _bound_products(Aw, B, b0, m, D, K, P)
+            _bound_coarse(P, Bc, m * D, K2, mirror, Mc, Fc)
+            nf = _bound_select(P, BT, Fc, b0, m, D, K2, ratio, slack_coarse, slack_fine, need, Mf, owner, U)
+            _bound_fine(Mf, nf, owner, slack_fine, b0, mirror, Ff, U)
             for r in range(m):
                 out[b0 + r] = U[r]
 
@@ -864,15 +879,6 @@ def grid_bound_kernel(harmonics):
 
 
 def grid_bound_rows(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers=1):
-    """matching.grid_bound's compiled path: (N,) bound per row of B (see grid_bound_rows).
-
-    Aw = conj(A[:K']) (K', 3) complex128; B (N, K', 3) complex128; basis (2K', n) float64
-    from matching.integer_shift_basis; ratio divides n; slack_coarse, slack_fine, need
-    (N,) float64; ``workers``: threads sharing the rows (see ``split_rows``)."""
-    N = B.shape[0]
-    out = np.empty(N)
+    """matching.grid_bound's compiled path: (N,) bound per row of B (see ``_threads.grid_bound_rows``)."""
     kernel = grid_bound_kernel(Aw.shape[0])
-    split_rows(
-        lambda lo, hi: kernel(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi), N, workers
-    )
-    return out
+    return _threads.grid_bound_rows(kernel, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers)

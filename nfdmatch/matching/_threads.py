@@ -1,13 +1,50 @@
 """Rows of one kernel call shared over threads (the compiled kernels release the GIL; the
 just-in-time ones always, the ahead-of-time ones when built so): plain Python, no numba, so
-that both kernel modules use it."""
+that both kernel modules use it, down to the calls themselves (:func:`exact_rows`,
+:func:`grid_bound_rows`: the compiled functions of both take the same arguments)."""
 
 from __future__ import annotations
 
 import atexit
 import threading
 
-__all__ = ["split_rows", "shutdown"]
+import numpy as np
+
+__all__ = ["exact_rows", "grid_bound_rows", "split_rows", "shutdown"]
+
+
+def exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers):
+    """matching.exact_search's compiled path for all rows of B through ``kernel`` (the
+    compiled ``_exact_rows`` of either kernel module, called per block of rows lo..hi).
+
+    A, Aw = conj(A) w (K, 3) complex128; w (K,) float64; B (N, K, 3) complex128 (direction 1
+    is conj(B)); basis, quarter from matching.folded_basis; C candidates per row;
+    refine_limit: refine the rows whose refined distance^2 could be at most this (inf: all);
+    ``workers``: threads sharing the rows (see :func:`split_rows`). Returns (distance, shift,
+    rotation, reversed, mirrored) over the rows.
+    """
+    N = B.shape[0]
+    out = (np.empty(N), np.empty(N), np.empty((N, 3, 3)), np.zeros(N, dtype=np.bool_), np.zeros(N, dtype=np.bool_))
+    # the scalars as the ahead-of-time signature takes them (the just-in-time kernel gets the
+    # types it was always called with)
+    args = (A, Aw, w, B, int(D), basis, bool(quarter), int(n), bool(mirror), int(C), bool(refine), float(refine_limit))
+    split_rows(lambda lo, hi: kernel(*args, *out, lo, hi), N, workers)
+    return out
+
+
+def grid_bound_rows(kernel, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers):
+    """matching.grid_bound's compiled path through ``kernel`` (a compiled grid bound of either
+    kernel module, called per block of rows lo..hi): (N,) bound per row of B.
+
+    Aw = conj(A[:K']) (K', 3) complex128; B (N, K', 3) complex128; basis (2K', n) float64
+    from matching.integer_shift_basis; ratio divides n; slack_coarse, slack_fine, need
+    (N,) float64; ``workers``: threads sharing the rows (see :func:`split_rows`)."""
+    N = B.shape[0]
+    out = np.empty(N)
+    args = (Aw, B, int(D), basis, int(ratio), bool(mirror), slack_coarse, slack_fine, need, out)
+    split_rows(lambda lo, hi: kernel(*args, lo, hi), N, workers)
+    return out
+
 
 _executor = None
 _executor_workers = 0

@@ -29,7 +29,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from ._threads import split_rows
+from ._threads import exact_rows, grid_bound_rows
 
 __all__ = ["MODULE", "build", "load", "load_checked", "module_digest", "source_digest", "unused_reason"]
 
@@ -139,59 +139,22 @@ def _module_compiler(out: str):
     # just-in-time kernels do
     cc.target_cpu = "host"
 
-    @cc.export("exact_rows", _EXACT_SIGNATURE)
-    def exact_rows(
-        A,
-        Aw,
-        w,
-        B,
-        D,
-        basis,
-        quarter,
-        n,
-        mirror,
-        C,
-        refine,
-        refine_limit,
-        dist,
-        shift,
-        rot,
-        reversed_,
-        mirrored,
-        lo,
-        hi,
-    ):
-        k._exact_rows(
-            A,
-            Aw,
-            w,
-            B,
-            D,
-            basis,
-            quarter,
-            n,
-            mirror,
-            C,
-            refine,
-            refine_limit,
-            dist,
-            shift,
-            rot,
-            reversed_,
-            mirrored,
-            lo,
-            hi,
-        )
-
-    def bound_export(kernel):  # one wrapper per kernel (a closure in the loop would bind the last)
-        def grid_bound_rows(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi):
-            kernel(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi)
-
-        return grid_bound_rows
-
+    cc.export("exact_rows", _EXACT_SIGNATURE)(_forwarding(k._exact_rows))
     for harmonics in _BOUND_HARMONICS:
-        cc.export(f"grid_bound_rows_{harmonics}", _BOUND_SIGNATURE)(bound_export(k.grid_bound_kernel(harmonics)))
+        cc.export(f"grid_bound_rows_{harmonics}", _BOUND_SIGNATURE)(_forwarding(k.grid_bound_kernel(harmonics)))
     return cc
+
+
+def _forwarding(kernel):
+    """A plain function that calls ``kernel`` (a numba dispatcher) with the kernel's own
+    parameters, for ``numba.pycc`` to export: it compiles Python functions, not dispatchers,
+    and the kernel then compiles as the callee with its own options (error model, inlining)."""
+    import inspect
+
+    names = ", ".join(inspect.signature(kernel.py_func).parameters)
+    scope = {"kernel": kernel, "__name__": __name__}
+    exec(f"def forward({names}):\n    kernel({names})\n", scope)
+    return scope["forward"]
 
 
 #: the stamp's second line: whether the module's functions release the GIL
@@ -232,52 +195,15 @@ class _Kernels:
         return workers if self.threads else 1
 
     def exact_rows(self, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers=1):
-        N = B.shape[0]
-        dist = np.empty(N)
-        shift = np.empty(N)
-        rot = np.empty((N, 3, 3))
-        reversed_ = np.zeros(N, dtype=np.bool_)
-        mirrored = np.zeros(N, dtype=np.bool_)
-        basis = _writable(basis, n)
-        split_rows(
-            lambda lo, hi: self._module.exact_rows(
-                A,
-                Aw,
-                w,
-                B,
-                int(D),
-                basis,
-                bool(quarter),
-                int(n),
-                bool(mirror),
-                int(C),
-                bool(refine),
-                float(refine_limit),
-                dist,
-                shift,
-                rot,
-                reversed_,
-                mirrored,
-                lo,
-                hi,
-            ),
-            N,
-            self._workers(workers),
-        )
-        return dist, shift, rot, reversed_, mirrored
+        kernel = self._module.exact_rows
+        basis, workers = _writable(basis, n), self._workers(workers)
+        return exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers)
 
     def grid_bound_rows(self, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers=1):
-        N = B.shape[0]
-        out = np.empty(N)
         K = Aw.shape[0]
         kernel = getattr(self._module, f"grid_bound_rows_{K if K in _BOUND_HARMONICS else 0}")
-        D, ratio, mirror = int(D), int(ratio), bool(mirror)
-        split_rows(
-            lambda lo, hi: kernel(Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, out, lo, hi),
-            N,
-            self._workers(workers),
-        )
-        return out
+        workers = self._workers(workers)
+        return grid_bound_rows(kernel, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers)
 
 
 _writable_cache: dict[tuple, np.ndarray] = {}

@@ -68,6 +68,19 @@ def _lmax_soa(s00, s11, s22, s01, s02, s12):
     return np.maximum(q + 2.0 * p * np.cos(np.arccos(r) * (1.0 / 3.0)), 0.0)
 
 
+def _lmax_gram_soa(a, b, c, d, e, f, g, h, i):
+    """Largest eigenvalue of X^T X for matrices X = [[a, b, c], [d, e, f], [g, h, i]] given
+    entry-wise."""
+    return _lmax_soa(
+        a * a + d * d + g * g,
+        b * b + e * e + h * h,
+        c * c + f * f + i * i,
+        a * b + d * e + g * h,
+        a * c + d * f + g * i,
+        b * c + e * f + h * i,
+    )
+
+
 def trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:
     """max_R tr(R M) for matrices given as m = (9, ...) row-major entries (structure of arrays).
 
@@ -77,26 +90,12 @@ def trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:
     digits exactly when the curves are near-planar or near-linear.
     """
     a, b, c, d, e, f, g, h, i = m
-    l1 = _lmax_soa(
-        a * a + d * d + g * g,
-        b * b + e * e + h * h,
-        c * c + f * f + i * i,
-        a * b + d * e + g * h,
-        a * c + d * f + g * i,
-        b * c + e * f + h * i,
-    )
+    l1 = _lmax_gram_soa(a, b, c, d, e, f, g, h, i)
     c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
     c10, c11, c12 = c * h - b * i, a * i - c * g, b * g - a * h
     c20, c21, c22 = b * f - c * e, c * d - a * f, a * e - b * d
     det = a * c00 + b * c01 + c * c02
-    l12 = _lmax_soa(
-        c00 * c00 + c10 * c10 + c20 * c20,
-        c01 * c01 + c11 * c11 + c21 * c21,
-        c02 * c02 + c12 * c12 + c22 * c22,
-        c00 * c01 + c10 * c11 + c20 * c21,
-        c00 * c02 + c10 * c12 + c20 * c22,
-        c01 * c02 + c11 * c12 + c21 * c22,
-    )
+    l12 = _lmax_gram_soa(c00, c01, c02, c10, c11, c12, c20, c21, c22)
     s1 = np.sqrt(l1)
     s12 = np.sqrt(l12)
     s2 = s12 / np.maximum(s1, _TINY)
