@@ -353,28 +353,6 @@ def test_the_reference_path_gives_a_row_the_same_digits_whatever_rows_come_with_
                     assert np.array_equal(part[key], whole[key][first : first + N]), (key, N, first)
 
 
-@pytest.mark.parametrize("options", [{}, {"mirror": True}, {"direction": "strict"}, {"weights": "random"}])
-def test_pairs_on_the_reference_path_equal_each_query_searched_alone(rng, options):
-    """exact_search_pairs (one pass over the rows many queries report) gives each pair the
-    digits of exact_search on the reference path, bit for bit."""
-    from nfdmatch.matching import NUMPY, exact_search_pairs
-
-    rows, _ = _kernel_rows(rng, 128, 16)
-    if options.get("weights") == "random":
-        options = {"weights": rng.uniform(0.0, 2.0, 16)}
-    queries = rows[[0, 3, 5, 11]]
-    owner = rng.integers(0, len(queries), 3 * len(rows))
-    B = np.concatenate([rows, rows, rows])
-    got = exact_search_pairs(queries[owner], B, 128, **options)
-    for q in range(len(queries)):
-        mine = np.flatnonzero(owner == q)
-        ref = exact_search(queries[q], B[mine], 128, kernels=NUMPY, **options)
-        for key in ("distance", "shift", "rotation", "reversed", "mirrored"):
-            assert np.array_equal(got[key][mine], ref[key]), (q, key)
-    with pytest.raises(ValueError, match="alike"):
-        exact_search_pairs(queries[:2], B[:3], 128)
-
-
 def _aot_kernels():
     """The ahead-of-time kernels (their module), which ``make install`` builds (a missing
     build is a failure: the README's set-up promises them)."""

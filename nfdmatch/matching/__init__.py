@@ -47,7 +47,7 @@ from .common import (
     kabsch_trace,
 )
 from .kernels import NUMPY, Kernels, compile_kernels, use_kernels
-from .exact import exact_search, exact_search_pairs, grid_bound, grid_maximum
+from .exact import exact_search, grid_bound, grid_maximum
 from .paper import paper_search
 
 if TYPE_CHECKING:
@@ -60,7 +60,6 @@ __all__ = [
     "distance",
     "match_descriptors",
     "exact_search",
-    "exact_search_pairs",
     "grid_bound",
     "grid_maximum",
     "paper_search",

@@ -151,37 +151,9 @@ def exact_search(
             workers,
         )
         return {"distance": dist, "shift": shift, "rotation": R, "reversed": reversed_, "mirrored": mirrored}
-    # the numpy path takes the query per row (the same arrays exact_search_pairs takes), so
-    # that a row's digits are the same whichever query batch computed it
+    # the numpy path takes the query per row, so that a row's digits are the same whichever
+    # rows come with it
     return _exact_numpy(np.repeat(A[None], N, axis=0), B, w, n, direction, mirror, C, refine, refine_below)
-
-
-def exact_search_pairs(
-    A: np.ndarray,
-    B: np.ndarray,
-    samples: int,
-    *,
-    weights=None,
-    direction: str = INVARIANT,
-    mirror: bool = False,
-):
-    """:func:`exact_search` of row i of ``A`` against row i of ``B``, every row at once, on the
-    numpy reference path: bit for bit what ``exact_search(A[i], B[i:i + 1], samples)`` gives
-    there (``kernels=NUMPY``), whatever the other rows. For
-    recomputing the rows many queries report in one pass instead of one pass per query.
-
-    Parameters
-    ----------
-    A, B : (N, K, 3) complex, query and row half-bands, pair by pair.
-    samples, weights, direction, mirror : as :func:`exact_search`.
-
-    Returns the same dict as :func:`exact_search`, over the N pairs.
-    """
-    A, B, w, n = search_inputs(A, B, samples, weights, direction)
-    if A.shape != B.shape or A.ndim != 3 or A.shape[2] != 3:
-        raise ValueError(f"A and B must be (N, K, 3) alike, got {A.shape} and {B.shape}")
-    D = 2 if direction == INVARIANT else 1
-    return _exact_numpy(A, B, w, n, direction, mirror, min(REFINE_CANDIDATES, D * n), True, None)
 
 
 def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
