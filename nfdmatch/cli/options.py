@@ -364,18 +364,16 @@ def optional_descriptor_options(what: str):
     return decorate
 
 
-def matching_options(f):
+def matching_options(command):
     """--method, --strict-direction and --mirror, passed on as ``matching``: a dict of
     the keyword arguments ``method``, ``direction``, ``mirror`` of the library."""
     from ..matching import DEFAULT_METHOD, METHODS
 
-    command = f
-
     @functools.wraps(command)
-    def f(*args, method, strict_direction, mirror, **kwargs):
+    def packed(*args, method, strict_direction, mirror, **kwargs):
         return command(*args, matching=matching(method, strict_direction, mirror), **kwargs)
 
-    f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(f)
+    f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(packed)
     f = click.option(
         "--strict-direction", is_flag=True, help="Do not match a curve traversed in the opposite direction."
     )(f)

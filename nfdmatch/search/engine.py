@@ -420,32 +420,16 @@ class _OneQuery:
         return rows, positions
 
     def exact(self, rows, positions, thr: float) -> None:
-        """The exact distances of ``rows`` into the query's :class:`BestRows`."""
+        """The exact distances of ``rows`` into the query's :class:`BestRows` (rows that
+        cannot beat ``thr`` are not refined)."""
         c = self.cascade
-        complete = self.complete
-        coefficients = self.table.coefficients_at_positions(positions) if complete else self.table.coefficients(rows)
-        _exact(
-            self.q,
-            rows,
-            coefficients,
-            self.top,
-            self.work,
-            c.distance,
-            c.method,
-            c.direction,
-            c.mirror,
-            c.samples,
-            thr,
-            positions if complete else None,
-        )
-
-
-def _exact(
-    query_coefficients, rows, coefficients, top, work, search, method, direction, mirror, samples, thr, positions=None
-):
-    extra = {"refine_below": thr} if method == EXACT else {}
-    r = search(query_coefficients, coefficients, samples, direction=direction, mirror=mirror, **extra)
-    if positions is not None:
-        r["position"] = positions
-    work.exact += len(rows)
-    top.add(r["distance"], rows, r)
+        if self.complete:
+            coefficients = self.table.coefficients_at_positions(positions)
+        else:
+            coefficients = self.table.coefficients(rows)
+        extra = {"refine_below": thr} if c.method == EXACT else {}
+        r = c.distance(self.q, coefficients, c.samples, direction=c.direction, mirror=c.mirror, **extra)
+        if self.complete:
+            r["position"] = positions
+        self.work.exact += len(rows)
+        self.top.add(r["distance"], rows, r)

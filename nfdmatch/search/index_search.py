@@ -255,10 +255,11 @@ def recompute_reported(index, queries, tops, search, *, direction, mirror, weigh
         order = np.argsort(tk.rows, kind="stable")
         rows, positions = tk.rows[order], tk.extra["position"][order]
         table = per_query[qi]
+        from_table = table is not None and positions.min() >= 0
         pieces = []
         for a in range(0, len(rows), EXHAUSTIVE_ROWS):
             b = min(len(rows), a + EXHAUSTIVE_ROWS)
-            if table is not None and positions.min() >= 0:
+            if from_table:
                 coefficients = table.coefficients_at_positions(positions[a:b])
             else:
                 coefficients = index.coefficients_at(rows[a:b])
