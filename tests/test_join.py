@@ -201,7 +201,7 @@ def test_the_graph_of_a_build_equals_the_per_row_search_and_the_join(tmp_path, r
     from nfdmatch import write_curves
     from nfdmatch.index import build_index, open_index
     from nfdmatch.search.engine import BestRows, search_block
-    from nfdmatch.search.graph import _store
+    from nfdmatch.search.graph import _ordered
 
     curves = family_curves(rng, 40, 6, 0.02)
     (tmp_path / "c").mkdir()
@@ -222,7 +222,7 @@ def test_the_graph_of_a_build_equals_the_per_row_search_and_the_join(tmp_path, r
     expected_nb, expected_d = np.full((N, 8), -1), np.full((N, 8), np.inf)
     ids = np.asarray(ids, dtype=object)
     for i, top in enumerate(tops):
-        _store(i, top.rows, top.dist, ids, expected_nb, expected_d, 8)
+        expected_nb[i], expected_d[i] = _ordered(i, top.rows, top.dist, ids, 8)
     np.testing.assert_array_equal(nb, expected_nb)
     np.testing.assert_allclose(dist, expected_d, rtol=1e-9, atol=1e-12)
     order = np.argsort(ids, kind="stable")

@@ -256,6 +256,7 @@ def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict
             "searched": g.searched,
             "updated": g.updated,
             "kept": g.kept,
+            "processes": g.processes,
             "seconds": round(g.seconds, 3),
         }
     if report.dry_run:
@@ -289,7 +290,7 @@ def _say_build(report, index_path: str, allow_shrink: bool) -> None:
         g = report.graph
         say(
             f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
-            f"{g.kept} kept; {g.seconds:.2f} s"
+            f"{g.kept} kept; {g.seconds:.2f} s" + (f" on {g.processes} processes" if g.processes else "")
         )
 
 

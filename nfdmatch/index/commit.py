@@ -55,7 +55,8 @@ def write_new_index(
     actions: dict[str, str] = {p: "removed" for p in plan.removed}
     now = _utcnow()
     try:
-        _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph, now)
+        graph_job = (graph, jobs, None if lock is None else lock.fd)
+        _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now)
         Space.release(tmp)
         fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
         os.replace(tmp, index_path)
@@ -102,9 +103,10 @@ def _start_tasks(tasks, jobs, lock, progress, file_timeout, runner):
     return stream, result_of
 
 
-def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph, now) -> None:
+def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now) -> None:
     """Write the whole new index to ``tmp``: attributes, curve rows, /files, /sources,
-    /changes, /search and /graph. Closes the task stream and the file, also on failure."""
+    /changes, /search and /graph (``graph_job``: ``(K, processes, lock descriptor)``, see
+    :func:`write_graph`). Closes the task stream and the file, also on failure."""
     K = plan.params["harmonics"]
     space = None
     try:
@@ -128,7 +130,10 @@ def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sourc
         # the cells: features, squared norms, row numbers and first harmonics of every row
         space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
         report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
-        report.graph = write_graph(h5, old, graph, reuse=not plan.recompute_all)
+        graph, processes, lock_fd = graph_job
+        report.graph = write_graph(
+            h5, old, graph, reuse=not plan.recompute_all, processes=processes, close_fds=(lock_fd,)
+        )
         report.curves = writer.rows
     except BaseException:
         if space is not None:

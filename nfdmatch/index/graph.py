@@ -45,12 +45,15 @@ IN_MEMORY_ROWS = 1 << 19
 class GraphStats:
     """What :func:`write_graph` did: ``k`` (0: no graph written), ``searched`` (rows whose
     list came from a search of the whole index), ``updated`` (copied rows whose list a new
-    row entered), ``kept`` (copied rows whose list was reused as it was), ``seconds``."""
+    row entered), ``kept`` (copied rows whose list was reused as it was), ``processes``
+    (forked worker processes that searched the rows; 0: the building process, on threads),
+    ``seconds``."""
 
     k: int = 0
     searched: int = 0
     updated: int = 0
     kept: int = 0
+    processes: int = 0
     seconds: float = 0.0
 
 

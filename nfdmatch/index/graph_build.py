@@ -19,7 +19,9 @@ from .search_group import search_table
 __all__ = ["write_graph"]
 
 
-def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = None) -> GraphStats:
+def write_graph(
+    h5, old, k: int | None, *, reuse: bool, threads: int | None = None, processes: int = 1, close_fds=()
+) -> GraphStats:
     """Write ``/graph`` into the new index file ``h5`` (``/curves``, ``/files``, ``/search``
     complete); returns :class:`GraphStats`.
 
@@ -27,6 +29,9 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
     k : neighbours per row; None keeps the old index's graph K (no graph when it had none);
         0 writes no graph.
     reuse : False searches every row (the curves were recomputed: --rebuild, new parameters).
+    threads, processes, close_fds : how the rows are searched
+        (:func:`~nfdmatch.search.graph.neighbour_lists`): ``processes`` forked workers (a
+        build's ``jobs``), each closing ``close_fds`` (the index lock), else ``threads``.
     """
     t0 = time.perf_counter()
     k = old_graph_k(old) if k is None else int(k)
@@ -61,8 +66,21 @@ def write_graph(h5, old, k: int | None, *, reuse: bool, threads: int | None = No
         features = None
         if len(check) and len(fresh_rows):
             features = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
-        stats.searched, stats.updated = neighbour_lists(
-            table, read_coefficients, ids, neighbour, distance, todo, check, fresh_rows, features, k, samples, threads
+        stats.searched, stats.updated, stats.processes = neighbour_lists(
+            table,
+            read_coefficients,
+            ids,
+            neighbour,
+            distance,
+            todo,
+            check,
+            fresh_rows,
+            features,
+            k,
+            samples,
+            threads,
+            processes=processes,
+            close_fds=[fd for fd in close_fds if fd is not None],
         )
         stats.kept = len(check) - stats.updated
 

@@ -19,8 +19,9 @@ bit for bit).
 
 A call splits its rows over threads (:meth:`Kernels.workers`) when its kernels release the
 GIL, the call has enough rows and it is made on the main thread (a search answering queries
-on threads has its cores busy already). The split's thread pool is shut down at exit
-(:func:`._threads.shutdown`).
+on threads has its cores busy already), up to :func:`set_call_threads`'s limit (a forked
+search worker sets 1: its sibling processes have the other cores). The split's thread pool
+is shut down at exit (:func:`._threads.shutdown`), or before a fork (:func:`before_fork`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ __all__ = [
     "chosen",
     "current",
     "use_kernels",
+    "set_call_threads",
+    "before_fork",
     "compile_kernels",
 ]
 
@@ -75,10 +78,11 @@ class Kernels:
             self.module is None
             or not self.threads
             or rows < _THREAD_ROWS
+            or _call_threads <= 1
             or threading.current_thread() is not threading.main_thread()
         ):
             return 1
-        return min(cpu_count(), _MAX_THREADS)
+        return min(cpu_count(), _call_threads)
 
     def describe(self) -> str:
         """One line: the name and the reason."""
@@ -147,6 +151,25 @@ def use_kernels(setting: str | Kernels) -> Kernels:
     with _lock:
         _chosen = got
     return got
+
+
+#: the most threads one call splits its rows over (process-wide; :func:`set_call_threads`)
+_call_threads = _MAX_THREADS
+
+
+def set_call_threads(limit: int) -> None:
+    """From now on, a call of this process splits its rows over at most ``limit`` threads
+    (1: never; the default is 4, within the cores)."""
+    global _call_threads
+    _call_threads = max(1, int(limit))
+
+
+def before_fork() -> None:
+    """Stop the idle threads of the calls' pool (a later call starts it again), so that this
+    process may fork workers (:func:`nfdmatch._fork.can_fork`)."""
+    from ._threads import shutdown
+
+    shutdown()
 
 
 _cpu_count: list[int] = []

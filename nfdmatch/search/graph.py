@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._fork import can_fork, fork_map
+from ..matching.kernels import before_fork, set_call_threads
 from .bounds import feature_vector, head_harmonics
 from .engine import TIE, Cascade, BestRows, search_block
 from .table import SearchTable
@@ -25,22 +27,42 @@ _BLOCK_ROWS = 1024
 
 
 def neighbour_lists(
-    table, read_coefficients, ids, neighbour, distance, todo, check, fresh_rows, features, k, samples, threads
-) -> tuple[int, int]:
+    table,
+    read_coefficients,
+    ids,
+    neighbour,
+    distance,
+    todo,
+    check,
+    fresh_rows,
+    features,
+    k,
+    samples,
+    threads,
+    *,
+    processes: int = 1,
+    close_fds=(),
+) -> tuple[int, int, int]:
     """Fill ``neighbour`` / ``distance`` ((N, k) int64 / float64) with each row's k nearest
     other rows of ``table``: the rows in ``todo`` ((N,) bool) searched in the whole table,
     the rows in ``check`` (int array: lists copied from an old graph) updated where one of
     ``fresh_rows`` (new or changed rows, with their (m, D) ``features``) enters them.
-    Returns ``(searched, updated)``: rows searched, copied lists that changed.
+    Returns ``(searched, updated, processes)``: rows searched, copied lists that changed,
+    worker processes that searched (0: this process did).
 
     Every row is a query of :func:`~nfdmatch.search.engine.search_block` asking for k + 1
     (the row finds itself), its list the k nearest others, ties by id as a query orders them;
     rows in the table's order (cell by cell), in blocks that share the cells they read. (The
     self-join of :mod:`.join` gives the same lists, faster at 20,000 curves but slower at
     100,000: 818 s against 484 s, docs/selfjoin.md; the graph keeps the per-row search.)
+
+    ``processes`` > 1: the blocks are searched by that many forked processes, each on one
+    thread, when this process may fork (:func:`nfdmatch._fork.can_fork`) and the table hands
+    out every harmonic (it is read whole first: the workers never read the file); else
+    here, on ``threads``. The lists are the same either way (each row's search is its own).
+    ``close_fds``: descriptors a worker must not keep (the index lock).
     """
     N = len(todo)
-    K = table.harmonics
     cascade = Cascade(samples)
     searched = np.flatnonzero(todo)
     if len(searched) > 1 and table.n_cells:
@@ -48,54 +70,103 @@ def neighbour_lists(
         at = np.empty(N, dtype=np.int64)
         at[rows] = positions
         searched = searched[np.argsort(at[searched], kind="stable")]
+    blocks = [searched[a : a + _BLOCK_ROWS] for a in range(0, len(searched), _BLOCK_ROWS)]
+    queries = _Queries(blocks, read_coefficients)
 
-    def search(rows, in_table, tops, store):
-        for a in range(0, len(rows), _BLOCK_ROWS):
-            block = rows[a : a + _BLOCK_ROWS]
-            q = np.asarray(read_coefficients(block), dtype=np.complex128)
-            got = tops(block)
-            search_block(in_table, q, feature_vector(q), got, cascade, threads=threads)
-            for i, tk in zip(block, got):
-                store(int(i), tk.rows, tk.dist)
+    def store(number, got):
+        block, nb, d = got
+        neighbour[block], distance[block] = nb, d
 
-    search(
-        searched,
-        table,
-        lambda block: [BestRows(k + 1, None) for _ in block],
-        lambda i, rows, d: _store(i, rows, d, ids, neighbour, distance, k),
+    left, processes = range(len(blocks)), min(processes, len(blocks))
+    if processes > 1 and table.stored_harmonics >= table.harmonics:
+        before_fork()
+        processes = processes if can_fork() else 0
+    else:
+        processes = 0
+    if processes:
+        table.read_whole()
+
+        def work(task):
+            set_call_threads(1)  # one thread per worker: its siblings have the other cores
+            return _nearest_others(table, task, ids, k, cascade, 1)
+
+        left = fork_map(work, queries, processes, store, close_fds=close_fds)
+    for number in left:
+        store(number, _nearest_others(table, queries[number], ids, k, cascade, threads))
+    updated = _update_copied(
+        table, read_coefficients, ids, neighbour, distance, check, fresh_rows, features, k, cascade, threads
     )
-    changed = 0
-    if len(check) and len(fresh_rows):
-        head = read_coefficients(fresh_rows)[:, : head_harmonics(K)]
-        small = SearchTable.single_cell(K, features, head, lambda r: read_coefficients(fresh_rows[r]))
+    return len(searched), updated, processes
 
-        def merge(i, rows, d):
-            nonlocal changed
-            if len(rows):
+
+class _Queries:
+    """The blocks of rows to search, each with its rows' descriptors read when asked for
+    (in this process: a worker never reads the index)."""
+
+    def __init__(self, blocks, read_coefficients):
+        self.blocks, self.read = blocks, read_coefficients
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def __getitem__(self, number: int):
+        block = self.blocks[number]
+        return block, np.asarray(self.read(block), dtype=np.complex128)
+
+
+def _nearest_others(table, task, ids, k, cascade, threads):
+    """``(block, neighbour, distance)``: the lists ((m, k) int64 / float64) of the m rows of
+    ``task`` ``(block, their (m, K, 3) complex128 descriptors)``, each from one search."""
+    block, q = task
+    got = [BestRows(k + 1, None) for _ in block]
+    search_block(table, q, feature_vector(q), got, cascade, threads=threads)
+    nb = np.empty((len(block), k), dtype=np.int64)
+    d = np.empty((len(block), k))
+    for j, (i, tk) in enumerate(zip(block, got)):
+        nb[j], d[j] = _ordered(int(i), tk.rows, tk.dist, ids, k)
+    return block, nb, d
+
+
+def _update_copied(
+    table, read_coefficients, ids, neighbour, distance, check, fresh_rows, features, k, cascade, threads
+):
+    """Update the copied lists of the rows ``check`` where one of ``fresh_rows`` enters them
+    (see :func:`neighbour_lists`); returns how many changed."""
+    changed = 0
+    if not (len(check) and len(fresh_rows)):
+        return changed
+    K = table.harmonics
+    head = read_coefficients(fresh_rows)[:, : head_harmonics(K)]
+    small = SearchTable.single_cell(K, features, head, lambda r: read_coefficients(fresh_rows[r]))
+    for a in range(0, len(check), _BLOCK_ROWS):
+        block = check[a : a + _BLOCK_ROWS]
+        q = np.asarray(read_coefficients(block), dtype=np.complex128)
+        # a copied list changes only where a fresh row comes within its k-th distance
+        got = [BestRows(k, float(distance[i, -1]) + TIE) for i in block]
+        search_block(small, q, feature_vector(q), got, cascade, threads=threads)
+        for i, tk in zip(block, got):
+            if len(tk.rows):
                 before = neighbour[i].copy()
-                _store(
-                    i,
-                    np.concatenate([neighbour[i], fresh_rows[rows]]),
-                    np.concatenate([distance[i], d]),
+                neighbour[i], distance[i] = _ordered(
+                    int(i),
+                    np.concatenate([neighbour[i], fresh_rows[tk.rows]]),
+                    np.concatenate([distance[i], tk.dist]),
                     ids,
-                    neighbour,
-                    distance,
                     k,
                 )
                 changed += not np.array_equal(before, neighbour[i])
-
-        # a copied list changes only where a fresh row comes within its k-th distance
-        search(check, small, lambda block: [BestRows(k, float(distance[i, -1]) + TIE) for i in block], merge)
-    return len(searched), changed
+    return changed
 
 
-def _store(i, rows, d, ids, neighbour, distance, k):
-    """Row i's list: the K nearest of ``rows`` other than i, ties (1e-9) by id, as a query orders them."""
+def _ordered(i, rows, d, ids, k):
+    """Row i's list ``(neighbour (k,) int64, distance (k,) float64)``: the k nearest of
+    ``rows`` other than i, ties (1e-9) by id, as a query orders them; padded with -1 / inf."""
     rows, d = np.asarray(rows, dtype=np.int64), np.asarray(d, dtype=np.float64)
     keep = (rows != i) & (rows >= 0)
     rows, d = rows[keep], d[keep]
     order = sorted(range(len(rows)), key=lambda j: (round(float(d[j]) / TIE), ids[rows[j]]))[:k]
-    neighbour[i] = -1
-    distance[i] = np.inf
-    neighbour[i, : len(order)] = rows[order]
-    distance[i, : len(order)] = d[order]
+    nb = np.full(k, -1, dtype=np.int64)
+    dist = np.full(k, np.inf)
+    nb[: len(order)] = rows[order]
+    dist[: len(order)] = d[order]
+    return nb, dist

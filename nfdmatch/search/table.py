@@ -307,6 +307,15 @@ class SearchTable:
                 if tier.read * (1 + queries) > _READ_ALL_DESCRIPTORS_FRACTION * self.n_positions:
                     self._load_all_descriptors(tier)
 
+    def read_whole(self) -> None:
+        """Read every position's row, features and descriptors now: a table shared with
+        forked worker processes must hold everything (they never read the file)."""
+        if not self.n_positions:
+            return
+        self._load_all()
+        if self._full.all is None and self._read_descriptors is not None:
+            self._load_all_descriptors(self._full)
+
     def coefficients_at_positions(
         self, positions: np.ndarray, harmonics: int | None = None, expect: int = 0
     ) -> np.ndarray:

@@ -1,0 +1,171 @@
+"""Work shared out to forked worker processes that read the parent's memory.
+
+A search over a table held in memory is mostly short numpy calls that hold the GIL; threads
+take turns there, processes do not. A worker forked after the table is read shares its
+pages with the parent (copy on write: nothing is copied or pickled), gets tasks and sends
+results through a pipe, and never touches a file the parent has open: it ends with
+``os._exit`` (no finalizers, no atexit handlers), ignores SIGINT (the terminal's Ctrl-C
+reaches the whole process group: only the parent acts on it) and exits by itself when the
+parent is gone, so that it never holds the index lock for long.
+
+Forking is safe only in a process with one thread (a lock held by another thread at the
+fork stays held in the child): :func:`can_fork` says whether this process may.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterable, Sequence
+
+__all__ = ["can_fork", "fork_map", "SIGNALS"]
+
+#: blocked across a fork, so that none arrives in a child before its handlers are set
+SIGNALS = {signal.SIGINT, signal.SIGTERM}
+#: how often a worker looks whether its parent is still there (seconds)
+_WATCH_SECONDS = 0.5
+
+
+def can_fork() -> bool:
+    """True when this process may fork workers: the platform forks, and this process runs
+    one thread only."""
+    return hasattr(os, "fork") and threading.active_count() == 1
+
+
+def become_worker(close_fds: Iterable[int] = ()) -> None:
+    """The first steps of a forked worker: SIGINT ignored, SIGTERM the default, the signals
+    blocked across the fork unblocked, ``close_fds`` closed (a lock the parent holds must
+    not outlive it in a worker), and a thread that ends the worker once its parent is gone."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)
+    for fd in close_fds:
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(_WATCH_SECONDS)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="nfdmatch-parent-watch").start()
+
+
+def _serve(conn, work: Callable, close_fds) -> None:
+    """A worker's loop: ``(number, task)`` in, ``(number, True, work(task))`` out, or
+    ``(number, False, traceback text)`` when it raised; None ends it."""
+    become_worker(close_fds)
+    try:
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                break
+            number, task = msg
+            try:
+                conn.send((number, True, work(task)))
+            except Exception:
+                conn.send((number, False, traceback.format_exc()))
+    except (EOFError, OSError):  # the parent went away: nothing to report to
+        pass
+    finally:
+        os._exit(0)
+
+
+def fork_map(
+    work: Callable, tasks: Sequence, workers: int, collect: Callable, *, close_fds: Iterable[int] = ()
+) -> list[int]:
+    """Run ``work(task)`` for every task in ``workers`` forked processes, calling
+    ``collect(number, result)`` in this process as results come (in any order; ``number``:
+    the task's position in ``tasks``). Call only when :func:`can_fork`.
+
+    ``work`` and what it reads are the parent's as of the call (the workers are forked
+    here); a task and a result must pickle. Returns the numbers of the tasks no worker
+    finished because workers died (killed, out of memory): the caller computes them another
+    way. An exception in ``work`` is raised here as :class:`RuntimeError` with the worker's
+    traceback; the workers are stopped on every way out (also KeyboardInterrupt).
+    """
+    from multiprocessing.connection import Pipe, wait
+
+    close_fds = tuple(close_fds)
+    pending = list(range(len(tasks)))[::-1]  # popped from the end: task order
+    running: dict = {}  # connection -> (pid, task number or None)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+    try:
+        for _ in range(max(1, min(workers, len(tasks)))):
+            mine, theirs = Pipe()
+            pid = os.fork()
+            if pid == 0:  # the worker: the parent's ends of its siblings' pipes are not its own
+                for conn in (mine, *running):
+                    conn.close()
+                _serve(theirs, work, close_fds)
+            theirs.close()
+            running[mine] = [pid, None]
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+    lost: list[int] = []
+    try:
+        for conn, state in running.items():
+            _give(conn, state, pending, tasks)
+        while any(state[1] is not None for state in running.values()):
+            for conn in wait([c for c, s in running.items() if s[1] is not None]):
+                state = running[conn]
+                try:
+                    number, ok, result = conn.recv()
+                except (EOFError, OSError):  # the worker died with a task
+                    lost.append(state[1])
+                    state[1] = None
+                    continue
+                if not ok:
+                    raise RuntimeError(f"a worker process failed:\n{result}")
+                state[1] = None
+                collect(number, result)
+                _give(conn, state, pending, tasks)
+        return sorted(lost + pending)
+    finally:
+        _stop(running)
+
+
+def _give(conn, state: list, pending: list, tasks: Sequence) -> None:
+    """The next pending task to the worker behind ``conn``, if there is one."""
+    if pending:
+        number = pending.pop()
+        try:
+            conn.send((number, tasks[number]))
+        except OSError:  # that worker is gone: the task stays pending
+            pending.append(number)
+            return
+        state[1] = number
+
+
+def _stop(running: dict) -> None:
+    """End the workers: asked first, killed when they do not go within a second."""
+    for conn in running:
+        try:
+            conn.send(None)
+        except OSError:
+            pass
+    deadline = time.monotonic() + 1.0
+    for conn, (pid, _) in running.items():
+        while True:
+            try:
+                done, _status = os.waitpid(pid, os.WNOHANG)
+            except ChildProcessError:
+                break
+            if done or time.monotonic() > deadline:
+                if not done:
+                    try:
+                        os.kill(pid, signal.SIGKILL)
+                        os.waitpid(pid, 0)
+                    except (ProcessLookupError, ChildProcessError):
+                        pass
+                break
+            time.sleep(0.01)
+        conn.close()

@@ -1,0 +1,114 @@
+"""The checks of test_fork.py, each run in a new Python process: forking is safe only in a
+process with one thread, and a test process keeps the threads of earlier tests (a Dask
+client's IO loop). ``python fork_checks.py NAME [FOLDER]`` runs one; exit 0: it held."""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+
+import numpy as np
+
+from nfdmatch._fork import can_fork, fork_map
+
+
+def check_every_task_is_computed_once_in_a_worker_and_collected_here(folder):
+    got = {}
+    lost = fork_map(lambda x: (x * x, os.getpid()), list(range(25)), 2, lambda i, r: got.setdefault(i, r))
+    assert lost == []
+    assert {i: r[0] for i, r in got.items()} == {i: i * i for i in range(25)}
+    pids = {r[1] for r in got.values()}
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2
+
+
+def check_the_tasks_of_a_worker_that_died_are_returned_to_the_caller(folder):
+    got = {}
+
+    def work(x):
+        if x == 3:
+            os._exit(9)  # as a worker killed for memory vanishes
+        return x
+
+    lost = fork_map(work, list(range(8)), 2, lambda i, r: got.setdefault(i, r))
+    assert 3 in lost
+    assert sorted(set(got) | set(lost)) == list(range(8))
+    assert not set(got) & set(lost)
+    assert all(got[i] == i for i in got)
+
+
+def check_a_failing_task_raises_here_with_the_workers_traceback(folder):
+    def work(x):
+        if x == 2:
+            raise ValueError("no good: 2")
+        return x
+
+    try:
+        fork_map(work, list(range(5)), 2, lambda i, r: None)
+    except RuntimeError as exc:
+        assert "no good: 2" in str(exc) and "Traceback" in str(exc)
+    else:
+        raise AssertionError("no error")
+    assert can_fork()  # nothing left running here
+
+
+def check_a_worker_closes_the_descriptors_it_must_not_keep(folder):
+    fd = os.open(os.path.join(folder, "lock"), os.O_CREAT | os.O_RDWR)
+
+    def is_open(_):
+        try:
+            os.fstat(fd)
+            return True
+        except OSError:
+            return False
+
+    got = {}
+    fork_map(is_open, [0, 1], 2, lambda i, r: got.setdefault(i, r), close_fds=[fd])
+    assert got == {0: False, 1: False}
+    os.fstat(fd)  # still open here
+
+
+def check_no_fork_while_another_thread_runs(folder):
+    assert can_fork()
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        assert not can_fork()
+    finally:
+        stop.set()
+        t.join()
+    assert can_fork()
+
+
+def check_the_graph_searched_by_worker_processes_is_the_graph_of_one_process(folder):
+    """A build with jobs=2 searches the graph's rows in two forked processes (blocks of 16
+    rows here, so that there are many) and stores the same bytes as a build searching them
+    in its own process; the worker count is in the report."""
+    import h5py
+
+    from nfdmatch import write_curves
+    from nfdmatch.index import build_index
+    from nfdmatch.search import graph
+    from test_join import family_curves
+
+    graph._BLOCK_ROWS = 16
+    curves = family_curves(np.random.default_rng(5), 20, 6, 0.02)
+    os.mkdir(os.path.join(folder, "c"))
+    write_curves(os.path.join(folder, "c", "all.obj"), curves)
+    stored = []
+    for jobs in (1, 2):
+        index = os.path.join(folder, f"i{jobs}.h5")
+        report = build_index([os.path.join(folder, "c")], index, jobs=jobs, graph=8)
+        assert report.graph.searched == len(curves)
+        assert report.graph.processes == (0 if jobs == 1 else 2), report.graph
+        with h5py.File(index, "r") as f:
+            stored.append((f["graph/neighbour"][...], f["graph/distance"][...]))
+    np.testing.assert_array_equal(stored[0][0], stored[1][0])
+    np.testing.assert_array_equal(stored[0][1], stored[1][1])
+
+
+CHECKS = sorted(name for name in dir() if name.startswith("check_"))
+
+if __name__ == "__main__":
+    globals()[sys.argv[1]](sys.argv[2])
