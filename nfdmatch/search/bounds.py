@@ -117,9 +117,17 @@ def squared_norms(features: np.ndarray, split: int) -> np.ndarray:
 
 
 def cell_lower_bounds(
-    query: np.ndarray, split: int, centre: np.ndarray, radius: np.ndarray, centre_sqnorm: np.ndarray | None = None
+    query: np.ndarray,
+    split: int,
+    centre: np.ndarray,
+    radius: np.ndarray,
+    centre_sqnorm: np.ndarray | None = None,
+    *,
+    clip: bool = True,
 ) -> np.ndarray:
-    """(C,) float64 lower bound of the invariant bound of every row of each cell.
+    """(C,) float64 lower bound of the invariant bound of every row of each cell (``clip``
+    False: before it is raised to 0, so negative for a cell the query lies inside: how deep,
+    an order among the cells of bound 0).
 
     query : (D,) float64 features; centre : (C, D) float64; radius : (C, 2) float64;
     centre_sqnorm : (C, 2) float64, the centres' squared norms in the two subspaces
@@ -135,7 +143,8 @@ def cell_lower_bounds(
         d = centre - query[None, :]
         a = np.sqrt(np.einsum("ij,ij->i", d[:, :split], d[:, :split])) - radius[:, 0]
         b = np.sqrt(np.einsum("ij,ij->i", d[:, split:], d[:, split:])) - radius[:, 1]
-        return np.maximum(np.maximum(a, b), 0.0)
+        out = np.maximum(a, b)
+        return np.maximum(out, 0.0, out=out) if clip else out
     out = None
     for lo, hi, col in ((0, split, 0), (split, centre.shape[1], 1)):
         q = query[lo:hi]
@@ -145,7 +154,7 @@ def cell_lower_bounds(
         slack = (3.0 * _gamma64(hi - lo) + 4.0 * _U64) * 1.01 * both
         d = np.sqrt(np.maximum(d2 - slack, 0.0)) - radius[:, col]
         out = d if out is None else np.maximum(out, d)
-    return np.maximum(out, 0.0, out=out)
+    return np.maximum(out, 0.0, out=out) if clip else out
 
 
 def _gamma64(n: int) -> float:

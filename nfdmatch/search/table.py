@@ -239,12 +239,12 @@ class SearchTable:
     def n_cells(self) -> int:
         return len(self.start) - 1
 
-    def cell_bounds(self, query_features: np.ndarray) -> np.ndarray:
+    def cell_bounds(self, query_features: np.ndarray, *, clip: bool = True) -> np.ndarray:
         """(C,) :func:`~nfdmatch.search.bounds.cell_lower_bounds` of every cell for a query's
         (D,) float64 features (the centres' squared norms computed once per table)."""
         if self._centre_sqnorm is None:
             self._centre_sqnorm = squared_norms(self.centre, self.split)
-        return cell_lower_bounds(query_features, self.split, self.centre, self.radius, self._centre_sqnorm)
+        return cell_lower_bounds(query_features, self.split, self.centre, self.radius, self._centre_sqnorm, clip=clip)
 
     @property
     def stored_harmonics(self) -> int:
