@@ -359,30 +359,27 @@ def _packed(command, name: str, keys: tuple, pack=dict):
     return packed
 
 
-_DESCRIPTOR_KEYS = ("samples", "harmonics", "scale")
-
-
-def descriptor_options(command):
-    """--samples, --harmonics, --scale with the library's defaults (inputs read from files),
-    passed on as ``descriptor``: a dict of the keyword arguments ``samples``, ``harmonics``,
-    ``scale`` of the library."""
-    f = _packed(command, "descriptor", _DESCRIPTOR_KEYS)
-    for names, kind, default, text, _ in reversed(_descriptor_option_table()):
-        f = click.option(*names, type=kind, default=default, show_default=True, help=text)(f)
+def _descriptor_options(command, what: str | None = None):
+    """--samples, --harmonics, --scale, passed on as ``descriptor``: a dict of the keyword
+    arguments ``samples``, ``harmonics``, ``scale`` of the library. With the library's
+    defaults; or, given ``what`` (who else decides), without: None where not given."""
+    f = _packed(command, "descriptor", ("samples", "harmonics", "scale"))
+    for names, kind, default, text, short in reversed(_descriptor_option_table()):
+        if what is None:
+            f = click.option(*names, type=kind, default=default, show_default=True, help=text)(f)
+        else:
+            f = click.option(*names, type=kind, default=None, help=f"{short} [default: {what}, else {default}].")(f)
     return f
 
 
+def descriptor_options(command):
+    """The descriptor options with the library's defaults (inputs read from files)."""
+    return _descriptor_options(command)
+
+
 def optional_descriptor_options(what: str):
-    """samples/harmonics/scale without defaults: an index fixes them, files take the defaults.
-    Passed on as ``descriptor``, as by :func:`descriptor_options` (None where not given)."""
-
-    def decorate(command):
-        f = _packed(command, "descriptor", _DESCRIPTOR_KEYS)
-        for names, kind, default, _, short in reversed(_descriptor_option_table()):
-            f = click.option(*names, type=kind, default=None, help=f"{short} [default: {what}, else {default}].")(f)
-        return f
-
-    return decorate
+    """The descriptor options without defaults: an index fixes them, files take the defaults."""
+    return functools.partial(_descriptor_options, what=what)
 
 
 def matching_options(command):
