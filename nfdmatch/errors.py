@@ -51,6 +51,16 @@ def excerpt(text, limit: int = 80) -> str:
     return f"{text[:limit]}...[cut: {len(text)} characters in all]"
 
 
+def os_error_message(exc: OSError, known: dict, otherwise: str) -> str:
+    """What an I/O failure means, for a message: the message ``known`` gives the first
+    kind of ``OSError`` that ``exc`` is (``{PermissionError: "cannot write: permission
+    denied"}``), else ``"<otherwise> (<the system's words>)"``."""
+    for kind, message in known.items():
+        if isinstance(exc, kind):
+            return message
+    return f"{otherwise} ({exc.strerror or exc})"
+
+
 class NfdError(Exception):
     """Base of every nfdmatch error.
 

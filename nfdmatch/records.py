@@ -59,6 +59,11 @@ class RankedMatch:
         return dataclasses.replace(self, **changes)
 
 
+def _of_match(name: str) -> property:
+    """A read-only property of :class:`ShownMatch`: its match's field ``name``."""
+    return property(lambda shown: getattr(shown.match, name), doc=f"The match's ``{name}``.")
+
+
 @dataclass(frozen=True)
 class ShownMatch:
     """A :class:`RankedMatch` aligned onto its query, ready to draw.
@@ -85,25 +90,11 @@ class ShownMatch:
     forward: np.ndarray
     source: str = "file"
 
-    @property
-    def rank(self) -> int:
-        return self.match.rank
-
-    @property
-    def id(self) -> str:
-        return self.match.id
-
-    @property
-    def distance(self) -> float:
-        return self.match.distance
-
-    @property
-    def reversed(self) -> bool:
-        return self.match.reversed
-
-    @property
-    def mirrored(self) -> bool:
-        return self.match.mirrored
+    rank = _of_match("rank")
+    id = _of_match("id")
+    distance = _of_match("distance")
+    reversed = _of_match("reversed")
+    mirrored = _of_match("mirrored")
 
     @property
     def note(self) -> str | None:

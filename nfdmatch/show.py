@@ -59,19 +59,15 @@ def align_match(
     ranked: RankedMatch,
     *,
     source: str,
-    method: str = EXACT,
-    direction: str = INVARIANT,
-    mirror: bool = False,
     alignment: Match | None = None,
+    **matching,
 ) -> ShownMatch:
     """The ranked match ``ranked`` with ``points_b`` ((m, 3) float64, the curve behind
     ``db``) mapped into the frame of the query behind ``dq`` by the alignment of their match
-    (``alignment``, computed when None); the shift and direction become the alignment's."""
-    m = (
-        alignment
-        if alignment is not None
-        else match_descriptors(dq, db, method=method, direction=direction, mirror=mirror)
-    )
+    (``alignment``; when None, computed by :func:`~nfdmatch.matching.match_descriptors` with
+    the keywords ``matching``: method, direction, mirror); the shift and direction become
+    the alignment's."""
+    m = alignment if alignment is not None else match_descriptors(dq, db, **matching)
     fractions = m.partner_fractions(np.array([0.0, START_STEP]), dq.samples)
     marks = m.apply(points_at(points_b, fractions))
     aligned = ranked.replace(

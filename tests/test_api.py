@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import shutil
@@ -107,3 +108,30 @@ def test_curves_in_memory_take_exclude_self_too(rng):
     curves = [Curve(np.hstack([np.cos(t), np.sin(k * t), 0.1 * k * np.sin(2 * t)]), id=f"c{k}") for k in range(1, 6)]
     ranked = rank_curves(curves[2], curves, top=2, exclude_self=True)
     assert [m.rank for m in ranked] == [1, 2] and "c3" not in [m.id for m in ranked]
+
+
+def test_match_parameters_are_the_keywords_distance_rank_curves_and_distance_matrix_take():
+    from nfdmatch.matching import MatchParameters
+    from nfdmatch.search import distance_matrix, rank_curves
+
+    p = MatchParameters()
+    assert (p.samples, p.harmonics, p.scale) == (128, 16, "rms")
+    assert (p.method, p.direction, p.mirror, p.weights) == ("exact", "invariant", False, None)
+    p = MatchParameters(samples=64, harmonics=6, scale="a1", method="paper", direction="strict", mirror=True)
+    assert p.descriptor == {"samples": 64, "harmonics": 6, "scale": "a1"}
+    assert p.matching == {"method": "paper", "direction": "strict", "mirror": True, "weights": None}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        p.samples = 32
+    t = np.linspace(0, 2 * np.pi, 60, endpoint=False)[:, None]
+    curves = [Curve(np.hstack([np.cos(t), np.sin(k * t), 0.2 * np.sin(3 * t)]), id=f"c{k}") for k in (1, 2, 3)]
+    given = dict(samples=64, harmonics=6, scale="a1", direction="strict", mirror=True)
+    d = nfdmatch.distance(curves[0], curves[1], **given).distance
+    assert distance_matrix(curves, **given)[0, 1] == pytest.approx(d, rel=1e-9)
+    assert rank_curves(curves[0], curves[1:2], **given)[0].distance == pytest.approx(d, rel=1e-9)
+    for call in (
+        lambda: nfdmatch.distance(curves[0], curves[1], sample=64),
+        lambda: rank_curves(curves[0], curves, sample=64),
+        lambda: distance_matrix(curves, sample=64),
+    ):
+        with pytest.raises(TypeError, match="sample"):
+            call()

@@ -194,3 +194,10 @@ def test_python_dash_m_and_console_script_do_not_import_heavy_libraries():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "HEAVY []" in out and "Usage:" in out
+
+
+def test_match_listing_gives_the_library_its_search_keywords():
+    from nfdmatch.cli.options import MatchListing
+
+    listing = MatchListing(top=3, max_distance=0.5, glob="*.csv", details=True, paths="id", exclude_self=True)
+    assert listing.search() == {"top": 3, "max_distance": 0.5, "exclude_self": True}

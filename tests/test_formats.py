@@ -1093,3 +1093,24 @@ def test_obj_block_layout_takes_the_loop_free_path(tmp_path):
     rows = obj_module._block_rows(text)
     assert rows is not None and rows == obj_module._line_rows(text)
     assert obj_module._token_counts(rows[1]).tolist() == [len(r.split()) for r in rows[1]]
+
+
+def test_os_error_message_gives_the_known_kinds_words_else_the_systems():
+    from nfdmatch.errors import os_error_message
+
+    known = {FileNotFoundError: "no such file", PermissionError: "permission denied"}
+    assert os_error_message(FileNotFoundError(2, "No such file or directory"), known, "cannot read") == "no such file"
+    assert os_error_message(PermissionError(13, "Permission denied"), known, "cannot read") == "permission denied"
+    assert (
+        os_error_message(OSError(5, "Input/output error"), known, "cannot read") == "cannot read (Input/output error)"
+    )
+    assert os_error_message(OSError("odd"), {}, "cannot read") == "cannot read (odd)"
+
+
+def test_write_text_names_a_missing_folder_and_a_directory_in_the_way(tmp_path):
+    from nfdmatch.formats._chain import write_text
+
+    with pytest.raises(WriteError, match="cannot write: the folder does not exist"):
+        write_text(tmp_path / "missing" / "a.csv", "x")
+    with pytest.raises(WriteError, match="cannot write: is a directory"):
+        write_text(tmp_path, "x")

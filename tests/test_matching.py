@@ -722,3 +722,14 @@ def test_numba_without_a_cache_directory_falls_back_to_numpy(rng):
     assert out.returncode == 0, out.stderr
     first, reason = out.stdout.splitlines()
     assert first.split() == ["numpy", "True"] and "numba unavailable (RuntimeError" in reason, out.stdout
+
+
+def test_gram_entries_are_the_upper_triangle_of_x_transpose_x(rng):
+    from nfdmatch.matching.common import gram_entries
+
+    X = rng.standard_normal((20, 3, 3))
+    entries = np.array(gram_entries(*X.reshape(20, 9).T))  # (6, 20)
+    G = np.einsum("nji,njk->nik", X, X)
+    rows, cols = [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]
+    np.testing.assert_allclose(entries.T, G[:, rows, cols], rtol=1e-13, atol=1e-13)
+    assert gram_entries(*X[0].ravel().tolist()) == tuple(entries[:, 0])  # floats: the compiled kernels' case

@@ -33,7 +33,7 @@ from .group import main
 @input_format_option
 @format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
-def distance(curve_a, curve_b, matching, samples, harmonics, scale, input_format, output_format, output):
+def distance(curve_a, curve_b, matching, descriptor, input_format, output_format, output):
     """Similarity distance between two curves A and B, and the alignment of B onto A.
 
     A and B are files (FILE#I for curve I of a multi-curve file; `-` for stdin). The
@@ -51,7 +51,7 @@ def distance(curve_a, curve_b, matching, samples, harmonics, scale, input_format
         raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
     a = read_one(curve_a, input_format)
     b = read_one(curve_b, input_format)
-    m = match_distance(a, b, samples=samples, harmonics=harmonics, scale=scale, **matching)
+    m = match_distance(a, b, **descriptor, **matching)
     record = m.to_dict()
     if output_format == "json":
         text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
@@ -79,7 +79,7 @@ def distance(curve_a, curve_b, matching, samples, harmonics, scale, input_format
 @input_format_option
 @format_option(("csv", "tsv", "json", "jsonl"), help_extra=" [default: by the extension of -o, else csv]")
 @output_option()
-def describe(files, glob_pattern, samples, harmonics, scale, input_format, output_format, output):
+def describe(files, glob_pattern, descriptor, input_format, output_format, output):
     """Print the normalized Fourier descriptors of every curve in FILE_OR_FOLDER....
 
     One row per curve: id, parameters, centroid and scale (input units), whether the
@@ -95,9 +95,9 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
     from ..descriptors import descriptors_batch, validate_parameters
 
     fmt = resolve_format(output_format, output, ("csv", "tsv", "json", "jsonl"), terminal="csv")
-    validate_parameters(samples, harmonics, scale)
+    validate_parameters(**descriptor)
     inputs = read_inputs(files, glob=glob_pattern, input_format=input_format, progress="reading curves")
-    batch = descriptors_batch(inputs.curves, samples=samples, harmonics=harmonics, scale=scale)
+    batch = descriptors_batch(inputs.curves, **descriptor)
     rows = [_descriptor_row(batch.row(i, c.id)) for i, c in enumerate(inputs.curves)]
     if fmt in ("json", "jsonl"):
         columns = [
@@ -127,23 +127,7 @@ def describe(files, glob_pattern, samples, harmonics, scale, input_format, outpu
 @input_format_option
 @rows_format_option
 @output_option()
-def rank(
-    query_spec,
-    sources,
-    top,
-    max_distance,
-    glob_pattern,
-    details,
-    paths,
-    exclude_self_,
-    matching,
-    samples,
-    harmonics,
-    scale,
-    input_format,
-    output_format,
-    output,
-):
+def rank(query_spec, sources, listing, matching, descriptor, input_format, output_format, output):
     """Rank the curves in SOURCE... (files or folders) by similarity to QUERY, without an index.
 
     QUERY is one curve (FILE, FILE#I or `-`). Folders are searched recursively for files
@@ -158,22 +142,12 @@ def rank(
 
     output_format = resolve_format(output_format, output)
     query = read_one(query_spec, input_format)
-    inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format, progress="reading curves")
-    ranked = rank_curves(
-        query,
-        inputs.curves,
-        top=top,
-        max_distance=max_distance,
-        samples=samples,
-        harmonics=harmonics,
-        scale=scale,
-        exclude_self=exclude_self_,
-        **matching,
-    )
-    spell = path_speller(paths)
+    inputs = read_inputs(sources, glob=listing.glob, input_format=input_format, progress="reading curves")
+    ranked = rank_curves(query, inputs.curves, **listing.search(), **descriptor, **matching)
+    spell = path_speller(listing.paths)
     write_rows(
         [{**match_row(spell(query.id), m), "match": spell(m.id)} for m in ranked],
-        match_columns(details),
+        match_columns(listing.details),
         output_format,
         output,
         group_by="query",

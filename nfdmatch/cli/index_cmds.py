@@ -98,9 +98,7 @@ def index_build(
     allow_shrink,
     file_timeout,
     graph_k,
-    samples,
-    harmonics,
-    scale,
+    descriptor,
     input_format,
     scheduler,
     scheduler_timeout,
@@ -149,7 +147,7 @@ def index_build(
         )
     started = datetime.now(timezone.utc)
     options = dict(
-        samples=samples, harmonics=harmonics, scale=scale, glob=glob_pattern, input_format=input_format,
+        **descriptor, glob=glob_pattern, input_format=input_format,
         rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k,
     )  # fmt: skip
     report = _run_build(

@@ -22,6 +22,7 @@ import functools
 import os
 import sys
 import time
+from dataclasses import dataclass, fields
 
 import click
 
@@ -346,22 +347,39 @@ def _descriptor_option_table():
     )
 
 
-def descriptor_options(f):
-    """--samples, --harmonics, --scale with the library's defaults (inputs read from files)."""
-    for names, kind, default, text, _ in reversed(_descriptor_option_table()):
-        f = click.option(*names, type=kind, default=default, show_default=True, help=text)(f)
+def _packed(command, name: str, keys: tuple, pack=dict):
+    """``command`` taking the values of the options ``keys`` as one argument ``name``:
+    ``pack(**values)`` (a dict by default)."""
+
+    @functools.wraps(command)
+    def packed(*args, **kwargs):
+        values = {key: kwargs.pop(key) for key in keys}
+        return command(*args, **{name: pack(**values)}, **kwargs)
+
+    return packed
+
+
+def _descriptor_options(command, what: str | None = None):
+    """--samples, --harmonics, --scale, passed on as ``descriptor``: a dict of the keyword
+    arguments ``samples``, ``harmonics``, ``scale`` of the library. With the library's
+    defaults; or, given ``what`` (who else decides), without: None where not given."""
+    f = _packed(command, "descriptor", ("samples", "harmonics", "scale"))
+    for names, kind, default, text, short in reversed(_descriptor_option_table()):
+        if what is None:
+            f = click.option(*names, type=kind, default=default, show_default=True, help=text)(f)
+        else:
+            f = click.option(*names, type=kind, default=None, help=f"{short} [default: {what}, else {default}].")(f)
     return f
 
 
+def descriptor_options(command):
+    """The descriptor options with the library's defaults (inputs read from files)."""
+    return _descriptor_options(command)
+
+
 def optional_descriptor_options(what: str):
-    """samples/harmonics/scale without defaults: an index fixes them, files take the defaults."""
-
-    def decorate(f):
-        for names, kind, default, _, short in reversed(_descriptor_option_table()):
-            f = click.option(*names, type=kind, default=None, help=f"{short} [default: {what}, else {default}].")(f)
-        return f
-
-    return decorate
+    """The descriptor options without defaults: an index fixes them, files take the defaults."""
+    return functools.partial(_descriptor_options, what=what)
 
 
 def matching_options(command):
@@ -369,11 +387,8 @@ def matching_options(command):
     the keyword arguments ``method``, ``direction``, ``mirror`` of the library."""
     from ..matching import DEFAULT_METHOD, METHODS
 
-    @functools.wraps(command)
-    def packed(*args, method, strict_direction, mirror, **kwargs):
-        return command(*args, matching=matching(method, strict_direction, mirror), **kwargs)
-
-    f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(packed)
+    f = _packed(command, "matching", ("method", "strict_direction", "mirror"), pack=matching)
+    f = click.option("--mirror", is_flag=True, help="Also allow reflections (mirror images match).")(f)
     f = click.option(
         "--strict-direction", is_flag=True, help="Do not match a curve traversed in the opposite direction."
     )(f)
@@ -430,18 +445,38 @@ paths_option = click.option(
 
 exclude_self_option = click.option(
     "--exclude-self",
-    "exclude_self_",
+    "exclude_self",
     is_flag=True,
     help="Drop the query itself from its matches: a match with the query's id, or the same curve of "
     "the same file (however the path is spelled).",
 )
 
 
+@dataclass(frozen=True)
+class MatchListing:
+    """What a command that lists a query's matches was asked for (:func:`match_list_options`):
+    how many matches (``top``, ``max_distance``, ``exclude_self``), from which inputs
+    (``glob``) and in which columns (``details``, ``paths``)."""
+
+    top: int
+    max_distance: float | None
+    glob: str | None
+    details: bool
+    paths: str
+    exclude_self: bool
+
+    def search(self) -> dict:
+        """The library's keyword arguments among them: ``top``, ``max_distance``, ``exclude_self``."""
+        return {"top": self.top, "max_distance": self.max_distance, "exclude_self": self.exclude_self}
+
+
 def match_list_options(top_help: str, glob_help: str):
     """The options of every command that lists a query's matches (``rank``, ``query``):
-    --top, --max-distance, --glob, --details, --paths, --exclude-self."""
+    --top, --max-distance, --glob, --details, --paths, --exclude-self, passed on as
+    ``listing``: a :class:`MatchListing`."""
 
-    def decorate(f):
+    def decorate(command):
+        f = _packed(command, "listing", tuple(field.name for field in fields(MatchListing)), pack=MatchListing)
         for option in reversed(
             (
                 click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help=top_help),
@@ -451,7 +486,7 @@ def match_list_options(top_help: str, glob_help: str):
                     default=None,
                     help="Only list matches at most this far.",
                 ),
-                click.option("--glob", "glob_pattern", default=None, help=glob_help),
+                click.option("--glob", default=None, help=glob_help),
                 click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
                 paths_option,
                 exclude_self_option,

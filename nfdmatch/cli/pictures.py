@@ -134,9 +134,7 @@ def show(
     renderer,
     glob_pattern,
     matching,
-    samples,
-    harmonics,
-    scale,
+    descriptor,
     input_format,
     output_format,
 ):
@@ -161,14 +159,14 @@ def show(
 
     pictures, rows_output = split_outputs(output)
     output_format = resolve_format(output_format, rows_output)
-    width_height = _check_show_arguments(pictures, size, against, sources, (samples, harmonics, scale, glob_pattern))
+    width_height = _check_show_arguments(pictures, size, against, sources, (*descriptor.values(), glob_pattern))
     query_inputs = read_inputs([query_spec] + ([] if against else list(sources)), input_format=input_format)
     queries = query_inputs.curves
     names = _picture_names(pictures[0], queries)
     _check_pictures(names)
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, (samples, harmonics, scale), matching)
+        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, matching)
     else:
         source_inputs = None
         shown = _searched_drawn(queries, index_path, top, input_format, matching)
@@ -215,14 +213,11 @@ def _check_show_arguments(pictures, size: str, against: bool, sources, against_o
     return width_height
 
 
-def _ranked_drawn(queries, curves, top: int, descriptor: tuple, match: dict) -> list:
+def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict) -> list:
     """What show draws per query with --against: its ``top`` matches among ``curves``."""
     from ..show import show_ranked
 
-    samples, harmonics, scale = descriptor
-    return [
-        show_ranked(q, curves, top=top, samples=samples, harmonics=harmonics, scale=scale, **match) for q in queries
-    ]
+    return [show_ranked(q, curves, top=top, **descriptor, **match) for q in queries]
 
 
 def _searched_drawn(queries, index_path, top: int, input_format, match: dict) -> list:
@@ -274,9 +269,7 @@ def matrix(
     output,
     glob_pattern,
     matching,
-    samples,
-    harmonics,
-    scale,
+    descriptor,
     input_format,
     order,
     rerank,
@@ -308,14 +301,7 @@ def matrix(
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:
-        distances = distance_matrix(
-            curves,
-            samples=samples,
-            harmonics=harmonics,
-            scale=scale,
-            progress=progress,
-            **matching,
-        )
+        distances = distance_matrix(curves, progress=progress, **descriptor, **matching)
     finally:
         finish_bar()
     ids = [c.id for c in curves]

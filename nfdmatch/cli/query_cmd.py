@@ -57,12 +57,7 @@ from .group import main
 def query(
     queries,
     index_path,
-    top,
-    max_distance,
-    glob_pattern,
-    details,
-    paths,
-    exclude_self_,
+    listing,
     exhaustive,
     show_stats,
     rerank,
@@ -101,25 +96,24 @@ def query(
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
-    _check_rerank_options(rerank, rerank_depth, top, exhaustive, max_distance, matching, scheduler)
+    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
     with open_index(index_path) as idx:
         _note_old_format(idx, exhaustive)
-        inputs = read_inputs(queries, glob=glob_pattern, input_format=input_format)
+        inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
         results, stats = _search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
-            top=top, max_distance=max_distance, prune=not exhaustive, exclude_self=exclude_self_,
-            match=matching,
+            prune=not exhaustive, match=matching, **listing.search(),
         )  # fmt: skip
-        spell_query, spell_match = path_speller(paths), path_speller(paths, idx.locate)
+        spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
         match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
     rows = [
         {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
         for q, res in zip(inputs.curves, results)
         for m in res
     ]
-    write_rows(rows, _columns(details, rerank), output_format, output, group_by="query")
+    write_rows(rows, _columns(listing.details, rerank), output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
@@ -178,15 +172,16 @@ def _search_queries(idx, curves, rerank_depth, cluster_at, *, top, max_distance,
             cluster.close()
 
 
-def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, matching: dict, scheduler) -> None:
-    """Usage errors for options that --rerank cannot take (or that need it)."""
+def _check_rerank_options(rerank, depth, listing, exhaustive, matching: dict, scheduler) -> None:
+    """Usage errors for options that --rerank cannot take (or that need it); ``listing`` a
+    :class:`~.options.MatchListing`."""
     if not rerank:
         if depth != DEFAULT_RERANK_DEPTH:
             raise click.UsageError("--rerank-depth needs --rerank")
         return
     for given, name in (
         (exhaustive, "--exhaustive"),
-        (max_distance is not None, "--max-distance"),
+        (listing.max_distance is not None, "--max-distance"),
         (matching["method"] != DEFAULT_METHOD, f"--method {matching['method']}"),
         (matching["direction"] != DEFAULT_DIRECTION, "--strict-direction"),
         (matching["mirror"], "--mirror"),
@@ -196,8 +191,8 @@ def _check_rerank_options(rerank, depth, top, exhaustive, max_distance, matching
                 f"--rerank cannot be combined with {name}: the stored graph holds exact, "
                 f"direction-invariant distances without mirror images"
             )
-    if top > depth:
-        raise click.UsageError(f"--top {top} is more than --rerank-depth {depth}")
+    if listing.top > depth:
+        raise click.UsageError(f"--top {listing.top} is more than --rerank-depth {depth}")
     if scheduler:
         raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from .._io import publish, temp_beside, write_file  # noqa: F401  (re-exported)
 from ..curve import Curve, clean_many, clean_points
-from ..errors import ParameterError, ParseError, ReadError, WriteError, escape_name, excerpt
+from ..errors import ParameterError, ParseError, ReadError, WriteError, escape_name, excerpt, os_error_message
 
 __all__ = [
     "is_number",
@@ -112,11 +112,8 @@ def _refuse_irregular(p: str, mode: int) -> None:
 
 
 def _io_error(p: str, exc: OSError) -> ReadError:
-    if isinstance(exc, FileNotFoundError):
-        return ReadError("no such file", path=p)
-    if isinstance(exc, PermissionError):
-        return ReadError("permission denied", path=p)
-    return ReadError(f"cannot read the file ({exc.strerror or exc})", path=p)
+    known = {FileNotFoundError: "no such file", PermissionError: "permission denied"}
+    return ReadError(os_error_message(exc, known, "cannot read the file"), path=p)
 
 
 def _open_regular(p: str) -> tuple[int, int]:
@@ -305,11 +302,10 @@ def write_text(path, text: str) -> None:
     try:
         with open(p, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)
-    except IsADirectoryError:
-        raise WriteError("cannot write: is a directory", path=p) from None
-    except FileNotFoundError:
-        raise WriteError("cannot write: the folder does not exist", path=p) from None
-    except PermissionError:
-        raise WriteError("cannot write: permission denied", path=p) from None
     except OSError as exc:
-        raise WriteError(f"cannot write the file ({exc.strerror or exc})", path=p) from None
+        known = {
+            IsADirectoryError: "cannot write: is a directory",
+            FileNotFoundError: "cannot write: the folder does not exist",
+            PermissionError: "cannot write: permission denied",
+        }
+        raise WriteError(os_error_message(exc, known, "cannot write the file"), path=p) from None

@@ -198,35 +198,39 @@ def _n_other(types: np.ndarray) -> int:
     return int(np.count_nonzero(other))
 
 
+#: VTK's numeric data types, one row each: the XML name (``type="Float32"``), the legacy
+#: name (matched in any case) and the numpy dtype code
+_VTK_TYPES = (
+    ("Int8", "vtktypeint8", "i1"),
+    ("UInt8", "vtktypeuint8", "u1"),
+    ("Int16", "vtktypeint16", "i2"),
+    ("UInt16", "vtktypeuint16", "u2"),
+    ("Int32", "vtktypeint32", "i4"),
+    ("UInt32", "vtktypeuint32", "u4"),
+    ("Int64", "vtktypeint64", "i8"),
+    ("UInt64", "vtktypeuint64", "u8"),
+    ("Float32", "vtktypefloat32", "f4"),
+    ("Float64", "vtktypefloat64", "f8"),
+    ("Char", "char", "i1"),
+    ("UChar", "unsigned_char", "u1"),
+    ("Short", "short", "i2"),
+    ("UShort", "unsigned_short", "u2"),
+    ("Int", "int", "i4"),
+    ("UInt", "unsigned_int", "u4"),
+    ("Long", "long", "i8"),
+    ("ULong", "unsigned_long", "u8"),
+    ("Float", "float", "f4"),
+    ("Double", "double", "f8"),
+    ("IdType", "vtkidtype", "i8"),
+)
+#: legacy names; ``bit`` is known but not read, ``signed_char`` has no XML name
+_LEGACY_TYPES = {"bit": None, "signed_char": "i1", **{legacy: code for _, legacy, code in _VTK_TYPES}}
+_XML_TYPES = {xml: code for xml, _, code in _VTK_TYPES}
+
+
 # ---------------------------------------------------------------------------
 # legacy .vtk
 # ---------------------------------------------------------------------------
-
-_LEGACY_TYPES = {
-    "bit": None,
-    "unsigned_char": "u1",
-    "char": "i1",
-    "signed_char": "i1",
-    "unsigned_short": "u2",
-    "short": "i2",
-    "unsigned_int": "u4",
-    "int": "i4",
-    "unsigned_long": "u8",
-    "long": "i8",
-    "float": "f4",
-    "double": "f8",
-    "vtkidtype": "i8",
-    "vtktypeint8": "i1",
-    "vtktypeuint8": "u1",
-    "vtktypeint16": "i2",
-    "vtktypeuint16": "u2",
-    "vtktypeint32": "i4",
-    "vtktypeuint32": "u4",
-    "vtktypeint64": "i8",
-    "vtktypeuint64": "u8",
-    "vtktypefloat32": "f4",
-    "vtktypefloat64": "f8",
-}
 
 _NEXT_KEYWORD_LINE = re.compile(rb"\n[ \t\r\x00]*[A-Za-z_]")
 _SPACE = re.compile(rb"[ \t\r\n\x00]*")
@@ -563,30 +567,6 @@ def _is_number(token: bytes, kind: str) -> bool:
 # XML .vtp / .vtu
 # ---------------------------------------------------------------------------
 
-_XML_TYPES = {
-    "Int8": "i1",
-    "UInt8": "u1",
-    "Int16": "i2",
-    "UInt16": "u2",
-    "Int32": "i4",
-    "UInt32": "u4",
-    "Int64": "i8",
-    "UInt64": "u8",
-    "Float32": "f4",
-    "Float64": "f8",
-    "Char": "i1",
-    "UChar": "u1",
-    "Short": "i2",
-    "UShort": "u2",
-    "Int": "i4",
-    "UInt": "u4",
-    "Long": "i8",
-    "ULong": "u8",
-    "Float": "f4",
-    "Double": "f8",
-    "IdType": "i8",
-}
-
 _B64_CHUNK = re.compile(rb"[A-Za-z0-9+/]*={0,2}")
 _NOT_B64 = re.compile(rb"[^A-Za-z0-9+/=\s]")
 _B64_ALPHABET = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/= \t\r\n\x0b\x0c"
@@ -784,14 +764,8 @@ def _lz4_block(src: bytes, want: int, what: str) -> bytes:
         i += 1
         lit = token >> 4
         if lit == 15:
-            while True:
-                if i >= n:
-                    raise _Bad(f"{what}: corrupt LZ4 data")
-                b = src[i]
-                i += 1
-                lit += b
-                if b != 255:
-                    break
+            more, i = _lz4_length(src, i, what)
+            lit += more
         if i + lit > n or len(out) + lit > want:
             raise _Bad(f"{what}: corrupt LZ4 data")
         out += src[i : i + lit]
@@ -804,14 +778,8 @@ def _lz4_block(src: bytes, want: int, what: str) -> bytes:
         i += 2
         match = (token & 15) + 4
         if (token & 15) == 15:
-            while True:
-                if i >= n:
-                    raise _Bad(f"{what}: corrupt LZ4 data")
-                b = src[i]
-                i += 1
-                match += b
-                if b != 255:
-                    break
+            more, i = _lz4_length(src, i, what)
+            match += more
         if offset == 0 or offset > len(out) or len(out) + match > want:
             raise _Bad(f"{what}: corrupt LZ4 data")
         start = len(out) - offset
@@ -822,6 +790,20 @@ def _lz4_block(src: bytes, want: int, what: str) -> bytes:
             reps = -(-match // offset)
             out += (pattern * reps)[:match]
     return bytes(out)
+
+
+def _lz4_length(src: bytes, i: int, what: str) -> tuple[int, int]:
+    """The bytes LZ4 adds to a length of 15 (a literal run's or a match's): every byte from
+    ``src[i]`` up to and including the first one below 255, summed; ``(sum, next i)``."""
+    n, more = len(src), 0
+    while True:
+        if i >= n:
+            raise _Bad(f"{what}: corrupt LZ4 data")
+        b = src[i]
+        i += 1
+        more += b
+        if b != 255:
+            return more, i
 
 
 def _parse_xml(data: bytes, kind: str, path: str) -> Dataset:

@@ -57,6 +57,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Match",
+    "MatchParameters",
     "distance",
     "match_descriptors",
     "exact_search",
@@ -143,6 +144,46 @@ class Match:
 # --------------------------------------------------------------------------- public API
 
 
+@dataclass(frozen=True)
+class MatchParameters:
+    """The parameters of a distance between curves, in one object: how each curve is
+    described (``samples``, ``harmonics``, ``scale``, as in
+    :func:`~nfdmatch.descriptors.descriptors`) and how two descriptions are matched
+    (``method``, ``direction``, ``mirror``, ``weights``, as in :func:`match_descriptors`).
+    :func:`distance`, :func:`~nfdmatch.search.rank_curves` and
+    :func:`~nfdmatch.search.distance_matrix` take these fields by keyword and make one.
+
+    Attributes
+    ----------
+    samples : int, arc-length samples per curve (default 128).
+    harmonics : int K, frequencies +-1..+-K compared (default 16).
+    scale : ``"rms"`` (default) or ``"a1"``.
+    method : ``"exact"`` (global optimum over shift x SO(3), sub-sample start) or
+        ``"paper"`` (the published bisector step; not optimal).
+    direction : ``"invariant"`` (default: either traversal direction) or ``"strict"``.
+    mirror : bool, also allow reflections.
+    weights : (K,) float w_1..w_K or None (uniform).
+    """
+
+    samples: int = DEFAULT_SAMPLES
+    harmonics: int = DEFAULT_HARMONICS
+    scale: str = DEFAULT_SCALE
+    method: str = DEFAULT_METHOD
+    direction: str = DEFAULT_DIRECTION
+    mirror: bool = False
+    weights: ArrayLike | None = None
+
+    @property
+    def descriptor(self) -> dict:
+        """``samples``, ``harmonics``, ``scale``: keywords of :func:`~nfdmatch.descriptors.descriptors`."""
+        return {"samples": self.samples, "harmonics": self.harmonics, "scale": self.scale}
+
+    @property
+    def matching(self) -> dict:
+        """``method``, ``direction``, ``mirror``, ``weights``: keywords of :func:`match_descriptors`."""
+        return {"method": self.method, "direction": self.direction, "mirror": self.mirror, "weights": self.weights}
+
+
 def _as_descriptors(x, samples, harmonics, scale) -> Descriptors:
     if isinstance(x, Descriptors):
         if (x.samples, x.harmonics, x.scale_mode) != (samples, harmonics, scale):
@@ -202,37 +243,22 @@ def match_descriptors(
     )
 
 
-def distance(
-    a: Curve | Descriptors | ArrayLike,
-    b: Curve | Descriptors | ArrayLike,
-    *,
-    samples: int = DEFAULT_SAMPLES,
-    harmonics: int = DEFAULT_HARMONICS,
-    scale: str = DEFAULT_SCALE,
-    method: str = DEFAULT_METHOD,
-    direction: str = DEFAULT_DIRECTION,
-    mirror: bool = False,
-    weights: ArrayLike | None = None,
-) -> Match:
+def distance(a: Curve | Descriptors | ArrayLike, b: Curve | Descriptors | ArrayLike, **parameters) -> Match:
     """Similarity distance between two closed curves, with the alignment that achieves it.
 
     Parameters
     ----------
     a, b : :class:`~nfdmatch.curve.Curve`, :class:`~nfdmatch.descriptors.Descriptors`, or
         array-like (n, 3) / (n, 2) float (closed polylines, closing edge implicit).
-    samples : arc-length samples per curve (default 128).
-    harmonics : K, frequencies +-1..+-K compared (default 16).
-    scale : ``"rms"`` (default) or ``"a1"``.
-    method : ``"exact"`` (global optimum over shift x SO(3), sub-sample start) or
-        ``"paper"`` (the published bisector step; not optimal).
-    direction : ``"invariant"`` (default: either traversal direction) or ``"strict"``.
-    mirror : also allow reflections.
-    weights : (K,) float w_1..w_K or None (uniform).
+    samples, harmonics, scale, method, direction, mirror, weights : by keyword, the fields
+        of :class:`MatchParameters` (defaults 128, 16, ``"rms"``, ``"exact"``,
+        ``"invariant"``, False, None).
 
     Returns
     -------
     :class:`Match`; ``rotation``, ``scale``, ``translation`` and ``shift`` map b onto a.
     """
-    da = _as_descriptors(a, samples, harmonics, scale)
-    db = _as_descriptors(b, samples, harmonics, scale)
-    return match_descriptors(da, db, method=method, direction=direction, mirror=mirror, weights=weights)
+    p = MatchParameters(**parameters)
+    da = _as_descriptors(a, **p.descriptor)
+    db = _as_descriptors(b, **p.descriptor)
+    return match_descriptors(da, db, **p.matching)

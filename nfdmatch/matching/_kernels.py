@@ -48,6 +48,11 @@ too short to vectorize (AVX-512 takes 8 doubles and unrolls by 2-4), which left 
 evaluations scalar (~35 ns each against ~13 ns). Compiled once per K' of the truncated
 stages (4, 8) so that the sums over harmonics unroll, and once for any K'.
 
+One formula is shared with the numpy path as plain Python: the Gram entries of
+``_lmax_gram`` are ``common.gram_entries``, compiled here. Numba's cache below checks this
+file only: after an edit to ``gram_entries``, clear it (``__pycache__/_kernels*.nbi``,
+``*.nbc``) or touch this file; the ahead-of-time build checks both (:mod:`.aot`).
+
 ``cache=True``: the machine code is cached in ``__pycache__`` next to this file (or numba's
 user-wide cache directory when that is not writable; with neither, numba raises on import
 and matching falls back to numpy). ``nogil=True``: callers may run them from several
@@ -69,6 +74,7 @@ import numpy as np
 from numba import njit
 
 from . import _threads
+from .common import gram_entries
 
 _TINY = float(np.finfo(np.float64).tiny)
 _THIRD = 1.0 / 3.0
@@ -147,17 +153,14 @@ def _lmax(s00, s11, s22, s01, s02, s12):
     return _atleast(q + 2.0 * p * cos_third_acos(r), 0.0)
 
 
+_gram_entries = njit(**_inline)(gram_entries)
+
+
 @njit(**_inline)
 def _lmax_gram(a, b, c, d, e, f, g, h, i):
     """matching._lmax_gram_soa for one matrix: the largest eigenvalue of X^T X."""
-    return _lmax(
-        a * a + d * d + g * g,
-        b * b + e * e + h * h,
-        c * c + f * f + i * i,
-        a * b + d * e + g * h,
-        a * c + d * f + g * i,
-        b * c + e * f + h * i,
-    )
+    s00, s11, s22, s01, s02, s12 = _gram_entries(a, b, c, d, e, f, g, h, i)
+    return _lmax(s00, s11, s22, s01, s02, s12)
 
 
 @njit(**_inline)

@@ -7,8 +7,8 @@ than a whole single query needs. ``make install`` (through :func:`compile_kernel
 compiles the two entry points ahead of time with ``numba.pycc`` into
 ``nfdmatch/matching/_kernels_aot*.so``, next to a stamp holding the digest of the kernel
 source it was built from; :func:`load` returns it only when the stamp matches the source
-(an edited ``_kernels.py`` is never served by a stale build). Without it a process uses the
-just-in-time kernels, or numpy (:mod:`.kernels`: the rule).
+(an edited ``_kernels.py``, or ``common.py``, is never served by a stale build). Without it
+a process uses the just-in-time kernels, or numpy (:mod:`.kernels`: the rule).
 
 The compiled functions release the GIL, as the just-in-time ones do, so queries on threads
 and a call's rows split over threads (:func:`._threads.split_rows`) run in parallel without
@@ -49,14 +49,15 @@ _BOUND_HARMONICS = (0, 4, 8)
 
 
 def source_digest() -> str:
-    """What a build is for: the CRC-32 and length of the kernel source and of this module, and
-    the Python version (the built module needs neither numba nor its version once compiled).
-    It guards against a stale build after an edit, not against tampering; every query
-    checks it, and ``hashlib`` alone costs a process ~6 ms to import (OpenSSL)."""
+    """What a build is for: the CRC-32 and length of the kernel source, of ``common.py``
+    (whose ``gram_entries`` the kernels compile) and of this module, and the Python version
+    (the built module needs neither numba nor its version once compiled). It guards against
+    a stale build after an edit, not against tampering; every query checks it, and
+    ``hashlib`` alone costs a process ~6 ms to import (OpenSSL)."""
     import zlib
 
     parts = []
-    for name in ("_kernels.py", "aot.py"):
+    for name in ("_kernels.py", "common.py", "aot.py"):
         with open(os.path.join(_HERE, name), "rb") as f:
             data = f.read()
         parts.append(f"{zlib.crc32(data):08x}{len(data):x}")

@@ -68,10 +68,11 @@ def _lmax_soa(s00, s11, s22, s01, s02, s12):
     return np.maximum(q + 2.0 * p * np.cos(np.arccos(r) * (1.0 / 3.0)), 0.0)
 
 
-def _lmax_gram_soa(a, b, c, d, e, f, g, h, i):
-    """Largest eigenvalue of X^T X for matrices X = [[a, b, c], [d, e, f], [g, h, i]] given
-    entry-wise."""
-    return _lmax_soa(
+def gram_entries(a, b, c, d, e, f, g, h, i):
+    """The entries 00, 11, 22, 01, 02, 12 of X^T X for X = [[a, b, c], [d, e, f], [g, h, i]]
+    given entry-wise, as a tuple: of arrays here (:func:`_lmax_gram_soa`), of floats in the
+    compiled kernels, which compile this same function (:mod:`._kernels`)."""
+    return (
         a * a + d * d + g * g,
         b * b + e * e + h * h,
         c * c + f * f + i * i,
@@ -79,6 +80,12 @@ def _lmax_gram_soa(a, b, c, d, e, f, g, h, i):
         a * c + d * f + g * i,
         b * c + e * f + h * i,
     )
+
+
+def _lmax_gram_soa(a, b, c, d, e, f, g, h, i):
+    """Largest eigenvalue of X^T X for matrices X = [[a, b, c], [d, e, f], [g, h, i]] given
+    entry-wise."""
+    return _lmax_soa(*gram_entries(a, b, c, d, e, f, g, h, i))
 
 
 def trace_soa(m: np.ndarray, mirror: bool) -> np.ndarray:

@@ -6,7 +6,7 @@ import os
 from collections.abc import Sequence
 
 from ..curve import Curve
-from ..errors import NfdError, OverwriteRefusedError, WriteError
+from ..errors import NfdError, OverwriteRefusedError, WriteError, os_error_message
 from ..formats import FORMATS, format_of, write_curves
 from ..formats._chain import temp_beside, write_if_changed
 from .contours import UNSAFE, Contour, mesh_stem
@@ -142,12 +142,12 @@ def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj",
     d = str(os.fspath(out_dir))
     try:
         os.makedirs(d, exist_ok=True)
-    except FileExistsError:
-        raise WriteError("cannot create the output folder: a file is in the way", path=d) from None
-    except PermissionError:
-        raise WriteError("cannot create the output folder: permission denied", path=d) from None
     except OSError as exc:
-        raise WriteError(f"cannot create the output folder ({exc.strerror or exc})", path=d) from None
+        known = {
+            FileExistsError: "cannot create the output folder: a file is in the way",
+            PermissionError: "cannot create the output folder: permission denied",
+        }
+        raise WriteError(os_error_message(exc, known, "cannot create the output folder"), path=d) from None
     if not force:
         refused = refused_targets(contours, d, format=fmt)
         if refused:

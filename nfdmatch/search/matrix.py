@@ -7,14 +7,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..matching import EXACT, INVARIANT, METHODS
-from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
+from ..matching import EXACT, METHODS, MatchParameters, exact_search, paper_search
 from ..errors import ParameterError
-from ..matching import exact_search, paper_search
 
 if TYPE_CHECKING:
-    from numpy.typing import ArrayLike
-
     from ..curve import Curve
 
 #: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
@@ -24,14 +20,8 @@ BATCH_ROWS = 2048
 def distance_matrix(
     curves: Sequence[Curve | np.ndarray],
     *,
-    samples: int = DEFAULT_SAMPLES,
-    harmonics: int = DEFAULT_HARMONICS,
-    scale: str = DEFAULT_SCALE,
-    method: str = EXACT,
-    direction: str = INVARIANT,
-    mirror: bool = False,
-    weights: ArrayLike | None = None,
     progress: Callable[[int, int], None] | None = None,
+    **parameters,
 ) -> np.ndarray:
     """All-pairs distances of ``curves``.
 
@@ -39,7 +29,8 @@ def distance_matrix(
     ----------
     curves : sequence of N :class:`~nfdmatch.curve.Curve` or (n_i, 3) arrays.
     progress : optional callable ``progress(pairs_done, pairs_total)``.
-    Other parameters as in :func:`nfdmatch.distance`.
+    samples, harmonics, scale, method, direction, mirror, weights : by keyword, as in
+        :func:`nfdmatch.distance` (the fields of :class:`~nfdmatch.matching.MatchParameters`).
 
     Returns
     -------
@@ -53,12 +44,13 @@ def distance_matrix(
     """
     from ..descriptors import descriptors_batch
 
-    if method not in METHODS:
-        raise ParameterError(f"method must be exact or paper, got {method!r}")
-    batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
+    p = MatchParameters(**parameters)
+    if p.method not in METHODS:
+        raise ParameterError(f"method must be exact or paper, got {p.method!r}")
+    batch = descriptors_batch(curves, **p.descriptor)
     N = len(batch)
     matrix = np.zeros((N, N))
-    search = exact_search if method == EXACT else paper_search
+    search = exact_search if p.method == EXACT else paper_search
     total, done = N * (N - 1) // 2, 0
     for i in range(N - 1):
         # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
@@ -67,10 +59,10 @@ def distance_matrix(
             r = search(
                 batch.coefficients[i],
                 batch.coefficients[start:stop],
-                samples,
-                weights=weights,
-                direction=direction,
-                mirror=mirror,
+                p.samples,
+                weights=p.weights,
+                direction=p.direction,
+                mirror=p.mirror,
             )
             matrix[i, start:stop] = r["distance"]
         done += N - 1 - i

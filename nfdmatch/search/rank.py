@@ -5,8 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from ..matching import EXACT, INVARIANT
-from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, descriptors
+from ..matching import MatchParameters
+from ..descriptors import descriptors
 from ..errors import ParameterError
 from ..records import RankedMatch
 from .index_search import search_index
@@ -24,14 +24,8 @@ def rank_curves(
     *,
     top: int | None = None,
     max_distance: float | None = None,
-    samples: int = DEFAULT_SAMPLES,
-    harmonics: int = DEFAULT_HARMONICS,
-    scale: str = DEFAULT_SCALE,
-    method: str = EXACT,
-    direction: str = INVARIANT,
-    mirror: bool = False,
-    weights: ArrayLike | None = None,
     exclude_self: bool = False,
+    **parameters,
 ) -> list[RankedMatch]:
     """Rank ``curves`` by distance to ``query``.
 
@@ -42,7 +36,8 @@ def rank_curves(
     top : keep the best ``top`` (all when None).
     max_distance : drop matches farther than this.
     exclude_self : drop the query's own curve (as :func:`~nfdmatch.search.search_index`).
-    Other parameters as in :func:`nfdmatch.distance`.
+    samples, harmonics, scale, method, direction, mirror, weights : by keyword, as in
+        :func:`nfdmatch.distance` (the fields of :class:`~nfdmatch.matching.MatchParameters`).
 
     Returns
     -------
@@ -51,24 +46,22 @@ def rank_curves(
     """
     from ..curve import Curve
 
+    p = MatchParameters(**parameters)
     if not isinstance(query, Curve):
         query = Curve(query, id="<query>")
     if not curves:
         if top is not None and top < 1:
             raise ParameterError(f"top must be at least 1, got {top}")
-        descriptors(query, samples=samples, harmonics=harmonics, scale=scale)  # validates
+        descriptors(query, **p.descriptor)  # validates
         return []
-    memory = MemoryIndex(curves, samples=samples, harmonics=harmonics, scale=scale)
+    memory = MemoryIndex(curves, **p.descriptor)
     results, _ = search_index(
         memory,
         [query],
         top=top if top is not None or max_distance is not None else len(curves),
         max_distance=max_distance,
-        method=method,
-        direction=direction,
-        mirror=mirror,
-        weights=weights,
-        prune=weights is None,
+        **p.matching,
+        prune=p.weights is None,
         exclude_self=exclude_self,
     )
     return results[0]
