@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from ..errors import IndexFormatError
-from ..search.graph import neighbour_lists
+from ..search.graph import GraphLists, neighbour_lists
 from .arrays import unique_rows
 from .graph import GRAPH_CHECKSUMS, GRAPH_CHUNK_ROWS, IN_MEMORY_ROWS, GraphStats, old_graph_k, read_graph
 from .schema import create_checked
@@ -66,19 +66,15 @@ def write_graph(
         features = None
         if len(check) and len(fresh_rows):
             features = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
+        lists = GraphLists(neighbour, distance, todo, check, fresh_rows, features)
         stats.searched, stats.updated, stats.processes = neighbour_lists(
             table,
             read_coefficients,
             ids,
-            neighbour,
-            distance,
-            todo,
-            check,
-            fresh_rows,
-            features,
+            lists,
             k,
             samples,
-            threads,
+            threads=threads,
             processes=processes,
             close_fds=[fd for fd in close_fds if fd is not None],
         )

@@ -37,6 +37,7 @@ import time
 
 import numpy as np
 
+from .._fork import SIGNALS, become_worker
 from ..curve import Curve, clean_many
 from ..descriptors import descriptors_batch
 from ..errors import NfdError, ReadError, WorkerError
@@ -62,7 +63,7 @@ _MIN_BATCHES = 16
 #: again) before the build gives up
 _SPARE_DEATHS = 8
 #: signals a worker must not receive before it has set its handlers
-_BLOCKED = {signal.SIGINT, signal.SIGTERM}
+_BLOCKED = SIGNALS
 
 
 def _sha256_and_size(path: str, size: int) -> str:
@@ -352,25 +353,10 @@ def _batches(tasks: list[tuple]) -> list[list[int]]:
 def _worker_main(conn, slot, lock_fd) -> None:
     """A pool worker: ``(batch_id, batch, NFDMATCH_* environment)`` in on ``conn`` (None:
     exit), ``(batch_id, results, arrays)`` out (see :func:`_compute_batch`)."""
-    # SIGINT from the terminal reaches the whole process group: only the parent acts on it.
-    # Blocked by the parent across the fork, so nothing arrives before these handlers are set.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _BLOCKED)
-    if lock_fd is not None:  # a worker outliving its parent must not keep the index locked
-        try:
-            os.close(lock_fd)
-        except OSError:
-            pass
-    parent = os.getppid()
-
-    def watch():
-        while True:
-            time.sleep(0.5)
-            if os.getppid() != parent:
-                os._exit(1)
-
-    threading.Thread(target=watch, daemon=True, name="nfdmatch-parent-watch").start()
+    # SIGINT ignored (the terminal's reaches the whole process group: only the parent acts
+    # on it), the index lock closed (a worker outliving its parent must not keep the index
+    # locked), and an end with the parent
+    become_worker([lock_fd])
     try:
         while True:
             msg = conn.recv()

@@ -11,6 +11,8 @@ equals a from-scratch build (each list is an exact top K, ties by id).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .._fork import can_fork, fork_map
@@ -19,34 +21,44 @@ from .bounds import feature_vector, head_harmonics
 from .engine import TIE, Cascade, BestRows, search_block
 from .table import SearchTable
 
-__all__ = ["neighbour_lists"]
+__all__ = ["GraphLists", "neighbour_lists"]
 
 
 #: rows searched per block (their descriptors and lists held at once)
 _BLOCK_ROWS = 1024
 
 
+@dataclass
+class GraphLists:
+    """A graph's lists being computed, and which rows to compute: ``neighbour`` /
+    ``distance`` ((N, k) int64 / float64, filled in place), ``todo`` ((N,) bool: rows to
+    search in the whole table), ``check`` (int array: rows whose lists were copied from an
+    old graph), ``fresh_rows`` (int array: new or changed rows, which may enter the copied
+    lists) with their (m, D) invariant ``features`` (None when nothing is to check)."""
+
+    neighbour: np.ndarray
+    distance: np.ndarray
+    todo: np.ndarray
+    check: np.ndarray
+    fresh_rows: np.ndarray
+    features: np.ndarray | None = None
+
+
 def neighbour_lists(
     table,
     read_coefficients,
     ids,
-    neighbour,
-    distance,
-    todo,
-    check,
-    fresh_rows,
-    features,
-    k,
-    samples,
-    threads,
+    lists: GraphLists,
+    k: int,
+    samples: int,
     *,
+    threads: int | None = None,
     processes: int = 1,
     close_fds=(),
 ) -> tuple[int, int, int]:
-    """Fill ``neighbour`` / ``distance`` ((N, k) int64 / float64) with each row's k nearest
-    other rows of ``table``: the rows in ``todo`` ((N,) bool) searched in the whole table,
-    the rows in ``check`` (int array: lists copied from an old graph) updated where one of
-    ``fresh_rows`` (new or changed rows, with their (m, D) ``features``) enters them.
+    """Fill ``lists`` with each row's k nearest other rows of ``table``: the rows in
+    ``lists.todo`` searched in the whole table, the rows in ``lists.check`` updated where
+    one of ``lists.fresh_rows`` enters them. ``ids``: the rows' ids (ties).
     Returns ``(searched, updated, processes)``: rows searched, copied lists that changed,
     worker processes that searched (0: this process did).
 
@@ -62,6 +74,7 @@ def neighbour_lists(
     here, on ``threads``. The lists are the same either way (each row's search is its own).
     ``close_fds``: descriptors a worker must not keep (the index lock).
     """
+    neighbour, distance, todo = lists.neighbour, lists.distance, lists.todo
     N = len(todo)
     cascade = Cascade(samples)
     searched = np.flatnonzero(todo)
@@ -93,9 +106,7 @@ def neighbour_lists(
         left = fork_map(work, queries, processes, store, close_fds=close_fds)
     for number in left:
         store(number, _nearest_others(table, queries[number], ids, k, cascade, threads))
-    updated = _update_copied(
-        table, read_coefficients, ids, neighbour, distance, check, fresh_rows, features, k, cascade, threads
-    )
+    updated = _update_copied(table, read_coefficients, ids, lists, k, cascade, threads)
     return len(searched), updated, processes
 
 
@@ -127,11 +138,11 @@ def _nearest_others(table, task, ids, k, cascade, threads):
     return block, nb, d
 
 
-def _update_copied(
-    table, read_coefficients, ids, neighbour, distance, check, fresh_rows, features, k, cascade, threads
-):
-    """Update the copied lists of the rows ``check`` where one of ``fresh_rows`` enters them
-    (see :func:`neighbour_lists`); returns how many changed."""
+def _update_copied(table, read_coefficients, ids, lists: GraphLists, k, cascade, threads):
+    """Update the copied lists of the rows ``lists.check`` where one of ``lists.fresh_rows``
+    enters them (see :func:`neighbour_lists`); returns how many changed."""
+    neighbour, distance, check, fresh_rows = lists.neighbour, lists.distance, lists.check, lists.fresh_rows
+    features = lists.features
     changed = 0
     if not (len(check) and len(fresh_rows)):
         return changed
