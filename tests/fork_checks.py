@@ -108,6 +108,31 @@ def check_the_graph_searched_by_worker_processes_is_the_graph_of_one_process(fol
     np.testing.assert_array_equal(stored[0][1], stored[1][1])
 
 
+def check_the_matrix_of_worker_processes_is_the_matrix_of_one_process(folder):
+    """distance_matrix over two forked workers: the same entries, bit for bit, as in one
+    process (each entry is computed by itself), progress counting every pair once."""
+    from nfdmatch import Curve
+    from nfdmatch.search import distance_matrix, matrix
+
+    forked = []
+    real = matrix.fork_map
+    matrix.fork_map = lambda *a, **kw: forked.append(a[2]) or real(*a, **kw)
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    curves = []
+    for i in range(240):
+        r = 1 + 0.2 * rng.standard_normal(3) @ np.array([np.cos(2 * t), np.sin(3 * t), np.cos(5 * t)])
+        curves.append(Curve(np.c_[r * np.cos(t), r * np.sin(t), 0.1 * rng.standard_normal() * np.sin(t)], id=f"c{i}"))
+    seen = []
+    one = distance_matrix(curves, processes=1, harmonics=8)
+    two = distance_matrix(curves, processes=2, harmonics=8, progress=lambda done, total: seen.append((done, total)))
+    np.testing.assert_array_equal(one, two)
+    assert forked == [2]
+    assert seen[-1] == (240 * 239 // 2, 240 * 239 // 2)
+    assert [d for d, _ in seen] == sorted(d for d, _ in seen)
+
+
 CHECKS = sorted(name for name in dir() if name.startswith("check_"))
 
 if __name__ == "__main__":

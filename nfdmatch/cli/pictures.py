@@ -346,5 +346,26 @@ def _matrix_text(ids, values, fmt: str, rerank: bool) -> str:
     if fmt == "json":
         return json.dumps({"ids": ids, ("scores" if rerank else "distances"): values.tolist()}, indent=1) + "\n"
     return delimited_text(
-        ["id"] + ids, ([curve_id] + [repr(float(v)) for v in row] for curve_id, row in zip(ids, values)), fmt
+        ["id"] + ids, (_id_and(curve_id, row) for curve_id, row in zip(ids, _entry_texts(values))), fmt
     )
+
+
+def _id_and(curve_id, row):
+    return [curve_id, *row]
+
+
+def _entry_texts(values):
+    """Each row's entries as text (``repr``: the shortest that reads back the same float);
+    a symmetric matrix's entries are written out once for both triangles (2 M entries of
+    1,400 curves: half of the formatting time)."""
+    import numpy as np
+
+    N = len(values)
+    if not np.array_equal(values, values.T):
+        return [[repr(v) for v in row] for row in values.tolist()]
+    text = np.empty((N, N), dtype=object)
+    for i in range(N):
+        row = list(map(repr, values[i, i:].tolist()))
+        text[i, i:] = row
+        text[i:, i] = row
+    return text.tolist()

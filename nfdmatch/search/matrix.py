@@ -2,25 +2,34 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .._fork import can_fork, fork_map
 from ..matching import EXACT, METHODS, MatchParameters, exact_search, paper_search
 from ..errors import ParameterError
+from ..matching.kernels import before_fork, set_call_threads
 
 if TYPE_CHECKING:
     from ..curve import Curve
 
 #: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
 BATCH_ROWS = 2048
+#: runs of rows handed to worker processes (of about as many pairs each: progress, and the
+#: balance between workers)
+_MATRIX_TASKS = 64
+#: pairs from which worker processes are forked (fewer take less than a fork costs)
+_FORK_FROM_PAIRS = 20_000
 
 
 def distance_matrix(
     curves: Sequence[Curve | np.ndarray],
     *,
     progress: Callable[[int, int], None] | None = None,
+    processes: int | None = None,
     **parameters,
 ) -> np.ndarray:
     """All-pairs distances of ``curves``.
@@ -29,6 +38,10 @@ def distance_matrix(
     ----------
     curves : sequence of N :class:`~nfdmatch.curve.Curve` or (n_i, 3) arrays.
     progress : optional callable ``progress(pairs_done, pairs_total)``.
+    processes : forked worker processes sharing the rows (None: the cores; 1: this
+        process, each row's call split over the kernels' threads). Workers are used when
+        this process may fork (:func:`nfdmatch._fork.can_fork`); every entry is the same
+        either way (each is computed by itself).
     samples, harmonics, scale, method, direction, mirror, weights : by keyword, as in
         :func:`nfdmatch.distance` (the fields of :class:`~nfdmatch.matching.MatchParameters`).
 
@@ -52,23 +65,63 @@ def distance_matrix(
     matrix = np.zeros((N, N))
     search = exact_search if p.method == EXACT else paper_search
     total, done = N * (N - 1) // 2, 0
-    for i in range(N - 1):
-        # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
-        for start in range(i + 1, N, BATCH_ROWS):
-            stop = min(start + BATCH_ROWS, N)
-            r = search(
-                batch.coefficients[i],
-                batch.coefficients[start:stop],
-                p.samples,
-                weights=p.weights,
-                direction=p.direction,
-                mirror=p.mirror,
-            )
-            matrix[i, start:stop] = r["distance"]
-        done += N - 1 - i
+
+    def rows(task):
+        """Rows ``a..b-1`` of the upper triangle, each against every later curve."""
+        a, b = task
+        out = []
+        for i in range(a, b):
+            # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
+            for start in range(i + 1, N, BATCH_ROWS):
+                stop = min(start + BATCH_ROWS, N)
+                r = search(
+                    batch.coefficients[i],
+                    batch.coefficients[start:stop],
+                    p.samples,
+                    weights=p.weights,
+                    direction=p.direction,
+                    mirror=p.mirror,
+                )
+                out.append(r["distance"])
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def collect(number, values):
+        nonlocal done
+        a, b = tasks[number]
+        at = 0
+        for i in range(a, b):
+            matrix[i, i + 1 :] = values[at : at + N - 1 - i]
+            at += N - 1 - i
+        done += at
         if progress is not None:
             progress(done, total)
+
+    processes = (os.cpu_count() or 1) if processes is None else int(processes)
+    tasks = _row_blocks(N, _MATRIX_TASKS if processes > 1 and total >= _FORK_FROM_PAIRS else N)
+    left = range(len(tasks))
+    if processes > 1 and total >= _FORK_FROM_PAIRS:
+        before_fork()
+        if can_fork():
+
+            def work(task):
+                set_call_threads(1)  # one thread per worker: its siblings have the other cores
+                return rows(task)
+
+            left = fork_map(work, tasks, processes, collect)
+    for number in left:
+        collect(number, rows(tasks[number]))
     return matrix + matrix.T
+
+
+def _row_blocks(N: int, parts: int) -> list[tuple[int, int]]:
+    """Rows 0..N-2 as up to ``parts`` runs ``(a, b)`` of about as many pairs each (row i
+    has N - 1 - i pairs: the runs grow towards the end)."""
+    if N < 2:
+        return []
+    pairs_before = np.concatenate([[0], np.cumsum(np.arange(N - 1, 0, -1))])  # (N,)
+    cuts = np.searchsorted(pairs_before, np.linspace(0, pairs_before[-1], parts + 1)[1:-1])
+    edges = np.unique(np.concatenate([[0], cuts, [N - 1]]))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
 def similarity_order(matrix: np.ndarray) -> np.ndarray:
