@@ -112,11 +112,11 @@ def check_the_matrix_of_worker_processes_is_the_matrix_of_one_process(folder):
     """distance_matrix over two forked workers: the same entries, bit for bit, as in one
     process (each entry is computed by itself), progress counting every pair once."""
     from nfdmatch import Curve
-    from nfdmatch.search import distance_matrix, matrix
+    from nfdmatch.search import distance_matrix, workers
 
     forked = []
-    real = matrix.fork_map
-    matrix.fork_map = lambda *a, **kw: forked.append(a[2]) or real(*a, **kw)
+    real = workers.fork_map
+    workers.fork_map = lambda *a, **kw: forked.append(a[2]) or real(*a, **kw)
 
     rng = np.random.default_rng(3)
     t = np.linspace(0, 2 * np.pi, 40, endpoint=False)

@@ -15,11 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._fork import can_fork, fork_map
-from ..matching.kernels import before_fork, set_call_threads
 from .bounds import feature_vector, head_harmonics
 from .engine import TIE, Cascade, BestRows, search_block
 from .table import SearchTable
+from .workers import run_tasks
 
 __all__ = ["GraphLists", "neighbour_lists"]
 
@@ -90,22 +89,15 @@ def neighbour_lists(
         block, nb, d = got
         neighbour[block], distance[block] = nb, d
 
-    left, processes = range(len(blocks)), min(processes, len(blocks))
-    if processes > 1 and table.stored_harmonics >= table.harmonics:
-        before_fork()
-        processes = processes if can_fork() else 0
-    else:
-        processes = 0
-    if processes:
-        table.read_whole()
-
-        def work(task):
-            set_call_threads(1)  # one thread per worker: its siblings have the other cores
-            return _nearest_others(table, task, ids, k, cascade, 1)
-
-        left = fork_map(work, queries, processes, store, close_fds=close_fds)
-    for number in left:
-        store(number, _nearest_others(table, queries[number], ids, k, cascade, threads))
+    complete = table.stored_harmonics >= table.harmonics  # else workers would read the file
+    processes = run_tasks(
+        queries,
+        lambda task, threads_: _nearest_others(table, task, ids, k, cascade, threads_ or threads),
+        store,
+        processes if complete else 1,
+        prepare=table.read_whole,
+        close_fds=close_fds,
+    )
     updated = _update_copied(table, read_coefficients, ids, lists, k, cascade, threads)
     return len(searched), updated, processes
 

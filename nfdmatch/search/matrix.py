@@ -8,10 +8,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._fork import can_fork, fork_map
 from ..matching import EXACT, METHODS, MatchParameters, exact_search, paper_search
 from ..errors import ParameterError
-from ..matching.kernels import before_fork, set_call_threads
+from .workers import run_tasks
 
 if TYPE_CHECKING:
     from ..curve import Curve
@@ -66,25 +65,6 @@ def distance_matrix(
     search = exact_search if p.method == EXACT else paper_search
     total, done = N * (N - 1) // 2, 0
 
-    def rows(task):
-        """Rows ``a..b-1`` of the upper triangle, each against every later curve."""
-        a, b = task
-        out = []
-        for i in range(a, b):
-            # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
-            for start in range(i + 1, N, BATCH_ROWS):
-                stop = min(start + BATCH_ROWS, N)
-                r = search(
-                    batch.coefficients[i],
-                    batch.coefficients[start:stop],
-                    p.samples,
-                    weights=p.weights,
-                    direction=p.direction,
-                    mirror=p.mirror,
-                )
-                out.append(r["distance"])
-        return np.concatenate(out) if out else np.zeros(0)
-
     def collect(number, values):
         nonlocal done
         a, b = tasks[number]
@@ -97,20 +77,31 @@ def distance_matrix(
             progress(done, total)
 
     processes = (os.cpu_count() or 1) if processes is None else int(processes)
-    tasks = _row_blocks(N, _MATRIX_TASKS if processes > 1 and total >= _FORK_FROM_PAIRS else N)
-    left = range(len(tasks))
-    if processes > 1 and total >= _FORK_FROM_PAIRS:
-        before_fork()
-        if can_fork():
-
-            def work(task):
-                set_call_threads(1)  # one thread per worker: its siblings have the other cores
-                return rows(task)
-
-            left = fork_map(work, tasks, processes, collect)
-    for number in left:
-        collect(number, rows(tasks[number]))
+    spread = processes > 1 and total >= _FORK_FROM_PAIRS
+    tasks = _row_blocks(N, _MATRIX_TASKS if spread else N)
+    run_tasks(tasks, lambda task, _: _upper_rows(batch, search, p, task), collect, processes if spread else 1)
     return matrix + matrix.T
+
+
+def _upper_rows(batch, search, p: MatchParameters, task) -> np.ndarray:
+    """Rows ``a..b-1`` of the upper triangle (task ``(a, b)``), each against every later
+    curve of ``batch``, concatenated."""
+    a, b = task
+    N = len(batch)
+    out = []
+    for i in range(a, b):
+        # at most BATCH_ROWS rows per call: bounds the working set (rows x shifts x 9)
+        for start in range(i + 1, N, BATCH_ROWS):
+            r = search(
+                batch.coefficients[i],
+                batch.coefficients[start : min(start + BATCH_ROWS, N)],
+                p.samples,
+                weights=p.weights,
+                direction=p.direction,
+                mirror=p.mirror,
+            )
+            out.append(r["distance"])
+    return np.concatenate(out) if out else np.zeros(0)
 
 
 def _row_blocks(N: int, parts: int) -> list[tuple[int, int]]:
