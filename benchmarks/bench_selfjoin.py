@@ -110,15 +110,14 @@ def graph_of(path):
 def exhaustive_sample(index_path: str, rows: np.ndarray, k: int) -> bool:
     """The graph's lists of ``rows`` equal the exhaustive search's top k + 1 less the row."""
     from nfdmatch.index import open_index
-    from nfdmatch.matching import exact_search
-    from nfdmatch.search.engine import BestRows
+    from nfdmatch.search.engine import BestRows, Cascade
     from nfdmatch.search.index_search import _exhaustive, ranked_rows
 
     nb, _ = graph_of(index_path)
     with open_index(index_path) as idx:
         q = np.asarray(idx.coefficients_at(rows), dtype=np.complex128)
         tops = [BestRows(k + 1, None) for _ in rows]
-        _exhaustive(idx, q, tops, exact_search, direction="invariant", mirror=False, weights=None, progress=None)
+        _exhaustive(idx, q, tops, Cascade(idx.samples), weights=None, progress=None)
         found = ranked_rows(idx, tops, k + 1)
     return all([m.row for m in res if m.row != r][:k] == nb[r].tolist() for r, res in zip(rows, found))
 

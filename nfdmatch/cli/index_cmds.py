@@ -125,8 +125,9 @@ def index_build(
     failed, failures (path and error of each failed file), skipped (folders that could not
     be listed, whose indexed files are kept, and non-regular files), curves, seconds; and shrink
     ({removed, of, allowed}) when the build removes (or refused to remove) more than half;
-    with --graph, also graph: {k, searched, updated, kept, seconds} (rows searched in the whole index, copied
-    rows a new curve entered, copied rows kept as they were).
+    with --graph, also graph: {k, searched, updated, kept, processes, seconds} (rows searched
+    in the whole index, copied rows a new curve entered, copied rows kept as they were,
+    worker processes that searched: --jobs, 0 when this process did).
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
     1 nothing written (bad arguments, lock held, unreadable old index, shrink refused,
