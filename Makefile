@@ -19,7 +19,9 @@ $(STAMP): $(BIN)/python pyproject.toml setup.py
 
 $(KERNELS): $(STAMP) nfdmatch/matching/_kernels.py nfdmatch/matching/common.py nfdmatch/matching/aot.py
 	@echo "compiling the numba kernels once, also ahead of time (so that no query compiles or imports numba)" >&2
-	$(BIN)/python -c "from nfdmatch.matching import compile_kernels; compile_kernels()"
+	@# what will serve, said: a kernel that fails to compile falls back (slower) without failing the install
+	$(BIN)/python -c "from nfdmatch.matching import compile_kernels; from nfdmatch.matching.kernels import choose; \
+		compile_kernels(); print('kernels that will serve:', choose().describe())" >&2
 	touch $(KERNELS)
 
 # bytecode too: a CLI start-up without it compiles every module from source (~60 ms more
