@@ -14,6 +14,7 @@ fork stays held in the child): :func:`can_fork` says whether this process may.
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import threading
@@ -97,6 +98,11 @@ def fork_map(
     close_fds = tuple(close_fds)
     pending = list(range(len(tasks)))[::-1]  # popped from the end: task order
     running: dict = {}  # connection -> (pid, task number or None)
+    # no garbage of the parent's is finalized in a worker (a file object collected there
+    # would be flushed and closed behind the parent's back): collected here first, and the
+    # rest frozen for the workers' collector (which then also leaves its pages unshared)
+    gc.collect()
+    gc.freeze()
     old = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
     try:
         for _ in range(max(1, min(workers, len(tasks)))):
@@ -110,6 +116,7 @@ def fork_map(
             running[mine] = [pid, None]
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        gc.unfreeze()
     lost: list[int] = []
     try:
         for conn, state in running.items():

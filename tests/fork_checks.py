@@ -68,6 +68,35 @@ def check_a_worker_closes_the_descriptors_it_must_not_keep(folder):
     os.fstat(fd)  # still open here
 
 
+def check_no_garbage_of_the_parent_is_finalized_in_a_worker(folder):
+    """An object of the parent's waiting for the cycle collector (an h5py file would be
+    flushed and closed by its finalizer) is finalized in the parent only, once."""
+    import gc
+
+    log = os.path.join(folder, "finalized")
+
+    class Held:
+        def __del__(self):
+            with open(log, "a") as f:
+                f.write(f"{os.getpid()}\n")
+
+    gc.disable()  # until the fork: the cycle below stays uncollected
+    a, b = Held(), Held()
+    a.other, b.other = b, a  # a cycle: only the collector frees it
+    del a, b
+
+    def work(x):
+        gc.collect()  # what a worker's allocations would do in time
+        return x
+
+    fork_map(work, list(range(4)), 2, lambda i, r: None)
+    gc.enable()
+    gc.collect()
+    with open(log) as f:
+        pids = f.read().split()
+    assert pids == [str(os.getpid())] * 2, pids
+
+
 def check_no_fork_while_another_thread_runs(folder):
     assert can_fork()
     stop = threading.Event()
