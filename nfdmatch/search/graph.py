@@ -64,8 +64,8 @@ def neighbour_lists(
     Every row is a query of :func:`~nfdmatch.search.engine.search_block` asking for k + 1
     (the row finds itself), its list the k nearest others, ties by id as a query orders them;
     rows in the table's order (cell by cell), in blocks that share the cells they read. (The
-    self-join of :mod:`.join` gives the same lists, faster at 20,000 curves but slower at
-    100,000: 818 s against 484 s, docs/selfjoin.md; the graph keeps the per-row search.)
+    self-join of :mod:`.join` gives the same lists, but was slower at 100,000 curves: 818 s
+    against this search's 484 s then, 77 s now over two processes; docs/selfjoin.md.)
 
     ``processes`` > 1: the blocks are searched by that many forked processes, each on one
     thread, when this process may fork (:func:`nfdmatch._fork.can_fork`) and the table hands
@@ -92,7 +92,7 @@ def neighbour_lists(
     complete = table.stored_harmonics >= table.harmonics  # else workers would read the file
     processes = run_tasks(
         queries,
-        lambda task, threads_: _nearest_others(table, task, ids, k, cascade, threads_ or threads),
+        lambda task, in_worker: _nearest_others(table, task, ids, k, cascade, in_worker or threads),
         store,
         processes if complete else 1,
         prepare=table.read_whole,
