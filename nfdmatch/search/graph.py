@@ -92,7 +92,7 @@ def neighbour_lists(
     complete = table.stored_harmonics >= table.harmonics  # else workers would read the file
     processes = run_tasks(
         queries,
-        lambda task, in_worker: _nearest_others(table, task, ids, k, cascade, in_worker or threads),
+        lambda task, worker_threads: _nearest_others(table, task, ids, k, cascade, worker_threads or threads),
         store,
         processes if complete else 1,
         prepare=table.read_whole,
