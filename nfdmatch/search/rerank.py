@@ -273,9 +273,25 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
         queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
     ).coefficients
     cascade = Cascade(index.samples, DEFAULT_METHOD, DEFAULT_DIRECTION, False)
-    recompute_reported(index, qcoef, tops, cascade.distance, direction=DEFAULT_DIRECTION, mirror=False, weights=None)
+    every = np.unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
+    recompute_reported(
+        _Read(index, every), qcoef, tops, cascade.distance, direction=DEFAULT_DIRECTION, mirror=False, weights=None
+    )
     stats.exact += sum(len(tk.rows) for tk in tops)
     return ranked_rows(index, tops, None), stats, vectors
+
+
+class _Read:
+    """The descriptors of the batch's candidates ``rows`` (ascending, unique), read from the
+    index in one read, served as :meth:`Index.coefficients_at` would (one read per query cost
+    ~5 ms each at 100,000 curves)."""
+
+    def __init__(self, index, rows):
+        self.samples, self.rows = index.samples, rows
+        self.coef = index.coefficients_at(rows)
+
+    def coefficients_at(self, rows):
+        return self.coef[np.searchsorted(self.rows, rows)]
 
 
 def _sum_by_node(nodes: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
