@@ -230,7 +230,7 @@ def knots_top1(method, Ds, Q):
 # --------------------------------------------------------------------------- the shipped path
 
 
-def shipped(cols, knot_data, work):
+def shipped(cols, knot_data, work, candidates="exact"):
     """query --rerank (library) through an index with a graph: Kimia, mesh, families, knots."""
     from nfdmatch.index import build_index, open_index
     from nfdmatch.search import search_index
@@ -238,7 +238,8 @@ def shipped(cols, knot_data, work):
 
     print(
         "\n## The shipped path: each query's exact top 100 re-ordered by the diffusion over the stored graph "
-        "(index build --graph 10, query --rerank --exclude-self); time: every curve a query, one batch"
+        "(index build --graph 10, query --rerank --exclude-self); time: every curve a query, one batch; "
+        f"candidates: {candidates}"
     )
     print(
         f"{'collection':24} {'plain P@10':>10} {'rerank P@10':>11} {'plain BE':>9} {'rerank BE':>9}"
@@ -256,7 +257,12 @@ def shipped(cols, knot_data, work):
             t_plain = time.perf_counter() - t
             t = time.perf_counter()
             res, _ = rerank_index(
-                idx, stored, top=100 if len(stored) > 100 else len(stored) - 1, depth=100, exclude_self=True
+                idx,
+                stored,
+                top=100 if len(stored) > 100 else len(stored) - 1,
+                depth=100,
+                exclude_self=True,
+                candidates=candidates,
             )
             t_rerank = time.perf_counter() - t
         pos = {os.path.relpath(s.id, work): i for i, s in enumerate(stored)}  # ids relative to the index
@@ -279,7 +285,7 @@ def shipped(cols, knot_data, work):
     write_curves(os.path.join(folder, "smooth.obj"), smooth)
     build_index([folder], os.path.join(work, "knots.h5"), jobs=2, graph=10)
     with open_index(os.path.join(work, "knots.h5")) as idx:
-        res, _ = rerank_index(idx, control, top=1)
+        res, _ = rerank_index(idx, control, top=1, candidates=candidates)
         ids = idx.ids()
     hits = sum(r[0].id == ids[i] for i, r in enumerate(res))
     print(f"{'knotess control->smooth':24} top-1 with --rerank: {hits}/{len(control)}")
@@ -356,6 +362,12 @@ def main():
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--skip-tables", action="store_true", help="only the build and query timing")
     ap.add_argument("--skip-methods", action="store_true", help="tables: the shipped path only")
+    ap.add_argument(
+        "--candidates",
+        choices=("exact", "walk"),
+        default="exact",
+        help="the shipped path's candidates (rerank_index(candidates=...)): exact top 100 or from the walk",
+    )
     ap.add_argument("--index", help="timing: only the queries, on this index (built with --graph) of generated curves")
     args = ap.parse_args()
     if not os.path.isdir(args.data):
@@ -375,20 +387,20 @@ def main():
     work = tempfile.mkdtemp(prefix="bench-rerank-")
     try:
         if not args.skip_tables:
-            tables(args.data, work, methods=not args.skip_methods)
+            tables(args.data, work, methods=not args.skip_methods, candidates=args.candidates)
         if not args.skip_timing:
             timing(args.curves, work)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def tables(data, work, methods=True):
+def tables(data, work, methods=True, candidates="exact"):
     t0 = time.perf_counter()
     cols = collections(data)
     knot_data = knots(data)
     print(f"(distance matrices: {time.perf_counter() - t0:.1f} s)")
     if not methods:
-        shipped(cols, knot_data, work)
+        shipped(cols, knot_data, work, candidates)
         return
     print(
         f"\n## Methods on full distance matrices (k = {K} neighbours, alpha = {A}); P@10 = precision at 10, "
@@ -406,7 +418,7 @@ def tables(data, work, methods=True):
                 line += f" {scores_table(method(c['D']), c['labels'])[1]:14.3f}"
         line += f" {knots_top1(method, knot_data[2], knot_data[3]):6d}"
         print(line, flush=True)
-    shipped(cols, knot_data, work)
+    shipped(cols, knot_data, work, candidates)
 
 
 if __name__ == "__main__":

@@ -164,7 +164,8 @@ def families_index(tmp_path_factory):
     return folder, curves, labels
 
 
-def test_rerank_improves_a_family_collection(families_index):
+@pytest.mark.parametrize("candidates", ["exact", "walk"])
+def test_rerank_improves_a_family_collection(families_index, candidates):
     folder, _, labels = families_index
     stored = _read_back(folder / "c")  # the curves as stored, in order
 
@@ -174,7 +175,7 @@ def test_rerank_improves_a_family_collection(families_index):
     family = {stored_id(c.id): f for c, f in zip(stored, labels)}
     with open_index(folder / "i.h5") as idx:
         plain, _ = search_index(idx, stored, top=11)
-        reranked, _ = rerank_index(idx, stored, top=10, depth=100, exclude_self=True)
+        reranked, _ = rerank_index(idx, stored, top=10, depth=100, exclude_self=True, candidates=candidates)
 
     def precision(results):
         hits = []
@@ -188,13 +189,16 @@ def test_rerank_improves_a_family_collection(families_index):
     assert p_rerank >= p_plain + 0.03, (p_plain, p_rerank)
 
 
-def test_a_query_scores_the_same_alone_as_in_a_batch(families_index):
+@pytest.mark.parametrize("candidates", ["exact", "walk"])
+def test_a_query_scores_the_same_alone_as_in_a_batch(families_index, candidates):
     folder, _, _ = families_index
     stored = _read_back(folder / "c")[::9]
     with open_index(folder / "i.h5") as idx:
         for exclude_self in (False, True):
-            batch, _ = rerank_index(idx, stored, top=20, exclude_self=exclude_self)
-            alone = [rerank_index(idx, [q], top=20, exclude_self=exclude_self)[0][0] for q in stored]
+            batch, _ = rerank_index(idx, stored, top=20, exclude_self=exclude_self, candidates=candidates)
+            alone = [
+                rerank_index(idx, [q], top=20, exclude_self=exclude_self, candidates=candidates)[0][0] for q in stored
+            ]
             assert batch == alone
 
 
@@ -213,7 +217,8 @@ def _agrees_with_the_matrix(results, S, i, position, every_curve):
         assert others.max() - want.min() <= 2 * MATRIX_TOLERANCE
 
 
-def test_query_rerank_orders_a_stored_curve_as_matrix_rerank(tmp_path, rng):
+@pytest.mark.parametrize("candidates", ["exact", "walk"])
+def test_query_rerank_orders_a_stored_curve_as_matrix_rerank(tmp_path, rng, candidates):
     curves, _ = family_curves(rng, families=12, members=10)
     write_parts(tmp_path / "c", curves, 2)
     build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
@@ -225,16 +230,20 @@ def test_query_rerank_orders_a_stored_curve_as_matrix_rerank(tmp_path, rng):
 
     position = {rel(c.id): i for i, c in enumerate(stored)}
     with open_index(tmp_path / "i.h5") as idx:
-        results, _ = rerank_index(idx, stored, top=40, depth=100, exclude_self=True)
-        whole, _ = rerank_index(idx, stored[:10], top=100, depth=119, exclude_self=True)
+        results, _ = rerank_index(idx, stored, top=40, depth=100, exclude_self=True, candidates=candidates)
+        whole, _ = rerank_index(idx, stored[:10], top=100, depth=119, exclude_self=True, candidates=candidates)
     for i, res in enumerate(results):
         assert len(res) == 40 and all(m.id != rel(stored[i].id) for m in res)
-        _agrees_with_the_matrix(res, S, i, position, False)  # the order of the exact top 100
-    for i, res in enumerate(whole):  # every other curve a candidate: the first 100 of the matrix
-        _agrees_with_the_matrix(res, S, i, position, True)
+        _agrees_with_the_matrix(res, S, i, position, False)  # the order of the candidates
+    for i, res in enumerate(whole):
+        # exact: every other curve a candidate, the first 100 of the matrix; walk: the rows
+        # the query's PageRank reaches above the push's tolerance (not every curve)
+        assert len(res) == 100 or candidates == "walk"
+        _agrees_with_the_matrix(res, S, i, position, candidates == "exact")
 
 
-def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng):
+@pytest.mark.parametrize("candidates", ["exact", "walk"])
+def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng, candidates):
     curves = random_curves(rng, 150)
     write_parts(tmp_path / "c", curves, 3)
     build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
@@ -246,8 +255,8 @@ def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng):
         pts = pts + rng.normal(scale=1e-3 * radius, size=pts.shape)
         queries.append(Curve(random_rigid_motion(np.roll(pts, 7, axis=0), rng), id=f"q{i}"))
     with open_index(tmp_path / "i.h5") as idx:
-        results, _ = rerank_index(idx, queries, top=3)
-        again, _ = rerank_index(idx, queries, top=3)
+        results, _ = rerank_index(idx, queries, top=3, candidates=candidates)
+        again, _ = rerank_index(idx, queries, top=3, candidates=candidates)
     assert [[m.id for m in r] for r in results] == [
         [os.path.relpath(stored[i].id, tmp_path)] + [m.id for m in r][1:] for i, r in zip(range(0, 150, 5), results)
     ]
@@ -265,6 +274,8 @@ def test_rerank_parameters_and_missing_graph(tmp_path, rng):
             rerank_index(idx, q, depth=50)
         with pytest.raises(ParameterError, match="top"):
             rerank_index(idx, q, top=101, depth=100)
+        with pytest.raises(ParameterError, match="candidates"):
+            rerank_index(idx, q, candidates="nearest")
 
 
 def test_diffused_similarity_shape_and_symmetry(rng):
@@ -308,6 +319,13 @@ def test_cli_build_graph_then_query_rerank(tmp_path, rng):
     assert rows[0]["match"].endswith("part-00.obj#0") and float(rows[0]["distance"]) < 1e-4
     code2, out2, _ = run("query", query, "--index", index, "--rerank", "--top", "5", "--format", "csv")
     assert (code2, out2) == (code, out)
+    # experimental: the candidates from the walk (a hidden option)
+    code3, out3, err3 = run(
+        "query", query, "--index", index, "--rerank", "--rerank-candidates", "walk", "--top", "5", "--format", "csv"
+    )
+    assert code3 == 0 and err3 == ""
+    walked = list(csv.DictReader(io.StringIO(out3)))
+    assert [r["match"] for r in walked][:1] == [rows[0]["match"]] and len(walked) == 5
 
     code, out, err = run(
         "query", query, "--index", index, "--rerank", "--exclude-self", "--top", "3", "--format", "jsonl", "--details"
@@ -331,6 +349,8 @@ def test_cli_rerank_errors(tmp_path, rng):
         assert code == 2 and out == "" and "Error" in err, extra
     code, out, err = run("query", query, "--index", index, "--rerank-depth", "200")
     assert code == 2 and "--rerank-depth needs --rerank" in err
+    code, out, err = run("query", query, "--index", index, "--rerank-candidates", "walk")
+    assert code == 2 and "--rerank-candidates needs --rerank" in err
 
 
 def test_cli_matrix_rerank(tmp_path, rng):

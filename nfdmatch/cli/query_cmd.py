@@ -48,6 +48,14 @@ from .group import main
     metavar="M",
     help="With --rerank: the query's exact top M that the diffusion re-orders.",
 )
+@click.option(
+    "--rerank-candidates",
+    type=click.Choice(["exact", "walk"]),
+    default="exact",
+    hidden=True,
+    help="Experimental (issue 23), with --rerank: the candidates are the exact top M (exact) or the "
+    "query's exact 8 nearest plus the M rows its PageRank reaches most (walk).",
+)
 @matching_options
 @input_format_option
 @scheduler_options
@@ -62,6 +70,7 @@ def query(
     show_stats,
     rerank,
     rerank_depth,
+    rerank_candidates,
     matching,
     input_format,
     scheduler,
@@ -97,6 +106,8 @@ def query(
 
     output_format = resolve_format(output_format, output)
     _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
+    if rerank_candidates != "exact" and not rerank:
+        raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
         _note_old_format(idx, exhaustive)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
@@ -104,7 +115,7 @@ def query(
             raise click.UsageError("--ranges needs --scheduler")
         results, stats = _search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
-            prune=not exhaustive, match=matching, **listing.search(),
+            prune=not exhaustive, match=matching, candidates=rerank_candidates, **listing.search(),
         )  # fmt: skip
         spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
         match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
@@ -139,7 +150,9 @@ def _note_old_format(idx, exhaustive: bool) -> None:
         )
 
 
-def _search_queries(idx, curves, rerank_depth, cluster_at, *, top, max_distance, prune, exclude_self, match):
+def _search_queries(
+    idx, curves, rerank_depth, cluster_at, *, top, max_distance, prune, exclude_self, match, candidates="exact"
+):
     """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank_depth``
     not None), or searched here or on the cluster ``cluster_at`` (--scheduler, its timeout,
     --ranges)."""
@@ -152,7 +165,10 @@ def _search_queries(idx, curves, rerank_depth, cluster_at, *, top, max_distance,
         if rerank_depth is not None:
             from ..search.rerank import rerank_index
 
-            return rerank_index(idx, curves, top=top, depth=rerank_depth, progress=progress, exclude_self=exclude_self)
+            return rerank_index(
+                idx, curves, top=top, depth=rerank_depth, progress=progress, exclude_self=exclude_self,
+                candidates=candidates,
+            )  # fmt: skip
         extra = {} if cluster is None else {"parts": ranges}
         run = search_index if cluster is None else cluster.search_index
         return run(

@@ -49,6 +49,7 @@ __all__ = [
     "MIN_DEPTH",
     "MATRIX_TOLERANCE",
     "DEFAULT_DEPTH",
+    "CANDIDATES",
 ]
 
 #: neighbours per node in the affinity graph; the k-th one's distance is the node's scale
@@ -66,6 +67,10 @@ MIN_DEPTH = DEFAULT_DEPTH = DEFAULT_RERANK_DEPTH
 MATRIX_TOLERANCE = 1e-3
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
+#: where a query's candidates come from (``rerank_index(candidates=...)``): ``"exact"`` its exact
+#: top M; ``"walk"`` (experimental, issue 23) its exact k nearest plus the M stored rows of
+#: largest personalised-PageRank mass from its first step, each given its exact distance
+CANDIDATES = ("exact", "walk")
 
 
 def _scales(sorted_distances: np.ndarray, k: int) -> np.ndarray:
@@ -132,6 +137,7 @@ def rerank_index(
     exclude_self: bool = False,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
+    candidates: str = "exact",
 ) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k best curves of an index for each query by diffused score.
 
@@ -145,6 +151,9 @@ def rerank_index(
         query in the graph (its stored row and PageRank) and is left out of the results;
         the scores are then ``matrix --rerank``'s within :data:`MATRIX_TOLERANCE`.
     progress, threads : as in :func:`~nfdmatch.search.search_index`.
+    candidates : ``"exact"`` (the query's exact top ``depth``) or ``"walk"`` (experimental:
+        the query's exact ``max(top, 8)`` nearest plus the ``depth`` stored rows of largest
+        mass in its first-step PageRank, each with its exact distance; no exact top-M search).
 
     Returns
     -------
@@ -165,11 +174,19 @@ def rerank_index(
     from .index_search import search_index
 
     t0 = time.perf_counter()
+    if candidates not in CANDIDATES:
+        raise ParameterError(f"candidates must be one of {', '.join(CANDIDATES)}, got {candidates!r}")
     reader = _checked_graph(index, top, depth)
-    exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
     is_self = self_rule(getattr(index, "locate", None))
     N = index.n_curves
     walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA)
+    pushed = None
+    if candidates == "exact":
+        exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
+    else:
+        exact, stats, pushed = _walk_candidates(
+            index, walk, queries, top, depth, exclude_self, is_self, progress=progress, threads=threads
+        )
     plans = []
     for q, found in zip(queries, exact):
         rows = np.array([m.row for m in found], dtype=np.int64)
@@ -177,7 +194,10 @@ def rerank_index(
         plans.append((rows, np.array([m.distance for m in found], dtype=np.float64), merged))
     # every candidate's PageRank on the stored graph, once for the batch
     union = np.unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
-    vectors = _Vectors(union, *walk.pagerank(union))
+    if pushed is None:
+        vectors = _Vectors(union, *walk.pagerank(union))
+    else:  # the walk's candidates: only the rows not pushed to find them
+        vectors = pushed.with_rows(walk, union)
     results = []
     dense = np.zeros(N + 1)
     for found, (rows, qd, merged) in zip(exact, plans):
@@ -192,6 +212,117 @@ def rerank_index(
         )
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, is_self, *, progress, threads):
+    """``(found, stats, vectors)`` for ``candidates="walk"``: each query's candidates as
+    :func:`~nfdmatch.search.search_index` would report them (sorted by exact distance, ties
+    by id, ranks from 1): its exact ``max(top, k)`` nearest (one more with ``exclude_self``:
+    its own curve) and the ``depth`` stored rows other than itself of largest mass in its
+    PageRank (a stored query's: its row's; any other: from its first step, as in
+    :func:`_query_scores`), ties by row; ``vectors`` the :class:`_Vectors` pushed on the way
+    (of every query's k nearest)."""
+    from ..descriptors import descriptors_batch
+    from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
+    from .engine import BestRows, Cascade
+    from .index_search import ranked_rows, recompute_reported, search_index
+
+    k, N, alpha = walk.k, walk.N, walk.alpha
+    first = max(top, k) + (1 if exclude_self else 0)
+    near, stats = search_index(index, queries, top=first, progress=progress, threads=threads)
+    plans = []
+    for q, found in zip(queries, near):
+        rows = np.array([m.row for m in found], dtype=np.int64)
+        qd = np.array([m.distance for m in found], dtype=np.float64)
+        merged = np.array([exclude_self and is_self(q.id, m.id) for m in found], dtype=bool)
+        plans.append((rows, qd, merged))
+    union = np.unique(np.concatenate([r for r, _, _ in plans])) if plans else np.zeros(0, np.int64)
+    vectors = _Vectors(union, *walk.pagerank(union))
+    tops = []
+    for rows, qd, merged in plans:
+        tk = BestRows(None, None)
+        tops.append(tk)
+        if not len(rows):
+            continue
+        if merged.any():
+            self_row = int(rows[np.flatnonzero(merged)[0]])
+            _, node, mass = vectors.entries(np.array([self_row]))
+            exclude = self_row
+        else:
+            keep = np.flatnonzero(~merged)
+            cand, d = rows[keep], qd[keep]
+            q_nb, q_d, into, nb, dd = _joined_rows(walk, cand, d)
+            with walk.overlay(np.concatenate([[N], into]), np.concatenate([q_nb, nb]), np.concatenate([q_d, dd])):
+                q_targets, q_prob = walk.transitions(np.array([N]))
+            nbrs, p_nb = q_targets[0, 1:], q_prob[0, 1:]
+            real = nbrs != N
+            nbrs, p_nb = nbrs[real], p_nb[real]
+            v_owner, v_node, v_value = vectors.entries(nbrs)
+            node, mass = _sum_by_node(v_node, alpha * p_nb[v_owner] * v_value)
+            exclude = N
+        other = node != exclude
+        node, mass = node[other], mass[other]
+        picked = node[np.lexsort((node, -mass))[:depth]]
+        tk.rows = np.unique(np.concatenate([rows, picked]))
+        tk.dist = np.zeros(len(tk.rows))
+        tk.extra = {
+            key: np.full(len(tk.rows), -1 if key == "position" else 0, dtype=v.dtype) for key, v in tk.extra.items()
+        }
+    # every candidate's exact distance, as the search reports the rows it found
+    qcoef = descriptors_batch(
+        queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
+    ).coefficients
+    cascade = Cascade(index.samples, DEFAULT_METHOD, DEFAULT_DIRECTION, False)
+    every = np.unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
+    recompute_reported(
+        _Read(index, every), qcoef, tops, cascade.distance, direction=DEFAULT_DIRECTION, mirror=False, weights=None
+    )
+    stats.exact += sum(len(tk.rows) for tk in tops)
+    return ranked_rows(index, tops, None), stats, vectors
+
+
+class _Read:
+    """The descriptors of the batch's candidates ``rows`` (ascending, unique), read from the
+    index in one read, served as :meth:`Index.coefficients_at` would (one read per query cost
+    ~5 ms each at 100,000 curves)."""
+
+    def __init__(self, index, rows):
+        self.samples, self.rows = index.samples, rows
+        self.coef = index.coefficients_at(rows)
+
+    def coefficients_at(self, rows):
+        return self.coef[np.searchsorted(self.rows, rows)]
+
+
+def _sum_by_node(nodes: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique ascending nodes and the sum of the values of each."""
+    order = np.argsort(nodes, kind="stable")
+    nodes, values = nodes[order], values[order]
+    if not len(nodes):
+        return nodes, values
+    starts = np.flatnonzero(np.concatenate([[True], nodes[1:] != nodes[:-1]]))
+    return nodes[starts], np.add.reduceat(values, starts)
+
+
+def _joined_rows(walk: GraphWalk, cand: np.ndarray, qd: np.ndarray):
+    """The query as node N joined to the graph through the candidates ``cand`` (exact
+    distances ``qd``): ``(q_nb, q_d, into, nb, d)``, its list of its k nearest candidates
+    ((1, k), padded) and the candidates ``into`` whose k nearest it enters with their new
+    lists ``nb`` / ``d`` (for :meth:`GraphWalk.overlay`)."""
+    k, N = walk.k, walk.N
+    order = np.argsort(qd, kind="stable")[:k]
+    q_nb = np.full((1, k), -1, dtype=np.int64)
+    q_d = np.full((1, k), np.inf)
+    q_nb[0, : len(order)], q_d[0, : len(order)] = cand[order], qd[order]
+    walk.ensure(cand)
+    kth = walk._d[cand, -1]  # inf when the list is padded: the query enters it
+    enter = np.flatnonzero(qd < kth)
+    into = cand[enter]
+    nb = np.concatenate([walk._nb[into], np.full((len(into), 1), N)], axis=1)
+    d = np.concatenate([walk._d[into], qd[enter, None]], axis=1)
+    pick = np.argsort(d, axis=1, kind="stable")[:, :k]
+    nb, d = np.take_along_axis(nb, pick, axis=1), np.take_along_axis(d, pick, axis=1)
+    return q_nb, q_d, into, nb, d
 
 
 def _checked_graph(index, top: int, depth: int):
@@ -242,12 +373,28 @@ class _Vectors:
     def norms(self, rows):
         return self.norm[np.searchsorted(self.union, rows)]
 
+    def with_rows(self, walk: GraphWalk, rows) -> "_Vectors":
+        """These vectors and those of ``rows`` (ascending, unique) not among them, pushed now."""
+        new = rows[~np.isin(rows, self.union)]
+        if not len(new):
+            return self
+        start, node, value = walk.pagerank(new)
+        union = np.concatenate([self.union, new])
+        lengths = np.concatenate([np.diff(self.start), np.diff(start)])
+        first = np.concatenate([self.start[:-1], start[:-1] + len(self.node)])
+        nodes, values = np.concatenate([self.node, node]), np.concatenate([self.value, value])
+        order = np.argsort(union, kind="stable")
+        lengths, first = lengths[order], first[order]
+        offsets = np.concatenate([[0], np.cumsum(lengths)])
+        at = np.arange(offsets[-1]) - np.repeat(offsets[:-1], lengths) + np.repeat(first, lengths)
+        return _Vectors(union[order], offsets.astype(np.int64), nodes[at], values[at])
+
 
 def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -> np.ndarray:
     """Scores of one query's candidates ``rows`` (exact distances ``qd``, ascending; ``merged``:
     the candidates that are the query's own stored curve, whose score is NaN). ``dense``:
     (N + 1,) zeros, a work array (left zero)."""
-    k, N, alpha = walk.k, walk.N, walk.alpha
+    N, alpha = walk.N, walk.alpha
     out = np.full(len(rows), np.nan)
     keep = np.flatnonzero(~merged)
     if not len(keep):
@@ -265,18 +412,7 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
     else:
         # the query joins the graph as node N: its k nearest (exact), and the candidates
         # whose k nearest it enters (their lists and scales change while it is there)
-        order = keep[np.argsort(qd[keep], kind="stable")][:k]
-        q_nb = np.full((1, k), -1, dtype=np.int64)
-        q_d = np.full((1, k), np.inf)
-        q_nb[0, : len(order)], q_d[0, : len(order)] = rows[order], qd[order]
-        walk.ensure(cand)
-        kth = walk._d[cand, -1]  # inf when the list is padded: the query enters it
-        enter = np.flatnonzero(qd[keep] < kth)
-        into = cand[enter]
-        nb = np.concatenate([walk._nb[into], np.full((len(into), 1), N)], axis=1)
-        d = np.concatenate([walk._d[into], qd[keep][enter, None]], axis=1)
-        pick = np.argsort(d, axis=1, kind="stable")[:, :k]
-        nb, d = np.take_along_axis(nb, pick, axis=1), np.take_along_axis(d, pick, axis=1)
+        q_nb, q_d, into, nb, d = _joined_rows(walk, cand, qd[keep])
         with walk.overlay(np.concatenate([[N], into]), np.concatenate([q_nb, nb]), np.concatenate([q_d, d])):
             s_q = walk.scales([N])[0]
             s_cand = walk.scales(cand)
