@@ -27,7 +27,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-__all__ = ["GraphWalk", "TOLERANCE", "row_scales"]
+__all__ = ["GraphWalk", "TOLERANCE", "row_scales", "sorted_unique", "sum_by_key"]
 
 #: residual below which a node is not pushed (per source, whose total mass is 1)
 TOLERANCE = 1e-5
@@ -84,7 +84,7 @@ class GraphWalk:
         missing = nodes[~self._known[nodes]]
         if not len(missing):
             return
-        missing = _unique(missing)
+        missing = sorted_unique(missing)
         nb, d = self.reader(missing)
         k = self.k
         nb, d = nb[:, :k], d[:, :k]
@@ -111,7 +111,7 @@ class GraphWalk:
             return self._transitions(nodes)
         new = nodes[~self._walk_known[nodes]]
         if len(new):
-            new = _unique(new)
+            new = sorted_unique(new)
             self._targets[new], self._prob[new] = self._transitions(new)
             self._walk_known[new] = True
         return self._targets[nodes], self._prob[nodes]
@@ -190,17 +190,17 @@ class GraphWalk:
             p_vals[-1] *= stay
             spread_key = (src[:, None] * size + targets[:, 1:]).reshape(-1)
             spread_val = (alpha * (a_val * stay)[:, None] * prob[:, 1:]).reshape(-1)
-            r_key, r_val = _sum_by_key(
+            r_key, r_val = sum_by_key(
                 np.concatenate([r_key[~active], spread_key]), np.concatenate([r_val[~active], spread_val])
             )
         if not p_keys:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-        key, val = _sum_by_key(np.concatenate(p_keys), np.concatenate(p_vals))
+        key, val = sum_by_key(np.concatenate(p_keys), np.concatenate(p_vals))
         src, node = np.divmod(key, size)
         return src, node, val
 
 
-def _unique(values: np.ndarray) -> np.ndarray:
+def sorted_unique(values: np.ndarray) -> np.ndarray:
     """Sorted unique values (np.unique imports numpy.ma: ~50 ms the first time)."""
     values = np.sort(values)
     keep = np.ones(len(values), dtype=bool)
@@ -208,7 +208,7 @@ def _unique(values: np.ndarray) -> np.ndarray:
     return values[keep]
 
 
-def _sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unique ascending keys and the sum of the values of each."""
     order = np.argsort(keys, kind="stable")
     keys, values = keys[order], values[order]

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..defaults import DEFAULT_RERANK_DEPTH
 from ..errors import IndexFormatError, ParameterError
-from .diffusion import GraphWalk
+from .diffusion import GraphWalk, sorted_unique, sum_by_key
 from .knn import self_rule
 
 if TYPE_CHECKING:
@@ -187,13 +187,8 @@ def rerank_index(
         exact, stats, pushed = _walk_candidates(
             index, walk, queries, top, depth, exclude_self, is_self, progress=progress, threads=threads
         )
-    plans = []
-    for q, found in zip(queries, exact):
-        rows = np.array([m.row for m in found], dtype=np.int64)
-        merged = np.array([exclude_self and is_self(q.id, m.id) for m in found], dtype=bool)
-        plans.append((rows, np.array([m.distance for m in found], dtype=np.float64), merged))
+    plans, union = _plans(queries, exact, exclude_self, is_self)
     # every candidate's PageRank on the stored graph, once for the batch
-    union = np.unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
     if pushed is None:
         vectors = _Vectors(union, *walk.pagerank(union))
     else:  # the walk's candidates: only the rows not pushed to find them
@@ -214,6 +209,19 @@ def rerank_index(
     return results, stats
 
 
+def _plans(queries, found_lists, exclude_self: bool, is_self):
+    """``(plans, union)``: per query ``(rows, distances, merged)`` of its matches (index rows
+    (m,) int64, exact distances (m,) float64, which are its own stored curve under
+    ``exclude_self``), and every row of them, ascending and unique."""
+    plans = []
+    for q, found in zip(queries, found_lists):
+        rows = np.array([m.row for m in found], dtype=np.int64)
+        merged = np.array([exclude_self and is_self(q.id, m.id) for m in found], dtype=bool)
+        plans.append((rows, np.array([m.distance for m in found], dtype=np.float64), merged))
+    union = np.unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
+    return plans, union
+
+
 def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, is_self, *, progress, threads):
     """``(found, stats, vectors)`` for ``candidates="walk"``: each query's candidates as
     :func:`~nfdmatch.search.search_index` would report them (sorted by exact distance, ties
@@ -230,13 +238,7 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
     k, N, alpha = walk.k, walk.N, walk.alpha
     first = max(top, k) + (1 if exclude_self else 0)
     near, stats = search_index(index, queries, top=first, progress=progress, threads=threads)
-    plans = []
-    for q, found in zip(queries, near):
-        rows = np.array([m.row for m in found], dtype=np.int64)
-        qd = np.array([m.distance for m in found], dtype=np.float64)
-        merged = np.array([exclude_self and is_self(q.id, m.id) for m in found], dtype=bool)
-        plans.append((rows, qd, merged))
-    union = np.unique(np.concatenate([r for r, _, _ in plans])) if plans else np.zeros(0, np.int64)
+    plans, union = _plans(queries, near, exclude_self, is_self)
     vectors = _Vectors(union, *walk.pagerank(union))
     tops = []
     for rows, qd, merged in plans:
@@ -258,7 +260,7 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
             real = nbrs != N
             nbrs, p_nb = nbrs[real], p_nb[real]
             v_owner, v_node, v_value = vectors.entries(nbrs)
-            node, mass = _sum_by_node(v_node, alpha * p_nb[v_owner] * v_value)
+            node, mass = sum_by_key(v_node, alpha * p_nb[v_owner] * v_value)
             exclude = N
         other = node != exclude
         node, mass = node[other], mass[other]
@@ -292,16 +294,6 @@ class _Read:
 
     def coefficients_at(self, rows):
         return self.coef[np.searchsorted(self.rows, rows)]
-
-
-def _sum_by_node(nodes: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unique ascending nodes and the sum of the values of each."""
-    order = np.argsort(nodes, kind="stable")
-    nodes, values = nodes[order], values[order]
-    if not len(nodes):
-        return nodes, values
-    starts = np.flatnonzero(np.concatenate([[True], nodes[1:] != nodes[:-1]]))
-    return nodes[starts], np.add.reduceat(values, starts)
 
 
 def _joined_rows(walk: GraphWalk, cand: np.ndarray, qd: np.ndarray):
@@ -435,7 +427,7 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
         norm = 1.0 / (1 - alpha * self_p)
         np.add.at(dense, v_node, alpha * p_nb[v_owner] * v_value * norm)
         dense[N] = ((1 - alpha) + alpha * float((p_nb * back[at]).sum())) * norm
-        q_node = np.concatenate([_unique_nodes(v_node), [N]])
+        q_node = np.concatenate([sorted_unique(v_node), [N]])
         q_val = dense[q_node]
     dot = np.bincount(owner, weights=dense[node] * value, minlength=len(cand)) + dense[N] * back
     norm_c = np.sqrt(vectors.norms(cand) ** 2 + back**2)
@@ -445,10 +437,3 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
     direct = np.exp(-(qd[keep] ** 2) / (s_q * s_cand))
     out[keep] = (1 - MIX) * cos + MIX * direct
     return out
-
-
-def _unique_nodes(nodes: np.ndarray) -> np.ndarray:
-    nodes = np.sort(nodes)
-    keep = np.ones(len(nodes), dtype=bool)
-    keep[1:] = nodes[1:] != nodes[:-1]
-    return nodes[keep]
