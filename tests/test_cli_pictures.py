@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -128,6 +129,26 @@ def test_matrix_csv_matches_distance_for_every_pair(folder):
                 assert M[i, j] == pytest.approx(json.loads(out)["distance"], rel=1e-9, abs=1e-12)
     knot, posed = ids.index(str(folder / "knot.csv")), ids.index(str(folder / "knot-posed.obj"))
     assert M[knot, posed] < 1e-3 and np.sort(M[knot])[1] == M[knot, posed]
+
+
+@pytest.mark.parametrize("fmt, sep", [("csv", ","), ("tsv", "\t")])
+def test_matrix_rows_read_back_whatever_the_file_names(folder, tmp_path, fmt, sep):
+    # the ids are quoted by the csv rules; the entries are every float's repr, both triangles
+    names = tmp_path / "names"
+    names.mkdir()
+    for name in ('a,b "c".csv', "tab\there.csv", "plain.csv"):
+        shutil.copy(folder / "knot.csv", names / name)
+    shutil.copy(folder / "blob.csv", names / "blob.csv")
+    code, out, err = run("matrix", names, "--format", fmt)
+    assert code == 0 and err == ""
+    rows = list(csv.reader(io.StringIO(out), delimiter=sep))
+    ids = rows[0][1:]
+    assert sorted(os.path.basename(i) for i in ids) == sorted(['a,b "c".csv', "tab\there.csv", "plain.csv", "blob.csv"])
+    assert [r[0] for r in rows[1:]] == ids
+    M = np.array([[float(v) for v in r[1:]] for r in rows[1:]])
+    code, out, _ = run("matrix", names, "--format", "json")
+    np.testing.assert_array_equal(M, np.array(json.loads(out)["distances"]))  # every digit
+    assert all(v == repr(float(v)) for r in rows[1:] for v in r[1:])
 
 
 def test_matrix_json_tsv_picture_and_partial_failure(folder, tmp_path):

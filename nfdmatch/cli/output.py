@@ -140,13 +140,32 @@ def write_rows(
     deliver(text, output)
 
 
+def delimiter(fmt: str) -> str:
+    """The field separator of ``fmt`` (csv or tsv)."""
+    return "," if fmt == "csv" else "\t"
+
+
 def delimited_text(header: list[str], rows, fmt: str) -> str:
     """A header line then the rows (lists of str), as CSV or TSV."""
     buf = io.StringIO()
-    writer = csv.writer(buf, delimiter="," if fmt == "csv" else "\t", lineterminator="\n")
+    writer = csv.writer(buf, delimiter=delimiter(fmt), lineterminator="\n")
     writer.writerow(header)
     writer.writerows(rows)
     return buf.getvalue()
+
+
+def delimited_fields(values: list[str], fmt: str) -> list[str]:
+    """Each value as :func:`delimited_text` writes it as the first field of a row of
+    several (quoted where it holds a separator, quote or line break)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, delimiter=delimiter(fmt), lineterminator="\n")
+    fields = []
+    for value in values:
+        buf.seek(0)
+        buf.truncate()
+        writer.writerow([value, ""])  # "<field><sep>\n"
+        fields.append(buf.getvalue()[:-2])
+    return fields
 
 
 def _cell_text(value, pretty: bool = False) -> str:

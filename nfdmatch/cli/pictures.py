@@ -22,7 +22,16 @@ from .options import (
     say,
     some_failed,
 )
-from .output import delimited_text, deliver, progress_bar, resolve_format, split_outputs, write_rows
+from .output import (
+    delimited_fields,
+    delimited_text,
+    delimiter,
+    deliver,
+    progress_bar,
+    resolve_format,
+    split_outputs,
+    write_rows,
+)
 from .group import main
 
 
@@ -345,27 +354,29 @@ def _matrix_text(ids, values, fmt: str, rerank: bool) -> str:
     CSV/TSV rows (a header row of ids, then each curve's id and row)."""
     if fmt == "json":
         return json.dumps({"ids": ids, ("scores" if rerank else "distances"): values.tolist()}, indent=1) + "\n"
-    return delimited_text(
-        ["id"] + ids, (_id_and(curve_id, row) for curve_id, row in zip(ids, _entry_texts(values))), fmt
-    )
+    # the entries are float reprs, which never need quoting: each row is joined directly
+    # (the csv writer took 1.3 s for the 2 M entries of 1,400 curves); only the ids go
+    # through the writer's quoting
+    sep = delimiter(fmt)
+    lines = [delimited_text(["id"] + ids, [], fmt)]
+    lines += [
+        f"{field}{sep}{entries}\n" for field, entries in zip(delimited_fields(ids, fmt), _entry_rows(values, sep))
+    ]
+    return "".join(lines)
 
 
-def _id_and(curve_id, row):
-    return [curve_id, *row]
-
-
-def _entry_texts(values):
-    """Each row's entries as text (``repr``: the shortest that reads back the same float);
-    a symmetric matrix's entries are written out once for both triangles (2 M entries of
-    1,400 curves: half of the formatting time)."""
+def _entry_rows(values, sep: str) -> list[str]:
+    """Each row's entries as text joined by ``sep`` (``repr``: the shortest that reads back
+    the same float); a symmetric matrix's entries are written out once for both triangles
+    (2 M entries of 1,400 curves: half of the formatting time)."""
     import numpy as np
 
     N = len(values)
     if not np.array_equal(values, values.T):
-        return [[repr(v) for v in row] for row in values.tolist()]
-    text = np.empty((N, N), dtype=object)
-    for i in range(N):
-        row = list(map(repr, values[i, i:].tolist()))
-        text[i, i:] = row
-        text[i:, i] = row
-    return text.tolist()
+        return [sep.join(map(repr, row)) for row in values.tolist()]
+    upper = np.triu_indices(N)
+    texts = list(map(repr, values[upper].tolist()))
+    grid = np.empty((N, N), dtype=object)
+    grid[upper] = texts
+    grid.T[upper] = texts
+    return [sep.join(row) for row in grid.tolist()]
