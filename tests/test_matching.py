@@ -594,6 +594,54 @@ def test_the_ahead_of_time_exports_forward_to_the_kernels_with_their_own_paramet
     assert np.array_equal(got, want) and np.all(np.isfinite(got))
 
 
+def _posed_rows(rng, rows, copies: int, noise: float):
+    """``copies`` rotated, start-shifted, noisy copies of each of ``rows`` (N, K, 3): near
+    matches, whose weaker candidates the kernels skip refining."""
+    N, K, _ = rows.shape
+    out = []
+    for _ in range(copies):
+        q, _r = np.linalg.qr(rng.standard_normal((3, 3)))
+        phase = np.exp(2j * np.pi * np.outer(rng.uniform(0, 1, N), np.arange(1, K + 1)))
+        wobble = noise * (rng.standard_normal(rows.shape) + 1j * rng.standard_normal(rows.shape))
+        out.append((rows @ q.T) * phase[:, :, None] + wobble * np.abs(rows).mean())
+    return np.concatenate(out)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    samples=st.sampled_from([128, 64, 50, 7]),
+    direction=st.sampled_from([1, 2]),
+    mirror=st.booleans(),
+    weighted=st.booleans(),
+    limited=st.booleans(),
+)
+def test_skipping_hopeless_refinements_changes_no_bit(seed, samples, direction, mirror, weighted, limited):
+    """The compiled kernels refine only the candidates that can still overtake a row's best
+    integer local maximum (``prune``); every output is the same bits as refining all."""
+    pytest.importorskip("numba")
+    from nfdmatch.matching import _kernels
+    from nfdmatch.matching.kernels import folded_basis
+
+    rng = np.random.default_rng(seed)
+    harmonics = min(16, (samples - 1) // 2)
+    rows, _ = _kernel_rows(rng, samples, harmonics)
+    rows = np.ascontiguousarray(np.concatenate([rows, _posed_rows(rng, rows, 3, rng.choice([0.0, 1e-3, 0.05]))]))
+    w = rng.uniform(0.2, 2.0, harmonics) if weighted else np.ones(harmonics)
+    basis, quarter = folded_basis(harmonics, samples)
+    kinds = [_kernels, _aot_kernels()] if samples == 128 else [_kernels]
+    for a in (0, 3, 10):
+        A = np.ascontiguousarray(rows[a])
+        Aw = np.ascontiguousarray(np.conj(A) * w[:, None])
+        limit = 0.3 if limited else np.inf
+        call = (A, Aw, w, rows, direction, basis, quarter, samples, mirror, min(3, direction * samples), True, limit)
+        for kernels in kinds:
+            every = kernels.exact_rows(*call, prune=False)
+            skipping = kernels.exact_rows(*call, prune=True)
+            for x, y in zip(every, skipping):
+                assert np.array_equal(x, y, equal_nan=True)
+
+
 def test_numba_kernel_split_over_threads_gives_the_same_bits(rng):
     pytest.importorskip("numba")
     from nfdmatch.matching import _kernels

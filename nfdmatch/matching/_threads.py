@@ -13,21 +13,23 @@ import numpy as np
 __all__ = ["exact_rows", "grid_bound_rows", "split_rows", "shutdown"]
 
 
-def exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers):
+def exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers, prune=True):
     """matching.exact_search's compiled path for all rows of B through ``kernel`` (the
     compiled ``_exact_rows`` of either kernel module, called per block of rows lo..hi).
 
     A, Aw = conj(A) w (K, 3) complex128; w (K,) float64; B (N, K, 3) complex128 (direction 1
     is conj(B)); basis, quarter from matching.folded_basis; C candidates per row;
     refine_limit: refine the rows whose refined distance^2 could be at most this (inf: all);
-    ``workers``: threads sharing the rows (see :func:`split_rows`). Returns (distance, shift,
-    rotation, reversed, mirrored) over the rows.
+    ``workers``: threads sharing the rows (see :func:`split_rows`); ``prune``: refine only the
+    candidates that can still win (the same result; False for the tests that show it).
+    Returns (distance, shift, rotation, reversed, mirrored) over the rows.
     """
     N = B.shape[0]
     out = (np.empty(N), np.empty(N), np.empty((N, 3, 3)), np.zeros(N, dtype=np.bool_), np.zeros(N, dtype=np.bool_))
     # the scalars as the ahead-of-time signature takes them (the just-in-time kernel gets the
     # types it was always called with)
-    args = (A, Aw, w, B, int(D), basis, bool(quarter), int(n), bool(mirror), int(C), bool(refine), float(refine_limit))
+    scalars = (int(D), basis, bool(quarter), int(n), bool(mirror), int(C), bool(refine), float(refine_limit))
+    args = (A, Aw, w, B, *scalars, bool(prune))
     split_rows(lambda lo, hi: kernel(*args, *out, lo, hi), N, workers)
     return out
 

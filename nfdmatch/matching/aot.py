@@ -40,7 +40,7 @@ _STAMP = os.path.join(_HERE, MODULE + ".stamp")
 
 #: the exported signatures: the arrays' layouts are the ones exact.py passes
 _EXACT_SIGNATURE = (
-    "void(c16[:,::1], c16[:,::1], f8[::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, i8, b1, f8, "
+    "void(c16[:,::1], c16[:,::1], f8[::1], c16[:,:,::1], i8, f8[:,::1], b1, i8, b1, i8, b1, f8, b1, "
     "f8[::1], f8[::1], f8[:,:,::1], b1[::1], b1[::1], i8, i8)"
 )
 _BOUND_SIGNATURE = "void(c16[:,::1], c16[:,:,::1], i8, f8[:,::1], i8, b1, f8[::1], f8[::1], f8[::1], f8[::1], i8, i8)"
@@ -195,10 +195,10 @@ class _Kernels:
     def _workers(self, workers: int) -> int:
         return workers if self.threads else 1
 
-    def exact_rows(self, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers=1):
+    def exact_rows(self, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers=1, prune=True):
         kernel = self._module.exact_rows
         basis, workers = _writable(basis, n), self._workers(workers)
-        return exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers)
+        return exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers, prune)
 
     def grid_bound_rows(self, Aw, B, D, basis, ratio, mirror, slack_coarse, slack_fine, need, workers=1):
         K = Aw.shape[0]
