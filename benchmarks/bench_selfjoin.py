@@ -19,7 +19,9 @@ Prints a markdown table:
   adjusted Rand index);
 * all-against-all at ~1,400 curves (28 families of 50): ``query DIR --top 40`` of every
   indexed curve (the same command in both trees: the batch path is not routed through
-  the join yet) and the self-join's 40 nearest others (``nearest_others``) in this tree.
+  the join yet), ``matrix`` of the same curves to a CSV file (and whether the two trees'
+  files are identical), and the self-join's 40 nearest others (``nearest_others``) in
+  this tree. ``--curves 0`` gives these rows alone.
 
 Timings are wall-clock on whatever else the machine runs: the two trees run one after the
 other in the same invocation.
@@ -136,7 +138,9 @@ def adjusted_rand(a: np.ndarray, b: np.ndarray) -> float:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--curves", type=int, default=100_000, help="family curves of the graph, pairs and groups")
+    ap.add_argument(
+        "--curves", type=int, default=100_000, help="family curves of the graph, pairs and groups (0: none)"
+    )
     ap.add_argument("--small", type=int, default=1400, help="curves of the all-against-all row")
     ap.add_argument("--graph", type=int, default=10, help="K of index build --graph")
     ap.add_argument("--max-distance", type=float, default=0.05, help="D of pairs and groups")
@@ -150,78 +154,81 @@ def main():
     trees = [("this tree", ROOT)] + ([] if args.skip_base else [(BASE, base_tree(work))])
     rows = []
     try:
-        # ---------------------------------------------------------------- the graph
-        folder = os.path.join(work, f"families-{args.curves}")
-        labels = generate(folder, args.curves // MEMBERS)
-        plain = os.path.join(work, f"plain-{args.curves}.h5")
-        if not os.path.exists(plain):
-            timed(py + ["index", "build", folder, "--index", plain, "-q"], tree_env(ROOT))
-        graphs = {}
-        for name, tree in trees:
-            target = os.path.join(work, f"graph-{args.curves}-{name.replace(' ', '-')}.h5")
-            shutil.copy(plain, target)
-            seconds, mb, _ = timed(
-                py + ["index", "build", folder, "--index", target, "--graph", str(args.graph), "-q"], tree_env(tree)
+        if args.curves:  # 0: the 1,400-curve rows only
+            # ---------------------------------------------------------------- the graph
+            folder = os.path.join(work, f"families-{args.curves}")
+            labels = generate(folder, args.curves // MEMBERS)
+            plain = os.path.join(work, f"plain-{args.curves}.h5")
+            if not os.path.exists(plain):
+                timed(py + ["index", "build", folder, "--index", plain, "-q"], tree_env(ROOT))
+            graphs = {}
+            for name, tree in trees:
+                target = os.path.join(work, f"graph-{args.curves}-{name.replace(' ', '-')}.h5")
+                shutil.copy(plain, target)
+                seconds, mb, _ = timed(
+                    py + ["index", "build", folder, "--index", target, "--graph", str(args.graph), "-q"], tree_env(tree)
+                )
+                graphs[name] = target
+                rows.append(
+                    (
+                        f"`index build --graph {args.graph}`, {args.curves:,} family curves",
+                        name,
+                        f"{seconds:.1f} s",
+                        f"{mb:.0f} MB",
+                    )
+                )
+            nb, dist = graph_of(graphs["this tree"])
+            if BASE in graphs:
+                nb0, dist0 = graph_of(graphs[BASE])
+                same = np.array_equal(nb, nb0)
+                diff = float(np.abs(dist - dist0).max())
+                rows.append(
+                    ("graphs identical (neighbours; max distance difference)", "both", f"{same}", f"{diff:.1e}")
+                )
+            sample = np.random.default_rng(0).choice(len(nb), 20, replace=False)
+            ok = exhaustive_sample(graphs["this tree"], sample, args.graph)
+            rows.append(("20 rows' lists = the exhaustive search's", "this tree", f"{ok}", ""))
+
+            # ---------------------------------------------------------------- pairs and groups
+            index = graphs["this tree"]
+            D = str(args.max_distance)
+            seconds, mb, proc = timed(
+                py + ["pairs", "--index", index, "--max-distance", D, "--format", "csv"], tree_env(ROOT)
             )
-            graphs[name] = target
+            count = len(proc.stdout.splitlines()) - 1
             rows.append(
                 (
-                    f"`index build --graph {args.graph}`, {args.curves:,} family curves",
-                    name,
+                    f"`pairs --max-distance {D}`, {args.curves:,} curves",
+                    "this tree",
                     f"{seconds:.1f} s",
-                    f"{mb:.0f} MB",
+                    f"{mb:.0f} MB, {count:,} pairs",
                 )
             )
-        nb, dist = graph_of(graphs["this tree"])
-        if BASE in graphs:
-            nb0, dist0 = graph_of(graphs[BASE])
-            same = np.array_equal(nb, nb0)
-            diff = float(np.abs(dist - dist0).max())
-            rows.append(("graphs identical (neighbours; max distance difference)", "both", f"{same}", f"{diff:.1e}"))
-        sample = np.random.default_rng(0).choice(len(nb), 20, replace=False)
-        ok = exhaustive_sample(graphs["this tree"], sample, args.graph)
-        rows.append(("20 rows' lists = the exhaustive search's", "this tree", f"{ok}", ""))
-
-        # ---------------------------------------------------------------- pairs and groups
-        index = graphs["this tree"]
-        D = str(args.max_distance)
-        seconds, mb, proc = timed(
-            py + ["pairs", "--index", index, "--max-distance", D, "--format", "csv"], tree_env(ROOT)
-        )
-        count = len(proc.stdout.splitlines()) - 1
-        rows.append(
-            (
-                f"`pairs --max-distance {D}`, {args.curves:,} curves",
-                "this tree",
-                f"{seconds:.1f} s",
-                f"{mb:.0f} MB, {count:,} pairs",
+            within = sum(MEMBERS * (MEMBERS - 1) // 2 for _ in range(args.curves // MEMBERS))
+            rows.append(("pairs inside a family (all of them)", "generated", f"{within:,}", ""))
+            seconds, mb, proc = timed(
+                py + ["groups", "--index", index, "--max-distance", D, "--format", "csv"], tree_env(ROOT)
             )
-        )
-        within = sum(MEMBERS * (MEMBERS - 1) // 2 for _ in range(args.curves // MEMBERS))
-        rows.append(("pairs inside a family (all of them)", "generated", f"{within:,}", ""))
-        seconds, mb, proc = timed(
-            py + ["groups", "--index", index, "--max-distance", D, "--format", "csv"], tree_env(ROOT)
-        )
-        got, fam = [], []
-        for line in proc.stdout.splitlines()[1:]:
-            curve, group = line.split(",")[:2]
-            path, j = curve.rsplit("#", 1)
-            got.append(int(group))
-            fam.append(labels[(os.path.basename(path), int(j))])
-        got, fam = np.array(got), np.array(fam)
-        exact = 0
-        for g in np.unique(got):
-            members = fam[got == g]
-            exact += len(members) * (len(np.unique(members)) == 1 and len(members) == (fam == members[0]).sum())
-        rows.append(
-            (
-                f"`groups --max-distance {D}`",
-                "this tree",
-                f"{seconds:.1f} s",
-                f"{mb:.0f} MB, {len(np.unique(got)):,} groups; {exact / len(got):.1%} of curves grouped exactly "
-                f"as their family; adjusted Rand {adjusted_rand(got, fam):.4f}",
+            got, fam = [], []
+            for line in proc.stdout.splitlines()[1:]:
+                curve, group = line.split(",")[:2]
+                path, j = curve.rsplit("#", 1)
+                got.append(int(group))
+                fam.append(labels[(os.path.basename(path), int(j))])
+            got, fam = np.array(got), np.array(fam)
+            exact = 0
+            for g in np.unique(got):
+                members = fam[got == g]
+                exact += len(members) * (len(np.unique(members)) == 1 and len(members) == (fam == members[0]).sum())
+            rows.append(
+                (
+                    f"`groups --max-distance {D}`",
+                    "this tree",
+                    f"{seconds:.1f} s",
+                    f"{mb:.0f} MB, {len(np.unique(got)):,} groups; {exact / len(got):.1%} of curves grouped exactly "
+                    f"as their family; adjusted Rand {adjusted_rand(got, fam):.4f}",
+                )
             )
-        )
 
         # ---------------------------------------------------------------- all against all
         small = os.path.join(work, f"families-{args.small}")
@@ -241,6 +248,17 @@ def main():
                     f"{mb:.0f} MB",
                 )
             )
+        matrices = {}
+        for name, tree in trees:
+            matrices[name] = os.path.join(work, f"matrix-{name.replace(' ', '-')}.csv")
+            if os.path.exists(matrices[name]):
+                os.remove(matrices[name])  # written afresh (an unchanged file is not rewritten)
+            seconds, mb, _ = timed(py + ["matrix", small, "-o", matrices[name], "-q"], tree_env(tree))
+            rows.append((f"`matrix` of the same {args.small:,} curves (CSV)", name, f"{seconds:.1f} s", f"{mb:.0f} MB"))
+        if len(matrices) == 2:
+            with open(matrices["this tree"], "rb") as a, open(matrices[BASE], "rb") as b:
+                same = a.read() == b.read()
+            rows.append(("the two matrices' files identical", "both", f"{same}", ""))
         code = (
             "import sys, time; t0 = time.perf_counter(); from nfdmatch.index import open_index; "
             "from nfdmatch.search.engine import Cascade; from nfdmatch.search.join import nearest_others; "
