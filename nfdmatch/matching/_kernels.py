@@ -650,6 +650,15 @@ def _argmax_row(values, r, C):
     return best
 
 
+@njit(**_inline)
+def _harmonic_norm(X, k):
+    """|X_k|: the norm of harmonic k of a half-band X (K, 3) complex."""
+    t = 0.0
+    for j in range(3):
+        t += X[k, j].real * X[k, j].real + X[k, j].imag * X[k, j].imag
+    return math.sqrt(t)
+
+
 @njit(**_jit)
 def _refine_todo(A, w, B, n, fmax, refine_limit, lo, todo):
     """todo[r] = False where row lo + r cannot reach refine_limit (distance^2) by refining."""
@@ -659,20 +668,14 @@ def _refine_todo(A, w, B, n, fmax, refine_limit, lo, todo):
     norm_a = np.empty(K)
     sq_a = 0.0
     for k in range(K):
-        t = 0.0
-        for j in range(3):
-            t += A[k, j].real * A[k, j].real + A[k, j].imag * A[k, j].imag
-        norm_a[k] = math.sqrt(t)
+        norm_a[k] = _harmonic_norm(A, k)
         sq_a += w[k] * norm_a[k] ** 2
     for r in range(m):
         curvature = 0.0
         sq_b = 0.0
+        row = B[lo + r]
         for k in range(K):
-            t = 0.0
-            for j in range(3):
-                b = B[lo + r, k, j]
-                t += b.real * b.real + b.imag * b.imag
-            norm_b = math.sqrt(t)
+            norm_b = _harmonic_norm(row, k)
             curvature += 2.0 * w[k] * (2.0 * math.pi * (k + 1) / n) ** 2 * norm_a[k] * norm_b
             sq_b += w[k] * norm_b**2
         lower2 = (2.0 * sq_a + 2.0 * sq_b) - 2.0 * (fmax[r] + curvature / 8.0)
@@ -698,10 +701,7 @@ def _prune_candidates(A, w, B, n, val, reach, fmax, lo, todo):
     K = A.shape[0]
     norm_a = np.empty(K)
     for k in range(K):
-        t = 0.0
-        for j in range(3):
-            t += A[k, j].real * A[k, j].real + A[k, j].imag * A[k, j].imag
-        norm_a[k] = math.sqrt(t)
+        norm_a[k] = _harmonic_norm(A, k)
     for r in range(m):
         if not (fmax[r] > _NINF and fmax[r] < np.inf):
             continue  # no finite local maximum: every candidate as before
@@ -710,12 +710,9 @@ def _prune_candidates(A, w, B, n, val, reach, fmax, lo, todo):
         scale = 0.0
         first = 0.0
         second = 0.0
+        row = B[lo + r]
         for k in range(K):
-            t = 0.0
-            for j in range(3):
-                b = B[lo + r, k, j]
-                t += b.real * b.real + b.imag * b.imag
-            product = 2.0 * w[k] * norm_a[k] * math.sqrt(t)
+            product = 2.0 * w[k] * norm_a[k] * _harmonic_norm(row, k)
             frequency = 2.0 * math.pi * (k + 1) / n
             scale += product
             first += product * frequency
