@@ -11,13 +11,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import IndexFormatError
-from ..search.graph import GraphLists, neighbour_lists
+from ..search.engine import Cascade
+from ..search.graph import GraphLists, graph_blocks, neighbour_lists, update_copied
 from .arrays import unique_rows
 from .graph import GRAPH_CHECKSUMS, GRAPH_CHUNK_ROWS, IN_MEMORY_ROWS, GraphStats, old_graph_k, read_graph
 from .schema import create_checked
 from .search_group import search_table
 
-__all__ = ["write_graph", "plan_graph", "store_graph", "GraphPlan"]
+__all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan"]
 
 
 @dataclass
@@ -37,6 +38,10 @@ class GraphPlan:
     read_coefficients: object = None
     ids: object = None
 
+    def store(self, rows, neighbour, distance) -> None:
+        """The lists ((m, k) int64 / float64) of ``rows``, searched elsewhere."""
+        self.lists.neighbour[rows], self.lists.distance[rows] = neighbour, distance
+
 
 def write_graph(
     h5, old, k: int | None, *, reuse: bool, threads: int | None = None, processes: int = 1, close_fds=()
@@ -54,7 +59,7 @@ def write_graph(
     """
     plan = plan_graph(h5, old, k, reuse=reuse)
     if plan is None:
-        return GraphStats(k=0 if k is None else int(k))
+        return GraphStats()
     stats = plan.stats
     if plan.table is not None:
         stats.searched, stats.updated, stats.processes = neighbour_lists(
@@ -113,6 +118,27 @@ def plan_graph(h5, old, k: int | None, *, reuse: bool) -> GraphPlan | None:
             [curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1
         )
     return plan
+
+
+def blocks_to_search(plan: GraphPlan, threads: int | None = None) -> list[np.ndarray]:
+    """For a graph whose rows are searched elsewhere (a Dask cluster's workers, which can
+    open the new file only once it is closed): the part computed here, from the open file,
+    and what is left. The copied lists are updated where a new row enters them (a search
+    of the new rows alone, on ``threads``: here, as in a local build) and the rows to
+    search are returned in blocks, in the table's order
+    (:func:`~nfdmatch.search.graph.graph_blocks`); each block's lists go in with
+    :meth:`GraphPlan.store`. The plan then holds nothing that reads the file."""
+    if plan.table is None:
+        return []
+    lists = plan.lists
+    blocks = graph_blocks(plan.table, lists.todo)
+    cascade = Cascade(plan.samples)
+    stats = plan.stats
+    stats.updated = update_copied(plan.table, plan.read_coefficients, plan.ids, lists, plan.k, cascade, threads)
+    stats.kept = len(lists.check) - stats.updated
+    stats.searched = sum(len(block) for block in blocks)
+    plan.table = plan.read_coefficients = None
+    return blocks
 
 
 def store_graph(h5, plan: GraphPlan) -> GraphStats:
