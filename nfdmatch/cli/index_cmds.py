@@ -145,6 +145,7 @@ def index_build(
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
       nfdmatch index build library/ --index library.h5 --graph
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
+      nfdmatch index build --index /shared/scans.h5 --graph 10 --scheduler tcp://head:8786
     """
     if "-" in sources:
         raise click.UsageError(
