@@ -204,3 +204,51 @@ def test_a_worker_that_cannot_see_the_index_folder_says_so(tmp_path):
     with pytest.raises(ClusterError, match="storage every worker sees under the same path") as got:
         graph_part(missing, (1, "", 128, 16, "rms"), np.arange(1), 8)
     assert got.value.path == missing
+
+
+def _slow_graph_tasks():
+    """Run on every worker: each graph search waits first (time to interrupt the build)."""
+    import time
+
+    from nfdmatch.search import graph
+
+    real = graph.real_nearest_others = graph.nearest_others
+
+    def slow(*args, **kwargs):
+        time.sleep(1.0)
+        return real(*args, **kwargs)
+
+    graph.nearest_others = slow
+
+
+def test_an_interrupted_cluster_graph_leaves_the_old_index_and_no_file_open(client, cluster, library, monkeypatch):
+    import _thread
+    import threading
+
+    from nfdmatch.search import graph
+
+    monkeypatch.setattr(graph, "_BLOCK_ROWS", 16)  # 15 blocks of a second each
+    index = library.parent / "i.h5"
+    build_index([library], index, jobs=1)
+    before = index.read_bytes()
+    client.run(_slow_graph_tasks)
+    timers = []
+    searching = cluster._run_graph_tasks
+
+    def interrupted(*args):
+        # Ctrl-C (as the CLI's handler raises it) half a second into the graph's search
+        timers.append(threading.Timer(0.5, _thread.interrupt_main))
+        timers[-1].start()
+        return searching(*args)
+
+    monkeypatch.setattr(cluster, "_run_graph_tasks", interrupted)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            cluster.build_index([library], index, graph=8)
+    finally:
+        for timer in timers:
+            timer.cancel()
+        client.run(_graph_tasks_work)
+    assert len(timers) == 1
+    assert index.read_bytes() == before and _no_temp_files(library.parent)
+    assert all(not any(".tmp-" in p for p in paths) for paths in client.run(_open_paths).values())
