@@ -3,6 +3,7 @@ on a Dask LocalCluster of N workers (issue 22 item 6), in one run.
 
     .venv/bin/python benchmarks/bench_graph_cluster.py [--curves 20000] [--workers 2] [--pairs 2]
                                                        [--workdir /tmp/nfdmatch-bench-graph]
+                                                       [--pairs-only]   (only the builds in turn)
 
 Curves: bench_selfjoin.py's ``generate`` (families of 50, 32 vertices, 1% noise). An index
 without a graph is built once; each row copies it and adds the graph with the CLI
@@ -60,6 +61,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--pairs", type=int, default=2)
     parser.add_argument("--workdir", default="/tmp/nfdmatch-bench-graph")
+    parser.add_argument("--pairs-only", action="store_true", help="only the builds in turn with a running cluster")
     args = parser.parse_args()
     work = os.path.abspath(args.workdir)
     src = os.path.join(work, "curves")
@@ -74,10 +76,14 @@ def main() -> None:
         )
     rows = []
     load = f"{os.getloadavg()[0]:.1f}"  # the machine is shared: say how busy it was
-    t, g, reference = _build(work, base, "local.h5", "--jobs", str(n))
-    rows.append((f"local --jobs {n}, no cluster running", t, g["seconds"], "yes"))
-    t, g, stored = _build(work, base, "started.h5", "--scheduler", f"local:{n}")
-    rows.append((f"--scheduler local:{n} (the command starts the cluster)", t, g["seconds"], _same(stored, reference)))
+    reference = None  # the first local graph: every other is compared with it
+    if not args.pairs_only:
+        t, g, reference = _build(work, base, "local.h5", "--jobs", str(n))
+        rows.append((f"local --jobs {n}, no cluster running", t, g["seconds"], "yes"))
+        t, g, stored = _build(work, base, "started.h5", "--scheduler", f"local:{n}")
+        rows.append(
+            (f"--scheduler local:{n} (the command starts the cluster)", t, g["seconds"], _same(stored, reference))
+        )
 
     from nfdmatch.distributed import connect
 
@@ -86,6 +92,7 @@ def main() -> None:
         local, remote = [], []
         for _ in range(args.pairs):
             t, g, stored = _build(work, base, "local.h5", "--jobs", str(n))
+            reference = stored if reference is None else reference
             local.append((t, g["seconds"], _same(stored, reference)))
             t, g, stored = _build(work, base, "remote.h5", "--scheduler", address)
             remote.append((t, g["seconds"], _same(stored, reference)))
