@@ -78,7 +78,8 @@ def index():
     default=None,
     metavar="[K]",
     help=f"Store each curve's K nearest curves, for query --rerank (K = {DEFAULT_GRAPH_K} when not given: "
-    "then put --graph after the sources or before another option); 0 drops the graph "
+    "then put --graph after the sources or before another option); 0 drops the graph; with "
+    "--scheduler its rows are searched by the cluster's workers "
     "[default: keep the index's graph, if it has one].",
 )
 @optional_descriptor_options("the index's")
@@ -125,9 +126,13 @@ def index_build(
     failed, failures (path and error of each failed file), skipped (folders that could not
     be listed, whose indexed files are kept, and non-regular files), curves, seconds; and shrink
     ({removed, of, allowed}) when the build removes (or refused to remove) more than half;
-    with --graph, also graph: {k, searched, updated, kept, processes, seconds} (rows searched
-    in the whole index, copied rows a new curve entered, copied rows kept as they were,
-    worker processes that searched: --jobs, 0 when this process did).
+    with --graph, also graph: {k, searched, updated, kept, processes, seconds, where,
+    scheduler, workers} (rows searched in the whole index, copied rows a new curve entered,
+    copied rows kept as they were, worker processes that searched: --jobs, 0 when this
+    process or a cluster did; where: local or cluster, and the cluster's scheduler and
+    workers). With --scheduler the graph's rows are searched by the cluster's workers,
+    which read them from the new index file (beside the index, closed meanwhile): the
+    index's folder must be on storage every worker sees.
 
     Exit codes: 0 every file indexed, 3 index written but some files failed,
     1 nothing written (bad arguments, lock held, unreadable old index, shrink refused,
@@ -140,6 +145,7 @@ def index_build(
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
       nfdmatch index build library/ --index library.h5 --graph
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
+      nfdmatch index build --index /shared/scans.h5 --graph 10 --scheduler tcp://head:8786
     """
     if "-" in sources:
         raise click.UsageError(
@@ -257,6 +263,11 @@ def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict
             "kept": g.kept,
             "processes": g.processes,
             "seconds": round(g.seconds, 3),
+            # where the rows were searched: here (this process, or --jobs forked ones), or
+            # by the workers of a Dask cluster (--scheduler)
+            "where": "cluster" if g.scheduler else "local",
+            "scheduler": g.scheduler or None,
+            "workers": g.workers,
         }
     if report.dry_run:
         summary["dry_run"] = True
@@ -289,8 +300,15 @@ def _say_build(report, index_path: str, allow_shrink: bool) -> None:
         g = report.graph
         say(
             f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
-            f"{g.kept} kept; {g.seconds:.2f} s" + (f" on {g.processes} processes" if g.processes else "")
+            f"{g.kept} kept; {g.seconds:.2f} s" + _graph_where(g)
         )
+
+
+def _graph_where(g) -> str:
+    """Where the graph's rows were searched, for the summary line ("" : this process)."""
+    if g.scheduler:
+        return f" on the cluster at {g.scheduler} ({g.workers} worker{'s' if g.workers != 1 else ''})"
+    return f" on {g.processes} processes" if g.processes else ""
 
 
 @index.command("info")

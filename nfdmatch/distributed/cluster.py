@@ -12,7 +12,16 @@ from .._version import __version__
 from ..errors import NfdError
 from ..search.engine import BestRows
 from .build_tasks import batches, compute_batches, failed_answer, file_size
-from .search_tasks import HeldDescriptors, index_ranges, pairs_part, ranked, search_range
+from .search_tasks import (
+    HeldDescriptors,
+    forget_index,
+    graph_part,
+    index_ranges,
+    index_stamp,
+    pairs_part,
+    ranked,
+    search_range,
+)
 from .settings import (
     PIN_CHECK_SECONDS,
     QUERY_BLOCK,
@@ -101,14 +110,50 @@ class Cluster:
     # ----------------------------------------------------------------------- build
 
     def build_index(self, sources, index_path=None, **options):
-        """:func:`nfdmatch.index.build_index` with the files computed on the workers.
+        """:func:`nfdmatch.index.build_index` with the files computed on the workers, and
+        the rows of its graph (``graph=K``) searched there.
 
         Same arguments (``jobs`` is ignored) and the same result: the plan and the writing
-        stay here, the index written is the one a local build writes."""
+        stay here, the index written is the one a local build writes (the graph too, the
+        same bytes). The workers read the graph's rows from the new index file by its path
+        (a temporary file beside the index): the index's folder must be on storage every
+        worker sees, under the same path."""
         from ..index import build_index
 
         options.pop("jobs", None)
-        return build_index(sources, index_path, jobs=1, runner=self._run_build_tasks, **options)
+        return build_index(
+            sources, index_path, jobs=1, runner=self._run_build_tasks, graph_runner=self._run_graph_tasks, **options
+        )
+
+    def _run_graph_tasks(self, path: str, blocks: list, k: int, store) -> tuple[str, int]:
+        """The build's graph searcher on the cluster (the ``graph_runner`` of
+        :func:`nfdmatch.index.build_index`): one task per block of rows, each worker
+        reading the closed new index file at ``path``; ``store(number, neighbour,
+        distance)`` as blocks finish. Afterwards every worker closes the file (it is about
+        to be written and moved). Returns ``(scheduler address, workers)``."""
+        from distributed import as_completed
+
+        from ..index import open_index
+
+        path = os.path.abspath(path)
+        with open_index(path) as idx:
+            stamp = index_stamp(idx)
+        futures = {}
+        try:
+            for number, block in enumerate(blocks):
+                fut = self.client.submit(graph_part, path, stamp, block, int(k), retries=RETRIES, pure=False)
+                futures[fut] = number
+            for fut in as_completed(list(futures), loop=self.client.loop):
+                answer = _task_result(fut, "graph")
+                store(futures.pop(fut), answer["neighbour"], answer["distance"])
+        finally:
+            if futures:
+                self.client.cancel(list(futures))
+            try:
+                self.client.run(forget_index, path)
+            except Exception:  # a worker gone: its process, and the file it held, went with it
+                pass
+        return self.address, len(self.workers)
 
     def _run_build_tasks(self, tasks: list[tuple], jobs, lock_fd):
         """The build's task runner on the cluster: yield ``(task_number, result)`` as
@@ -238,7 +283,7 @@ class Cluster:
         from ..descriptors import descriptors_batch
 
         path = os.path.abspath(idx.path)
-        stamp = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
+        stamp = index_stamp(idx)
         qcoef = descriptors_batch(
             queries, samples=idx.samples, harmonics=idx.harmonics, scale=idx.scale_mode
         ).coefficients
@@ -282,7 +327,7 @@ class Cluster:
 
         t0 = time.perf_counter()
         path = os.path.abspath(index.path)
-        stamp = (index.n_curves, index.updated, index.samples, index.harmonics, index.scale_mode)
+        stamp = index_stamp(index)
         C = index.search_table().n_cells
         stats = JoinStats(rows=index.n_curves, cells=C)
         stats.left = index.n_curves if rows is None else len(np.unique(rows))

@@ -7,6 +7,7 @@ import numpy as np
 
 from ..search.bounds import feature_vector
 from ..search.engine import BestRows, Cascade, QueryWork, search_block
+from ..errors import ReadError
 from .settings import ClusterError
 
 
@@ -44,8 +45,7 @@ def _worker_index(path: str, stamp: tuple):
         for old_key in [k for k in _OPEN if k[0] == path]:  # a replaced index: drop the old one
             _OPEN.pop(old_key)[0].close()
         idx = open_index(path)
-        got = (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
-        if got != tuple(stamp):
+        if index_stamp(idx) != tuple(stamp):
             idx.close()
             raise ClusterError(
                 "the index a worker opened is not the one the client opened (replaced by a "
@@ -77,6 +77,52 @@ def pairs_part(path: str, stamp: tuple, first: int, stop: int, max_distance: flo
     out = {key: getattr(stats, key) for key in ("cell_pairs", "bounded", "truncated", "fine", "exact")}
     out["pairs"] = (a, b, d)
     return out
+
+
+def index_stamp(idx) -> tuple:
+    """What a worker checks that the index it opened is the client's: rows, time of
+    writing, descriptor parameters."""
+    return (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
+
+
+def graph_part(path: str, stamp: tuple, block: np.ndarray, k: int) -> dict:
+    """On a worker: the neighbour lists of one block of rows of an index being built (its
+    temporary file, complete but for ``/graph``, closed by the client until every block is
+    answered): each row's ``k`` nearest other rows by
+    :func:`nfdmatch.search.graph.nearest_others`, the search of a local build, so the
+    lists are the same bytes. The search table is read whole once per worker process (a
+    worker's blocks reach most of it) and kept for its other blocks.
+
+    Returns ``{"neighbour": (m, k) int64, "distance": (m, k) float64}``."""
+    from ..search.graph import nearest_others
+
+    try:
+        entry = _worker_index(path, stamp)
+    except ReadError as exc:
+        raise ClusterError(
+            f"a Dask worker cannot read the index being built ({exc.message}): the index's folder must be on "
+            "storage every worker sees under the same path, for --graph with --scheduler (docs/distributed.md)",
+            path=path,
+        ) from None
+    idx, cache = entry[0], entry[2]
+    if "graph" not in cache:
+        if entry[1] is None:
+            entry[1] = idx.search_table()
+        entry[1].read_whole()
+        cache["graph"] = (np.asarray(idx.ids(), dtype=object), Cascade(idx.samples))
+    ids, cascade = cache["graph"]
+    block = np.asarray(block, dtype=np.int64)
+    task = (block, np.asarray(idx.coefficients_at(block), dtype=np.complex128))
+    _, neighbour, distance = nearest_others(entry[1], task, ids, int(k), cascade, 1)
+    return {"neighbour": neighbour, "distance": distance}
+
+
+def forget_index(path: str) -> None:
+    """Run on every worker once a build's graph is searched: close the index file at
+    ``path`` (the client is about to write into it, then move it into place) and drop what
+    was read from it."""
+    for key in [key for key in _OPEN if key[0] == path]:
+        _OPEN.pop(key)[0].close()
 
 
 class SeededBestRows(BestRows):

@@ -39,6 +39,15 @@ file_timeout : seconds one file may take to be read and hashed (None or 0: no li
 runner : what computes the files to read (None: the local pool); called as
     ``runner(tasks, jobs, lock_fd)``, it yields ``(task_number, result of
     pool._compute_file(*task))`` in any order (``nfdmatch.distributed`` plugs Dask in).
+graph_runner : what searches the rows of the graph (None: this process and ``jobs``
+    forked workers); called as ``graph_runner(path, blocks, k, store)`` once the new
+    index file at ``path`` (its temporary name beside the index) is complete but for
+    ``/graph`` and closed, so that other processes can open it read-only by that path:
+    for each block (an int64 array of rows) it searches each row's ``k`` nearest others
+    as :func:`nfdmatch.search.graph.nearest_others` does and calls ``store(block_number,
+    neighbour (m, k) int64, distance (m, k) float64)``, in any order; it returns ``(where,
+    workers)``, what searched (reported in ``BuildReport.graph``). The file is then
+    reopened to write the graph, and moved into place as always.
 
 Files are stored, and compared with the index's, by the rule of docs/index-format.md
 ("Paths and ids"): relative to the index's folder, whatever the working directory and
@@ -175,6 +184,7 @@ def build_index(
     file_timeout=None,
     graph=None,
     runner=None,
+    graph_runner=None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
     walked; None or empty: the sources the index records) in ``index_path`` (None:
@@ -184,8 +194,9 @@ def build_index(
     describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
     build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
     total)``; ``file_timeout``: seconds one file may take; ``runner``: computes the tasks
-    instead of the local pool. Every parameter, the files' paths and the errors raised are
-    described in full in this module's docstring.
+    instead of the local pool; ``graph_runner``: searches the graph's rows. Every
+    parameter, the files' paths and the errors raised are described in full in this
+    module's docstring.
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
@@ -223,6 +234,7 @@ def build_index(
             write_new_index(
                 report, real_index, plan, old, jobs, lock, progress, file_timeout,
                 sources=(stored_sources, glob or None), name=index_path, graph=graph, runner=runner,
+                graph_runner=graph_runner,
             )  # fmt: skip
         else:
             _unchanged(report, plan, old, real_index, progress)

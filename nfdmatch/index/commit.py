@@ -1,12 +1,16 @@
 """The write step of a build: the new index file written beside the old one (rows copied
 and computed, ``/files``, ``/search``, ``/graph``), synced, then moved into place under the
-build's lock. The old file stays what queries read until the move."""
+build's lock. The old file stays what queries read until the move. A graph whose rows are
+searched elsewhere (a Dask cluster's workers, which open the new file by its path) is
+searched while the new file is closed, complete but for ``/graph``; the file is then
+reopened to write it."""
 
 from __future__ import annotations
 
 import os
 import secrets
 import time
+from contextlib import contextmanager
 
 import h5py
 import numpy as np
@@ -14,7 +18,8 @@ import numpy as np
 from .._version import __version__
 from ..errors import NfdError, WriteError
 from .changes import write_changes
-from .graph_build import write_graph
+from .graph import GraphStats
+from .graph_build import blocks_to_search, plan_graph, store_graph, write_graph
 from .paths import curve_ids
 from .plan import Action, Plan
 from .pool import run_tasks
@@ -43,10 +48,12 @@ def write_new_index(
     name=None,
     graph=None,
     runner=None,
+    graph_runner=None,
 ):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
-    it (messages)."""
+    it (messages); ``graph_runner``: searches the graph's rows elsewhere (see
+    :func:`nfdmatch.index.build_index`), in the temporary file closed meanwhile."""
     shown = index_path if name is None else name
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
@@ -55,8 +62,10 @@ def write_new_index(
     actions: dict[str, str] = {p: "removed" for p in plan.removed}
     now = _utcnow()
     try:
-        graph_job = (graph, jobs, None if lock is None else lock.fd)
-        _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now)
+        graph_job = (graph, jobs, None if lock is None else lock.fd, graph_runner)
+        pending = _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now)
+        if pending is not None:
+            report.graph = _graph_elsewhere(tmp, shown, *pending, graph_runner)
         Space.release(tmp)
         fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
         os.replace(tmp, index_path)
@@ -103,44 +112,90 @@ def _start_tasks(tasks, jobs, lock, progress, file_timeout, runner):
     return stream, result_of
 
 
-def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now) -> None:
+def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now):
     """Write the whole new index to ``tmp``: attributes, curve rows, /files, /sources,
-    /changes, /search and /graph (``graph_job``: ``(K, processes, lock descriptor)``, see
-    :func:`write_graph`). Closes the task stream and the file, also on failure."""
+    /changes, /search and /graph (``graph_job``: ``(K, processes, lock descriptor,
+    graph_runner)``, see :func:`write_graph`). Closes the task stream and the file, also on
+    failure. Returns None, or with a ``graph_runner`` and rows to search ``(plan, blocks)``:
+    the graph still to search and write (:func:`_graph_elsewhere`)."""
     K = plan.params["harmonics"]
-    space = None
+    pending = None
+    try:
+        with _new_file(tmp, shown, "w") as (h5, space):
+            space.reserve(0)  # the superblock, attributes, small tables
+            _write_attributes(h5.attrs, plan.params, old, now)
+            writer = CurveWriter(h5, K, space)
+            run = CopyRun(old, writer)
+            records, fresh = _write_rows(plan.items, result_of, writer, run, report, actions)
+            run.flush()
+            writer.flush()
+            write_files_table(h5, records, space)
+            write_sources(h5, *sources)
+            write_changes(h5, fresh)
+            # the cells: features, squared norms, row numbers and first harmonics of every row
+            space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
+            report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
+            graph, processes, lock_fd, graph_runner = graph_job
+            reuse = not plan.recompute_all
+            if graph_runner is None:
+                report.graph = write_graph(h5, old, graph, reuse=reuse, processes=processes, close_fds=(lock_fd,))
+            else:
+                pending = _graph_here(h5, old, graph, reuse, space, report)
+            report.curves = writer.rows
+    finally:
+        stream.close()  # shuts the worker pool down
+    return pending
+
+
+def _graph_here(h5, old, graph, reuse: bool, space: Space, report):
+    """The part of a graph searched elsewhere that is computed in the open file (see
+    :func:`blocks_to_search`); the graph written now when no row is left to search.
+    Returns None or ``(plan, blocks)``."""
+    graph_plan = plan_graph(h5, old, graph, reuse=reuse)
+    blocks = [] if graph_plan is None else blocks_to_search(graph_plan)
+    if graph_plan is None:
+        report.graph = GraphStats()
+    elif not blocks:
+        space.reserve(graph_plan.lists.neighbour.nbytes * 2)
+        report.graph = store_graph(h5, graph_plan)
+    else:
+        return graph_plan, blocks
+    return None
+
+
+def _graph_elsewhere(tmp: str, shown: str, graph_plan, blocks: list, graph_runner) -> GraphStats:
+    """The graph's rows searched by ``graph_runner`` in ``tmp`` (closed: complete but for
+    /graph, so that other processes and machines can open it by its path), then written
+    into it (reopened for writing). A failure leaves ``tmp`` to the caller (removed)."""
+
+    def store(number, neighbour, distance):
+        graph_plan.store(blocks[number], neighbour, distance)
+
+    graph_plan.stats.scheduler, graph_plan.stats.workers = graph_runner(tmp, blocks, graph_plan.k, store)
+    with _new_file(tmp, shown, "r+") as (h5, space):
+        space.reserve(graph_plan.lists.neighbour.nbytes * 2)  # neighbours and distances, 8 bytes each
+        return store_graph(h5, graph_plan)
+
+
+@contextmanager
+def _new_file(tmp: str, shown: str, mode: str):
+    """The new index file open for writing (``mode`` "w": created; "r+": reopened, to add
+    the graph) with its :class:`Space`; closed on leaving, also after a failed write."""
     try:
         # HDF5 1.10 structures: chunk indexes by position (fixed and extensible arrays,
         # no stored chunk offsets that a flipped byte could move) with checksums
-        h5 = h5py.File(tmp, "w", locking=False, libver=("v110", "v110"))
+        h5 = h5py.File(tmp, mode, locking=False, libver=("v110", "v110"))
     except Exception as exc:
         raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
+    space = None
     try:
         space = Space(h5)
-        space.reserve(0)  # the superblock, attributes, small tables
-        _write_attributes(h5.attrs, plan.params, old, now)
-        writer = CurveWriter(h5, K, space)
-        run = CopyRun(old, writer)
-        records, fresh = _write_rows(plan.items, result_of, writer, run, report, actions)
-        run.flush()
-        writer.flush()
-        write_files_table(h5, records, space)
-        write_sources(h5, *sources)
-        write_changes(h5, fresh)
-        # the cells: features, squared norms, row numbers and first harmonics of every row
-        space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
-        report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
-        graph, processes, lock_fd = graph_job
-        report.graph = write_graph(
-            h5, old, graph, reuse=not plan.recompute_all, processes=processes, close_fds=(lock_fd,)
-        )
-        report.curves = writer.rows
+        yield h5, space
     except BaseException:
         if space is not None:
             space.abandon()  # HDF5 cannot close a file it failed to write
         raise
     finally:
-        stream.close()  # shuts the worker pool down
         try:
             h5.close()
         except Exception:

@@ -46,8 +46,9 @@ class GraphStats:
     """What :func:`write_graph` did: ``k`` (0: no graph written), ``searched`` (rows whose
     list came from a search of the whole index), ``updated`` (copied rows whose list a new
     row entered), ``kept`` (copied rows whose list was reused as it was), ``processes``
-    (forked worker processes that searched the rows; 0: the building process, on threads),
-    ``seconds``."""
+    (forked worker processes that searched the rows; 0: the building process, on threads, or
+    a cluster), ``scheduler`` (the Dask cluster whose ``workers`` searched the rows; "": this
+    machine), ``seconds``."""
 
     k: int = 0
     searched: int = 0
@@ -55,6 +56,8 @@ class GraphStats:
     kept: int = 0
     processes: int = 0
     seconds: float = 0.0
+    scheduler: str = ""
+    workers: int = 0
 
 
 def check_lists(rows, neighbour, distance, N: int) -> str | None:

@@ -6,17 +6,41 @@ the group into the new index file. Loaded by a build only (a query reads /graph 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import IndexFormatError
-from ..search.graph import GraphLists, neighbour_lists
+from ..search.engine import Cascade
+from ..search.graph import GraphLists, graph_blocks, neighbour_lists, update_copied
 from .arrays import unique_rows
 from .graph import GRAPH_CHECKSUMS, GRAPH_CHUNK_ROWS, IN_MEMORY_ROWS, GraphStats, old_graph_k, read_graph
 from .schema import create_checked
 from .search_group import search_table
 
-__all__ = ["write_graph"]
+__all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan"]
+
+
+@dataclass
+class GraphPlan:
+    """A graph being computed in a new index file: ``stats`` (what is done so far, its
+    clock started), ``k``, the lists ``lists`` (:class:`~nfdmatch.search.graph.GraphLists`:
+    the copied ones filled, the rows to search marked), what the search reads (``table``,
+    ``read_coefficients``, the rows' ``ids``; ``table`` None for an index without rows) and
+    the index's ``samples``; ``t0`` when it began."""
+
+    stats: GraphStats
+    k: int
+    t0: float
+    samples: int = 0
+    lists: GraphLists | None = None
+    table: object = None
+    read_coefficients: object = None
+    ids: object = None
+
+    def store(self, rows, neighbour, distance) -> None:
+        """The lists ((m, k) int64 / float64) of ``rows``, searched elsewhere."""
+        self.lists.neighbour[rows], self.lists.distance[rows] = neighbour, distance
 
 
 def write_graph(
@@ -33,56 +57,96 @@ def write_graph(
         (:func:`~nfdmatch.search.graph.neighbour_lists`): ``processes`` forked workers (a
         build's ``jobs``), each closing ``close_fds`` (the index lock), else ``threads``.
     """
-    t0 = time.perf_counter()
-    k = old_graph_k(old) if k is None else int(k)
-    stats = GraphStats(k=k)
-    if k <= 0:
-        return stats
-    curves = h5["curves"]
-    N = curves["coefficients"].shape[0]
-    K = int(h5.attrs["harmonics"])
-    samples = int(h5.attrs["samples"])
-    ids = np.asarray(curves["id"].asstr()[...], dtype=object)
-    neighbour = np.full((N, k), -1, dtype=np.int64)
-    distance = np.full((N, k), np.inf)
-
-    todo, check, fresh = _keep_old_lists(h5, old, k, reuse, neighbour, distance)
-
-    if N:
-        coefficients = curves["coefficients"][...] if N <= IN_MEMORY_ROWS else None
-
-        def read_coefficients(rows):
-            rows = np.asarray(rows, dtype=np.int64)
-            if coefficients is not None:
-                return coefficients[rows]
-            uniq, inverse = unique_rows(rows)
-            return curves["coefficients"][uniq][inverse]
-
-        def fail(message):
-            raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
-
-        table = search_table(h5, N, K, read_coefficients, fail)
-        fresh_rows = np.flatnonzero(fresh)
-        features = None
-        if len(check) and len(fresh_rows):
-            features = np.concatenate([curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1)
-        lists = GraphLists(neighbour, distance, todo, check, fresh_rows, features)
+    plan = plan_graph(h5, old, k, reuse=reuse)
+    if plan is None:
+        return GraphStats()
+    stats = plan.stats
+    if plan.table is not None:
         stats.searched, stats.updated, stats.processes = neighbour_lists(
-            table,
-            read_coefficients,
-            ids,
-            lists,
-            k,
-            samples,
+            plan.table,
+            plan.read_coefficients,
+            plan.ids,
+            plan.lists,
+            plan.k,
+            plan.samples,
             threads=threads,
             processes=processes,
             close_fds=[fd for fd in close_fds if fd is not None],
         )
-        stats.kept = len(check) - stats.updated
+        stats.kept = len(plan.lists.check) - stats.updated
+    return store_graph(h5, plan)
 
-    _write_group(h5, k, neighbour, distance)
-    stats.seconds = time.perf_counter() - t0
-    return stats
+
+def plan_graph(h5, old, k: int | None, *, reuse: bool) -> GraphPlan | None:
+    """What :func:`write_graph` computes in the new index file ``h5``, before any search: the
+    lists kept from ``old`` and the rows to search (arguments as that function's). None
+    when no graph is to be written (``k`` 0, or None and the old index had none)."""
+    t0 = time.perf_counter()
+    k = old_graph_k(old) if k is None else int(k)
+    if k <= 0:
+        return None
+    plan = GraphPlan(GraphStats(k=k), k, t0)
+    curves = h5["curves"]
+    N = curves["coefficients"].shape[0]
+    K = int(h5.attrs["harmonics"])
+    plan.samples = int(h5.attrs["samples"])
+    plan.ids = np.asarray(curves["id"].asstr()[...], dtype=object)
+    neighbour = np.full((N, k), -1, dtype=np.int64)
+    distance = np.full((N, k), np.inf)
+
+    todo, check, fresh = _keep_old_lists(h5, old, k, reuse, neighbour, distance)
+    plan.lists = GraphLists(neighbour, distance, todo, check, np.flatnonzero(fresh))
+    if not N:
+        return plan
+    coefficients = curves["coefficients"][...] if N <= IN_MEMORY_ROWS else None
+
+    def read_coefficients(rows):
+        rows = np.asarray(rows, dtype=np.int64)
+        if coefficients is not None:
+            return coefficients[rows]
+        uniq, inverse = unique_rows(rows)
+        return curves["coefficients"][uniq][inverse]
+
+    def fail(message):
+        raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
+
+    plan.read_coefficients = read_coefficients
+    plan.table = search_table(h5, N, K, read_coefficients, fail)
+    fresh_rows = plan.lists.fresh_rows
+    if len(check) and len(fresh_rows):
+        plan.lists.features = np.concatenate(
+            [curves["inv_sv"][...][fresh_rows], curves["inv_block"][...][fresh_rows]], axis=1
+        )
+    return plan
+
+
+def blocks_to_search(plan: GraphPlan, threads: int | None = None) -> list[np.ndarray]:
+    """For a graph whose rows are searched elsewhere (a Dask cluster's workers, which can
+    open the new file only once it is closed): the part computed here, from the open file,
+    and what is left. The copied lists are updated where a new row enters them (a search
+    of the new rows alone, on ``threads``: here, as in a local build) and the rows to
+    search are returned in blocks, in the table's order
+    (:func:`~nfdmatch.search.graph.graph_blocks`); each block's lists go in with
+    :meth:`GraphPlan.store`. The plan then holds nothing that reads the file."""
+    if plan.table is None:
+        return []
+    lists = plan.lists
+    blocks = graph_blocks(plan.table, lists.todo)
+    cascade = Cascade(plan.samples)
+    stats = plan.stats
+    stats.updated = update_copied(plan.table, plan.read_coefficients, plan.ids, lists, plan.k, cascade, threads)
+    stats.kept = len(lists.check) - stats.updated
+    stats.searched = sum(len(block) for block in blocks)
+    plan.table = plan.read_coefficients = None
+    return blocks
+
+
+def store_graph(h5, plan: GraphPlan) -> GraphStats:
+    """Write the lists of ``plan`` (complete) as ``/graph`` of the new index file ``h5``;
+    returns its stats, their time taken."""
+    _write_group(h5, plan.k, plan.lists.neighbour, plan.lists.distance)
+    plan.stats.seconds = time.perf_counter() - plan.t0
+    return plan.stats
 
 
 def _keep_old_lists(h5, old, k: int, reuse: bool, neighbour, distance):

@@ -20,7 +20,7 @@ from .engine import TIE, Cascade, BestRows, search_block
 from .table import SearchTable
 from .workers import run_tasks
 
-__all__ = ["GraphLists", "neighbour_lists"]
+__all__ = ["GraphLists", "neighbour_lists", "graph_blocks", "nearest_others", "update_copied"]
 
 
 #: rows searched per block (their descriptors and lists held at once)
@@ -73,16 +73,9 @@ def neighbour_lists(
     here, on ``threads``. The lists are the same either way (each row's search is its own).
     ``close_fds``: descriptors a worker must not keep (the index lock).
     """
-    neighbour, distance, todo = lists.neighbour, lists.distance, lists.todo
-    N = len(todo)
+    neighbour, distance = lists.neighbour, lists.distance
     cascade = Cascade(samples)
-    searched = np.flatnonzero(todo)
-    if len(searched) > 1 and table.n_cells:
-        positions, rows, _, _ = table.open_cells(np.arange(table.n_cells))
-        at = np.empty(N, dtype=np.int64)
-        at[rows] = positions
-        searched = searched[np.argsort(at[searched], kind="stable")]
-    blocks = [searched[a : a + _BLOCK_ROWS] for a in range(0, len(searched), _BLOCK_ROWS)]
+    blocks = graph_blocks(table, lists.todo)
     queries = _Queries(blocks, read_coefficients)
 
     def store(number, got):
@@ -92,14 +85,27 @@ def neighbour_lists(
     complete = table.stored_harmonics >= table.harmonics  # else workers would read the file
     processes = run_tasks(
         queries,
-        lambda task, worker_threads: _nearest_others(table, task, ids, k, cascade, worker_threads or threads),
+        lambda task, worker_threads: nearest_others(table, task, ids, k, cascade, worker_threads or threads),
         store,
         processes if complete else 1,
         prepare=table.read_whole,
         close_fds=close_fds,
     )
-    updated = _update_copied(table, read_coefficients, ids, lists, k, cascade, threads)
-    return len(searched), updated, processes
+    updated = update_copied(table, read_coefficients, ids, lists, k, cascade, threads)
+    return sum(len(block) for block in blocks), updated, processes
+
+
+def graph_blocks(table, todo) -> list[np.ndarray]:
+    """The rows to search (``todo`` (N,) bool) in blocks of at most :data:`_BLOCK_ROWS`,
+    in the table's order (cell by cell): a block's rows share the cells they read."""
+    N = len(todo)
+    searched = np.flatnonzero(todo)
+    if len(searched) > 1 and table.n_cells:
+        positions, rows, _, _ = table.open_cells(np.arange(table.n_cells))
+        at = np.empty(N, dtype=np.int64)
+        at[rows] = positions
+        searched = searched[np.argsort(at[searched], kind="stable")]
+    return [searched[a : a + _BLOCK_ROWS] for a in range(0, len(searched), _BLOCK_ROWS)]
 
 
 class _Queries:
@@ -117,7 +123,7 @@ class _Queries:
         return block, np.asarray(self.read(block), dtype=np.complex128)
 
 
-def _nearest_others(table, task, ids, k, cascade, threads):
+def nearest_others(table, task, ids, k, cascade, threads):
     """``(block, neighbour, distance)``: the lists ((m, k) int64 / float64) of the m rows of
     ``task`` ``(block, their (m, K, 3) complex128 descriptors)``, each from one search."""
     block, q = task
@@ -130,7 +136,7 @@ def _nearest_others(table, task, ids, k, cascade, threads):
     return block, nb, d
 
 
-def _update_copied(table, read_coefficients, ids, lists: GraphLists, k, cascade, threads):
+def update_copied(table, read_coefficients, ids, lists: GraphLists, k, cascade, threads):
     """Update the copied lists of the rows ``lists.check`` where one of ``lists.fresh_rows``
     enters them (see :func:`neighbour_lists`); returns how many changed."""
     neighbour, distance, check, fresh_rows = lists.neighbour, lists.distance, lists.check, lists.fresh_rows
