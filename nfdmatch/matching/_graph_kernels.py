@@ -29,7 +29,19 @@ rounds in turn with the same arithmetic in the same order:
 
 numba compiles the same operations as numpy's loops (no fastmath: no reassociation, no
 fused multiply-add), so the results are the same doubles (tests/test_diffusion.py checks
-that on random graphs and on an index's graph).
+that on random graphs and on an index's graph). The identity rests on numpy's reduction
+order (``np.add.reduceat`` as ``DOUBLE_pairwise_sum``, numpy 1.x to 2.4): a numpy that sums
+otherwise would make the numpy push's digits move, and those tests say so.
+
+The sums are made as the values come, without sorting: a node's values of the round are
+counted (the first one apart when it holds no residual), each complete block of 8 is added
+into 8 accumulators (numpy's 8-way loop), the block not complete yet kept; at the round's
+end the accumulators are combined as numpy does, then the incomplete block added one value
+after the other (below 8 values: only those, from 0.0). A node receiving more than 128
+values in one round (numpy then halves) has its values placed in order and summed by
+:func:`_pairwise`. The work is the synchronous rounds' all the same (every residual of at
+least the tolerance is pushed again every round): at 100,000 curves ~1,170 pushes per
+source, ~90 ns each (its 8 sends included).
 
 The walk's rows (``targets``, ``prob``: node u's row, the self loop first) are numpy's,
 computed by the walk (``exp`` in numpy), and read here only where ``known``. A source that
