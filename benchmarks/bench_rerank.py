@@ -2,6 +2,7 @@
 
     python benchmarks/bench_rerank.py [--data ../shared/data] [--curves 10000] [--skip-timing | --skip-tables]
                                       [--skip-methods]
+    python benchmarks/bench_rerank.py --index I.h5 [--queries FILE --batch 100]
 
 Prints, from the repository root:
 
@@ -13,7 +14,10 @@ Prints, from the repository root:
 2. the shipped path (`query --rerank`: each query's exact top 100 joined to the graph
    stored by `index build --graph`), on the same collections;
 3. graph build time next to the plain build, and query --rerank time next to the plain
-   query, on ``--curves`` generated curves (families of 10, benchmarks/bench_index.py).
+   query, on ``--curves`` generated curves (families of 10, benchmarks/bench_index.py);
+   with ``--index`` the query timing only, on that index; with ``--queries FILE`` too, the
+   first ``--batch`` curves of FILE as one batch, --top 10: plain, ``--rerank`` with exact
+   and with walk candidates, each with the seconds of its PageRank push (issue 23).
 
 Collections: Kimia-99 (9 classes x 11; same-class hits at ranks 1..10 and bull's-eye, the
 same-class hits in the top 22, query included, as a fraction of 11); knotess control ->
@@ -349,6 +353,49 @@ def query_timing(index, queries, batch=200, single=20):
             print(f"{label:46} {best:7.2f} s, {1e3 * best / n:7.1f} ms per query", flush=True)
 
 
+def batch_timing(index, queries, runs=3):
+    """One batch of ``queries`` (--top 10): the plain query, ``--rerank`` with the exact top
+    100 as candidates and with the walk's; each the best of ``runs`` after a first run (the
+    same process: the index's pages warm), with the seconds of the PageRank push
+    (``GraphWalk.pagerank``) in that run."""
+    from nfdmatch.index import open_index
+    from nfdmatch.matching.kernels import current
+    from nfdmatch.search import search_index
+    from nfdmatch.search.diffusion import GraphWalk
+    from nfdmatch.search.rerank import rerank_index
+
+    pushed = [0.0]
+    real = GraphWalk.pagerank
+
+    def timed(self, *args, **kwargs):
+        t = time.perf_counter()
+        try:
+            return real(self, *args, **kwargs)
+        finally:
+            pushed[0] += time.perf_counter() - t
+
+    GraphWalk.pagerank = timed
+    try:
+        with open_index(index) as idx:
+            print(f"{idx.n_curves} curves, a batch of {len(queries)} queries, kernels: {current().describe()}")
+            for label, fn in (
+                ("plain query --top 10", lambda: search_index(idx, queries, top=10)),
+                ("query --rerank --top 10 (exact top 100)", lambda: rerank_index(idx, queries, top=10)),
+                ("query --rerank --top 10 (walk)", lambda: rerank_index(idx, queries, top=10, candidates="walk")),
+            ):
+                fn()
+                best = None
+                for _ in range(runs):
+                    pushed[0] = 0.0
+                    took = _time(fn)
+                    if best is None or took < best[0]:
+                        best = (took, pushed[0])
+                push = f", push {best[1]:5.2f} s" if "rerank" in label else ""
+                print(f"{label:42} {best[0]:6.2f} s{push}", flush=True)
+    finally:
+        GraphWalk.pagerank = real
+
+
 def _time(fn):
     t = time.perf_counter()
     fn()
@@ -369,7 +416,12 @@ def main():
         help="the shipped path's candidates (rerank_index(candidates=...)): exact top 100 or from the walk",
     )
     ap.add_argument("--index", help="timing: only the queries, on this index (built with --graph) of generated curves")
+    ap.add_argument("--queries", help="with --index: a curve file whose first --batch curves are the batch")
+    ap.add_argument("--batch", type=int, default=100, help="with --queries: the batch's size (default 100)")
     args = ap.parse_args()
+    if args.index and args.queries:
+        batch_timing(args.index, read_curves(args.queries)[: args.batch])
+        return
     if not os.path.isdir(args.data):
         sys.exit(f"development data not found at {args.data}")
     if args.index:  # the queries of bench_index.generate(..., len(index)) (same seed: same queries)

@@ -1,14 +1,15 @@
-"""The exact-search kernels compiled ahead of time: a plain extension module that imports in
-a millisecond, without numba.
+"""The exact-search kernels, and the graph push, compiled ahead of time: a plain extension
+module that imports in a millisecond, without numba.
 
-The kernels of :mod:`._kernels` are numba code. Compiled just in time they cost a process
-~0.45 s before the first row (importing numba and loading the cached machine code), more
-than a whole single query needs. ``make install`` (through :func:`compile_kernels`) also
-compiles the two entry points ahead of time with ``numba.pycc`` into
-``nfdmatch/matching/_kernels_aot*.so``, next to a stamp holding the digest of the kernel
-source it was built from; :func:`load` returns it only when the stamp matches the source
-(an edited ``_kernels.py``, or ``common.py``, is never served by a stale build). Without it
-a process uses the just-in-time kernels, or numpy (:mod:`.kernels`: the rule).
+The kernels of :mod:`._kernels` (and the push of :mod:`._graph_kernels`) are numba code.
+Compiled just in time they cost a process ~0.45 s before the first row (importing numba and
+loading the cached machine code), more than a whole single query needs. ``make install``
+(through :func:`compile_kernels`) also compiles the entry points ahead of time with
+``numba.pycc`` into ``nfdmatch/matching/_kernels_aot*.so``, next to a stamp holding the
+digest of the kernel sources it was built from; :func:`load` returns it only when the stamp
+matches the sources (an edited ``_kernels.py``, ``_graph_kernels.py`` or ``common.py`` is
+never served by a stale build). Without it a process uses the just-in-time kernels, or numpy
+(:mod:`.kernels`: the rule).
 
 The compiled functions release the GIL, as the just-in-time ones do, so queries on threads
 and a call's rows split over threads (:func:`._threads.split_rows`) run in parallel without
@@ -46,18 +47,28 @@ _EXACT_SIGNATURE = (
 _BOUND_SIGNATURE = "void(c16[:,::1], c16[:,:,::1], i8, f8[:,::1], i8, b1, f8[::1], f8[::1], f8[::1], f8[::1], i8, i8)"
 #: the grid bound's versions: specialised for the truncated stages' K' (4, 8), and any K'
 _BOUND_HARMONICS = (0, 4, 8)
+#: the personalised-PageRank push of _graph_kernels.py: its state in and out (arrays the walk
+#: makes contiguous), the walk's rows, its work array, alpha and the tolerance
+_PUSH_SIGNATURE = (
+    "Tuple((i8[::1], i8[::1], i8[::1], f8[::1], i8[::1], i8[::1], f8[::1], i8[::1]))"
+    "(i8[::1], i8[::1], i8[::1], i8[::1], f8[::1], i8[::1], i8[::1], f8[::1], i8[:,::1], f8[:,::1], b1[::1], "
+    "i8[::1], f8, f8)"
+)
+#: the sources compiled into the module (and common.py, whose gram_entries _kernels.py compiles)
+_SOURCES = ("_kernels.py", "_graph_kernels.py", "common.py", "aot.py")
 
 
 def source_digest() -> str:
-    """What a build is for: the CRC-32 and length of the kernel source, of ``common.py``
-    (whose ``gram_entries`` the kernels compile) and of this module, and the Python version
-    (the built module needs neither numba nor its version once compiled). It guards against
-    a stale build after an edit, not against tampering; every query checks it, and
-    ``hashlib`` alone costs a process ~6 ms to import (OpenSSL)."""
+    """What a build is for: the CRC-32 and length of the kernel sources (``_kernels.py``,
+    ``_graph_kernels.py``), of ``common.py`` (whose ``gram_entries`` the kernels compile) and
+    of this module, and the Python version (the built module needs neither numba nor its
+    version once compiled). It guards against a stale build after an edit, not against
+    tampering; every query checks it, and ``hashlib`` alone costs a process ~6 ms to import
+    (OpenSSL)."""
     import zlib
 
     parts = []
-    for name in ("_kernels.py", "common.py", "aot.py"):
+    for name in _SOURCES:
         with open(os.path.join(_HERE, name), "rb") as f:
             data = f.read()
         parts.append(f"{zlib.crc32(data):08x}{len(data):x}")
@@ -131,6 +142,7 @@ def _module_compiler(out: str):
     """numba.pycc's compiler of the extension module into ``out``, every kernel exported."""
     from numba.pycc import CC
 
+    from . import _graph_kernels as g
     from . import _kernels as k
 
     cc = CC(MODULE)
@@ -143,18 +155,20 @@ def _module_compiler(out: str):
     cc.export("exact_rows", _EXACT_SIGNATURE)(_forwarding(k._exact_rows))
     for harmonics in _BOUND_HARMONICS:
         cc.export(f"grid_bound_rows_{harmonics}", _BOUND_SIGNATURE)(_forwarding(k.grid_bound_kernel(harmonics)))
+    cc.export("push_sources", _PUSH_SIGNATURE)(_forwarding(g.push_sources, returns=True))
     return cc
 
 
-def _forwarding(kernel):
+def _forwarding(kernel, returns: bool = False):
     """A plain function that calls ``kernel`` (a numba dispatcher) with the kernel's own
-    parameters, for ``numba.pycc`` to export: it compiles Python functions, not dispatchers,
-    and the kernel then compiles as the callee with its own options (error model, inlining)."""
+    parameters (and, with ``returns``, returns what it returns), for ``numba.pycc`` to
+    export: it compiles Python functions, not dispatchers, and the kernel then compiles as
+    the callee with its own options (error model, inlining)."""
     import inspect
 
     names = ", ".join(inspect.signature(kernel.py_func).parameters)
     scope = {"kernel": kernel, "__name__": __name__}
-    exec(f"def forward({names}):\n    kernel({names})\n", scope)
+    exec(f"def forward({names}):\n    {'return ' if returns else ''}kernel({names})\n", scope)
     return scope["forward"]
 
 
@@ -185,12 +199,14 @@ def _releasing_gil():
 
 class _Kernels:
     """The compiled module behind the interface of :mod:`._kernels` (``exact_rows``,
-    ``grid_bound_rows``); ``threads``: its functions release the GIL, and ``workers`` then
-    splits a call's rows over threads (else it is ignored)."""
+    ``grid_bound_rows``) and of :mod:`._graph_kernels` (``push_sources``); ``threads``: its
+    functions release the GIL, and ``workers`` then splits a call's rows over threads (else
+    it is ignored)."""
 
     def __init__(self, module, threads: bool):
         self._module = module
         self.threads = threads
+        self.push_sources = module.push_sources
 
     def _workers(self, workers: int) -> int:
         return workers if self.threads else 1

@@ -47,6 +47,7 @@ __all__ = [
     "set_call_threads",
     "before_fork",
     "compile_kernels",
+    "graph_push",
 ]
 
 #: the one setting: which kernels a process uses (read when the first exact distance needs it)
@@ -183,6 +184,40 @@ def cpu_count() -> int:
     return _cpu_count[0]
 
 
+def graph_push(kernels: Kernels | None = None):
+    """The compiled personalised-PageRank push (:func:`._graph_kernels.push_sources`) of
+    ``kernels`` (default: the process's, :func:`current`): the ahead-of-time module's, or
+    numba's just-in-time one; None for the numpy kernels, or when numba cannot compile it
+    (the walk then pushes with numpy: the same doubles, slower)."""
+    kernels = kernels or current()
+    if kernels.name == "aot":
+        return kernels.module.push_sources
+    if kernels.name == "numba":
+        return _jit_graph_push()
+    return None
+
+
+@lru_cache(maxsize=1)
+def _jit_graph_push():
+    """numba's push, compiled (or loaded from numba's cache) and tried once; None when it
+    cannot be."""
+    try:
+        from . import _graph_kernels
+
+        _warm_up_push(_graph_kernels.push_sources)
+    except Exception:  # numba errors: the numpy push serves
+        return None
+    return _graph_kernels.push_sources
+
+
+def _warm_up_push(push) -> None:
+    """The push on a two-node walk with the argument types the walk passes."""
+    source, walk = np.zeros(1, np.int64), (np.array([[0, 1], [1, 0]]), np.full((2, 2), 0.5), np.ones(2, dtype=bool))
+    state = (np.zeros(1, np.int64), np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    state += (np.zeros(2, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    push(source, *state, *walk, np.full(2, -1, dtype=np.int64), 0.8, 1e-5)
+
+
 def _warm_up(kernels) -> None:
     """Compile (or load from numba's cache) the kernel on a tiny input with the argument
     types exact_search passes, so that a failure shows here, once."""
@@ -200,18 +235,19 @@ def _warm_up(kernels) -> None:
 
 
 def compile_kernels(ahead_of_time: bool = True) -> bool:
-    """Compile (or load from numba's cache) the just-in-time kernels now and keep them for
-    this process; with ``ahead_of_time``, also build the extension module of :mod:`.aot`
-    when it is missing or stale (~30 s). ``make install`` runs it once, so that neither the
-    first query of a new install nor any single query pays for compiling or importing
-    numba. Returns False when numba cannot be used (the numpy path then serves every
-    search)."""
+    """Compile (or load from numba's cache) the just-in-time kernels (and the graph push of
+    :func:`graph_push`) now and keep them for this process; with ``ahead_of_time``, also
+    build the extension module of :mod:`.aot` when it is missing or stale (~30 s). ``make
+    install`` runs it once, so that neither the first query of a new install nor any single
+    query pays for compiling or importing numba. Returns False when numba cannot be used
+    (the numpy path then serves every search)."""
     try:
         from . import _kernels
 
         _warm_up(_kernels)
     except Exception:  # ImportError, numba errors: the numpy path serves
         return False
+    _jit_graph_push()  # (numba's cache then holds the push too)
     if ahead_of_time:
         from . import aot
 

@@ -16,6 +16,13 @@ residual above the tolerance at once, for every source at once: a few numpy oper
 round). What is left is below the tolerance per node: the estimate p of a source's
 PageRank pi satisfies ``0 <= pi - p`` and ``sum(pi - p) <= (residual left)``.
 
+The numpy push (:meth:`GraphWalk._push`) is the reference. The process's compiled kernels
+(:func:`nfdmatch.matching.kernels.graph_push`: ahead of time, or numba's) push the same
+rounds source by source with the same arithmetic in the same order, so they give the same
+doubles, ~5x faster (:mod:`nfdmatch.matching._graph_kernels`); the rows of the walk stay
+numpy's, computed here as the push reaches them. Test hook: ``graph_push`` (this module's
+name for it), replaced by tests/test_diffusion.py to push with numpy under compiled kernels.
+
 :class:`GraphWalk` reads the graph rows it needs, once, through a reader
 ``rows -> (neighbour, distance)`` (the index's checked reader), and lets a query's rows be
 laid over it for one query (:meth:`GraphWalk.overlay`).
@@ -27,12 +34,15 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from ..matching.kernels import graph_push
+
 __all__ = ["GraphWalk", "TOLERANCE", "row_scales", "sorted_unique", "sum_by_key"]
 
 #: residual below which a node is not pushed (per source, whose total mass is 1)
 TOLERANCE = 1e-5
 #: sources pushed together (bounds the memory of one push: sources x touched nodes entries)
 _SOURCE_BLOCK = 2048
+_NO_NODES, _NO_VALUES = np.zeros(0, np.int64), np.zeros(0)
 
 
 def row_scales(distances: np.ndarray, k: int) -> np.ndarray:
@@ -75,6 +85,7 @@ class GraphWalk:
         self._prob = np.empty((size, k + 1), dtype=np.float64)
         self._walk_known = np.zeros(size, dtype=bool)
         self._overlaid = False
+        self._slot = None
         self.rows_read = 0
 
     # -- rows
@@ -109,12 +120,18 @@ class GraphWalk:
         nodes = np.asarray(nodes, dtype=np.int64)
         if self._overlaid:
             return self._transitions(nodes)
+        self._walk_rows(nodes)
+        return self._targets[nodes], self._prob[nodes]
+
+    def _walk_rows(self, nodes: np.ndarray) -> None:
+        """Compute and keep the rows of the walk of ``nodes`` not computed yet (a node's row
+        is the same doubles whichever nodes are computed with it: element-wise operations
+        and per-row sums)."""
         new = nodes[~self._walk_known[nodes]]
         if len(new):
             new = sorted_unique(new)
             self._targets[new], self._prob[new] = self._transitions(new)
             self._walk_known[new] = True
-        return self._targets[nodes], self._prob[nodes]
 
     def _transitions(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         self.ensure(nodes)
@@ -150,16 +167,26 @@ class GraphWalk:
             self._overlaid = False
 
     # -- the push
-    def pagerank(self, sources, tolerance: float = TOLERANCE):
+    def pagerank(self, sources, tolerance: float = TOLERANCE, kernels=None):
         """The personalised PageRank of each source, by push.
+
+        ``kernels``: which push computes (a :class:`~nfdmatch.matching.kernels.Kernels`;
+        default the process's, :func:`~nfdmatch.matching.kernels.current`): the compiled
+        push of the numba or ahead-of-time kernels, else (numpy kernels, or numba cannot
+        compile it) the numpy push; both give the same doubles.
 
         Returns ``(start, node, value)``: source i's estimate is ``value[start[i]:start[i+1]]``
         over nodes ``node[start[i]:start[i+1]]`` (ascending, only the nodes it reached)."""
         sources = np.asarray(sources, dtype=np.int64).reshape(-1)
+        # (while a query is laid over the graph the rows of the walk are not kept: numpy)
+        compiled = None if self._overlaid or not len(sources) else graph_push(kernels)
         starts, nodes, values = [0], [], []
         for a in range(0, len(sources), _SOURCE_BLOCK):
             block = sources[a : a + _SOURCE_BLOCK]
-            src, node, value = self._push(block, tolerance)
+            if compiled is None:
+                src, node, value = self._push(block, tolerance)
+            else:
+                src, node, value = self._push_compiled(compiled, block, tolerance)
             nodes.append(node)
             values.append(value)
             starts.extend((starts[-1] + np.cumsum(np.bincount(src, minlength=len(block)))).tolist())
@@ -167,8 +194,30 @@ class GraphWalk:
             return np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0)
         return np.asarray(starts, dtype=np.int64), np.concatenate(nodes), np.concatenate(values)
 
+    def _push_compiled(self, push, sources: np.ndarray, tolerance: float):
+        """:meth:`_push` by the compiled push ``push``
+        (:func:`nfdmatch.matching._graph_kernels.push_sources`): the same (src, node, value).
+        It pushes every source until it is done or needs a row of the walk not computed yet;
+        those rows are computed here, for every stopped source at once, and it goes on."""
+        sources = np.ascontiguousarray(sources, dtype=np.int64)
+        n = len(sources)
+        if self._slot is None:  # its work array, -1 everywhere between calls
+            self._slot = np.full(self.N + 1, -1, dtype=np.int64)
+        state = (np.zeros(n, np.int64), np.zeros(n + 1, np.int64), _NO_NODES, _NO_VALUES)
+        state += (np.zeros(n + 1, np.int64), _NO_NODES, _NO_VALUES)
+        while True:
+            *state, missing = push(
+                sources, *state, self._targets, self._prob, self._walk_known, self._slot, self.alpha, float(tolerance)
+            )
+            if not len(missing):
+                break
+            self._walk_rows(missing)
+        _, _, _, _, start, node, value = state
+        return np.repeat(np.arange(n, dtype=np.int64), np.diff(start)), node[: start[-1]], value[: start[-1]]
+
     def _push(self, sources: np.ndarray, tolerance: float):
-        """(src, node, value) sorted by (src, node): the estimates of a block of sources."""
+        """(src, node, value) sorted by (src, node): the estimates of a block of sources (the
+        numpy push: the reference, the same doubles as the compiled one)."""
         size = self.N + 1
         alpha = self.alpha
         # residuals and estimates as keys src * size + node, one entry per key
