@@ -234,7 +234,7 @@ def knots_top1(method, Ds, Q):
 # --------------------------------------------------------------------------- the shipped path
 
 
-def shipped(cols, knot_data, work, candidates="exact"):
+def shipped(cols, knot_data, work, candidates="walk"):
     """query --rerank (library) through an index with a graph: Kimia, mesh, families, knots."""
     from nfdmatch.index import build_index, open_index
     from nfdmatch.search import search_index
@@ -411,9 +411,10 @@ def main():
     ap.add_argument("--skip-methods", action="store_true", help="tables: the shipped path only")
     ap.add_argument(
         "--candidates",
-        choices=("exact", "walk"),
-        default="exact",
-        help="the shipped path's candidates (rerank_index(candidates=...)): exact top 100 or from the walk",
+        choices=("walk", "exact"),
+        default="walk",
+        help="the shipped path's candidates (rerank_index(candidates=...)): from the walk (the default) "
+        "or the exact top 100",
     )
     ap.add_argument("--index", help="timing: only the queries, on this index (built with --graph) of generated curves")
     ap.add_argument("--queries", help="with --index: a curve file whose first --batch curves are the batch")
@@ -446,7 +447,7 @@ def main():
         shutil.rmtree(work, ignore_errors=True)
 
 
-def tables(data, work, methods=True, candidates="exact"):
+def tables(data, work, methods=True, candidates="walk"):
     t0 = time.perf_counter()
     cols = collections(data)
     knot_data = knots(data)

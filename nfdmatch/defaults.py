@@ -10,7 +10,14 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["INDEX_ENV", "DEFAULT_INDEX", "default_index_path", "DEFAULT_GRAPH_K", "DEFAULT_RERANK_DEPTH"]
+__all__ = [
+    "INDEX_ENV",
+    "DEFAULT_INDEX",
+    "default_index_path",
+    "DEFAULT_GRAPH_K",
+    "DEFAULT_RERANK_DEPTH",
+    "DEFAULT_RERANK_CANDIDATES",
+]
 
 #: the environment variable naming the index of every command and function that takes one
 INDEX_ENV = "NFDMATCH_INDEX"
@@ -21,6 +28,8 @@ DEFAULT_GRAPH_K = 10
 #: a query's exact candidates for a re-ranking (``--rerank-depth``), at least and by default
 #: (:mod:`nfdmatch.search.rerank`)
 DEFAULT_RERANK_DEPTH = 100
+#: where a re-ranking's candidates come from (``--rerank-candidates``; :mod:`nfdmatch.search.rerank`)
+DEFAULT_RERANK_CANDIDATES = "walk"
 
 
 def default_index_path() -> str:

@@ -319,13 +319,17 @@ def test_cli_build_graph_then_query_rerank(tmp_path, rng):
     assert rows[0]["match"].endswith("part-00.obj#0") and float(rows[0]["distance"]) < 1e-4
     code2, out2, _ = run("query", query, "--index", index, "--rerank", "--top", "5", "--format", "csv")
     assert (code2, out2) == (code, out)
-    # experimental: the candidates from the walk (a hidden option)
+    # the candidates from the walk are the default; the exact top M on request
     code3, out3, err3 = run(
         "query", query, "--index", index, "--rerank", "--rerank-candidates", "walk", "--top", "5", "--format", "csv"
     )
+    assert (code3, out3, err3) == (code, out, err)
+    code3, out3, err3 = run(
+        "query", query, "--index", index, "--rerank", "--rerank-candidates", "exact", "--top", "5", "--format", "csv"
+    )
     assert code3 == 0 and err3 == ""
-    walked = list(csv.DictReader(io.StringIO(out3)))
-    assert [r["match"] for r in walked][:1] == [rows[0]["match"]] and len(walked) == 5
+    exact = list(csv.DictReader(io.StringIO(out3)))
+    assert [r["match"] for r in exact][:1] == [rows[0]["match"]] and len(exact) == 5
 
     code, out, err = run(
         "query", query, "--index", index, "--rerank", "--exclude-self", "--top", "3", "--format", "jsonl", "--details"

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..defaults import DEFAULT_RERANK_DEPTH
+from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH
 from ..errors import IndexFormatError, ParameterError
 from .diffusion import GraphWalk, sorted_unique, sum_by_key
 from .knn import self_rule
@@ -67,10 +67,10 @@ MIN_DEPTH = DEFAULT_DEPTH = DEFAULT_RERANK_DEPTH
 MATRIX_TOLERANCE = 1e-3
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
-#: where a query's candidates come from (``rerank_index(candidates=...)``): ``"exact"`` its exact
-#: top M; ``"walk"`` (experimental, issue 23) its exact k nearest plus the M stored rows of
-#: largest personalised-PageRank mass from its first step, each given its exact distance
-CANDIDATES = ("exact", "walk")
+#: where a query's candidates come from (``rerank_index(candidates=...)``): ``"walk"`` (the
+#: default) its exact k nearest plus the M stored rows of largest personalised-PageRank mass
+#: from its first step, each given its exact distance; ``"exact"`` its exact top M
+CANDIDATES = ("walk", "exact")
 
 
 def _scales(sorted_distances: np.ndarray, k: int) -> np.ndarray:
@@ -137,7 +137,7 @@ def rerank_index(
     exclude_self: bool = False,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
-    candidates: str = "exact",
+    candidates: str = DEFAULT_RERANK_CANDIDATES,
 ) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k best curves of an index for each query by diffused score.
 
@@ -146,14 +146,15 @@ def rerank_index(
     index : an open :class:`nfdmatch.index.Index` with a graph (``index build --graph``).
     queries : sequence of :class:`~nfdmatch.curve.Curve`.
     top : matches per query (at most ``depth``).
-    depth : M, the query's exact candidates (the pruned exact search's top M), >= 100.
+    depth : M, the query's candidates besides its nearest (see ``candidates``), >= 100.
     exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is the
         query in the graph (its stored row and PageRank) and is left out of the results;
         the scores are then ``matrix --rerank``'s within :data:`MATRIX_TOLERANCE`.
     progress, threads : as in :func:`~nfdmatch.search.search_index`.
-    candidates : ``"exact"`` (the query's exact top ``depth``) or ``"walk"`` (experimental:
-        the query's exact ``max(top, 8)`` nearest plus the ``depth`` stored rows of largest
-        mass in its first-step PageRank, each with its exact distance; no exact top-M search).
+    candidates : ``"walk"`` (the default: the query's exact ``max(top, 8)`` nearest plus the
+        ``depth`` stored rows of largest mass in its first-step PageRank, each with its exact
+        distance; no exact top-M search) or ``"exact"`` (the query's exact top ``depth``: ~4x
+        the time of a batch at 100,000 curves, docs/rerank.md).
 
     Returns
     -------
