@@ -87,3 +87,30 @@ def reads(monkeypatch):
     monkeypatch.setattr(pool, "read_curves", counting)
     monkeypatch.setattr(pool, "_fast_points", counting_fast)
     return seen
+
+
+@pytest.fixture(scope="module")
+def client():
+    """A Dask LocalCluster of 2 worker processes (1 thread each) and its client, once per
+    test module that asks for it (the distributed tests)."""
+    from distributed import Client, LocalCluster
+
+    with (
+        LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=50
+        ) as cluster,
+        Client(cluster, set_as_default=False) as c,
+    ):
+        c.wait_for_workers(2, timeout=60)
+        yield c
+
+
+@pytest.fixture
+def cluster(client):
+    """nfdmatch's cluster on the module's client, its 2 workers up (a test may have killed
+    them: their nannies restart them)."""
+    from nfdmatch.distributed import connect
+
+    client.wait_for_workers(2, timeout=60)
+    with connect(client) as c:
+        yield c

@@ -32,27 +32,6 @@ _TIMES = {"created", "updated"}
 run = run_cli
 
 
-@pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    with (
-        LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=50
-        ) as cluster,
-        Client(cluster, set_as_default=False) as c,
-    ):
-        c.wait_for_workers(2, timeout=60)
-        yield c
-
-
-@pytest.fixture
-def cluster(client):
-    client.wait_for_workers(2, timeout=60)  # a test may have killed a worker: the nanny restarts it
-    with connect(client) as c:
-        yield c
-
-
 def _families(rng, families, members):
     curves = []
     for _f in range(families):

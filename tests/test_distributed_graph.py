@@ -18,31 +18,10 @@ from conftest import run_cli as run  # noqa: E402
 from oracle import random_rigid_motion, smooth_curve_samplings, start_shift  # noqa: E402
 
 from nfdmatch import Curve, write_curves  # noqa: E402
-from nfdmatch.distributed import ClusterError, connect  # noqa: E402
+from nfdmatch.distributed import ClusterError  # noqa: E402
 from nfdmatch.index import build_index, open_index  # noqa: E402
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    with (
-        LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=50
-        ) as cluster,
-        Client(cluster, set_as_default=False) as c,
-    ):
-        c.wait_for_workers(2, timeout=60)
-        yield c
-
-
-@pytest.fixture
-def cluster(client):
-    client.wait_for_workers(2, timeout=60)  # a test may have killed the workers: their nannies restart them
-    with connect(client) as c:
-        yield c
 
 
 def _family_files(folder, rng, families: int, first: int = 0) -> None:

@@ -21,20 +21,6 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    with (
-        LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=50
-        ) as cluster,
-        Client(cluster, set_as_default=False) as c,
-    ):
-        c.wait_for_workers(2, timeout=60)
-        yield c
-
-
-@pytest.fixture(scope="module")
 def index(tmp_path_factory):
     """300 curves in families of 6, over several search cells."""
     rng = np.random.default_rng(22)
