@@ -24,11 +24,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH
+from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
 from ..errors import IndexFormatError, ParameterError
 from .diffusion import GraphWalk, sorted_unique, sum_by_key
 from .knn import self_rule
@@ -70,7 +71,7 @@ _SCORE_TIE = 1e-12
 #: where a query's candidates come from (``rerank_index(candidates=...)``): ``"walk"`` (the
 #: default) its exact k nearest plus the M stored rows of largest personalised-PageRank mass
 #: from its first step, each given its exact distance; ``"exact"`` its exact top M
-CANDIDATES = ("walk", "exact")
+CANDIDATES = RERANK_CANDIDATES
 
 
 def _scales(sorted_distances: np.ndarray, k: int) -> np.ndarray:
@@ -219,7 +220,7 @@ def _plans(queries, found_lists, exclude_self: bool, is_self):
         rows = np.array([m.row for m in found], dtype=np.int64)
         merged = np.array([exclude_self and is_self(q.id, m.id) for m in found], dtype=bool)
         plans.append((rows, np.array([m.distance for m in found], dtype=np.float64), merged))
-    union = np.unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
+    union = sorted_unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
     return plans, union
 
 
@@ -254,8 +255,7 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
         else:
             keep = np.flatnonzero(~merged)
             cand, d = rows[keep], qd[keep]
-            q_nb, q_d, into, nb, dd = _joined_rows(walk, cand, d)
-            with walk.overlay(np.concatenate([[N], into]), np.concatenate([q_nb, nb]), np.concatenate([q_d, dd])):
+            with _joined(walk, cand, d):
                 q_targets, q_prob = walk.transitions(np.array([N]))
             nbrs, p_nb = q_targets[0, 1:], q_prob[0, 1:]
             real = nbrs != N
@@ -266,7 +266,7 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
         other = node != exclude
         node, mass = node[other], mass[other]
         picked = node[np.lexsort((node, -mass))[:depth]]
-        tk.rows = np.unique(np.concatenate([rows, picked]))
+        tk.rows = sorted_unique(np.concatenate([rows, picked]))
         tk.dist = np.zeros(len(tk.rows))
         tk.extra = {
             key: np.full(len(tk.rows), -1 if key == "position" else 0, dtype=v.dtype) for key, v in tk.extra.items()
@@ -276,7 +276,7 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
         queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
     ).coefficients
     cascade = Cascade(index.samples, DEFAULT_METHOD, DEFAULT_DIRECTION, False)
-    every = np.unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
+    every = sorted_unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
     recompute_reported(
         _Read(index, every), qcoef, tops, cascade.distance, direction=DEFAULT_DIRECTION, mirror=False, weights=None
     )
@@ -297,11 +297,12 @@ class _Read:
         return self.coef[np.searchsorted(self.rows, rows)]
 
 
-def _joined_rows(walk: GraphWalk, cand: np.ndarray, qd: np.ndarray):
-    """The query as node N joined to the graph through the candidates ``cand`` (exact
-    distances ``qd``): ``(q_nb, q_d, into, nb, d)``, its list of its k nearest candidates
-    ((1, k), padded) and the candidates ``into`` whose k nearest it enters with their new
-    lists ``nb`` / ``d`` (for :meth:`GraphWalk.overlay`)."""
+@contextmanager
+def _joined(walk: GraphWalk, cand: np.ndarray, qd: np.ndarray):
+    """For the duration of the block, the query is node N of ``walk``, joined to the graph
+    through the candidates ``cand`` (exact distances ``qd``): its list is its k nearest
+    candidates (padded), and the candidates whose k nearest it enters (yielded, ``into``)
+    have their new lists (:meth:`GraphWalk.overlay`)."""
     k, N = walk.k, walk.N
     order = np.argsort(qd, kind="stable")[:k]
     q_nb = np.full((1, k), -1, dtype=np.int64)
@@ -315,7 +316,8 @@ def _joined_rows(walk: GraphWalk, cand: np.ndarray, qd: np.ndarray):
     d = np.concatenate([walk._d[into], qd[enter, None]], axis=1)
     pick = np.argsort(d, axis=1, kind="stable")[:, :k]
     nb, d = np.take_along_axis(nb, pick, axis=1), np.take_along_axis(d, pick, axis=1)
-    return q_nb, q_d, into, nb, d
+    with walk.overlay(np.concatenate([[N], into]), np.concatenate([q_nb, nb]), np.concatenate([q_d, d])):
+        yield into
 
 
 def _checked_graph(index, top: int, depth: int):
@@ -405,8 +407,7 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
     else:
         # the query joins the graph as node N: its k nearest (exact), and the candidates
         # whose k nearest it enters (their lists and scales change while it is there)
-        q_nb, q_d, into, nb, d = _joined_rows(walk, cand, qd[keep])
-        with walk.overlay(np.concatenate([[N], into]), np.concatenate([q_nb, nb]), np.concatenate([q_d, d])):
+        with _joined(walk, cand, qd[keep]) as into:
             s_q = walk.scales([N])[0]
             s_cand = walk.scales(cand)
             q_targets, q_prob = walk.transitions(np.array([N]))
