@@ -16,6 +16,7 @@ __all__ = [
     "default_index_path",
     "DEFAULT_GRAPH_K",
     "DEFAULT_RERANK_DEPTH",
+    "RERANK_CANDIDATES",
     "DEFAULT_RERANK_CANDIDATES",
 ]
 
@@ -28,8 +29,10 @@ DEFAULT_GRAPH_K = 10
 #: a query's exact candidates for a re-ranking (``--rerank-depth``), at least and by default
 #: (:mod:`nfdmatch.search.rerank`)
 DEFAULT_RERANK_DEPTH = 100
-#: where a re-ranking's candidates come from (``--rerank-candidates``; :mod:`nfdmatch.search.rerank`)
-DEFAULT_RERANK_CANDIDATES = "walk"
+#: where a re-ranking's candidates can come from (``--rerank-candidates``;
+#: :mod:`nfdmatch.search.rerank`), and by default
+RERANK_CANDIDATES = ("walk", "exact")
+DEFAULT_RERANK_CANDIDATES = RERANK_CANDIDATES[0]
 
 
 def default_index_path() -> str:

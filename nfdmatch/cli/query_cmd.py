@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH
+from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
@@ -50,7 +50,7 @@ from .group import main
 )
 @click.option(
     "--rerank-candidates",
-    type=click.Choice(["walk", "exact"]),
+    type=click.Choice(RERANK_CANDIDATES),
     default=None,
     show_default=DEFAULT_RERANK_CANDIDATES,
     help="With --rerank: walk: the query's exact 8 nearest plus the M curves its PageRank over the "
