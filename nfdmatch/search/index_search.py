@@ -121,8 +121,6 @@ def search_index(
     the next bound exceeds the k-th distance. No false dismissals: every bound is proven
     never to exceed the exact distance.
     """
-    from ..descriptors import descriptors_batch
-
     check_search_parameters(top, max_distance, method)
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
@@ -130,26 +128,61 @@ def search_index(
     asked = top
     if exclude_self and top is not None:
         top += 1  # the query's own curve is dropped below
-    qcoef = descriptors_batch(
+    qcoef = query_descriptors(index, queries)
+    tops, stats = search_rows(
+        index, qcoef, top=top, max_distance=max_distance, method=method, direction=direction, mirror=mirror,
+        prune=prune, progress=progress, weights=weights, threads=threads, truncate=truncate,
+    )  # fmt: skip
+    results = ranked_rows(index, tops, top)
+    if exclude_self:
+        results = without_self(index, queries, results, asked)
+    stats.seconds = time.perf_counter() - t0
+    return results, stats
+
+
+def query_descriptors(index, queries: Sequence[Curve]) -> np.ndarray:
+    """(Q, K, 3) complex128: the queries' descriptors with the index's samples, harmonics and
+    scale."""
+    from ..descriptors import descriptors_batch
+
+    return descriptors_batch(
         queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
     ).coefficients
-    tops = [BestRows(top, max_distance) for _ in queries]
+
+
+def search_rows(
+    index,
+    qcoef: np.ndarray,
+    *,
+    top: int | None,
+    max_distance: float | None = None,
+    method: str = DEFAULT_METHOD,
+    direction: str = DEFAULT_DIRECTION,
+    mirror: bool = False,
+    prune: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+    weights: ArrayLike | None = None,
+    threads: int | None = None,
+    truncate: bool = True,
+) -> tuple[list[BestRows], SearchStats]:
+    """:func:`search_index`'s search, its answer as rows: ``(tops, stats)``, ``tops[i]`` the
+    :class:`~nfdmatch.search.engine.BestRows` of query i (descriptors ``qcoef[i]``, (K, 3)
+    complex128) in no particular order, every row's figures computed alone
+    (:func:`recompute_reported`); ``stats.seconds`` is left 0. Arguments as for
+    :func:`search_index`, checked there."""
+    tops = [BestRows(top, max_distance) for _ in range(len(qcoef))]
     cascade = Cascade(index.samples, method, direction, mirror, truncate)
-    stats = SearchStats(queries=len(queries), rows=index.n_curves, pruned=prune)
+    stats = SearchStats(queries=len(qcoef), rows=index.n_curves, pruned=prune)
     table = None
     if not prune:
         stats.exact = _exhaustive(index, qcoef, tops, cascade, weights, progress)
-    elif index.n_curves and len(queries):
+    elif index.n_curves and len(qcoef):
         table = _pruned(index, qcoef, tops, cascade, stats, threads, progress)
     recompute_reported(
         index, qcoef, tops, cascade.distance, direction=direction, mirror=mirror, weights=weights, tables=table
     )
-    results = ranked_rows(index, tops, top)
-    if exclude_self:
-        results = without_self(index, queries, results, asked)
     stats.kernels = current_kernels().describe()
-    stats.seconds = time.perf_counter() - t0
-    return results, stats
+    return tops, stats
 
 
 def _exhaustive(index, qcoef, tops, cascade: Cascade, weights, progress) -> int:
