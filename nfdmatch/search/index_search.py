@@ -260,6 +260,32 @@ def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
     return results
 
 
+def rank_rows(index, tops, top: int | None = None) -> None:
+    """Order each :class:`~nfdmatch.search.engine.BestRows` of ``tops`` in place as
+    :func:`ranked_rows` does (by distance, distances within ``TIE`` by id), keeping at most
+    ``top``: its rows, distances and ``extra`` permuted. Ids are read only for the queries
+    with such a tie (rare: duplicate curves)."""
+    orders, tied = [], []
+    for qi, tk in enumerate(tops):
+        key = np.round(tk.dist / TIE)
+        order = np.argsort(key, kind="stable")
+        if len(order) > 1 and (key[order[1:]] == key[order[:-1]]).any():
+            tied.append(qi)
+        orders.append((key, order))
+    if tied:
+        ids = index.ids_at(np.concatenate([tops[qi].rows for qi in tied]))
+        at = 0
+        for qi in tied:
+            key, m = orders[qi][0], len(tops[qi].rows)
+            mine, at = ids[at : at + m], at + m
+            orders[qi] = (key, np.array(sorted(range(m), key=lambda i: (key[i], mine[i])), dtype=np.int64))
+    for tk, (_, order) in zip(tops, orders):
+        if top is not None:
+            order = order[:top]
+        tk.rows, tk.dist = tk.rows[order], tk.dist[order]
+        tk.extra = {key: v[order] for key, v in tk.extra.items()}
+
+
 def recompute_reported(index, queries, tops, search, *, direction, mirror, weights, tables=None) -> None:
     """Replace the distances, shifts and flags of the rows the queries found by a full
     computation of each: refined at every candidate shift, whatever the threshold was when

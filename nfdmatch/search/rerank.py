@@ -31,6 +31,7 @@ import numpy as np
 
 from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
 from ..errors import IndexFormatError, ParameterError
+from ..records import RankedMatch
 from .diffusion import GraphWalk, sorted_unique, sum_by_key
 from .knn import self_rule
 
@@ -38,7 +39,6 @@ if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
     from ..curve import Curve
-    from ..records import RankedMatch
     from .index_search import SearchStats
 
 __all__ = [
@@ -173,7 +173,7 @@ def rerank_index(
     Deterministic: the same index and queries give the same rows and scores, and a query
     gets the same scores alone as in any batch (each source's push is independent).
     """
-    from .index_search import search_index
+    from .index_search import query_descriptors, rank_rows, search_rows
 
     t0 = time.perf_counter()
     if candidates not in CANDIDATES:
@@ -182,70 +182,93 @@ def rerank_index(
     is_self = self_rule(getattr(index, "locate", None))
     N = index.n_curves
     walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA)
-    pushed = None
+    qcoef = query_descriptors(index, queries)
     if candidates == "exact":
-        exact, stats = search_index(index, queries, top=depth, progress=progress, threads=threads)
+        found, stats = search_rows(index, qcoef, top=depth, progress=progress, threads=threads)
+        rank_rows(index, found, depth)
+        union = _union(found)
+        vectors = _Vectors(union, *walk.pagerank(union))  # every candidate's, once for the batch
     else:
-        exact, stats, pushed = _walk_candidates(
-            index, walk, queries, top, depth, exclude_self, is_self, progress=progress, threads=threads
+        found, stats, pushed = _walk_candidates(
+            index, walk, queries, qcoef, top, depth, exclude_self, is_self, progress=progress, threads=threads
         )
-    plans, union = _plans(queries, exact, exclude_self, is_self)
-    # every candidate's PageRank on the stored graph, once for the batch
-    if pushed is None:
-        vectors = _Vectors(union, *walk.pagerank(union))
-    else:  # the walk's candidates: only the rows not pushed to find them
-        vectors = pushed.with_rows(walk, union)
-    results = []
-    dense = np.zeros(N + 1)
-    for found, (rows, qd, merged) in zip(exact, plans):
-        if not len(found):
-            results.append([])
+        vectors = pushed.with_rows(walk, _union(found))  # only the rows not pushed to find them
+    merged = _self_flags(index, queries, found, exclude_self, is_self)
+    picks, dense = [], np.zeros(N + 1)
+    for tk, mine in zip(found, merged):
+        if not len(tk.rows):
+            picks.append((np.zeros(0, np.int64), None))
             continue
-        scores = _query_scores(walk, vectors, rows, qd, merged, dense)
-        idx = [i for i in range(len(found)) if not merged[i]]
-        idx.sort(key=lambda i: (-round(float(scores[i]) / _SCORE_TIE), found[i].rank))
+        scores = _query_scores(walk, vectors, tk.rows, tk.dist, mine, dense)
+        kept = np.flatnonzero(~mine)  # in the candidates' rank order: ties by it
+        order = kept[np.lexsort((kept, -np.round(scores[kept] / _SCORE_TIE)))][:top]
+        picks.append((order, scores))
+    reported = [tk.rows[order] for tk, (order, _) in zip(found, picks)]
+    ids = index.ids_at(np.concatenate(reported)) if reported else []
+    results, at = [], 0
+    for tk, (order, scores) in zip(found, picks):
         results.append(
-            [found[i].replace(rank=rank, score=float(scores[i])) for rank, i in enumerate(idx[:top], start=1)]
+            [
+                RankedMatch(
+                    rank=rank,
+                    id=ids[at + rank - 1],
+                    distance=float(tk.dist[i]),
+                    shift=float(tk.extra["shift"][i]),
+                    reversed=bool(tk.extra["reversed"][i]),
+                    mirrored=bool(tk.extra["mirrored"][i]),
+                    row=int(tk.rows[i]),
+                    score=float(scores[i]),
+                )
+                for rank, i in enumerate(order.tolist(), start=1)
+            ]
         )
+        at += len(order)
     stats.seconds = time.perf_counter() - t0
     return results, stats
 
 
-def _plans(queries, found_lists, exclude_self: bool, is_self):
-    """``(plans, union)``: per query ``(rows, distances, merged)`` of its matches (index rows
-    (m,) int64, exact distances (m,) float64, which are its own stored curve under
-    ``exclude_self``), and every row of them, ascending and unique."""
-    plans = []
-    for q, found in zip(queries, found_lists):
-        rows = np.array([m.row for m in found], dtype=np.int64)
-        merged = np.array([exclude_self and is_self(q.id, m.id) for m in found], dtype=bool)
-        plans.append((rows, np.array([m.distance for m in found], dtype=np.float64), merged))
-    union = sorted_unique(np.concatenate([rows for rows, _, _ in plans])) if plans else np.zeros(0, np.int64)
-    return plans, union
+def _union(tops) -> np.ndarray:
+    """Every row of the :class:`~nfdmatch.search.engine.BestRows` ``tops``, ascending and unique."""
+    return sorted_unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
 
 
-def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, is_self, *, progress, threads):
-    """``(found, stats, vectors)`` for ``candidates="walk"``: each query's candidates as
-    :func:`~nfdmatch.search.search_index` would report them (sorted by exact distance, ties
-    by id, ranks from 1): its exact ``max(top, k)`` nearest (one more with ``exclude_self``:
-    its own curve) and the ``depth`` stored rows other than itself of largest mass in its
-    PageRank (a stored query's: its row's; any other: from its first step, as in
-    :func:`_query_scores`), ties by row; ``vectors`` the :class:`_Vectors` pushed on the way
-    (of every query's k nearest)."""
-    from ..descriptors import descriptors_batch
+def _self_flags(index, queries, tops, exclude_self: bool, is_self) -> list[np.ndarray]:
+    """Per query, (m,) bool: which of its rows in ``tops`` are its own stored curve (under
+    ``exclude_self``; none otherwise)."""
+    if not exclude_self:
+        return [np.zeros(len(tk.rows), dtype=bool) for tk in tops]
+    every = _union(tops)
+    ids = index.ids_at(every) if len(every) else []
+    return [
+        np.array([is_self(q.id, ids[p]) for p in np.searchsorted(every, tk.rows).tolist()], dtype=bool)
+        for q, tk in zip(queries, tops)
+    ]
+
+
+def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude_self, is_self, *, progress, threads):
+    """``(found, stats, vectors)`` for ``candidates="walk"``: each query's candidates as a
+    :class:`~nfdmatch.search.engine.BestRows` ranked as the search ranks its rows (exact
+    distance, ties by id: :func:`~nfdmatch.search.index_search.rank_rows`): its exact
+    ``max(top, k)`` nearest (one more with ``exclude_self``: its own curve) and the ``depth``
+    stored rows other than itself of largest mass in its PageRank (a stored query's: its
+    row's; any other: from its first step, as in :func:`_query_scores`), ties by row, each
+    with its exact distance; ``vectors`` the :class:`_Vectors` pushed on the way (of every
+    query's k nearest). (qcoef: (Q, K, 3) complex128, the queries' descriptors.)"""
     from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
     from .engine import BestRows, Cascade
-    from .index_search import ranked_rows, recompute_reported, search_index
+    from .index_search import rank_rows, recompute_reported, search_rows
 
     k, N, alpha = walk.k, walk.N, walk.alpha
     first = max(top, k) + (1 if exclude_self else 0)
-    near, stats = search_index(index, queries, top=first, progress=progress, threads=threads)
-    plans, union = _plans(queries, near, exclude_self, is_self)
+    near, stats = search_rows(index, qcoef, top=first, progress=progress, threads=threads)
+    rank_rows(index, near, first)
+    union = _union(near)
     vectors = _Vectors(union, *walk.pagerank(union))
-    tops = []
-    for rows, qd, merged in plans:
-        tk = BestRows(None, None)
-        tops.append(tk)
+    more = []  # per query, the rows its walk adds (their exact distances computed below)
+    for tk, merged in zip(near, _self_flags(index, queries, near, exclude_self, is_self)):
+        rows, qd = tk.rows, tk.dist
+        extra = BestRows(None, None)
+        more.append(extra)
         if not len(rows):
             continue
         if merged.any():
@@ -253,9 +276,7 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
             _, node, mass = vectors.entries(np.array([self_row]))
             exclude = self_row
         else:
-            keep = np.flatnonzero(~merged)
-            cand, d = rows[keep], qd[keep]
-            with _joined(walk, cand, d):
+            with _joined(walk, rows, qd):
                 q_targets, q_prob = walk.transitions(np.array([N]))
             nbrs, p_nb = q_targets[0, 1:], q_prob[0, 1:]
             real = nbrs != N
@@ -266,22 +287,26 @@ def _walk_candidates(index, walk: GraphWalk, queries, top, depth, exclude_self, 
         other = node != exclude
         node, mass = node[other], mass[other]
         picked = node[np.lexsort((node, -mass))[:depth]]
-        tk.rows = sorted_unique(np.concatenate([rows, picked]))
-        tk.dist = np.zeros(len(tk.rows))
-        tk.extra = {
-            key: np.full(len(tk.rows), -1 if key == "position" else 0, dtype=v.dtype) for key, v in tk.extra.items()
+        extra.rows = sorted_unique(picked[~np.isin(picked, rows)])
+        extra.dist = np.zeros(len(extra.rows))
+        extra.extra = {
+            key: np.full(len(extra.rows), -1 if key == "position" else 0, dtype=v.dtype)
+            for key, v in extra.extra.items()
         }
-    # every candidate's exact distance, as the search reports the rows it found
-    qcoef = descriptors_batch(
-        queries, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode
-    ).coefficients
+    # the added rows' exact distances, each computed alone as the search computes the rows it found
     cascade = Cascade(index.samples, DEFAULT_METHOD, DEFAULT_DIRECTION, False)
-    every = sorted_unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
-    recompute_reported(
-        _Read(index, every), qcoef, tops, cascade.distance, direction=DEFAULT_DIRECTION, mirror=False, weights=None
-    )
-    stats.exact += sum(len(tk.rows) for tk in tops)
-    return ranked_rows(index, tops, None), stats, vectors
+    added = _union(more)
+    if len(added):
+        recompute_reported(
+            _Read(index, added), qcoef, more, cascade.distance, direction=DEFAULT_DIRECTION, mirror=False,
+            weights=None,
+        )  # fmt: skip
+    stats.exact += sum(len(extra.rows) for extra in more)
+    for tk, extra in zip(near, more):
+        tk.rows, tk.dist = np.concatenate([tk.rows, extra.rows]), np.concatenate([tk.dist, extra.dist])
+        tk.extra = {key: np.concatenate([v, extra.extra[key]]) for key, v in tk.extra.items()}
+    rank_rows(index, near)
+    return near, stats, vectors
 
 
 class _Read:
