@@ -3,6 +3,7 @@
     python benchmarks/bench_rerank.py [--data ../shared/data] [--curves 10000] [--skip-timing | --skip-tables]
                                       [--skip-methods]
     python benchmarks/bench_rerank.py --index I.h5 [--queries FILE --batch 100]
+    python benchmarks/bench_rerank.py --self-batch 1400
 
 Prints, from the repository root:
 
@@ -17,7 +18,10 @@ Prints, from the repository root:
    query, on ``--curves`` generated curves (families of 10, benchmarks/bench_index.py);
    with ``--index`` the query timing only, on that index; with ``--queries FILE`` too, the
    first ``--batch`` curves of FILE as one batch, --top 10: plain, ``--rerank`` with exact
-   and with walk candidates, each with the seconds of its PageRank push (issue 23).
+   and with walk candidates, each with the seconds of its PageRank push (issue 23);
+4. with ``--self-batch N``: the held-out benchmark's shape (issue 23's "time for 1,400
+   queries"): N generated curves in families of 20, every one a query in one batch,
+   ``--top 40``, plain against ``--rerank``, as CLI processes in turn and in the library.
 
 Collections: Kimia-99 (9 classes x 11; same-class hits at ranks 1..10 and bull's-eye, the
 same-class hits in the top 22, query included, as a fraction of 11); knotess control ->
@@ -396,6 +400,67 @@ def batch_timing(index, queries, runs=3):
         GraphWalk.pagerank = real
 
 
+def self_batch_timing(curves=1400, members=20, runs=5):
+    """The held-out benchmark's shape (issue 23): ``curves`` generated curves in families of
+    ``members`` (1,400 in 70 of 20), indexed with ``--graph 10``; every curve a query, one
+    batch, ``--top 40``. Plain ``query`` against ``query --rerank`` as whole processes of the
+    CLI, run in turn ``runs`` times each (medians, and the median of the in-turn ratios), and
+    in the library (the same process, the best of 3). The answers are the same run to run
+    (checked)."""
+    import statistics
+    import subprocess
+
+    import bench_index
+    from nfdmatch.index import build_index, open_index
+    from nfdmatch.search import search_index
+    from nfdmatch.search.rerank import rerank_index
+
+    work = tempfile.mkdtemp(prefix="bench-rerank-self-")
+    try:
+        folder = os.path.join(work, "curves")
+        bench_index.generate(folder, curves, per_file=max(curves // 10, 1), members=members)
+        index = os.path.join(work, "i.h5")
+        build_index([folder], index, jobs=2, graph=10)
+        with open_index(index) as idx:
+            n = idx.n_curves
+        print(f"\n## Every curve a query, one batch, --top 40: {n} generated curves in families of {members}")
+        base = [sys.executable, "-m", "nfdmatch", "query", folder, "--index", index, "--top", "40", "--format", "csv"]
+        commands = {"plain": base, "rerank": base + ["--rerank"]}
+        seconds, outputs = {k: [] for k in commands}, {k: set() for k in commands}
+        for _ in range(runs):
+            for key, cmd in commands.items():
+                t = time.perf_counter()
+                out = subprocess.run(cmd, capture_output=True, check=True, cwd=work).stdout
+                seconds[key].append(time.perf_counter() - t)
+                outputs[key].add(out)
+        ratios = [r / p for p, r in zip(seconds["plain"], seconds["rerank"])]
+        same = all(len(v) == 1 for v in outputs.values())
+        print(
+            f"CLI, {runs} runs in turn: plain {statistics.median(seconds['plain']):.2f} s, --rerank "
+            f"{statistics.median(seconds['rerank']):.2f} s (medians); --rerank / plain {statistics.median(ratios):.2f} "
+            f"(median of the in-turn ratios; range {min(ratios):.2f}-{max(ratios):.2f}); answers the same run to "
+            f"run: {'yes' if same else 'NO'}"
+        )
+        stored = []
+        for name in sorted(os.listdir(folder)):
+            stored += read_curves(os.path.join(folder, name))
+        with open_index(index) as idx:
+            lib = {
+                "plain": lambda: search_index(idx, stored, top=40),
+                "rerank": lambda: rerank_index(idx, stored, top=40),
+            }
+            best = {}
+            for key, fn in lib.items():
+                fn()
+                best[key] = min(_time(fn) for _ in range(3))
+        print(
+            f"library, the best of 3: plain {best['plain']:.2f} s, --rerank {best['rerank']:.2f} s, "
+            f"ratio {best['rerank'] / best['plain']:.2f}"
+        )
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def _time(fn):
     t = time.perf_counter()
     fn()
@@ -419,7 +484,17 @@ def main():
     ap.add_argument("--index", help="timing: only the queries, on this index (built with --graph) of generated curves")
     ap.add_argument("--queries", help="with --index: a curve file whose first --batch curves are the batch")
     ap.add_argument("--batch", type=int, default=100, help="with --queries: the batch's size (default 100)")
+    ap.add_argument(
+        "--self-batch",
+        type=int,
+        metavar="N",
+        help="only the held-out benchmark's shape: N generated curves in families of 20, every one a query, "
+        "--top 40, plain against --rerank (the CLI and the library)",
+    )
     args = ap.parse_args()
+    if args.self_batch:
+        self_batch_timing(args.self_batch)
+        return
     if args.index and args.queries:
         batch_timing(args.index, read_curves(args.queries)[: args.batch])
         return
