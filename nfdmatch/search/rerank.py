@@ -194,13 +194,23 @@ def rerank_index(
         )
         vectors = pushed.with_rows(walk, _union(found))  # only the rows not pushed to find them
     merged = _self_flags(index, queries, found, exclude_self, is_self)
-    picks, dense = [], np.zeros(N + 1)
+    results = _answers(index, walk, vectors, found, merged, top)
+    stats.seconds = time.perf_counter() - t0
+    return results, stats
+
+
+def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: int) -> list[list[RankedMatch]]:
+    """Each query's ``top`` candidates of highest score, as :class:`RankedMatch` es: ``found``
+    its candidates (a ranked :class:`~nfdmatch.search.engine.BestRows`), ``merged`` which of
+    them are its own stored curve (left out); scores closer than ``_SCORE_TIE`` are ties,
+    ordered as the candidates are (exact distance, then id)."""
+    picks, dense = [], np.zeros(walk.N + 1)
     for tk, mine in zip(found, merged):
         if not len(tk.rows):
             picks.append((np.zeros(0, np.int64), None))
             continue
         scores = _query_scores(walk, vectors, tk.rows, tk.dist, mine, dense)
-        kept = np.flatnonzero(~mine)  # in the candidates' rank order: ties by it
+        kept = np.flatnonzero(~mine)
         order = kept[np.lexsort((kept, -np.round(scores[kept] / _SCORE_TIE)))][:top]
         picks.append((order, scores))
     reported = [tk.rows[order] for tk, (order, _) in zip(found, picks)]
@@ -223,8 +233,7 @@ def rerank_index(
             ]
         )
         at += len(order)
-    stats.seconds = time.perf_counter() - t0
-    return results, stats
+    return results
 
 
 def _union(tops) -> np.ndarray:
