@@ -384,7 +384,10 @@ def batch_timing(index, queries, runs=3):
             print(f"{idx.n_curves} curves, a batch of {len(queries)} queries, kernels: {current().describe()}")
             for label, fn in (
                 ("plain query --top 10", lambda: search_index(idx, queries, top=10)),
-                ("query --rerank --top 10 (exact top 100)", lambda: rerank_index(idx, queries, top=10)),
+                (
+                    "query --rerank --top 10 (exact top 100)",
+                    lambda: rerank_index(idx, queries, top=10, candidates="exact"),
+                ),
                 ("query --rerank --top 10 (walk)", lambda: rerank_index(idx, queries, top=10, candidates="walk")),
             ):
                 fn()
