@@ -147,6 +147,56 @@ def test_ties_are_ordered_by_id():
     assert [r.id for r in ranked] == ["a", "b", "c"]
 
 
+class _IdsOnly:
+    """An index as rank_rows sees it: ids by row, and which rows it was asked for."""
+
+    def __init__(self, ids):
+        self.ids, self.asked = ids, []
+
+    def ids_at(self, rows):
+        self.asked.extend(int(r) for r in rows)
+        return [self.ids[int(r)] for r in rows]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    m=st.integers(0, 60),
+    levels=st.integers(1, 8),
+    top=st.one_of(st.none(), st.integers(1, 70)),
+)
+def test_rows_are_ranked_by_distance_then_id_and_ids_are_read_only_for_ties(seed, m, levels, top):
+    """rank_rows orders a query's rows as the reported matches are ordered (distance, distances
+    within TIE by id), ``top`` cut inside a tie included, reading ids only for a query with a tie."""
+    from nfdmatch.search.engine import TIE, BestRows
+    from nfdmatch.search.index_search import rank_rows
+
+    rng = np.random.default_rng(seed)
+    n_rows = 100
+    ids = [f"f{rng.integers(0, 10**6)}#{i}" for i in range(n_rows)]
+    index = _IdsOnly(ids)
+    tops = []
+    for _ in range(3):
+        tk = BestRows(None, None)
+        tk.rows = rng.permutation(n_rows)[:m].astype(np.int64)
+        # few distinct distances (ties), some moved by less than TIE (ties too)
+        tk.dist = rng.integers(0, levels, m) * 0.25 + rng.choice([0.0, 0.3 * TIE], m)
+        tk.extra = {"shift": tk.rows * 0.5, "position": -tk.rows}
+        tops.append(tk)
+    want = []
+    for tk in tops:
+        order = sorted(range(m), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[tk.rows[i]]))[:top]
+        want.append((tk.rows[order], tk.dist[order]))
+    tied = {int(r) for tk in tops for r in tk.rows if len(np.unique(np.round(tk.dist / TIE))) < len(tk.rows)}
+    rank_rows(index, tops, top)
+    for tk, (rows, dist) in zip(tops, want):
+        assert tk.rows.tolist() == rows.tolist()
+        assert tk.dist.tolist() == dist.tolist()
+        assert tk.extra["shift"].tolist() == (rows * 0.5).tolist()
+        assert tk.extra["position"].tolist() == (-rows).tolist()
+    assert set(index.asked) <= tied
+
+
 def test_weights_disable_pruning_but_still_rank(rng):
     curves = _family_curves(rng, 4, 2, 0.01)
     w = np.linspace(1, 0, 16)

@@ -231,30 +231,28 @@ def without_self(index, queries, results: list[list[RankedMatch]], top: int | No
 
 def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
     """Each :class:`~nfdmatch.search.engine.BestRows` as the matches :func:`search_index`
-    returns: sorted by distance, distances within ``TIE`` by id, at most ``top``."""
-    results = []
+    returns: sorted by distance, distances within ``TIE`` by id, at most ``top``
+    (:func:`rank_rows`, which orders ``tops`` in place)."""
+    rank_rows(index, tops, top)
     # every query's ids in one read (a read of strings costs the same for one row or many)
     found = np.concatenate([tk.rows for tk in tops]) if tops else np.zeros(0, dtype=np.int64)
     every_id = index.ids_at(found) if len(found) else []
-    at = 0
+    results, at = [], 0
     for tk in tops:
         ids, at = every_id[at : at + len(tk.rows)], at + len(tk.rows)
-        # distances equal to 1e-9 are ties (below the numerical noise of the pipeline): by id
-        order = sorted(range(len(ids)), key=lambda i: (round(float(tk.dist[i]) / TIE), ids[i]))
-        if top is not None:
-            order = order[:top]
+        shift, flipped, mirrored = tk.extra["shift"].tolist(), tk.extra["reversed"], tk.extra["mirrored"]
         results.append(
             [
                 RankedMatch(
-                    rank=rank,
+                    rank=i + 1,
                     id=ids[i],
-                    distance=float(tk.dist[i]),
-                    shift=float(tk.extra["shift"][i]),
-                    reversed=bool(tk.extra["reversed"][i]),
-                    mirrored=bool(tk.extra["mirrored"][i]),
-                    row=int(tk.rows[i]),
+                    distance=d,
+                    shift=shift[i],
+                    reversed=bool(flipped[i]),
+                    mirrored=bool(mirrored[i]),
+                    row=row,
                 )
-                for rank, i in enumerate(order, start=1)
+                for i, (d, row) in enumerate(zip(tk.dist.tolist(), tk.rows.tolist()))
             ]
         )
     return results
