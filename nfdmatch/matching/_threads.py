@@ -10,7 +10,7 @@ import threading
 
 import numpy as np
 
-__all__ = ["exact_rows", "grid_bound_rows", "split_rows", "shutdown"]
+__all__ = ["exact_rows", "grid_bound_rows", "run_all", "split_rows", "shutdown"]
 
 
 def exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers, prune=True):
@@ -67,6 +67,24 @@ def split_rows(run, N: int, workers: int) -> None:
     run(bounds[0], bounds[1])  # the first block on the calling thread
     for future in futures:
         future.result()
+
+
+def run_all(calls) -> list:
+    """Every one of ``calls`` (callables of no argument) at once: the first on the calling
+    thread, the others on the pool's threads (the compiled kernels release the GIL). Returns
+    their results, in order, once all have returned. None of them runs on after this returns
+    or raises: a call's exception is raised once every call is done (the callers write what
+    the kernels read, after)."""
+    if len(calls) <= 1:
+        return [call() for call in calls]
+    from concurrent.futures import wait
+
+    futures = [_pool(len(calls) - 1).submit(call) for call in calls[1:]]
+    try:
+        first = calls[0]()
+    finally:
+        wait(futures)
+    return [first] + [future.result() for future in futures]
 
 
 def _pool(threads: int):
