@@ -1,7 +1,8 @@
 """The personalised-PageRank push of the re-ranking (nfdmatch/search/diffusion.py): the
 compiled push (nfdmatch/matching/_graph_kernels.py, ahead of time and numba's) gives the
 numpy push's doubles, bit for bit, on random graphs and on an index's graph, and the
-re-ranked answers are the same bytes whichever kernels serve (issue 23)."""
+re-ranked answers are the same bytes whichever kernels serve (issue 23); so does the
+compiled push split over threads, and the answers on one thread and two are the same."""
 
 from __future__ import annotations
 
@@ -137,6 +138,122 @@ def test_the_push_of_a_source_does_not_depend_on_the_others():
     assert diffusion._SOURCE_BLOCK == 2048
 
 
+class Counted:
+    """A compiled push that records the sources of each of its calls (from any thread)."""
+
+    def __init__(self, push):
+        self.push, self.calls = push, []
+
+    def __call__(self, sources, *args):
+        self.calls.append(len(sources))
+        return self.push(sources, *args)
+
+
+def assert_same_triples(got, want):
+    """(src, node, value) of two pushes: the same, values bit for bit."""
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert got[2].dtype == want[2].dtype == np.float64
+    assert np.array_equal(got[2].view(np.int64), want[2].view(np.int64))
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    N=st.integers(2, 300),
+    K=st.integers(1, 10),
+    k=st.integers(1, 10),
+    alpha=st.sampled_from([0.5, 0.8, 0.95]),
+    tolerance=st.sampled_from([1e-2, 1e-4, TOLERANCE]),
+    padded=st.sampled_from([0.0, 0.2]),
+    ties=st.booleans(),
+    hub=st.booleans(),
+    computed=st.sampled_from([0.0, 0.5]),
+)
+def test_the_push_over_threads_gives_the_one_thread_push_and_the_numpy_push_bit_for_bit(
+    seed, N, K, k, alpha, tolerance, padded, ties, hub, computed
+):
+    """The sources split over 1, 2, 3 or 8 threads: every part stops for rows of the walk
+    not computed yet, at least once on a fresh walk (its sources' own rows), and resumes
+    after the barrier; with a share ``computed`` of the rows computed before, parts finish
+    in different rounds. The same doubles as one thread's push and as the numpy push."""
+    rng = np.random.default_rng(seed)
+    nb, d = random_graph(rng, N, K, padded=padded, hub=hub, ties=ties)
+    k = min(k, K)
+    sources = rng.integers(0, N, size=int(rng.integers(1, 2 * N + 2)))
+    before = np.flatnonzero(rng.random(N) < computed)
+    want = GraphWalk(reader_of(nb, d), N, k, alpha)._push(sources, tolerance)
+    for kind in COMPILED:
+        for workers in (1, 2, 3, 8):
+            walk = GraphWalk(reader_of(nb, d), N, k, alpha)
+            walk.transitions(before)
+            push = Counted(graph_push(compiled(kind)))
+            assert_same_triples(walk._push_compiled(push, sources, tolerance, workers), want)
+            parts = min(workers, len(sources))
+            assert sum(push.calls[:parts]) == len(sources)  # the first round: every part once
+            if not len(before):  # every part stopped at least once
+                assert len(push.calls) >= 2 * parts
+
+
+@pytest.mark.parametrize("kind", COMPILED)
+def test_pagerank_splits_a_block_over_the_threads_of_a_kernel_call(kind, monkeypatch):
+    """GraphWalk.pagerank pushes a block of at least _THREAD_SOURCES sources on the threads
+    Kernels.workers gives a call (here as on 4 cores: set_call_threads' limit), a smaller
+    block on one, and a process limited to one thread (a forked worker) on one: the same
+    doubles every way."""
+    from nfdmatch.matching import kernels as kernels_module
+    from nfdmatch.search import diffusion
+
+    rng = np.random.default_rng(8)
+    nb, d = local_graph(rng, 2000, 8, window=20)
+    sources = rng.integers(0, 2000, 300)
+    threads = []
+    run_all = diffusion.run_all
+
+    def counted(calls):
+        threads.append(len(calls))
+        return run_all(calls)
+
+    monkeypatch.setattr(diffusion, "run_all", counted)
+    monkeypatch.setattr(kernels_module, "cpu_count", lambda: 4)
+    limit = kernels_module._call_threads
+    few = diffusion._THREAD_SOURCES - 1
+    try:
+        for call_threads, n, used in ((4, 300, 4), (2, 300, 2), (1, 300, 1), (4, few, 1), (4, few + 1, 4)):
+            kernels_module.set_call_threads(call_threads)
+            threads.clear()
+            got, _ = push(nb, d, sources[:n], compiled(kind))
+            assert max(threads) == used
+            assert_same_doubles(got, push(nb, d, sources[:n], NUMPY)[0])
+    finally:
+        kernels_module.set_call_threads(limit)
+
+
+def test_run_all_returns_in_order_and_raises_only_once_every_call_is_done():
+    """The threaded push's barrier: no call runs on once run_all has returned or raised (the
+    walk then writes the rows the kernels read)."""
+    import threading
+    import time
+
+    from nfdmatch.matching._threads import run_all
+
+    assert run_all([]) == [] and run_all([lambda: 1]) == [1]
+    assert run_all([lambda: 1, lambda: 2, lambda: 3]) == [1, 2, 3]
+    finished = threading.Event()
+
+    def slow():
+        time.sleep(0.2)
+        finished.set()
+
+    def fails():
+        raise ValueError("a call that fails")
+
+    for calls in ([fails, slow], [slow, fails]):  # on the calling thread, on the pool
+        finished.clear()
+        with pytest.raises(ValueError):
+            run_all(calls)
+        assert finished.is_set()
+
+
 def test_the_kernels_choose_the_push():
     from nfdmatch.matching import aot
 
@@ -252,3 +369,44 @@ def test_the_reranked_answers_are_the_same_with_the_numpy_push(families, candida
         kernels.use_kernels(before)
     assert answers[0] == answers[1]
     assert all(len(res) == 20 for res in answers[0][0])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", COMPILED)
+@pytest.mark.parametrize("candidates", ["exact", "walk"])
+def test_the_reranked_answers_are_the_same_with_the_push_on_one_and_two_threads(
+    families, candidates, kind, monkeypatch
+):
+    from test_rerank import _read_back
+
+    from nfdmatch.index import open_index
+    from nfdmatch.matching import kernels
+    from nfdmatch.search import diffusion
+    from nfdmatch.search.rerank import rerank_index
+
+    stored = _read_back(families / "c")
+    queries = stored[::5]
+    threads = []
+    run_all = diffusion.run_all
+
+    def counted(calls):
+        threads.append(len(calls))
+        return run_all(calls)
+
+    monkeypatch.setattr(diffusion, "run_all", counted)
+    monkeypatch.setattr(kernels, "cpu_count", lambda: 2)
+    before, limit = kernels.current(), kernels._call_threads
+    answers = []
+    try:
+        assert kernels.use_kernels(kind).name == kind
+        for call_threads in (1, 2):
+            kernels.set_call_threads(call_threads)
+            threads.clear()
+            with open_index(families / "i.h5") as idx:
+                answers.append(rerank_index(idx, queries, top=20, candidates=candidates)[0])
+            assert max(threads) == call_threads
+    finally:
+        kernels.use_kernels(before)
+        kernels.set_call_threads(limit)
+    assert answers[0] == answers[1]
+    assert all(len(res) == 20 for res in answers[0])

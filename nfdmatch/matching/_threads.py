@@ -10,7 +10,7 @@ import threading
 
 import numpy as np
 
-__all__ = ["exact_rows", "grid_bound_rows", "split_rows", "shutdown"]
+__all__ = ["exact_rows", "grid_bound_rows", "run_all", "split_rows", "shutdown"]
 
 
 def exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers, prune=True):
@@ -56,28 +56,52 @@ _executor_lock = threading.Lock()
 def split_rows(run, N: int, workers: int) -> None:
     """run(lo, hi) over rows 0..N: at once, or in ``workers`` blocks on a thread pool (the
     kernels release the GIL; the blocks write disjoint rows of the outputs)."""
-    global _executor, _executor_workers
     if N == 0:
         return
     if workers <= 1 or N < 2 * workers:
         run(0, N)
         return
+    pool = _pool(workers - 1)
+    bounds = [N * t // workers for t in range(workers + 1)]
+    futures = [pool.submit(run, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:])]
+    run(bounds[0], bounds[1])  # the first block on the calling thread
+    for future in futures:
+        future.result()
+
+
+def run_all(calls) -> list:
+    """Every one of ``calls`` (callables of no argument) at once: the first on the calling
+    thread, the others on the pool's threads (the compiled kernels release the GIL). Returns
+    their results, in order, once all have returned. None of them runs on after this returns
+    or raises: a call's exception is raised once every call is done (the callers write what
+    the kernels read, after)."""
+    if len(calls) <= 1:
+        return [call() for call in calls]
+    from concurrent.futures import wait
+
+    futures = [_pool(len(calls) - 1).submit(call) for call in calls[1:]]
+    try:
+        first = calls[0]()
+    finally:
+        wait(futures)
+    return [first] + [future.result() for future in futures]
+
+
+def _pool(threads: int):
+    """The process's thread pool, with at least ``threads`` threads (started, or started
+    again larger, on demand)."""
+    global _executor, _executor_workers
     with _executor_lock:
-        if _executor_workers < workers - 1:
+        if _executor_workers < threads:
             from concurrent.futures import ThreadPoolExecutor  # (2-3 ms of a start-up otherwise)
 
             if _executor is not None:
                 _executor.shutdown(wait=True)
             else:
                 atexit.register(shutdown)
-            _executor = ThreadPoolExecutor(workers - 1, thread_name_prefix="nfdmatch-kernels")
-            _executor_workers = workers - 1
-        pool = _executor
-    bounds = [N * t // workers for t in range(workers + 1)]
-    futures = [pool.submit(run, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:])]
-    run(bounds[0], bounds[1])  # the first block on the calling thread
-    for future in futures:
-        future.result()
+            _executor = ThreadPoolExecutor(threads, thread_name_prefix="nfdmatch-kernels")
+            _executor_workers = threads
+        return _executor
 
 
 def shutdown() -> None:

@@ -1,14 +1,15 @@
 """The exact-search kernels, and the graph push, compiled ahead of time: a plain extension
 module that imports in a millisecond, without numba.
 
-The kernels of :mod:`._kernels` (and the push of :mod:`._graph_kernels`) are numba code.
-Compiled just in time they cost a process ~0.45 s before the first row (importing numba and
-loading the cached machine code), more than a whole single query needs. ``make install``
-(through :func:`compile_kernels`) also compiles the entry points ahead of time with
-``numba.pycc`` into ``nfdmatch/matching/_kernels_aot*.so``, next to a stamp holding the
-digest of the kernel sources it was built from; :func:`load` returns it only when the stamp
-matches the sources (an edited ``_kernels.py``, ``_graph_kernels.py`` or ``common.py`` is
-never served by a stale build). Without it a process uses the just-in-time kernels, or numpy
+The kernels of :mod:`._kernels` (and the push of :mod:`._graph_kernels` and
+:mod:`._push_rounds`) are numba code. Compiled just in time they cost a process ~0.45 s
+before the first row (importing numba and loading the cached machine code), more than a
+whole single query needs. ``make install`` (through :func:`compile_kernels`) also compiles
+the entry points ahead of time with ``numba.pycc`` into ``nfdmatch/matching/_kernels_aot*.so``,
+next to a stamp holding the digest of the kernel sources it was built from; :func:`load`
+returns it only when the stamp matches the sources (an edited ``_kernels.py``,
+``_graph_kernels.py``, ``_push_rounds.py`` or ``common.py`` is never served by a stale
+build). Without it a process uses the just-in-time kernels, or numpy
 (:mod:`.kernels`: the rule).
 
 The compiled functions release the GIL, as the just-in-time ones do, so queries on threads
@@ -55,12 +56,12 @@ _PUSH_SIGNATURE = (
     "i8[::1], f8, f8)"
 )
 #: the sources compiled into the module (and common.py, whose gram_entries _kernels.py compiles)
-_SOURCES = ("_kernels.py", "_graph_kernels.py", "common.py", "aot.py")
+_SOURCES = ("_kernels.py", "_graph_kernels.py", "_push_rounds.py", "common.py", "aot.py")
 
 
 def source_digest() -> str:
     """What a build is for: the CRC-32 and length of the kernel sources (``_kernels.py``,
-    ``_graph_kernels.py``), of ``common.py`` (whose ``gram_entries`` the kernels compile) and
+    ``_graph_kernels.py``, ``_push_rounds.py``), of ``common.py`` (whose ``gram_entries`` the kernels compile) and
     of this module, and the Python version (the built module needs neither numba nor its
     version once compiled). It guards against a stale build after an edit, not against
     tampering; every query checks it, and ``hashlib`` alone costs a process ~6 ms to import

@@ -17,10 +17,11 @@ digits passes ``kernels=NUMPY`` to the distance functions (a search recomputes t
 reports so, whatever the process uses: the compiled kernels agree with numpy to ~1e-15, not
 bit for bit).
 
-A call splits its rows over threads (:meth:`Kernels.workers`) when its kernels release the
-GIL, the call has enough rows and it is made on the main thread (a search answering queries
-on threads has its cores busy already), up to :func:`set_call_threads`'s limit (a forked
-search worker sets 1: its sibling processes have the other cores). The split's thread pool
+A call splits its rows over threads (:meth:`Kernels.workers`; the graph push its sources)
+when its kernels release the GIL, the call has enough rows and it is made on the main
+thread (a search answering queries on threads has its cores busy already), up to
+:func:`set_call_threads`'s limit (a forked search worker sets 1: its sibling processes
+have the other cores). The split's thread pool
 is shut down at exit (:func:`._threads.shutdown`), or before a fork (:func:`before_fork`).
 """
 
@@ -73,12 +74,13 @@ class Kernels:
     threads: bool
     reason: str
 
-    def workers(self, rows: int) -> int:
-        """Threads a call of ``rows`` rows splits its rows over (1: no split)."""
+    def workers(self, rows: int, least: int = _THREAD_ROWS) -> int:
+        """Threads a call of ``rows`` rows splits its rows over (1: no split); ``least``: the
+        fewest rows for which a split pays (the graph push's: sources)."""
         if (
             self.module is None
             or not self.threads
-            or rows < _THREAD_ROWS
+            or rows < least
             or _call_threads <= 1
             or threading.current_thread() is not threading.main_thread()
         ):

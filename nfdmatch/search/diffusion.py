@@ -20,8 +20,13 @@ The numpy push (:meth:`GraphWalk._push`) is the reference. The process's compile
 (:func:`nfdmatch.matching.kernels.graph_push`: ahead of time, or numba's) push the same
 rounds source by source with the same arithmetic in the same order, so they give the same
 doubles, ~5x faster (:mod:`nfdmatch.matching._graph_kernels`); the rows of the walk stay
-numpy's, computed here as the push reaches them. Test hook: ``graph_push`` (this module's
-name for it), replaced by tests/test_diffusion.py to push with numpy under compiled kernels.
+numpy's, computed here as the push reaches them. The compiled push of a block of at least
+:data:`_THREAD_SOURCES` sources is split over the threads a kernel call may use
+(:meth:`~nfdmatch.matching.kernels.Kernels.workers`), in rounds: each thread's sources pushed
+until they are done or need rows of the walk not computed yet, then, every thread stopped,
+those rows computed here; the same doubles (no source's push depends on the others').
+Test hook: ``graph_push`` (this module's name for it), replaced by tests/test_diffusion.py
+to push with numpy under compiled kernels.
 
 :class:`GraphWalk` reads the graph rows it needs, once, through a reader
 ``rows -> (neighbour, distance)`` (the index's checked reader), and lets a query's rows be
@@ -31,10 +36,12 @@ laid over it for one query (:meth:`GraphWalk.overlay`).
 from __future__ import annotations
 
 from contextlib import contextmanager
+from functools import partial
 
 import numpy as np
 
-from ..matching.kernels import graph_push
+from ..matching._threads import run_all
+from ..matching.kernels import current, graph_push
 
 __all__ = ["GraphWalk", "TOLERANCE", "row_scales", "sorted_unique", "sum_by_key"]
 
@@ -42,6 +49,12 @@ __all__ = ["GraphWalk", "TOLERANCE", "row_scales", "sorted_unique", "sum_by_key"
 TOLERANCE = 1e-5
 #: sources pushed together (bounds the memory of one push: sources x touched nodes entries)
 _SOURCE_BLOCK = 2048
+#: sources from which a block's compiled push is split over threads (as the exact distance's
+#: rows are: :meth:`~nfdmatch.matching.kernels.Kernels.workers`). At 100,000 curves on 2
+#: cores, a fresh walk (its rounds stop for rows of the walk, computed on one thread) takes
+#: 1.1x one thread's time on 2 at 8-16 sources, 1.0x at 24-32, 0.9x from 48, 0.74x at
+#: 2,048; with its rows known, 0.75x at 8 and 0.55x from 32 (docs/rerank.md)
+_THREAD_SOURCES = 32
 _NO_NODES, _NO_VALUES = np.zeros(0, np.int64), np.zeros(0)
 
 
@@ -85,7 +98,7 @@ class GraphWalk:
         self._prob = np.empty((size, k + 1), dtype=np.float64)
         self._walk_known = np.zeros(size, dtype=bool)
         self._overlaid = False
-        self._slot = None
+        self._slots = []  # the compiled push's work arrays, one per thread: (N + 1,) int64
         self.rows_read = 0
 
     # -- rows
@@ -178,6 +191,7 @@ class GraphWalk:
         Returns ``(start, node, value)``: source i's estimate is ``value[start[i]:start[i+1]]``
         over nodes ``node[start[i]:start[i+1]]`` (ascending, only the nodes it reached)."""
         sources = np.asarray(sources, dtype=np.int64).reshape(-1)
+        kernels = kernels or current()
         # (while a query is laid over the graph the rows of the walk are not kept: numpy)
         compiled = None if self._overlaid or not len(sources) else graph_push(kernels)
         starts, nodes, values = [0], [], []
@@ -186,7 +200,8 @@ class GraphWalk:
             if compiled is None:
                 src, node, value = self._push(block, tolerance)
             else:
-                src, node, value = self._push_compiled(compiled, block, tolerance)
+                workers = kernels.workers(len(block), least=_THREAD_SOURCES)
+                src, node, value = self._push_compiled(compiled, block, tolerance, workers)
             nodes.append(node)
             values.append(value)
             starts.extend((starts[-1] + np.cumsum(np.bincount(src, minlength=len(block)))).tolist())
@@ -194,26 +209,39 @@ class GraphWalk:
             return np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0)
         return np.asarray(starts, dtype=np.int64), np.concatenate(nodes), np.concatenate(values)
 
-    def _push_compiled(self, push, sources: np.ndarray, tolerance: float):
+    def _push_compiled(self, push, sources: np.ndarray, tolerance: float, workers: int = 1):
         """:meth:`_push` by the compiled push ``push``
         (:func:`nfdmatch.matching._graph_kernels.push_sources`): the same (src, node, value).
         It pushes every source until it is done or needs a row of the walk not computed yet;
-        those rows are computed here, for every stopped source at once, and it goes on."""
-        sources = np.ascontiguousarray(sources, dtype=np.int64)
+        those rows are computed here, for every stopped source at once, and it goes on.
+
+        Over ``workers`` threads: the sources in as many parts (contiguous, in order), each
+        pushed by its own calls with its own work array. Every round runs each unfinished
+        part's call to its stop; only once all have returned (no kernel reads the rows of the
+        walk then) are the rows they need computed, and those stopped go on. A source's
+        estimate does not depend on the sources pushed with it, so the parts' estimates in
+        order are the same doubles as one call's."""
+        sources, tolerance = np.ascontiguousarray(sources, dtype=np.int64), float(tolerance)
         n = len(sources)
-        if self._slot is None:  # its work array, -1 everywhere between calls
-            self._slot = np.full(self.N + 1, -1, dtype=np.int64)
-        state = (np.zeros(n, np.int64), np.zeros(n + 1, np.int64), _NO_NODES, _NO_VALUES)
-        state += (np.zeros(n + 1, np.int64), _NO_NODES, _NO_VALUES)
-        while True:
-            *state, missing = push(
-                sources, *state, self._targets, self._prob, self._walk_known, self._slot, self.alpha, float(tolerance)
-            )
-            if not len(missing):
-                break
-            self._walk_rows(missing)
-        _, _, _, _, start, node, value = state
-        return np.repeat(np.arange(n, dtype=np.int64), np.diff(start)), node[: start[-1]], value[: start[-1]]
+        bounds = [n * t // workers for t in range(workers + 1)]
+        parts = [_SourcesPush(sources[lo:hi]) for lo, hi in zip(bounds, bounds[1:]) if hi > lo]
+        if not parts:
+            return _NO_NODES, _NO_NODES, _NO_VALUES
+        while len(self._slots) < len(parts):  # -1 everywhere between calls
+            self._slots.append(np.full(self.N + 1, -1, dtype=np.int64))
+        walk = (self._targets, self._prob, self._walk_known)
+        going = parts
+        while going:
+            calls = [
+                partial(part.push, push, *walk, slot, self.alpha, tolerance) for part, slot in zip(going, self._slots)
+            ]
+            run_all(calls)
+            going = [part for part in going if len(part.missing)]
+            if going:
+                self._walk_rows(np.concatenate([part.missing for part in going]))
+        counts, node, value = zip(*(part.estimates() for part in parts))
+        src = np.repeat(np.arange(n, dtype=np.int64), np.concatenate(counts))
+        return src, np.concatenate(node), np.concatenate(value)
 
     def _push(self, sources: np.ndarray, tolerance: float):
         """(src, node, value) sorted by (src, node): the estimates of a block of sources (the
@@ -247,6 +275,30 @@ class GraphWalk:
         key, val = sum_by_key(np.concatenate(p_keys), np.concatenate(p_vals))
         src, node = np.divmod(key, size)
         return src, node, val
+
+
+class _SourcesPush:
+    """Some sources of a block, pushed by the compiled push, and their state between its calls
+    (:func:`nfdmatch.matching._graph_kernels.push_sources`'s state in and out)."""
+
+    def __init__(self, sources: np.ndarray):
+        n = len(sources)
+        self.sources = sources  # (n,) int64, contiguous
+        self.state = (np.zeros(n, np.int64), np.zeros(n + 1, np.int64), _NO_NODES, _NO_VALUES)
+        self.state += (np.zeros(n + 1, np.int64), _NO_NODES, _NO_VALUES)
+        self.missing = _NO_NODES  # the rows of the walk its last call stopped for
+
+    def push(self, push, targets, prob, known, slot, alpha: float, tolerance: float) -> None:
+        """One call of ``push``: every source not done pushed until it is done or needs a row
+        of the walk not ``known`` (those rows then in ``missing``, ascending, unique)."""
+        *state, self.missing = push(self.sources, *self.state, targets, prob, known, slot, alpha, tolerance)
+        self.state = tuple(state)
+
+    def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(count, node, value)`` once every source is done: entries per source ((n,)
+        int64), then each source's estimate in order (nodes ascending, int64; float64)."""
+        start, node, value = self.state[4:]
+        return np.diff(start), node[: start[-1]], value[: start[-1]]
 
 
 def sorted_unique(values: np.ndarray) -> np.ndarray:
