@@ -32,7 +32,7 @@ import numpy as np
 from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
 from ..errors import IndexFormatError, ParameterError
 from ..records import RankedMatch
-from .diffusion import GraphWalk, sorted_unique, sum_by_key
+from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .knn import self_rule
 
 if TYPE_CHECKING:
@@ -74,17 +74,6 @@ _SCORE_TIE = 1e-12
 CANDIDATES = RERANK_CANDIDATES
 
 
-def _scales(sorted_distances: np.ndarray, k: int) -> np.ndarray:
-    """Each row's scale: the k-th finite entry of its ascending distances (the last finite
-    one when fewer), floored so that a duplicate (distance 0) cannot divide by zero."""
-    finite = np.isfinite(sorted_distances)
-    count = finite.sum(axis=1)
-    col = np.clip(np.minimum(count, k) - 1, 0, None)
-    s = sorted_distances[np.arange(len(sorted_distances)), col] if sorted_distances.shape[1] else np.zeros(0)
-    s = np.where(count > 0, s, 1.0)
-    return np.maximum(s, 1e-12)
-
-
 def _pagerank_cosine(P: np.ndarray, alpha: float) -> np.ndarray:
     """(n, n) cosines between the rows of ``(1 - alpha) (I - alpha P)^-1``."""
     n = len(P)
@@ -118,7 +107,7 @@ def diffused_similarity(
     off = D.copy()
     np.fill_diagonal(off, np.inf)
     order = np.argsort(off, axis=1, kind="stable")[:, : min(k, N - 1)]
-    s = _scales(np.take_along_axis(off, order, axis=1), k)
+    s = row_scales(np.take_along_axis(off, order, axis=1), k)
     W = np.exp(-(D**2) / (s[:, None] * s[None, :]))
     mask = np.zeros((N, N), dtype=bool)
     mask[np.arange(N)[:, None], order] = True
