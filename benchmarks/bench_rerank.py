@@ -52,7 +52,13 @@ from nfdmatch import Curve, read_curves, write_curves  # noqa: E402
 from nfdmatch.descriptors import descriptors_batch  # noqa: E402
 from nfdmatch.matching import exact_search  # noqa: E402
 from nfdmatch.search import distance_matrix  # noqa: E402
-from nfdmatch.search.rerank import ALPHA, MIX, SCALE_NEIGHBOURS, diffused_similarity  # noqa: E402
+from nfdmatch.search.rerank import (  # noqa: E402
+    ALPHA,
+    MATRIX_TOLERANCE,
+    MIX,
+    SCALE_NEIGHBOURS,
+    diffused_similarity,
+)
 
 DEFAULT_DATA = os.path.normpath(os.path.join(HERE, "..", "..", "shared", "data"))
 K, A = SCALE_NEIGHBOURS, ALPHA
@@ -238,6 +244,22 @@ def knots_top1(method, Ds, Q):
 # --------------------------------------------------------------------------- the shipped path
 
 
+def _against_the_matrix(results, position, S):
+    """query --rerank --exclude-self of every stored curve against ``matrix --rerank``'s
+    similarity S (rows in ``position``'s order): the largest gap between a reported score and
+    the matrix's, and how many queries' orders invert two matrix scores by more than twice
+    MATRIX_TOLERANCE (issue 23: the same order up to the documented tolerance)."""
+    gap, otherwise = 0.0, 0
+    for i, r in enumerate(results):
+        if not r:
+            continue
+        want = S[i, [position[m.id] for m in r]]
+        gap = max(gap, float(np.max(np.abs(np.array([m.score for m in r]) - want))))
+        later_best = np.maximum.accumulate(want[::-1])[::-1]
+        otherwise += bool(np.any(later_best[1:] - want[:-1] > 2 * MATRIX_TOLERANCE))
+    return gap, otherwise
+
+
 def shipped(cols, knot_data, work, candidates="walk"):
     """query --rerank (library) through an index with a graph: Kimia, mesh, families, knots."""
     from nfdmatch.index import build_index, open_index
@@ -282,9 +304,11 @@ def shipped(cols, knot_data, work, candidates="walk"):
         np.fill_diagonal(S, np.inf)
         counts, p10, bull = scores_table(S, c["labels"])
         pc, pp, pb = scores_table(-c["D"], c["labels"])
+        gap, otherwise = _against_the_matrix(res, pos, diffused_similarity(c["D"], ids=list(pos)))
         print(
             f"{name:24} {pp:10.3f} {p10:11.3f} {pb:9.3f} {bull:9.3f} {t_plain:8.1f} {t_rerank:8.1f}"
-            f"  {' '.join(str(x) for x in counts)} = {counts.sum()} (plain {pc.sum()})",
+            f"  {' '.join(str(x) for x in counts)} = {counts.sum()} (plain {pc.sum()}); against matrix --rerank: "
+            f"largest score gap {gap:.1e}, queries ordered otherwise beyond 2 x {MATRIX_TOLERANCE:g}: {otherwise}",
             flush=True,
         )
     control, smooth, _, _ = knot_data

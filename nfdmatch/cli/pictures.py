@@ -317,7 +317,7 @@ def matrix(
     title = f"{matching['method']} distance, {len(ids)} curves"
     values = distances
     if rerank:
-        values, distances = _reranked(distances)
+        values, distances = _reranked(distances, ids)
         title = f"re-ranked similarity ({matching['method']} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
@@ -336,14 +336,15 @@ def matrix(
     inputs.finish()
 
 
-def _reranked(distances):
-    """``(similarity, dissimilarity)``: the diffused similarity of every pair and, for the
-    pictures and the similarity order, 1 - it (0 on the diagonal)."""
+def _reranked(distances, ids):
+    """``(similarity, dissimilarity)``: the diffused similarity of every pair (ties among a
+    curve's neighbours by ``ids``, as the stored graph orders them) and, for the pictures and
+    the similarity order, 1 - it (0 on the diagonal)."""
     import numpy as np
 
     from ..search.rerank import diffused_similarity
 
-    values = diffused_similarity(distances)
+    values = diffused_similarity(distances, ids=ids)
     distances = np.clip(1 - values, 0, None)
     np.fill_diagonal(distances, 0.0)
     return values, distances

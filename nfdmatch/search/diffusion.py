@@ -43,10 +43,19 @@ import numpy as np
 from ..matching._threads import run_all
 from ..matching.kernels import current, graph_push
 
-__all__ = ["GraphWalk", "TOLERANCE", "row_scales", "sorted_unique", "sum_by_key"]
+__all__ = ["GraphWalk", "TOLERANCE", "SCALE_FLOOR", "row_scales", "sorted_unique", "sum_by_key"]
 
 #: residual below which a node is not pushed (per source, whose total mass is 1)
 TOLERANCE = 1e-5
+#: the smallest scale a node gets. The descriptors are stored as complex64 (~1e-7 of their
+#: unit norm), so one distance measured by two paths (the stored graph, the query's row, the
+#: matrix's float64) differs by up to ~5e-8, and a curve and its exact copy lie 1e-11 to 4e-8
+#: apart: a node with more copies than k took its scale, and so every affinity near it, from
+#: that noise (the mesh sections: scores 0.6 apart between query --rerank and matrix
+#: --rerank). At a scale of at least 1e-4, a change d of a distance moves its affinity
+#: exp(-d^2 / s^2) by at most ~0.86 d / s < 5e-4; the development collections' k-th
+#: distances are >= 0.06 but for such copies, whose affinities this makes ~1
+SCALE_FLOOR = 1e-4
 #: sources pushed together (bounds the memory of one push: sources x touched nodes entries)
 _SOURCE_BLOCK = 2048
 #: sources from which a block's compiled push is split over threads (as the exact distance's
@@ -60,7 +69,7 @@ _NO_NODES, _NO_VALUES = np.zeros(0, np.int64), np.zeros(0)
 
 def row_scales(distances: np.ndarray, k: int) -> np.ndarray:
     """Each row's scale: the k-th finite entry of its ascending distances (the last finite
-    one when fewer; 1 when none), floored at 1e-12 (a duplicate cannot divide by zero)."""
+    one when fewer; 1 when none), at least :data:`SCALE_FLOOR`."""
     distances = np.asarray(distances, dtype=np.float64)
     finite = np.isfinite(distances)
     count = finite.sum(axis=1)
@@ -69,7 +78,7 @@ def row_scales(distances: np.ndarray, k: int) -> np.ndarray:
     col = np.clip(np.minimum(count, k) - 1, 0, None)
     s = distances[np.arange(len(distances)), col]
     s = np.where(count > 0, s, 1.0)
-    return np.maximum(s, 1e-12)
+    return np.maximum(s, SCALE_FLOOR)
 
 
 class GraphWalk:

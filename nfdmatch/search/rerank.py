@@ -85,28 +85,41 @@ def _pagerank_cosine(P: np.ndarray, alpha: float) -> np.ndarray:
 
 
 def diffused_similarity(
-    distances: ArrayLike, *, k: int = SCALE_NEIGHBOURS, alpha: float = ALPHA, mix: float = MIX
+    distances: ArrayLike,
+    *,
+    k: int = SCALE_NEIGHBOURS,
+    alpha: float = ALPHA,
+    mix: float = MIX,
+    ids: Sequence[str] | None = None,
 ) -> np.ndarray:
     """The re-ranked similarity of every pair of a collection.
 
     Parameters
     ----------
     distances : (N, N) float, symmetric exact distances with a zero diagonal.
+    ids : the N curves' ids: a row's k nearest are taken as the stored graph takes them
+        (distances within the search's ``TIE`` are ties, ordered by id), so that
+        ``query --rerank`` of a stored curve agrees with this; None: ties by position.
 
     Returns
     -------
     (N, N) float64, symmetric, higher is closer: 1 on the diagonal, at most 1 elsewhere
     (a cosine and an affinity, both at most 1, mixed). O(N^3) time (one dense N x N solve), O(N^2) memory.
     """
+    from .engine import TIE
+
     D = np.array(distances, dtype=np.float64)
     N = len(D)
     if D.ndim != 2 or D.shape != (N, N):
         raise ParameterError(f"expected a square distance matrix, got shape {D.shape}")
+    if ids is not None and len(ids) != N:
+        raise ParameterError(f"expected {N} ids, one per curve, got {len(ids)}")
     if N == 0:
         return np.zeros((0, 0))
     off = D.copy()
     np.fill_diagonal(off, np.inf)
-    order = np.argsort(off, axis=1, kind="stable")[:, : min(k, N - 1)]
+    tie_rank = np.arange(N) if ids is None else np.argsort(np.argsort(np.asarray(ids, dtype=object), kind="stable"))
+    order = np.lexsort((np.broadcast_to(tie_rank, (N, N)), np.round(off / TIE)))[:, : min(k, N - 1)]
     s = row_scales(np.take_along_axis(off, order, axis=1), k)
     W = np.exp(-(D**2) / (s[:, None] * s[None, :]))
     mask = np.zeros((N, N), dtype=bool)
