@@ -129,9 +129,10 @@ def search_index(
     if exclude_self and top is not None:
         top += 1  # the query's own curve is dropped below
     qcoef = query_descriptors(index, queries)
+    cascade = Cascade(index.samples, method, direction, mirror, truncate)
     tops, stats = search_rows(
-        index, qcoef, top=top, max_distance=max_distance, method=method, direction=direction, mirror=mirror,
-        prune=prune, progress=progress, weights=weights, threads=threads, truncate=truncate,
+        index, qcoef, cascade, top=top, max_distance=max_distance, prune=prune, progress=progress, weights=weights,
+        threads=threads,
     )  # fmt: skip
     results = ranked_rows(index, tops, top)
     if exclude_self:
@@ -151,27 +152,16 @@ def query_descriptors(index, queries: Sequence[Curve]) -> np.ndarray:
 
 
 def search_rows(
-    index,
-    qcoef: np.ndarray,
-    *,
-    top: int | None,
-    max_distance: float | None = None,
-    method: str = DEFAULT_METHOD,
-    direction: str = DEFAULT_DIRECTION,
-    mirror: bool = False,
-    prune: bool = True,
-    progress: Callable[[int, int], None] | None = None,
-    weights: ArrayLike | None = None,
-    threads: int | None = None,
-    truncate: bool = True,
-) -> tuple[list[BestRows], SearchStats]:
+    index, qcoef: np.ndarray, cascade: Cascade, *, top: int | None, max_distance=None, prune=True, progress=None,
+    weights=None, threads=None,
+) -> tuple[list[BestRows], SearchStats]:  # fmt: skip
     """:func:`search_index`'s search, its answer as rows: ``(tops, stats)``, ``tops[i]`` the
     :class:`~nfdmatch.search.engine.BestRows` of query i (descriptors ``qcoef[i]``, (K, 3)
     complex128) in no particular order, every row's figures computed alone
-    (:func:`recompute_reported`); ``stats.seconds`` is left 0. Arguments as for
+    (:func:`recompute_reported`); ``stats.seconds`` is left 0. ``cascade``: what is computed
+    (the method, direction, mirror, truncation); the other arguments as for
     :func:`search_index`, checked there."""
     tops = [BestRows(top, max_distance) for _ in range(len(qcoef))]
-    cascade = Cascade(index.samples, method, direction, mirror, truncate)
     stats = SearchStats(queries=len(qcoef), rows=index.n_curves, pruned=prune)
     table = None
     if not prune:
@@ -179,8 +169,9 @@ def search_rows(
     elif index.n_curves and len(qcoef):
         table = _pruned(index, qcoef, tops, cascade, stats, threads, progress)
     recompute_reported(
-        index, qcoef, tops, cascade.distance, direction=direction, mirror=mirror, weights=weights, tables=table
-    )
+        index, qcoef, tops, cascade.distance, direction=cascade.direction, mirror=cascade.mirror, weights=weights,
+        tables=table,
+    )  # fmt: skip
     stats.kernels = current_kernels().describe()
     return tops, stats
 

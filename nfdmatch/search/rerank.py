@@ -33,6 +33,7 @@ from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_C
 from ..errors import IndexFormatError, ParameterError
 from ..records import RankedMatch
 from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
+from .engine import Cascade
 from .knn import self_rule
 
 if TYPE_CHECKING:
@@ -186,7 +187,7 @@ def rerank_index(
     walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA)
     qcoef = query_descriptors(index, queries)
     if candidates == "exact":
-        found, stats = search_rows(index, qcoef, top=depth, progress=progress, threads=threads)
+        found, stats = search_rows(index, qcoef, Cascade(index.samples), top=depth, progress=progress, threads=threads)
         rank_rows(index, found, depth)
         union = _union(found)
         vectors = _Vectors(union, *walk.pagerank(union))  # every candidate's, once for the batch
@@ -265,13 +266,13 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
     row's; any other: from its first step, as in :func:`_query_scores`), ties by row, each
     with its exact distance; ``vectors`` the :class:`_Vectors` pushed on the way (of every
     query's k nearest). (qcoef: (Q, K, 3) complex128, the queries' descriptors.)"""
-    from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
-    from .engine import BestRows, Cascade
+    from .engine import BestRows
     from .index_search import rank_rows, recompute_reported, search_rows
 
     k, N, alpha = walk.k, walk.N, walk.alpha
     first = max(top, k) + (1 if exclude_self else 0)
-    near, stats = search_rows(index, qcoef, top=first, progress=progress, threads=threads)
+    cascade = Cascade(index.samples)  # the exact distance, invariant to direction, no mirror
+    near, stats = search_rows(index, qcoef, cascade, top=first, progress=progress, threads=threads)
     rank_rows(index, near, first)
     union = _union(near)
     vectors = _Vectors(union, *walk.pagerank(union))
@@ -305,11 +306,10 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
             for key, v in extra.extra.items()
         }
     # the added rows' exact distances, each computed alone as the search computes the rows it found
-    cascade = Cascade(index.samples, DEFAULT_METHOD, DEFAULT_DIRECTION, False)
     added = _union(more)
     if len(added):
         recompute_reported(
-            _Read(index, added), qcoef, more, cascade.distance, direction=DEFAULT_DIRECTION, mirror=False,
+            _Read(index, added), qcoef, more, cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
             weights=None,
         )  # fmt: skip
     stats.exact += sum(len(extra.rows) for extra in more)
