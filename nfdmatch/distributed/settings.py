@@ -68,3 +68,14 @@ def worker_info() -> dict:
 def first_line(exc) -> str:
     text = str(exc).strip().splitlines()
     return text[0] if text else type(exc).__name__
+
+
+def task_result(fut, what: str):
+    """A finished task's answer; a task that failed on every retry is a ClusterError (an
+    NfdError it raised stays what it is)."""
+    try:
+        return fut.result()
+    except NfdError:
+        raise
+    except Exception as exc:
+        raise ClusterError(f"a {what} task failed on every try: {type(exc).__name__}: {first_line(exc)}") from None
