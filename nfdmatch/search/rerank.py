@@ -62,10 +62,11 @@ ALPHA = 0.8
 MIX = 0.2
 #: a query's exact candidates (--rerank-depth): at least, and by default (defined with the CLI's defaults)
 MIN_DEPTH = DEFAULT_DEPTH = DEFAULT_RERANK_DEPTH
-#: ``query --rerank`` of a stored curve with ``exclude_self`` against ``matrix --rerank``: every
-#: score within this (the push leaves residuals below :data:`~.diffusion.TOLERANCE` per node;
-#: measured at most ~1e-4 on Kimia-99 and generated families), so the two orders agree but for
-#: scores closer than twice this
+#: ``query --rerank`` of a stored curve with ``exclude_self`` against ``matrix --rerank`` (given
+#: the ids): every score within this (the push leaves residuals below
+#: :data:`~.diffusion.TOLERANCE` per node; measured at most 8e-5 to 2e-4 on Kimia-99, the
+#: mesh sections and generated families: ``bench_rerank.py --skip-timing``), so the two orders
+#: agree but for scores closer than twice this
 MATRIX_TOLERANCE = 1e-3
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
