@@ -33,7 +33,7 @@ from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_C
 from ..errors import IndexFormatError, ParameterError
 from ..records import RankedMatch
 from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
-from .engine import Cascade
+from .engine import TIE, BestRows, Cascade
 from .knn import self_rule
 
 if TYPE_CHECKING:
@@ -108,8 +108,6 @@ def diffused_similarity(
     (N, N) float64, symmetric, higher is closer: 1 on the diagonal, at most 1 elsewhere
     (a cosine and an affinity, both at most 1, mixed). O(N^3) time (one dense N x N solve), O(N^2) memory.
     """
-    from .engine import TIE
-
     D = np.array(distances, dtype=np.float64)
     N = len(D)
     if D.ndim != 2 or D.shape != (N, N):
@@ -267,7 +265,6 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
     row's; any other: from its first step, as in :func:`_query_scores`), ties by row, each
     with its exact distance; ``vectors`` the :class:`_Vectors` pushed on the way (of every
     query's k nearest). (qcoef: (Q, K, 3) complex128, the queries' descriptors.)"""
-    from .engine import BestRows
     from .index_search import rank_rows, recompute_reported, search_rows
 
     k, N, alpha = walk.k, walk.N, walk.alpha
