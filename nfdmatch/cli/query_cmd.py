@@ -125,7 +125,7 @@ def query(
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
-        _note_old_format(idx, exhaustive)
+        _note_old_format(idx, exhaustive, stage)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
@@ -156,11 +156,18 @@ def _columns(details: bool, rerank: bool, stage=None) -> list[str]:
     return columns
 
 
-def _note_old_format(idx, exhaustive: bool) -> None:
-    """A note that a format-1 index (no search cells) bounds every row for each query."""
+def _note_old_format(idx, exhaustive: bool, stage=None) -> None:
+    """A note that a format-1 index (no search cells) bounds every row for each query, and
+    that an index before format 3 has its statistics computed on read by the elastic stage."""
     from ..index import FORMAT_VERSION
 
-    if idx.format_version < FORMAT_VERSION and not exhaustive:
+    if idx.format_version < 3 and stage is not None:
+        note(
+            f"{idx.path} is an index of format {idx.format_version}, without stored shape statistics: "
+            f"--elastic computes them for each query's candidates; `nfdmatch index build --index {idx.path}` "
+            f"upgrades it to format {FORMAT_VERSION}"
+        )
+    if idx.format_version < 2 and not exhaustive:
         note(
             f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
             f"bounded for each query (slower on large indexes); `nfdmatch index build --index "

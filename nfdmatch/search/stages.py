@@ -68,14 +68,18 @@ class ElasticStage:
 
         if not matches:
             return []
-        coefficients = index.coefficients_at(np.array([m.row for m in matches], dtype=np.int64))
+        rows = np.array([m.row for m in matches], dtype=np.int64)
+        coefficients = index.coefficients_at(rows)
+        stored = getattr(index, "statistics_at", None)
         rigid = {
             "distance": np.array([m.distance for m in matches]),
             "shift": np.array([m.shift for m in matches]),
             "reversed": np.array([m.reversed for m in matches]),
             "mirrored": np.array([m.mirrored for m in matches]),
         }
-        terms = fused_rows(qcoef, coefficients, rigid, index.samples)
+        terms = fused_rows(
+            qcoef, coefficients, rigid, index.samples, row_statistics=None if stored is None else stored(rows)
+        )
         key = np.round(terms.fused / TIE)
         ranked = sorted(range(len(matches)), key=lambda i: (key[i], matches[i].distance, matches[i].id))
         return [
