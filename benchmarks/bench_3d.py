@@ -1,7 +1,7 @@
 """The elastic stage on every development collection: retrieval quality and cost
 (issues "Similarity that bends" and "3-D curves that people call alike"; docs/elastic.md).
 
-    python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--constants]
+    python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--constants | --timing]
 
 Every curve of a collection is a query against the rest (the library's own search with
 ``exclude_self``, as ``query --exclude-self``); top-1 and bull's-eye (same class among the
@@ -18,7 +18,9 @@ Every curve of a collection is a query against the rest (the library's own searc
 - chance.
 
 With the seconds of the plain and the elastic search (the ratio is what holds on a busy
-machine), and the elastic kernel's microseconds a pair. ``--constants`` prints the fused
+machine), the elastic kernel's microseconds a pair, and ``query --elastic`` against the plain
+query as CLI processes on an index of each psb_dev folder and of Kimia-99 (``--timing``:
+only these). ``--constants`` prints the fused
 distance's constants recomputed from the pooled development pairs (the quantile tables
 of nfdmatch/matching/fused.py, the block scales of statistics.py).
 
@@ -203,6 +205,36 @@ def kernel_timing():
           f"statistics: {stats_s / len(C) * 1e6:.1f} us a curve (once per curve)")  # fmt: skip
 
 
+def cli_timing(data, runs: int = 3):
+    """``query FOLDER --index --exclude-self --top 40`` as whole CLI processes, plain against
+    ``--elastic`` (M = 100), in turn, on an index of each folder (format 3: statistics
+    stored): the median seconds of ``runs`` each and their ratio."""
+    import subprocess
+    import tempfile
+
+    exe = os.path.join(os.path.dirname(sys.executable), "nfdmatch")
+    folders = {
+        "psb cut loops": os.path.join(data, "psb_dev", "cutloop", "curves"),
+        "psb mid-sections": os.path.join(data, "psb_dev", "midsection", "curves"),
+        "kimia99": os.path.join(data, "kimia99"),
+    }
+    print("\nCLI processes: query FOLDER --index I --exclude-self --top 40 (every curve a query), median of", runs)
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, folder in folders.items():
+            index = os.path.join(tmp, name.replace(" ", "_") + ".h5")
+            subprocess.run([exe, "-q", "index", "build", folder, "--index", index, "--glob", "[!_]*.csv"], check=True)
+            base = [exe, "query", folder, "--index", index, "--exclude-self", "--top", "40", "--glob", "[!_]*.csv"]
+            base += ["--format", "csv", "-o", os.path.join(tmp, "out.csv")]
+            times = {"plain": [], "elastic": []}
+            for _ in range(runs):
+                for label, extra in (("plain", []), ("elastic", ["--elastic"])):
+                    t = time.perf_counter()
+                    subprocess.run(base + extra, check=True)
+                    times[label].append(time.perf_counter() - t)
+            plain, elastic = (float(np.median(times[k])) for k in ("plain", "elastic"))
+            print(f"  {name:18} plain {plain:6.2f} s   --elastic {elastic:6.2f} s   ratio {elastic / plain:.2f}x")
+
+
 def constants(cols):
     """The fused distance's constants from the pooled development pairs."""
     from nfdmatch.matching.statistics import BLOCK_SIZES, BLOCKS
@@ -235,9 +267,14 @@ def main():
     parser.add_argument("--data", default=os.path.join(os.path.dirname(HERE), "..", "shared", "data"))
     parser.add_argument("--depths", default="100,all", help="elastic depths to report, comma-separated ('all')")
     parser.add_argument("--constants", action="store_true", help="print the fused distance's constants")
+    parser.add_argument("--timing", action="store_true", help="only the CLI timing (plain against --elastic)")
     args = parser.parse_args()
     if not os.path.isdir(args.data):
         sys.exit(f"no development data at {args.data}: give --data")
+    if args.timing:
+        cli_timing(args.data)
+        kernel_timing()
+        return
     cols = collections(args.data)
     if args.constants:
         constants(cols)
@@ -248,6 +285,7 @@ def main():
     print()
     knots_check(args.data)
     kernel_timing()
+    cli_timing(args.data)
 
 
 if __name__ == "__main__":
