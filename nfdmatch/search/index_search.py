@@ -147,7 +147,7 @@ def search_index(
     if exclude_self:
         results = without_self(index, queries, results, asked)
     if stage is not None:
-        results = [stage.reorder(index, qcoef[qi], found)[:wanted] for qi, found in enumerate(results)]
+        results = [found[:wanted] for found in stage.reorder(index, qcoef, results)]
     stats.seconds = time.perf_counter() - t0
     return results, stats
 
