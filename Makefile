@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 # served by a stale ahead-of-time build, but it would fall back to the slower paths)
 KERNELS := $(VENV)/.kernels
 
-.PHONY: demo test test-fast lint install bench devdata clean
+.PHONY: demo test test-fast typecheck lint install bench devdata clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -29,8 +29,12 @@ $(KERNELS): $(STAMP) nfdmatch/matching/_kernels.py nfdmatch/matching/_graph_kern
 install: $(STAMP) $(KERNELS)
 	@$(BIN)/python -m compileall -q nfdmatch
 
-test: install
+# the type checker first (pyproject.toml [tool.mypy]: what it checks and why), then the tests
+test: install typecheck
 	$(BIN)/python -m pytest -q
+
+typecheck: $(STAMP)
+	$(BIN)/python -m mypy
 
 # the unit tests only (no end-to-end runs marked slow): under a minute
 test-fast: install

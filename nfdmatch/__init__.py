@@ -8,6 +8,12 @@ Public API::
     report = build_index(["curves/"], "curves.h5")
     with open_index("curves.h5") as index:
         matches = index.search("query.obj", k=5)   # one list per query curve
+        distances, rows = index.search("query.obj", k=5, arrays=True)   # as faiss
+        index.ids[rows[0, 0]]
+
+    memory = MemoryIndex(curves)                   # Curves or (n, 3) arrays
+    memory.search(queries, k=5, arrays=True)       # the same search
+    memory.save("curves.h5")                       # an index file the CLI reads
 
 Zhang & Fiume, "Shape Matching of 3-D Contours using Normalized Fourier
 Descriptors" (SMI 2002), with an exact shift x rotation search.
@@ -40,6 +46,7 @@ __all__ = [
     "open_index",
     "Index",
     "BuildReport",
+    "MemoryIndex",
 ]
 
 #: names loaded on first use, and their modules
@@ -48,10 +55,11 @@ _LAZY = {
     "BuildReport": "nfdmatch.index",
     "open_index": "nfdmatch.index",
     "Index": "nfdmatch.index",
+    "MemoryIndex": "nfdmatch.index.memory",
 }
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> object:
     if name in _LAZY:
         import importlib
 
@@ -61,5 +69,5 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def __dir__():
+def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))

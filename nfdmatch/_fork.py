@@ -125,7 +125,7 @@ def fork_map(
             for conn in wait([c for c, s in running.items() if s[1] is not None]):
                 state = running[conn]
                 try:
-                    number, ok, result = conn.recv()
+                    number, ok, result = conn.recv()  # type: ignore[call-arg]
                 except (EOFError, OSError):  # the worker died with a task
                     lost.append(state[1])
                     state[1] = None

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RankedMatch", "ShownMatch", "SOURCES", "INDEX_NOTE"]
+__all__ = ["RankedMatch", "ShownMatch", "RowIds", "SOURCES", "INDEX_NOTE"]
 
 #: where a shown match's vertices come from: its curve file, or the harmonics stored in the index
 SOURCES = ("file", "index")
@@ -103,3 +103,45 @@ class ShownMatch:
     @property
     def note(self) -> str | None:
         return INDEX_NOTE if self.source == "index" else None
+
+
+class RowIds:
+    """The ids of an index's rows as a read-only sequence (``index.ids[row]``, a slice, an
+    array of rows, ``len``, iteration), read on demand: an index file of a million rows is
+    not read whole to name the five a search returned. Calling it, ``index.ids(start,
+    stop)``, is the older spelling of ``index.ids[start:stop]`` (a list)."""
+
+    def __init__(self, count: int, at, span):
+        self._count = count
+        self._at = at  # rows -> list[str]
+        self._span = span  # (start, stop) -> list[str]
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __getitem__(self, key):
+        if isinstance(key, slice):
+            start, stop, step = key.indices(self._count)
+            if step != 1:
+                return self._at(np.arange(start, stop, step))
+            return self._span(start, max(start, stop))
+        if isinstance(key, (int, np.integer)):
+            row = int(key)
+            if row < 0:
+                row += self._count
+            if not 0 <= row < self._count:
+                raise IndexError(f"row {int(key)} out of range 0..{self._count - 1}")
+            return self._at([row])[0]
+        rows = np.asarray(key, dtype=np.int64)
+        return self._at(np.where(rows < 0, rows + self._count, rows))
+
+    def __iter__(self):
+        step = 65536
+        for start in range(0, self._count, step):
+            yield from self._span(start, min(self._count, start + step))
+
+    def __call__(self, start: int = 0, stop: int | None = None) -> list[str]:
+        return self[slice(start, stop)]
+
+    def __repr__(self) -> str:
+        return f"<{self._count} ids>"

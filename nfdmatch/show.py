@@ -17,7 +17,7 @@ import numpy as np
 from .matching import EXACT, INVARIANT
 from .curve import Curve
 from .descriptors import START_STEP, Descriptors, descriptors, points_at, reconstruct
-from .errors import CurveError, NfdError
+from .errors import CurveError, NfdError, ParameterError
 from .matching import Match, match_descriptors
 from .records import RankedMatch, ShownMatch
 from .search.knn import stored_descriptors
@@ -135,7 +135,7 @@ def matches_from_index(
         try:
             # an index's ids are relative to its folder: found from any working directory
             located = index.locate(curve_id) if hasattr(index, "locate") else curve_id
-            curve = read_curve(located)
+            curve = read_curve(located)  # type: ignore[misc]
             if located != curve_id:  # shown under the id the index reports
                 curve = Curve.trusted(curve.points, curve_id, curve.source, curve.index)
         except NfdError as exc:
@@ -164,11 +164,23 @@ def matches_from_index(
     return shown, notes
 
 
+def _k(k: int | None, top: int | None, where: str) -> int:
+    """``k``, or the deprecated ``top`` a caller still passes."""
+    if top is not None:
+        import warnings
+
+        warnings.warn(f"{where}(top=) is deprecated: use k=", DeprecationWarning, stacklevel=3)
+        k = top
+    if k is None:
+        raise ParameterError("give k: the matches to show")
+    return k
+
+
 def show_ranked(
     query: Curve,
     curves: Sequence[Curve],
     *,
-    top: int,
+    k: int | None = None,
     samples: int | None = None,
     harmonics: int | None = None,
     scale: str | None = None,
@@ -176,8 +188,10 @@ def show_ranked(
     direction: str = INVARIANT,
     mirror: bool = False,
     stage=None,
+    top: int | None = None,
 ) -> list[ShownMatch]:
-    """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
+    """The best ``k`` matches (``top``: its deprecated older name) of ``query`` among
+    ``curves`` (Curves), aligned onto it.
     ``samples, harmonics, scale`` None take the library defaults; ``stage``: a re-ordering
     stage (:class:`~nfdmatch.search.stages.ElasticStage`), as ``rank_curves`` takes it."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
@@ -192,7 +206,7 @@ def show_ranked(
         mirror=mirror,
     )
     _drawable(query)
-    ranked = rank_curves(query, curves, top=top, stage=stage, **params)
+    ranked = rank_curves(query, curves, k=_k(k, top, "show_ranked"), stage=stage, **params)
     return matches_from_curves(query, ranked, curves, **params)
 
 
@@ -200,19 +214,21 @@ def show_searched(
     query: Curve,
     index,
     *,
-    top: int,
+    k: int | None = None,
     method: str = EXACT,
     direction: str = INVARIANT,
     mirror: bool = False,
     read_curve: Callable[[str], Curve] | None = None,
     stage=None,
+    top: int | None = None,
 ) -> tuple[list[ShownMatch], list[str]]:
-    """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
-    notes of :func:`matches_from_index`; ``stage`` as ``search_index`` takes it."""
+    """The best ``k`` matches (``top``: its deprecated older name) of ``query`` in the open
+    ``index``, aligned onto it, and the notes of :func:`matches_from_index`; ``stage`` as ``search_index`` takes it."""
     from .search import search_index
 
     _drawable(query)
-    results, _ = search_index(index, [query], top=top, method=method, direction=direction, mirror=mirror, stage=stage)
+    k = _k(k, top, "show_searched")
+    results, _ = search_index(index, [query], k=k, method=method, direction=direction, mirror=mirror, stage=stage)
     return matches_from_index(
         query, results[0], index, method=method, direction=direction, mirror=mirror, read_curve=read_curve
     )

@@ -55,15 +55,17 @@ def test_index_search_is_the_exact_search_with_every_kind_of_query(library, monk
     (query,) = read_curves(query_file)
     with open_index("lib.h5") as index:
         assert len(index) == 24 and index.ids() == index.ids(0, 24)
-        (expected,), _ = search_index(index, [query], top=4, prune=False)
+        (expected,), _ = search_index(index, [query], k=4, prune=False)
         for given in (query_file, query, query.points, [query.points]):
             (got,) = index.search(given, k=4)
             assert [(m.id, m.rank) for m in got] == [(m.id, m.rank) for m in expected]
             np.testing.assert_allclose([m.distance for m in got], [m.distance for m in expected], rtol=1e-12)
         within = index.search(query, k=None, max_distance=expected[2].distance)[0]
         assert [m.id for m in within] == [m.id for m in expected[:3]]
+        # k None without max_distance: the default k, as scikit-learn's n_neighbors=None
+        assert len(index.search(query, k=None)[0]) == len(index.search(query)[0]) == 10
         with pytest.raises(nfdmatch.NfdError):
-            index.search(query, k=None)
+            index.search(query, k=0)
 
 
 def test_a_match_pose_maps_the_stored_curve_onto_the_query(library, monkeypatch):
@@ -106,7 +108,7 @@ def test_curves_in_memory_take_exclude_self_too(rng):
 
     t = np.linspace(0, 2 * np.pi, 80, endpoint=False)[:, None]
     curves = [Curve(np.hstack([np.cos(t), np.sin(k * t), 0.1 * k * np.sin(2 * t)]), id=f"c{k}") for k in range(1, 6)]
-    ranked = rank_curves(curves[2], curves, top=2, exclude_self=True)
+    ranked = rank_curves(curves[2], curves, k=2, exclude_self=True)
     assert [m.rank for m in ranked] == [1, 2] and "c3" not in [m.id for m in ranked]
 
 

@@ -200,4 +200,4 @@ def test_match_listing_gives_the_library_its_search_keywords():
     from nfdmatch.cli.options import MatchListing
 
     listing = MatchListing(top=3, max_distance=0.5, glob="*.csv", details=True, paths="id", exclude_self=True)
-    assert listing.search() == {"top": 3, "max_distance": 0.5, "exclude_self": True}
+    assert listing.search() == {"k": 3, "max_distance": 0.5, "exclude_self": True}

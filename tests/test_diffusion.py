@@ -356,7 +356,7 @@ def test_the_reranked_answers_are_the_same_with_the_numpy_push(families, candida
             with open_index(families / "i.h5") as idx:
                 answers.append(
                     [
-                        rerank_index(idx, queries, top=20, exclude_self=exclude, candidates=candidates)[0]
+                        rerank_index(idx, queries, k=20, exclude_self=exclude, candidates=candidates)[0]
                         for exclude in (False, True)
                     ]
                 )
@@ -398,7 +398,7 @@ def test_the_reranked_answers_are_the_same_with_the_push_on_one_and_two_threads(
             kernels.set_call_threads(call_threads)
             threads.clear()
             with open_index(families / "i.h5") as idx:
-                answers.append(rerank_index(idx, queries, top=20, candidates=candidates)[0])
+                answers.append(rerank_index(idx, queries, k=20, candidates=candidates)[0])
             assert max(threads) == call_threads
     finally:
         kernels.use_kernels(before)

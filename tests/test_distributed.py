@@ -205,10 +205,10 @@ def _same_rows(a, b):
 @pytest.mark.parametrize(
     "options",
     [
-        dict(top=5),
-        dict(top=12, mirror=True),
-        dict(top=None, max_distance=0.2),
-        dict(top=3, direction="strict", method="paper"),
+        dict(k=5),
+        dict(k=12, mirror=True),
+        dict(k=None, max_distance=0.2),
+        dict(k=3, direction="strict", method="paper"),
     ],
 )
 def test_a_cluster_query_equals_a_local_query_row_for_row(cluster, library, tmp_path_factory, options):
@@ -263,17 +263,17 @@ def test_a_worker_with_two_threads_answers_on_kernels_that_release_the_gil(libra
     index = tmp_path / "i.h5"
     build_index([str(folder)], str(index), jobs=1)
     with open_index(index) as idx:
-        local, _ = search_index(idx, queries, top=5)
+        local, _ = search_index(idx, queries, k=5)
     with (
         LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=":0", silence_logs=50) as lc,
         Client(lc, set_as_default=False) as c,
         connect(c) as cluster,
     ):
         assert cluster.threads == 2
-        remote, _ = cluster.search_index(str(index), queries, top=5)
+        remote, _ = cluster.search_index(str(index), queries, k=5)
         _same_rows(remote, local)
         assert all(c.run(_kernels_run_on_threads).values())
-        remote, _ = cluster.search_index(str(index), queries, top=5, parts=2)
+        remote, _ = cluster.search_index(str(index), queries, k=5, parts=2)
         _same_rows(remote, local)
 
 
@@ -399,7 +399,7 @@ def test_a_ranged_query_finishes_when_every_worker_it_was_pinned_to_is_gone(clie
     if not index.exists():
         build_index([str(folder)], str(index), jobs=1)
     # by distance only: no first round, the range tasks are submitted (pinned) at once
-    options = dict(top=None, max_distance=0.2)
+    options = dict(k=None, max_distance=0.2)
     with open_index(index) as idx:
         local, _ = search_index(idx, queries, **options)
     cluster_object = client.cluster

@@ -179,11 +179,11 @@ def _families(rng, count=6, members=5):
 def test_the_stage_reorders_the_exact_top_m_and_equals_the_fused_distance(tmp_path, rng):
     curves = _families(rng)
     query = curves[0]
-    ranked = rank_curves(query, curves[1:], top=5, stage=ElasticStage(depth=12))
+    ranked = rank_curves(query, curves[1:], k=5, stage=ElasticStage(depth=12))
     assert [m.rank for m in ranked] == [1, 2, 3, 4, 5]
     fused = [m.fused for m in ranked]
     assert fused == sorted(fused)
-    plain = rank_curves(query, curves[1:], top=12)
+    plain = rank_curves(query, curves[1:], k=12)
     assert {m.id for m in ranked} <= {m.id for m in plain}
     for m in ranked:
         _, terms = fused_distance(query, curves[1:][m.row])

@@ -408,8 +408,8 @@ def test_frozen_indexes_answer_queries_as_the_exhaustive_search(frozen):
 
     queries = [Curve(random_smooth_curve(np.random.default_rng(i), 100), id=f"q{i}") for i in range(3)]
     with open_index(frozen) as idx:
-        pruned, _ = search_index(idx, queries, top=3)
-        full, _ = search_index(idx, queries, top=3, prune=False)
+        pruned, _ = search_index(idx, queries, k=3)
+        full, _ = search_index(idx, queries, k=3, prune=False)
     assert [[r.id for r in p] for p in pruned] == [[r.id for r in f] for f in full]
 
 

@@ -203,7 +203,7 @@ def test_aligned_match_lands_on_the_query(seed, shift, flip, vertices):
     copy = resample_polyline(random_rigid_motion(copy, rng), vertices, rng)
     other = Curve(random_rigid_motion(_fourier_curve(rng, 4, n=300), rng), id="other")
     curves = [Curve(copy, id="copy"), other]
-    ranked = rank_curves(query, curves, top=2)
+    ranked = rank_curves(query, curves, k=2)
     shown = matches_from_curves(query, ranked, curves, samples=128, harmonics=16, scale="rms")
     assert [s.id for s in shown] == ["copy", "other"]
     best = shown[0]

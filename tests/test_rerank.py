@@ -78,7 +78,7 @@ def test_graph_rows_are_the_exact_top_k_of_a_query(tmp_path, rng):
     nb, dist, ids = graph_of(index)
     assert nb.shape == dist.shape == (60, 6)
     with open_index(index) as idx:
-        results, _ = search_index(idx, _read_back(tmp_path / "c"), top=7)
+        results, _ = search_index(idx, _read_back(tmp_path / "c"), k=7)
     by_id = dict(enumerate(ids))
     for i, res in enumerate(results):
         expected = [m for m in res if m.row != i][:6]
@@ -96,7 +96,7 @@ def test_graph_with_the_kth_neighbour_outside_the_family_equals_the_exhaustive_s
     build_index([tmp_path / "c"], index, jobs=1, graph=8)
     nb, dist, ids = graph_of(index)
     with open_index(index) as idx:
-        results, _ = search_index(idx, _read_back(tmp_path / "c"), top=9, prune=False)
+        results, _ = search_index(idx, _read_back(tmp_path / "c"), k=9, prune=False)
     for i, res in enumerate(results):
         expected = [m for m in res if m.row != i][:8]
         assert [ids[j] for j in nb[i]] == [m.id for m in expected]
@@ -174,8 +174,8 @@ def test_rerank_improves_a_family_collection(families_index, candidates):
 
     family = {stored_id(c.id): f for c, f in zip(stored, labels)}
     with open_index(folder / "i.h5") as idx:
-        plain, _ = search_index(idx, stored, top=11)
-        reranked, _ = rerank_index(idx, stored, top=10, depth=100, exclude_self=True, candidates=candidates)
+        plain, _ = search_index(idx, stored, k=11)
+        reranked, _ = rerank_index(idx, stored, k=10, depth=100, exclude_self=True, candidates=candidates)
 
     def precision(results):
         hits = []
@@ -195,9 +195,9 @@ def test_a_query_scores_the_same_alone_as_in_a_batch(families_index, candidates)
     stored = _read_back(folder / "c")[::9]
     with open_index(folder / "i.h5") as idx:
         for exclude_self in (False, True):
-            batch, _ = rerank_index(idx, stored, top=20, exclude_self=exclude_self, candidates=candidates)
+            batch, _ = rerank_index(idx, stored, k=20, exclude_self=exclude_self, candidates=candidates)
             alone = [
-                rerank_index(idx, [q], top=20, exclude_self=exclude_self, candidates=candidates)[0][0] for q in stored
+                rerank_index(idx, [q], k=20, exclude_self=exclude_self, candidates=candidates)[0][0] for q in stored
             ]
             assert batch == alone
 
@@ -230,8 +230,8 @@ def test_query_rerank_orders_a_stored_curve_as_matrix_rerank(tmp_path, rng, cand
 
     position = {rel(c.id): i for i, c in enumerate(stored)}
     with open_index(tmp_path / "i.h5") as idx:
-        results, _ = rerank_index(idx, stored, top=40, depth=100, exclude_self=True, candidates=candidates)
-        whole, _ = rerank_index(idx, stored[:10], top=100, depth=119, exclude_self=True, candidates=candidates)
+        results, _ = rerank_index(idx, stored, k=40, depth=100, exclude_self=True, candidates=candidates)
+        whole, _ = rerank_index(idx, stored[:10], k=100, depth=119, exclude_self=True, candidates=candidates)
     for i, res in enumerate(results):
         assert len(res) == 40 and all(m.id != rel(stored[i].id) for m in res)
         _agrees_with_the_matrix(res, S, i, position, False)  # the order of the candidates
@@ -266,7 +266,7 @@ def test_query_rerank_agrees_with_matrix_rerank_when_copies_outnumber_the_neighb
     position = {curve_id: i for i, curve_id in enumerate(ids)}
     with open_index(tmp_path / "i.h5") as idx:
         for candidates in ("walk", "exact"):
-            results, _ = rerank_index(idx, stored, top=40, depth=100, exclude_self=True, candidates=candidates)
+            results, _ = rerank_index(idx, stored, k=40, depth=100, exclude_self=True, candidates=candidates)
             for i, res in enumerate(results):
                 _agrees_with_the_matrix(res, S, i, position, False)
 
@@ -284,8 +284,8 @@ def test_a_near_duplicate_stays_first_without_class_structure(tmp_path, rng, can
         pts = pts + rng.normal(scale=1e-3 * radius, size=pts.shape)
         queries.append(Curve(random_rigid_motion(np.roll(pts, 7, axis=0), rng), id=f"q{i}"))
     with open_index(tmp_path / "i.h5") as idx:
-        results, _ = rerank_index(idx, queries, top=3, candidates=candidates)
-        again, _ = rerank_index(idx, queries, top=3, candidates=candidates)
+        results, _ = rerank_index(idx, queries, k=3, candidates=candidates)
+        again, _ = rerank_index(idx, queries, k=3, candidates=candidates)
     assert [[m.id for m in r] for r in results] == [
         [os.path.relpath(stored[i].id, tmp_path)] + [m.id for m in r][1:] for i, r in zip(range(0, 150, 5), results)
     ]
@@ -301,8 +301,8 @@ def test_rerank_parameters_and_missing_graph(tmp_path, rng):
             rerank_index(idx, q)
         with pytest.raises(ParameterError, match="at least 100"):
             rerank_index(idx, q, depth=50)
-        with pytest.raises(ParameterError, match="top"):
-            rerank_index(idx, q, top=101, depth=100)
+        with pytest.raises(ParameterError, match="k must be between"):
+            rerank_index(idx, q, k=101, depth=100)
         with pytest.raises(ParameterError, match="candidates"):
             rerank_index(idx, q, candidates="nearest")
 

@@ -68,7 +68,7 @@ def test_pruned_search_equals_exhaustive_ranking(seed, top, families, members, n
     curves = _family_curves(rng, families, members, noise)
     queries = _family_curves(rng, 2, 1, noise) + _variants(rng, curves, 2) + [curves[int(rng.integers(len(curves)))]]
     index = MemoryIndex(curves, rows_per_cell=cells)
-    options = dict(top=top, mirror=mirror, direction="strict" if strict else "invariant")
+    options = dict(k=top, mirror=mirror, direction="strict" if strict else "invariant")
     pruned, stats = search_index(index, queries, truncate=truncate, **options)
     full, full_stats = search_index(index, queries, prune=False, **options)
     assert full_stats.exact == len(queries) * len(curves)
@@ -96,8 +96,8 @@ def test_pruned_equals_exhaustive_on_an_index_file_with_cells(seed, top, max_dis
     queries = _variants(rng, curves, 3) + _family_curves(rng, 1, 1, 0.0)
     with open_index(index_path) as idx:
         assert idx.format_version >= 2 and idx.search_table().n_cells >= 8
-        pruned, stats = search_index(idx, queries, top=top, max_distance=max_distance)
-        full, _ = search_index(idx, queries, top=top, max_distance=max_distance, prune=False)
+        pruned, stats = search_index(idx, queries, k=top, max_distance=max_distance)
+        full, _ = search_index(idx, queries, k=top, max_distance=max_distance, prune=False)
     _same(pruned, full)
     assert stats.cells <= stats.cell_count * len(queries)
 
@@ -112,8 +112,8 @@ def test_search_work_does_not_grow_with_the_index_for_a_near_duplicate(rng):
     query = [Curve(random_rigid_motion(pts + rng.normal(scale=1e-3, size=pts.shape), rng), id="q")]
     small = MemoryIndex(families, rows_per_cell=16)
     big = MemoryIndex(unrelated + families, rows_per_cell=16)
-    (r_small,), s_small = search_index(small, query, top=5)
-    (r_big,), s_big = search_index(big, query, top=5)
+    (r_small,), s_small = search_index(small, query, k=5)
+    (r_big,), s_big = search_index(big, query, k=5)
     assert r_small[0].id == families[3].id
     assert [r.id for r in r_small] == [r.id for r in r_big]
     assert s_big.exact <= s_small.exact + 10
@@ -123,7 +123,7 @@ def test_search_work_does_not_grow_with_the_index_for_a_near_duplicate(rng):
 def test_pruning_skips_most_rows_on_clustered_data(rng):
     curves = _family_curves(rng, 40, 5, 0.01)
     index = MemoryIndex(curves)
-    results, stats = search_index(index, curves[::10], top=5)
+    results, stats = search_index(index, curves[::10], k=5)
     assert stats.exact_fraction < 0.5
     for q, res in zip(curves[::10], results):
         assert res[0].id == q.id and res[0].distance < 1e-9
@@ -132,7 +132,7 @@ def test_pruning_skips_most_rows_on_clustered_data(rng):
 def test_matches_pairwise_distance_and_max_distance(rng):
     curves = _family_curves(rng, 6, 3, 0.02)
     query = curves[4]
-    ranked = rank_curves(query, curves, top=None, max_distance=0.2)
+    ranked = rank_curves(query, curves, k=None, max_distance=0.2)
     expected = sorted((distance(query, c).distance, c.id) for c in curves)
     expected = [(d, i) for d, i in expected if d <= 0.2]
     assert [r.id for r in ranked] == [i for _, i in expected]
@@ -143,7 +143,7 @@ def test_ties_are_ordered_by_id():
     t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
     circle = np.c_[np.cos(t), np.sin(t), 0 * t]
     curves = [Curve(circle * s, id=name) for s, name in ((1, "c"), (2, "a"), (3, "b"))]
-    ranked = rank_curves(curves[0], curves, top=3)
+    ranked = rank_curves(curves[0], curves, k=3)
     assert [r.id for r in ranked] == ["a", "b", "c"]
 
 
@@ -200,7 +200,7 @@ def test_rows_are_ranked_by_distance_then_id_and_ids_are_read_only_for_ties(seed
 def test_weights_disable_pruning_but_still_rank(rng):
     curves = _family_curves(rng, 4, 2, 0.01)
     w = np.linspace(1, 0, 16)
-    ranked = rank_curves(curves[0], curves, top=3, weights=w)
+    ranked = rank_curves(curves[0], curves, k=3, weights=w)
     assert ranked[0].id == curves[0].id
 
 
@@ -208,7 +208,7 @@ def test_bad_arguments(rng):
     index = MemoryIndex(_family_curves(rng, 1, 2, 0.0))
     from nfdmatch.errors import ParameterError
 
-    for kwargs in ({"top": 0}, {"top": None}, {"method": "fast"}):
+    for kwargs in ({"k": 0}, {"k": None}, {"method": "fast"}):
         with pytest.raises(ParameterError):
             search_index(index, [Curve(np.eye(3))], **kwargs)
 
@@ -234,9 +234,9 @@ def test_a_batch_on_ahead_of_time_kernels_releasing_the_gil_runs_on_threads_with
     curves = _family_curves(rng, 20, 4, 0.01)
     queries = _variants(rng, curves, 6)
     index = MemoryIndex(curves, rows_per_cell=8)
-    pruned, _ = search_index(index, queries, top=5, threads=2)
+    pruned, _ = search_index(index, queries, k=5, threads=2)
     assert pools and kernels.current().name == "aot"
-    full, _ = search_index(index, queries, top=5, prune=False)
+    full, _ = search_index(index, queries, k=5, prune=False)
     _same(pruned, full)
 
 
@@ -324,9 +324,9 @@ def test_an_index_file_stores_the_first_harmonics_apart_and_its_search_reads_the
     with open_index(str(tmp_path / "idx.h5")) as idx:
         stored = idx._h5["search/coefficients"]
         assert stored.chunks[1] == TRUNCATED_HARMONICS < stored.shape[1]
-        pruned, stats = search_index(idx, queries, top=5)
+        pruned, stats = search_index(idx, queries, k=5)
         assert TRUNCATED_HARMONICS in widths and stats.truncated > 0
-        full, _ = search_index(idx, queries, top=5, prune=False)
+        full, _ = search_index(idx, queries, k=5, prune=False)
     _same(pruned, full)
 
 
@@ -343,7 +343,7 @@ def test_a_batch_answered_on_one_thread_does_not_import_numpy_ma():
         "from nfdmatch.search import MemoryIndex, search_index\n"
         "t = np.linspace(0, 2 * np.pi, 64, endpoint=False)[:, None]\n"
         "curves = [Curve(np.hstack([np.cos(t), np.sin(k * t), np.sin(3 * t) / k]), id=str(k)) for k in range(1, 9)]\n"
-        "search_index(MemoryIndex(curves), curves, top=2, threads=2)\n"
+        "search_index(MemoryIndex(curves), curves, k=2, threads=2)\n"
         "print('numpy.ma' in sys.modules)\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "NFDMATCH_KERNELS"}
@@ -454,12 +454,12 @@ def test_a_match_reports_the_same_digits_whatever_top_asks_for(rng, each_kernels
     curves = _family_curves(rng, 6, 5, 0.02)
     queries = _variants(rng, curves, 4)
     index = MemoryIndex(curves, rows_per_cell=8)
-    wide, _ = search_index(index, queries, top=8)
+    wide, _ = search_index(index, queries, k=8)
     for top in (1, 2, 3, 5):
-        narrow, _ = search_index(index, queries, top=top)
+        narrow, _ = search_index(index, queries, k=top)
         for n, w in zip(narrow, wide):
             assert [(r.id, r.distance, r.shift) for r in n] == [(r.id, r.distance, r.shift) for r in w[:top]]
-    within, _ = search_index(index, queries, top=None, max_distance=wide[0][4].distance)
+    within, _ = search_index(index, queries, k=None, max_distance=wide[0][4].distance)
     assert [(r.id, r.distance) for r in within[0]] == [(r.id, r.distance) for r in wide[0][:5]]
 
 
@@ -469,9 +469,9 @@ def test_a_batch_reports_each_query_as_a_search_of_its_own_would(rng, each_kerne
     curves = _family_curves(rng, 6, 5, 0.02)
     queries = _variants(rng, curves, 5)
     index = MemoryIndex(curves, rows_per_cell=8)
-    together, _ = search_index(index, queries, top=4)
+    together, _ = search_index(index, queries, k=4)
     for q, expect in zip(queries, together):
-        alone, _ = search_index(index, [q], top=4)
+        alone, _ = search_index(index, [q], k=4)
         assert [(r.id, r.distance, r.shift, r.reversed) for r in alone[0]] == [
             (r.id, r.distance, r.shift, r.reversed) for r in expect
         ]
@@ -485,9 +485,9 @@ def test_the_recomputation_in_small_passes_gives_the_same_answers(rng, monkeypat
     curves = _family_curves(rng, 6, 5, 0.02)
     queries = _variants(rng, curves, 5)
     index = MemoryIndex(curves, rows_per_cell=8)
-    whole, _ = search_index(index, queries, top=7)
+    whole, _ = search_index(index, queries, k=7)
     monkeypatch.setattr(index_search, "EXHAUSTIVE_ROWS", 3)
-    small, _ = search_index(index, queries, top=7)
+    small, _ = search_index(index, queries, k=7)
     assert [[(r.id, r.distance, r.shift) for r in q] for q in small] == [
         [(r.id, r.distance, r.shift) for r in q] for q in whole
     ]

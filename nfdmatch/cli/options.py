@@ -497,8 +497,8 @@ class MatchListing:
     exclude_self: bool
 
     def search(self) -> dict:
-        """The library's keyword arguments among them: ``top``, ``max_distance``, ``exclude_self``."""
-        return {"top": self.top, "max_distance": self.max_distance, "exclude_self": self.exclude_self}
+        """The library's keyword arguments among them: ``k`` (``--top``), ``max_distance``, ``exclude_self``."""
+        return {"k": self.top, "max_distance": self.max_distance, "exclude_self": self.exclude_self}
 
 
 def match_list_options(top_help: str, glob_help: str):

@@ -69,7 +69,7 @@ def resolve_format(
         ext = os.path.splitext(output)[1].lower()
         found = FORMAT_OF_EXTENSION.get(ext)
         if found in formats:
-            return found
+            return found  # type: ignore[return-value]
         known = [e for e, f in FORMAT_OF_EXTENSION.items() if f in formats]
         raise click.UsageError(
             f"cannot tell the format of -o {output} from {_extension_text(ext)}: name the file "

@@ -238,7 +238,7 @@ def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict, stag
     """What show draws per query with --against: its ``top`` matches among ``curves``."""
     from ..show import show_ranked
 
-    return [show_ranked(q, curves, top=top, stage=stage, **descriptor, **match) for q in queries]
+    return [show_ranked(q, curves, k=top, stage=stage, **descriptor, **match) for q in queries]
 
 
 def _searched_drawn(queries, index_path, top: int, input_format, match: dict, stage=None) -> list:
@@ -254,7 +254,7 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict, st
     with open_index(index_path) as idx:
         for q in queries:
             drawn, notes = show_searched(
-                q, idx, top=top, read_curve=partial(read_curve, format=input_format), stage=stage, **match
+                q, idx, k=top, read_curve=partial(read_curve, format=input_format), stage=stage, **match
             )
             shown.append(drawn)
             for message in notes:

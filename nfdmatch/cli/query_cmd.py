@@ -176,7 +176,7 @@ def _note_old_format(idx, exhaustive: bool, stage=None) -> None:
 
 
 def _search_queries(
-    idx, curves, rerank_depth, cluster_at, *, top, max_distance, prune, exclude_self, match,
+    idx, curves, rerank_depth, cluster_at, *, k, max_distance, prune, exclude_self, match,
     candidates=DEFAULT_RERANK_CANDIDATES, stage=None,
 ):  # fmt: skip
     """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank_depth``
@@ -192,7 +192,7 @@ def _search_queries(
             from ..search.rerank import rerank_index
 
             return rerank_index(
-                idx, curves, top=top, depth=rerank_depth, progress=progress, exclude_self=exclude_self,
+                idx, curves, k=k, depth=rerank_depth, progress=progress, exclude_self=exclude_self,
                 candidates=candidates,
             )  # fmt: skip
         extra = {} if cluster is None else {"parts": ranges}
@@ -202,7 +202,7 @@ def _search_queries(
         return run(
             idx,
             curves,
-            top=top,
+            k=k,
             max_distance=max_distance,
             progress=progress,
             prune=prune,

@@ -15,7 +15,7 @@ Library use::
 
     with connect("local:2") as cluster:            # or "tcp://host:8786", or a dask Client
         report = cluster.build_index(["curves/"], "curves.h5")
-        results, stats = cluster.search_index("curves.h5", queries, top=10)
+        results, stats = cluster.search_index("curves.h5", queries, k=10)
 
 Test hook: a worker reports ``nfdmatch._version.__version__`` as its version (read when
 :func:`connect` asks); tests change it on workers to act out a version mismatch.

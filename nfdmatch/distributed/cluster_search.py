@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import os
 import time
+from typing import Any
 
 import numpy as np
 
 from ..matching import EXACT, INVARIANT
 from ..search.engine import BestRows
+from ..search.index_search import UNSET, k_or_top
 from .search_tasks import HeldDescriptors, index_ranges, index_stamp, ranked, search_range
 from .settings import (
     PIN_CHECK_SECONDS,
@@ -30,6 +32,12 @@ class ClusterSearch:
     and ``threads``; ``_held`` (set by :class:`~.cluster.Cluster`: None) holds, during a
     query over several ranges, the descriptors the workers sent back."""
 
+    # set by Cluster, the class that this one is the base of
+    client: Any
+    workers: Any
+    threads: int
+    _held: Any
+
     # ----------------------------------------------------------------------- query
 
     def search_index(
@@ -37,7 +45,7 @@ class ClusterSearch:
         index,
         queries,
         *,
-        top: int | None = 10,
+        k: int | None = 10,
         max_distance: float | None = None,
         method: str = EXACT,
         direction: str = INVARIANT,
@@ -47,6 +55,7 @@ class ClusterSearch:
         parts: int | None = None,
         window: int | None = None,
         exclude_self: bool = False,
+        top=UNSET,
     ):
         """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
 
@@ -54,8 +63,8 @@ class ClusterSearch:
         ----------
         index : the index path, or an open :class:`nfdmatch.index.Index` (its ``path`` is
             what the workers open: a path every worker sees).
-        queries, top, max_distance, method, direction, mirror, prune, exclude_self : as in
-            :func:`~nfdmatch.search.search_index`.
+        queries, k, max_distance, method, direction, mirror, prune, exclude_self : as in
+            :func:`~nfdmatch.search.search_index` (``top``: the deprecated older name of ``k``).
         progress : ``progress(done, total)`` in units of (query, range) pairs answered
             (with several ranges, the first round counts as one more range).
         parts : index ranges. Default: 1 (every worker searches the whole index for its
@@ -75,6 +84,7 @@ class ClusterSearch:
 
         from ..search.index_search import check_search_parameters
 
+        top = k_or_top(k, top, "Cluster.search_index")
         check_search_parameters(top, max_distance, method)
         t0 = time.perf_counter()
         asked = top

@@ -591,7 +591,8 @@ def _b64decode(text: bytes, what: str) -> bytes:
         if len(piece) % 4:
             raise _Bad(f"{what}: base64 text of {len(piece)} characters is cut short")
         try:
-            out.append(binascii.a2b_base64(piece, strict_mode=True))
+            # strict_mode is Python 3.11+: on 3.10 this call raises TypeError (not caught below)
+            out.append(binascii.a2b_base64(piece, strict_mode=True))  # type: ignore[call-arg]
         except (binascii.Error, ValueError):
             raise _Bad(f"{what}: invalid base64") from None
     return b"".join(out)

@@ -79,7 +79,14 @@ import time
 from dataclasses import dataclass, field
 
 
-from ..errors import IndexFormatError, InputError, ReadError, WriteError
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..curve import Curve
+from ..formats.obj import write as write_obj
+from ..errors import IndexFormatError, InputError, ParameterError, ReadError, WriteError
 from .commit import write_new_index
 from .lock import Lock
 from .paths import index_file
@@ -167,24 +174,25 @@ def _load_old(index_path: str, rebuild: bool, notices: list):
 
 
 def build_index(
-    sources=None,
-    index_path=None,
+    sources: Any = None,
+    index_path: str | os.PathLike[str] | None = None,
     *,
-    samples=None,
-    harmonics=None,
-    scale=None,
-    glob=None,
-    input_format=None,
-    rebuild=False,
-    dry_run=False,
-    jobs=None,
-    wait=0.0,
-    progress=None,
-    allow_shrink=False,
-    file_timeout=None,
-    graph=None,
-    runner=None,
-    graph_runner=None,
+    samples: int | None = None,
+    harmonics: int | None = None,
+    scale: str | None = None,
+    glob: str | None = None,
+    input_format: str | None = None,
+    rebuild: bool = False,
+    dry_run: bool = False,
+    jobs: int | None = None,
+    wait: float = 0.0,
+    progress: Callable[[int, int], None] | None = None,
+    allow_shrink: bool = False,
+    file_timeout: float | None = None,
+    graph: int | None = None,
+    runner: Callable[..., Any] | None = None,
+    graph_runner: Callable[..., Any] | None = None,
+    curves_file: str | os.PathLike[str] | None = None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
     walked; None or empty: the sources the index records) in ``index_path`` (None:
@@ -197,9 +205,18 @@ def build_index(
     instead of the local pool; ``graph_runner``: searches the graph's rows. Every
     parameter, the files' paths and the errors raised are described in full in this
     module's docstring.
+
+    ``sources`` may also be curves in memory (:class:`~nfdmatch.Curve` s or (n, 3) arrays):
+    they are written first, in order, into one OBJ file, ``curves_file`` (default: the
+    index's path with ``.curves.obj`` for its extension), which the index then records as
+    its source: row i is curve i, and the file is there for ``show`` and later builds.
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
+    if _in_memory(sources):
+        sources = [_write_curves(sources, index_path, curves_file)]
+    elif curves_file is not None:
+        raise ParameterError("curves_file is where curves in memory are written: give curves")
     sources = _as_paths(sources)
     jobs = check_arguments(jobs, file_timeout, input_format, samples, harmonics)
     real_index, base = _index_location(index_path)
@@ -245,6 +262,34 @@ def build_index(
             lock.release()
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _in_memory(sources: Any) -> bool:
+    """Whether ``sources`` are curves (a Curve, an array, or a sequence of them), not paths."""
+    if isinstance(sources, (Curve, np.ndarray)):
+        return True
+    if isinstance(sources, (str, bytes, os.PathLike)) or sources is None:
+        return False
+    items = list(sources)
+    kinds = {isinstance(s, (Curve, np.ndarray, list, tuple)) for s in items}
+    if kinds == {True, False}:
+        raise ParameterError("sources are either paths or curves in memory, not both")
+    return kinds == {True}
+
+
+def _write_curves(curves: Any, index_path: str, curves_file: str | os.PathLike[str] | None) -> str:
+    """The file holding curves given in memory (written whole, atomically; identical bytes
+    leave it as it was, so that a second build of the same curves recomputes nothing)."""
+    if curves_file is None:
+        curves_file = os.path.splitext(index_path)[0] + ".curves.obj"
+    path = os.fspath(curves_file)
+    if isinstance(curves, (Curve, np.ndarray)):
+        curves = [curves]
+    points = [c.points if isinstance(c, Curve) else np.asarray(c, dtype=np.float64) for c in curves]
+    if not points:
+        raise InputError("no curves to index")
+    write_obj(path, points)
+    return str(path)
 
 
 def _as_paths(sources) -> list[str]:

@@ -65,7 +65,7 @@ def write_new_index(
         graph_job = (graph, jobs, None if lock is None else lock.fd, graph_runner)
         pending = _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now)
         if pending is not None:
-            report.graph = _graph_elsewhere(tmp, shown, *pending, graph_runner)
+            report.graph = _graph_elsewhere(tmp, shown, *pending, graph_runner)  # type: ignore[call-arg]
         Space.release(tmp)
         fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
         os.replace(tmp, index_path)

@@ -32,6 +32,7 @@ import hashlib
 import os
 import signal
 import stat as _stat
+from typing import Any
 import threading
 import time
 
@@ -169,7 +170,7 @@ def _fast_points(path: str, data: bytes, input_format) -> np.ndarray | None:
     return bulk_points(data, path)
 
 
-def _read_file(path: str, input_format, old_sha, raw: bool = False) -> tuple[dict, list]:
+def _read_file(path: str, input_format, old_sha, raw: bool = False) -> tuple[dict, Any]:
     """Stat, hash and read one file: ``(result, curves)``. Never raises (except
     BaseException such as KeyboardInterrupt): a failure is ``status "failed"`` with its
     message; ``status "same"`` when the hash equals ``old_sha`` (the file is not parsed);

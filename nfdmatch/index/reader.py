@@ -10,6 +10,7 @@ import numpy as np
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
 from ..matching.statistics import curve_statistics
 from ..search.bounds import head_harmonics
+from ..records import RowIds
 from ..search.knn import search as search_index_for
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
@@ -70,6 +71,15 @@ def open_index(path: str | os.PathLike[str] | None = None) -> Index:
     return Index(p, h5, meta, files)
 
 
+def _reopen(path: str, stamp: tuple) -> Index:
+    """An unpickled :class:`Index`: the file reopened, refused if it changed since."""
+    index = open_index(path)
+    if index._stamp() != tuple(stamp):
+        index.close()
+        raise IndexFormatError("the index changed since it was pickled (rebuilt or replaced): open it again", path=path)
+    return index
+
+
 class Index:
     """An open index (read side). Use :func:`open_index`; a context manager.
 
@@ -119,6 +129,14 @@ class Index:
             self.close()
         except Exception:
             pass
+
+    def __reduce__(self):
+        # h5py handles do not pickle: the path does, with what identifies this version of
+        # the file, so that a worker's copy reads the same index or fails
+        return (_reopen, (self.path, self._stamp()))
+
+    def _stamp(self) -> tuple:
+        return (self.updated, self.n_curves, self.n_files, self.harmonics, self.samples, self.scale_mode)
 
     def __repr__(self) -> str:
         return (
@@ -264,8 +282,13 @@ class Index:
         return openable(curve_id, index_folder(self.path))
 
     # -- curves
-    def ids(self, start: int = 0, stop: int | None = None) -> list[str]:
-        """Curve ids of rows ``[start, stop)`` (Python slice rules)."""
+    @property
+    def ids(self) -> RowIds:
+        """The curve ids by row: ``index.ids[row]``, ``index.ids[a:b]``, ``index.ids[rows]``
+        (read on demand); ``index.ids(start, stop)`` is the older spelling of a slice."""
+        return RowIds(self.n_curves, self.ids_at, self._id_span)
+
+    def _id_span(self, start: int, stop: int) -> list[str]:
         a, b = self._range(start, stop)
         if a == b:
             return []
@@ -397,25 +420,9 @@ class Index:
         """The curves (rows) of the index."""
         return self.n_curves
 
-    def search(
-        self, queries, k: int | None = 10, max_distance: float | None = None, exclude_self: bool = False, **options
-    ):
-        """Each query's k nearest curves of the index, exactly (:func:`nfdmatch.search.knn.search`).
-
-        queries : a :class:`~nfdmatch.Curve`, an (n, 3) array, a path (every curve of the
-            file; ``"file#i"`` for one), or a sequence of them.
-        k : matches per query (None: every match within ``max_distance``).
-        max_distance : only matches at most this far.
-        exclude_self : drop each query's own curve (same id, or the same curve of the same
-            file however the path is spelled).
-        options : ``method``, ``direction``, ``mirror``, ``pose`` (default True),
-            ``threads``, ``prune``.
-
-        Returns one list of :class:`~nfdmatch.records.RankedMatch` per query curve (rank,
-        id, distance, row, and ``pose``: the :class:`~nfdmatch.Match` mapping the match onto
-        the query), sorted by distance then id.
-        """
-        return search_index_for(self, queries, k=k, max_distance=max_distance, exclude_self=exclude_self, **options)
+    #: :func:`nfdmatch.search.knn.search`: the one search of an index file and of curves in
+    #: memory (:class:`nfdmatch.MemoryIndex`), every option a named parameter
+    search = search_index_for
 
     def graph_k(self) -> int:
         """Neighbours per row of the index's stored neighbour graph (``index build --graph``);

@@ -108,7 +108,7 @@ def _scan(ds, name, report, *, label="row", keep=None, crc=None):
             nonfinite += (a + np.flatnonzero(~np.isfinite(values.reshape(len(values), -1)).all(axis=1))).tolist()
         if keep is not None:
             kept.append(keep(values))
-    for a, b, exc in bad:
+    for a, b, exc in bad:  # type: ignore[misc]
         text = _short(exc)
         what = "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
         report.findings.append(Finding(name, f"{a}..{b - 1}", what))

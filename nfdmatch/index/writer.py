@@ -103,7 +103,7 @@ def _fallocate_keep_size(fd: int, length: int) -> int:
     if _LIBC is None:
         try:
             _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-            _LIBC.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_longlong, ctypes.c_longlong]
+            _LIBC.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_longlong, ctypes.c_longlong]  # type: ignore[attr-defined]
         except (OSError, AttributeError):
             _LIBC = False
     if not _LIBC:
@@ -181,7 +181,7 @@ class CurveWriter:
         n = self.pending_rows
         if self.space is not None:
             self.space.reserve(sum(_nbytes(p) for p in self.pending))
-        for name, ds in self.ds.items():
+        for name, ds in self.ds.items():  # type: ignore[attr-defined]
             parts = [p[name] for p in self.pending]
             data = parts[0] if len(parts) == 1 else np.concatenate(parts)
             ds.resize(self.rows + n, axis=0)

@@ -135,7 +135,7 @@ def exact_search(
         if refine and refine_below is not None and np.isfinite(refine_below):
             limit = refine_below**2 * (1 + 1e-9) + 1e-12
         basis, quarter = folded_basis(K, n)
-        dist, shift, R, reversed_, mirrored = kernels.module.exact_rows(
+        dist, shift, R, reversed_, mirrored = kernels.module.exact_rows(  # type: ignore[attr-defined]
             np.ascontiguousarray(A),
             np.ascontiguousarray(Aw),
             np.ascontiguousarray(w, dtype=np.float64),
@@ -302,7 +302,7 @@ def grid_bound(
     kernels = kernels or current()
     if N and kernels.module is not None:
         workers = kernels.workers(N)
-        return kernels.module.grid_bound_rows(
+        return kernels.module.grid_bound_rows(  # type: ignore[attr-defined]
             np.ascontiguousarray(Aw),
             np.ascontiguousarray(B),
             D,

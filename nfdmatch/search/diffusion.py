@@ -306,7 +306,7 @@ class _SourcesPush:
     def estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(count, node, value)`` once every source is done: entries per source ((n,)
         int64), then each source's estimate in order (nodes ascending, int64; float64)."""
-        start, node, value = self.state[4:]
+        start, node, value = self.state[4:]  # type: ignore[misc]
         return np.diff(start), node[: start[-1]], value[: start[-1]]
 
 

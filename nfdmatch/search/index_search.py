@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,7 +23,7 @@ if TYPE_CHECKING:
     from ..curve import Curve
     from .stages import Stage
 
-__all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS"]
+__all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS", "k_or_top"]
 
 #: rows per exact call of the exhaustive search: bounds the (rows x shifts x 9) working set
 EXHAUSTIVE_ROWS = 2048
@@ -62,12 +63,25 @@ class SearchStats:
         return value / self.queries if self.queries else 0.0
 
 
+#: ``top=``, the older name of ``k=`` (kept working, with a DeprecationWarning)
+UNSET: Any = object()
+
+
+def k_or_top(k: int | None, top: Any, where: str) -> int | None:
+    """``k``, or ``top`` when a caller still spells it so (deprecated: ``k`` is the name in
+    every search of the library)."""
+    if top is UNSET:
+        return k
+    warnings.warn(f"{where}(top=) is deprecated: use k=", DeprecationWarning, stacklevel=3)
+    return top
+
+
 def check_search_parameters(top: int | None, max_distance: float | None, method: str) -> None:
     """The checks every search of an index makes on its arguments (local or on a cluster)."""
     if top is None and max_distance is None:
-        raise ParameterError("give top or max_distance (or both)")
+        raise ParameterError("give k or max_distance (or both)")
     if top is not None and top < 1:
-        raise ParameterError(f"top must be at least 1, got {top}")
+        raise ParameterError(f"k must be at least 1, got {top}")
     if method not in METHODS:
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
@@ -76,7 +90,7 @@ def search_index(
     index,
     queries: Sequence[Curve],
     *,
-    top: int | None = 10,
+    k: int | None = 10,
     max_distance: float | None = None,
     method: str = DEFAULT_METHOD,
     direction: str = DEFAULT_DIRECTION,
@@ -88,6 +102,7 @@ def search_index(
     truncate: bool = True,
     exclude_self: bool = False,
     stage: Stage | None = None,
+    top: Any = UNSET,
 ) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k nearest curves of an index for each query curve, exactly.
 
@@ -98,7 +113,8 @@ def search_index(
         ``search_table()`` and ``iter_chunks``).
     queries : sequence of :class:`~nfdmatch.curve.Curve`; descriptors are computed with the
         index's own samples, harmonics and scale.
-    top : k (None: every row within ``max_distance``).
+    k : matches per query (None: every row within ``max_distance``); ``top`` is its
+        deprecated older name.
     max_distance : only matches at most this far.
     method, direction, mirror : as in :func:`nfdmatch.distance`.
     prune : False computes every exact distance (``query --exhaustive``: the reference the
@@ -112,7 +128,7 @@ def search_index(
     stage : a :class:`~nfdmatch.search.stages.Stage` (e.g. ``ElasticStage(depth=100)``):
         the exact top :meth:`~nfdmatch.search.stages.Stage.candidates` of each query
         (within ``max_distance``, without its own curve) re-ordered by the stage, then cut
-        to ``top``.
+        to ``k``.
 
     Returns
     -------
@@ -127,6 +143,7 @@ def search_index(
     the next bound exceeds the k-th distance. No false dismissals: every bound is proven
     never to exceed the exact distance.
     """
+    top = k_or_top(k, top, "search_index")
     check_search_parameters(top, max_distance, method)
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")

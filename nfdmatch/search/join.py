@@ -143,7 +143,7 @@ class _Join:
         """Exact distances of query position ``a`` to positions ``bs``, shared by both rows;
         ``thr`` the pairs' thresholds (only distances below them need refining)."""
         cascade = self.cascade
-        limit = float(margin(thr).max()) if len(thr) else np.inf
+        limit = float(margin(thr).max()) if len(thr) else np.inf  # type: ignore[attr-defined]
         extra = {"refine_below": limit} if cascade.method == "exact" and np.isfinite(limit) else {}
         A = np.asarray(self.col.coef[a], dtype=np.complex128)
         r = cascade.distance(
@@ -355,7 +355,8 @@ class _Join:
         """Positions (a, b) and distances of every pair computed (each once)."""
         if not self.found:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-        return tuple(np.concatenate([f[i] for f in self.found]) for i in range(3))
+        a, b, d = (np.concatenate([f[i] for f in self.found]) for i in range(3))
+        return a, b, d
 
 
 def _threads(threads: int | None) -> int:

@@ -8,14 +8,16 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from ..curve import STDIN_ID, Curve
 from ..errors import ParameterError
+from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from ..records import RankedMatch
 
-__all__ = ["as_queries", "self_rule", "is_self", "drop_self", "search", "stored_descriptors"]
+__all__ = ["as_queries", "self_rule", "is_self", "drop_self", "search", "as_arrays", "stored_descriptors", "DEFAULT_K"]
 
 
 def as_queries(queries) -> list[Curve]:
@@ -88,55 +90,92 @@ def drop_self(query_id: str, matches: list[RankedMatch], k: int | None, locate=N
 
 
 def search(
-    index,
-    queries,
+    index: Any,
+    queries: Any,
+    k: int | None = None,
     *,
-    k: int | None = 10,
     max_distance: float | None = None,
     exclude_self: bool = False,
+    method: str = DEFAULT_METHOD,
+    direction: str = DEFAULT_DIRECTION,
+    mirror: bool = False,
+    prune: bool = True,
+    threads: int | None = None,
     pose: bool = True,
     elastic: bool = False,
     elastic_depth: int | None = None,
-    **options,
-) -> list[list[RankedMatch]]:
-    """Each query's k nearest curves of ``index`` (an open :class:`~nfdmatch.index.Index`).
+    arrays: bool = False,
+) -> list[list[RankedMatch]] | tuple[np.ndarray, np.ndarray]:
+    """Each query's k nearest curves of ``index`` (an open :class:`~nfdmatch.index.Index` or
+    a :class:`~nfdmatch.MemoryIndex`: their ``search`` is this function).
 
     queries : a :class:`~nfdmatch.Curve`, an (n, 3) array, a path, or a sequence of them
         (:func:`as_queries`).
-    k : matches per query (None: every match within ``max_distance``).
+    k : matches per query (None: every match within ``max_distance``; with neither,
+        :data:`DEFAULT_K`).
     max_distance : only matches at most this far.
     exclude_self : drop each query's own curve (:func:`is_self`: same id, or the same curve
         of the same file however the path is spelled).
+    method, direction, mirror : as in :func:`nfdmatch.distance`.
+    prune : False computes every exact distance (the reference the pruned search equals).
+    threads : queries answered in parallel (default: the cores, at most 4).
     pose : give each match its alignment onto the query (``RankedMatch.pose``: a
         :class:`~nfdmatch.Match` with rotation, scale, translation, start shift and
         direction), from the descriptors and pose the index stores.
     elastic : re-order each query's exact top ``elastic_depth`` (default 100) by the fused
         distance of the elastic stage (:class:`~nfdmatch.search.stages.ElasticStage`;
         matches gain ``elastic`` and ``fused``; docs/elastic.md).
-    options : ``method``, ``direction``, ``mirror``, ``prune``, ``threads`` as
-        :func:`~nfdmatch.search.search_index`.
+    arrays : return ``(distances, rows)`` instead of records, as faiss does: float64 and
+        int64 arrays of shape (number of queries, k), each query's row sorted as the records
+        are, padded with ``inf`` and ``-1`` where a query has fewer matches (``k`` None: as
+        wide as the longest answer). ``index.ids[rows[i, j]]`` names a match. No pose.
 
-    Returns one list per query curve, sorted by distance then id.
+    Returns one list of :class:`~nfdmatch.records.RankedMatch` per query curve, sorted by
+    distance then id (by the fused distance with ``elastic``), or the arrays.
     """
     from .index_search import search_index
 
     if k is None and max_distance is None:
-        raise ParameterError("give k or max_distance (or both)")
+        k = DEFAULT_K
     if elastic_depth is not None and not elastic:
         raise ParameterError("elastic_depth needs elastic=True")
+    stage = None
     if elastic:
         from ..defaults import DEFAULT_ELASTIC_DEPTH
         from .stages import ElasticStage
 
-        options["stage"] = ElasticStage(DEFAULT_ELASTIC_DEPTH if elastic_depth is None else elastic_depth)
+        stage = ElasticStage(DEFAULT_ELASTIC_DEPTH if elastic_depth is None else elastic_depth)
     curves = as_queries(queries)
-    results, _ = search_index(index, curves, top=k, max_distance=max_distance, exclude_self=exclude_self, **options)
+    how = {"method": method, "direction": direction, "mirror": mirror}
+    results, _ = search_index(
+        index, curves, k=k, max_distance=max_distance, exclude_self=exclude_self, prune=prune, threads=threads,
+        stage=stage, **how,
+    )  # fmt: skip
+    if arrays:
+        return as_arrays(results, k)
     if pose:
-        results = [_posed(index, q, found, options) for q, found in zip(curves, results)]
+        results = [_posed(index, q, found, how) for q, found in zip(curves, results)]
     return results
 
 
-def _posed(index, query: Curve, found: Sequence[RankedMatch], options: dict) -> list[RankedMatch]:
+#: matches per query when a search is given neither k nor max_distance
+DEFAULT_K = 10
+
+
+def as_arrays(results: Sequence[Sequence[RankedMatch]], k: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(distances, rows)`` of a search's records: (Q, width) float64 and int64, padded with
+    ``inf`` and ``-1`` (faiss's padding); width ``k``, or the longest answer's length."""
+    width = k if k is not None else max((len(found) for found in results), default=0)
+    distances = np.full((len(results), width), np.inf)
+    rows = np.full((len(results), width), -1, dtype=np.int64)
+    for i, found in enumerate(results):
+        n = min(width, len(found))
+        distances[i, :n] = [m.distance for m in found[:n]]
+        rows[i, :n] = [m.row for m in found[:n]]
+    return distances, rows
+
+
+def _posed(index: Any, query: Curve, found: Sequence[RankedMatch], how: dict) -> list[RankedMatch]:
     """``found`` with each match's alignment onto ``query`` (its stored descriptors)."""
     from ..descriptors import descriptors
     from ..matching import match_descriptors
@@ -144,7 +183,6 @@ def _posed(index, query: Curve, found: Sequence[RankedMatch], options: dict) -> 
     if not found:
         return list(found)
     dq = descriptors(query, samples=index.samples, harmonics=index.harmonics, scale=index.scale_mode)
-    how = {key: options[key] for key in ("method", "direction", "mirror") if key in options}
     return [m.replace(pose=match_descriptors(dq, stored_descriptors(index, m.row, m.id), **how)) for m in found]
 
 

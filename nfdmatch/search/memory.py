@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
+from typing import Any
+
 import numpy as np
 
+from ..curve import Curve
+from ..records import RowIds
+from .knn import search as _search
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
 from .table import SearchTable
 
@@ -11,15 +17,44 @@ from .table import SearchTable
 CHUNK_ROWS = 65536
 
 
+def _as_curves(curves: Any, ids: Sequence[str] | None) -> list[Curve]:
+    """Curves from Curves or (n, 3) / (n, 2) arrays (a single array is one curve), named
+    by ``ids`` when given (else their own id, or ``<array i>``)."""
+    from ..errors import ParameterError
+
+    if isinstance(curves, Curve) or (isinstance(curves, np.ndarray) and curves.ndim == 2):
+        curves = [curves]
+    out = [
+        c if isinstance(c, Curve) else Curve(np.asarray(c, dtype=np.float64), id=f"<array {i}>")
+        for i, c in enumerate(curves)
+    ]
+    if ids is not None:
+        ids = [str(i) for i in ids]
+        if len(ids) != len(out):
+            raise ParameterError(f"{len(ids)} ids for {len(out)} curves")
+        out = [Curve.trusted(c.points, name) for c, name in zip(out, ids)]
+    return out
+
+
 class MemoryIndex:
-    """Curves held in memory with the same reading interface as :class:`nfdmatch.index.Index`
-    (``samples``, ``harmonics``, ``scale_mode``, ``n_curves``, ``iter_chunks``, ``ids_at``,
+    """Curves held in memory with the same interface as :class:`nfdmatch.index.Index`:
+    ``search`` (the same function, every option named; ``arrays=True`` for faiss's
+    ``(distances, rows)``), ``ids[row]``, and the reading interface (``samples``,
+    ``harmonics``, ``scale_mode``, ``n_curves``, ``iter_chunks``, ``ids_at``,
     ``search_table``; ``scale`` a deprecated alias of ``scale_mode``), so that
-    :func:`search_index` serves both ``rank`` (no index file) and ``query``."""
+    :func:`search_index` serves both ``rank`` (no index file) and ``query``.
+
+    curves : :class:`~nfdmatch.Curve` s or (n, 3) / (n, 2) arrays; row i is curve i.
+    ids : names of the rows (default: each curve's id, ``<array i>`` for an array).
+    """
+
+    #: :func:`nfdmatch.search.knn.search`, as :meth:`nfdmatch.index.Index.search`
+    search = _search
 
     def __init__(
         self,
-        curves,
+        curves: Any,
+        ids: Sequence[str] | None = None,
         *,
         samples: int = DEFAULT_SAMPLES,
         harmonics: int = DEFAULT_HARMONICS,
@@ -29,9 +64,18 @@ class MemoryIndex:
         from ..descriptors import descriptors_batch
         from ..matching import invariants
 
+        curves = _as_curves(curves, ids)
+        #: the curves, row by row (what :meth:`nfdmatch.MemoryIndex.save` writes)
+        self.curves = curves
         self.samples, self.harmonics, self.scale_mode = samples, harmonics, scale
         batch = descriptors_batch(curves, samples=samples, harmonics=harmonics, scale=scale)
         self._ids = [c.id for c in curves]
+        self._pose = {
+            "rotation": batch.rotation,
+            "centroid": batch.centroid,
+            "scale": batch.scale,
+            "plane_degenerate": batch.plane_degenerate,
+        }
         self._rows = {
             "coefficients": batch.coefficients,
             **{f"inv_{k}": v.reshape(len(curves), -1) for k, v in invariants(batch.coefficients).items()},
@@ -45,17 +89,37 @@ class MemoryIndex:
         """Deprecated alias of :attr:`scale_mode`."""
         return self.scale_mode
 
-    def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True):
+    def __len__(self) -> int:
+        return self.n_curves
+
+    def __repr__(self) -> str:
+        return (
+            f"MemoryIndex(curves={self.n_curves}, samples={self.samples}, harmonics={self.harmonics}, "
+            f"scale_mode={self.scale_mode!r})"
+        )
+
+    @property
+    def ids(self) -> RowIds:
+        """The curve ids by row: ``ids[row]``, a slice, an array of rows."""
+        return RowIds(self.n_curves, self.ids_at, lambda a, b: self._ids[a:b])
+
+    def read_rows(self, start: int, stop: int, columns: Sequence[str] | None = None, **_: Any) -> dict:
+        """Rows ``[start, stop)``: ``coefficients`` and the pose (``rotation``, ``centroid``,
+        ``scale``, ``plane_degenerate``), as :meth:`nfdmatch.index.Index.read_rows`."""
+        every = {"coefficients": self._rows["coefficients"], **self._pose}
+        return {k: v[start:stop] for k, v in every.items() if columns is None or k in columns}
+
+    def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True) -> Iterator[tuple[int, dict]]:
         for start in range(0, self.n_curves, rows):
             yield start, {k: v[start : start + rows] for k, v in self._rows.items() if columns is None or k in columns}
 
-    def ids_at(self, rows) -> list[str]:
+    def ids_at(self, rows: Any) -> list[str]:
         return [self._ids[int(r)] for r in rows]
 
-    def coefficients_at(self, rows) -> np.ndarray:
+    def coefficients_at(self, rows: Any) -> np.ndarray:
         return self._rows["coefficients"][np.asarray(rows, dtype=np.int64)]
 
-    def statistics_at(self, rows) -> np.ndarray:
+    def statistics_at(self, rows: Any) -> np.ndarray:
         """(m, LENGTH) float64 shape statistics of the rows (the elastic stage's), computed
         for every row on first use."""
         if "statistics" not in self._rows:

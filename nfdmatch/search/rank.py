@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..matching import MatchParameters
 from ..descriptors import descriptors
 from ..errors import ParameterError
 from ..records import RankedMatch
-from .index_search import search_index
+from .index_search import UNSET, k_or_top, search_index
 from .memory import MemoryIndex
 
 if TYPE_CHECKING:
@@ -23,11 +23,12 @@ def rank_curves(
     query: Curve | ArrayLike,
     curves: Sequence[Curve],
     *,
-    top: int | None = None,
+    k: int | None = None,
     max_distance: float | None = None,
     exclude_self: bool = False,
     stage: Stage | None = None,
-    **parameters,
+    top: Any = UNSET,
+    **parameters: Any,
 ) -> list[RankedMatch]:
     """Rank ``curves`` by distance to ``query``.
 
@@ -35,7 +36,7 @@ def rank_curves(
     ----------
     query : :class:`~nfdmatch.curve.Curve` (or (n, 3) array).
     curves : sequence of :class:`~nfdmatch.curve.Curve`.
-    top : keep the best ``top`` (all when None).
+    k : keep the best ``k`` (all when None); ``top`` is its deprecated older name.
     max_distance : drop matches farther than this.
     exclude_self : drop the query's own curve (as :func:`~nfdmatch.search.search_index`).
     stage : a re-ordering stage (:class:`~nfdmatch.search.stages.ElasticStage`), as
@@ -50,19 +51,20 @@ def rank_curves(
     """
     from ..curve import Curve
 
+    top = k_or_top(k, top, "rank_curves")
     p = MatchParameters(**parameters)
     if not isinstance(query, Curve):
         query = Curve(query, id="<query>")
     if not curves:
         if top is not None and top < 1:
-            raise ParameterError(f"top must be at least 1, got {top}")
+            raise ParameterError(f"k must be at least 1, got {top}")
         descriptors(query, **p.descriptor)  # validates
         return []
     memory = MemoryIndex(curves, **p.descriptor)
     results, _ = search_index(
         memory,
         [query],
-        top=top if top is not None or max_distance is not None else len(curves),
+        k=top if top is not None or max_distance is not None else len(curves),
         max_distance=max_distance,
         **p.matching,
         prune=p.weights is None,

@@ -25,7 +25,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -34,6 +34,7 @@ from ..errors import IndexFormatError, ParameterError
 from ..records import RankedMatch
 from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
+from .index_search import UNSET, k_or_top
 from .knn import self_rule
 
 if TYPE_CHECKING:
@@ -135,12 +136,13 @@ def rerank_index(
     index,
     queries: Sequence[Curve],
     *,
-    top: int = 10,
+    k: int = 10,
     depth: int = DEFAULT_DEPTH,
     exclude_self: bool = False,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
     candidates: str = DEFAULT_RERANK_CANDIDATES,
+    top: Any = UNSET,
 ) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k best curves of an index for each query by diffused score.
 
@@ -148,7 +150,7 @@ def rerank_index(
     ----------
     index : an open :class:`nfdmatch.index.Index` with a graph (``index build --graph``).
     queries : sequence of :class:`~nfdmatch.curve.Curve`.
-    top : matches per query (at most ``depth``).
+    k : matches per query (at most ``depth``); ``top`` is its deprecated older name.
     depth : M, the query's candidates besides its nearest (see ``candidates``), >= 100.
     exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is the
         query in the graph (its stored row and PageRank) and is left out of the results;
@@ -177,6 +179,7 @@ def rerank_index(
     """
     from .index_search import query_descriptors, rank_rows, search_rows
 
+    top = k_or_top(k, top, "rerank_index")
     t0 = time.perf_counter()
     if candidates not in CANDIDATES:
         raise ParameterError(f"candidates must be one of {', '.join(CANDIDATES)}, got {candidates!r}")
@@ -360,7 +363,7 @@ def _checked_graph(index, top: int, depth: int):
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < MIN_DEPTH:
         raise ParameterError(f"rerank depth must be an integer of at least {MIN_DEPTH}, got {depth!r}")
     if top < 1 or top > depth:
-        raise ParameterError(f"top must be between 1 and the rerank depth ({depth}), got {top}")
+        raise ParameterError(f"k must be between 1 and the rerank depth ({depth}), got {top}")
     reader = index.graph_reader()
     if reader is None:
         raise IndexFormatError(

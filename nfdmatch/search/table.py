@@ -387,7 +387,7 @@ class SearchTable:
             runs = self._runs([c for c in cells if c not in tier.cells], self._descriptor_bytes(tier))
             if not runs:
                 return
-            got = self._read_descriptor_runs(runs, **tier.how)
+            got = self._read_descriptor_runs(runs, **tier.how)  # type: ignore[misc]
             self.bytes_read += got.nbytes
             self._store_descriptors(tier, runs, got)
 
@@ -410,7 +410,7 @@ class SearchTable:
     def _load_all_descriptors(self, tier: "_Tier") -> None:
         with self._lock:
             if tier.all is None:
-                got = self._read_descriptors(0, self.n_positions, **tier.how)
+                got = self._read_descriptors(0, self.n_positions, **tier.how)  # type: ignore[misc]
                 self.bytes_read += got.nbytes
                 tier.all = got
 
