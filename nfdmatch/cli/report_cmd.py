@@ -1,0 +1,161 @@
+"""`nfdmatch report`: a batch of queries, their matches drawn and their rows, in one HTML page."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import sys
+import time
+
+import click
+
+from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
+from .group import main
+from .inputs import read_inputs
+from .options import (
+    elastic_options,
+    index_option,
+    input_format_option,
+    match_list_options,
+    matching_options,
+    say,
+)
+from .output import match_row, path_speller, progress_bar
+from .query_cmd import _check_rerank_options, _columns, _note_old_format, _search_queries
+
+
+@main.command()
+@click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
+@index_option
+@match_list_options("Matches per query (each drawn).", "Only query files in folders whose name matches.")
+@click.option("--exhaustive", is_flag=True, help="Compute every exact distance, no pruning (as `query --exhaustive`).")
+@click.option("--rerank", is_flag=True, help="Order the matches by the diffusion over the index's graph (as `query`).")
+@click.option(
+    "--rerank-depth",
+    type=click.IntRange(min=DEFAULT_RERANK_DEPTH),
+    default=DEFAULT_RERANK_DEPTH,
+    show_default=True,
+    metavar="M",
+    help="With --rerank: the candidates the diffusion re-orders besides the query's nearest.",
+)
+@click.option(
+    "--rerank-candidates",
+    type=click.Choice(RERANK_CANDIDATES),
+    default=None,
+    show_default=DEFAULT_RERANK_CANDIDATES,
+    help="With --rerank: where the candidates come from (as `query`).",
+)
+@elastic_options
+@matching_options
+@input_format_option
+@click.option(
+    "--output",
+    "-o",
+    "output",
+    type=click.Path(dir_okay=False),
+    required=True,
+    metavar="FILE.html",
+    help="The page to write (whole, and only when every query was read).",
+)
+@click.option("--title", default=None, help="The page's title [default: nfdmatch report of INDEX].")
+def report(
+    queries,
+    index_path,
+    listing,
+    exhaustive,
+    rerank,
+    rerank_depth,
+    rerank_candidates,
+    stage,
+    matching,
+    input_format,
+    output,
+    title,
+):
+    """Write one HTML page of a batch: each query drawn, its matches aligned onto it, its rows.
+
+    The matches are those `query` finds with the same options (--top, --exclude-self,
+    --rerank, --elastic, ...); each is drawn as `show` draws it, over the query in grey.
+    The page is one self-contained file (pictures inline as SVG, no network): a summary,
+    a table of the queries, then a section per query with its pictures and rows (the
+    stage's columns included), linked to one another. A small inline script sorts the
+    tables (click a heading) and filters by distance; the page reads the same without it.
+
+    \b
+    Examples:
+      nfdmatch report sample_curves/queries --index demo.h5 --top 5 -o report.html
+      nfdmatch report library/ --index library.h5 --exclude-self --rerank -o neighbours.html
+      nfdmatch report scans/ --index library.h5 --elastic -o elastic.html
+    """
+    from functools import partial
+
+    from ..formats import read_curve
+    from ..index import open_index
+    from ..report import cached_reader, report_query, write_report
+
+    t0 = time.perf_counter()
+    if os.path.splitext(output)[1].lower() not in (".html", ".htm"):
+        raise click.UsageError(f"-o {output}: the report is an HTML page: name it FILE.html")
+    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, None)
+    if stage is not None and rerank:
+        raise click.UsageError("--elastic and --rerank: give one of them (as `query`)")
+    if rerank_candidates is not None and not rerank:
+        raise click.UsageError("--rerank-candidates needs --rerank")
+    columns = [c for c in _columns(listing.details, rerank, stage) if c != "query"] + ["source"]
+    with open_index(index_path) as idx:
+        _note_old_format(idx, exhaustive, stage)
+        inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
+        results, stats = _search_queries(
+            idx, inputs.curves, rerank_depth if rerank else None, (None, None, None),
+            prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
+            stage=stage, **listing.search(),
+        )  # fmt: skip
+        spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
+        reader = cached_reader(partial(read_curve, format=input_format))
+        progress, finish_bar = progress_bar("drawing")
+        pages = []
+        try:
+            for n, (q, found) in enumerate(zip(inputs.curves, results), start=1):
+                entry = report_query(q, found, idx, [], read_curve=reader, **matching)
+                entry.id, entry.key = spell_query(q.id), _curve_key(q.id)
+                entry.rows = [
+                    {
+                        **match_row(entry.id, s.match),
+                        "match": spell_match(s.id),
+                        "source": s.source,
+                        "key": _curve_key(idx.locate(s.id)),
+                    }
+                    for s in entry.shown
+                ]
+                pages.append(entry)
+                if progress is not None:
+                    progress(n, len(inputs.curves))
+        finally:
+            finish_bar()
+        summary = {
+            "title": title or f"nfdmatch report of {index_path or idx.path}",
+            "index": idx.path,
+            "curves in the index": idx.n_curves,
+            "queries": len(pages),
+            "matches": sum(len(p.rows) for p in pages),
+            "order": "diffused score (--rerank)" if rerank else ("fused distance (--elastic)" if stage else "distance"),
+            "command": shlex.join(["nfdmatch", *sys.argv[1:]]) if sys.argv else "nfdmatch report",
+            "written": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+            "search seconds": round(stats.seconds, 3),
+        }
+    if inputs.errors:
+        inputs.finish()  # exits: a page of part of a batch is not written
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    size = write_report(output, pages, columns, summary)
+    say(f"wrote {output} ({len(pages)} queries, {size / 2**20:.1f} MiB, {time.perf_counter() - t0:.2f} s)")
+    inputs.finish()
+
+
+def _curve_key(spec: str) -> str:
+    """A curve's name however its path is spelled (the file's real path, ``#i`` kept), so
+    that a match links to the query that is the same curve."""
+    from ..formats import split_selector
+
+    path, selected = split_selector(spec)
+    real = os.path.realpath(path)
+    return real if selected is None else f"{real}#{selected}"
