@@ -54,10 +54,14 @@ def cached_reader(read_curve: Callable[..., Curve], files: int = 256) -> Callabl
     def whole(path: str) -> tuple[Curve, ...]:
         return tuple(read_curves(path))
 
+    @functools.lru_cache(maxsize=16 * files)
+    def alone(spec: str) -> Curve:
+        return read_curve(spec)
+
     def read(spec: str) -> Curve:
         path, selected = split_selector(spec)
         if selected is None:
-            return read_curve(spec)
+            return alone(spec)
         curves = whole(path)
         if not 0 <= selected < len(curves):
             return read_curve(spec)  # its own error message
@@ -137,6 +141,10 @@ _SCRIPT = """
 """
 
 
+#: queries up to which the table of queries starts unfolded
+OPEN_OVERVIEW = 50
+
+
 def _id_of(n: int) -> str:
     return f"q{n}"
 
@@ -188,7 +196,12 @@ def report_html(queries: Sequence[ReportQuery], columns: Sequence[str], summary:
         '<div id="tools" hidden><label>distance at most <input id="maxd" type="number" min="0" step="any" '
         'placeholder="any"></label> <span id="shown"></span> &middot; click a column heading to sort</div>'
     )
-    out.append('<h2>Queries</h2><table class="sortable" id="queries"><thead><tr>')
+    # a long batch's table is folded: the first screen then shows pictures
+    opened = " open" if len(queries) <= OPEN_OVERVIEW else ""
+    out.append(
+        f'<details id="queries"{opened}><summary><h2 style="display:inline">Queries ({len(queries)})</h2></summary>'
+    )
+    out.append('<table class="sortable"><thead><tr>')
     out.append("<th>#</th><th>query</th><th>matches</th><th>best match</th><th>best distance</th></tr></thead><tbody>")
     for n, q in enumerate(queries, start=1):
         best = q.rows[0] if q.rows else None
@@ -199,7 +212,7 @@ def report_html(queries: Sequence[ReportQuery], columns: Sequence[str], summary:
             f"{_cell('match', best['match'] if best else None, _link(best, where))}"
             f"{_cell('distance', d)}</tr>"
         )
-    out.append("</tbody></table>")
+    out.append("</tbody></table></details>")
     for n, q in enumerate(queries, start=1):
         out.append(_section(n, q, len(queries), columns, where, panel_svgs))
     out.append(f"<script>{_SCRIPT.strip()}</script></body></html>")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import h5py
 import numpy as np
@@ -80,6 +81,9 @@ def _reopen(path: str, stamp: tuple) -> Index:
     return index
 
 
+_UNREAD = object()
+
+
 class Index:
     """An open index (read side). Use :func:`open_index`; a context manager.
 
@@ -98,6 +102,7 @@ class Index:
         self._ds = meta["datasets"]
         self._files = files
         self._file_records = None
+        self._sources: Any = _UNREAD
         self.checksums: bool = meta.get("checksums", False)
         self._crc = meta.get("crc", {})
         self.format_version: int = meta["format_version"]
@@ -251,8 +256,16 @@ class Index:
     # -- where the files are (docs/index-format.md, "Paths and ids")
     def sources(self):
         """``(paths, glob)`` of the last build, as stored (``glob`` None for none), or None for
-        an index that does not record them (format 1, or an earlier format-2 writer)."""
+        an index that does not record them (format 1, or an earlier format-2 writer). Read
+        once: :meth:`locate` asks for every match a batch reports."""
+        if self._sources is _UNREAD:
+            self._sources = self._read_sources()
+        if self._sources is None:
+            return None
+        paths, glob = self._sources
+        return list(paths), glob
 
+    def _read_sources(self):
         def read():
             g = self._h5.get("sources")
             ds = g.get("path") if isinstance(g, h5py.Group) else None
