@@ -4,9 +4,10 @@ then each match aligned onto it, drawn as ``show`` draws them: :mod:`nfdmatch.re
 and its rows, with links between queries.
 
 Self-contained: styles, pictures (inline SVG) and a small script are in the file; nothing
-is fetched. The script only sorts tables (click a heading) and filters by distance; the
-page reads the same without it. A page of a thousand queries stays light for the browser:
-each query's section is laid out and painted only near the viewport (``content-visibility``).
+is fetched. The script only sorts tables (click a heading) and filters by distance (also
+from the address: ``report.html?max=0.1``); the page reads the same without it. A page
+of a thousand queries stays light for the browser: each query's section is laid out and
+painted only near the viewport (``content-visibility``).
 """
 
 from __future__ import annotations
@@ -136,6 +137,8 @@ _SCRIPT = """
       if(keep&&e.classList.contains('qrow'))n++;});
     said.textContent=n+' of '+document.querySelectorAll('.qrow').length+' queries shown';
   }
+  // report.html?max=D opens the page filtered (a link that shows only the close matches)
+  var given=new URLSearchParams(location.search).get('max');if(given!==null)f.value=given;
   f.addEventListener('input',apply);apply();
 })();
 """

@@ -250,3 +250,28 @@ def test_pairs_of_curves_in_memory_and_new_without_a_record(rng):
         index_groups(index, 0.05, min_size=0)
     with pytest.raises(ParameterError):
         index_pairs(index, 0.05, method="nope")
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    n=st.integers(1, 300),
+    edges=st.lists(st.tuples(st.integers(0, 299), st.integers(0, 299)), max_size=400),
+)
+def test_the_components_of_groups_are_those_of_a_union_find(n, edges):
+    from nfdmatch.search.groups import _components
+
+    pairs = [(x % n, y % n) for x, y in edges]
+    parent = list(range(n))
+
+    def find(x):
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    for x, y in pairs:
+        rx, ry = find(x), find(y)
+        if rx != ry:
+            parent[max(rx, ry)] = min(rx, ry)
+    a = np.array([p[0] for p in pairs], dtype=np.int64)
+    b = np.array([p[1] for p in pairs], dtype=np.int64)
+    assert _components(n, a, b).tolist() == [find(x) for x in range(n)]

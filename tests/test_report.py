@@ -117,6 +117,34 @@ def _chromium_or_skip():
     return CHROMIUM
 
 
+def _chromium(chromium: str, profile, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [
+            chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            f"--user-data-dir={profile}", *args,
+        ],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+
+
+@pytest.mark.slow
+def test_chromium_runs_the_script_that_filters_by_distance(library, tmp_path):
+    chromium = _chromium_or_skip()
+    home, _ = library
+    code, _, err, out = _report(library, home / "sample_curves" / "queries", "--top", "5")
+    assert code == 0, err
+    page = open(out, encoding="utf-8").read()
+    best = sorted(float(d) for d in re.findall(r'<tr class="qrow" data-d="([^"]+)"', page))
+    limit = (best[1] + best[2]) / 2  # two of the three queries have a match this close
+    run = _chromium(chromium, tmp_path / "profile", "--dump-dom", f"file://{out}?max={limit!r}")
+    dom = run.stdout
+    assert '<div id="tools">' in dom  # shown by the script (hidden without it)
+    assert "2 of 3 queries shown" in dom
+    hidden = re.findall(r'<section class="query" id="q\d+" data-d="([^"]+)" hidden', dom)
+    assert [float(d) for d in hidden] == [best[2]]
+
+
 @pytest.mark.slow
 def test_chromium_draws_the_pictures(library, tmp_path):
     from PIL import Image
@@ -128,14 +156,9 @@ def test_chromium_draws_the_pictures(library, tmp_path):
     code, _, err, out = _report(library, home / "sample_curves" / "queries", "--top", "5")
     assert code == 0, err
     shot = tmp_path / "shot.png"
-    run = subprocess.run(
-        [
-            chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars", "--window-size=1400,1600",
-            f"--screenshot={shot}", f"file://{out}",
-        ],
-        capture_output=True, text=True, timeout=120,
+    run = _chromium(
+        chromium, tmp_path / "profile", "--hide-scrollbars", "--window-size=1400,1600", f"--screenshot={shot}",
+        f"file://{out}",
     )  # fmt: skip
     assert shot.exists(), run.stderr[-2000:]
     pixels = np.asarray(Image.open(shot).convert("RGB"), dtype=np.int64)
