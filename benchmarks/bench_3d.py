@@ -153,6 +153,40 @@ def diffusion_rows(curves, labels, depth):
     return rows
 
 
+def rerank_rows(curves, labels, depth):
+    """``query --rerank --exclude-self`` of every curve (the library's ``rerank_index``) on an
+    index with an exact graph (``--graph 10``) and on one with a fused graph (``--graph 10
+    --elastic``): rows with their seconds."""
+    import tempfile
+
+    from nfdmatch import build_index, open_index, write_curves
+    from nfdmatch.index.graph import GraphSpec
+    from nfdmatch.search.rerank import rerank_index
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = os.path.join(tmp, "curves")
+        os.makedirs(folder)
+        stored = []
+        for i, c in enumerate(curves):
+            path = os.path.join(folder, f"{i:05d}.csv")
+            write_curves(path, [Curve(np.asarray(c.points), id=path)])
+            stored.append(Curve(np.asarray(c.points), id=path))
+        for label, graph in (("exact graph 10", 10), ("--elastic graph 10", GraphSpec(10, "fused"))):
+            index = os.path.join(tmp, "i.h5")
+            if os.path.exists(index):
+                os.remove(index)
+            build_index([folder], index, graph=graph)
+            with open_index(index) as idx:
+                t = time.perf_counter()
+                found, _ = rerank_index(idx, stored, top=min(40, len(curves) - 1), exclude_self=True)
+                seconds = time.perf_counter() - t
+                position = {os.path.basename(c.id): n for n, c in enumerate(stored)}
+                order = np.array([[position[os.path.basename(m.id)] for m in f] for f in found])
+            rows.append((f"query --rerank, {label}", scores(order, labels, depth), seconds))
+    return rows
+
+
 def peer(curves, low_pass: bool) -> np.ndarray:
     """The issue's statistics descriptor: sorted PCA eigenvalues + 12-bin histograms of
     turning angle, binormal dihedral angle and distance to the centroid at 128 arc-length
@@ -183,7 +217,7 @@ def peer(curves, low_pass: bool) -> np.ndarray:
     return np.linalg.norm(X[:, None] - X[None], axis=2)
 
 
-def run_collection(name, curves, labels, depth, depths, diffusion=False):
+def run_collection(name, curves, labels, depth, depths, diffusion=False, rerank=True):
     ids = [c.id for c in curves]
     N = len(curves)
     memory = MemoryIndex(curves)
@@ -216,6 +250,8 @@ def run_collection(name, curves, labels, depth, depths, diffusion=False):
     chance_top1 = float(np.mean((size - 1) / (N - 1)))
     chance_bull = float(np.mean([(1 + ((depth or 2 * s) - 1) * (s - 1) / (N - 1)) / s for s in size]))
     rows.append(("chance", (chance_top1, chance_bull), None))
+    if rerank:
+        rows += rerank_rows(curves, labels, depth)
     if diffusion:
         rows += [(what, figures, None) for what, figures in diffusion_rows(curves, labels, depth)]
     print(f"\n{name} ({N} curves)")

@@ -82,6 +82,13 @@ def index():
     "--scheduler its rows are searched by the cluster's workers "
     "[default: keep the index's graph, if it has one].",
 )
+@click.option(
+    "--elastic",
+    "graph_elastic",
+    is_flag=True,
+    help="With --graph: the graph holds the elastic stage's fused distances (each curve's K of least "
+    "fused distance among its exact 30 nearest; docs/elastic.md), and query --rerank ranks by them.",
+)
 @optional_descriptor_options("the index's")
 @input_format_option
 @scheduler_options
@@ -99,6 +106,7 @@ def index_build(
     allow_shrink,
     file_timeout,
     graph_k,
+    graph_elastic,
     descriptor,
     input_format,
     scheduler,
@@ -144,6 +152,7 @@ def index_build(
       nfdmatch index build --index demo.h5          # again, from its recorded sources
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
       nfdmatch index build library/ --index library.h5 --graph
+      nfdmatch index build library/ --index library.h5 --graph 10 --elastic
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
       nfdmatch index build --index /shared/scans.h5 --graph 10 --scheduler tcp://head:8786
     """
@@ -152,6 +161,12 @@ def index_build(
             "index build reads files and folders, not stdin ('-'): an index records each file to "
             "rebuild it incrementally; save the curve to a file and index that"
         )
+    if graph_elastic and not graph_k:
+        raise click.UsageError("--elastic needs --graph K: it says what the graph's distances are")
+    if graph_elastic:
+        from ..index.graph import GraphSpec
+
+        graph_k = GraphSpec(graph_k, "fused")
     started = datetime.now(timezone.utc)
     options = dict(
         **descriptor, glob=glob_pattern, input_format=input_format,
@@ -257,6 +272,7 @@ def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict
     if report.graph.k:
         g = report.graph
         summary["graph"] = {
+            "distance": g.distance,
             "k": g.k,
             "searched": g.searched,
             "updated": g.updated,
@@ -298,8 +314,9 @@ def _say_build(report, index_path: str, allow_shrink: bool) -> None:
     )
     if report.graph.k:
         g = report.graph
+        kind = " (fused distances)" if g.distance == "fused" else ""
         say(
-            f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
+            f"graph of {g.k} neighbours{kind}: {g.searched} rows searched, {g.updated} updated by new curves, "
             f"{g.kept} kept; {g.seconds:.2f} s" + _graph_where(g)
         )
 
@@ -333,6 +350,8 @@ def index_info(index_path, output_format, output):
     with open_index(index_path) as idx:
         info = idx.info()
         info["graph"] = graph_k(idx)  # neighbours per curve stored for --rerank; 0: none
+        if info["graph"]:
+            info["graph_distance"] = idx.graph_distance()
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
@@ -350,6 +369,7 @@ def index_info(index_path, output_format, output):
             "harmonics",
             "scale",
             "graph",
+            *(["graph_distance"] if "graph_distance" in info else []),
             "created",
             "updated",
             "size_bytes",

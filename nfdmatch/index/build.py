@@ -24,7 +24,9 @@ jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
     ``file_timeout`` is given).
 wait : seconds to wait for another build's lock (0: fail at once).
 graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --rerank``);
-    None keeps an existing graph's K (no graph for an index without one), 0 drops it.
+    None keeps an existing graph's K and distance (no graph for an index without one), 0
+    drops it; a :class:`~nfdmatch.index.graph.GraphSpec` ``(k, "fused")`` stores each row's
+    k of least fused distance (the elastic stage's) among its exact nearest.
 progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
     then as files finish; total counts the files that must be read or hashed (unchanged
     files are not counted).
@@ -95,7 +97,7 @@ from .plan import (
 )
 from .pool import run_tasks
 from .reader import Index
-from .graph import GraphStats, graph_changes
+from .graph import GraphStats, asked_graph, graph_changes, graph_distance, old_graph_k
 from .schema import FORMAT_VERSION, open_checked, Problem, default_index_path
 from .writer import remove_stale_temps
 
@@ -280,7 +282,14 @@ def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str,
         report.notices.append(
             f"removed {len(stale)} temporary file(s) left by an interrupted build: {', '.join(stale)}"
         )
-    # a format-1 index is rewritten as format 2 (with its cells) even when nothing changed
+    if graph is not None and old is not None:
+        k, distance = asked_graph(old, graph)
+        if k and old_graph_k(old) and distance != graph_distance(old):
+            how = "give --elastic to keep it" if distance == "exact" else "without --elastic it is exact again"
+            report.notices.append(
+                f"the neighbour graph changes from {graph_distance(old)} to {distance} distances ({how})"
+            )
+    # an index of an older format is rewritten in today's (cells, statistics) even when nothing changed
     upgrade = old is not None and old.format_version < FORMAT_VERSION
     if upgrade:
         report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")

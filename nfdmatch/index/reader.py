@@ -14,7 +14,7 @@ from ..search.knn import search as search_index_for
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
 from .changes import read_changes
-from .graph import graph_k, read_graph_rows
+from .graph import graph_distance, graph_k, read_graph_rows
 from .paths import index_folder, openable
 from .schema import (
     STATUS,
@@ -421,6 +421,11 @@ class Index:
         """Neighbours per row of the index's stored neighbour graph (``index build --graph``);
         0 when it has none."""
         return graph_k(self)
+
+    def graph_distance(self) -> str:
+        """What the stored graph's distances are: ``"exact"`` (also without a graph) or
+        ``"fused"`` (the elastic stage's: ``index build --graph K --elastic``)."""
+        return graph_distance(self)
 
     def graph_reader(self):
         """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,
