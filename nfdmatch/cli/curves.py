@@ -17,7 +17,9 @@ from .options import (
     format_option,
     input_format_option,
     matching_options,
+    note_inputs,
     output_option,
+    refuse_input_as_output,
     rows_format_option,
     say,
 )
@@ -237,6 +239,8 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
             if selected is not None
             else read_curves(path, format=input_format)
         )
+        note_inputs([path])
+    refuse_input_as_output(output)
     rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points, normalized=normalized)
     try:
         write_file(output, lambda temp: write_curves(temp, [r.curve for r in rebuilt], format=curve_format))

@@ -19,6 +19,7 @@ from .options import (
     finish,
     format_option,
     note,
+    note_inputs,
     report_errors,
     say,
 )
@@ -131,6 +132,7 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
     files = find_mesh_files(meshes, exclude=[out_dir])
     if not files:
         raise ParameterError(f"no mesh files found in {', '.join(meshes)}")
+    note_inputs(files)  # so that --list naming a mesh is refused
     results, errors = _extract_all(files, sections, axis, boundaries)
     contours, refused = _writable_contours(results, out_dir, curve_format, force)
     report_errors(errors + refused)

@@ -14,7 +14,7 @@ import click
 
 from ..curve import STDIN_ID
 from ..errors import NfdError, NoCurvesError
-from .options import NothingRead, count_failures, detail, error, finish, report_errors
+from .options import NothingRead, count_failures, detail, error, finish, note_inputs, report_errors
 
 #: the id of a curve read from stdin (``-`` on the command line)
 
@@ -66,6 +66,7 @@ def read_one(spec: str, input_format: str | None = None):
         from ..formats import read_curve
 
         curve = read_curve(spec, format=input_format)
+        note_inputs([curve.source or spec])
     detail(f"read {curve.id} ({len(curve.points)} vertices)")
     return curve
 
@@ -145,6 +146,7 @@ def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) 
             error(exc)
             continue
         new = [path for path in found if os.path.normpath(path) not in seen]
+        note_inputs(new)
         seen.update(os.path.normpath(path) for path in new)
         total += len(new)
         read, read_errors = read_files(new)

@@ -273,6 +273,46 @@ def _check_output_path(ctx, param, value):
     return value
 
 
+_INPUTS = "nfdmatch.inputs"
+
+
+def note_inputs(paths) -> None:
+    """Remember files this command reads (curve files, the index), so that an output naming
+    one of them is refused (:func:`refuse_input_as_output`)."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:
+        ctx.meta.setdefault(_INPUTS, []).extend(os.fspath(p) for p in paths if p is not None and p != STDOUT)
+
+
+def refuse_input_as_output(path) -> None:
+    """A usage error (exit 2) when ``path`` is one of the files this command read, however
+    spelled (the same file: device and inode, links followed), as ``cp a a`` refuses: the
+    input is left untouched. Called just before an output is written; an output that does
+    not exist yet, or is not a regular file (/dev/null, a FIFO), is no input's."""
+    import stat
+
+    from ..errors import escape_name
+
+    ctx = click.get_current_context(silent=True)
+    inputs = () if ctx is None else ctx.meta.get(_INPUTS, ())
+    if path is None or path == STDOUT or not inputs:
+        return
+    try:
+        out = os.stat(path)
+    except OSError:
+        return
+    if not stat.S_ISREG(out.st_mode):
+        return
+    for name in dict.fromkeys(inputs):
+        try:
+            info = os.stat(name)
+        except OSError:
+            continue
+        if (info.st_dev, info.st_ino) == (out.st_dev, out.st_ino):
+            same = "" if name == path else f" ({escape_name(name)})"
+            raise click.UsageError(f"-o {escape_name(path)} is one of the inputs{same}: not overwritten")
+
+
 def check_writable(path: str) -> str:
     """``path`` if a file can be written there; else :class:`WriteError`."""
     if not path:
@@ -413,6 +453,11 @@ def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
     }
 
 
+def _note_index(ctx, param, value):
+    note_inputs([value])
+    return value
+
+
 def index_option(f):
     from ..defaults import DEFAULT_INDEX, INDEX_ENV
 
@@ -423,6 +468,7 @@ def index_option(f):
         default=DEFAULT_INDEX,
         show_default=f"${INDEX_ENV} or {DEFAULT_INDEX}",
         type=click.Path(dir_okay=False),
+        callback=_note_index,
         help="The index file.",
     )(f)
 

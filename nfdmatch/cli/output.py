@@ -13,7 +13,18 @@ import sys
 import click
 
 from ..errors import WriteError
-from .options import NORMAL, ROW_FORMATS, STDOUT, check_writable, detail, error, some_failed, use_color, verbosity
+from .options import (
+    NORMAL,
+    ROW_FORMATS,
+    STDOUT,
+    check_writable,
+    detail,
+    error,
+    refuse_input_as_output,
+    some_failed,
+    use_color,
+    verbosity,
+)
 
 #: the format a ``-o FILE`` gets from its extension when --format is not given (each
 #: command accepts those of its formats); any other extension is a usage error
@@ -287,10 +298,12 @@ def write_if_changed(path: str, data: bytes) -> bool:
     the same folder, flushed, then renamed over it), so ``path`` is never seen half written;
     a file that already holds exactly ``data`` is kept but gets a fresh mtime (a command
     that succeeds leaves its outputs newer than its inputs: Make settles). Returns True when
-    the bytes changed. I/O problems raise :class:`WriteError`."""
+    the bytes changed. I/O problems raise :class:`WriteError`; a ``path`` that is one of the
+    command's inputs is a usage error (:func:`~.options.refuse_input_as_output`)."""
     from .._io import write_file
 
     check_writable(path)
+    refuse_input_as_output(path)
     try:
         return write_file(path, data)
     except OSError as exc:

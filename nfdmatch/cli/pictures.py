@@ -19,6 +19,7 @@ from .options import (
     note,
     optional_descriptor_options,
     output_option,
+    refuse_input_as_output,
     say,
     some_failed,
 )
@@ -179,6 +180,8 @@ def show(
     else:
         source_inputs = None
         shown = _searched_drawn(queries, index_path, top, input_format, matching)
+    for path in [*names, rows_output]:
+        refuse_input_as_output(path)
     results = []
     if some_failed():
         _not_written(names)
@@ -307,6 +310,8 @@ def matrix(
     _check_pictures(pictures)  # before the O(N^2) work, not after it
     fmt = resolve_format(output_format, rows_output, formats, terminal="csv")
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
+    for path in [*pictures, rows_output]:
+        refuse_input_as_output(path)
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:

@@ -1,0 +1,201 @@
+"""Never destroy (issue 40): ``-o`` onto a FIFO, a device or a symbolic link leaves the path
+what it was (a FIFO or a device written in place as a shell's ``>`` would, a link followed
+and its target replaced), and ``-o`` naming one of the command's inputs is refused (exit 2),
+the input untouched. Exit code, stdout and stderr apart."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from conftest import ROOT, run_cli as run
+
+LIBRARY = os.path.join(ROOT, "sample_curves", "library")
+TREFOIL = os.path.join(ROOT, "sample_curves", "queries", "trefoil-posed.obj")
+
+
+@pytest.fixture(scope="module")
+def index(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("never-destroy")
+    shutil.copytree(LIBRARY, folder / "library")
+    path = folder / "lib.h5"
+    code, _, err = run("index", "build", folder / "library", "--index", path, "--jobs", "1", "-q")
+    assert code == 0 and err == ""
+    return path
+
+
+def _rows(index) -> str:
+    code, out, err = run("query", TREFOIL, "--index", index, "--top", 3, "--format", "csv")
+    assert code == 0, err
+    return out
+
+
+# --------------------------------------------------------------------------- -o onto what is not a regular file
+
+
+def test_a_fifo_is_written_in_place_and_its_reader_gets_the_rows(index, tmp_path):
+    fifo = tmp_path / "rows.fifo"
+    os.mkfifo(fifo)
+    got = []
+    # a daemon: were the FIFO replaced, its reader would wait for a writer for ever
+    reader = threading.Thread(target=lambda: got.append(open(fifo, "rb").read()), daemon=True)
+    reader.start()
+    code, out, err = run("query", TREFOIL, "--index", index, "--top", 3, "--format", "csv", "-o", fifo)
+    reader.join(timeout=60)
+    assert code == 0, err
+    assert out == ""
+    assert got == [_rows(index).encode()]
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert os.listdir(tmp_path) == ["rows.fifo"]  # no temporary file left beside it
+
+
+def _null_device(tmp_path):
+    """A character device like /dev/null (1, 3) in ``tmp_path``; skipped when the OS refuses."""
+    device = tmp_path / "null"
+    try:
+        os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    except (PermissionError, OSError) as exc:
+        pytest.skip(f"the OS refuses mknod here: {exc.strerror or exc}")
+    return device
+
+
+def test_a_character_device_is_written_in_place(index, tmp_path):
+    device = _null_device(tmp_path)
+    code, out, err = run("query", TREFOIL, "--index", index, "--format", "csv", "-o", device)
+    assert code == 0, err
+    info = os.lstat(device)
+    assert stat.S_ISCHR(info.st_mode) and info.st_rdev == os.makedev(1, 3)
+    assert os.listdir(tmp_path) == ["null"]
+
+
+def test_dev_null_as_a_path_stays_a_device_also_as_root(index, tmp_path):
+    # a regression would replace the machine's /dev/null when the tests run as root: the
+    # same write onto a private device must pass first
+    device = _null_device(tmp_path) if os.geteuid() == 0 else None
+    if device is not None:
+        run("query", TREFOIL, "--index", index, "--format", "csv", "-o", device)
+        assert stat.S_ISCHR(os.lstat(device).st_mode), "a device was replaced: /dev/null is not tried"
+    before = os.lstat("/dev/null")
+    result = subprocess.run(
+        [sys.executable, "-m", "nfdmatch", "query", TREFOIL, "--index", str(index), "--format", "csv"]
+        + ["-o", "/dev/null"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == ""
+    after = os.lstat("/dev/null")
+    assert stat.S_ISCHR(after.st_mode) and (after.st_ino, after.st_rdev) == (before.st_ino, before.st_rdev)
+
+
+def test_a_symlink_is_followed_and_its_target_replaced(index, tmp_path):
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "rows.csv"
+    target.write_text("old\n")
+    link = tmp_path / "rows.csv"
+    link.symlink_to(target)
+    code, _, err = run("query", TREFOIL, "--index", index, "--top", 3, "-o", link)
+    assert code == 0, err
+    assert os.path.islink(link) and os.readlink(link) == str(target)
+    assert target.read_text() == _rows(index)
+    assert sorted(os.listdir(tmp_path)) == ["real", "rows.csv"] and os.listdir(tmp_path / "real") == ["rows.csv"]
+
+
+def test_a_dangling_symlink_creates_its_target(index, tmp_path):
+    link = tmp_path / "rows.csv"
+    link.symlink_to(tmp_path / "new.csv")
+    code, _, err = run("query", TREFOIL, "--index", index, "--top", 3, "-o", link)
+    assert code == 0, err
+    assert os.path.islink(link) and (tmp_path / "new.csv").read_text() == _rows(index)
+
+
+def test_what_is_special_and_what_a_write_lands_in(tmp_path):
+    from nfdmatch._io import is_special, resolve
+
+    assert is_special("/dev/null") and not is_special(__file__) and not is_special(ROOT)
+    assert resolve(__file__) == __file__
+    (tmp_path / "link").symlink_to(__file__)
+    assert resolve(str(tmp_path / "link")) == os.path.realpath(__file__)
+
+
+# --------------------------------------------------------------------------- -o naming an input
+
+
+def _query_folder(tmp_path):
+    folder = tmp_path / "same"
+    folder.mkdir()
+    shutil.copy(os.path.join(LIBRARY, "trefoil.csv"), folder / "q.csv")
+    return folder
+
+
+@pytest.mark.parametrize("spelling", ["same", "dotted", "symlink", "hardlink"])
+def test_output_naming_the_query_file_is_a_usage_error_and_the_file_stays(index, tmp_path, monkeypatch, spelling):
+    monkeypatch.chdir(tmp_path)
+    folder = _query_folder(tmp_path)
+    before = (folder / "q.csv").read_bytes()
+    output = {
+        "same": "same/q.csv",
+        "dotted": "./same/../same/q.csv",
+        "symlink": "link.csv",
+        "hardlink": "hard.csv",
+    }[spelling]
+    if spelling == "symlink":
+        os.symlink("same/q.csv", "link.csv")
+    if spelling == "hardlink":
+        os.link("same/q.csv", "hard.csv")
+    code, out, err = run("query", "same/q.csv", "--index", index, "-o", output, "--format", "csv")
+    assert code == 2
+    assert "is one of the inputs" in err and output in err
+    assert (folder / "q.csv").read_bytes() == before
+
+
+def test_output_naming_a_file_of_an_input_folder_is_refused(index, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    folder = _query_folder(tmp_path)
+    before = (folder / "q.csv").read_bytes()
+    code, _, err = run("query", "same", "--index", index, "-o", "same/q.csv", "--format", "csv")
+    assert code == 2 and "is one of the inputs" in err
+    assert (folder / "q.csv").read_bytes() == before
+
+
+def test_output_naming_the_index_is_refused(index, tmp_path):
+    copy = tmp_path / "lib.h5"
+    shutil.copy(index, copy)
+    before = copy.read_bytes()
+    code, _, err = run("index", "ls", "--index", copy, "-o", copy, "--format", "csv")
+    assert code == 2 and "is one of the inputs" in err
+    assert copy.read_bytes() == before
+
+
+@pytest.mark.parametrize("command", ["distance", "describe", "rank", "matrix", "reconstruct"])
+def test_every_command_refuses_an_input_as_output(tmp_path, monkeypatch, command):
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(os.path.join(LIBRARY, "trefoil.csv"), "a.csv")
+    shutil.copy(os.path.join(LIBRARY, "circle.tsv"), "b.tsv")
+    before = open("a.csv", "rb").read()
+    args = {
+        "distance": ["distance", "a.csv", "b.tsv", "--format", "json"],
+        "describe": ["describe", "a.csv", "b.tsv"],
+        "rank": ["rank", "b.tsv", "a.csv"],
+        "matrix": ["matrix", "a.csv", "b.tsv"],
+        "reconstruct": ["reconstruct", "a.csv", "-k", "4"],
+    }[command]
+    code, _, err = run(*args, "-o", "a.csv")
+    assert code == 2, err
+    assert "is one of the inputs" in err
+    assert open("a.csv", "rb").read() == before
+
+
+def test_a_new_output_beside_the_inputs_is_written(index, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _query_folder(tmp_path)
+    code, _, err = run("query", "same/q.csv", "--index", index, "-o", "same/out.csv")
+    assert code == 0, err
+    assert os.path.exists("same/out.csv")
