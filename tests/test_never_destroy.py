@@ -199,3 +199,108 @@ def test_a_new_output_beside_the_inputs_is_written(index, tmp_path, monkeypatch)
     code, _, err = run("query", "same/q.csv", "--index", index, "-o", "same/out.csv")
     assert code == 0, err
     assert os.path.exists("same/out.csv")
+
+
+# --------------------------------------------------------------------------- names that are not UTF-8
+
+
+@pytest.mark.parametrize(
+    "raw",
+    [b"plain.csv", b"bad\xffbyte.csv", b"bad\\xffbyte.csv", b"back\\slash\\\\.csv", b"\xc3(\xe9.csv", "é.csv".encode()],
+)
+def test_a_name_and_its_id_round_trip_byte_for_byte(raw):
+    from nfdmatch.names import decode_name, encode_name
+
+    name = os.fsdecode(raw)
+    encoded = encode_name(name)
+    encoded.encode("utf-8")  # storable in HDF5
+    assert os.fsencode(decode_name(encoded)) == raw
+
+
+def test_two_names_never_share_an_id():
+    from nfdmatch.names import encode_name
+
+    names = [b"bad\xffbyte.csv", b"bad\\xffbyte.csv", b"bad\\\\xffbyte.csv", b"a\\b", b"a\\\\b"]
+    assert len({encode_name(os.fsdecode(n)) for n in names}) == len(names)
+
+
+def _odd_library(tmp_path):
+    from nfdmatch.formats import write_curves
+
+    from conftest import ellipse, torus_knot
+
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    names = [b"bad\xffbyte.csv", b"bad\\xffbyte.csv", b"ok.csv"]
+    shapes = [torus_knot(2, 3, 120), ellipse(2.0, 1.0, 100), torus_knot(2, 5, 150)]
+    for name, points in zip(names, shapes):
+        write_curves(os.fsdecode(os.fsencode(str(lib)) + b"/" + name), points)
+    return lib, names
+
+
+def _nfd(*args, cwd):
+    return subprocess.run(
+        [sys.executable, "-m", "nfdmatch", *[os.fsencode(str(a)) if not isinstance(a, bytes) else a for a in args]],
+        capture_output=True,
+        cwd=cwd,
+        timeout=300,
+    )
+
+
+def test_a_name_that_is_not_utf8_and_its_look_alike_are_both_indexed_and_found_again(tmp_path):
+    lib, names = _odd_library(tmp_path)
+    built = _nfd("index", "build", "lib", "--index", "i.h5", "-j", "1", cwd=tmp_path)
+    assert built.returncode == 0, built.stderr
+    listed = _nfd("index", "ls", "--index", "i.h5", "--format", "csv", cwd=tmp_path)
+    assert listed.returncode == 0, listed.stderr
+    files = [line.split(b",")[0] for line in listed.stdout.splitlines()[1:]]
+    assert sorted(files) == sorted(b"lib/" + n for n in names)  # the raw bytes, none dropped
+    # every row found again: --paths absolute names files that exist, byte for byte
+    query = _nfd("query", b"lib/" + names[0], "--index", "i.h5", "--top", 3, "--paths", "absolute", cwd=tmp_path)
+    assert query.returncode == 0, query.stderr
+    matches = [line.split(b",")[2] for line in query.stdout.splitlines()[1:]]
+    assert len(matches) == 3 and all(os.path.exists(m) for m in matches)
+    assert matches[0] == os.fsencode(str(lib)) + b"/" + names[0]  # itself, at distance 0
+    # show reads the matches' files again through the stored ids
+    shown = _nfd("show", b"lib/" + names[0], "--index", "i.h5", "--top", 3, "-o", "s.svg", "-o", "s.csv", cwd=tmp_path)
+    assert shown.returncode == 0 and b"cannot read it" not in shown.stderr, shown.stderr
+
+
+def test_json_writes_such_a_byte_as_a_documented_escape(tmp_path):
+    import json
+
+    lib, names = _odd_library(tmp_path)
+    assert _nfd("index", "build", "lib", "--index", "i.h5", "-j", "1", cwd=tmp_path).returncode == 0
+    proc = _nfd("index", "ls", "--index", "i.h5", "--format", "json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert b"\\udcff" in proc.stdout
+    files = {os.fsencode(row["file"]) for row in json.loads(proc.stdout)}
+    assert files == {b"lib/" + n for n in names}
+
+
+def test_a_pipe_gets_the_raw_bytes_and_messages_stay_utf8(tmp_path):
+    lib, names = _odd_library(tmp_path)
+    bad = os.fsencode(str(lib)) + b"/broken\xfe.csv"
+    with open(bad, "w") as fh:
+        fh.write("not a curve\n")
+    proc = _nfd("describe", "lib", cwd=tmp_path)
+    assert proc.returncode == 3
+    proc.stderr.decode("utf-8")  # valid UTF-8: the name escaped in the message
+    assert b"broken\\xfe.csv" in proc.stderr
+    assert b"lib/bad\xffbyte.csv" in proc.stdout  # the raw bytes on a pipe
+
+
+def test_two_curves_that_would_share_an_id_stop_the_build_naming_both(tmp_path):
+    from nfdmatch.formats import write_curves
+
+    from conftest import ellipse, torus_knot
+
+    write_curves(tmp_path / "two.obj", [torus_knot(2, 3, 120), ellipse(2.0, 1.0, 100)])
+    write_curves(tmp_path / "one.obj", [torus_knot(2, 5, 150)])
+    os.rename(tmp_path / "one.obj", tmp_path / "two.obj#1")  # a file named as curve 1 of two.obj is
+    code, _, err = run(
+        "index", "build", tmp_path / "two.obj", tmp_path / "two.obj#1", "--index", tmp_path / "i.h5",
+        "--input-format", "obj",
+    )  # fmt: skip
+    assert code != 0 and not os.path.exists(tmp_path / "i.h5")
+    assert "two.obj: curve 1 of this file and the file" in err and "two.obj#1 would share the id" in err

@@ -449,4 +449,4 @@ def index_ls(index_path, status, list_curves, output_format, output):
         else:
             rows = [{"file": r.path, "status": r.status, "curves": r.curve_count, "error": r.error} for r in files]
             columns = ["file", "status", "curves", "error"]
-    write_rows(rows, columns, output_format, output)
+    write_rows(rows, columns, output_format, output, names=("id", "file"))

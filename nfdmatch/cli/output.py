@@ -98,12 +98,14 @@ def path_speller(mode: str, locate=None):
         return lambda curve_id: curve_id
     from .inputs import STDIN_ID
 
+    from ..names import decode_name, encode_name
+
     def spell(curve_id: str) -> str:
         if curve_id.startswith(STDIN_ID):
             return curve_id
-        where = locate(curve_id) if locate is not None else curve_id
+        where = locate(curve_id) if locate is not None else decode_name(curve_id)
         full = os.path.abspath(where)
-        return full if mode == "absolute" else os.path.relpath(full)
+        return encode_name(full if mode == "absolute" else os.path.relpath(full))
 
     return spell
 
@@ -128,15 +130,42 @@ def match_columns(details: bool) -> list[str]:
     return ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
 
 
+#: columns that hold curve ids (a file's name encoded, :mod:`nfdmatch.names`): printed as
+#: the name itself (raw bytes) except in a table on a terminal
+NAME_COLUMNS = ("query", "match", "id", "curve")
+
+
+def decoded_names(rows: list[dict], names=NAME_COLUMNS) -> list[dict]:
+    """``rows`` with the ids of the columns ``names`` decoded to the file names they encode
+    (:func:`nfdmatch.names.decode_name`): what goes to a pipe or a file."""
+    from ..names import decode_name
+
+    names = [c for c in names if any(isinstance(row.get(c), str) and "\\" in row[c] for row in rows)]
+    if not names:
+        return rows
+    return [{**row, **{c: decode_name(row[c]) for c in names if isinstance(row.get(c), str)}} for row in rows]
+
+
 def write_rows(
-    rows: list[dict], columns: list[str], fmt: str | None, output: str | None = None, *, group_by: str | None = None
+    rows: list[dict],
+    columns: list[str],
+    fmt: str | None,
+    output: str | None = None,
+    *,
+    group_by: str | None = None,
+    names=NAME_COLUMNS,
 ) -> None:
     """Write rows to ``output`` (stdout when None) as a table, CSV, TSV, JSON (a list) or
     JSON lines. Machine formats carry no markup; floats keep full precision (repr).
-    ``group_by``: in a table, a heading per value of this column instead of the column."""
+    ``group_by``: in a table, a heading per value of this column instead of the column.
+    ``names``: the columns holding ids, written as the file names they encode (the raw bytes
+    of a name that is not UTF-8; in JSON, ``\\udcNN`` for such a byte), except in a table
+    on a terminal, which shows the ids (``\\xNN``), as ``ls`` escapes on a terminal."""
     fmt = resolve_format(fmt, output)
+    terminal = fmt == "table" and output is None and stdout_is_terminal()
+    if not terminal:
+        rows = decoded_names(rows, names)
     if fmt == "table":
-        terminal = output is None and stdout_is_terminal()
         text = render_table(
             rows, columns, group_by=group_by, terminal=terminal, styled=output is None and use_color(terminal)
         )
@@ -282,12 +311,17 @@ def deliver(text: str, output: str | None) -> None:
     A file is written only when the command succeeds: after an input failed (exit 3 to
     come) it is left as it was, so that Make does not take a partial answer for done."""
     if output is None:
+        try:
+            text.isascii() or text.encode("utf-8")
+        except UnicodeEncodeError:  # a name that is not UTF-8: its bytes, as ls and find print it
+            click.echo(text.encode("utf-8", "surrogateescape"), nl=False)
+            return
         click.echo(text, nl=False, color=True)  # escapes only in a styled table (--color decides)
         return
     if some_failed():
         error(f"{output} not written: some inputs could not be read")
         return
-    if write_if_changed(output, text.encode("utf-8")):
+    if write_if_changed(output, text.encode("utf-8", "surrogateescape")):
         detail(f"wrote {output}")
     else:
         detail(f"{output} unchanged (mtime refreshed)")

@@ -16,11 +16,12 @@ import h5py
 import numpy as np
 
 from .._version import __version__
-from ..errors import NfdError, WriteError
+from ..errors import InputError, NfdError, WriteError, escape_name
+from ..names import decode_name
 from .changes import write_changes
 from .graph import GraphStats
 from .graph_build import blocks_to_search, plan_graph, store_graph, write_graph
-from .paths import curve_ids
+from .paths import curve_ids, id_collision
 from .plan import Action, Plan
 from .pool import run_tasks
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short
@@ -127,6 +128,7 @@ def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sourc
             writer = CurveWriter(h5, K, space)
             run = CopyRun(old, writer)
             records, fresh = _write_rows(plan.items, result_of, writer, run, report, actions)
+            _check_ids(records)
             run.flush()
             writer.flush()
             write_files_table(h5, records, space)
@@ -145,6 +147,20 @@ def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sourc
     finally:
         stream.close()  # shuts the worker pool down
     return pending
+
+
+def _check_ids(records) -> None:
+    """An InputError naming both files when two curves would share an id (the index keeps
+    one row per id: one of them would be lost without a word)."""
+    counts = {r.path: r.curve_count for r in records if r.status == "ok" and ("#" in r.path or r.curve_count > 1)}
+    both = id_collision(counts)
+    if both is not None:
+        multi, single = (escape_name(decode_name(p)) for p in both)
+        raise InputError(
+            f"curve {single[len(multi) + 1 :]} of this file and the file {single} would share the id "
+            f"{single}; rename one of them (ids are FILE and FILE#I)",
+            path=decode_name(both[0]),
+        )
 
 
 def _graph_here(h5, old, graph, reuse: bool, space: Space, report):

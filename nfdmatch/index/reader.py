@@ -14,6 +14,7 @@ from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
 from .changes import read_changes
 from .graph import graph_k, read_graph_rows
+from ..names import decode_name
 from .paths import index_folder, openable
 from .schema import (
     STATUS,
@@ -259,7 +260,7 @@ class Index:
         are then returned as they are."""
 
         if os.path.isabs(curve_id) or self.sources() is None:
-            return curve_id
+            return decode_name(curve_id)
         return openable(curve_id, index_folder(self.path))
 
     # -- curves
