@@ -304,3 +304,38 @@ def test_two_curves_that_would_share_an_id_stop_the_build_naming_both(tmp_path):
     )  # fmt: skip
     assert code != 0 and not os.path.exists(tmp_path / "i.h5")
     assert "two.obj: curve 1 of this file and the file" in err and "two.obj#1 would share the id" in err
+
+
+# --------------------------------------------------------------------------- progress bars
+
+
+def _bar_output(monkeypatch, capsys, clock_step: float, steps: int = 3000) -> str:
+    from nfdmatch.cli import output
+
+    now = [0.0]
+
+    def clock():
+        now[0] += clock_step
+        return now[0]
+
+    monkeypatch.setattr(output, "stderr_is_terminal", lambda: True)
+    monkeypatch.setattr(output, "_clock", clock)
+    capsys.readouterr()
+    update, finish = output.progress_bar("indexing files")
+    for done in range(1, steps + 1):
+        update(done, steps)
+    finish()
+    return capsys.readouterr().err
+
+
+def test_a_progress_bar_is_redrawn_at_most_ten_times_a_second(monkeypatch, capsys):
+    # 3,000 files in 3 s of the bar's clock: ~30 redraws, not 3,000
+    err = _bar_output(monkeypatch, capsys, clock_step=0.001)
+    assert 20 <= err.count("indexing files") <= 40
+    assert len(err.encode()) < 200_000 / 10
+
+
+def test_a_fast_run_draws_its_bar_a_few_times_and_ends_full(monkeypatch, capsys):
+    err = _bar_output(monkeypatch, capsys, clock_step=0.0)
+    assert err.count("indexing files") <= 4  # its start, the first step, the last, its end
+    assert "3000/3000" in err

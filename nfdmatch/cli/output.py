@@ -1,6 +1,9 @@
 """Writing a command's output: the row formats, ``-o`` (written whole and only on success,
 through one atomic writer), :func:`write_rows` and :func:`deliver`, tables that fit the
-terminal, progress bars on stderr."""
+terminal, progress bars on stderr (redrawn at most every :data:`REDRAW_SECONDS`).
+
+Test hook: ``_clock``, the progress bars' clock, which tests replace to count redraws.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +12,7 @@ import io
 import json
 import os
 import sys
+import time
 
 import click
 
@@ -352,6 +356,12 @@ def stdout_is_terminal() -> bool:
     return sys.stdout.isatty()
 
 
+#: the shortest time between two redraws of a progress bar: at most ~10 a second
+REDRAW_SECONDS = 0.1
+#: the clock of the progress bars (a test hook: tests replace it to count redraws)
+_clock = time.monotonic
+
+
 def progress_bar(description: str):
     """(callback, finish) for a rich progress bar on stderr, only when stderr is a terminal
     and not ``-q``."""
@@ -372,9 +382,16 @@ def progress_bar(description: str):
     )
     task = bar.add_task(description, total=None)
     bar.start()
+    last = -float("inf")
 
     def update(done, total):
+        nonlocal last
         bar.update(task, completed=done, total=total)
-        bar.refresh()
+        now = _clock()
+        # a redraw per file made a terminal cost ~3x the piped time (10,000 files: 2 MB of
+        # escapes); the last step is drawn so the bar ends full
+        if now - last >= REDRAW_SECONDS or (total is not None and done >= total):
+            last = now
+            bar.refresh()
 
     return update, bar.stop
