@@ -339,3 +339,97 @@ def test_a_fast_run_draws_its_bar_a_few_times_and_ends_full(monkeypatch, capsys)
     err = _bar_output(monkeypatch, capsys, clock_step=0.0)
     assert err.count("indexing files") <= 4  # its start, the first step, the last, its end
     assert "3000/3000" in err
+
+
+# --------------------------------------------------------------------------- exit status: grep's contract
+
+
+def test_a_filter_that_leaves_every_query_empty_exits_1_with_the_header(index):
+    code, out, err = run("query", TREFOIL, "--index", index, "--max-distance", "1e-9", "--format", "csv")
+    assert code == 1
+    assert out == "query,rank,match,distance\n"
+    assert err == ""  # as grep: the exit status says it
+
+
+def test_a_query_that_matches_exits_0(index):
+    code, out, _ = run("query", TREFOIL, "--index", index, "--max-distance", "0.1", "--format", "csv")
+    assert code == 0 and out.count("\n") > 1
+
+
+def test_pairs_without_a_pair_exits_1(index):
+    code, out, _ = run("pairs", "--index", index, "--max-distance", "1e-12", "--format", "csv")
+    assert code == 1 and out == "a,b,distance\n"
+
+
+def test_rank_with_nothing_close_enough_exits_1():
+    code, _, _ = run("rank", TREFOIL, os.path.join(LIBRARY, "circle.tsv"), "--max-distance", "1e-9")
+    assert code == 1
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["query", "missing.csv"],  # nothing could be read
+        ["query", TREFOIL, "--index", "no-such-index.h5"],  # an error
+        ["query", TREFOIL, "--top", "0"],  # a usage error
+    ],
+)
+def test_errors_exit_2(index, tmp_path, monkeypatch, args):
+    monkeypatch.chdir(tmp_path)
+    if "--index" not in args:
+        args = [*args, "--index", index]
+    code, out, err = run(*args)
+    assert code == 2 and out == "" and "Error" in err
+
+
+def test_a_partial_run_exits_3(index, tmp_path):
+    code, out, err = run("query", TREFOIL, tmp_path / "missing.csv", "--index", index, "--format", "csv")
+    assert code == 3 and out.count("\n") > 1 and "missing.csv" in err
+
+
+# --------------------------------------------------------------------------- --format json when a command fails
+
+
+@pytest.mark.parametrize("fmt", ["json", "jsonl"])
+def test_a_command_that_cannot_answer_writes_one_json_error_object(tmp_path, fmt):
+    import json
+
+    code, out, _ = run("query", TREFOIL, "--index", tmp_path / "missing.h5", "--format", fmt)
+    assert code == 2
+    (line,) = out.splitlines()
+    record = json.loads(line)
+    assert record["exit"] == 2 and "no index" in record["error"] and record["failed"] == []
+
+
+def test_nothing_read_lists_every_failed_input_in_json(index, tmp_path):
+    import json
+
+    code, out, _ = run("query", tmp_path / "a.csv", tmp_path / "b.csv", "--index", index, "--format", "jsonl")
+    assert code == 2
+    record = json.loads(out)
+    assert [f["input"] for f in record["failed"]] == [str(tmp_path / "a.csv"), str(tmp_path / "b.csv")]
+
+
+def test_a_partial_jsonl_run_ends_with_a_line_listing_the_failed_inputs(index, tmp_path):
+    import json
+
+    code, out, _ = run("query", TREFOIL, tmp_path / "gone.csv", "--index", index, "--format", "jsonl", "--top", 2)
+    assert code == 3
+    lines = [json.loads(line) for line in out.splitlines()]
+    assert [row["rank"] for row in lines[:-1]] == [1, 2]
+    assert lines[-1]["exit"] == 3 and [f["input"] for f in lines[-1]["failed"]] == [str(tmp_path / "gone.csv")]
+
+
+def test_a_usage_error_with_format_json_writes_the_object_too(index):
+    import json
+
+    code, out, err = run("query", TREFOIL, "--index", index, "--format", "json", "--top", "0")
+    assert code == 2 and "Usage" in err
+    assert json.loads(out)["exit"] == 2
+
+
+def test_a_json_list_on_stdout_stays_the_only_document(index, tmp_path):
+    import json
+
+    code, out, _ = run("query", TREFOIL, tmp_path / "gone.csv", "--index", index, "--format", "json", "--top", 2)
+    assert code == 3 and len(json.loads(out)) == 2

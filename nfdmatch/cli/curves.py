@@ -18,6 +18,7 @@ from .options import (
     input_format_option,
     matching_options,
     note_inputs,
+    nothing_matched,
     output_option,
     refuse_input_as_output,
     rows_format_option,
@@ -88,7 +89,7 @@ def describe(files, glob_pattern, descriptor, input_format, output_format, outpu
     limit plane is degenerate, then the normalized coefficients A_k for
     k = +1..+K, -1..-K: columns k+1_x_re, k+1_x_im, ..., k-K_z_im.
     Folders are searched recursively; FILE#I describes one curve of a multi-curve file.
-    A bad input is named on stderr and skipped (exit 3; exit 1 when none could be read).
+    A bad input is named on stderr and skipped (exit 3; exit 2 when none could be read).
 
     \b
     Example:
@@ -155,6 +156,7 @@ def rank(query_spec, sources, listing, matching, descriptor, input_format, outpu
         group_by="query",
     )
     inputs.finish()
+    nothing_matched(len(ranked))
 
 
 @main.command()

@@ -11,6 +11,7 @@ import click
 from ..defaults import DEFAULT_GRAPH_K
 from .options import (
     EXIT_ERROR,
+    EXIT_NOTHING,
     error,
     finish,
     format_option,
@@ -115,7 +116,7 @@ def index_build(
     Incremental: unchanged files (same size and mtime, or same SHA-256) are not
     recomputed, changed files are, files no longer under the sources are removed. A
     build that would remove more than half of the index's files, or all of them (an
-    empty or unmounted folder), refuses (exit 1) unless --allow-shrink is given.
+    empty or unmounted folder), refuses (exit 2) unless --allow-shrink is given.
     The index is written to a temporary file and moved into place when complete, so
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
@@ -195,7 +196,7 @@ def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, clu
 
 def _say_build_result(report, index_path, dry_run: bool, allow_shrink: bool, output_format: str, started) -> None:
     """Notices and failures on stderr, the summary (or a dry run's changes) on stdout, and
-    the exit: 1 for a dry run its build would refuse, else by the failed files."""
+    the exit: 2 for a dry run its build would refuse, else by the failed files."""
     for notice in report.notices:
         note(notice, prefix="Notice: ")
     for _path, message in report.skipped + report.failures:
@@ -415,7 +416,7 @@ def index_verify(index_path, output_format):
         f"in {len({f.dataset for f in report.findings})} dataset(s); rebuild it with "
         f"`nfdmatch index build --rebuild`"
     )
-    sys.exit(EXIT_ERROR)
+    sys.exit(EXIT_NOTHING)  # as cmp and diff: 1 the answer "they differ", 2 trouble
 
 
 @index.command("ls")

@@ -1,7 +1,7 @@
 """Reading a command's inputs: :func:`read_inputs` (files, folders, ``-`` for stdin) and
 :func:`read_one`. One policy: every input that can be read is answered, each bad one is
 named on stderr, :func:`~nfdmatch.cli.options.finish` exits 3 when some failed, and nothing
-read at all is exit 1. Also which match is the query itself (``--exclude-self``)."""
+read at all is exit 2. Also which match is the query itself (``--exclude-self``)."""
 
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ def read_inputs(
 
     A missing file, an empty folder (no curve file, or none matching ``glob``) and a file
     that cannot be read are each named on stderr and counted as failed inputs; raises
-    :class:`NothingRead` (exit 1) when no curve was read at all. ``progress``: the label
+    :class:`NothingRead` (exit 2) when no curve was read at all. ``progress``: the label
     of a progress bar over the files read (on a terminal only, :func:`progress_bar`)."""
     from ..sources import find_curve_files, read_all
 
@@ -154,7 +154,7 @@ def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) 
         errors += read_errors
         report_errors(read_errors)
     if errors:
-        count_failures(len(errors))
+        count_failures(len(errors), errors)
     if not curves:
         raise NothingRead()
     detail(f"read {len(curves)} curve{'' if len(curves) == 1 else 's'} from {total - len(errors)} of {total} inputs")

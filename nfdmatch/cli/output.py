@@ -25,7 +25,9 @@ from .options import (
     detail,
     error,
     refuse_input_as_output,
+    remember_format,
     some_failed,
+    stdout_used,
     use_color,
     verbosity,
 )
@@ -79,18 +81,18 @@ def resolve_format(
     surprise), else ``terminal`` when stdout is a terminal and ``piped`` otherwise.
     Commands call it before any work, so that the usage error comes first."""
     if fmt is not None:
-        return fmt
+        return remember_format(fmt)
     if output is not None:
         ext = os.path.splitext(output)[1].lower()
         found = FORMAT_OF_EXTENSION.get(ext)
         if found in formats:
-            return found
+            return remember_format(found)
         known = [e for e, f in FORMAT_OF_EXTENSION.items() if f in formats]
         raise click.UsageError(
             f"cannot tell the format of -o {output} from {_extension_text(ext)}: name the file "
             f"{', '.join(known)}, or give --format {'|'.join(formats)}"
         )
-    return terminal if stdout_is_terminal() else piped
+    return remember_format(terminal if stdout_is_terminal() else piped)
 
 
 def path_speller(mode: str, locate=None):
@@ -315,6 +317,7 @@ def deliver(text: str, output: str | None) -> None:
     A file is written only when the command succeeds: after an input failed (exit 3 to
     come) it is left as it was, so that Make does not take a partial answer for done."""
     if output is None:
+        stdout_used()
         try:
             text.isascii() or text.encode("utf-8")
         except UnicodeEncodeError:  # a name that is not UTF-8: its bytes, as ls and find print it

@@ -14,6 +14,7 @@ from .options import (
     input_format_option,
     matching_options,
     note,
+    nothing_matched,
     output_option,
     rows_format_option,
     say,
@@ -129,6 +130,7 @@ def query(
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
+    nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
 
 
 def _columns(details: bool, rerank: bool) -> list[str]:
