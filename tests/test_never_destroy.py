@@ -433,3 +433,35 @@ def test_a_json_list_on_stdout_stays_the_only_document(index, tmp_path):
 
     code, out, _ = run("query", TREFOIL, tmp_path / "gone.csv", "--index", index, "--format", "json", "--top", 2)
     assert code == 3 and len(json.loads(out)) == 2
+
+
+# --------------------------------------------------------------------------- the build lock
+
+
+def test_a_build_that_never_starts_leaves_no_lock(tmp_path):
+    code, _, err = run("index", "build", tmp_path / "missing", "--index", tmp_path / "x.h5")
+    assert code == 2 and "missing" in err
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_build_keeps_the_lock_of_an_index_that_exists(tmp_path):
+    code, _, _ = run("index", "build", LIBRARY, "--index", tmp_path / "x.h5", "-q", "-j", 1)
+    assert code == 0 and sorted(os.listdir(tmp_path)) == ["x.h5", "x.h5.lock"]
+    code, _, _ = run("index", "build", tmp_path / "missing", "--index", tmp_path / "x.h5")
+    assert code == 2 and sorted(os.listdir(tmp_path)) == ["x.h5", "x.h5.lock"]
+
+
+def test_a_lock_removed_while_a_build_waited_is_not_held_by_two(tmp_path):
+    from nfdmatch.index.lock import Lock
+
+    first = Lock(str(tmp_path / "x.h5"), 0)
+    assert first.created
+    got = []
+    waiter = threading.Thread(target=lambda: got.append(Lock(str(tmp_path / "x.h5"), 30)), daemon=True)
+    waiter.start()
+    first.release(remove=True)
+    waiter.join(timeout=30)
+    (second,) = got
+    # the waiter holds the file now at the path, not the removed one: a third build is excluded
+    assert os.fstat(second.fd).st_ino == os.stat(tmp_path / "x.h5.lock").st_ino
+    second.release()

@@ -241,8 +241,8 @@ def build_index(
     finally:
         if old is not None:
             old.close()
-        if lock is not None:
-            lock.release()
+        if lock is not None:  # a build that never wrote the index leaves no lock of its own
+            lock.release(remove=lock.created and not os.path.lexists(real_index))
     report.seconds = time.perf_counter() - t0
     return report
 
