@@ -221,7 +221,7 @@ def test_dry_run_of_a_build_that_would_refuse_to_shrink_exits_2(built):
     code, out, err = run("index", "build", lib, "--index", index, "--dry-run")
     assert code == 2 and "removed\tlib/trefoil.csv" in out and "--allow-shrink" in err
     assert run("index", "build", lib, "--index", index, "--dry-run", "--allow-shrink")[0] == 0
-    assert run("index", "build", lib, "--index", index)[0] == 1  # the build refuses alike
+    assert run("index", "build", lib, "--index", index)[0] == 2  # the build refuses alike
 
 
 @pytest.mark.parametrize("dry_run", [[], ["--dry-run"]])

@@ -465,3 +465,28 @@ def test_a_lock_removed_while_a_build_waited_is_not_held_by_two(tmp_path):
     # the waiter holds the file now at the path, not the removed one: a third build is excluded
     assert os.fstat(second.fd).st_ino == os.stat(tmp_path / "x.h5.lock").st_ino
     second.release()
+
+
+# --------------------------------------------------------------------------- TSV
+
+
+def test_tsv_escapes_a_tab_a_newline_and_a_backslash_so_cut_splits_right(tmp_path):
+    from nfdmatch.formats import write_curves
+
+    from conftest import ellipse
+
+    odd = "tab\there\nnew\\line.csv"
+    write_curves(tmp_path / odd, ellipse(2.0, 1.0, 80))
+    write_curves(tmp_path / "plain.csv", ellipse(3.0, 1.0, 80))
+    code, out, _ = run("rank", TREFOIL, tmp_path, "--format", "tsv", "--paths", "id")
+    assert code == 0
+    lines = out.splitlines()
+    assert len(lines) == 3 and all(line.count("\t") == 3 for line in lines)
+    matches = [line.split("\t")[2] for line in lines[1:]]
+    assert str(tmp_path / "tab\\there\\nnew\\\\line.csv") in matches
+
+
+def test_csv_keeps_its_quoting():
+    from nfdmatch.cli.output import delimited_text
+
+    assert delimited_text(["a"], [['x,"y"\nz']], "csv") == 'a\n"x,""y""\nz"\n'

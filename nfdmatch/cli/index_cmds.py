@@ -205,7 +205,11 @@ def _say_build_result(report, index_path, dry_run: bool, allow_shrink: bool, out
         deliver(json.dumps(_build_summary(report, index_path, started, allow_shrink)) + "\n", None)
     else:
         if dry_run:
-            deliver("".join(f"{action}\t{path}\n" for action, path in report.changes if action != "unchanged"), None)
+            from ..names import decode_name
+            from .output import tsv_field
+
+            changed = [(action, path) for action, path in report.changes if action != "unchanged"]
+            deliver("".join(f"{action}\t{tsv_field(decode_name(path))}\n" for action, path in changed), None)
         _say_build(report, index_path, allow_shrink)
     if dry_run and report.shrink and not allow_shrink:  # the build would refuse: so does its dry run
         error(

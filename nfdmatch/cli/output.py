@@ -191,8 +191,23 @@ def delimiter(fmt: str) -> str:
     return "," if fmt == "csv" else "\t"
 
 
+#: TSV's escapes (as PostgreSQL's COPY and MySQL's TSV): a field never holds a TAB or a line
+#: break, so ``cut -f`` and ``awk -F'\t'`` split every line right
+TSV_ESCAPES = {"\\": "\\\\", "\t": "\\t", "\n": "\\n", "\r": "\\r"}
+_TSV_SPECIAL = str.maketrans(TSV_ESCAPES)
+
+
+def tsv_field(value: str) -> str:
+    """``value`` as a TSV field: backslash, TAB, newline and carriage return written
+    ``\\\\``, ``\\t``, ``\\n``, ``\\r``; nothing quoted."""
+    return value.translate(_TSV_SPECIAL)
+
+
 def delimited_text(header: list[str], rows, fmt: str) -> str:
-    """A header line then the rows (lists of str), as CSV or TSV."""
+    """A header line then the rows (lists of str), as CSV (RFC 4180 quoting) or TSV
+    (backslash escapes, :func:`tsv_field`)."""
+    if fmt == "tsv":
+        return "".join("\t".join(map(tsv_field, row)) + "\n" for row in (header, *rows))
     buf = io.StringIO()
     writer = csv.writer(buf, delimiter=delimiter(fmt), lineterminator="\n")
     writer.writerow(header)
@@ -202,7 +217,9 @@ def delimited_text(header: list[str], rows, fmt: str) -> str:
 
 def delimited_fields(values: list[str], fmt: str) -> list[str]:
     """Each value as :func:`delimited_text` writes it as the first field of a row of
-    several (quoted where it holds a separator, quote or line break)."""
+    several (CSV: quoted where it holds a separator, quote or line break; TSV: escaped)."""
+    if fmt == "tsv":
+        return [tsv_field(value) for value in values]
     buf = io.StringIO()
     writer = csv.writer(buf, delimiter=delimiter(fmt), lineterminator="\n")
     fields = []
