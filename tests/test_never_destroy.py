@@ -490,3 +490,19 @@ def test_csv_keeps_its_quoting():
     from nfdmatch.cli.output import delimited_text
 
     assert delimited_text(["a"], [['x,"y"\nz']], "csv") == 'a\n"x,""y""\nz"\n'
+
+
+# --------------------------------------------------------------------------- --version
+
+
+@pytest.mark.parametrize("setting, name", [("numpy", "numpy"), ("auto", None)])
+def test_version_names_the_kernels_that_compute(monkeypatch, setting, name):
+    from nfdmatch.matching import kernels
+
+    monkeypatch.setattr(kernels, "_chosen", None)  # decided afresh from the environment
+    monkeypatch.setenv("NFDMATCH_KERNELS", setting)
+    code, out, _ = run("--version")
+    assert code == 0
+    version, said = out.splitlines()
+    assert version.startswith("nfdmatch, version ")
+    assert said.startswith("kernels: ") and said.split()[1] in ((name,) if name else ("aot", "numba", "numpy"))
