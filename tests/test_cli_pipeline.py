@@ -376,3 +376,15 @@ def test_the_readme_makefile_runs_and_a_second_run_rebuilds_nothing(tmp_path):
     third = make()
     assert third.returncode != 0 and "bad.csv" in third.stderr
     assert os.stat(report).st_mtime_ns == before["report.csv"]
+    os.remove(tmp_path / "queries" / "bad.csv")
+
+    # a bad curve (issue 40): --strict keeps the index as it was, so every make fails until
+    # it is fixed, instead of the second one taking an index with a failed file for done
+    (tmp_path / "curves" / "broken.csv").write_text("x,y,z\n1,2,3\n4,oops,6\n")
+    for _ in range(2):
+        failing = make()
+        assert failing.returncode != 0 and "broken.csv" in failing.stderr
+        assert os.stat(tmp_path / "curves.h5").st_mtime_ns == before["curves.h5"]
+    os.remove(tmp_path / "curves" / "broken.csv")
+    fixed = make()
+    assert fixed.returncode == 0, fixed.stderr

@@ -506,3 +506,36 @@ def test_version_names_the_kernels_that_compute(monkeypatch, setting, name):
     version, said = out.splitlines()
     assert version.startswith("nfdmatch, version ")
     assert said.startswith("kernels: ") and said.split()[1] in ((name,) if name else ("aot", "numba", "numpy"))
+
+
+# --------------------------------------------------------------------------- index build --strict
+
+
+def test_a_strict_build_with_a_failed_file_exits_3_and_keeps_the_index(tmp_path):
+    lib = tmp_path / "lib"
+    shutil.copytree(LIBRARY, lib)
+    index = tmp_path / "i.h5"
+    assert run("index", "build", lib, "--index", index, "-q", "-j", 1)[0] == 0
+    os.utime(index, ns=(10**9, 10**9))  # long ago
+    before = index.read_bytes()
+    (lib / "broken.csv").write_text("x,y,z\n1,2,3\n4,oops,6\n")
+    for _ in range(2):  # and again: a strict build never takes the failure for done
+        code, _, err = run("index", "build", lib, "--index", index, "--strict", "-j", 1)
+        assert code == 3 and "broken.csv" in err and "not written (--strict)" in err
+        assert index.read_bytes() == before and index.stat().st_mtime_ns == 10**9
+    assert run("index", "build", lib, "--index", index, "-q", "-j", 1)[0] == 3  # without: written
+    assert index.read_bytes() != before
+    os.utime(index, ns=(10**9, 10**9))
+    code, _, _ = run("index", "build", lib, "--index", index, "--strict", "-j", 1)  # nothing to change
+    assert code == 3 and index.stat().st_mtime_ns == 10**9  # not made newer: the build did not succeed
+
+
+def test_a_strict_build_of_a_new_index_with_a_failed_file_writes_nothing(tmp_path):
+    lib = tmp_path / "lib"
+    shutil.copytree(os.path.join(LIBRARY, "knotess"), lib)
+    (lib / "broken.csv").write_text("x,y,z\n1,2,3\n4,oops,6\n")
+    code, out, _ = run("index", "build", lib, "--index", tmp_path / "i.h5", "--strict", "--format", "json")
+    assert code == 3 and sorted(os.listdir(tmp_path)) == ["lib"]
+    import json
+
+    assert json.loads(out)["failed"] == 1

@@ -57,6 +57,12 @@ def index():
     help="Seconds to wait for another build's lock (0: fail at once).",
 )
 @click.option(
+    "--strict",
+    is_flag=True,
+    help="When any file fails, write nothing (exit 3, the index as it was): a Makefile then runs "
+    "the build again until every file reads, instead of taking an index with a failed file for done.",
+)
+@click.option(
     "--allow-shrink",
     is_flag=True,
     help="Allow a build that removes more than half of the index's files (or all of them).",
@@ -97,6 +103,7 @@ def index_build(
     dry_run,
     jobs,
     wait,
+    strict,
     allow_shrink,
     file_timeout,
     graph_k,
@@ -156,12 +163,12 @@ def index_build(
     started = datetime.now(timezone.utc)
     options = dict(
         **descriptor, glob=glob_pattern, input_format=input_format,
-        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k,
+        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k, strict=strict,
     )  # fmt: skip
     report = _run_build(
         list(sources), index_path, options, jobs, file_timeout, (scheduler, scheduler_timeout), output_format, started
     )
-    _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started)
+    _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started, strict)
 
 
 def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, cluster_at: tuple, output_format, started):
@@ -194,7 +201,9 @@ def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, clu
             cluster.close()
 
 
-def _say_build_result(report, index_path, dry_run: bool, allow_shrink: bool, output_format: str, started) -> None:
+def _say_build_result(
+    report, index_path, dry_run: bool, allow_shrink: bool, output_format: str, started, strict: bool = False
+) -> None:
     """Notices and failures on stderr, the summary (or a dry run's changes) on stdout, and
     the exit: 2 for a dry run its build would refuse, else by the failed files."""
     for notice in report.notices:
@@ -210,7 +219,7 @@ def _say_build_result(report, index_path, dry_run: bool, allow_shrink: bool, out
 
             changed = [(action, path) for action, path in report.changes if action != "unchanged"]
             deliver("".join(f"{action}\t{tsv_field(decode_name(path))}\n" for action, path in changed), None)
-        _say_build(report, index_path, allow_shrink)
+        _say_build(report, index_path, allow_shrink, strict)
     if dry_run and report.shrink and not allow_shrink:  # the build would refuse: so does its dry run
         error(
             f"{index_path}: a build would refuse to remove {report.shrink[0]} of {report.shrink[1]} files "
@@ -280,12 +289,18 @@ def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict
     return summary
 
 
-def _say_build(report, index_path: str, allow_shrink: bool) -> None:
+def _say_build(report, index_path: str, allow_shrink: bool, strict: bool = False) -> None:
     """The build's summary in words, on stderr."""
     verb = (
         "would change"
         if report.dry_run
-        else (f"indexed into {index_path}" if report.written else f"{index_path} is up to date")
+        else (
+            f"indexed into {index_path}"
+            if report.written
+            else (
+                f"{index_path} not written (--strict)" if strict and report.failures else f"{index_path} is up to date"
+            )
+        )
     )
     shrunk = (
         ""

@@ -23,6 +23,9 @@ dry_run : report what the build would do and write nothing: files are read and
 jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
     ``file_timeout`` is given).
 wait : seconds to wait for another build's lock (0: fail at once).
+strict : when any file fails (newly or still), write nothing: the index stays as it was
+    (``written`` False, ``failures`` and ``changes`` as the build would have had them), so
+    that Make runs the build again until every file reads.
 graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --rerank``);
     None keeps an existing graph's K (no graph for an index without one), 0 drops it.
 progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
@@ -185,6 +188,7 @@ def build_index(
     graph=None,
     runner=None,
     graph_runner=None,
+    strict=False,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
     walked; None or empty: the sources the index records) in ``index_path`` (None:
@@ -234,10 +238,10 @@ def build_index(
             write_new_index(
                 report, real_index, plan, old, jobs, lock, progress, file_timeout,
                 sources=(stored_sources, glob or None), name=index_path, graph=graph, runner=runner,
-                graph_runner=graph_runner,
+                graph_runner=graph_runner, strict=strict,
             )  # fmt: skip
         else:
-            _unchanged(report, plan, old, real_index, progress)
+            _unchanged(report, plan, old, real_index, progress, strict)
     finally:
         if old is not None:
             old.close()
@@ -296,12 +300,15 @@ def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str,
     )
 
 
-def _unchanged(report: BuildReport, plan: Plan, old, real_index: str, progress) -> None:
+def _unchanged(report: BuildReport, plan: Plan, old, real_index: str, progress, strict: bool = False) -> None:
     """Nothing to change: the index is not rewritten, but it is made newer than its sources
     (under the build's lock), as Make expects of a command that succeeded: else a rule
-    ``index.h5: $(CURVES)`` reruns after every ``touch``, forever."""
+    ``index.h5: $(CURVES)`` reruns after every ``touch``, forever. ``strict`` with a file
+    that stays failed: not touched either (the build did not succeed)."""
+    stays_failed = any(item.action is not Action.COPY for item in plan.items)
     try:
-        os.utime(real_index)
+        if not (strict and stays_failed):
+            os.utime(real_index)
     except OSError:
         pass  # not ours to touch (read-only, another owner): the index is still right
     if progress is not None:
