@@ -539,3 +539,43 @@ def test_a_strict_build_of_a_new_index_with_a_failed_file_writes_nothing(tmp_pat
     import json
 
     assert json.loads(out)["failed"] == 1
+
+
+# --------------------------------------------------------------------------- help, completion, man page
+
+
+def test_help_of_a_command_is_its_help():
+    code, out, _ = run("help", "index", "build")
+    assert code == 0 and out.splitlines()[0].endswith(" index build [OPTIONS] [SOURCE...]")
+    assert out == run("index", "build", "--help")[1]
+    code, _, err = run("help", "nope")
+    assert code == 2 and "no command 'nope'" in err
+
+
+@pytest.mark.parametrize("shell, marker", [("bash", "complete -o"), ("zsh", "compdef"), ("fish", "complete ")])
+def test_completion_prints_the_script_of_each_shell(shell, marker):
+    code, out, _ = run("completion", shell)
+    assert code == 0 and "_NFDMATCH_COMPLETE" in out and marker in out
+
+
+def test_the_committed_man_page_is_the_one_the_help_gives():
+    from nfdmatch.cli import main
+    from nfdmatch.cli.help_cmds import man_page
+
+    with open(os.path.join(ROOT, "nfdmatch.1"), encoding="utf-8") as fh:
+        assert fh.read() == man_page(main), "run `make install` (or `nfdmatch help --man > nfdmatch.1`)"
+    assert ".SS nfdmatch index build" in man_page(main) and "\\-\\-strict" in man_page(main)
+
+
+def test_the_man_page_renders_without_warnings(tmp_path):
+    if shutil.which("man") is None:
+        pytest.skip("no man(1) on this machine")
+    proc = subprocess.run(
+        ["man", "--warnings", "-l", os.path.join(ROOT, "nfdmatch.1")],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "MANWIDTH": "80", "MANPAGER": "cat", "PAGER": "cat"},
+        timeout=60,
+    )
+    assert proc.returncode == 0 and "nfdmatch query" in proc.stdout
+    assert proc.stderr == ""
