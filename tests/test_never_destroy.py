@@ -579,3 +579,51 @@ def test_the_man_page_renders_without_warnings(tmp_path):
     )
     assert proc.returncode == 0 and "nfdmatch query" in proc.stdout
     assert proc.stderr == ""
+
+
+# --------------------------------------------------------------------------- --glob
+
+
+@pytest.fixture
+def families(tmp_path):
+    lib = tmp_path / "lib"
+    for family, names in (("fam000", ["a.csv", "bad1.csv"]), ("fam001", ["b.csv", "LOUD.CSV"])):
+        (lib / family).mkdir(parents=True)
+        for name in names:
+            shutil.copy(os.path.join(LIBRARY, "trefoil.csv"), lib / family / name)
+    return lib
+
+
+def _described(*args) -> list[str]:
+    code, out, err = run("describe", *args, "--format", "csv")
+    assert code == 0, err
+    return sorted(line.split(",")[0].rsplit("lib/", 1)[1] for line in out.splitlines()[1:])
+
+
+@pytest.mark.parametrize(
+    "option, pattern, kept",
+    [
+        ("--glob", "**/fam000/*.csv", ["fam000/a.csv", "fam000/bad1.csv"]),
+        ("--glob", "fam001/*", ["fam001/LOUD.CSV", "fam001/b.csv"]),
+        ("--glob", "!bad*", ["fam000/a.csv", "fam001/LOUD.CSV", "fam001/b.csv"]),
+        ("--glob", "*.csv", ["fam000/a.csv", "fam000/bad1.csv", "fam001/b.csv"]),
+        ("--iglob", "*.csv", ["fam000/a.csv", "fam000/bad1.csv", "fam001/LOUD.CSV", "fam001/b.csv"]),
+        ("--iglob", "FAM001/*.csv", ["fam001/LOUD.CSV", "fam001/b.csv"]),
+    ],
+)
+def test_glob_takes_relative_paths_exclusions_and_case(families, option, pattern, kept):
+    assert _described(families, option, pattern) == kept
+
+
+def test_an_index_records_an_iglob_and_its_next_build_keeps_it(families, tmp_path):
+    index = tmp_path / "i.h5"
+    assert run("index", "build", families, "--index", index, "--iglob", "!BAD*", "-q")[0] == 0
+    code, out, _ = run("index", "ls", "--index", index, "--format", "csv")
+    assert code == 0 and len(out.splitlines()) == 4 and "bad1" not in out
+    code, _, err = run("index", "build", "--index", index)
+    assert code == 0 and "3 unchanged" in err and "removed" in err and "0 removed" in err
+
+
+def test_glob_and_iglob_exclude_each_other(families):
+    code, _, err = run("describe", families, "--glob", "*.csv", "--iglob", "*.csv")
+    assert code == 2 and "exclude each other" in err

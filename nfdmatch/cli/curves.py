@@ -15,6 +15,7 @@ from .options import (
     descriptor_options,
     match_list_options,
     format_option,
+    glob_options,
     input_format_option,
     matching_options,
     note_inputs,
@@ -77,7 +78,7 @@ def distance(curve_a, curve_b, matching, descriptor, input_format, output_format
 
 @main.command()
 @click.argument("files", nargs=-1, required=True, metavar="FILE_OR_FOLDER...")
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
+@glob_options()
 @descriptor_options
 @input_format_option
 @format_option(("csv", "tsv", "json", "jsonl"), help_extra=" [default: by the extension of -o, else csv]")
@@ -124,7 +125,7 @@ def describe(files, glob_pattern, descriptor, input_format, output_format, outpu
 @main.command()
 @click.argument("query_spec", metavar="QUERY")
 @click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
-@match_list_options("Number of matches to list.", "Only files in folders whose name matches, e.g. '*.csv'.")
+@match_list_options("Number of matches to list.", " Of the SOURCE folders.")
 @matching_options
 @descriptor_options
 @input_format_option

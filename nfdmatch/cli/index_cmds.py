@@ -15,6 +15,7 @@ from .options import (
     error,
     finish,
     format_option,
+    glob_options,
     index_option,
     input_format_option,
     note,
@@ -45,7 +46,7 @@ def index():
 @index.command("build")
 @click.argument("sources", nargs=-1, required=False, metavar="[SOURCE...]")
 @index_option
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.obj'.")
+@glob_options(extra=" Recorded with the sources.")
 @click.option("--rebuild", is_flag=True, help="Recompute every curve, even unchanged files.")
 @click.option("--dry-run", is_flag=True, help="Print what would change (on stdout) and write nothing.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores].")

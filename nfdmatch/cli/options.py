@@ -564,6 +564,49 @@ def index_option(f):
     )(f)
 
 
+_GLOB_HELP = (
+    "Only files found in folders that match PATTERN: a name ('*.csv'), or a path below the folder "
+    "('**/fam000/*.csv', ** spans folders); '!PATTERN' keeps those that do not match ('!bad*')."
+)
+
+
+def _glob_callback(dest: str, ignore_case: bool):
+    def callback(ctx, param, value):
+        if value is None:
+            ctx.params.setdefault(dest, None)
+            return
+        if ctx.params.get(dest) is not None:
+            raise click.UsageError("--glob and --iglob exclude each other", ctx=ctx)
+        from ..sources import IGNORE_CASE
+
+        ctx.params[dest] = IGNORE_CASE + value if ignore_case else value
+
+    return callback
+
+
+def glob_options(dest: str = "glob_pattern", extra: str = ""):
+    """``--glob PATTERN`` and ``--iglob PATTERN`` (the same, ignoring case), passed on as one
+    argument ``dest``: the library's ``glob`` (:func:`nfdmatch.sources.glob_matcher`)."""
+
+    def decorate(f):
+        f = click.option(
+            "--iglob",
+            metavar="PATTERN",
+            expose_value=False,
+            callback=_glob_callback(dest, True),
+            help="As --glob, ignoring case.",
+        )(f)
+        return click.option(
+            "--glob",
+            metavar="PATTERN",
+            expose_value=False,
+            callback=_glob_callback(dest, False),
+            help=_GLOB_HELP + extra,
+        )(f)
+
+    return decorate
+
+
 # --------------------------------------------------------------------------- rows
 
 #: how ``query``/``rank`` spell the query and match columns (``--paths``)
@@ -623,7 +666,7 @@ def match_list_options(top_help: str, glob_help: str):
                     default=None,
                     help="Only list matches at most this far.",
                 ),
-                click.option("--glob", default=None, help=glob_help),
+                glob_options("glob", glob_help),
                 click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
                 paths_option,
                 exclude_self_option,

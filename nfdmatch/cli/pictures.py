@@ -13,6 +13,7 @@ from .options import (
     error,
     finish,
     format_option,
+    glob_options,
     index_option,
     input_format_option,
     matching_options,
@@ -125,7 +126,7 @@ def _picture_names(pattern: str, queries) -> list[str]:
 )
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches (with --against).")
+@glob_options(extra=" With --against.")
 @matching_options
 @optional_descriptor_options("with --against")
 @input_format_option
@@ -258,7 +259,7 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict) ->
     "write the matrix there instead of stdout. Give -o twice for both.",
     multiple=True,
 )
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches.")
+@glob_options()
 @matching_options
 @descriptor_options
 @input_format_option

@@ -27,7 +27,7 @@ from .group import main
 @main.command()
 @click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
 @index_option
-@match_list_options("Matches per query.", "Only query files in folders whose name matches.")
+@match_list_options("Matches per query.", " Of the QUERY folders.")
 @click.option(
     "--exhaustive",
     is_flag=True,
