@@ -627,3 +627,34 @@ def test_an_index_records_an_iglob_and_its_next_build_keeps_it(families, tmp_pat
 def test_glob_and_iglob_exclude_each_other(families):
     code, _, err = run("describe", families, "--glob", "*.csv", "--iglob", "*.csv")
     assert code == 2 and "exclude each other" in err
+
+
+# --------------------------------------------------------------------------- the same rules on every command
+
+
+def test_matrix_takes_any_rows_file_when_format_is_given(tmp_path):
+    code, out, err = run("matrix", os.path.join(LIBRARY, "knotess"), "-o", tmp_path / "m.out", "--format", "csv")
+    assert code == 0, err
+    assert (tmp_path / "m.out").read_text().startswith("id,") and out == ""
+
+
+def test_a_pattern_that_cannot_be_written_is_named_as_given(tmp_path):
+    pattern = str(tmp_path / "nodir" / "m-{stem}.png")
+    code, _, err = run("show", TREFOIL, "--against", LIBRARY, "-o", pattern)
+    assert code == 2 and f"Error: {pattern}: cannot write: the folder does not exist" in err
+
+
+@pytest.mark.slow
+def test_show_takes_paths_max_distance_and_exclude_self(index, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    query = os.path.join(os.path.dirname(index), "library", "trefoil.csv")
+    code, out, err = run(
+        "show", query, "--index", index, "--exclude-self", "--paths", "absolute", "--max-distance", "0.5",
+        "--top", 3, "-o", "s.svg", "--format", "csv",
+    )  # fmt: skip
+    assert code == 0, err
+    rows = [line.split(",") for line in out.splitlines()[1:]]
+    assert rows and all(os.path.isabs(r[0]) and os.path.isabs(r[2]) and os.path.exists(r[2]) for r in rows)
+    assert all(r[2] != query and float(r[3]) <= 0.5 for r in rows)
+    code, out, _ = run("show", query, "--index", index, "--exclude-self", "--max-distance", "1e-12", "-o", "t.svg")
+    assert code == 1 and len(out.splitlines()) == 1  # nothing matched: the header alone

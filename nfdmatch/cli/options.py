@@ -358,8 +358,12 @@ def _check_output_path(ctx, param, value):
     for path in paths:
         if path == STDOUT:
             continue
-        if "{" in path:  # a pattern (show): its folder is checked
-            path = path.split("{", 1)[0] + "x"
+        if "{" in path:  # a pattern (show): its folder is checked, and the pattern named
+            try:
+                check_writable(path.split("{", 1)[0] + "x")
+            except WriteError as exc:
+                raise WriteError(exc.message, path=path) from None
+            continue
         check_writable(path)
     return value
 

@@ -46,10 +46,11 @@ FORMAT_OF_EXTENSION = {
 PICTURE_EXTENSIONS = (".png", ".svg", ".pdf")
 
 
-def split_outputs(paths, formats=ROW_FORMATS) -> tuple[list[str], str | None]:
+def split_outputs(paths, formats=ROW_FORMATS, fmt: str | None = None) -> tuple[list[str], str | None]:
     """``-o`` paths of a picture command: pictures by extension (.png, .svg, .pdf), rows
     for the one other path (None: stdout; ``-o -`` is stdout too). An extension that is
-    neither a picture's nor one of ``formats`` is a usage error naming both."""
+    neither a picture's nor one of ``formats`` is a usage error naming both, unless
+    ``--format`` (``fmt``) says what the rows are, as it does for every other command."""
     pictures = [p for p in paths if os.path.splitext(p)[1].lower() in PICTURE_EXTENSIONS]
     rows = [p for p in paths if p not in pictures]
     if len(rows) > 1:
@@ -57,7 +58,7 @@ def split_outputs(paths, formats=ROW_FORMATS) -> tuple[list[str], str | None]:
             f"one -o for the rows at most (pictures end in {', '.join(PICTURE_EXTENSIONS)}); got {', '.join(rows)}"
         )
     row_output = rows[0] if rows and rows[0] != STDOUT else None
-    if row_output is not None:
+    if row_output is not None and fmt is None:
         ext = os.path.splitext(row_output)[1].lower()
         if FORMAT_OF_EXTENSION.get(ext) not in formats:
             known = [e for e, f in FORMAT_OF_EXTENSION.items() if f in formats]

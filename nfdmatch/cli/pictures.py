@@ -19,7 +19,10 @@ from .options import (
     matching_options,
     note,
     optional_descriptor_options,
+    exclude_self_option,
+    nothing_matched,
     output_option,
+    paths_option,
     refuse_input_as_output,
     say,
     some_failed,
@@ -29,6 +32,7 @@ from .output import (
     delimited_text,
     delimiter,
     deliver,
+    path_speller,
     progress_bar,
     resolve_format,
     split_outputs,
@@ -118,6 +122,9 @@ def _picture_names(pattern: str, queries) -> list[str]:
 )
 @index_option
 @click.option("--top", type=click.IntRange(min=1, max=23), default=5, show_default=True, help="Matches to draw.")
+@click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only draw matches at most this far.")
+@exclude_self_option
+@paths_option
 @output_option(
     help="The picture to write (.png, .svg or .pdf); for several queries a pattern with {stem} "
     "or {n}, e.g. 'matches-{stem}.png'. Another -o FILE (not a picture) gets the rows drawn.",
@@ -140,6 +147,9 @@ def show(
     against,
     index_path,
     top,
+    max_distance,
+    exclude_self,
+    paths,
     output,
     size,
     renderer,
@@ -168,19 +178,22 @@ def show(
     """
     from ..render import render_matches
 
-    pictures, rows_output = split_outputs(output)
+    pictures, rows_output = split_outputs(output, fmt=output_format)
     output_format = resolve_format(output_format, rows_output)
     width_height = _check_show_arguments(pictures, size, against, sources, (*descriptor.values(), glob_pattern))
     query_inputs = read_inputs([query_spec] + ([] if against else list(sources)), input_format=input_format)
     queries = query_inputs.curves
     names = _picture_names(pictures[0], queries)
     _check_pictures(names)
+    chosen = {"max_distance": max_distance, "exclude_self": exclude_self}
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, matching)
+        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, {**matching, **chosen})
+        spell_match = path_speller(paths)
     else:
         source_inputs = None
-        shown = _searched_drawn(queries, index_path, top, input_format, matching)
+        shown, spell_match = _searched_drawn(queries, index_path, top, input_format, {**matching, **chosen}, paths)
+    spell_query = path_speller(paths)
     for path in [*names, rows_output]:
         refuse_input_as_output(path)
     results = []
@@ -193,7 +206,13 @@ def show(
         ]
     write_rows(
         [
-            {"query": q.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
+            {
+                "query": spell_query(q.id),
+                "rank": s.rank,
+                "match": spell_match(s.id),
+                "distance": s.distance,
+                "source": s.source,
+            }
             for q, drawn in zip(queries, shown)
             for s in drawn
         ],
@@ -206,6 +225,7 @@ def show(
         _report_picture(result)
     failed = query_inputs.errors + (source_inputs.errors if source_inputs else [])
     finish(len(failed), query_inputs.total + (source_inputs.total if source_inputs else 0))
+    nothing_matched(sum(len(drawn) for drawn in shown))
 
 
 def _check_show_arguments(pictures, size: str, against: bool, sources, against_only: tuple) -> tuple[int, int]:
@@ -233,9 +253,10 @@ def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict) -> l
     return [show_ranked(q, curves, top=top, **descriptor, **match) for q in queries]
 
 
-def _searched_drawn(queries, index_path, top: int, input_format, match: dict) -> list:
+def _searched_drawn(queries, index_path, top: int, input_format, match: dict, paths: str = "id"):
     """What show draws per query from the index: its ``top`` matches, their curves read
-    back from their files (notes on stderr for those that cannot be)."""
+    back from their files (notes on stderr for those that cannot be); and how --paths
+    spells their ids (``id -> str``, resolved while the index is open)."""
     from functools import partial
 
     from ..formats import read_curve
@@ -249,7 +270,9 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict) ->
             shown.append(drawn)
             for message in notes:
                 note(message)
-    return shown
+        speller = path_speller(paths, idx.locate)
+        spelled = {s.id: speller(s.id) for drawn in shown for s in drawn}
+    return shown, spelled.__getitem__
 
 
 @main.command()
@@ -307,7 +330,7 @@ def matrix(
     from ..search import distance_matrix, similarity_order
 
     formats = ("csv", "tsv", "json")
-    pictures, rows_output = split_outputs(output, formats)
+    pictures, rows_output = split_outputs(output, formats, output_format)
     _check_pictures(pictures)  # before the O(N^2) work, not after it
     fmt = resolve_format(output_format, rows_output, formats, terminal="csv")
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
