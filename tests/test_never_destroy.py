@@ -658,3 +658,51 @@ def test_show_takes_paths_max_distance_and_exclude_self(index, tmp_path, monkeyp
     assert all(r[2] != query and float(r[3]) <= 0.5 for r in rows)
     code, out, _ = run("show", query, "--index", index, "--exclude-self", "--max-distance", "1e-12", "-o", "t.svg")
     assert code == 1 and len(out.splitlines()) == 1  # nothing matched: the header alone
+
+
+# --------------------------------------------------------------------------- index add / remove
+
+
+def _ls(index) -> list[str]:
+    code, out, _ = run("index", "ls", "--index", index, "--format", "csv")
+    assert code == 0
+    return sorted(line.split(",")[0] for line in out.splitlines()[1:])
+
+
+def test_index_add_and_remove_one_file_and_the_next_plain_build_agrees(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(LIBRARY, "lib")
+    os.mkdir("extra")
+    shutil.copy(TREFOIL, "extra/one.obj")
+    assert run("index", "build", "lib", "--index", "lib.h5", "-q", "-j", 1)[0] == 0
+    everything = _ls("lib.h5")
+    code, _, err = run("index", "add", "extra/one.obj", "--index", "lib.h5", "-j", 1)
+    assert code == 0 and "1 added" in err and "0 removed" in err
+    assert _ls("lib.h5") == sorted(everything + ["extra/one.obj"])
+    code, _, err = run("index", "build", "--index", "lib.h5")
+    assert code == 0 and "is up to date" in err  # the recorded sources followed
+    code, _, err = run("index", "remove", "lib/circle.tsv", "extra/one.obj", "--index", "lib.h5", "-j", 1)
+    assert code == 0 and "2 removed" in err
+    assert _ls("lib.h5") == [f for f in everything if f != "lib/circle.tsv"]
+    assert os.path.exists("lib/circle.tsv")  # the file itself stays
+    code, _, err = run("index", "build", "--index", "lib.h5")
+    assert code == 0 and "is up to date" in err and "lib/circle.tsv" not in _ls("lib.h5")
+    assert "excluded\tlib/circle.tsv" in run("index", "info", "--index", "lib.h5")[1]
+    code, _, err = run("index", "add", "lib/circle.tsv", "--index", "lib.h5", "-j", 1)
+    assert code == 0 and _ls("lib.h5") == everything
+    assert "excluded" not in run("index", "info", "--index", "lib.h5")[1]
+
+
+def test_removing_a_file_that_is_not_in_the_index_is_an_error_naming_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(LIBRARY, "lib")
+    assert run("index", "build", "lib", "--index", "lib.h5", "-q", "-j", 1)[0] == 0
+    before = open("lib.h5", "rb").read()
+    code, _, err = run("index", "remove", "lib/nothere.csv", "--index", "lib.h5")
+    assert code == 2 and "lib/nothere.csv: not in the index" in err
+    assert open("lib.h5", "rb").read() == before
+
+
+def test_index_add_to_a_missing_index_builds_it(tmp_path):
+    code, _, _ = run("index", "add", TREFOIL, "--index", tmp_path / "new.h5", "-q")
+    assert code == 0 and len(_ls(tmp_path / "new.h5")) == 1

@@ -9,6 +9,7 @@ from datetime import datetime, timezone
 import click
 
 from ..defaults import DEFAULT_GRAPH_K
+from ..errors import NfdError
 from .options import (
     EXIT_ERROR,
     EXIT_NOTHING,
@@ -332,6 +333,93 @@ def _graph_where(g) -> str:
     return f" on {g.processes} processes" if g.processes else ""
 
 
+def _edit_command(name: str, verb: str, doc: str):
+    """``index add`` and ``index remove``: the same options, one library function each."""
+
+    def decorate(run):
+        @index.command(name, help=doc)
+        @click.argument("files", nargs=-1, required=True, metavar="FILE...")
+        @index_option
+        @click.option(
+            "--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores]."
+        )
+        @click.option(
+            "--wait",
+            type=click.FloatRange(min=0),
+            default=0.0,
+            show_default=True,
+            help="Seconds to wait for another build's lock (0: fail at once).",
+        )
+        @click.option("--strict", is_flag=True, help="When any file fails, write nothing (exit 3).")
+        @input_format_option
+        @format_option(
+            ("text", "json"), default="text", help_extra=" of the summary (json: one line, as index build's)"
+        )
+        def command(files, index_path, jobs, wait, strict, input_format, output_format):
+            started = datetime.now(timezone.utc)
+            if "-" in files:
+                raise click.UsageError(f"index {name} takes files and folders, not stdin ('-')")
+            progress, finish_bar = progress_bar(verb)
+            try:
+                report = run(
+                    list(files), index_path, jobs=jobs, wait=wait, strict=strict, input_format=input_format,
+                    progress=progress,
+                )  # fmt: skip
+            except (NfdError, KeyboardInterrupt) as exc:
+                if output_format == "json":
+                    deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
+                raise
+            finally:
+                finish_bar()
+            _say_build_result(report, index_path, False, True, output_format, started, strict)
+
+        return command
+
+    return decorate
+
+
+@_edit_command(
+    "add",
+    "adding files",
+    """Add FILE... (files or folders) to the index; every other file stays.
+
+    The recorded sources follow (a FILE outside them becomes one of them, an excluded one
+    is excluded no more), so the next `nfdmatch index build --index X` without SOURCE
+    agrees. A missing index is built from FILE... . Exit codes as index build's.
+
+    \b
+    Example:
+      nfdmatch index add extra/one.csv --index lib.h5
+    """,
+)
+def index_add(files, index_path, **options):
+    from ..index.build import add_files
+
+    return add_files(files, index_path, **options)
+
+
+@_edit_command(
+    "remove",
+    "removing files",
+    """Remove FILE... (files, or folders: every file below) from the index; every other
+    file stays.
+
+    The recorded sources follow (a FILE that is a source is dropped, a file found in a
+    source folder is recorded as excluded from its walk), so the next `nfdmatch index
+    build --index X` without SOURCE agrees. A FILE that is not in the index is an error.
+    The file itself is not touched.
+
+    \b
+    Example:
+      nfdmatch index remove lib/old/one.csv --index lib.h5
+    """,
+)
+def index_remove(files, index_path, **options):
+    from ..index.build import remove_files
+
+    return remove_files(files, index_path, **options)
+
+
 @index.command("info")
 @index_option
 @format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
@@ -354,11 +442,15 @@ def index_info(index_path, output_format, output):
     with open_index(index_path) as idx:
         info = idx.info()
         info["graph"] = graph_k(idx)  # neighbours per curve stored for --rerank; 0: none
+        if idx.excluded():  # left out of the sources' walk by `index remove`
+            info["excluded"] = idx.excluded()
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
     sources = info.get("sources")
     lines = [f"path\t{info.get('path')}", f"sources\t{'(not recorded)' if sources is None else ' '.join(sources)}"]
+    if info.get("excluded"):
+        lines.append(f"excluded\t{' '.join(info['excluded'])}")
     lines += [
         f"{key}\t{info.get(key)}"
         for key in (

@@ -23,6 +23,9 @@ dry_run : report what the build would do and write nothing: files are read and
 jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
     ``file_timeout`` is given).
 wait : seconds to wait for another build's lock (0: fail at once).
+exclude : stored paths (docs/index-format.md "Paths and ids"; a folder: everything below
+    it) the walk leaves out, recorded with the sources (None: the recorded ones when no
+    ``sources`` are given, else none). :func:`add_files` and :func:`remove_files` set it.
 strict : when any file fails (newly or still), write nothing: the index stays as it was
     (``written`` False, ``failures`` and ``changes`` as the build would have had them), so
     that Make runs the build again until every file reads.
@@ -85,7 +88,8 @@ from dataclasses import dataclass, field
 from ..errors import IndexFormatError, InputError, ReadError, WriteError
 from .commit import write_new_index
 from .lock import Lock
-from .paths import index_file
+from ..formats import split_selector
+from .paths import index_file, openable, source_location, stored
 from .plan import (
     Action,
     Plan,
@@ -189,6 +193,7 @@ def build_index(
     runner=None,
     graph_runner=None,
     strict=False,
+    exclude=None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
     walked; None or empty: the sources the index records) in ``index_path`` (None:
@@ -213,11 +218,17 @@ def build_index(
     try:
         old = _load_old(index_path, rebuild, report.notices)
         recorded = None if old is None else old.sources()
+        old_exclude = [] if old is None else old.excluded()
         if not sources:
             sources = recorded_sources(old, recorded, index_path, real_index, base)
             if glob is None:
                 glob = recorded[1]
+            if exclude is None:
+                exclude = old_exclude
+        exclude = list(exclude or [])
         found, opens, stored_sources, unseen = find_files(sources, glob, base, report.skipped)
+        if exclude:
+            found = [f for f in found if not _under(f, exclude)]
         report.sources = stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
@@ -234,10 +245,12 @@ def build_index(
         check_shrink(report, old_files, plan, found, sources, index_path, real_index, dry_run, allow_shrink)
         if dry_run:
             _dry_run_report(report, plan, old, progress, jobs, file_timeout, runner)
-        elif _needs_write(old, plan, recorded, (stored_sources, glob or None), graph, real_index, report):
+        elif _needs_write(old, plan, recorded, (stored_sources, glob or None), graph, real_index, report) or (
+            exclude != old_exclude
+        ):
             write_new_index(
                 report, real_index, plan, old, jobs, lock, progress, file_timeout,
-                sources=(stored_sources, glob or None), name=index_path, graph=graph, runner=runner,
+                sources=(stored_sources, glob or None, exclude), name=index_path, graph=graph, runner=runner,
                 graph_runner=graph_runner, strict=strict,
             )  # fmt: skip
         else:
@@ -249,6 +262,76 @@ def build_index(
             lock.release(remove=lock.created and not os.path.lexists(real_index))
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _under(path: str, places) -> bool:
+    """Whether the stored ``path`` is one of ``places`` or below one of them."""
+    return any(path == p or path.startswith(p.rstrip("/") + "/") for p in places)
+
+
+def add_files(files, index_path=None, **options) -> BuildReport:
+    """Add ``files`` (files or folders) to the index and keep every other file: a build of
+    the recorded sources plus those not under one of them, with the recorded glob, and the
+    recorded exclusions less those files; so the next plain build (no sources) agrees. A
+    missing index is built from ``files``. ``options``: those of :func:`build_index`."""
+    index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
+    files = _as_paths(files)
+    real_index, base = _index_location(index_path)
+    old = _load_old(index_path, False, [])
+    if old is None:
+        return build_index(files, index_path, **options)
+    with old:
+        recorded, excluded = _recorded(old, index_path), old.excluded()
+    sources, glob = list(recorded[0]), recorded[1]
+    for file in files:
+        key = stored(source_location(file), base)
+        if not os.path.lexists(split_selector(file)[0]):
+            raise ReadError("no such file or folder", path=file)
+        excluded = [e for e in excluded if not _under(e, [key]) and not _under(key, [e])]
+        if not _under(key, sources):
+            sources.append(key)
+    return build_index([openable(s, base) for s in sources], index_path, glob=glob, exclude=excluded, **options)
+
+
+def remove_files(files, index_path=None, **options) -> BuildReport:
+    """Remove ``files`` (files or folders: every file below) from the index and keep every
+    other file: a named source is dropped from the recorded sources, a file found in a
+    source folder is recorded as excluded from its walk; so the next plain build agrees.
+    Each must be in the index (``InputError`` naming it otherwise). ``options``: those of
+    :func:`build_index` (a removal is never refused as a shrink: it was asked for)."""
+    index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
+    files = _as_paths(files)
+    real_index, base = _index_location(index_path)
+    old = _load_old(index_path, False, [])
+    if old is None:
+        raise InputError("no index to remove files from", path=index_path)
+    with old:
+        recorded, excluded = _recorded(old, index_path), old.excluded()
+        held = [r.path for r in old.files()]
+    sources, glob = list(recorded[0]), recorded[1]
+    for file in files:
+        key = stored(source_location(file), base)
+        if not any(_under(h, [key]) for h in held) and key not in sources:
+            raise InputError("not in the index: nothing to remove", path=file)
+        if key in sources:
+            sources.remove(key)
+        elif not _under(key, excluded):
+            excluded.append(key)
+    options.setdefault("allow_shrink", True)
+    if not sources:
+        raise InputError("removing every source would leave the index empty; delete the file instead", path=index_path)
+    return build_index([openable(s, base) for s in sources], index_path, glob=glob, exclude=excluded, **options)
+
+
+def _recorded(old, index_path: str) -> tuple:
+    recorded = old.sources()
+    if recorded is None:
+        raise InputError(
+            "the index does not record its sources (it was built by an older nfdmatch); rebuild it once "
+            "with its sources named",
+            path=index_path,
+        )
+    return recorded
 
 
 def _as_paths(sources) -> list[str]:
