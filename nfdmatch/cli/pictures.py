@@ -205,17 +205,7 @@ def show(
             for q, drawn, name in zip(queries, shown, names)
         ]
     write_rows(
-        [
-            {
-                "query": spell_query(q.id),
-                "rank": s.rank,
-                "match": spell_match(s.id),
-                "distance": s.distance,
-                "source": s.source,
-            }
-            for q, drawn in zip(queries, shown)
-            for s in drawn
-        ],
+        _drawn_rows(queries, shown, spell_query, spell_match),
         ["query", "rank", "match", "distance", "source"],
         output_format,
         rows_output,
@@ -226,6 +216,16 @@ def show(
     failed = query_inputs.errors + (source_inputs.errors if source_inputs else [])
     finish(len(failed), query_inputs.total + (source_inputs.total if source_inputs else 0))
     nothing_matched(sum(len(drawn) for drawn in shown))
+
+
+def _drawn_rows(queries, shown, spell_query, spell_match) -> list[dict]:
+    """The rows of what show drew: query, rank, match, distance, source (ids as --paths says)."""
+    return [
+        {"query": spell_query(q.id), "rank": s.rank, "match": spell_match(s.id), "distance": s.distance,
+         "source": s.source}
+        for q, drawn in zip(queries, shown)
+        for s in drawn
+    ]  # fmt: skip
 
 
 def _check_show_arguments(pictures, size: str, against: bool, sources, against_only: tuple) -> tuple[int, int]:

@@ -218,18 +218,11 @@ def build_index(
     try:
         old = _load_old(index_path, rebuild, report.notices)
         recorded = None if old is None else old.sources()
-        old_exclude = [] if old is None else old.excluded()
         if not sources:
-            sources = recorded_sources(old, recorded, index_path, real_index, base)
-            if glob is None:
-                glob = recorded[1]
-            if exclude is None:
-                exclude = old_exclude
-        exclude = list(exclude or [])
+            sources, glob, exclude = _recorded_walk(old, recorded, glob, exclude, index_path, real_index, base)
+        exclude = list(exclude or [])  # a build naming its sources drops the recorded exclusions
         found, opens, stored_sources, unseen = find_files(sources, glob, base, report.skipped)
-        if exclude:
-            found = [f for f in found if not _under(f, exclude)]
-        report.sources = stored_sources
+        found, report.sources = [f for f in found if not _under(f, exclude)], stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
         params, changed = parameters(old, samples, harmonics, scale, report.notices)
@@ -245,9 +238,7 @@ def build_index(
         check_shrink(report, old_files, plan, found, sources, index_path, real_index, dry_run, allow_shrink)
         if dry_run:
             _dry_run_report(report, plan, old, progress, jobs, file_timeout, runner)
-        elif _needs_write(old, plan, recorded, (stored_sources, glob or None), graph, real_index, report) or (
-            exclude != old_exclude
-        ):
+        elif _needs_write(old, plan, recorded, (stored_sources, glob or None, exclude), graph, real_index, report):
             write_new_index(
                 report, real_index, plan, old, jobs, lock, progress, file_timeout,
                 sources=(stored_sources, glob or None, exclude), name=index_path, graph=graph, runner=runner,
@@ -262,6 +253,13 @@ def build_index(
             lock.release(remove=lock.created and not os.path.lexists(real_index))
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _recorded_walk(old, recorded, glob, exclude, index_path: str, real_index: str, base: str):
+    """``(sources, glob, exclude)`` of a build given no sources: the recorded ones (the
+    glob and exclusions unless given)."""
+    sources = recorded_sources(old, recorded, index_path, real_index, base)
+    return sources, recorded[1] if glob is None else glob, old.excluded() if exclude is None else exclude
 
 
 def _under(path: str, places) -> bool:
@@ -361,7 +359,10 @@ def _index_location(index_path: str) -> tuple[str, str]:
 
 def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str, report: BuildReport) -> bool:
     """Whether the build must write a new index file (temporary files of an interrupted
-    build are removed first; an upgrade of format 1 is noted)."""
+    build are removed first; an upgrade of format 1 is noted). ``recorded``: the old
+    index's ``(sources, glob)``; ``new_sources``: this build's ``(sources, glob, exclude)``."""
+    if recorded is not None:
+        recorded = (*recorded, old.excluded())
     stale = remove_stale_temps(real_index)
     if stale:
         report.notices.append(
