@@ -10,6 +10,7 @@ import click
 from .inputs import read_inputs
 from .options import (
     descriptor_options,
+    elastic_options,
     error,
     finish,
     format_option,
@@ -134,6 +135,7 @@ def _picture_names(pattern: str, queries) -> list[str]:
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
 @glob_options(extra=" With --against.")
+@elastic_options
 @matching_options
 @optional_descriptor_options("with --against")
 @input_format_option
@@ -154,6 +156,7 @@ def show(
     size,
     renderer,
     glob_pattern,
+    stage,
     matching,
     descriptor,
     input_format,
@@ -168,7 +171,8 @@ def show(
     direction of its match: the query in grey under it, start points marked, direction
     of travel shown. Planar curves get a 2-D view. PNG, SVG or PDF by the extension.
     The rows drawn are printed on stdout (query, rank, match, distance, source), or
-    written to the -o FILE that is not a picture.
+    written to the -o FILE that is not a picture. --elastic draws the matches of the
+    elastic stage (as `query --elastic` orders them) and adds the columns elastic, fused.
 
     \b
     Examples:
@@ -188,11 +192,13 @@ def show(
     chosen = {"max_distance": max_distance, "exclude_self": exclude_self}
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, {**matching, **chosen})
+        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, {**matching, **chosen}, stage)
         spell_match = path_speller(paths)
     else:
         source_inputs = None
-        shown, spell_match = _searched_drawn(queries, index_path, top, input_format, {**matching, **chosen}, paths)
+        shown, spell_match = _searched_drawn(
+            queries, index_path, top, input_format, {**matching, **chosen}, stage, paths
+        )
     spell_query = path_speller(paths)
     for path in [*names, rows_output]:
         refuse_input_as_output(path)
@@ -204,9 +210,10 @@ def show(
             render_matches(q.points, q.id, drawn, name, size=width_height, renderer=renderer)
             for q, drawn, name in zip(queries, shown, names)
         ]
+    stage_columns = list(stage.columns) if stage is not None else []
     write_rows(
-        _drawn_rows(queries, shown, spell_query, spell_match),
-        ["query", "rank", "match", "distance", "source"],
+        _drawn_rows(queries, shown, spell_query, spell_match, stage_columns),
+        ["query", "rank", "match", "distance", *stage_columns, "source"],
         output_format,
         rows_output,
         group_by="query",
@@ -218,11 +225,12 @@ def show(
     nothing_matched(sum(len(drawn) for drawn in shown))
 
 
-def _drawn_rows(queries, shown, spell_query, spell_match) -> list[dict]:
-    """The rows of what show drew: query, rank, match, distance, source (ids as --paths says)."""
+def _drawn_rows(queries, shown, spell_query, spell_match, stage_columns=()) -> list[dict]:
+    """The rows of what show drew: query, rank, match, distance, the stage's columns, source
+    (ids as --paths says)."""
     return [
         {"query": spell_query(q.id), "rank": s.rank, "match": spell_match(s.id), "distance": s.distance,
-         "source": s.source}
+         **{name: getattr(s.match, name) for name in stage_columns}, "source": s.source}
         for q, drawn in zip(queries, shown)
         for s in drawn
     ]  # fmt: skip
@@ -246,14 +254,14 @@ def _check_show_arguments(pictures, size: str, against: bool, sources, against_o
     return width_height
 
 
-def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict) -> list:
+def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict, stage=None) -> list:
     """What show draws per query with --against: its ``top`` matches among ``curves``."""
     from ..show import show_ranked
 
-    return [show_ranked(q, curves, top=top, **descriptor, **match) for q in queries]
+    return [show_ranked(q, curves, top=top, stage=stage, **descriptor, **match) for q in queries]
 
 
-def _searched_drawn(queries, index_path, top: int, input_format, match: dict, paths: str = "id"):
+def _searched_drawn(queries, index_path, top: int, input_format, match: dict, stage=None, paths: str = "id"):
     """What show draws per query from the index: its ``top`` matches, their curves read
     back from their files (notes on stderr for those that cannot be); and how --paths
     spells their ids (``id -> str``, resolved while the index is open)."""
@@ -266,7 +274,9 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict, pa
     shown = []
     with open_index(index_path) as idx:
         for q in queries:
-            drawn, notes = show_searched(q, idx, top=top, read_curve=partial(read_curve, format=input_format), **match)
+            drawn, notes = show_searched(
+                q, idx, top=top, read_curve=partial(read_curve, format=input_format), stage=stage, **match
+            )
             shown.append(drawn)
             for message in notes:
                 note(message)
@@ -299,6 +309,12 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict, pa
     help="The diffused similarity over the curves' neighbour graph instead of the distance "
     "(higher is closer; docs/rerank.md).",
 )
+@click.option(
+    "--elastic",
+    is_flag=True,
+    help="The elastic stage's fused distance (exact, elastic and shape statistics at each pair's "
+    "exact optimum; docs/elastic.md) instead of the exact distance; with --rerank, its diffusion.",
+)
 @format_option(("csv", "tsv", "json"), help_extra=" of the matrix [default: by the extension of -o, else csv]")
 def matrix(
     sources,
@@ -309,6 +325,7 @@ def matrix(
     input_format,
     order,
     rerank,
+    elastic,
     output_format,
 ):
     """The distance between every pair of curves in FILE_OR_FOLDER... .
@@ -320,7 +337,8 @@ def matrix(
     similarity. With -o FILE.png, also a grey-level picture like the paper's Figure 7.
     With --rerank the entries are the re-ranked similarity of every pair (diffusion over
     the curves' 8-nearest-neighbour graph, 1 on the diagonal, higher is closer; JSON key
-    "scores"), what `query --rerank` ranks by.
+    "scores"), what `query --rerank` ranks by. With --elastic the entries are the fused
+    distance of the elastic stage (what `query --elastic` ranks by; docs/elastic.md).
 
     \b
     Examples:
@@ -339,15 +357,16 @@ def matrix(
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:
-        distances = distance_matrix(curves, progress=progress, **descriptor, **matching)
+        distances = distance_matrix(curves, progress=progress, elastic=elastic, **descriptor, **matching)
     finally:
         finish_bar()
     ids = [c.id for c in curves]
-    title = f"{matching['method']} distance, {len(ids)} curves"
+    what = "fused elastic" if elastic else matching["method"]
+    title = f"{what} distance, {len(ids)} curves"
     values = distances
     if rerank:
         values, distances = _reranked(distances, ids)
-        title = f"re-ranked similarity ({matching['method']} distance), {len(ids)} curves"
+        title = f"re-ranked similarity ({what} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
         distances = distances[permutation][:, permutation]
