@@ -15,6 +15,7 @@ from .options import (
     input_format_option,
     matching_options,
     note,
+    nothing_matched,
     output_option,
     rows_format_option,
     say,
@@ -27,7 +28,7 @@ from .group import main
 @main.command()
 @click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
 @index_option
-@match_list_options("Matches per query.", "Only query files in folders whose name matches.")
+@match_list_options("Matches per query.", " Of the QUERY folders.")
 @click.option(
     "--exhaustive",
     is_flag=True,
@@ -150,6 +151,7 @@ def query(
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
+    nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
 
 
 def _columns(details: bool, rerank: bool, stage=None) -> list[str]:
