@@ -1,7 +1,7 @@
 """The elastic stage on every development collection: retrieval quality and cost
 (issues "Similarity that bends" and "3-D curves that people call alike"; docs/elastic.md).
 
-    python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--constants | --timing]
+    python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--diffusion] [--constants | --timing]
 
 Every curve of a collection is a query against the rest (the library's own search with
 ``exclude_self``, as ``query --exclude-self``); top-1 and bull's-eye (same class among the
@@ -15,7 +15,10 @@ Every curve of a collection is a query against the rest (the library's own searc
   angle, binormal dihedral angle and distance to the centroid at 128 arc-length samples,
   Euclidean), on the raw curve and low-passed to 16 harmonics: written here, not in the
   library;
-- chance.
+- chance;
+- with ``--diffusion``: diffusion on full matrices of the exact and of the fused distance:
+  today's ``matrix --rerank`` (personalised PageRank) and a locally constrained diffusion
+  (LCDP, written here: the measurement for the diffusion still to build).
 
 With the seconds of the plain and the elastic search (the ratio is what holds on a busy
 machine), the elastic kernel's microseconds a pair, and ``query --elastic`` against the plain
@@ -106,6 +109,84 @@ def _order_of_matrix(D: np.ndarray) -> np.ndarray:
     return np.argsort(X, axis=1, kind="stable")[:, : len(D) - 1]
 
 
+def lcdp(D: np.ndarray, k: int = 8, scale_k: int = 10, iterations: int = 6) -> np.ndarray:
+    """The locally constrained diffusion (Yang, Koknar-Tezel & Latecki 2009) of a full
+    distance matrix, as the prototype of docs/elastic.md ran it (a measurement for the next
+    step, not the library's): affinity exp(-d^2 / (s_i s_j)), s the mean distance to the 10
+    nearest others; self-affinity 1; P row-normalised, P_k its k largest per row
+    renormalised; Q <- P_k Q P_k^T from Q = P, 6 times. Returns the similarity Q."""
+    X = D.astype(float).copy()
+    np.fill_diagonal(X, np.inf)
+    s = np.sort(X, axis=1)[:, :scale_k].mean(axis=1)
+    W = np.exp(-(D**2) / np.maximum(s[:, None] * s[None, :], 1e-300))
+    np.fill_diagonal(W, 1.0)
+    W = (W + W.T) / 2
+    P = W / W.sum(axis=1, keepdims=True)
+    keep = np.argsort(-P, axis=1)[:, :k]
+    Pk = np.zeros_like(P)
+    np.put_along_axis(Pk, keep, np.take_along_axis(P, keep, axis=1), axis=1)
+    Pk /= Pk.sum(axis=1, keepdims=True)
+    Q = P
+    for _ in range(iterations):
+        Q = Pk @ Q @ Pk.T
+    return Q
+
+
+def diffusion_rows(curves, labels, depth):
+    """Diffusion on full matrices of the exact and of the fused distance: today's
+    ``matrix --rerank`` (personalised PageRank) and LCDP (the benchmark's)."""
+    from nfdmatch.search import distance_matrix
+    from nfdmatch.search.rerank import diffused_similarity
+
+    T = distance_matrix(curves)
+    F = distance_matrix(curves, elastic=True)
+    ids = [c.id for c in curves]
+    rows = []
+    for name, D in (("exact", T), ("fused", F)):
+        rows.append(
+            (
+                f"matrix --rerank (PPR) on {name}",
+                scores(_order_of_matrix(-diffused_similarity(D, ids=ids)), labels, depth),
+            )
+        )
+        rows.append((f"LCDP on {name} (benchmark only)", scores(_order_of_matrix(-lcdp(D)), labels, depth)))
+    return rows
+
+
+def rerank_rows(curves, labels, depth):
+    """``query --rerank --exclude-self`` of every curve (the library's ``rerank_index``) on an
+    index with an exact graph (``--graph 10``) and on one with a fused graph (``--graph 10
+    --elastic``): rows with their seconds."""
+    import tempfile
+
+    from nfdmatch import build_index, open_index, write_curves
+    from nfdmatch.index.graph import GraphSpec
+    from nfdmatch.search.rerank import rerank_index
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = os.path.join(tmp, "curves")
+        os.makedirs(folder)
+        stored = []
+        for i, c in enumerate(curves):
+            path = os.path.join(folder, f"{i:05d}.csv")
+            write_curves(path, [Curve(np.asarray(c.points), id=path)])
+            stored.append(Curve(np.asarray(c.points), id=path))
+        for label, graph in (("exact graph 10", 10), ("--elastic graph 10", GraphSpec(10, "fused"))):
+            index = os.path.join(tmp, "i.h5")
+            if os.path.exists(index):
+                os.remove(index)
+            build_index([folder], index, graph=graph)
+            with open_index(index) as idx:
+                t = time.perf_counter()
+                found, _ = rerank_index(idx, stored, top=min(40, len(curves) - 1), exclude_self=True)
+                seconds = time.perf_counter() - t
+                position = {os.path.basename(c.id): n for n, c in enumerate(stored)}
+                order = np.array([[position[os.path.basename(m.id)] for m in f] for f in found])
+            rows.append((f"query --rerank, {label}", scores(order, labels, depth), seconds))
+    return rows
+
+
 def peer(curves, low_pass: bool) -> np.ndarray:
     """The issue's statistics descriptor: sorted PCA eigenvalues + 12-bin histograms of
     turning angle, binormal dihedral angle and distance to the centroid at 128 arc-length
@@ -136,7 +217,7 @@ def peer(curves, low_pass: bool) -> np.ndarray:
     return np.linalg.norm(X[:, None] - X[None], axis=2)
 
 
-def run_collection(name, curves, labels, depth, depths):
+def run_collection(name, curves, labels, depth, depths, diffusion=False, rerank=True):
     ids = [c.id for c in curves]
     N = len(curves)
     memory = MemoryIndex(curves)
@@ -169,6 +250,10 @@ def run_collection(name, curves, labels, depth, depths):
     chance_top1 = float(np.mean((size - 1) / (N - 1)))
     chance_bull = float(np.mean([(1 + ((depth or 2 * s) - 1) * (s - 1) / (N - 1)) / s for s in size]))
     rows.append(("chance", (chance_top1, chance_bull), None))
+    if rerank:
+        rows += rerank_rows(curves, labels, depth)
+    if diffusion:
+        rows += [(what, figures, None) for what, figures in diffusion_rows(curves, labels, depth)]
     print(f"\n{name} ({N} curves)")
     for what, (top1, bull), seconds in rows:
         took = "" if seconds is None else f"{seconds:8.2f} s"
@@ -268,6 +353,7 @@ def main():
     parser.add_argument("--depths", default="100,all", help="elastic depths to report, comma-separated ('all')")
     parser.add_argument("--constants", action="store_true", help="print the fused distance's constants")
     parser.add_argument("--timing", action="store_true", help="only the CLI timing (plain against --elastic)")
+    parser.add_argument("--diffusion", action="store_true", help="also diffusion on full matrices (PPR, LCDP)")
     args = parser.parse_args()
     if not os.path.isdir(args.data):
         sys.exit(f"no development data at {args.data}: give --data")
@@ -281,7 +367,7 @@ def main():
         return
     depths = args.depths.split(",")
     for name, (curves, labels, depth) in cols.items():
-        run_collection(name, curves, labels, depth, depths)
+        run_collection(name, curves, labels, depth, depths, args.diffusion)
     print()
     knots_check(args.data)
     kernel_timing()

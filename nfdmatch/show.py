@@ -17,7 +17,7 @@ import numpy as np
 from .matching import EXACT, INVARIANT
 from .curve import Curve
 from .descriptors import START_STEP, Descriptors, descriptors, points_at, reconstruct
-from .errors import CurveError, NfdError, ParameterError
+from .errors import CurveError, NfdError
 from .matching import Match, match_descriptors
 from .records import RankedMatch, ShownMatch
 from .search.knn import stored_descriptors
@@ -164,15 +164,13 @@ def matches_from_index(
     return shown, notes
 
 
-def _k(k: int | None, top: int | None, where: str) -> int:
+def _k(k: int | None, top: int | None, where: str) -> int | None:
     """``k``, or the deprecated ``top`` a caller still passes."""
     if top is not None:
         import warnings
 
         warnings.warn(f"{where}(top=) is deprecated: use k=", DeprecationWarning, stacklevel=3)
         k = top
-    if k is None:
-        raise ParameterError("give k: the matches to show")
     return k
 
 
@@ -187,13 +185,15 @@ def show_ranked(
     method: str = EXACT,
     direction: str = INVARIANT,
     mirror: bool = False,
+    max_distance: float | None = None,
+    exclude_self: bool = False,
     stage=None,
     top: int | None = None,
 ) -> list[ShownMatch]:
     """The best ``k`` matches (``top``: its deprecated older name) of ``query`` among
-    ``curves`` (Curves), aligned onto it.
-    ``samples, harmonics, scale`` None take the library defaults; ``stage``: a re-ordering
-    stage (:class:`~nfdmatch.search.stages.ElasticStage`), as ``rank_curves`` takes it."""
+    ``curves`` (Curves), aligned onto it. ``samples, harmonics, scale`` None take the
+    library defaults; ``max_distance``, ``exclude_self`` and ``stage`` (a re-ordering
+    stage, :class:`~nfdmatch.search.stages.ElasticStage`) as ``rank_curves`` takes them."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
     from .search import rank_curves
 
@@ -206,7 +206,10 @@ def show_ranked(
         mirror=mirror,
     )
     _drawable(query)
-    ranked = rank_curves(query, curves, k=_k(k, top, "show_ranked"), stage=stage, **params)
+    ranked = rank_curves(
+        query, curves, k=_k(k, top, "show_ranked"), max_distance=max_distance, exclude_self=exclude_self,
+        stage=stage, **params,
+    )  # fmt: skip
     return matches_from_curves(query, ranked, curves, **params)
 
 
@@ -219,16 +222,22 @@ def show_searched(
     direction: str = INVARIANT,
     mirror: bool = False,
     read_curve: Callable[[str], Curve] | None = None,
+    max_distance: float | None = None,
+    exclude_self: bool = False,
     stage=None,
     top: int | None = None,
 ) -> tuple[list[ShownMatch], list[str]]:
     """The best ``k`` matches (``top``: its deprecated older name) of ``query`` in the open
-    ``index``, aligned onto it, and the notes of :func:`matches_from_index`; ``stage`` as ``search_index`` takes it."""
+    ``index``, aligned onto it, and the notes of :func:`matches_from_index`;
+    ``max_distance``, ``exclude_self`` and ``stage`` as
+    :func:`~nfdmatch.search.search_index` takes them."""
     from .search import search_index
 
     _drawable(query)
-    k = _k(k, top, "show_searched")
-    results, _ = search_index(index, [query], k=k, method=method, direction=direction, mirror=mirror, stage=stage)
+    results, _ = search_index(
+        index, [query], k=_k(k, top, "show_searched"), method=method, direction=direction, mirror=mirror,
+        max_distance=max_distance, exclude_self=exclude_self, stage=stage,
+    )  # fmt: skip
     return matches_from_index(
         query, results[0], index, method=method, direction=direction, mirror=mirror, read_curve=read_curve
     )

@@ -21,7 +21,7 @@ from .options import (
     say,
 )
 from .output import match_row, path_speller, progress_bar
-from .query_cmd import _check_rerank_options, _columns, _note_old_format, _search_queries
+from .query_cmd import _check_fused_graph, _check_rerank_options, _columns, _note_old_format, _search_queries
 
 
 @main.command()
@@ -96,19 +96,18 @@ def report(
     t0 = time.perf_counter()
     if os.path.splitext(output)[1].lower() not in (".html", ".htm"):
         raise click.UsageError(f"-o {output}: the report is an HTML page: name it FILE.html")
-    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, None)
-    if stage is not None and rerank:
-        raise click.UsageError("--elastic and --rerank: give one of them (as `query`)")
+    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, None, stage)
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
     columns = [c for c in _columns(listing.details, rerank, stage) if c != "query"] + ["source"]
     with open_index(index_path) as idx:
         _note_old_format(idx, exhaustive, stage)
+        _check_fused_graph(idx, rerank, stage)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         results, stats = _search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (None, None, None),
             prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
-            stage=stage, **listing.search(),
+            stage=None if rerank else stage, **listing.search(),
         )  # fmt: skip
         spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
         reader = cached_reader(partial(read_curve, format=input_format))

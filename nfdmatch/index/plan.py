@@ -14,6 +14,7 @@ from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, val
 from ..errors import InputError, ParameterError, ReadError, ShrinkRefusedError
 from ..formats import format_of, split_selector
 from ..sources import _irregular, find_curve_files
+from ..names import decode_name
 from .paths import found_location, openable, source_location, stored
 from .schema import FileRecord
 
@@ -194,7 +195,7 @@ def plan_files(old, old_files, recorded, found, opens, unseen, base, params, rec
     rekey = old is not None and recorded is None
     old_rows = {}
     for i, r in enumerate(old_files):
-        key = stored(source_location(r.path), base) if rekey else r.path
+        key = stored(source_location(decode_name(r.path)), base) if rekey else r.path
         old_rows.setdefault(key, (i, r))
     found_set = set(found)
     held = {

@@ -145,6 +145,8 @@ def search_index(
     """
     top = k_or_top(k, top, "search_index")
     check_search_parameters(top, max_distance, method)
+    if stage is not None and method != DEFAULT_METHOD:
+        raise ParameterError(f"the {stage.name} stage is taken at the exact optimum: method must be {DEFAULT_METHOD}")
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     t0 = time.perf_counter()
