@@ -11,6 +11,7 @@ keeps each curve's centroid, scale and rotation).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -108,7 +109,7 @@ def matches_from_curves(
 def matches_from_index(
     query: Curve,
     results: list[RankedMatch],
-    index,
+    index: Any,
     *,
     method: str = EXACT,
     direction: str = INVARIANT,
@@ -187,7 +188,7 @@ def show_ranked(
     mirror: bool = False,
     max_distance: float | None = None,
     exclude_self: bool = False,
-    stage=None,
+    stage: Any = None,
     top: int | None = None,
 ) -> list[ShownMatch]:
     """The best ``k`` matches (``top``: its deprecated older name) of ``query`` among
@@ -215,7 +216,7 @@ def show_ranked(
 
 def show_searched(
     query: Curve,
-    index,
+    index: Any,
     *,
     k: int | None = None,
     method: str = EXACT,
@@ -224,7 +225,7 @@ def show_searched(
     read_curve: Callable[[str], Curve] | None = None,
     max_distance: float | None = None,
     exclude_self: bool = False,
-    stage=None,
+    stage: Any = None,
     top: int | None = None,
 ) -> tuple[list[ShownMatch], list[str]]:
     """The best ``k`` matches (``top``: its deprecated older name) of ``query`` in the open

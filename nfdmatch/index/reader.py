@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import h5py
@@ -255,7 +256,7 @@ class Index:
         return list(self._file_records)
 
     # -- where the files are (docs/index-format.md, "Paths and ids")
-    def sources(self):
+    def sources(self) -> tuple[list[str], str | None] | None:
         """``(paths, glob)`` of the last build, as stored (``glob`` None for none), or None for
         an index that does not record them (format 1, or an earlier format-2 writer). Read
         once: :meth:`locate` asks for every match a batch reports."""
@@ -321,7 +322,7 @@ class Index:
             return []
         return self._id_blocks(a, b)
 
-    def ids_at(self, rows) -> list[str]:
+    def ids_at(self, rows: Any) -> list[str]:
         """Curve ids of the given rows (any order, repeats allowed)."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         if len(rows) == 0:
@@ -349,7 +350,7 @@ class Index:
             got = np.asarray(self._read(lambda: self._ds["id"].asstr()[uniq], "/curves/id"), dtype=object)
         return got[inverse].tolist()
 
-    def coefficients_at(self, rows) -> np.ndarray:
+    def coefficients_at(self, rows: Any) -> np.ndarray:
         """(m, K, 3) complex64 descriptors of the given rows (any order, repeats allowed): a
         search reads only the rows that need an exact distance."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
@@ -375,7 +376,7 @@ class Index:
         "file",
     )
 
-    def read_rows(self, start: int, stop: int, columns=None, *, upcast: bool = True) -> dict:
+    def read_rows(self, start: int, stop: int, columns: Sequence[str] | None = None, *, upcast: bool = True) -> dict:
         """Rows ``[start, stop)`` as float64/complex128 arrays.
 
         Keys (all by default, or those in ``columns``): ``coefficients`` (m, K, 3) complex128;
@@ -409,14 +410,16 @@ class Index:
                 out[name] = value.astype(np.float64)
         return out
 
-    def iter_chunks(self, rows: int = ITER_CHUNK_ROWS, columns=None, *, upcast: bool = True):
+    def iter_chunks(
+        self, rows: int = ITER_CHUNK_ROWS, columns: Sequence[str] | None = None, *, upcast: bool = True
+    ) -> Iterator[tuple[int, dict]]:
         """Yield ``(start, read_rows(start, start + rows, columns))`` covering every row in order."""
         if rows < 1:
             raise ParameterError(f"rows must be at least 1, got {rows}")
         for start in range(0, self.n_curves, rows):
             yield start, self.read_rows(start, min(self.n_curves, start + rows), columns, upcast=upcast)
 
-    def statistics_at(self, rows) -> np.ndarray:
+    def statistics_at(self, rows: Any) -> np.ndarray:
         """(m, LENGTH) float64 shape statistics of the given rows (the elastic stage's,
         :func:`nfdmatch.matching.statistics.curve_statistics` of the stored coefficients):
         stored in format 3, computed from the coefficients in formats 1 and 2."""
@@ -461,18 +464,18 @@ class Index:
         ``"fused"`` (the elastic stage's: ``index build --graph K --elastic``)."""
         return graph_distance(self)
 
-    def graph_reader(self):
+    def graph_reader(self) -> Callable[[Any], tuple[np.ndarray, np.ndarray]] | None:
         """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,
         in the order of ``rows``; None when the index has no graph (docs/index-format.md)."""
         return read_graph_rows(self)
 
-    def new_rows(self):
+    def new_rows(self) -> np.ndarray | None:
         """The rows (int64, ascending) that the build which wrote the index added or
         recomputed (``/changes``, what ``pairs --new`` restricts to); None when the index
         does not record them."""
         return read_changes(self)
 
-    def search_table(self):
+    def search_table(self) -> SearchTable:
         """What a search reads (:class:`~nfdmatch.search.table.SearchTable`): the stored
         cells of a format-2 index, read cell by cell as a query opens them; for format 1,
         every row's features in one cell (read whole: slower on large indexes)."""

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -16,6 +16,9 @@ from ..curve import STDIN_ID, Curve
 from ..errors import ParameterError
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from ..records import RankedMatch
+
+if TYPE_CHECKING:
+    from ..descriptors import Descriptors
 
 __all__ = ["as_queries", "self_rule", "is_self", "drop_self", "search", "as_arrays", "stored_descriptors", "DEFAULT_K"]
 
@@ -54,7 +57,7 @@ def _curve_key(curve_id: str) -> tuple | None:
     return st.st_dev, st.st_ino, selected
 
 
-def self_rule(locate=None):
+def self_rule(locate: Callable[[str], str] | None = None) -> Callable[[str, str], bool]:
     """``rule(query_id, match_id) -> bool``: whether a match names the query's curve: the
     same id, or the same curve of the same file however the path is spelled (never for
     stdin). ``locate``: id -> a path that opens it here (an index's ids are relative to its
@@ -77,12 +80,18 @@ def self_rule(locate=None):
     return rule
 
 
-def is_self(query_id: str, match_id: str, locate=None) -> bool:
+def is_self(query_id: str, match_id: str, locate: Callable[[str], str] | None = None) -> bool:
     """One question of :func:`self_rule`."""
     return self_rule(locate)(query_id, match_id)
 
 
-def drop_self(query_id: str, matches: list[RankedMatch], k: int | None, locate=None, rule=None) -> list[RankedMatch]:
+def drop_self(
+    query_id: str,
+    matches: list[RankedMatch],
+    k: int | None,
+    locate: Callable[[str], str] | None = None,
+    rule: Callable[[str, str], bool] | None = None,
+) -> list[RankedMatch]:
     """``matches`` (ranked) without those naming the query's curve (:func:`self_rule`;
     ``rule`` one made already, for a batch), ranks renumbered, at most ``k``. The search
     asked for one match more."""
@@ -188,7 +197,7 @@ def _posed(index: Any, query: Curve, found: Sequence[RankedMatch], how: dict) ->
     return [m.replace(pose=match_descriptors(dq, stored_descriptors(index, m.row, m.id), **how)) for m in found]
 
 
-def stored_descriptors(index, row: int, curve_id: str):
+def stored_descriptors(index: Any, row: int, curve_id: str) -> Descriptors:
     """The :class:`~nfdmatch.descriptors.Descriptors` an index keeps for one row (true size
     and pose included: its rotation, centroid and scale)."""
     from ..descriptors import DescriptorBatch

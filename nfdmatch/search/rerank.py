@@ -133,7 +133,7 @@ def diffused_similarity(
 
 
 def rerank_index(
-    index,
+    index: Any,
     queries: Sequence[Curve],
     *,
     k: int = 10,
