@@ -171,3 +171,16 @@ def test_chromium_draws_the_pictures(library, tmp_path):
     assert background < pixels.shape[0] * pixels.shape[1]  # something was drawn at all
     # the queries (blue) and the matches over them (orange) were drawn, not only text
     assert near(QUERY_COLOR) > 500 and near(MATCH_COLOR) > 2000
+
+
+def test_a_query_without_matches_has_its_section_and_no_rows(library):
+    home, _ = library
+    code, _, err, out = _report(library, home / "sample_curves" / "queries", "--max-distance", "0.001")
+    assert code == 0, err
+    page = open(out, encoding="utf-8").read()
+    sections = _sections(page)
+    assert len(sections) == 3
+    counts = sorted(len(re.findall(r'<tr data-d="', s)) for s in sections)
+    assert counts[0] == 0 and counts[-1] >= 1  # 4_1-control has nothing that close; the trefoil has
+    empty = [s for s in sections if '<tr data-d="' not in s]
+    assert all(s.count('<svg class="nfd"') == 1 for s in empty)  # the query alone
