@@ -184,17 +184,16 @@ def rerank_rows(curves, labels, depth):
                 position = {os.path.basename(c.id): n for n, c in enumerate(stored)}
                 order = np.array([[position[os.path.basename(m.id)] for m in f] for f in found])
             rows.append((f"query --rerank, {label}", scores(order, labels, depth), seconds))
-            if graph != 10:
-                from nfdmatch.search import distance_matrix
-                from nfdmatch.search.rerank import diffused_similarity
+            from nfdmatch.search import distance_matrix
+            from nfdmatch.search.rerank import diffused_similarity
 
-                S = diffused_similarity(distance_matrix(stored, elastic=True), ids=[c.id for c in stored])
-                np.fill_diagonal(S, -np.inf)
-                want = np.argsort(-S, axis=1, kind="stable")[:, : order.shape[1]]
-                same = float(np.mean(order == want))
-                print(
-                    f"  (fused graph: the same entry as matrix --rerank --elastic at {same:.1%} of the top-40 places)"
-                )
+            fused = graph != 10
+            S = diffused_similarity(distance_matrix(stored, elastic=fused), ids=[c.id for c in stored])
+            np.fill_diagonal(S, -np.inf)
+            want = np.argsort(-S, axis=1, kind="stable")[:, : order.shape[1]]
+            same = float(np.mean(order == want))
+            what = "matrix --rerank --elastic" if fused else "matrix --rerank"
+            print(f"  ({label}: the same curve as {what} at {same:.1%} of the top-40 places)")
     return rows
 
 
