@@ -119,19 +119,12 @@ def query(
 
     output_format = resolve_format(output_format, output)
     _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
-    if stage is not None and rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
-        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
-    if stage is not None and scheduler:
-        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
+    _check_stage_options(stage, rerank, scheduler)
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
         _note_old_format(idx, exhaustive, stage)
-        if rerank and stage is not None and idx.graph_distance() != "fused":
-            raise click.UsageError(
-                f"--elastic with --rerank needs a graph of fused distances: build it with `nfdmatch index build "
-                f"--index {idx.path} --graph 10 --elastic` (--rerank alone diffuses over the exact graph)"
-            )
+        _check_stage_options(stage, rerank, scheduler, idx)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
@@ -221,6 +214,22 @@ def _search_queries(
         finish_bar()
         if cluster is not None:
             cluster.close()
+
+
+def _check_stage_options(stage, rerank: bool, scheduler, idx=None) -> None:
+    """Usage errors of --elastic (``stage``) with --rerank and --scheduler; given the open
+    index ``idx``, --elastic --rerank needs its graph to hold fused distances."""
+    if stage is None:
+        return
+    if rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
+        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
+    if scheduler:
+        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
+    if idx is not None and rerank and idx.graph_distance() != "fused":
+        raise click.UsageError(
+            f"--elastic with --rerank needs a graph of fused distances: build it with `nfdmatch index build "
+            f"--index {idx.path} --graph 10 --elastic` (--rerank alone diffuses over the exact graph)"
+        )
 
 
 def _check_rerank_options(rerank, depth, listing, exhaustive, matching: dict, scheduler) -> None:
