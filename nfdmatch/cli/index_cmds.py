@@ -171,12 +171,7 @@ def index_build(
             "index build reads files and folders, not stdin ('-'): an index records each file to "
             "rebuild it incrementally; save the curve to a file and index that"
         )
-    if graph_elastic and not graph_k:
-        raise click.UsageError("--elastic needs --graph K: it says what the graph's distances are")
-    if graph_elastic:
-        from ..index.graph import GraphSpec
-
-        graph_k = GraphSpec(graph_k, "fused")
+    graph_k = _graph_asked(graph_k, graph_elastic)
     started = datetime.now(timezone.utc)
     options = dict(
         **descriptor, glob=glob_pattern, input_format=input_format,
@@ -186,6 +181,18 @@ def index_build(
         list(sources), index_path, options, jobs, file_timeout, (scheduler, scheduler_timeout), output_format, started
     )
     _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started, strict)
+
+
+def _graph_asked(graph_k: int | None, elastic: bool):
+    """The build's ``graph`` of --graph K and --elastic: K (exact), a ``GraphSpec`` of fused
+    distances, or None (keep the index's)."""
+    if elastic and not graph_k:
+        raise click.UsageError("--elastic needs --graph K: it says what the graph's distances are")
+    if not elastic:
+        return graph_k
+    from ..index.graph import GraphSpec
+
+    return GraphSpec(graph_k, "fused")
 
 
 def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, cluster_at: tuple, output_format, started):

@@ -118,18 +118,17 @@ def query(
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
-    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler, stage)
-    if stage is not None and scheduler:
-        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
+    check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
+    check_stage_options(stage, rerank, scheduler)
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
-        _note_old_format(idx, exhaustive, stage)
-        _check_fused_graph(idx, rerank, stage)
+        note_old_format(idx, exhaustive, stage)
+        check_stage_options(stage, rerank, scheduler, idx)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
-        results, stats = _search_queries(
+        results, stats = search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
             prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
             stage=None if rerank else stage, **listing.search(),
@@ -141,14 +140,14 @@ def query(
         for q, res in zip(inputs.curves, results)
         for m in res
     ]
-    write_rows(rows, _columns(listing.details, rerank, stage), output_format, output, group_by="query")
+    write_rows(rows, row_columns(listing.details, rerank, stage), output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
     nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
 
 
-def _columns(details: bool, rerank: bool, stage=None) -> list[str]:
+def row_columns(details: bool, rerank: bool, stage=None) -> list[str]:
     """The columns of the match rows; with --rerank the score follows the distance, with a
     stage its columns."""
     columns = match_columns(details, stage)
@@ -157,7 +156,7 @@ def _columns(details: bool, rerank: bool, stage=None) -> list[str]:
     return columns
 
 
-def _note_old_format(idx, exhaustive: bool, stage=None) -> None:
+def note_old_format(idx, exhaustive: bool, stage=None) -> None:
     """A note that a format-1 index (no search cells) bounds every row for each query, and
     that an index before format 3 has its statistics computed on read by the elastic stage."""
     from ..index import FORMAT_VERSION
@@ -176,7 +175,7 @@ def _note_old_format(idx, exhaustive: bool, stage=None) -> None:
         )
 
 
-def _search_queries(
+def search_queries(
     idx, curves, rerank_depth, cluster_at, *, k, max_distance, prune, exclude_self, match,
     candidates=DEFAULT_RERANK_CANDIDATES, stage=None,
 ):  # fmt: skip
@@ -217,20 +216,25 @@ def _search_queries(
             cluster.close()
 
 
-def _check_fused_graph(idx, rerank: bool, stage) -> None:
-    """--elastic with --rerank diffuses over a graph of fused distances: the index must hold one."""
-    if rerank and stage is not None and idx.graph_distance() != "fused":
+def check_stage_options(stage, rerank: bool, scheduler, idx=None) -> None:
+    """Usage errors of --elastic (``stage``) with --rerank and --scheduler; given the open
+    index ``idx``, --elastic --rerank needs its graph to hold fused distances."""
+    if stage is None:
+        return
+    if rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
+        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
+    if scheduler:
+        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
+    if idx is not None and rerank and idx.graph_distance() != "fused":
         raise click.UsageError(
             f"--elastic with --rerank needs a graph of fused distances: build it with `nfdmatch index build "
             f"--index {idx.path} --graph 10 --elastic` (--rerank alone diffuses over the exact graph)"
         )
 
 
-def _check_rerank_options(rerank, depth, listing, exhaustive, matching: dict, scheduler, stage=None) -> None:
+def check_rerank_options(rerank, depth, listing, exhaustive, matching: dict, scheduler) -> None:
     """Usage errors for options that --rerank cannot take (or that need it); ``listing`` a
-    :class:`~.options.MatchListing`; ``stage`` the elastic stage, if any."""
-    if stage is not None and rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
-        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
+    :class:`~.options.MatchListing`."""
     if not rerank:
         if depth != DEFAULT_RERANK_DEPTH:
             raise click.UsageError("--rerank-depth needs --rerank")

@@ -21,7 +21,7 @@ from .options import (
     say,
 )
 from .output import match_row, path_speller, progress_bar
-from .query_cmd import _check_fused_graph, _check_rerank_options, _columns, _note_old_format, _search_queries
+from .query_cmd import check_rerank_options, check_stage_options, note_old_format, row_columns, search_queries
 
 
 @main.command()
@@ -87,67 +87,84 @@ def report(
       nfdmatch report library/ --index library.h5 --exclude-self --rerank -o neighbours.html
       nfdmatch report scans/ --index library.h5 --elastic -o elastic.html
     """
-    from functools import partial
-
-    from ..formats import read_curve
     from ..index import open_index
-    from ..report import cached_reader, report_query, write_report
+    from ..report import write_report
 
     t0 = time.perf_counter()
     if os.path.splitext(output)[1].lower() not in (".html", ".htm"):
         raise click.UsageError(f"-o {output}: the report is an HTML page: name it FILE.html")
-    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, None, stage)
+    check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, None)
+    check_stage_options(stage, rerank, None)
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
-    columns = [c for c in _columns(listing.details, rerank, stage) if c != "query"] + ["source"]
+    columns = [c for c in row_columns(listing.details, rerank, stage) if c != "query"] + ["source"]
     with open_index(index_path) as idx:
-        _note_old_format(idx, exhaustive, stage)
-        _check_fused_graph(idx, rerank, stage)
+        note_old_format(idx, exhaustive, stage)
+        check_stage_options(stage, rerank, None, idx)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
-        results, stats = _search_queries(
+        results, stats = search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (None, None, None),
             prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
             stage=None if rerank else stage, **listing.search(),
         )  # fmt: skip
-        spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
-        reader = cached_reader(partial(read_curve, format=input_format))
-        progress, finish_bar = progress_bar("drawing")
-        pages = []
-        try:
-            for n, (q, found) in enumerate(zip(inputs.curves, results), start=1):
-                entry = report_query(q, found, idx, [], read_curve=reader, **matching)
-                entry.id, entry.key = spell_query(q.id), _curve_key(q.id)
-                entry.rows = [
-                    {
-                        **match_row(entry.id, s.match),
-                        "match": spell_match(s.id),
-                        "source": s.source,
-                        "key": _curve_key(idx.locate(s.id)),
-                    }
-                    for s in entry.shown
-                ]
-                pages.append(entry)
-                if progress is not None:
-                    progress(n, len(inputs.curves))
-        finally:
-            finish_bar()
-        summary = {
-            "title": title or f"nfdmatch report of {index_path or idx.path}",
-            "index": idx.path,
-            "curves in the index": idx.n_curves,
-            "queries": len(pages),
-            "matches": sum(len(p.rows) for p in pages),
-            "order": "diffused score (--rerank)" if rerank else ("fused distance (--elastic)" if stage else "distance"),
-            "command": shlex.join(["nfdmatch", *sys.argv[1:]]) if sys.argv else "nfdmatch report",
-            "written": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-            "search seconds": round(stats.seconds, 3),
-        }
+        spell = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
+        pages = _pages(idx, inputs.curves, results, spell, input_format, matching)
+        order = "diffused score (--rerank)" if rerank else ("fused distance (--elastic)" if stage else "distance")
+        summary = _summary(idx, title or f"nfdmatch report of {index_path or idx.path}", pages, order, stats)
     if inputs.errors:
         inputs.finish()  # exits: a page of part of a batch is not written
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     size = write_report(output, pages, columns, summary)
     say(f"wrote {output} ({len(pages)} queries, {size / 2**20:.1f} MiB, {time.perf_counter() - t0:.2f} s)")
     inputs.finish()
+
+
+def _pages(idx, curves, results, spell, input_format, matching: dict) -> list:
+    """Each query of the report: its matches aligned onto it (their curves read once each),
+    its rows as `query` spells them (``spell``: the query's and the matches' spellers)."""
+    from functools import partial
+
+    from ..formats import read_curve
+    from ..report import cached_reader, report_query
+
+    spell_query, spell_match = spell
+    reader = cached_reader(partial(read_curve, format=input_format))
+    progress, finish_bar = progress_bar("drawing")
+    pages = []
+    try:
+        for n, (q, found) in enumerate(zip(curves, results), start=1):
+            entry = report_query(q, found, idx, [], read_curve=reader, **matching)
+            entry.id, entry.key = spell_query(q.id), _curve_key(q.id)
+            entry.rows = [
+                {
+                    **match_row(entry.id, s.match),
+                    "match": spell_match(s.id),
+                    "source": s.source,
+                    "key": _curve_key(idx.locate(s.id)),
+                }
+                for s in entry.shown
+            ]
+            pages.append(entry)
+            if progress is not None:
+                progress(n, len(curves))
+    finally:
+        finish_bar()
+    return pages
+
+
+def _summary(idx, title: str, pages: list, order: str, stats) -> dict:
+    """The page's summary: what was searched, how, when, and how long it took."""
+    return {
+        "title": title,
+        "index": idx.path,
+        "curves in the index": idx.n_curves,
+        "queries": len(pages),
+        "matches": sum(len(p.rows) for p in pages),
+        "order": order,
+        "command": shlex.join(["nfdmatch", *sys.argv[1:]]) if sys.argv else "nfdmatch report",
+        "written": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+        "search seconds": round(stats.seconds, 3),
+    }
 
 
 def _curve_key(spec: str) -> str:

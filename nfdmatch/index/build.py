@@ -7,7 +7,11 @@ Parameters
 ----------
 sources : path or list of paths: files (taken whatever their extension) or folders
     (recursive; known extensions; hidden files and folders skipped). None or empty:
-    the sources the index records (its last build's), re-scanned.
+    the sources the index records (its last build's), re-scanned. Or curves in memory
+    (:class:`~nfdmatch.Curve` s or (n, 3) arrays): written first, in order, into one OBJ
+    file, ``curves_file`` (default: the index's path with ``.curves.obj`` for its
+    extension), which the index then records as its source: row i is curve i, and the
+    file is there for ``show`` and later builds.
 index_path : the index file (None: :func:`default_index_path`). Its folder must exist. A
     symbolic link is followed: its target is replaced (the link stays) and locked.
 samples, harmonics, scale : descriptor parameters; None keeps the existing index's value
@@ -84,18 +88,13 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
-
-
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
-from ..curve import Curve
-from ..formats.obj import write as write_obj
-from ..errors import IndexFormatError, InputError, ParameterError, ReadError, WriteError
+from ..errors import IndexFormatError, InputError, ReadError, WriteError
 from .commit import write_new_index
+from .curves_in_memory import memory_sources
 from .lock import Lock
 from ..formats import split_selector
 from .paths import index_file, openable, source_location, stored
@@ -213,22 +212,12 @@ def build_index(
     describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
     build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
     total)``; ``file_timeout``: seconds one file may take; ``runner``: computes the tasks
-    instead of the local pool; ``graph_runner``: searches the graph's rows. Every
-    parameter, the files' paths and the errors raised are described in full in this
-    module's docstring.
-
-    ``sources`` may also be curves in memory (:class:`~nfdmatch.Curve` s or (n, 3) arrays):
-    they are written first, in order, into one OBJ file, ``curves_file`` (default: the
-    index's path with ``.curves.obj`` for its extension), which the index then records as
-    its source: row i is curve i, and the file is there for ``show`` and later builds.
+    instead of the local pool; ``graph_runner``: searches the graph's rows; ``curves_file``:
+    see ``sources``. Each is described in full in this module's docstring.
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
-    if _in_memory(sources):
-        sources = [_write_curves(sources, index_path, curves_file)]
-    elif curves_file is not None:
-        raise ParameterError("curves_file is where curves in memory are written: give curves")
-    sources = _as_paths(sources)
+    sources = _as_paths(memory_sources(sources, index_path, curves_file))
     jobs = check_arguments(jobs, file_timeout, input_format, samples, harmonics)
     real_index, base = _index_location(index_path)
     report = BuildReport(dry_run=bool(dry_run))
@@ -272,34 +261,6 @@ def build_index(
             lock.release(remove=lock.created and not os.path.lexists(real_index))
     report.seconds = time.perf_counter() - t0
     return report
-
-
-def _in_memory(sources: Any) -> bool:
-    """Whether ``sources`` are curves (a Curve, an array, or a sequence of them), not paths."""
-    if isinstance(sources, (Curve, np.ndarray)):
-        return True
-    if isinstance(sources, (str, bytes, os.PathLike)) or sources is None:
-        return False
-    items = list(sources)
-    kinds = {isinstance(s, (Curve, np.ndarray, list, tuple)) for s in items}
-    if kinds == {True, False}:
-        raise ParameterError("sources are either paths or curves in memory, not both")
-    return kinds == {True}
-
-
-def _write_curves(curves: Any, index_path: str, curves_file: str | os.PathLike[str] | None) -> str:
-    """The file holding curves given in memory (written whole, atomically; identical bytes
-    leave it as it was, so that a second build of the same curves recomputes nothing)."""
-    if curves_file is None:
-        curves_file = os.path.splitext(index_path)[0] + ".curves.obj"
-    path = os.fspath(curves_file)
-    if isinstance(curves, (Curve, np.ndarray)):
-        curves = [curves]
-    points = [c.points if isinstance(c, Curve) else np.asarray(c, dtype=np.float64) for c in curves]
-    if not points:
-        raise InputError("no curves to index")
-    write_obj(path, points)
-    return str(path)
 
 
 def _recorded_walk(old, recorded, glob, exclude, index_path: str, real_index: str, base: str):

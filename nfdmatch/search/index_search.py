@@ -113,8 +113,7 @@ def search_index(
         ``search_table()`` and ``iter_chunks``).
     queries : sequence of :class:`~nfdmatch.curve.Curve`; descriptors are computed with the
         index's own samples, harmonics and scale.
-    k : matches per query (None: every row within ``max_distance``); ``top`` is its
-        deprecated older name.
+    k : matches per query (None: every row within ``max_distance``; ``top``: its old name).
     max_distance : only matches at most this far.
     method, direction, mirror : as in :func:`nfdmatch.distance`.
     prune : False computes every exact distance (``query --exhaustive``: the reference the
@@ -132,16 +131,14 @@ def search_index(
 
     Returns
     -------
-    ``(results, stats)``: ``results[i]`` lists query i's matches as
-    :class:`~nfdmatch.records.RankedMatch` (rank, id, distance, shift, reversed, mirrored,
-    row: the match's row in the index) sorted by distance then id; ``stats`` a
-    :class:`SearchStats`.
+    ``(results, stats)``: ``results[i]`` lists query i's matches as :class:`~nfdmatch.records.RankedMatch`
+    (rank, id, distance, shift, reversed, mirrored, row: the match's row in the index) sorted
+    by distance then id; ``stats`` a :class:`SearchStats`.
 
-    Pruned search: one best-first order over the whole index per query
-    (:func:`nfdmatch.search.engine.search_block`): cells by their bound, rows by their
-    invariant bound, then the truncated-harmonic bound, then exact distances, stopping when
-    the next bound exceeds the k-th distance. No false dismissals: every bound is proven
-    never to exceed the exact distance.
+    Pruned search: one best-first order over the whole index per query (:func:`.engine.search_block`):
+    cells by their bound, rows by their invariant bound, then the truncated-harmonic bound, then
+    exact distances, stopping when the next bound exceeds the k-th distance. No false
+    dismissals: every bound is proven never to exceed the exact distance.
     """
     top = k_or_top(k, top, "search_index")
     check_search_parameters(top, max_distance, method)
