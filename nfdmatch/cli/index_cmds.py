@@ -343,6 +343,7 @@ def index_info(index_path, output_format, output):
         for key in (
             "format",
             "format_version",
+            "metadata",
             "nfdmatch_version",
             "files",
             "curves",

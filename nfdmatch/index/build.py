@@ -284,12 +284,17 @@ def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str,
     upgrade = old is not None and old.format_version < FORMAT_VERSION
     if upgrade:
         report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
+    # a file whose metadata HDF5 parses unchecked is rewritten in the checked kind
+    rewrite = old is not None and not upgrade and not old.checked_metadata
+    if rewrite:
+        report.notices.append("rewriting the index with checked metadata (older HDF5 structures or heap attributes)")
     return (
         old is None
         or plan.recompute_all
         or bool(plan.tasks)
         or bool(plan.removed)
         or upgrade
+        or rewrite
         or recorded != new_sources
         or graph_changes(old, graph)
         or any(it.path != it.old.path for it in plan.items if it.old)

@@ -23,7 +23,7 @@ from .graph_build import blocks_to_search, plan_graph, store_graph, write_graph
 from .paths import curve_ids
 from .plan import Action, Plan
 from .pool import run_tasks
-from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short
+from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short, set_text
 from .search_group import write_search_group
 from .writer import CopyRun, CurveWriter, Space, fsync_path, write_files_table, write_sources
 
@@ -257,14 +257,14 @@ def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, act
 
 def _write_attributes(attrs, params: dict, old, now: str) -> None:
     """The root attributes of a new index file (docs/index-format.md)."""
-    attrs["format"] = INDEX_FORMAT
+    set_text(attrs, "format", INDEX_FORMAT)
     attrs["format_version"] = np.int64(FORMAT_VERSION)
-    attrs["nfdmatch_version"] = __version__
+    set_text(attrs, "nfdmatch_version", __version__)
     attrs["samples"] = np.int64(params["samples"])
     attrs["harmonics"] = np.int64(params["harmonics"])
-    attrs["scale"] = params["scale"]
-    attrs["created"] = old.created if old is not None and old.created else now
-    attrs["updated"] = now
+    set_text(attrs, "scale", params["scale"])
+    set_text(attrs, "created", old.created if old is not None and old.created else now)
+    set_text(attrs, "updated", now)
 
 
 def _write_cause(exc: BaseException) -> str:

@@ -18,7 +18,7 @@ from ..defaults import DEFAULT_GRAPH_K  # neighbours per row when --graph is giv
 from ..errors import IndexFormatError
 from ..search.engine import TIE
 from .arrays import unique_rows
-from .schema import Problem, stored_dataset
+from .schema import Problem, stored_dataset, text_attr
 
 __all__ = [
     "read_graph",
@@ -146,11 +146,9 @@ def graph_datasets(index):
 
 
 def _graph_checksums(g) -> bool | None:
-    value = g.attrs.get("checksums")
-    if value is None:
+    if "checksums" not in g.attrs:
         return False
-    if isinstance(value, bytes):
-        value = value.decode("utf-8", "replace")
+    value = text_attr(g.attrs, "checksums")
     return True if value == GRAPH_CHECKSUMS else None
 
 

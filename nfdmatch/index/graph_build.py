@@ -15,7 +15,7 @@ from ..search.engine import Cascade
 from ..search.graph import GraphLists, graph_blocks, neighbour_lists, update_copied
 from .arrays import unique_rows
 from .graph import GRAPH_CHECKSUMS, GRAPH_CHUNK_ROWS, IN_MEMORY_ROWS, GraphStats, old_graph_k, read_graph
-from .schema import create_checked
+from .schema import create_checked, set_text
 from .search_group import search_table
 
 __all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan"]
@@ -187,10 +187,10 @@ def _write_group(h5, k: int, neighbour, distance) -> None:
     """The /graph group: its attributes and checked datasets."""
     g = h5.create_group("graph")
     g.attrs["k"] = np.int64(k)
-    g.attrs["method"] = "exact"
-    g.attrs["direction"] = "invariant"
+    set_text(g.attrs, "method", "exact")
+    set_text(g.attrs, "direction", "invariant")
     g.attrs["mirror"] = np.int64(0)
-    g.attrs["checksums"] = GRAPH_CHECKSUMS
+    set_text(g.attrs, "checksums", GRAPH_CHECKSUMS)
     create_checked(g, "neighbour", neighbour, chunk_rows=GRAPH_CHUNK_ROWS)
     create_checked(g, "distance", distance, chunk_rows=GRAPH_CHUNK_ROWS)
 

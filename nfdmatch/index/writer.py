@@ -13,7 +13,7 @@ import re
 import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, excerpt
-from .schema import _SHA, STR, CRC_ROWS, FileRecord, curve_layout, block_crcs, create_checked, fill_value
+from .schema import _SHA, STR, CRC_ROWS, FileRecord, curve_layout, block_crcs, create_checked, fill_value, set_text
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
@@ -243,7 +243,7 @@ def write_sources(h5, paths: list[str], glob: str | None) -> None:
     """/sources: the stored sources of this build and its glob (docs/index-format.md)."""
     g = h5.create_group("sources")
     create_checked(g, "path", np.array(list(paths), dtype=object), STR)
-    g.attrs["glob"] = glob or ""
+    set_text(g.attrs, "glob", glob or "")
 
 
 def fsync_path(path: str, directory: bool = False, strict: bool = False) -> None:
