@@ -27,10 +27,11 @@ from dataclasses import dataclass, fields
 import click
 
 from ..errors import NfdError, WriteError
+from .start import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, raising
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
-#: 128 + the signal number, as a shell reports a process ended by SIGINT / SIGTERM
-EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
+# EXIT_INTERRUPTED, EXIT_TERMINATED (start.py): 128 + the signal number, as a shell
+# reports a process ended by SIGINT / SIGTERM
 ROW_FORMATS = ("table", "csv", "tsv", "json", "jsonl")
 
 QUIET, NORMAL, VERBOSE = 0, 1, 2
@@ -56,7 +57,8 @@ class NfdGroup(click.Group):
 
     def invoke(self, ctx):
         started = time.perf_counter()
-        restore = _catch_sigterm() if ctx.parent is None else None
+        # the first SIGINT/SIGTERM raises while the command runs, later ones are ignored
+        restore = raising() if ctx.parent is None else None
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the library cleaned up on its way out
@@ -90,27 +92,6 @@ def _say_kernels_unused() -> None:
     reason = aot.unused_reason() if aot is not None else None
     if reason:
         note(reason, prefix="Warning: ")
-
-
-class Terminated(KeyboardInterrupt):
-    """Raised in the main thread on SIGTERM, so that a command unwinds as on Ctrl-C
-    (temporary files removed, worker processes stopped) and exits 143."""
-
-
-def _raise_terminated(signum, frame):
-    raise Terminated()
-
-
-def _catch_sigterm():
-    """SIGTERM raises :class:`Terminated` while a command runs; returns what restores the
-    previous handler (None off the main thread, where handlers cannot be set)."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 def _set_verbosity(ctx, param, value):

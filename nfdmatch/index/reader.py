@@ -321,7 +321,8 @@ class Index:
             ids = self._ds["id"]
             cut = np.flatnonzero(np.diff(uniq) != 1) + 1  # runs of consecutive rows
             runs = [(int(s[0]), int(s[-1]) + 1) for s in np.split(uniq, cut)]
-            got = np.asarray(self._read(self._strings(ids, runs, lambda: ids.asstr()[uniq]), "/curves/id"), dtype=object)
+            values = self._read(self._strings(ids, runs, lambda: ids.asstr()[uniq]), "/curves/id")
+            got = np.asarray(values, dtype=object)
         return got[inverse].tolist()
 
     def coefficients_at(self, rows) -> np.ndarray:
