@@ -7,7 +7,8 @@ returns, issue 34) no handler runs, and no Python thread either, so no watchdog 
 help. So :func:`run` forks before anything heavy is imported: the **command** runs in the
 child; the parent, the **watchdog**, holds nothing but the interpreter and waits. On
 SIGINT/SIGTERM (its own, or its process group's: a terminal, ``timeout``, systemd) the
-watchdog passes the signal on to the command and gives it :data:`GRACE` seconds to clean
+watchdog passes the signal on to a command still running :data:`PASS_ON_AFTER` seconds
+later (a group's signal reached it already) and gives it :data:`GRACE` seconds to clean
 up and exit as usual (130 / 143, one line: ``cli/options.py``); a command still there then
 is killed (SIGKILL) and the watchdog exits 130 / 143 with one line. What such a command
 leaves is what ``kill -9`` leaves: its temporary index file (removed by the next build into
@@ -35,6 +36,8 @@ import time
 #: seconds a command has after SIGINT/SIGTERM before the watchdog kills it (the goal: gone
 #: within 1 s; a command's own clean-up takes milliseconds)
 GRACE = 0.8
+#: seconds after which the watchdog passes its signal on to a command still running
+PASS_ON_AFTER = 0.05
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 _STOPPING = (signal.SIGINT, signal.SIGTERM)
 
@@ -61,6 +64,8 @@ def _say(line: str) -> None:
 
 def _exit_now(signum, frame):
     """Before a command runs: nothing to clean up, so the one line and the exit code now."""
+    for s in _STOPPING:  # a second signal would run this again, between two of its lines
+        signal.signal(s, signal.SIG_IGN)
     _say(message(signum))
     os._exit(exit_code(signum))
 
@@ -127,24 +132,35 @@ def _watch(pid: int) -> None:
     """The watchdog's life: wait for the command; on SIGINT/SIGTERM/SIGHUP pass it on and
     keep the deadline. Never returns."""
     signum = deadline = None
+    passed_on, passed_on_at = False, 0.0
     waited = _heeded(_WAITED)
     while True:
         if deadline is None:
             info = signal.sigwaitinfo(waited)
         else:
-            info = signal.sigtimedwait(waited, max(0.0, deadline - time.monotonic()))
+            wake = deadline if passed_on else min(deadline, passed_on_at)
+            info = signal.sigtimedwait(waited, max(0.0, wake - time.monotonic()))
         done, status = os.waitpid(pid, os.WNOHANG)
         if done:
             _mirror(status)
-        if info is None:  # the deadline passed
+        now = time.monotonic()
+        if signum is not None and not passed_on and now >= passed_on_at:
+            # still there: the signal was this process's alone (`kill PID`), or the command
+            # is inside a long call (where the signal waits, and the deadline ends it)
+            os.kill(pid, signum)
+            passed_on = True
+        if deadline is not None and now >= deadline:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
             _say(f"{message(signum)}: the command did not stop within {GRACE} s (inside a long call); killed")
             os._exit(exit_code(signum))
-        if info.si_signo != signal.SIGCHLD and signum is None:
+        if info is not None and info.si_signo != signal.SIGCHLD and signum is None:
             signum = info.si_signo
-            os.kill(pid, signum)  # `kill PID` reaches this process alone
-            deadline = time.monotonic() + GRACE
+            # a signal to the process group (a terminal, `timeout`) reached the command too:
+            # it is passed on only if the command has not ended a moment later, so that it
+            # does not come twice
+            passed_on_at = now + PASS_ON_AFTER
+            deadline = now + GRACE
 
 
 def _heeded(signals) -> list:
