@@ -27,10 +27,10 @@ from dataclasses import dataclass, fields
 import click
 
 from ..errors import NfdError, WriteError
-from .start import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, raising
+from .signals import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, raising
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
-# EXIT_INTERRUPTED, EXIT_TERMINATED (start.py): 128 + the signal number, as a shell
+# EXIT_INTERRUPTED, EXIT_TERMINATED (signals.py): 128 + the signal number, as a shell
 # reports a process ended by SIGINT / SIGTERM
 ROW_FORMATS = ("table", "csv", "tsv", "json", "jsonl")
 

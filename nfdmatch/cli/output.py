@@ -85,7 +85,7 @@ def path_speller(mode: str, locate=None):
     no file (stdin) stay as they are."""
     if mode == "id":
         return lambda curve_id: curve_id
-    from .inputs import STDIN_ID
+    from ..curve import STDIN_ID
 
     def spell(curve_id: str) -> str:
         if curve_id.startswith(STDIN_ID):

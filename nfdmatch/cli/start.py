@@ -16,9 +16,9 @@ that index, docs/index-format.md) and its lock (released by the kernel at its de
 
 Until a command runs (imports, argument parsing) a signal ends the process at once with
 that one line and exit code: nothing is held yet. While a command runs, the first signal
-raises in the main thread (:class:`KeyboardInterrupt`, or :class:`Terminated` for SIGTERM)
-and later ones are ignored, so that the first unwinds with its clean-ups uninterrupted
-(:func:`raising`, installed by the group for the duration of a command).
+raises in the main thread (:class:`KeyboardInterrupt`, or ``signals.Terminated`` for
+SIGTERM) and later ones are ignored, so that the first unwinds with its clean-ups
+uninterrupted (``signals.raising``, installed by the group for the duration of a command).
 
 The command's exit status is the watchdog's: its exit code, or, when a signal killed it
 (a crash), the same signal. ``NFDMATCH_NO_WATCHDOG=1`` runs the command in the one process
@@ -33,88 +33,14 @@ import os
 import signal
 import time
 
+from . import signals
+from .signals import WAITED, exit_code, heeded, install, message, say
+
 #: seconds a command has after SIGINT/SIGTERM before the watchdog kills it (the goal: gone
 #: within 1 s; a command's own clean-up takes milliseconds)
 GRACE = 0.8
 #: seconds after which the watchdog passes its signal on to a command still running
 PASS_ON_AFTER = 0.05
-EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
-_STOPPING = (signal.SIGINT, signal.SIGTERM)
-
-
-class Terminated(KeyboardInterrupt):
-    """Raised in the main thread on SIGTERM, so that a command unwinds as on Ctrl-C
-    (temporary files removed, worker processes stopped) and exits 143."""
-
-
-def exit_code(signum: int) -> int:
-    return EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED
-
-
-def message(signum: int) -> str:
-    return "terminated (SIGTERM)" if signum == signal.SIGTERM else "interrupted (SIGINT)"
-
-
-def _say(line: str) -> None:
-    try:
-        os.write(2, f"Error: {line}\n".encode())
-    except OSError:
-        pass
-
-
-def _exit_now(signum, frame):
-    """Before a command runs: nothing to clean up, so the one line and the exit code now."""
-    for s in _STOPPING:  # a second signal would run this again, between two of its lines
-        signal.signal(s, signal.SIG_IGN)
-    _say(message(signum))
-    os._exit(exit_code(signum))
-
-
-_raised = False
-#: this process runs the command of the program (run()), not a test's or a library caller's
-_program = False
-
-
-def _deaf() -> None:
-    """SIGINT/SIGTERM ignored from now on: the process is on its way out (a signal passed on
-    by the watchdog after the first must not cut its clean-up or its exit short; Python's
-    finalisation resets handlers, not an ignored signal)."""
-    for s in _heeded(_STOPPING):
-        signal.signal(s, signal.SIG_IGN)
-
-
-def _raise_once(signum, frame):
-    global _raised
-    if _raised:
-        return  # the first signal is unwinding; the watchdog keeps the deadline
-    _raised = True
-    raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
-
-
-def raising():
-    """While a command runs (main thread only): the first SIGINT/SIGTERM raises
-    KeyboardInterrupt/Terminated, later ones are ignored. Returns what restores the
-    previous handlers, or None off the main thread."""
-    import threading
-
-    global _raised
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    _raised = False
-    previous = {s: signal.signal(s, _raise_once) for s in _heeded(_STOPPING)}
-
-    def restore():
-        if _raised and _program:
-            _deaf()
-            return
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-
-    return restore
-
-
-#: what the watchdog waits for, blocked in it (no handler: nothing raises at a bad moment)
-_WAITED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD)
 
 
 def _mirror(status: int) -> None:
@@ -133,7 +59,7 @@ def _watch(pid: int) -> None:
     keep the deadline. Never returns."""
     signum = deadline = None
     passed_on, passed_on_at = False, 0.0
-    waited = _heeded(_WAITED)
+    waited = heeded(WAITED)
     while True:
         if deadline is None:
             info = signal.sigwaitinfo(waited)
@@ -152,7 +78,7 @@ def _watch(pid: int) -> None:
         if deadline is not None and now >= deadline:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-            _say(f"{message(signum)}: the command did not stop within {GRACE} s (inside a long call); killed")
+            say(f"{message(signum)}: the command did not stop within {GRACE} s (inside a long call); killed")
             os._exit(exit_code(signum))
         if info is not None and info.si_signo != signal.SIGCHLD and signum is None:
             signum = info.si_signo
@@ -163,40 +89,24 @@ def _watch(pid: int) -> None:
             deadline = now + GRACE
 
 
-def _heeded(signals) -> list:
-    """``signals`` minus those ignored when the program started (a job started in the
-    background of a non-interactive shell, or by nohup: it must stay deaf to them)."""
-    return [s for s in signals if s not in _IGNORED]
-
-
-_IGNORED = frozenset(s for s in _WAITED if s != signal.SIGCHLD and signal.getsignal(s) == signal.SIG_IGN)
-
-
-def install() -> None:
-    """The command's side: until a command runs, SIGINT/SIGTERM exit at once."""
-    for s in _heeded(_STOPPING):
-        signal.signal(s, _exit_now)
-
-
 def run() -> None:
     """The console script ``nfdmatch`` and ``python -m nfdmatch``."""
     watchdog = hasattr(os, "fork") and hasattr(signal, "sigtimedwait") and not os.environ.get("NFDMATCH_NO_WATCHDOG")
     if watchdog:
         # blocked before the fork: in the watchdog for good, in the command until its handlers are set
-        signal.pthread_sigmask(signal.SIG_BLOCK, _heeded(_WAITED))
+        signal.pthread_sigmask(signal.SIG_BLOCK, heeded(WAITED))
         child_handler = signal.signal(signal.SIGCHLD, signal.SIG_DFL)  # ignored: no status to wait for
         pid = os.fork()
         if pid:
             _watch(pid)
         signal.signal(signal.SIGCHLD, child_handler)
-    global _program
-    _program = True
+    signals.program = True
     install()
     if watchdog:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, _heeded(_WAITED))
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, heeded(WAITED))
     from . import main
 
     try:
         main(prog_name="nfdmatch")
     finally:
-        _deaf()  # done: a signal now would only turn a finished command into a killed one
+        signals.deaf()  # done: a signal now would only turn a finished command into a killed one

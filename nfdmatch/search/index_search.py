@@ -15,6 +15,7 @@ from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
 from .engine import TIE, Cascade, BestRows, search_block
 from .bounds import feature_vector
+from .selfmatch import drop_self, self_rule
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -214,8 +215,6 @@ def _pruned(index, qcoef, tops, cascade: Cascade, stats: SearchStats, threads, p
 def without_self(index, queries, results: list[list[RankedMatch]], top: int | None) -> list[list[RankedMatch]]:
     """Each query's matches without its own curve (:func:`~nfdmatch.search.knn.drop_self`),
     at most ``top``: the answer of a search asked for ``top + 1``."""
-    from .knn import drop_self, self_rule
-
     rule = self_rule(getattr(index, "locate", None))
     return [drop_self(q.id, found, top, rule=rule) for q, found in zip(queries, results)]
 
