@@ -433,6 +433,19 @@ exclude_self_option = click.option(
 )
 
 
+def check_max_distance(ctx, param, value):
+    """``--max-distance`` by the library's rule (``search.limits``): a number >= 0, inf for
+    no limit; NaN refused as a usage error, as a negative number is."""
+    if value is not None:
+        from ..search.limits import check_limits
+
+        try:
+            check_limits(max_distance=value)
+        except NfdError:
+            raise click.BadParameter(f"{value} is not a distance (a number >= 0; inf: no limit)") from None
+    return value
+
+
 @dataclass(frozen=True)
 class MatchListing:
     """What a command that lists a query's matches was asked for (:func:`match_list_options`):
@@ -465,6 +478,7 @@ def match_list_options(top_help: str, glob_help: str):
                     "--max-distance",
                     type=click.FloatRange(min=0),
                     default=None,
+                    callback=check_max_distance,
                     help="Only list matches at most this far.",
                 ),
                 click.option("--glob", default=None, help=glob_help),

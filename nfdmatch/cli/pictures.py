@@ -12,6 +12,7 @@ from .options import (
     descriptor_options,
     error,
     finish,
+    exclude_self_option,
     format_option,
     index_option,
     input_format_option,
@@ -116,6 +117,7 @@ def _picture_names(pattern: str, queries) -> list[str]:
 )
 @index_option
 @click.option("--top", type=click.IntRange(min=1, max=23), default=5, show_default=True, help="Matches to draw.")
+@exclude_self_option
 @output_option(
     help="The picture to write (.png, .svg or .pdf); for several queries a pattern with {stem} "
     "or {n}, e.g. 'matches-{stem}.png'. Another -o FILE (not a picture) gets the rows drawn.",
@@ -138,6 +140,7 @@ def show(
     against,
     index_path,
     top,
+    exclude_self,
     output,
     size,
     renderer,
@@ -175,10 +178,10 @@ def show(
     _check_pictures(names)
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, matching)
+        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, dict(matching, exclude_self=exclude_self))
     else:
         source_inputs = None
-        shown = _searched_drawn(queries, index_path, top, input_format, matching)
+        shown = _searched_drawn(queries, index_path, top, input_format, dict(matching, exclude_self=exclude_self))
     results = []
     if some_failed():
         _not_written(names)

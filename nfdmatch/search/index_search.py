@@ -15,6 +15,7 @@ from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
 from .engine import TIE, Cascade, BestRows, search_block
 from .bounds import feature_vector
+from .limits import check_limits
 from .selfmatch import drop_self, self_rule
 
 if TYPE_CHECKING:
@@ -66,8 +67,7 @@ def check_search_parameters(top: int | None, max_distance: float | None, method:
     """The checks every search of an index makes on its arguments (local or on a cluster)."""
     if top is None and max_distance is None:
         raise ParameterError("give top or max_distance (or both)")
-    if top is not None and top < 1:
-        raise ParameterError(f"top must be at least 1, got {top}")
+    check_limits(top, max_distance)
     if method not in METHODS:
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 

@@ -13,6 +13,7 @@ import numpy as np
 from ..curve import Curve
 from ..errors import ParameterError
 from ..records import RankedMatch
+from .limits import check_limits
 from .selfmatch import drop_self, is_self, self_rule
 
 __all__ = ["as_queries", "self_rule", "is_self", "drop_self", "search", "stored_descriptors"]
@@ -68,6 +69,7 @@ def search(
 
     if k is None and max_distance is None:
         raise ParameterError("give k or max_distance (or both)")
+    check_limits(k, max_distance, top_name="k")
     curves = as_queries(queries)
     results, _ = search_index(index, curves, top=k, max_distance=max_distance, exclude_self=exclude_self, **options)
     if pose:
