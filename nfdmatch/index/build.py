@@ -28,6 +28,8 @@ graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --reran
 progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
     then as files finish; total counts the files that must be read or hashed (unchanged
     files are not counted).
+graph_progress : optional ``graph_progress(done_rows, total_rows)`` for the graph's search
+    (``graph``), here or by ``graph_runner``: (0, total) first, then as blocks of rows finish.
 allow_shrink : allow a build that removes more than half of the index's files, or all.
 file_timeout : seconds one file may take to be read and hashed (None or 0: no limit);
     a file over it fails alone (its worker is killed), the build goes on. With a limit,
@@ -185,6 +187,7 @@ def build_index(
     graph=None,
     runner=None,
     graph_runner=None,
+    graph_progress=None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
     walked; None or empty: the sources the index records) in ``index_path`` (None:
@@ -194,7 +197,8 @@ def build_index(
     describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
     build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
     total)``; ``file_timeout``: seconds one file may take; ``runner``: computes the tasks
-    instead of the local pool; ``graph_runner``: searches the graph's rows. Every
+    instead of the local pool; ``graph_runner``: searches the graph's rows;
+    ``graph_progress(done, total)``: its rows. Every
     parameter, the files' paths and the errors raised are described in full in this
     module's docstring.
     """
@@ -234,7 +238,7 @@ def build_index(
             write_new_index(
                 report, real_index, plan, old, jobs, lock, progress, file_timeout,
                 sources=(stored_sources, glob or None), name=index_path, graph=graph, runner=runner,
-                graph_runner=graph_runner,
+                graph_runner=graph_runner, graph_progress=graph_progress,
             )  # fmt: skip
         else:
             _unchanged(report, plan, old, real_index, progress)

@@ -44,7 +44,7 @@ class GraphPlan:
 
 
 def write_graph(
-    h5, old, k: int | None, *, reuse: bool, threads: int | None = None, processes: int = 1, close_fds=()
+    h5, old, k: int | None, *, reuse: bool, threads: int | None = None, processes: int = 1, close_fds=(), progress=None
 ) -> GraphStats:
     """Write ``/graph`` into the new index file ``h5`` (``/curves``, ``/files``, ``/search``
     complete); returns :class:`GraphStats`.
@@ -56,6 +56,7 @@ def write_graph(
     threads, processes, close_fds : how the rows are searched
         (:func:`~nfdmatch.search.graph.neighbour_lists`): ``processes`` forked workers (a
         build's ``jobs``), each closing ``close_fds`` (the index lock), else ``threads``.
+    progress : ``progress(done_rows, total_rows)`` as the rows are searched.
     """
     plan = plan_graph(h5, old, k, reuse=reuse)
     if plan is None:
@@ -72,6 +73,7 @@ def write_graph(
             threads=threads,
             processes=processes,
             close_fds=[fd for fd in close_fds if fd is not None],
+            progress=progress,
         )
         stats.kept = len(plan.lists.check) - stats.updated
     return store_graph(h5, plan)
