@@ -275,6 +275,12 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict) ->
     help="The diffused similarity over the curves' neighbour graph instead of the distance "
     "(higher is closer; docs/rerank.md).",
 )
+@click.option(
+    "--elastic",
+    is_flag=True,
+    help="The elastic stage's fused distance (exact, elastic and shape statistics at each pair's "
+    "exact optimum; docs/elastic.md) instead of the exact distance; with --rerank, its diffusion.",
+)
 @format_option(("csv", "tsv", "json"), help_extra=" of the matrix [default: by the extension of -o, else csv]")
 def matrix(
     sources,
@@ -285,6 +291,7 @@ def matrix(
     input_format,
     order,
     rerank,
+    elastic,
     output_format,
 ):
     """The distance between every pair of curves in FILE_OR_FOLDER... .
@@ -296,7 +303,8 @@ def matrix(
     similarity. With -o FILE.png, also a grey-level picture like the paper's Figure 7.
     With --rerank the entries are the re-ranked similarity of every pair (diffusion over
     the curves' 8-nearest-neighbour graph, 1 on the diagonal, higher is closer; JSON key
-    "scores"), what `query --rerank` ranks by.
+    "scores"), what `query --rerank` ranks by. With --elastic the entries are the fused
+    distance of the elastic stage (what `query --elastic` ranks by; docs/elastic.md).
 
     \b
     Examples:
@@ -313,15 +321,16 @@ def matrix(
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:
-        distances = distance_matrix(curves, progress=progress, **descriptor, **matching)
+        distances = distance_matrix(curves, progress=progress, elastic=elastic, **descriptor, **matching)
     finally:
         finish_bar()
     ids = [c.id for c in curves]
-    title = f"{matching['method']} distance, {len(ids)} curves"
+    what = "fused elastic" if elastic else matching["method"]
+    title = f"{what} distance, {len(ids)} curves"
     values = distances
     if rerank:
         values, distances = _reranked(distances, ids)
-        title = f"re-ranked similarity ({matching['method']} distance), {len(ids)} curves"
+        title = f"re-ranked similarity ({what} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
         distances = distances[permutation][:, permutation]

@@ -7,7 +7,8 @@ Run from the repository root (paths in the index are as given here, relative)::
 It indexes four sample curve files (1 + 1 + 2 + 3 curves) and one bad file
 (``bad.csv``, recorded as failed) with samples=32, harmonics=4, scale=rms, in one
 process, with the clock fixed at 2026-01-01T00:00:00Z. The build runs in a temporary
-folder (so no lock file is left here) and the result is copied next to this script.
+folder's name at the repository root (so that the ids are the relative paths above; no
+lock file is left) and the result is copied next to this script.
 
 For format 2 the search cells are made small (2 rows per cell) so that the file holds
 several cells.
@@ -16,9 +17,10 @@ Each file is FROZEN: ``tests/test_index.py`` reads it with exact expected ids,
 parameters and values, forever. Do not re-run this script to make a failing test
 pass: a reader that cannot read this file is a format break (bump ``format_version``
 and keep reading the old formats instead). ``v1-sample.h5`` was made by this script at
-commit 646aae6 (format 1); today's code writes format 2, so running it now makes
-``v2-sample.h5`` (last regenerated while format 2 was unreleased, to carry the checksums:
-Fletcher-32 chunks and CRC-32 string blocks).
+commit 646aae6 (format 1), ``v2-sample.h5`` at commit e3d24f2 (format 2: last regenerated
+while format 2 was unreleased, to carry the checksums: Fletcher-32 chunks and CRC-32 string
+blocks); today's code writes format 3 (with /curves/statistics), so running it now makes
+``v3-sample.h5``.
 """
 
 import os
@@ -46,11 +48,18 @@ def main() -> int:
     from nfdmatch.search import cells
 
     cells.ROWS_PER_CELL = 2
-    with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, os.path.basename(TARGET))
-        report = index.build_index(SOURCES, path, samples=32, harmonics=4, scale="rms", jobs=1)
-        print(report.curves, "curves;", report.failed, "failed:", report.failures, file=sys.stderr)
-        shutil.copyfile(path, TARGET)
+    # built at the repository root (ids relative to the index's folder: the paths above,
+    # on every machine), then moved here with nothing else left behind
+    with tempfile.TemporaryDirectory(dir=".") as tmp:
+        path = os.path.join(os.path.basename(tmp) + "-" + os.path.basename(TARGET))
+        try:
+            report = index.build_index(SOURCES, path, samples=32, harmonics=4, scale="rms", jobs=1)
+            print(report.curves, "curves;", report.failed, "failed:", report.failures, file=sys.stderr)
+            shutil.copyfile(path, TARGET)
+        finally:
+            for leftover in (path, path + ".lock"):
+                if os.path.exists(leftover):
+                    os.remove(leftover)
     print(TARGET)
     return 0
 
