@@ -126,3 +126,18 @@ def test_a_build_rewrites_an_older_index_with_checked_metadata(tmp_path):
         assert idx.checked_metadata and idx.ids() == before
     code, _, err = nfdmatch("index", "build", folder, "--index", index)
     assert code == 0 and "rewriting" not in err  # once
+
+
+def test_a_damaged_graph_header_is_a_clear_error_for_rerank(tmp_path):
+    """HDF5's checksum of /graph's object header fails when the group is opened: that is a
+    corrupted index for query --rerank (found by benchmarks/fuzz_index.py --graph 10)."""
+    index = tmp_path / "lib.h5"
+    build_index([os.path.join(ROOT, "sample_curves", "library")], str(index), graph=10)
+    with h5py.File(index, "r") as f:
+        header = h5py.h5o.get_info(f["graph"].id).addr
+    data = bytearray(index.read_bytes())
+    data[header + 6] ^= 0x5A  # inside the header, under its checksum
+    index.write_bytes(bytes(data))
+    code, out, err = nfdmatch("query", QUERY, "--index", index, "--rerank")
+    assert code == 1 and out == ""
+    assert "corrupted nfdmatch index: cannot read /graph" in err and "Traceback" not in err

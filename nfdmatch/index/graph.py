@@ -122,8 +122,12 @@ def graph_datasets(index):
     h5 = index._h5
     if h5 is None or "graph" not in h5:
         return None
-    g = h5["graph"]
-    checksums = _graph_checksums(g)
+    try:  # a damaged group header fails HDF5's own checksum here
+        g = h5["graph"]
+        checksums = _graph_checksums(g)
+    except Exception as exc:  # noqa: BLE001 - h5py raises KeyError, OSError, ... for damage
+        text = (str(exc).strip().strip("'\"").splitlines() or [type(exc).__name__])[0][:200]
+        raise IndexFormatError(f"corrupted nfdmatch index: cannot read /graph ({text})", path=index.path) from None
     if checksums is None:
         raise IndexFormatError("corrupted nfdmatch index: /graph has an unknown checksums attribute", path=index.path)
     file_size = int(h5.id.get_filesize())
