@@ -89,6 +89,11 @@ def test_a_new_index_keeps_no_attribute_in_the_heap_and_says_so(tmp_path):
     assert code == 0 and "metadata\tchecked\n" in out
     code, out, _ = nfdmatch("index", "info", "--index", FROZEN_V2)
     assert code == 0 and "metadata\tolder\n" in out
+    # a query says once that an older file is read whole at each open, and how to fix it
+    code, _, err = nfdmatch("query", QUERY, "--index", FROZEN_V2)
+    assert code == 0 and "was written before its metadata was checked" in err and "index build" in err
+    code, _, err = nfdmatch("query", QUERY, "--index", index)
+    assert code == 0 and "metadata" not in err
 
 
 def test_a_damaged_heap_of_ids_in_a_new_index_is_a_clear_error(tmp_path):
