@@ -1,7 +1,7 @@
 """The elastic stage on every development collection: retrieval quality and cost
 (issues "Similarity that bends" and "3-D curves that people call alike"; docs/elastic.md).
 
-    python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--constants]
+    python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--diffusion] [--constants | --timing]
 
 Every curve of a collection is a query against the rest (the library's own search with
 ``exclude_self``, as ``query --exclude-self``); top-1 and bull's-eye (same class among the
@@ -15,10 +15,15 @@ Every curve of a collection is a query against the rest (the library's own searc
   angle, binormal dihedral angle and distance to the centroid at 128 arc-length samples,
   Euclidean), on the raw curve and low-passed to 16 harmonics: written here, not in the
   library;
-- chance.
+- chance;
+- with ``--diffusion``: diffusion on full matrices of the exact and of the fused distance:
+  today's ``matrix --rerank`` (personalised PageRank) and a locally constrained diffusion
+  (LCDP, written here: the measurement for the diffusion still to build).
 
 With the seconds of the plain and the elastic search (the ratio is what holds on a busy
-machine), and the elastic kernel's microseconds a pair. ``--constants`` prints the fused
+machine), the elastic kernel's microseconds a pair, and ``query --elastic`` against the plain
+query as CLI processes on an index of each psb_dev folder and of Kimia-99 (``--timing``:
+only these). ``--constants`` prints the fused
 distance's constants recomputed from the pooled development pairs (the quantile tables
 of nfdmatch/matching/fused.py, the block scales of statistics.py).
 
@@ -104,6 +109,50 @@ def _order_of_matrix(D: np.ndarray) -> np.ndarray:
     return np.argsort(X, axis=1, kind="stable")[:, : len(D) - 1]
 
 
+def lcdp(D: np.ndarray, k: int = 8, scale_k: int = 10, iterations: int = 6) -> np.ndarray:
+    """The locally constrained diffusion (Yang, Koknar-Tezel & Latecki 2009) of a full
+    distance matrix, as the prototype of docs/elastic.md ran it (a measurement for the next
+    step, not the library's): affinity exp(-d^2 / (s_i s_j)), s the mean distance to the 10
+    nearest others; self-affinity 1; P row-normalised, P_k its k largest per row
+    renormalised; Q <- P_k Q P_k^T from Q = P, 6 times. Returns the similarity Q."""
+    X = D.astype(float).copy()
+    np.fill_diagonal(X, np.inf)
+    s = np.sort(X, axis=1)[:, :scale_k].mean(axis=1)
+    W = np.exp(-(D**2) / np.maximum(s[:, None] * s[None, :], 1e-300))
+    np.fill_diagonal(W, 1.0)
+    W = (W + W.T) / 2
+    P = W / W.sum(axis=1, keepdims=True)
+    keep = np.argsort(-P, axis=1)[:, :k]
+    Pk = np.zeros_like(P)
+    np.put_along_axis(Pk, keep, np.take_along_axis(P, keep, axis=1), axis=1)
+    Pk /= Pk.sum(axis=1, keepdims=True)
+    Q = P
+    for _ in range(iterations):
+        Q = Pk @ Q @ Pk.T
+    return Q
+
+
+def diffusion_rows(curves, labels, depth):
+    """Diffusion on full matrices of the exact and of the fused distance: today's
+    ``matrix --rerank`` (personalised PageRank) and LCDP (the benchmark's)."""
+    from nfdmatch.search import distance_matrix
+    from nfdmatch.search.rerank import diffused_similarity
+
+    T = distance_matrix(curves)
+    F = distance_matrix(curves, elastic=True)
+    ids = [c.id for c in curves]
+    rows = []
+    for name, D in (("exact", T), ("fused", F)):
+        rows.append(
+            (
+                f"matrix --rerank (PPR) on {name}",
+                scores(_order_of_matrix(-diffused_similarity(D, ids=ids)), labels, depth),
+            )
+        )
+        rows.append((f"LCDP on {name} (benchmark only)", scores(_order_of_matrix(-lcdp(D)), labels, depth)))
+    return rows
+
+
 def peer(curves, low_pass: bool) -> np.ndarray:
     """The issue's statistics descriptor: sorted PCA eigenvalues + 12-bin histograms of
     turning angle, binormal dihedral angle and distance to the centroid at 128 arc-length
@@ -134,7 +183,7 @@ def peer(curves, low_pass: bool) -> np.ndarray:
     return np.linalg.norm(X[:, None] - X[None], axis=2)
 
 
-def run_collection(name, curves, labels, depth, depths):
+def run_collection(name, curves, labels, depth, depths, diffusion=False):
     ids = [c.id for c in curves]
     N = len(curves)
     memory = MemoryIndex(curves)
@@ -167,6 +216,8 @@ def run_collection(name, curves, labels, depth, depths):
     chance_top1 = float(np.mean((size - 1) / (N - 1)))
     chance_bull = float(np.mean([(1 + ((depth or 2 * s) - 1) * (s - 1) / (N - 1)) / s for s in size]))
     rows.append(("chance", (chance_top1, chance_bull), None))
+    if diffusion:
+        rows += [(what, figures, None) for what, figures in diffusion_rows(curves, labels, depth)]
     print(f"\n{name} ({N} curves)")
     for what, (top1, bull), seconds in rows:
         took = "" if seconds is None else f"{seconds:8.2f} s"
@@ -203,6 +254,36 @@ def kernel_timing():
           f"statistics: {stats_s / len(C) * 1e6:.1f} us a curve (once per curve)")  # fmt: skip
 
 
+def cli_timing(data, runs: int = 3):
+    """``query FOLDER --index --exclude-self --top 40`` as whole CLI processes, plain against
+    ``--elastic`` (M = 100), in turn, on an index of each folder (format 3: statistics
+    stored): the median seconds of ``runs`` each and their ratio."""
+    import subprocess
+    import tempfile
+
+    exe = os.path.join(os.path.dirname(sys.executable), "nfdmatch")
+    folders = {
+        "psb cut loops": os.path.join(data, "psb_dev", "cutloop", "curves"),
+        "psb mid-sections": os.path.join(data, "psb_dev", "midsection", "curves"),
+        "kimia99": os.path.join(data, "kimia99"),
+    }
+    print("\nCLI processes: query FOLDER --index I --exclude-self --top 40 (every curve a query), median of", runs)
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, folder in folders.items():
+            index = os.path.join(tmp, name.replace(" ", "_") + ".h5")
+            subprocess.run([exe, "-q", "index", "build", folder, "--index", index, "--glob", "[!_]*.csv"], check=True)
+            base = [exe, "query", folder, "--index", index, "--exclude-self", "--top", "40", "--glob", "[!_]*.csv"]
+            base += ["--format", "csv", "-o", os.path.join(tmp, "out.csv")]
+            times = {"plain": [], "elastic": []}
+            for _ in range(runs):
+                for label, extra in (("plain", []), ("elastic", ["--elastic"])):
+                    t = time.perf_counter()
+                    subprocess.run(base + extra, check=True)
+                    times[label].append(time.perf_counter() - t)
+            plain, elastic = (float(np.median(times[k])) for k in ("plain", "elastic"))
+            print(f"  {name:18} plain {plain:6.2f} s   --elastic {elastic:6.2f} s   ratio {elastic / plain:.2f}x")
+
+
 def constants(cols):
     """The fused distance's constants from the pooled development pairs."""
     from nfdmatch.matching.statistics import BLOCK_SIZES, BLOCKS
@@ -235,19 +316,26 @@ def main():
     parser.add_argument("--data", default=os.path.join(os.path.dirname(HERE), "..", "shared", "data"))
     parser.add_argument("--depths", default="100,all", help="elastic depths to report, comma-separated ('all')")
     parser.add_argument("--constants", action="store_true", help="print the fused distance's constants")
+    parser.add_argument("--timing", action="store_true", help="only the CLI timing (plain against --elastic)")
+    parser.add_argument("--diffusion", action="store_true", help="also diffusion on full matrices (PPR, LCDP)")
     args = parser.parse_args()
     if not os.path.isdir(args.data):
         sys.exit(f"no development data at {args.data}: give --data")
+    if args.timing:
+        cli_timing(args.data)
+        kernel_timing()
+        return
     cols = collections(args.data)
     if args.constants:
         constants(cols)
         return
     depths = args.depths.split(",")
     for name, (curves, labels, depth) in cols.items():
-        run_collection(name, curves, labels, depth, depths)
+        run_collection(name, curves, labels, depth, depths, args.diffusion)
     print()
     knots_check(args.data)
     kernel_timing()
+    cli_timing(args.data)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,10 @@
 """Development data that bends: families of curves whose members differ by articulation and
 deformation, not only by pose and sampling (issue "Similarity that bends", item 4).
 
-Each family has a base shape: a body (an ellipse in 2-D, a smooth closed space curve in 3-D)
-with three to five limbs (bumps along the body's outward direction). A member is the base
+The collection has one template: a body (an ellipse in 2-D, a smooth closed space curve in
+3-D) with four or five limbs (bumps along the body's outward direction); each family's base
+is the template with its limbs moved, resized and lifted a little, so that families are
+cousins and what tells them apart is of the size of what bends. A member is the base
 with every limb bent at its root by its own angle (a rotation of the limb's points about
 the root, in the body's plane, or about a random axis in 3-D), a local stretch (a warp of
 the parameter), one swelling (a wide bump of the radius), a small sharp bump at a random
@@ -16,7 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["families"]
+__all__ = ["families", "BEND_DEGREES"]
+
+#: the standard deviation of a limb's bend at its root, in degrees
+BEND_DEGREES = 35.0
 
 
 def _rotation(rng) -> np.ndarray:
@@ -38,15 +43,30 @@ def _turn(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
-def _base(rng, dimension: int) -> dict:
-    limbs = int(rng.integers(3, 6))
+def _base(rng, dimension: int, template: dict) -> dict:
+    """A family's base: the collection's template with its limbs moved, resized and lifted a
+    little (families are cousins: what tells them apart is of the size of what bends)."""
+    limbs = len(template["centres"])
+    return {
+        "aspect": template["aspect"] * rng.uniform(0.85, 1.15),
+        "wobble": template["wobble"] + rng.normal(0, 0.06, (3, 2)),
+        "lift": template["lift"] + rng.normal(0, 0.05 if dimension == 3 else 0.0, 3),
+        "centres": np.sort(template["centres"] + rng.normal(0, 0.25, limbs)),
+        "lengths": template["lengths"] * rng.uniform(0.6, 1.4, limbs),
+        "widths": template["widths"] * rng.uniform(0.8, 1.25, limbs),
+        "bend": BEND_DEGREES,
+    }
+
+
+def _template(rng, dimension: int) -> dict:
+    limbs = int(rng.integers(4, 6))
     return {
         "aspect": rng.uniform(0.5, 1.0),
         "wobble": rng.normal(0, 0.15, (3, 2)),
         "lift": rng.normal(0, 0.35 if dimension == 3 else 0.0, 3),
         "centres": np.sort(rng.uniform(0, 2 * np.pi, limbs)),
-        "lengths": rng.uniform(0.4, 1.1, limbs),
-        "widths": rng.uniform(0.08, 0.18, limbs),
+        "lengths": rng.uniform(0.5, 1.1, limbs),
+        "widths": rng.uniform(0.08, 0.16, limbs),
     }
 
 
@@ -75,7 +95,7 @@ def _member(rng, base: dict, dimension: int, vertices: int) -> np.ndarray:
             continue
         root = 0.5 * (points[mine[0]] + points[mine[-1]])
         axis = np.array([0.0, 0.0, 1.0]) if dimension == 2 else rng.standard_normal(3)
-        points[mine] = (points[mine] - root) @ _turn(axis, np.radians(rng.normal(0, 25))).T + root
+        points[mine] = (points[mine] - root) @ _turn(axis, np.radians(rng.normal(0, base["bend"]))).T + root
     size = np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean())
     points = points + rng.normal(0, 0.004 * size, points.shape) * np.array([1, 1, 1 if dimension == 3 else 0])
     keep = np.sort(rng.choice(n, size=vertices, replace=False))
@@ -94,8 +114,9 @@ def families(rng, count: int = 20, members: int = 10, dimension: int = 2, vertic
     """``(curves, labels)``: ``count`` families of ``members`` curves, (m, 3) float64 arrays
     (z = 0 for ``dimension`` 2), and the family of each (int64)."""
     curves, labels = [], []
+    template = _template(rng, dimension)
     for f in range(count):
-        base = _base(rng, dimension)
+        base = _base(rng, dimension, template)
         for _ in range(members):
             curves.append(_member(rng, base, dimension, int(rng.integers(*vertices))))
             labels.append(f)

@@ -176,10 +176,12 @@ def show_ranked(
     direction: str = INVARIANT,
     mirror: bool = False,
     exclude_self: bool = False,
+    stage=None,
 ) -> list[ShownMatch]:
     """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
     ``samples, harmonics, scale`` None take the library defaults; ``exclude_self``: not the
-    query's own curve (:func:`~nfdmatch.search.knn.is_self`)."""
+    query's own curve (:func:`~nfdmatch.search.knn.is_self`); ``stage``: a re-ordering
+    stage (:class:`~nfdmatch.search.stages.ElasticStage`), as ``rank_curves`` takes it."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
     from .search import rank_curves
 
@@ -192,7 +194,7 @@ def show_ranked(
         mirror=mirror,
     )
     _drawable(query)
-    ranked = rank_curves(query, curves, top=top, exclude_self=exclude_self, **params)
+    ranked = rank_curves(query, curves, top=top, exclude_self=exclude_self, stage=stage, **params)
     return matches_from_curves(query, ranked, curves, **params)
 
 
@@ -206,15 +208,24 @@ def show_searched(
     mirror: bool = False,
     read_curve: Callable[[str], Curve] | None = None,
     exclude_self: bool = False,
+    stage=None,
 ) -> tuple[list[ShownMatch], list[str]]:
     """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
     notes of :func:`matches_from_index`; ``exclude_self``: not the query's own curve (a
-    library curve drawn against its own index), as ``query --exclude-self``."""
+    library curve drawn against its own index), as ``query --exclude-self``; ``stage`` as
+    ``search_index`` takes it."""
     from .search import search_index
 
     _drawable(query)
     results, _ = search_index(
-        index, [query], top=top, method=method, direction=direction, mirror=mirror, exclude_self=exclude_self
+        index,
+        [query],
+        top=top,
+        method=method,
+        direction=direction,
+        mirror=mirror,
+        exclude_self=exclude_self,
+        stage=stage,
     )
     return matches_from_index(
         query, results[0], index, method=method, direction=direction, mirror=mirror, read_curve=read_curve

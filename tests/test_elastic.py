@@ -251,3 +251,41 @@ def test_query_elastic_cli(tmp_path, rng):
     code, out, err = run_cli("rank", query, str(folder), "--elastic", "--top", "2", "--format", "csv")
     assert code == 0, err
     assert out.splitlines()[0] == "query,rank,match,distance,elastic,fused"
+
+
+def test_show_elastic_draws_the_stage_order_and_prints_its_columns(tmp_path, rng):
+    from nfdmatch.formats import write_curves
+
+    from conftest import run_cli
+
+    curves = _families(rng, count=2, members=3)
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    for c in curves:
+        write_curves(str(folder / f"{c.id}.csv"), [c])
+    query = str(folder / "f0-0.csv")
+    picture = tmp_path / "m.png"
+    code, out, err = run_cli(
+        "show", query, str(folder), "--against", "--elastic", "--top", "3", "-o", str(picture), "--format", "csv"
+    )
+    assert code == 0, err
+    lines = out.splitlines()
+    assert lines[0] == "query,rank,match,distance,elastic,fused,source"
+    fused = [float(line.split(",")[5]) for line in lines[1:]]
+    assert len(fused) == 3 and fused == sorted(fused)
+    assert picture.stat().st_size > 0
+
+
+def test_the_stage_needs_the_exact_method(tmp_path, rng):
+    from nfdmatch.errors import ParameterError
+    from nfdmatch.formats import write_curves
+
+    from conftest import run_cli
+
+    curves = _families(rng, count=2, members=2)
+    with pytest.raises(ParameterError, match="exact"):
+        rank_curves(curves[0], curves[1:], top=2, stage=ElasticStage(), method="paper")
+    for c in curves:
+        write_curves(str(tmp_path / f"{c.id}.csv"), [c])
+    code, out, err = run_cli("rank", tmp_path / "f0-0.csv", tmp_path, "--elastic", "--method", "paper")
+    assert code != 0 and "method must be exact" in err and not out

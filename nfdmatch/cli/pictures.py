@@ -10,6 +10,7 @@ import click
 from .inputs import read_inputs
 from .options import (
     descriptor_options,
+    elastic_options,
     error,
     finish,
     exclude_self_option,
@@ -127,6 +128,7 @@ def _picture_names(pattern: str, queries) -> list[str]:
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
 @click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches (with --against).")
+@elastic_options
 @matching_options
 @optional_descriptor_options("with --against")
 @input_format_option
@@ -145,6 +147,7 @@ def show(
     size,
     renderer,
     glob_pattern,
+    stage,
     matching,
     descriptor,
     input_format,
@@ -159,7 +162,8 @@ def show(
     direction of its match: the query in grey under it, start points marked, direction
     of travel shown. Planar curves get a 2-D view. PNG, SVG or PDF by the extension.
     The rows drawn are printed on stdout (query, rank, match, distance, source), or
-    written to the -o FILE that is not a picture.
+    written to the -o FILE that is not a picture. --elastic draws the matches of the
+    elastic stage (as `query --elastic` orders them) and adds the columns elastic, fused.
 
     \b
     Examples:
@@ -176,12 +180,13 @@ def show(
     queries = query_inputs.curves
     names = _picture_names(pictures[0], queries)
     _check_pictures(names)
+    match = dict(matching, exclude_self=exclude_self)
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, dict(matching, exclude_self=exclude_self))
+        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, match, stage)
     else:
         source_inputs = None
-        shown = _searched_drawn(queries, index_path, top, input_format, dict(matching, exclude_self=exclude_self))
+        shown = _searched_drawn(queries, index_path, top, input_format, match, stage)
     results = []
     if some_failed():
         _not_written(names)
@@ -190,13 +195,21 @@ def show(
             render_matches(q.points, q.id, drawn, name, size=width_height, renderer=renderer)
             for q, drawn, name in zip(queries, shown, names)
         ]
+    stage_columns = list(stage.columns) if stage is not None else []
     write_rows(
         [
-            {"query": q.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
+            {
+                "query": q.id,
+                "rank": s.rank,
+                "match": s.id,
+                "distance": s.distance,
+                **{name: getattr(s.match, name) for name in stage_columns},
+                "source": s.source,
+            }
             for q, drawn in zip(queries, shown)
             for s in drawn
         ],
-        ["query", "rank", "match", "distance", "source"],
+        ["query", "rank", "match", "distance", *stage_columns, "source"],
         output_format,
         rows_output,
         group_by="query",
@@ -225,14 +238,14 @@ def _check_show_arguments(pictures, size: str, against: bool, sources, against_o
     return width_height
 
 
-def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict) -> list:
+def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict, stage=None) -> list:
     """What show draws per query with --against: its ``top`` matches among ``curves``."""
     from ..show import show_ranked
 
-    return [show_ranked(q, curves, top=top, **descriptor, **match) for q in queries]
+    return [show_ranked(q, curves, top=top, stage=stage, **descriptor, **match) for q in queries]
 
 
-def _searched_drawn(queries, index_path, top: int, input_format, match: dict) -> list:
+def _searched_drawn(queries, index_path, top: int, input_format, match: dict, stage=None) -> list:
     """What show draws per query from the index: its ``top`` matches, their curves read
     back from their files (notes on stderr for those that cannot be)."""
     from functools import partial
@@ -244,7 +257,9 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict) ->
     shown = []
     with open_index(index_path) as idx:
         for q in queries:
-            drawn, notes = show_searched(q, idx, top=top, read_curve=partial(read_curve, format=input_format), **match)
+            drawn, notes = show_searched(
+                q, idx, top=top, read_curve=partial(read_curve, format=input_format), stage=stage, **match
+            )
             shown.append(drawn)
             for message in notes:
                 note(message)

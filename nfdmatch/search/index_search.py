@@ -129,6 +129,8 @@ def search_index(
     never to exceed the exact distance.
     """
     check_search_parameters(top, max_distance, method)
+    if stage is not None and method != DEFAULT_METHOD:
+        raise ParameterError(f"the {stage.name} stage is taken at the exact optimum: method must be {DEFAULT_METHOD}")
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     t0 = time.perf_counter()
@@ -148,7 +150,7 @@ def search_index(
     if exclude_self:
         results = without_self(index, queries, results, asked)
     if stage is not None:
-        results = [stage.reorder(index, qcoef[qi], found)[:wanted] for qi, found in enumerate(results)]
+        results = [found[:wanted] for found in stage.reorder(index, qcoef, results)]
     stats.seconds = time.perf_counter() - t0
     return results, stats
 

@@ -39,9 +39,9 @@ class Stage(Protocol):
         """How many exact nearest rows a query needs for an answer of ``top`` rows."""
         ...
 
-    def reorder(self, index, qcoef: np.ndarray, matches: Sequence[RankedMatch]) -> list[RankedMatch]:
-        """One query's candidates (descriptors ``qcoef``, (K, 3) complex128), re-ordered and
-        re-ranked, its columns filled in."""
+    def reorder(self, index, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]) -> list[list[RankedMatch]]:
+        """Each query's candidates (``results[i]``, query i's descriptors ``qcoef[i]``: (Q, K,
+        3) complex128), re-ordered and re-ranked, the stage's columns filled in."""
         ...
 
 
@@ -63,26 +63,41 @@ class ElasticStage:
     def candidates(self, top: int | None) -> int | None:
         return None if top is None else max(int(top), int(self.depth))
 
-    def reorder(self, index, qcoef: np.ndarray, matches: Sequence[RankedMatch]) -> list[RankedMatch]:
+    def reorder(self, index, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]) -> list[list[RankedMatch]]:
         from ..matching.fused import fused_rows
+        from ..matching.statistics import curve_statistics
 
-        if not matches:
-            return []
-        rows = np.array([m.row for m in matches], dtype=np.int64)
-        coefficients = index.coefficients_at(rows)
+        found = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
+        if not any(len(rows) for rows in found):
+            return [[] for _ in results]
+        # the batch's rows read once (a scattered read costs about the same for one row or many)
+        every = np.unique(np.concatenate(found))
+        coefficients = index.coefficients_at(every)
         stored = getattr(index, "statistics_at", None)
-        rigid = {
-            "distance": np.array([m.distance for m in matches]),
-            "shift": np.array([m.shift for m in matches]),
-            "reversed": np.array([m.reversed for m in matches]),
-            "mirrored": np.array([m.mirrored for m in matches]),
-        }
-        terms = fused_rows(
-            qcoef, coefficients, rigid, index.samples, row_statistics=None if stored is None else stored(rows)
-        )
-        key = np.round(terms.fused / TIE)
-        ranked = sorted(range(len(matches)), key=lambda i: (key[i], matches[i].distance, matches[i].id))
-        return [
-            matches[i].replace(rank=rank, elastic=float(terms.elastic[i]), fused=float(terms.fused[i]))
-            for rank, i in enumerate(ranked, start=1)
-        ]
+        statistics = stored(every) if stored is not None else curve_statistics(coefficients)
+        mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+        out = []
+        for qi, (matches, rows) in enumerate(zip(results, found)):
+            if not len(rows):
+                out.append([])
+                continue
+            at = np.searchsorted(every, rows)
+            rigid = {
+                "distance": np.array([m.distance for m in matches]),
+                "shift": np.array([m.shift for m in matches]),
+                "reversed": np.array([m.reversed for m in matches]),
+                "mirrored": np.array([m.mirrored for m in matches]),
+            }
+            terms = fused_rows(
+                qcoef[qi], coefficients[at], rigid, index.samples, query_statistics=mine[qi],
+                row_statistics=statistics[at],
+            )  # fmt: skip
+            key = np.round(terms.fused / TIE)
+            ranked = sorted(range(len(matches)), key=lambda i: (key[i], matches[i].distance, matches[i].id))
+            out.append(
+                [
+                    matches[i].replace(rank=rank, elastic=float(terms.elastic[i]), fused=float(terms.fused[i]))
+                    for rank, i in enumerate(ranked, start=1)
+                ]
+            )
+        return out
