@@ -35,7 +35,7 @@ from ..records import RankedMatch
 from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
 from .index_search import UNSET, k_or_top
-from .knn import self_rule
+from .selfmatch import self_rule
 from .stages import fused_best_rows
 
 if TYPE_CHECKING:
