@@ -43,7 +43,7 @@ def test_build_info_query_round_trip(library, tmp_path):
     info = json.loads(out)
     assert code == 0 and info["curves"] == 24 and info["files"] == summary["added"]
     assert (info["samples"], info["harmonics"], info["scale"]) == (128, 16, "rms")
-    assert info["format_version"] == 2
+    assert info["format_version"] == 3
 
     code, out, _ = run("index", "info", "--index", index)
     assert code == 0 and "curves\t24" in out

@@ -377,9 +377,9 @@ def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
         if os.path.exists(path) and _sha256(path) != unchanged_sha[path]:
             pytest.skip(f"{path} changed since the frozen index was made")
     report = build_index(sources, str(target), jobs=1)
-    assert report.written and any("upgrading the index from format 1 to 2" in n for n in report.notices)
+    assert report.written and any("upgrading the index from format 1 to 3" in n for n in report.notices)
     with open_index(target) as idx:
-        assert idx.format_version == 2 and idx.n_curves == 7
+        assert idx.format_version == 3 and idx.n_curves == 7
         after = idx.read_rows(0, 7)
         np.testing.assert_array_equal(after["coefficients"], before["coefficients"])
         assert idx.search_table().n_cells >= 1
@@ -800,7 +800,7 @@ def _make_bad(kind, path):
     elif kind == "newer":
         shutil.copyfile(FROZEN, path)
         with h5py.File(path, "r+") as f:
-            f.attrs["format_version"] = np.int64(3)
+            f.attrs["format_version"] = np.int64(4)
     elif kind == "truncated":
         data = open(FROZEN, "rb").read()
         open(path, "wb").write(data[: len(data) // 2])
@@ -823,7 +823,7 @@ def _make_bad(kind, path):
 BAD = {
     "wrong_kind": "an HDF5 file but not an nfdmatch index (format attribute 'something-else')",
     "no_format_attr": "an HDF5 file but not an nfdmatch index (no 'format' attribute)",
-    "newer": "written by a newer nfdmatch (format 3); this version reads formats 1 and 2",
+    "newer": "written by a newer nfdmatch (format 4); this version reads formats 1, 2 and 3",
     "truncated": "truncated or corrupted HDF5 file",
     "random": "not an nfdmatch index (not an HDF5 file)",
     "empty": "empty file, not an nfdmatch index",

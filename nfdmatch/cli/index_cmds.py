@@ -82,6 +82,15 @@ def index():
     "--scheduler its rows are searched by the cluster's workers "
     "[default: keep the index's graph, if it has one].",
 )
+@click.option(
+    "--sections",
+    type=click.IntRange(min=1),
+    default=None,
+    metavar="N",
+    help="Meshes among the sources (STL, PLY, OFF, GLB/GLTF, OBJ with faces) are indexed as objects, "
+    "cut by N planes per principal axis at area quantiles (docs/objects.md) [default: the index's "
+    "rule, 7 for a new index].",
+)
 @optional_descriptor_options("the index's")
 @input_format_option
 @scheduler_options
@@ -99,6 +108,7 @@ def index_build(
     allow_shrink,
     file_timeout,
     graph_k,
+    sections,
     descriptor,
     input_format,
     scheduler,
@@ -106,6 +116,11 @@ def index_build(
     output_format,
 ):
     """Index the curves in SOURCE... (files or folders, recursively).
+
+    Meshes (STL, PLY, OFF, GLB/GLTF, OBJ with faces) are indexed as objects: each is cut
+    into closed contours by the index's rule (--sections planes per principal axis at area
+    quantiles, plus the boundary loops of an open mesh); its contours are its curves
+    (MESH#I), and `nfdmatch query MESH` ranks the objects (docs/objects.md).
 
     Without SOURCE, the sources (and --glob) of the index's last build are re-scanned:
     the index records them. Files are stored relative to the index's folder (absolute
@@ -144,6 +159,7 @@ def index_build(
       nfdmatch index build --index demo.h5          # again, from its recorded sources
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
       nfdmatch index build library/ --index library.h5 --graph
+      nfdmatch index build parts/ --index parts.h5          # meshes: objects
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
       nfdmatch index build --index /shared/scans.h5 --graph 10 --scheduler tcp://head:8786
     """
@@ -155,7 +171,7 @@ def index_build(
     started = datetime.now(timezone.utc)
     options = dict(
         **descriptor, glob=glob_pattern, input_format=input_format,
-        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k,
+        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k, sections=sections,
     )  # fmt: skip
     report = _run_build(
         list(sources), index_path, options, jobs, file_timeout, (scheduler, scheduler_timeout), output_format, started

@@ -14,6 +14,8 @@ from .options import (
     input_format_option,
     matching_options,
     note,
+    error,
+    finish,
     output_option,
     rows_format_option,
     say,
@@ -109,6 +111,11 @@ def query(
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
+        meshes = _mesh_queries(idx, queries, listing.glob, input_format)
+        if meshes:
+            given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, input_format=input_format)
+            _query_objects(idx, meshes, listing, matching, given, output_format, output)
+            return
         _note_old_format(idx, exhaustive)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
@@ -129,6 +136,90 @@ def query(
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
+
+
+def _mesh_queries(idx, queries, glob, input_format) -> list[str]:
+    """The query meshes among QUERY... (files named directly; in folders too when the index
+    holds objects), or [] for a query of curves. A mix of meshes and curve files is a usage
+    error: their rows differ."""
+    import os
+
+    from ..mesh.objects import is_mesh_file
+    from ..sources import find_curve_files
+
+    if input_format is not None:
+        return []
+    has_objects = idx.object_rule() is not None
+    meshes, curves, in_folders = [], [], []
+    for q in queries:
+        if q != "-" and os.path.isdir(q) and has_objects:
+            for f in find_curve_files([q], glob=glob, meshes=True):
+                (meshes if is_mesh_file(f) else in_folders).append(f)
+        elif q != "-" and os.path.isfile(q) and is_mesh_file(q):
+            meshes.append(q)
+        else:
+            curves.append(q)
+    if not meshes:
+        return []
+    if in_folders:
+        note(f"{len(in_folders)} curve file(s) in the folders left out: the query is of meshes (e.g. {in_folders[0]})")
+    if curves:
+        raise click.UsageError(
+            f"query meshes and curves in separate runs (a mesh ranks objects, a curve ranks curves): "
+            f"{meshes[0]} is a mesh, {curves[0]} is not"
+        )
+    return meshes
+
+
+def _query_objects(idx, meshes, listing, matching, given: dict, output_format, output) -> None:
+    """Rank the index's objects for each query mesh (docs/objects.md): rows query, rank,
+    match (the object's mesh), distance, curves (its contours that were the nearest of some
+    query contour). Bad meshes are named and the others answered (exit 3)."""
+    from ..errors import InputError
+    from .options import NothingRead
+
+    for name, on in (
+        ("--rerank", given["rerank"]),
+        ("--exhaustive", given["exhaustive"]),
+        ("--scheduler", given["scheduler"]),
+        ("--details", listing.details),
+        ("--method, --strict-direction or --mirror", matching != _default_matching()),
+    ):
+        if on:
+            raise click.UsageError(f"{name} does not apply to a mesh query (it ranks objects)")
+    if idx.object_rule() is None:
+        raise InputError(
+            "the index holds no mesh objects: a mesh query ranks objects; build the index from meshes",
+            path=idx.path,
+        )
+    failures: list = []
+    results = idx.search_objects(
+        meshes, k=listing.top, max_distance=listing.max_distance, exclude_self=listing.exclude_self, failures=failures
+    )
+    for _, exc in failures:
+        error(exc)
+    if len(failures) == len(meshes):
+        raise NothingRead()
+    spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
+    rows = [
+        {
+            "query": spell_query(q),
+            "rank": m.rank,
+            "match": spell_match(m.id),
+            "distance": m.distance,
+            "curves": " ".join("#" + c.rsplit("#", 1)[1] for c in m.curves),
+        }
+        for q, res in zip(meshes, results)
+        for m in res
+    ]
+    write_rows(rows, ["query", "rank", "match", "distance", "curves"], output_format, output, group_by="query")
+    finish(len(failures), len(meshes), "meshes")
+
+
+def _default_matching() -> dict:
+    from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
+
+    return {"method": DEFAULT_METHOD, "direction": DEFAULT_DIRECTION, "mirror": False}
 
 
 def _columns(details: bool, rerank: bool) -> list[str]:

@@ -48,6 +48,11 @@ graph_runner : what searches the rows of the graph (None: this process and ``job
     neighbour (m, k) int64, distance (m, k) float64)``, in any order; it returns ``(where,
     workers)``, what searched (reported in ``BuildReport.graph``). The file is then
     reopened to write the graph, and moved into place as always.
+sections : planes per principal axis of the rule meshes are cut by (docs/objects.md;
+    None keeps the index's recorded rule, 7 for a new one). A mesh file (STL, PLY, OFF,
+    GLB/GLTF, an OBJ with faces; not with ``input_format``) is indexed as an object: its
+    contours are its rows (``path#i``), tied to it in ``/objects``. A value that differs
+    from the index's recorded one recomputes every file (with a notice).
 
 Files are stored, and compared with the index's, by the rule of docs/index-format.md
 ("Paths and ids"): relative to the index's folder, whatever the working directory and
@@ -185,6 +190,7 @@ def build_index(
     graph=None,
     runner=None,
     graph_runner=None,
+    sections=None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
     walked; None or empty: the sources the index records) in ``index_path`` (None:
@@ -217,7 +223,7 @@ def build_index(
         report.sources = stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
-        params, changed = parameters(old, samples, harmonics, scale, report.notices)
+        params, changed = parameters(old, samples, harmonics, scale, report.notices, sections)
         if not found and old is not None and not unseen:
             report.notices.append(
                 f"no curve files found under {', '.join(sources)}: every file would be removed from the index"

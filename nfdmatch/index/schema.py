@@ -15,9 +15,10 @@ from ..errors import ParameterError, ReadError
 from .search_layout import check_search_group
 
 INDEX_FORMAT = "nfdmatch-index"
-FORMAT_VERSION = 2
-#: format versions this code reads (format 1: no /search group; queries scan every row)
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+#: format versions this code reads (format 1: no /search group; queries scan every row;
+#: format 2: no /objects group)
+READABLE_VERSIONS = (1, 2, 3)
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 STR = h5py.string_dtype("utf-8")
@@ -385,7 +386,7 @@ def _root_attributes(attrs) -> dict:
         raise Problem(
             "newer",
             f"written by a newer nfdmatch (format {version}); "
-            f"this version reads formats {' and '.join(map(str, READABLE_VERSIONS))}",
+            f"this version reads formats {', '.join(map(str, READABLE_VERSIONS[:-1]))} and {READABLE_VERSIONS[-1]}",
         )
     samples, harmonics, scale = _attr_int(attrs, "samples"), _attr_int(attrs, "harmonics"), _attr_str(attrs, "scale")
     try:

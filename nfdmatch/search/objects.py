@@ -1,0 +1,416 @@
+"""The object distance: two objects compared through their contours (docs/objects.md).
+
+An object is a set of loops cut by one rule (:mod:`nfdmatch.mesh.objects`), each tagged with
+its principal axis (0..2, or 3 for a boundary loop) and level (0..N-1), with size-free
+measures, plus a section profile. For objects P and Q:
+
+* loop distance ``d(p, q) = exact(p, q) + SIZE_WEIGHT |log rel. perimeter p - log rel.
+  perimeter q|`` (the exact distance of :mod:`nfdmatch.matching`, computed by
+  :func:`~nfdmatch.search.matrix.cross_distances`; the descriptor is scale-free, so the
+  size relative to the object is given back);
+* level set distance ``L(P_i, Q_j)``: the perimeter-weighted mean over P's loops of the
+  nearest of Q's, averaged with the same from Q (symmetric); ``EMPTY_LEVEL`` when one side
+  has no loop at that level, skipped when neither has;
+* per axis and order (``j = i``, or ``j = N - 1 - i``: the axis's sign is settled by the
+  better of the two, so a near-zero skew cannot flip it): the mean of ``L`` over the
+  levels divided by ``SHAPE_SCALE``, plus the profile's L1 distance (each feature over its
+  unit in ``PROFILE_UNITS``, mean over levels and features) divided by ``PROFILE_SCALE``;
+* the distance: the mean over the three axes of the better order's value (boundary loops,
+  when either object has some, a fourth term: ``L`` over ``SHAPE_SCALE``).
+
+Symmetric (every part is, and the two orders are each other's mirror), deterministic, and
+0 for an object against itself. Only loops of the same axis and of a level and its mirror
+level are ever compared: ``3 x ceil(N / 2)`` small matrices instead of one of every loop.
+The constants are fixed, measured on the development half of the Princeton segmentation
+benchmark (docs/objects.md); no statistic of a query's answer list is used.
+
+This module never imports ``index/``: it works on :class:`ObjectLoops`, which the index
+reader (``Index.objects``) and :func:`object_loops` (a cut in memory) both make.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .matrix import cross_distances
+
+__all__ = [
+    "SIZE_WEIGHT",
+    "EMPTY_LEVEL",
+    "SHAPE_SCALE",
+    "PROFILE_SCALE",
+    "PROFILE_UNITS",
+    "ObjectLoops",
+    "ObjectDistances",
+    "object_distances",
+    "matched_loops",
+    "ObjectMatch",
+    "object_loops",
+    "search_objects",
+]
+
+#: weight of the size term of a loop distance (|delta log relative perimeter|)
+SIZE_WEIGHT = 0.5
+#: a level where one object has loops and the other none
+EMPTY_LEVEL = 1.0
+#: the curves' term is divided by this (its median between different objects of the
+#: development half), so that curves and profile weigh alike
+SHAPE_SCALE = 0.62
+#: the profile term is divided by this (its median there)
+PROFILE_SCALE = 1.0
+#: units of the profile's features (loop count, total relative perimeter, enclosed area
+#: over surface area, elongation of the longest loop): their spread on the development half
+PROFILE_UNITS = np.array([1.7, 0.67, 0.05, 0.25])
+
+
+@dataclass
+class ObjectLoops:
+    """Loops of M objects: ``coefficients`` (L, K, 3) complex (stored descriptors),
+    ``axis`` (L,), ``level`` (L,), ``measures`` (L, 3) (``log relative perimeter,
+    relative area, elongation``), ``owner`` (L,) int: the object of each loop (0..M-1),
+    ``profile`` (M, 3 N 4), ``sections`` N, ``rows`` (L,): what a loop is called by its
+    caller (index rows; None: 0..L-1)."""
+
+    coefficients: np.ndarray
+    axis: np.ndarray
+    level: np.ndarray
+    measures: np.ndarray
+    owner: np.ndarray
+    profile: np.ndarray
+    sections: int
+    rows: np.ndarray | None = None
+
+    @property
+    def n_objects(self) -> int:
+        return int(len(self.profile))
+
+
+@dataclass
+class ObjectDistances:
+    """(Q, M) arrays: ``distance`` (the object distance), ``curves`` and ``profile`` (the two
+    terms after their scales, averaged over the axes), ``mirror`` (Q, M, 3) bool: the order
+    each axis took (``j = N - 1 - i``)."""
+
+    distance: np.ndarray
+    curves: np.ndarray
+    profile: np.ndarray
+    mirror: np.ndarray
+
+
+def _groups(owner: np.ndarray, level: np.ndarray):
+    """Positions sorted by (owner, level), the starts of each (owner, level) run and the
+    run's owner and level."""
+    order = np.lexsort((level, owner))
+    o, lv = owner[order], level[order]
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (o[1:] != o[:-1]) | (lv[1:] != lv[:-1])
+    starts = np.flatnonzero(new)
+    return order, starts, o[starts], lv[starts]
+
+
+def _level_sets(D: np.ndarray, wr: np.ndarray, wc: np.ndarray, rs: np.ndarray, cs: np.ndarray) -> np.ndarray:
+    """Symmetric weighted set distances between row groups and column groups of ``D``
+    (rows and columns already sorted by group; ``rs``, ``cs`` group starts; ``wr``, ``wc``
+    the loops' weights): (row groups, column groups)."""
+    row_min = np.minimum.reduceat(D, cs, axis=1)  # (rows, col groups)
+    wsum_r = np.add.reduceat(wr, rs)
+    a = np.add.reduceat(wr[:, None] * row_min, rs, axis=0) / wsum_r[:, None]
+    col_min = np.minimum.reduceat(D, rs, axis=0)  # (row groups, cols)
+    wsum_c = np.add.reduceat(wc, cs)
+    b = np.add.reduceat(col_min * wc[None, :], cs, axis=1) / wsum_c[None, :]
+    return 0.5 * (a + b)
+
+
+def _present(loops: ObjectLoops, axes: int, N: int) -> np.ndarray:
+    """(M, axes, N) bool: where the objects have loops."""
+    has = np.zeros((loops.n_objects, axes, N), dtype=bool)
+    has[loops.owner, loops.axis.astype(np.int64), loops.level.astype(np.int64)] = True
+    return has
+
+
+def _weights(loops: ObjectLoops) -> np.ndarray:
+    # relative perimeter: a torso loop counts more than a finger loop of the same level
+    return np.exp(loops.measures[:, 0])
+
+
+def _block(q: ObjectLoops, o: ObjectLoops, qsel, osel, samples: int, processes: int):
+    """The loop distances of the selected query loops against the selected object loops."""
+    D = cross_distances(
+        q.coefficients[qsel].astype(np.complex128), o.coefficients[osel].astype(np.complex128), samples,
+        processes=processes,
+    )  # fmt: skip
+    D += SIZE_WEIGHT * np.abs(q.measures[qsel, 0][:, None] - o.measures[osel, 0][None, :])
+    return D
+
+
+def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: int) -> np.ndarray:
+    """(Q, M, N, 2): the level set distances of axis ``a``, each query level i against the
+    object's level i (order 0) and N - 1 - i (order 1); NaN where neither has loops,
+    EMPTY_LEVEL where one has none."""
+    N = q.sections
+    Q, M = q.n_objects, o.n_objects
+    hq, ho = _present(q, 3, N)[:, a], _present(o, 3, N)[:, a]  # (Q, N), (M, N)
+    out = np.full((Q, M, N, 2), np.nan)
+    for s in range(2):
+        j = np.arange(N) if s == 0 else np.arange(N)[::-1]
+        either = hq[:, None, :] | ho[None, :, j]
+        out[..., s] = np.where(either, EMPTY_LEVEL, np.nan)
+    for i in range((N + 1) // 2):
+        pair = np.array(sorted({i, N - 1 - i}))
+        qsel = np.flatnonzero((q.axis == a) & np.isin(q.level, pair))
+        osel = np.flatnonzero((o.axis == a) & np.isin(o.level, pair))
+        if not len(qsel) or not len(osel):
+            continue
+        qo, rs, rq, rl = _groups(q.owner[qsel], q.level[qsel])
+        oo, cs, co, cl = _groups(o.owner[osel], o.level[osel])
+        qsel, osel = qsel[qo], osel[oo]
+        D = _block(q, o, qsel, osel, samples, processes)
+        L = _level_sets(D, _weights(q)[qsel], _weights(o)[osel], rs, cs)
+        qi, oi = np.meshgrid(np.arange(len(rq)), np.arange(len(co)), indexing="ij")
+        qi, oi = qi.ravel(), oi.ravel()
+        lq, lo = rl[qi].astype(np.int64), cl[oi].astype(np.int64)
+        same = lq == lo
+        out[rq[qi[same]], co[oi[same]], lq[same], 0] = L[qi[same], oi[same]]
+        mirror = lq == N - 1 - lo
+        out[rq[qi[mirror]], co[oi[mirror]], lq[mirror], 1] = L[qi[mirror], oi[mirror]]
+    return out
+
+
+def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int) -> np.ndarray:
+    """(Q, M): the set distance of the boundary loops; NaN where neither object has any."""
+    from ..mesh.objects import BOUNDARY_AXIS
+
+    hq = np.zeros(q.n_objects, dtype=bool)
+    ho = np.zeros(o.n_objects, dtype=bool)
+    hq[q.owner[q.axis == BOUNDARY_AXIS]] = True
+    ho[o.owner[o.axis == BOUNDARY_AXIS]] = True
+    out = np.where(hq[:, None] | ho[None, :], EMPTY_LEVEL, np.nan)
+    qsel, osel = np.flatnonzero(q.axis == BOUNDARY_AXIS), np.flatnonzero(o.axis == BOUNDARY_AXIS)
+    if len(qsel) and len(osel):
+        qo, rs, rq, _ = _groups(q.owner[qsel], q.level[qsel])
+        oo, cs, co, _ = _groups(o.owner[osel], o.level[osel])
+        qsel, osel = qsel[qo], osel[oo]
+        D = _block(q, o, qsel, osel, samples, processes)
+        out[np.ix_(rq, co)] = _level_sets(D, _weights(q)[qsel], _weights(o)[osel], rs, cs)
+    return out
+
+
+def object_distances(
+    queries: ObjectLoops,
+    objects: ObjectLoops,
+    samples: int,
+    *,
+    processes: int = 1,
+    weights: tuple[float, float] = (1.0, 1.0),
+) -> ObjectDistances:
+    """The object distance (module doc) of every query object against every object: (Q, M).
+
+    ``samples``: the descriptors' sample count; ``processes``: forked workers for the loop
+    distances; ``weights``: of the curves' and the profile's terms (``(1, 1)``: the
+    distance; the benchmark's ablations set one to 0)."""
+    N = objects.sections
+    if queries.sections != N:
+        from ..errors import ParameterError
+
+        raise ParameterError(f"objects cut with {queries.sections} and {N} sections cannot be compared")
+    Q, M = queries.n_objects, objects.n_objects
+    F = queries.profile.shape[1] // (3 * N)
+    pq = queries.profile.reshape(Q, 3, N, F) / PROFILE_UNITS
+    po = objects.profile.reshape(M, 3, N, F) / PROFILE_UNITS
+    curves = np.zeros((Q, M))
+    profile = np.zeros((Q, M))
+    total = np.zeros((Q, M))
+    mirror = np.zeros((Q, M, 3), dtype=bool)
+    for a in range(3):
+        sets = _axis_sets(queries, objects, a, samples, processes)  # (Q, M, N, 2)
+        counted = (~np.isnan(sets)).sum(axis=2)
+        shape = np.where(counted > 0, np.nansum(sets, axis=2) / np.maximum(counted, 1), 0.0) / SHAPE_SCALE
+        prof = np.empty((Q, M, 2))
+        for s in range(2):
+            j = np.arange(N) if s == 0 else np.arange(N)[::-1]
+            prof[..., s] = np.abs(pq[:, None, a] - po[None, :, a][:, :, j]).mean(axis=(2, 3)) / PROFILE_SCALE
+        fused = weights[0] * shape + weights[1] * prof  # (Q, M, 2)
+        best = np.argmin(fused, axis=2)  # ties: the direct order
+        pick = best[..., None]
+        total += np.take_along_axis(fused, pick, axis=2)[..., 0]
+        curves += np.take_along_axis(shape, pick, axis=2)[..., 0]
+        profile += np.take_along_axis(prof, pick, axis=2)[..., 0]
+        mirror[..., a] = best == 1
+    boundary = _boundary_sets(queries, objects, samples, processes) / SHAPE_SCALE
+    parts = 3.0 + ~np.isnan(boundary)
+    boundary = np.nan_to_num(boundary, nan=0.0)
+    total = (total + weights[0] * boundary) / parts
+    curves = (curves + boundary) / parts
+    profile = profile / parts
+    return ObjectDistances(distance=total, curves=curves, profile=profile, mirror=mirror)
+
+
+def matched_loops(query: ObjectLoops, objects: ObjectLoops, target: int, mirror, samples: int) -> np.ndarray:
+    """The loops of object ``target`` (positions in ``objects``) that are the nearest of some
+    loop of the one query object at its matched level (``mirror`` (3,) bool: the order of
+    each axis), ascending: what ``query`` reports as an answer's matched curves."""
+    from ..mesh.objects import BOUNDARY_AXIS
+
+    N = objects.sections
+    mine = np.flatnonzero(objects.owner == target)
+    found: set[int] = set()
+    for a in range(4):
+        qsel = np.flatnonzero(query.axis == a)
+        for lev in np.unique(query.level[qsel]):
+            rows = qsel[query.level[qsel] == lev]
+            want = lev if a == BOUNDARY_AXIS or not mirror[a] else N - 1 - lev
+            cols = mine[(objects.axis[mine] == a) & (objects.level[mine] == want)]
+            if not len(cols):
+                continue
+            D = _block(query, objects, rows, cols, samples, 1)
+            found.update(int(c) for c in cols[np.argmin(D, axis=1)])
+    return np.array(sorted(found), dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class ObjectMatch:
+    """One object answer of a mesh query: ``rank`` (1-based), ``id`` (the object's mesh
+    path, as the index stores it), ``distance`` (the object distance), ``curves`` (the ids
+    of its contours that were the nearest of some query contour), ``terms``
+    (``{"curves": ..., "profile": ...}``: the two parts of the distance)."""
+
+    rank: int
+    id: str
+    distance: float
+    curves: tuple = ()
+    terms: dict | None = None
+
+
+def object_loops(cuts, samples: int, harmonics: int, scale: str) -> ObjectLoops:
+    """The :class:`ObjectLoops` of cut objects (:class:`~nfdmatch.mesh.objects.ObjectCut`),
+    described as an index stores its rows (complex64), one owner per cut."""
+    from ..descriptors import descriptors_batch
+
+    cuts = list(cuts)
+    loops = [c for cut in cuts for c in cut.loops]
+    batch = descriptors_batch(loops, samples=samples, harmonics=harmonics, scale=scale)
+    return ObjectLoops(
+        coefficients=batch.coefficients.astype(np.complex64),
+        axis=np.concatenate([c.axis for c in cuts]),
+        level=np.concatenate([c.level for c in cuts]),
+        measures=np.concatenate([c.measures for c in cuts]),
+        owner=np.repeat(np.arange(len(cuts)), [len(c.loops) for c in cuts]),
+        profile=np.array([c.profile for c in cuts]).reshape(len(cuts), -1),
+        sections=cuts[0].rule.sections if cuts else 0,
+    )
+
+
+def search_objects(
+    index,
+    meshes,
+    *,
+    k: int | None = 10,
+    max_distance: float | None = None,
+    exclude_self: bool = False,
+    processes: int | None = None,
+    names=None,
+    failures: list | None = None,
+) -> list[list[ObjectMatch]]:
+    """Each query mesh's nearest objects of ``index`` (an index with objects: its
+    ``objects()`` and ``object_loops()``), by the object distance.
+
+    meshes : mesh paths or ``trimesh.Trimesh`` objects, each cut by the index's recorded
+        rule (:func:`~nfdmatch.mesh.objects.cut_object`).
+    k : answers per query (None: every object within ``max_distance``).
+    exclude_self : drop the object whose mesh is the query's file (however its path is
+        spelled).
+    processes : forked workers for the loop distances (None: the cores).
+    names : what the queries are called in messages (default: their paths).
+    failures : a list: a mesh that cannot be cut is appended as ``(position, NfdError)``
+        and answered with no match, the others answered; None: its error is raised.
+
+    Returns one list per query, sorted by distance then id. Raises InputError when the
+    index holds no object; what :func:`~nfdmatch.mesh.objects.cut_object` raises for a
+    bad mesh (without ``failures``).
+    """
+    import os
+
+    from ..errors import InputError, NfdError, ParameterError
+    from ..mesh.objects import cut_object
+    from .knn import self_rule
+
+    if k is None and max_distance is None:
+        raise ParameterError("give k or max_distance (or both)")
+    if k is not None and (isinstance(k, bool) or int(k) < 1):
+        raise ParameterError(f"k must be >= 1, got {k!r}")
+    groups = index.objects()
+    if groups is None:
+        raise InputError("the index holds no mesh objects (build it from meshes to query it with a mesh)")
+    processes = (os.cpu_count() or 1) if processes is None else int(processes)
+    if not isinstance(meshes, (list, tuple)):
+        meshes = [meshes]
+    names = list(names) if names is not None else [
+        str(os.fspath(m)) if isinstance(m, (str, os.PathLike)) else f"<mesh {i}>" for i, m in enumerate(meshes)
+    ]  # fmt: skip
+    cuts, cut_at = [], {}
+    for q, (m, n) in enumerate(zip(meshes, names)):
+        try:
+            cut = cut_object(m, groups.rule, name=n)
+        except NfdError as exc:
+            if failures is None:
+                raise
+            failures.append((q, exc))
+            continue
+        cut_at[q] = len(cuts)
+        cuts.append(cut)
+    if not cuts:
+        return [[] for _ in names]
+    queries = object_loops(cuts, index.samples, index.harmonics, index.scale_mode)
+    objects = index.object_loops()
+    found = object_distances(queries, objects, index.samples, processes=processes)
+    ids = index.object_ids()
+    rule = self_rule(index.locate) if exclude_self else None
+    out = []
+    for position, given in enumerate(meshes):
+        if position not in cut_at:
+            out.append([])
+            continue
+        q = cut_at[position]
+        d = found.distance[q]
+        order = sorted(range(len(ids)), key=lambda m: (float(d[m]), ids[m]))
+        if max_distance is not None:
+            order = [m for m in order if d[m] <= max_distance]
+        if rule is not None and isinstance(given, (str, os.PathLike)):
+            order = [m for m in order if not rule(str(given), ids[m])]
+        out.append(_answers(index, found, q, order[: int(k)] if k is not None else order, queries, objects, ids))
+    return out
+
+
+def _answers(index, found: ObjectDistances, q: int, order: list, queries, objects, ids) -> list[ObjectMatch]:
+    """The :class:`ObjectMatch` records of query ``q``'s objects ``order`` (ranked), with
+    their matched contours."""
+    mine = _one(queries, q)
+    answers = []
+    for rank, m in enumerate(order, start=1):
+        matched = matched_loops(mine, objects, m, found.mirror[q, m], index.samples)
+        answers.append(
+            ObjectMatch(
+                rank=rank,
+                id=ids[m],
+                distance=float(found.distance[q, m]),
+                curves=tuple(index.ids_at(objects.rows[matched])) if len(matched) else (),
+                terms={"curves": float(found.curves[q, m]), "profile": float(found.profile[q, m])},
+            )
+        )
+    return answers
+
+
+def _one(loops: ObjectLoops, q: int) -> ObjectLoops:
+    """Object ``q`` of ``loops`` alone (owner 0)."""
+    sel = loops.owner == q
+    return ObjectLoops(
+        coefficients=loops.coefficients[sel],
+        axis=loops.axis[sel],
+        level=loops.level[sel],
+        measures=loops.measures[sel],
+        owner=np.zeros(int(sel.sum()), dtype=np.int64),
+        profile=loops.profile[q : q + 1],
+        sections=loops.sections,
+    )
