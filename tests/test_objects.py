@@ -212,3 +212,19 @@ def test_a_format_2_index_is_read_and_upgraded(tmp_path):
     shutil.copyfile(os.path.join(HERE, "data", "index", "v2-sample.h5"), frozen)
     with open_index(frozen) as idx:
         assert idx.format_version == 2 and idx.objects() is None and idx.object_rule() is None
+
+
+def test_extract_axis_principal_cuts_by_the_index_rule(parts, tmp_path):
+    index = str(tmp_path / "parts.h5")
+    build_index([str(parts / "torus.ply")], index, jobs=1)
+    result = CliRunner().invoke(
+        main, ["extract", str(parts / "torus.ply"), "-o", str(tmp_path / "c"), "--axis", "principal", "--sections", "7",
+               "--format", "csv"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    rows = list(csv.DictReader(io.StringIO(result.stdout)))
+    with open_index(index) as idx:
+        assert len(rows) == idx.n_curves
+        axes = idx.objects().axis
+    assert [r["axis"] for r in rows] == [("pa", "pb", "pc")[a] for a in axes]
+    assert {r["kind"] for r in rows} == {"section"}

@@ -62,10 +62,12 @@ def _check_list(ctx, param, value):
 )
 @click.option(
     "--axis",
-    type=click.Choice(["x", "y", "z", "auto"]),
+    type=click.Choice(["x", "y", "z", "auto", "principal"]),
     default="auto",
     show_default=True,
-    help="Axis the planes are perpendicular to; auto: the longest side of the bounding box.",
+    help="Axis the planes are perpendicular to; auto: the longest side of the bounding box; principal: "
+    "the rule `index build` cuts meshes by (N planes along each principal axis of the surface, pa, pb, "
+    "pc, at area quantiles; docs/objects.md).",
 )
 @click.option("--boundaries", is_flag=True, help="Also extract the boundary loops of open meshes.")
 @click.option(
@@ -113,6 +115,7 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
     Examples:
       nfdmatch extract part.stl -o contours/ --sections 20
       nfdmatch extract scans/ -o contours/ --axis z --boundaries --output-format vtp
+      nfdmatch extract part.stl -o contours/ --axis principal --sections 7   # as index build cuts it
       nfdmatch extract parts/ -o contours/ --prune   # the folder then holds this run's contours
       nfdmatch index build contours/ --index parts.h5
     """

@@ -327,3 +327,46 @@ def cut_object(mesh, rule: ObjectRule | None = None, *, name: str | None = None)
             f"no closed contour of {rule.min_vertices} or more vertices in any section: not an object", path=where
         )
     return cut
+
+
+#: the names of the principal axes in contour names and listings (decreasing variance)
+PRINCIPAL_AXES = ("pa", "pb", "pc")
+
+
+def principal_contours(path, *, sections: int, boundaries: bool):
+    """``extract --axis principal``: the contours of the mesh at ``path`` cut by the object
+    rule (:func:`cut_object` with ``sections`` planes per principal axis), as an
+    :class:`~.contours.ExtractResult` whose contours name their axis ``pa``, ``pb``, ``pc``
+    and their level as the plane's offset from the area centroid along it."""
+    from .contours import Contour, ExtractResult
+    from .load import load_mesh
+
+    p = str(os.fspath(path))
+    mesh = load_mesh(p)
+    cut = cut_object(mesh, ObjectRule(sections=sections, boundaries=boundaries), name=p)
+    result = ExtractResult(
+        mesh=p, axis="principal", levels=cut.levels[0].copy(), vertices=len(mesh.vertices), faces=len(mesh.faces)
+    )
+    result.notes.extend(cut.notes)
+    keys = list(zip(cut.axis.tolist(), cut.level.tolist()))
+    for i, (pts, key) in enumerate(zip(cut.loops, keys)):
+        a, level = key
+        same = [j for j, k in enumerate(keys) if k == key]
+        loop, count = same.index(i), len(same)
+        if a == BOUNDARY_AXIS:
+            result.contours.append(Contour(points=pts, mesh=p, kind="boundary", loop=loop, loop_count=count))
+            continue
+        result.contours.append(
+            Contour(
+                points=pts,
+                mesh=p,
+                kind="section",
+                axis=PRINCIPAL_AXES[a],
+                level=float(cut.levels[a, level]),
+                level_index=level,
+                loop=loop,
+                level_count=sections,
+                loop_count=count,
+            )  # fmt: skip
+        )
+    return result

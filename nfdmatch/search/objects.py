@@ -135,17 +135,20 @@ def _weights(loops: ObjectLoops) -> np.ndarray:
     return np.exp(loops.measures[:, 0])
 
 
-def _block(q: ObjectLoops, o: ObjectLoops, qsel, osel, samples: int, processes: int):
-    """The loop distances of the selected query loops against the selected object loops."""
-    D = cross_distances(
-        q.coefficients[qsel].astype(np.complex128), o.coefficients[osel].astype(np.complex128), samples,
-        processes=processes,
-    )  # fmt: skip
-    D += SIZE_WEIGHT * np.abs(q.measures[qsel, 0][:, None] - o.measures[osel, 0][None, :])
+def _block(q: ObjectLoops, o: ObjectLoops, qsel, osel, samples: int, processes: int, loop=(1.0, SIZE_WEIGHT)):
+    """The loop distances of the selected query loops against the selected object loops;
+    ``loop``: the weights of the shape (exact distance; 0: not computed) and size terms."""
+    D = np.zeros((len(qsel), len(osel)))
+    if loop[0]:
+        D += loop[0] * cross_distances(
+            q.coefficients[qsel].astype(np.complex128), o.coefficients[osel].astype(np.complex128), samples,
+            processes=processes,
+        )  # fmt: skip
+    D += loop[1] * np.abs(q.measures[qsel, 0][:, None] - o.measures[osel, 0][None, :])
     return D
 
 
-def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: int) -> np.ndarray:
+def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: int, loop) -> np.ndarray:
     """(Q, M, N, 2): the level set distances of axis ``a``, each query level i against the
     object's level i (order 0) and N - 1 - i (order 1); NaN where neither has loops,
     EMPTY_LEVEL where one has none."""
@@ -166,7 +169,7 @@ def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: 
         qo, rs, rq, rl = _groups(q.owner[qsel], q.level[qsel])
         oo, cs, co, cl = _groups(o.owner[osel], o.level[osel])
         qsel, osel = qsel[qo], osel[oo]
-        D = _block(q, o, qsel, osel, samples, processes)
+        D = _block(q, o, qsel, osel, samples, processes, loop)
         L = _level_sets(D, _weights(q)[qsel], _weights(o)[osel], rs, cs)
         qi, oi = np.meshgrid(np.arange(len(rq)), np.arange(len(co)), indexing="ij")
         qi, oi = qi.ravel(), oi.ravel()
@@ -178,7 +181,7 @@ def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: 
     return out
 
 
-def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int) -> np.ndarray:
+def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int, loop) -> np.ndarray:
     """(Q, M): the set distance of the boundary loops; NaN where neither object has any."""
     from ..mesh.objects import BOUNDARY_AXIS
 
@@ -192,7 +195,7 @@ def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int)
         qo, rs, rq, _ = _groups(q.owner[qsel], q.level[qsel])
         oo, cs, co, _ = _groups(o.owner[osel], o.level[osel])
         qsel, osel = qsel[qo], osel[oo]
-        D = _block(q, o, qsel, osel, samples, processes)
+        D = _block(q, o, qsel, osel, samples, processes, loop)
         out[np.ix_(rq, co)] = _level_sets(D, _weights(q)[qsel], _weights(o)[osel], rs, cs)
     return out
 
@@ -204,12 +207,14 @@ def object_distances(
     *,
     processes: int = 1,
     weights: tuple[float, float] = (1.0, 1.0),
+    loop: tuple[float, float] = (1.0, SIZE_WEIGHT),
 ) -> ObjectDistances:
     """The object distance (module doc) of every query object against every object: (Q, M).
 
     ``samples``: the descriptors' sample count; ``processes``: forked workers for the loop
-    distances; ``weights``: of the curves' and the profile's terms (``(1, 1)``: the
-    distance; the benchmark's ablations set one to 0)."""
+    distances; ``weights``: of the curves' and the profile's terms, ``loop``: of a loop
+    distance's shape and size terms (the defaults are the distance; the benchmark's
+    ablations set some to 0: a shape weight 0 computes no exact distance)."""
     N = objects.sections
     if queries.sections != N:
         from ..errors import ParameterError
@@ -224,7 +229,7 @@ def object_distances(
     total = np.zeros((Q, M))
     mirror = np.zeros((Q, M, 3), dtype=bool)
     for a in range(3):
-        sets = _axis_sets(queries, objects, a, samples, processes)  # (Q, M, N, 2)
+        sets = _axis_sets(queries, objects, a, samples, processes, loop)  # (Q, M, N, 2)
         counted = (~np.isnan(sets)).sum(axis=2)
         shape = np.where(counted > 0, np.nansum(sets, axis=2) / np.maximum(counted, 1), 0.0) / SHAPE_SCALE
         prof = np.empty((Q, M, 2))
@@ -238,7 +243,7 @@ def object_distances(
         curves += np.take_along_axis(shape, pick, axis=2)[..., 0]
         profile += np.take_along_axis(prof, pick, axis=2)[..., 0]
         mirror[..., a] = best == 1
-    boundary = _boundary_sets(queries, objects, samples, processes) / SHAPE_SCALE
+    boundary = _boundary_sets(queries, objects, samples, processes, loop) / SHAPE_SCALE
     parts = 3.0 + ~np.isnan(boundary)
     boundary = np.nan_to_num(boundary, nan=0.0)
     total = (total + weights[0] * boundary) / parts
