@@ -228,3 +228,19 @@ def test_extract_axis_principal_cuts_by_the_index_rule(parts, tmp_path):
         axes = idx.objects().axis
     assert [r["axis"] for r in rows] == [("pa", "pb", "pc")[a] for a in axes]
     assert {r["kind"] for r in rows} == {"section"}
+
+
+def test_an_open_mesh_has_its_boundary_loops_as_contours(parts, tmp_path):
+    bowl = trimesh.creation.icosphere(subdivisions=3)
+    bowl.update_faces(bowl.triangles_center[:, 2] < 0.3)  # a sphere cut open: one rim
+    bowl.remove_unreferenced_vertices()
+    bowl.apply_scale([1.0, 1.3, 1.0])
+    bowl.export(str(parts / "bowl.ply"))
+    index = str(tmp_path / "parts.h5")
+    build_index([str(parts)], index, jobs=1)
+    with open_index(index) as idx:
+        ids, axis = idx.ids(), idx.objects().axis
+        rims = [ids[i] for i in np.flatnonzero(axis == 3)]
+        assert len(rims) == 1 and rims[0].startswith("parts/bowl.ply#")
+        found = idx.search(_copy_reposed(bowl, 7), k=2)[0]
+        assert found[0].id == "parts/bowl.ply" and found[0].distance < 0.25 * found[1].distance

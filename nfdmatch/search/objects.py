@@ -45,7 +45,6 @@ __all__ = [
     "ObjectLoops",
     "ObjectDistances",
     "object_distances",
-    "matched_loops",
     "ObjectMatch",
     "object_loops",
     "search_objects",
@@ -97,6 +96,27 @@ class ObjectDistances:
     curves: np.ndarray
     profile: np.ndarray
     mirror: np.ndarray
+    blocks: list = None
+    sections: int = 0
+
+    def matched(self, q: int, m: int) -> np.ndarray:
+        """The loops of object ``m`` (positions in the objects' :class:`ObjectLoops`) that are
+        the nearest of some loop of query ``q`` at its matched level (the order each axis
+        took), ascending: what a mesh query reports as an answer's matched curves."""
+        N = self.sections
+        found: set[int] = set()
+        for b in self.blocks or ():
+            groups = np.flatnonzero(b.rq == q)
+            for g in groups.tolist():
+                level = int(b.rl[g])
+                if b.axis < 3 and self.mirror[q, m, b.axis]:
+                    level = N - 1 - level
+                h = np.flatnonzero((b.co == m) & (b.cl == level))
+                if not len(h):
+                    continue
+                stop = b.rs[g + 1] if g + 1 < len(b.rs) else len(b.qsel)
+                found.update(b.osel[b.nearest[b.rs[g] : stop, h[0]]].tolist())
+        return np.array(sorted(found), dtype=np.int64)
 
 
 def _groups(owner: np.ndarray, level: np.ndarray):
@@ -121,6 +141,33 @@ def _level_sets(D: np.ndarray, wr: np.ndarray, wc: np.ndarray, rs: np.ndarray, c
     wsum_c = np.add.reduceat(wc, cs)
     b = np.add.reduceat(col_min * wc[None, :], cs, axis=1) / wsum_c[None, :]
     return 0.5 * (a + b)
+
+
+@dataclass
+class _Block:
+    """One matrix of loop distances, kept for the matched contours: query rows ``qsel`` and
+    object columns ``osel`` (sorted by owner and level), the row groups (starts ``rs``,
+    owner ``rq``, level ``rl``), the column groups (``co``, ``cl``) and ``nearest`` (rows,
+    column groups): the column (into ``osel``) of each row's nearest loop in each group."""
+
+    axis: int
+    qsel: np.ndarray
+    osel: np.ndarray
+    rs: np.ndarray
+    rq: np.ndarray
+    rl: np.ndarray
+    co: np.ndarray
+    cl: np.ndarray
+    nearest: np.ndarray
+
+
+def _nearest_in_groups(D: np.ndarray, cs: np.ndarray) -> np.ndarray:
+    """(rows, column groups): each row's first column of least distance within each group."""
+    row_min = np.minimum.reduceat(D, cs, axis=1)
+    counts = np.diff(np.append(cs, D.shape[1]))
+    cols = np.arange(D.shape[1])[None, :]
+    at = np.where(D == np.repeat(row_min, counts, axis=1), cols, D.shape[1])
+    return np.minimum.reduceat(at, cs, axis=1).astype(np.int64)
 
 
 def _present(loops: ObjectLoops, axes: int, N: int) -> np.ndarray:
@@ -148,13 +195,13 @@ def _block(q: ObjectLoops, o: ObjectLoops, qsel, osel, samples: int, processes: 
     return D
 
 
-def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: int, loop) -> np.ndarray:
+def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: int, loop, blocks) -> np.ndarray:
     """(Q, M, N, 2): the level set distances of axis ``a``, each query level i against the
     object's level i (order 0) and N - 1 - i (order 1); NaN where neither has loops,
-    EMPTY_LEVEL where one has none."""
+    EMPTY_LEVEL where one has none. Each matrix's :class:`_Block` is appended to ``blocks``."""
     N = q.sections
     Q, M = q.n_objects, o.n_objects
-    hq, ho = _present(q, 3, N)[:, a], _present(o, 3, N)[:, a]  # (Q, N), (M, N)
+    hq, ho = _present(q, 4, N)[:, a], _present(o, 4, N)[:, a]  # (Q, N), (M, N); axis 3: boundaries
     out = np.full((Q, M, N, 2), np.nan)
     for s in range(2):
         j = np.arange(N) if s == 0 else np.arange(N)[::-1]
@@ -171,6 +218,7 @@ def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: 
         qsel, osel = qsel[qo], osel[oo]
         D = _block(q, o, qsel, osel, samples, processes, loop)
         L = _level_sets(D, _weights(q)[qsel], _weights(o)[osel], rs, cs)
+        blocks.append(_Block(a, qsel, osel, rs, rq, rl, co, cl, _nearest_in_groups(D, cs)))
         qi, oi = np.meshgrid(np.arange(len(rq)), np.arange(len(co)), indexing="ij")
         qi, oi = qi.ravel(), oi.ravel()
         lq, lo = rl[qi].astype(np.int64), cl[oi].astype(np.int64)
@@ -181,7 +229,7 @@ def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: 
     return out
 
 
-def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int, loop) -> np.ndarray:
+def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int, loop, blocks) -> np.ndarray:
     """(Q, M): the set distance of the boundary loops; NaN where neither object has any."""
     from ..mesh.objects import BOUNDARY_AXIS
 
@@ -192,11 +240,12 @@ def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int,
     out = np.where(hq[:, None] | ho[None, :], EMPTY_LEVEL, np.nan)
     qsel, osel = np.flatnonzero(q.axis == BOUNDARY_AXIS), np.flatnonzero(o.axis == BOUNDARY_AXIS)
     if len(qsel) and len(osel):
-        qo, rs, rq, _ = _groups(q.owner[qsel], q.level[qsel])
-        oo, cs, co, _ = _groups(o.owner[osel], o.level[osel])
+        qo, rs, rq, rl = _groups(q.owner[qsel], q.level[qsel])
+        oo, cs, co, cl = _groups(o.owner[osel], o.level[osel])
         qsel, osel = qsel[qo], osel[oo]
         D = _block(q, o, qsel, osel, samples, processes, loop)
         out[np.ix_(rq, co)] = _level_sets(D, _weights(q)[qsel], _weights(o)[osel], rs, cs)
+        blocks.append(_Block(BOUNDARY_AXIS, qsel, osel, rs, rq, rl, co, cl, _nearest_in_groups(D, cs)))
     return out
 
 
@@ -228,8 +277,9 @@ def object_distances(
     profile = np.zeros((Q, M))
     total = np.zeros((Q, M))
     mirror = np.zeros((Q, M, 3), dtype=bool)
+    blocks: list = []
     for a in range(3):
-        sets = _axis_sets(queries, objects, a, samples, processes, loop)  # (Q, M, N, 2)
+        sets = _axis_sets(queries, objects, a, samples, processes, loop, blocks)  # (Q, M, N, 2)
         counted = (~np.isnan(sets)).sum(axis=2)
         shape = np.where(counted > 0, np.nansum(sets, axis=2) / np.maximum(counted, 1), 0.0) / SHAPE_SCALE
         prof = np.empty((Q, M, 2))
@@ -243,35 +293,13 @@ def object_distances(
         curves += np.take_along_axis(shape, pick, axis=2)[..., 0]
         profile += np.take_along_axis(prof, pick, axis=2)[..., 0]
         mirror[..., a] = best == 1
-    boundary = _boundary_sets(queries, objects, samples, processes, loop) / SHAPE_SCALE
+    boundary = _boundary_sets(queries, objects, samples, processes, loop, blocks) / SHAPE_SCALE
     parts = 3.0 + ~np.isnan(boundary)
     boundary = np.nan_to_num(boundary, nan=0.0)
     total = (total + weights[0] * boundary) / parts
     curves = (curves + boundary) / parts
     profile = profile / parts
-    return ObjectDistances(distance=total, curves=curves, profile=profile, mirror=mirror)
-
-
-def matched_loops(query: ObjectLoops, objects: ObjectLoops, target: int, mirror, samples: int) -> np.ndarray:
-    """The loops of object ``target`` (positions in ``objects``) that are the nearest of some
-    loop of the one query object at its matched level (``mirror`` (3,) bool: the order of
-    each axis), ascending: what ``query`` reports as an answer's matched curves."""
-    from ..mesh.objects import BOUNDARY_AXIS
-
-    N = objects.sections
-    mine = np.flatnonzero(objects.owner == target)
-    found: set[int] = set()
-    for a in range(4):
-        qsel = np.flatnonzero(query.axis == a)
-        for lev in np.unique(query.level[qsel]):
-            rows = qsel[query.level[qsel] == lev]
-            want = lev if a == BOUNDARY_AXIS or not mirror[a] else N - 1 - lev
-            cols = mine[(objects.axis[mine] == a) & (objects.level[mine] == want)]
-            if not len(cols):
-                continue
-            D = _block(query, objects, rows, cols, samples, 1)
-            found.update(int(c) for c in cols[np.argmin(D, axis=1)])
-    return np.array(sorted(found), dtype=np.int64)
+    return ObjectDistances(distance=total, curves=curves, profile=profile, mirror=mirror, blocks=blocks, sections=N)
 
 
 @dataclass(frozen=True)
@@ -384,17 +412,16 @@ def search_objects(
             order = [m for m in order if d[m] <= max_distance]
         if rule is not None and isinstance(given, (str, os.PathLike)):
             order = [m for m in order if not rule(str(given), ids[m])]
-        out.append(_answers(index, found, q, order[: int(k)] if k is not None else order, queries, objects, ids))
+        out.append(_answers(index, found, q, order[: int(k)] if k is not None else order, objects, ids))
     return out
 
 
-def _answers(index, found: ObjectDistances, q: int, order: list, queries, objects, ids) -> list[ObjectMatch]:
+def _answers(index, found: ObjectDistances, q: int, order: list, objects, ids) -> list[ObjectMatch]:
     """The :class:`ObjectMatch` records of query ``q``'s objects ``order`` (ranked), with
     their matched contours."""
-    mine = _one(queries, q)
     answers = []
     for rank, m in enumerate(order, start=1):
-        matched = matched_loops(mine, objects, m, found.mirror[q, m], index.samples)
+        matched = found.matched(q, m)
         answers.append(
             ObjectMatch(
                 rank=rank,
@@ -405,17 +432,3 @@ def _answers(index, found: ObjectDistances, q: int, order: list, queries, object
             )
         )
     return answers
-
-
-def _one(loops: ObjectLoops, q: int) -> ObjectLoops:
-    """Object ``q`` of ``loops`` alone (owner 0)."""
-    sel = loops.owner == q
-    return ObjectLoops(
-        coefficients=loops.coefficients[sel],
-        axis=loops.axis[sel],
-        level=loops.level[sel],
-        measures=loops.measures[sel],
-        owner=np.zeros(int(sel.sum()), dtype=np.int64),
-        profile=loops.profile[q : q + 1],
-        sections=loops.sections,
-    )
