@@ -335,7 +335,8 @@ def index_info(index_path, output_format, output):
     """Describe an index: sources, files, curves, failed files with reasons, parameters, format, times, size.
 
     `graph` is the number of nearest curves stored per curve for `query --rerank` (0: no
-    graph; `index build --graph` adds it).
+    graph; `index build --graph` adds it); `objects` the number of meshes indexed as
+    objects (their contours are among the curves).
 
     \b
     Example:
@@ -349,6 +350,7 @@ def index_info(index_path, output_format, output):
     with open_index(index_path) as idx:
         info = idx.info()
         info["graph"] = graph_k(idx)  # neighbours per curve stored for --rerank; 0: none
+        info["objects"] = len(idx.object_ids())  # meshes indexed as objects (docs/objects.md)
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
@@ -366,6 +368,7 @@ def index_info(index_path, output_format, output):
             "harmonics",
             "scale",
             "graph",
+            "objects",
             "created",
             "updated",
             "size_bytes",
