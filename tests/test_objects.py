@@ -244,3 +244,21 @@ def test_an_open_mesh_has_its_boundary_loops_as_contours(parts, tmp_path):
         assert len(rims) == 1 and rims[0].startswith("parts/bowl.ply#")
         found = idx.search(_copy_reposed(bowl, 7), k=2)[0]
         assert found[0].id == "parts/bowl.ply" and found[0].distance < 0.25 * found[1].distance
+
+
+def test_verify_checks_objects_and_a_query_refuses_a_bad_group(parts, tmp_path):
+    import h5py
+
+    index = str(tmp_path / "parts.h5")
+    build_index([str(parts)], index, jobs=1)
+    runner = CliRunner()
+    assert runner.invoke(main, ["index", "verify", "--index", index]).exit_code == 0
+    with h5py.File(index, "r+") as f:
+        f["objects/level"][3] = 99  # past the 7 sections
+    result = runner.invoke(main, ["index", "verify", "--index", index])
+    assert result.exit_code == 1 and "/objects" in result.output
+    result = runner.invoke(main, ["query", str(parts / "torus.ply"), "--index", index])
+    assert result.exit_code == 1 and "corrupted nfdmatch index: /objects" in result.stderr
+    # curves are still answered: /objects is read only by what needs it
+    result = runner.invoke(main, ["query", str(parts / "ring.csv"), "--index", index, "--top", "1"])
+    assert result.exit_code == 0
