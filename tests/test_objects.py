@@ -12,6 +12,8 @@ import shutil
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nfdmatch.cli import main
 from nfdmatch.index import build_index, open_index
@@ -262,3 +264,84 @@ def test_verify_checks_objects_and_a_query_refuses_a_bad_group(parts, tmp_path):
     # curves are still answered: /objects is read only by what needs it
     result = runner.invoke(main, ["query", str(parts / "ring.csv"), "--index", index, "--top", "1"])
     assert result.exit_code == 0
+
+
+def _synthetic_objects(seed: int, n_objects: int, families: int = 3, sections: int = 3):
+    """ObjectLoops of ``n_objects`` made-up objects: noisy copies of a few families (random
+    smooth closed curves per axis and level, 0 to 2 loops a level, random sizes)."""
+    from nfdmatch.descriptors import descriptors_batch
+    from nfdmatch.search.objects import ObjectLoops
+
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+
+    def curve(c):
+        return sum(np.outer(np.cos(k * t), c[k, 0]) + np.outer(np.sin(k * t), c[k, 1]) for k in range(1, 4))
+
+    bases = []
+    for _ in range(families):
+        slots = [(a, lv) for a in range(3) for lv in range(sections) for _ in range(int(rng.integers(0, 3)))]
+        bases.append(
+            [(a, lv, rng.normal(size=(4, 2, 3)) / np.arange(1, 5)[:, None, None], rng.normal()) for a, lv in slots]
+        )
+    loops, axis, level, measures, owner, profile = [], [], [], [], [], []
+    for m in range(n_objects):
+        base = bases[int(rng.integers(families))]
+        for a, lv, c, size in base:
+            loops.append(curve(c + 0.15 * rng.normal(size=c.shape)))
+            axis.append(a)
+            level.append(lv)
+            measures.append((size + 0.1 * rng.normal(), 0.1, 0.5))
+            owner.append(m)
+        profile.append(rng.random(3 * sections * 4))
+    batch = descriptors_batch(loops, samples=64, harmonics=8, scale="rms")
+    return ObjectLoops(
+        coefficients=batch.coefficients.astype(np.complex64), axis=np.array(axis, dtype=np.int8),
+        level=np.array(level, dtype=np.int16), measures=np.array(measures), owner=np.array(owner),
+        profile=np.array(profile), sections=sections,
+    )  # fmt: skip
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    n=st.integers(2, 70),
+    k=st.one_of(st.none(), st.integers(1, 6)),
+    max_distance=st.one_of(st.none(), st.floats(0.5, 4.0)),
+)
+def test_pruned_object_search_equals_brute_force(seed, n, k, max_distance):
+    """The lower bounds never exceed the object distance, and the pruned search returns
+    exactly what computing every object distance returns."""
+    from nfdmatch.search.objects import nearest_objects, object_distances, object_lower_bounds
+
+    if k is None and max_distance is None:
+        k = 3
+    objects = _synthetic_objects(seed, n)
+    query = objects.subset([0])
+    exact = object_distances(query, objects, 64).distance[0]
+    assert np.all(object_lower_bounds(query, objects)[0] <= exact + 1e-12)
+    how = dict(k=k, max_distance=max_distance, skip=[0])
+    pruned = nearest_objects(query, objects, 64, first_round=2, **how)  # small rounds: stops early
+    full = nearest_objects(query, objects, 64, prune=False, **how)
+    assert [f.position for f in pruned] == [f.position for f in full]
+    np.testing.assert_allclose([f.distance for f in pruned], [f.distance for f in full], rtol=1e-9, atol=1e-12)
+    assert [f.matched for f in pruned] == [f.matched for f in full]
+
+
+def test_the_pruned_object_search_skips_most_objects():
+    from nfdmatch.search import objects as module
+
+    objects = _synthetic_objects(11, 300, families=6)
+    computed = []
+    exact = module._exact
+
+    def counting(query, objs, chosen, samples, processes):
+        computed.extend(chosen)
+        return exact(query, objs, chosen, samples, processes)
+
+    module._exact = counting
+    try:
+        found = module.nearest_objects(objects.subset([0]), objects, 64, k=3, skip=[0])
+    finally:
+        module._exact = exact
+    assert len(found) == 3 and len(computed) < 150

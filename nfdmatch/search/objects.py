@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .bounds import feature_vector, row_lower_bounds_many, squared_norms
 from .matrix import cross_distances
 from .workers import run_tasks
 
@@ -47,7 +48,11 @@ __all__ = [
     "ObjectDistances",
     "object_distances",
     "ObjectMatch",
+    "FoundObject",
     "object_loops",
+    "object_lower_bounds",
+    "nearest_objects",
+    "all_nearest_objects",
     "search_objects",
 ]
 
@@ -81,10 +86,31 @@ class ObjectLoops:
     profile: np.ndarray
     sections: int
     rows: np.ndarray | None = None
+    #: the loops' invariant features and their squared norms, made on first use (bounds)
+    features: tuple | None = None
 
     @property
     def n_objects(self) -> int:
         return int(len(self.profile))
+
+    def subset(self, chosen) -> "ObjectLoops":
+        """Objects ``chosen`` (positions, in that order) alone, renumbered 0..len-1 (the loops
+        of each object must be one run, in owner order, as the readers make them)."""
+        chosen = np.asarray(chosen, dtype=np.int64)
+        starts = np.searchsorted(self.owner, chosen)
+        stops = np.searchsorted(self.owner, chosen, side="right")
+        pick = np.concatenate([np.arange(a, b) for a, b in zip(starts, stops)]) if len(chosen) else np.zeros(0, int)
+        return ObjectLoops(
+            coefficients=self.coefficients[pick],
+            axis=self.axis[pick],
+            level=self.level[pick],
+            measures=self.measures[pick],
+            owner=np.repeat(np.arange(len(chosen)), stops - starts),
+            profile=self.profile[chosen],
+            sections=self.sections,
+            rows=None if self.rows is None else self.rows[pick],
+            features=None if self.features is None else (self.features[0][pick], self.features[1][pick]),
+        )
 
 
 @dataclass
@@ -188,15 +214,30 @@ def _weights(loops: ObjectLoops) -> np.ndarray:
 
 def _block(q: ObjectLoops, o: ObjectLoops, qsel, osel, samples: int, processes: int, loop=(1.0, SIZE_WEIGHT)):
     """The loop distances of the selected query loops against the selected object loops;
-    ``loop``: the weights of the shape (exact distance; 0: not computed) and size terms."""
+    ``loop``: the weights of the shape (exact distance; 0: not computed) and size terms,
+    and optionally ``"bound"``: the shape term is the invariant lower bound of the exact
+    distance instead (:func:`~nfdmatch.search.bounds.row_lower_bounds_many`)."""
     D = np.zeros((len(qsel), len(osel)))
-    if loop[0]:
+    if loop[0] and len(loop) > 2 and loop[2] == "bound":
+        fq, _ = _features(q)
+        fo, no = _features(o)
+        D += loop[0] * row_lower_bounds_many(fq[qsel].astype(np.float64), fq.shape[1] - 3, fo[osel], no[osel])
+    elif loop[0]:
         D += loop[0] * cross_distances(
             q.coefficients[qsel].astype(np.complex128), o.coefficients[osel].astype(np.complex128), samples,
             processes=processes,
         )  # fmt: skip
     D += loop[1] * np.abs(q.measures[qsel, 0][:, None] - o.measures[osel, 0][None, :])
     return D
+
+
+def _features(loops: ObjectLoops) -> tuple[np.ndarray, np.ndarray]:
+    """The loops' invariant features (float32, the layout of ``/search/features``) and their
+    squared norms, computed once from the stored coefficients."""
+    if loops.features is None:
+        F = feature_vector(loops.coefficients.astype(np.complex128)).astype(np.float32)
+        loops.features = (F, squared_norms(F, F.shape[1] - 3))
+    return loops.features
 
 
 def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: int, loop, blocks) -> np.ndarray:
@@ -306,6 +347,144 @@ def object_distances(
     return ObjectDistances(distance=total, curves=curves, profile=profile, mirror=mirror, blocks=blocks, sections=N)
 
 
+def object_lower_bounds(queries: ObjectLoops, objects: ObjectLoops) -> np.ndarray:
+    """(Q, M) lower bounds of the object distance, without one exact loop distance.
+
+    The object distance is built from its loop distances by operations that never decrease
+    when an entry grows (a minimum over loops, weighted means with fixed weights, a sum with
+    the profile, a minimum over the two orders, a mean over the axes). Each loop's exact
+    distance is replaced by its invariant lower bound (the Euclidean distance between the
+    stored invariant features, rounding slack subtracted: ``search/bounds.py``), the size
+    and profile terms kept exact: every entry is then at most the true one, so the result
+    is at most the object distance."""
+    return object_distances(queries, objects, 0, loop=(1.0, SIZE_WEIGHT, "bound")).distance
+
+
+#: objects whose exact distance is computed in the first round of :func:`nearest_objects`
+#: (each next round twice as many)
+_ROUND = 32
+
+
+@dataclass(frozen=True)
+class FoundObject:
+    """One object's exact distance to a query: its ``position`` among the objects, the
+    ``distance``, its ``curves`` and ``profile`` parts, and ``matched``: its loops (their
+    ``rows``, or positions among the objects' loops when they have no rows) that were the
+    nearest of some query loop."""
+
+    position: int
+    distance: float
+    curves: float
+    profile: float
+    matched: tuple
+
+
+def nearest_objects(
+    query: ObjectLoops,
+    objects: ObjectLoops,
+    samples: int,
+    *,
+    k: int | None,
+    max_distance: float | None = None,
+    skip=(),
+    order_key=None,
+    processes: int = 1,
+    prune: bool = True,
+    first_round: int = _ROUND,
+) -> list[FoundObject]:
+    """One query object's (``query``: one owner) nearest objects, exactly, nearest first
+    (ties by ``order_key(position)``, default the position): the best ``k`` (None: all)
+    within ``max_distance``; ``skip``: positions left out (the query's own object).
+
+    With ``prune`` the objects are visited in increasing :func:`object_lower_bounds` order,
+    in rounds of exact distances (``first_round``, at least 2 k, then twice as many each
+    round), until the next bound exceeds the k-th distance found (or ``max_distance``):
+    every object left is provably no nearer. Without it every object's exact distance is
+    computed (the reference)."""
+    key = order_key or (lambda m: m)
+    skip = set(skip)
+    order = [m for m in range(objects.n_objects) if m not in skip]
+    if not prune:
+        return all_nearest_objects(
+            query, objects, samples, k=k, max_distance=max_distance, skips={0: skip}, order_key=key, processes=processes
+        )[0]
+    bound = object_lower_bounds(query, objects)[0]
+    order.sort(key=lambda m: (bound[m], key(m)))
+    if max_distance is not None:
+        order = [m for m in order if bound[m] <= max_distance]
+    found: list[FoundObject] = []
+    at, size = 0, max(first_round, 2 * (k or 0), 1)
+    while at < len(order):
+        found += _exact(query, objects, order[at : at + size], samples, processes)
+        at, size = at + size, 2 * size
+        best = _best(found, k, max_distance, key)
+        if k is not None and len(best) == k and at < len(order) and bound[order[at]] > best[-1].distance:
+            break
+    return _best(found, k, max_distance, key)
+
+
+def all_nearest_objects(
+    queries: ObjectLoops,
+    objects: ObjectLoops,
+    samples: int,
+    *,
+    k: int | None,
+    max_distance: float | None = None,
+    skips=None,
+    order_key=None,
+    processes: int = 1,
+) -> list[list[FoundObject]]:
+    """Every query object's nearest objects (as :func:`nearest_objects` without pruning),
+    every object distance computed in one pass for all queries; ``skips``: ``{query:
+    positions left out}``."""
+    key = order_key or (lambda m: m)
+    d = object_distances(queries, objects, samples, processes=processes)
+    out = []
+    for q in range(queries.n_objects):
+        skip = set((skips or {}).get(q, ()))
+        order = [m for m in range(objects.n_objects) if m not in skip]
+        if max_distance is not None:
+            order = [m for m in order if d.distance[q, m] <= max_distance]
+        order.sort(key=lambda m: (d.distance[q, m], key(m)))
+        found = []
+        for m in order[:k] if k is not None else order:
+            loops = d.matched(q, m)
+            matched = objects.rows[loops] if objects.rows is not None else loops
+            found.append(FoundObject(m, float(d.distance[q, m]), float(d.curves[q, m]), float(d.profile[q, m]),
+                                     tuple(int(r) for r in matched)))  # fmt: skip
+        out.append(found)
+    return out
+
+
+def _exact(query: ObjectLoops, objects: ObjectLoops, chosen: list, samples: int, processes: int):
+    """The :class:`FoundObject` of each of the objects ``chosen``."""
+    if not chosen:
+        return []
+    part = objects.subset(chosen)
+    d = object_distances(query, part, samples, processes=processes)
+    out = []
+    for i, m in enumerate(chosen):
+        loops = d.matched(0, i)
+        if part.rows is not None:
+            matched = part.rows[loops]
+        else:  # positions among all the objects' loops
+            matched = _positions(objects, m)[loops - np.searchsorted(part.owner, i)]
+        out.append(FoundObject(m, float(d.distance[0, i]), float(d.curves[0, i]), float(d.profile[0, i]),
+                               tuple(int(r) for r in matched)))  # fmt: skip
+    return out
+
+
+def _positions(objects: ObjectLoops, m: int) -> np.ndarray:
+    """The positions of object ``m``'s loops among the objects' loops."""
+    return np.arange(np.searchsorted(objects.owner, m), np.searchsorted(objects.owner, m, side="right"))
+
+
+def _best(found: list, k, max_distance, key) -> list:
+    kept = [f for f in found if max_distance is None or f.distance <= max_distance]
+    kept.sort(key=lambda f: (f.distance, key(f.position)))
+    return kept[:k] if k is not None else kept
+
+
 @dataclass(frozen=True)
 class ObjectMatch:
     """One object answer of a mesh query: ``rank`` (1-based), ``id`` (the object's mesh
@@ -349,6 +528,7 @@ def search_objects(
     processes: int | None = None,
     names=None,
     failures: list | None = None,
+    prune: bool = True,
 ) -> list[list[ObjectMatch]]:
     """Each query mesh's nearest objects of ``index`` (an index with objects: its
     ``objects()`` and ``object_loops()``), by the object distance.
@@ -362,6 +542,9 @@ def search_objects(
     names : what the queries are called in messages (default: their paths).
     failures : a list: a mesh that cannot be cut is appended as ``(position, NfdError)``
         and answered with no match, the others answered; None: its error is raised.
+    prune : visit the objects by a proven lower bound of the object distance and stop when
+        no other can be nearer (:func:`nearest_objects`); False: every object's distance
+        (the same answer, ``query --exhaustive``).
 
     Returns one list per query, sorted by distance then id. Raises InputError when the
     index holds no object; what :func:`~nfdmatch.mesh.objects.cut_object` raises for a
@@ -409,38 +592,36 @@ def search_objects(
         return [[] for _ in names]
     queries = object_loops(cuts, index.samples, index.harmonics, index.scale_mode)
     objects = index.object_loops()
-    found = object_distances(queries, objects, index.samples, processes=processes)
     ids = index.object_ids()
     rule = self_rule(index.locate) if exclude_self else None
-    out = []
+    rank_of = {m: r for r, m in enumerate(sorted(range(len(ids)), key=lambda m: ids[m]))}
+    skips = {}
     for position, given in enumerate(meshes):
-        if position not in cut_at:
-            out.append([])
-            continue
-        q = cut_at[position]
-        d = found.distance[q]
-        order = sorted(range(len(ids)), key=lambda m: (float(d[m]), ids[m]))
-        if max_distance is not None:
-            order = [m for m in order if d[m] <= max_distance]
-        if rule is not None and isinstance(given, (str, os.PathLike)):
-            order = [m for m in order if not rule(str(given), ids[m])]
-        out.append(_answers(index, found, q, order[: int(k)] if k is not None else order, objects, ids))
-    return out
+        if position in cut_at and rule is not None and isinstance(given, (str, os.PathLike)):
+            skips[cut_at[position]] = [m for m in range(len(ids)) if rule(str(given), ids[m])]
+    how = dict(k=k, max_distance=max_distance, order_key=rank_of.__getitem__, processes=processes)
+    if prune and k is not None and k < objects.n_objects // 4:
+        found = [
+            nearest_objects(queries.subset([q]), objects, index.samples, skip=skips.get(q, ()), **how)
+            for q in range(len(cuts))
+        ]
+    else:  # most objects are answers anyway: every distance, all queries in one pass
+        found = all_nearest_objects(queries, objects, index.samples, skips=skips, **how)
+    return [_answers(index, found[cut_at[p]], ids) if p in cut_at else [] for p in range(len(meshes))]
 
 
-def _answers(index, found: ObjectDistances, q: int, order: list, objects, ids) -> list[ObjectMatch]:
-    """The :class:`ObjectMatch` records of query ``q``'s objects ``order`` (ranked), with
-    their matched contours (their ids read in one call)."""
-    matched = [found.matched(q, m) for m in order]
-    rows = np.unique(np.concatenate([objects.rows[x] for x in matched])) if matched else np.zeros(0, np.int64)
-    id_of = dict(zip(rows.tolist(), index.ids_at(rows))) if len(rows) else {}
+def _answers(index, found: list, ids) -> list[ObjectMatch]:
+    """The :class:`ObjectMatch` records of a query's ranked :class:`FoundObject` (the ids of
+    their matched contours read in one call)."""
+    rows = sorted({r for f in found for r in f.matched})
+    id_of = dict(zip(rows, index.ids_at(np.asarray(rows, dtype=np.int64)))) if rows else {}
     return [
         ObjectMatch(
             rank=rank,
-            id=ids[m],
-            distance=float(found.distance[q, m]),
-            curves=tuple(id_of[r] for r in objects.rows[x].tolist()),
-            terms={"curves": float(found.curves[q, m]), "profile": float(found.profile[q, m])},
+            id=ids[f.position],
+            distance=f.distance,
+            curves=tuple(id_of[r] for r in f.matched),
+            terms={"curves": f.curves, "profile": f.profile},
         )
-        for rank, (m, x) in enumerate(zip(order, matched), start=1)
+        for rank, f in enumerate(found, start=1)
     ]
