@@ -310,16 +310,13 @@ def _synthetic_objects(seed: int, n_objects: int, families: int = 3, sections: i
     max_distance=st.one_of(st.none(), st.floats(0.5, 4.0)),
 )
 def test_pruned_object_search_equals_brute_force(seed, n, k, max_distance):
-    """The lower bounds never exceed the object distance, and the pruned search returns
-    exactly what computing every object distance returns."""
-    from nfdmatch.search.objects import nearest_objects, object_distances, object_lower_bounds
+    """The pruned search returns exactly what computing every object distance returns."""
+    from nfdmatch.search.objects import nearest_objects
 
     if k is None and max_distance is None:
         k = 3
     objects = _synthetic_objects(seed, n)
     query = objects.subset([0])
-    exact = object_distances(query, objects, 64).distance[0]
-    assert np.all(object_lower_bounds(query, objects)[0] <= exact + 1e-12)
     how = dict(k=k, max_distance=max_distance, skip=[0])
     pruned = nearest_objects(query, objects, 64, first_round=2, **how)  # small rounds: stops early
     full = nearest_objects(query, objects, 64, prune=False, **how)
@@ -345,3 +342,16 @@ def test_the_pruned_object_search_skips_most_objects():
     finally:
         module._exact = exact
     assert len(found) == 3 and len(computed) < 150
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 40))
+def test_coarse_and_loop_bounds_never_exceed_the_object_distance(seed, n):
+    from nfdmatch.search.objects import object_coarse_bounds, object_distances, object_lower_bounds
+
+    objects = _synthetic_objects(seed, n)
+    for q in range(min(n, 3)):
+        query = objects.subset([q])
+        exact = object_distances(query, objects, 64).distance[0]
+        assert np.all(object_coarse_bounds(query, objects) <= exact + 1e-12)
+        assert np.all(object_lower_bounds(query, objects)[0] <= exact + 1e-12)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..mesh.objects import BOUNDARY_AXIS
 from .bounds import feature_vector, row_lower_bounds_many, squared_norms
 from .matrix import cross_distances
 from .workers import run_tasks
@@ -51,6 +52,7 @@ __all__ = [
     "FoundObject",
     "object_loops",
     "object_lower_bounds",
+    "object_coarse_bounds",
     "nearest_objects",
     "all_nearest_objects",
     "search_objects",
@@ -88,6 +90,8 @@ class ObjectLoops:
     rows: np.ndarray | None = None
     #: the loops' invariant features and their squared norms, made on first use (bounds)
     features: tuple | None = None
+    #: presence and scaled profile per object, made on first use (coarse bounds)
+    per_object: tuple | None = None
 
     @property
     def n_objects(self) -> int:
@@ -276,8 +280,6 @@ def _axis_sets(q: ObjectLoops, o: ObjectLoops, a: int, samples: int, processes: 
 
 def _boundary_sets(q: ObjectLoops, o: ObjectLoops, samples: int, processes: int, loop, blocks) -> np.ndarray:
     """(Q, M): the set distance of the boundary loops; NaN where neither object has any."""
-    from ..mesh.objects import BOUNDARY_AXIS
-
     hq = np.zeros(q.n_objects, dtype=bool)
     ho = np.zeros(o.n_objects, dtype=bool)
     hq[q.owner[q.axis == BOUNDARY_AXIS]] = True
@@ -360,6 +362,51 @@ def object_lower_bounds(queries: ObjectLoops, objects: ObjectLoops) -> np.ndarra
     return object_distances(queries, objects, 0, loop=(1.0, SIZE_WEIGHT, "bound")).distance
 
 
+def object_coarse_bounds(query: ObjectLoops, objects: ObjectLoops) -> np.ndarray:
+    """(M,) lower bounds of one query object's distance to every object from per-object
+    numbers only (no loop is read): the profile term exactly, and of the curves' term only
+    its levels where one object has loops and the other none (``EMPTY_LEVEL`` each; every
+    other level counts 0, its least). Every part is at most its part of the object
+    distance, and the parts are combined as there (a minimum over the two orders of their
+    sum, a mean over the axes), so the result is at most the object distance."""
+    qbits, qprof = _per_object(query)
+    obits, oprof = _per_object(objects)  # (M, 4, 2) level bitmasks, (M, 3, 2, N F) profiles
+    width = oprof.shape[-1]
+    total = np.zeros(objects.n_objects)
+    diff = np.empty((objects.n_objects, width))
+    for a in range(3):
+        best = None
+        for s in range(2):  # the object's levels in order, then mirrored (the query's in order)
+            either = np.bitwise_count(qbits[0, a, 0] | obits[:, a, s])
+            one = np.bitwise_count(qbits[0, a, 0] ^ obits[:, a, s])
+            shape = EMPTY_LEVEL * one / np.maximum(either, 1) / SHAPE_SCALE
+            np.subtract(oprof[:, a, s], qprof[0, a, 0], out=diff)
+            prof = np.abs(diff, out=diff).sum(axis=1) / (width * PROFILE_SCALE)
+            best = shape + prof if best is None else np.minimum(best, shape + prof)
+        total += best
+    bq, bo = qbits[0, BOUNDARY_AXIS, 0] != 0, obits[:, BOUNDARY_AXIS, 0] != 0
+    total += np.where(bq ^ bo, EMPTY_LEVEL / SHAPE_SCALE, 0.0)
+    return total / (3.0 + (bq | bo))
+
+
+def _per_object(loops: ObjectLoops) -> tuple[np.ndarray, np.ndarray]:
+    """Per object, made once per set of objects: its levels with loops as bitmasks (M, 4, 2)
+    uint64 (bit i: level i; then with the levels mirrored) and its profile over the units
+    (M, 3, 2, N F), the levels in order and mirrored."""
+    if loops.per_object is None:
+        N = loops.sections
+        if N > 64:
+            raise ValueError("at most 64 sections")
+        has = _present(loops, 4, N)
+        weights = np.left_shift(np.uint64(1), np.arange(N, dtype=np.uint64))
+        bits = np.stack([(has * weights).sum(axis=2), (has[:, :, ::-1] * weights).sum(axis=2)], axis=2)
+        F = loops.profile.shape[1] // (3 * N)
+        prof = loops.profile.reshape(-1, 3, N, F) / PROFILE_UNITS
+        both = np.stack([prof, prof[:, :, ::-1]], axis=2).reshape(-1, 3, 2, N * F)
+        loops.per_object = (bits.astype(np.uint64), np.ascontiguousarray(both))
+    return loops.per_object
+
+
 #: objects whose exact distance is computed in the first round of :func:`nearest_objects`
 #: (each next round twice as many)
 _ROUND = 32
@@ -387,40 +434,58 @@ def nearest_objects(
     k: int | None,
     max_distance: float | None = None,
     skip=(),
-    order_key=None,
+    order_rank=None,
     processes: int = 1,
     prune: bool = True,
     first_round: int = _ROUND,
 ) -> list[FoundObject]:
     """One query object's (``query``: one owner) nearest objects, exactly, nearest first
-    (ties by ``order_key(position)``, default the position): the best ``k`` (None: all)
-    within ``max_distance``; ``skip``: positions left out (the query's own object).
+    (ties by ``order_rank`` (M,), default the position): the best ``k`` (None: all) within
+    ``max_distance``; ``skip``: positions left out (the query's own object).
 
-    With ``prune`` the objects are visited in increasing :func:`object_lower_bounds` order,
-    in rounds of exact distances (``first_round``, at least 2 k, then twice as many each
-    round), until the next bound exceeds the k-th distance found (or ``max_distance``):
-    every object left is provably no nearer. Without it every object's exact distance is
-    computed (the reference)."""
-    key = order_key or (lambda m: m)
-    skip = set(skip)
-    order = [m for m in range(objects.n_objects) if m not in skip]
+    With ``prune`` the objects are filtered by :func:`object_coarse_bounds` (the nearest of
+    them by it computed first, to know a k-th distance), then visited in increasing
+    :func:`object_lower_bounds` order, in rounds of exact distances (``first_round``, at
+    least 2 k, then twice as many each round), until the next bound exceeds the k-th
+    distance found (or ``max_distance``): every object left is provably no nearer. Without
+    it every object's exact distance is computed (the reference)."""
+    M = objects.n_objects
+    rank = np.arange(M) if order_rank is None else np.asarray(order_rank)
     if not prune:
         return all_nearest_objects(
-            query, objects, samples, k=k, max_distance=max_distance, skips={0: skip}, order_key=key, processes=processes
-        )[0]
-    bound = object_lower_bounds(query, objects)[0]
-    order.sort(key=lambda m: (bound[m], key(m)))
-    if max_distance is not None:
-        order = [m for m in order if bound[m] <= max_distance]
-    found: list[FoundObject] = []
-    at, size = 0, max(first_round, 2 * (k or 0), 1)
-    while at < len(order):
-        found += _exact(query, objects, order[at : at + size], samples, processes)
+            query, objects, samples, k=k, max_distance=max_distance, skips={0: skip}, order_rank=rank,
+            processes=processes,
+        )[0]  # fmt: skip
+    alive = np.ones(M, dtype=bool)
+    alive[list(skip)] = False
+    # a cascade, cheapest first: per-object numbers for every object, then the loops'
+    # invariant bounds for the objects that pass, then exact distances in rounds
+    coarse = object_coarse_bounds(query, objects)
+    limit = np.inf if max_distance is None else max_distance
+    alive &= coarse <= limit
+    first = max(first_round, 2 * (k or 0), 1)
+    order = np.flatnonzero(alive)
+    order = order[np.lexsort((rank[order], coarse[order]))][:first]
+    found = _exact(query, objects, order.tolist(), samples, processes)
+    best = _best(found, k, max_distance, rank)
+    if k is not None and len(best) == k:
+        limit = min(limit, best[-1].distance)
+    alive[order] = False
+    alive &= coarse <= limit
+    left = np.flatnonzero(alive)
+    bound = np.full(M, np.inf)
+    if len(left):
+        bound[left] = object_lower_bounds(query, objects.subset(left))[0]
+    left = left[bound[left] <= limit]
+    left = left[np.lexsort((rank[left], bound[left]))].tolist()
+    at, size = 0, first
+    while at < len(left):
+        found += _exact(query, objects, left[at : at + size], samples, processes)
         at, size = at + size, 2 * size
-        best = _best(found, k, max_distance, key)
-        if k is not None and len(best) == k and at < len(order) and bound[order[at]] > best[-1].distance:
+        best = _best(found, k, max_distance, rank)
+        if k is not None and len(best) == k and at < len(left) and bound[left[at]] > best[-1].distance:
             break
-    return _best(found, k, max_distance, key)
+    return _best(found, k, max_distance, rank)
 
 
 def all_nearest_objects(
@@ -431,13 +496,13 @@ def all_nearest_objects(
     k: int | None,
     max_distance: float | None = None,
     skips=None,
-    order_key=None,
+    order_rank=None,
     processes: int = 1,
 ) -> list[list[FoundObject]]:
     """Every query object's nearest objects (as :func:`nearest_objects` without pruning),
     every object distance computed in one pass for all queries; ``skips``: ``{query:
     positions left out}``."""
-    key = order_key or (lambda m: m)
+    rank = np.arange(objects.n_objects) if order_rank is None else np.asarray(order_rank)
     d = object_distances(queries, objects, samples, processes=processes)
     out = []
     for q in range(queries.n_objects):
@@ -445,7 +510,7 @@ def all_nearest_objects(
         order = [m for m in range(objects.n_objects) if m not in skip]
         if max_distance is not None:
             order = [m for m in order if d.distance[q, m] <= max_distance]
-        order.sort(key=lambda m: (d.distance[q, m], key(m)))
+        order.sort(key=lambda m: (d.distance[q, m], rank[m]))
         found = []
         for m in order[:k] if k is not None else order:
             loops = d.matched(q, m)
@@ -479,9 +544,9 @@ def _positions(objects: ObjectLoops, m: int) -> np.ndarray:
     return np.arange(np.searchsorted(objects.owner, m), np.searchsorted(objects.owner, m, side="right"))
 
 
-def _best(found: list, k, max_distance, key) -> list:
+def _best(found: list, k, max_distance, rank) -> list:
     kept = [f for f in found if max_distance is None or f.distance <= max_distance]
-    kept.sort(key=lambda f: (f.distance, key(f.position)))
+    kept.sort(key=lambda f: (f.distance, rank[f.position]))
     return kept[:k] if k is not None else kept
 
 
@@ -594,12 +659,13 @@ def search_objects(
     objects = index.object_loops()
     ids = index.object_ids()
     rule = self_rule(index.locate) if exclude_self else None
-    rank_of = {m: r for r, m in enumerate(sorted(range(len(ids)), key=lambda m: ids[m]))}
+    rank_of = np.empty(len(ids), dtype=np.int64)
+    rank_of[sorted(range(len(ids)), key=ids.__getitem__)] = np.arange(len(ids))  # ties by id
     skips = {}
     for position, given in enumerate(meshes):
         if position in cut_at and rule is not None and isinstance(given, (str, os.PathLike)):
             skips[cut_at[position]] = [m for m in range(len(ids)) if rule(str(given), ids[m])]
-    how = dict(k=k, max_distance=max_distance, order_key=rank_of.__getitem__, processes=processes)
+    how = dict(k=k, max_distance=max_distance, order_rank=rank_of, processes=processes)
     if prune and k is not None and k < objects.n_objects // 4:
         found = [
             nearest_objects(queries.subset([q]), objects, index.samples, skip=skips.get(q, ()), **how)
