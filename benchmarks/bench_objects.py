@@ -1,7 +1,7 @@
 """Objects by their curves: every mesh of a labelled folder a query against the others.
 
     python benchmarks/bench_objects.py [--data ../shared/data/psb_dev/meshes] [--jobs 2]
-                                       [--no-baselines] [--no-terms]
+                                       [--no-baselines] [--no-terms] [--scale 100000]
 
 For the folder's meshes (``labels.csv``: ``file,class``), as a user runs it:
 
@@ -21,6 +21,14 @@ Beside it, the issue's baselines, computed here and not in the library:
 and each term's share (``--no-terms`` skips it): retrieval by the shape, size and profile
 terms alone (library ablations of :func:`nfdmatch.search.objects.object_distances`), and the
 mean share of the curves' and the profile's parts in the object distance.
+
+``--scale M`` (0: skipped) times the pruned object search (:func:`nfdmatch.search.objects.
+nearest_objects`, k = 10) on M generated objects in memory: copies of the folder's cut
+objects with each loop's relative size moved by N(0, 0.2) in log and each profile number by
+a factor in [0.7, 1.3], their invariant features given (as an index stores them); a few
+meshes of the folder are the queries. It reports seconds per query after the first (which
+makes the per-object tables once) and how many objects needed the loops' bounds and the
+exact distance.
 
 The Princeton segmentation meshes are research data, not shipped: the benchmark says so
 and stops when the folder is absent.
@@ -134,7 +142,7 @@ def terms(folder: str, names: list, jobs: int) -> list:
     loops = object_loops([cut_object(os.path.join(folder, n)) for n in names], 128, 16, "rms")
     runs = {
         "shape alone (exact distance, levels, perimeter weights)": dict(weights=(1, 0), loop=(1, 0)),
-        "size alone (|delta log relative perimeter|)": dict(weights=(1, 0), loop=(0, SIZE_WEIGHT)),
+        "size alone (delta log relative perimeter)": dict(weights=(1, 0), loop=(0, SIZE_WEIGHT)),
         "profile alone": dict(weights=(0, 1), loop=(0, SIZE_WEIGHT)),
         "shape + size (no profile)": dict(weights=(1, 0)),
         "object distance (shape + size + profile)": dict(),
@@ -150,12 +158,64 @@ def terms(folder: str, names: list, jobs: int) -> list:
     return out
 
 
+def scale(folder: str, names: list, objects_wanted: int, jobs: int) -> None:
+    """The pruned object search on ``objects_wanted`` generated objects (module doc)."""
+    from nfdmatch.mesh.objects import cut_object
+    from nfdmatch.search import objects as module
+    from nfdmatch.search.bounds import feature_vector, squared_norms
+
+    t0 = time.perf_counter()
+    base = module.object_loops([cut_object(os.path.join(folder, n)) for n in names], 128, 16, "rms")
+    rep = -(-objects_wanted // base.n_objects)
+    rng = np.random.default_rng(0)
+    L, M = len(base.owner), base.n_objects
+    big = module.ObjectLoops(
+        coefficients=np.tile(base.coefficients, (rep, 1, 1)),
+        axis=np.tile(base.axis, rep),
+        level=np.tile(base.level, rep),
+        measures=np.tile(base.measures, (rep, 1)) + rng.normal(scale=0.2, size=(L * rep, 3)) * [1, 0, 0],
+        owner=np.concatenate([base.owner + r * M for r in range(rep)]),
+        profile=np.tile(base.profile, (rep, 1)) * rng.uniform(0.7, 1.3, size=(M * rep, base.profile.shape[1])),
+        sections=base.sections,
+    )
+    F = np.tile(feature_vector(base.coefficients.astype(np.complex128)).astype(np.float32), (rep, 1))
+    big.features = (F, squared_norms(F, F.shape[1] - 3))
+    print(f"\n## the pruned object search: {big.n_objects:,} generated objects, {len(big.owner):,} contours")
+    print(f"(made in {time.perf_counter() - t0:.0f} s)\n")
+    print("| query | seconds | objects bounded by their loops | exact object distances | nearest |")
+    print("|---|---|---|---|---|")
+    counts: dict = {}
+    exact, bounds = module._exact, module.object_lower_bounds
+
+    def counted_exact(query, objs, chosen, samples, processes):
+        counts["exact"] = counts.get("exact", 0) + len(chosen)
+        return exact(query, objs, chosen, samples, processes)
+
+    def counted_bounds(query, objs):
+        counts["bounded"] = objs.n_objects
+        return bounds(query, objs)
+
+    module._exact, module.object_lower_bounds = counted_exact, counted_bounds
+    try:
+        for i, q in enumerate([0, 0, 57, 101, 150, 189]):
+            counts.clear()
+            t = time.perf_counter()
+            found = module.nearest_objects(base.subset([q]), big, 128, k=10, processes=jobs)
+            seconds = time.perf_counter() - t
+            label = f"{names[q]}{' (first: makes the per-object tables)' if i == 0 else ''}"
+            print(f"| {label} | {seconds:.2f} | {counts.get('bounded', 0)} | {counts.get('exact', 0)} | "
+                  f"{found[0].distance:.3g} |")  # fmt: skip
+    finally:
+        module._exact, module.object_lower_bounds = exact, bounds
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=DEFAULT_DATA, help="a folder of meshes with labels.csv")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--no-baselines", action="store_true")
     ap.add_argument("--no-terms", action="store_true")
+    ap.add_argument("--scale", type=int, default=0, metavar="M", help="generated objects of the pruned search")
     args = ap.parse_args()
     if not os.path.isfile(os.path.join(args.data, "labels.csv")):
         print(
@@ -201,6 +261,8 @@ def main() -> int:
                 print(
                     f"\nmean share of the object distance: curves (shape + size) {share:.3f}, profile {1 - share:.3f}"
                 )
+    if args.scale:
+        scale(args.data, names, args.scale, args.jobs)
     return 0
 
 

@@ -169,6 +169,10 @@ def test_cli_query_of_meshes_ranks_objects(parts, tmp_path):
         main, ["query", str(parts / "bar.off"), "--index", index, "--max-distance", "1e-6", "--format", "json"]
     )
     assert [a["match"][-7:] for a in json.loads(result.stdout)] == ["bar.off"]
+    # the pruned search (--top 1 of 4 objects) answers as computing every distance does
+    args = ["query", str(copy), str(parts / "cone.obj"), "--index", index, "--top", "1", "--format", "csv"]
+    pruned, full = runner.invoke(main, args), runner.invoke(main, args + ["--exhaustive"])
+    assert pruned.exit_code == full.exit_code == 0 and pruned.stdout == full.stdout
 
 
 def test_cli_query_errors_of_meshes(parts, tmp_path):

@@ -180,7 +180,6 @@ def _query_objects(idx, meshes, listing, matching, given: dict, output_format, o
 
     for name, on in (
         ("--rerank", given["rerank"]),
-        ("--exhaustive", given["exhaustive"]),
         ("--scheduler", given["scheduler"]),
         ("--details", listing.details),
         ("--method, --strict-direction or --mirror", matching != _default_matching()),
@@ -194,8 +193,9 @@ def _query_objects(idx, meshes, listing, matching, given: dict, output_format, o
         )
     failures: list = []
     results = idx.search_objects(
-        meshes, k=listing.top, max_distance=listing.max_distance, exclude_self=listing.exclude_self, failures=failures
-    )
+        meshes, k=listing.top, max_distance=listing.max_distance, exclude_self=listing.exclude_self,
+        failures=failures, prune=not given["exhaustive"],
+    )  # fmt: skip
     for _, exc in failures:
         error(exc)
     if len(failures) == len(meshes):

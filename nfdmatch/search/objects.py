@@ -24,8 +24,17 @@ level are ever compared: ``3 x ceil(N / 2)`` small matrices instead of one of ev
 The constants are fixed, measured on the development half of the Princeton segmentation
 benchmark (docs/objects.md); no statistic of a query's answer list is used.
 
+A query (:func:`search_objects`, :func:`nearest_objects`) visits the objects through a
+cascade of proven lower bounds of this distance (:func:`object_coarse_bounds`, per-object
+numbers; :func:`object_lower_bounds`, the loops' invariant bounds), then exact distances,
+and stops when no object left can be nearer (docs/objects.md, "The search").
+
 This module never imports ``index/``: it works on :class:`ObjectLoops`, which the index
 reader (``Index.objects``) and :func:`object_loops` (a cut in memory) both make.
+
+Test hooks: ``_exact`` (the exact distances of a round of :func:`nearest_objects`) and
+``object_lower_bounds`` are replaced by a test and the benchmark to count the objects each
+stage reached.
 """
 
 from __future__ import annotations
@@ -666,7 +675,7 @@ def search_objects(
         if position in cut_at and rule is not None and isinstance(given, (str, os.PathLike)):
             skips[cut_at[position]] = [m for m in range(len(ids)) if rule(str(given), ids[m])]
     how = dict(k=k, max_distance=max_distance, order_rank=rank_of, processes=processes)
-    if prune and k is not None and k < objects.n_objects // 4:
+    if prune and k is not None and 4 * k <= objects.n_objects:
         found = [
             nearest_objects(queries.subset([q]), objects, index.samples, skip=skips.get(q, ()), **how)
             for q in range(len(cuts))
