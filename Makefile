@@ -17,7 +17,7 @@ $(STAMP): $(BIN)/python pyproject.toml setup.py
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-$(KERNELS): $(STAMP) nfdmatch/matching/_kernels.py nfdmatch/matching/_graph_kernels.py nfdmatch/matching/_push_rounds.py nfdmatch/matching/common.py nfdmatch/matching/aot.py
+$(KERNELS): $(STAMP) nfdmatch/matching/_kernels.py nfdmatch/matching/_graph_kernels.py nfdmatch/matching/_push_rounds.py nfdmatch/matching/_elastic_kernels.py nfdmatch/matching/common.py nfdmatch/matching/aot.py
 	@echo "compiling the numba kernels once, also ahead of time (so that no query compiles or imports numba)" >&2
 	@# what will serve, said: a kernel that fails to compile falls back (slower) without failing the install
 	$(BIN)/python -c "from nfdmatch.matching import compile_kernels; from nfdmatch.matching.kernels import choose; \

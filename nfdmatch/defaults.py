@@ -18,6 +18,7 @@ __all__ = [
     "DEFAULT_RERANK_DEPTH",
     "RERANK_CANDIDATES",
     "DEFAULT_RERANK_CANDIDATES",
+    "DEFAULT_ELASTIC_DEPTH",
 ]
 
 #: the environment variable naming the index of every command and function that takes one
@@ -38,3 +39,7 @@ DEFAULT_RERANK_CANDIDATES = RERANK_CANDIDATES[0]
 def default_index_path() -> str:
     """``$NFDMATCH_INDEX`` if set (and not empty), else ``"nfdmatch.h5"``."""
     return os.environ.get(INDEX_ENV) or DEFAULT_INDEX
+
+
+#: ``--elastic-depth``: the exact candidates the elastic stage re-orders
+DEFAULT_ELASTIC_DEPTH = 100

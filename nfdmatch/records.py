@@ -39,6 +39,8 @@ class RankedMatch:
     reversed, mirrored : bool, as in :class:`~nfdmatch.matching.Match`.
     row : int, the match's row in the index (its position in the curves ranked), or None.
     score : float, the diffused score of a re-ranked search (higher is closer), else None.
+    elastic : float, the elastic distance after the elastic stage (``--elastic``), else None.
+    fused : float, the fused distance the elastic stage ranks by, else None.
     pose : the alignment onto the query (:class:`nfdmatch.matching.Match`: rotation, scale,
         translation that map the match onto the query), when the search was asked for it
         (``Index.search``), else None.
@@ -53,6 +55,8 @@ class RankedMatch:
     row: int | None = None
     score: float | None = None
     pose: object | None = None
+    elastic: float | None = None
+    fused: float | None = None
 
     def replace(self, **changes) -> RankedMatch:
         """A copy with some fields changed (e.g. ``rank`` after dropping rows)."""

@@ -175,9 +175,11 @@ def show_ranked(
     method: str = EXACT,
     direction: str = INVARIANT,
     mirror: bool = False,
+    stage=None,
 ) -> list[ShownMatch]:
     """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
-    ``samples, harmonics, scale`` None take the library defaults."""
+    ``samples, harmonics, scale`` None take the library defaults; ``stage``: a re-ordering
+    stage (:class:`~nfdmatch.search.stages.ElasticStage`), as ``rank_curves`` takes it."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
     from .search import rank_curves
 
@@ -190,7 +192,7 @@ def show_ranked(
         mirror=mirror,
     )
     _drawable(query)
-    ranked = rank_curves(query, curves, top=top, **params)
+    ranked = rank_curves(query, curves, top=top, stage=stage, **params)
     return matches_from_curves(query, ranked, curves, **params)
 
 
@@ -203,13 +205,14 @@ def show_searched(
     direction: str = INVARIANT,
     mirror: bool = False,
     read_curve: Callable[[str], Curve] | None = None,
+    stage=None,
 ) -> tuple[list[ShownMatch], list[str]]:
     """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
-    notes of :func:`matches_from_index`."""
+    notes of :func:`matches_from_index`; ``stage`` as ``search_index`` takes it."""
     from .search import search_index
 
     _drawable(query)
-    results, _ = search_index(index, [query], top=top, method=method, direction=direction, mirror=mirror)
+    results, _ = search_index(index, [query], top=top, method=method, direction=direction, mirror=mirror, stage=stage)
     return matches_from_index(
         query, results[0], index, method=method, direction=direction, mirror=mirror, read_curve=read_curve
     )

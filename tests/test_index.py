@@ -324,6 +324,56 @@ def test_frozen_v2_index_reads_forever():
             assert _digest(f["curves"][key][...]) == digest, key
 
 
+FROZEN_V3 = os.path.join(HERE, "data", "index", "v3-sample.h5")
+FROZEN_V3_STATISTICS_DIGEST = "97e0e9da76e4b286b985e3db514c1925a229139d9a75fd9748386289f123cdfb"
+
+
+def test_frozen_v3_index_reads_forever():
+    """Format 3 = format 2 plus /curves/statistics: the same rows and cells as the v2 file,
+    and the elastic stage's shape statistics of the stored coefficients."""
+    from nfdmatch.matching.statistics import LENGTH, curve_statistics
+
+    with open_index(FROZEN_V3) as idx, open_index(FROZEN_V2) as v2:
+        assert (idx.format_version, idx.samples, idx.harmonics, idx.scale_mode) == (3, 32, 4, "rms")
+        assert (idx.n_curves, idx.n_files) == (7, 5) and idx.ids() == FROZEN_IDS
+        rows, old = idx.read_rows(0, 7), v2.read_rows(0, 7)
+        for key in old:  # the same computation, to rounding (BLAS) where a value is ~0
+            np.testing.assert_allclose(rows[key], old[key], rtol=1e-5, atol=1e-6, err_msg=key)
+        stored = idx.statistics_at(np.arange(7))
+        assert stored.shape == (7, LENGTH)
+        # format 2 has none stored: computed on read from the same coefficients
+        np.testing.assert_allclose(v2.statistics_at(np.arange(7)), stored, rtol=1e-5, atol=1e-6)
+        want = curve_statistics(rows["coefficients"].astype(np.complex64).astype(np.complex128))
+        np.testing.assert_allclose(stored, want, rtol=1e-5, atol=1e-6)
+    with h5py.File(FROZEN_V3, "r", locking=False) as f:
+        assert f["curves/statistics"].dtype == np.float32 and f["curves/statistics"].fletcher32
+        assert _digest(f["curves/statistics"][...]) == FROZEN_V3_STATISTICS_DIGEST
+
+
+def test_build_into_a_format_2_index_upgrades_it_with_statistics(tmp_path, monkeypatch):
+    """A format-2 index is rewritten as format 3: the rows copied, their statistics computed
+    from the stored coefficients (what verify checks)."""
+    from nfdmatch.index.verify import verify_index
+
+    monkeypatch.chdir(REPO)
+    target = tmp_path / "old.h5"
+    shutil.copyfile(FROZEN_V2, target)
+    with open_index(FROZEN_V2) as v2:
+        sources = sorted({r.path for r in v2.files()})
+        unchanged_sha = {r.path: r.sha256 for r in v2.files()}
+    for path in sources:
+        if os.path.exists(path) and _sha256(path) != unchanged_sha[path]:
+            pytest.skip(f"{path} changed since the frozen index was made")
+    report = build_index(sources, str(target), jobs=1)
+    assert report.written and any("upgrading the index from format 2 to 3" in n for n in report.notices)
+    with open_index(target) as idx, open_index(FROZEN_V3) as v3:
+        assert idx.format_version == 3
+        np.testing.assert_allclose(
+            idx.statistics_at(np.arange(7)), v3.statistics_at(np.arange(7)), rtol=1e-5, atol=1e-6
+        )
+    assert verify_index(str(target)).ok
+
+
 def zlib_crc32_of(strings):
     import zlib
 
@@ -364,8 +414,8 @@ def test_frozen_indexes_answer_queries_as_the_exhaustive_search(frozen):
 
 
 def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
-    """Nothing changed in the sources, yet the build rewrites a format-1 index as format 2,
-    with the same rows, and says so."""
+    """Nothing changed in the sources, yet the build rewrites a format-1 index in today's
+    format (search cells, shape statistics), with the same rows, and says so."""
     monkeypatch.chdir(REPO)
     target = tmp_path / "old.h5"
     shutil.copyfile(FROZEN, target)
@@ -377,14 +427,14 @@ def test_build_into_a_format_1_index_upgrades_it(tmp_path, monkeypatch):
         if os.path.exists(path) and _sha256(path) != unchanged_sha[path]:
             pytest.skip(f"{path} changed since the frozen index was made")
     report = build_index(sources, str(target), jobs=1)
-    assert report.written and any("upgrading the index from format 1 to 3" in n for n in report.notices)
+    assert report.written and any(f"upgrading the index from format 1 to {FORMAT_VERSION}" in n for n in report.notices)
     with open_index(target) as idx:
-        assert idx.format_version == 3 and idx.n_curves == 7
+        assert idx.format_version == FORMAT_VERSION and idx.n_curves == 7
         after = idx.read_rows(0, 7)
         np.testing.assert_array_equal(after["coefficients"], before["coefficients"])
         assert idx.search_table().n_cells >= 1
     again = build_index(sources, str(target), jobs=1)
-    assert not again.written  # format 2 now: nothing to do
+    assert not again.written  # today's format now: nothing to do
 
 
 def test_frozen_rows_match_the_sample_curves_to_complex64():

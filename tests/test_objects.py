@@ -21,7 +21,7 @@ from nfdmatch.index import build_index, open_index
 trimesh = pytest.importorskip("trimesh")
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-FROZEN_V3 = os.path.join(HERE, "data", "index", "v3-sample.h5")
+FROZEN_V3 = os.path.join(HERE, "data", "index", "v3-objects-sample.h5")
 
 
 def _shapes() -> dict:
@@ -200,15 +200,15 @@ def test_cli_query_errors_of_meshes(parts, tmp_path):
 
 
 def test_frozen_v3_index_reads_forever(tmp_path):
-    """Format 3 = format 2 plus /objects: the frozen sample's object and its rule."""
+    """Format 3's optional /objects: the frozen sample's object and its rule."""
     with open_index(FROZEN_V3) as idx:
-        assert (idx.format_version, idx.samples, idx.harmonics, idx.n_curves, idx.n_files) == (3, 32, 4, 28, 6)
+        assert (idx.format_version, idx.samples, idx.harmonics, idx.n_curves, idx.n_files) == (3, 32, 4, 22, 2)
         assert idx.object_ids() == ["tests/data/index/part.off"]
         rule = idx.object_rule()
         assert (rule.sections, rule.min_vertices, rule.boundaries) == (7, 8, True)
         objects = idx.objects()
-        assert list(objects.file) == [5]
-        assert list(objects.axis[:7]) == [-1] * 7 and list(objects.axis[7:]) == [0] * 7 + [1] * 7 + [2] * 7
+        assert list(objects.file) == [1]
+        assert list(objects.axis[:1]) == [-1] and list(objects.axis[1:]) == [0] * 7 + [1] * 7 + [2] * 7
         found = idx.search_objects(os.path.join(HERE, "data", "index", "part.off"), k=1)[0]
         assert found[0].id == "tests/data/index/part.off" and found[0].distance < 1e-6
 

@@ -13,6 +13,7 @@ from .inputs import read_inputs, read_one
 from .options import (
     check_writable,
     descriptor_options,
+    elastic_options,
     match_list_options,
     format_option,
     input_format_option,
@@ -28,17 +29,26 @@ from .group import main
 @main.command()
 @click.argument("curve_a", metavar="A")
 @click.argument("curve_b", metavar="B")
+@click.option(
+    "--elastic",
+    is_flag=True,
+    help="Also the elastic stage's terms at the exact optimum: elastic, statistics and fused (docs/elastic.md).",
+)
 @matching_options
 @descriptor_options
 @input_format_option
 @format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
-def distance(curve_a, curve_b, matching, descriptor, input_format, output_format, output):
+def distance(curve_a, curve_b, elastic, matching, descriptor, input_format, output_format, output):
     """Similarity distance between two curves A and B, and the alignment of B onto A.
 
     A and B are files (FILE#I for curve I of a multi-curve file; `-` for stdin). The
     distance is 0 for the same shape whatever its position, size, orientation, start
     vertex, sampling and (unless --strict-direction) traversal direction.
+
+    --elastic adds the elastic stage's terms (docs/elastic.md): the elastic distance (the
+    best correspondence that bends, at the exact optimum's start and direction), the
+    distance of pose-free shape statistics, and the fused distance `query --elastic` ranks by.
 
     \b
     Example:
@@ -51,8 +61,14 @@ def distance(curve_a, curve_b, matching, descriptor, input_format, output_format
         raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
     a = read_one(curve_a, input_format)
     b = read_one(curve_b, input_format)
-    m = match_distance(a, b, **descriptor, **matching)
-    record = m.to_dict()
+    if elastic:
+        from ..matching.fused import fused_distance
+
+        m, terms = fused_distance(a, b, **descriptor, **matching)
+        stage = {key: float(getattr(terms, key)[0]) for key in ("elastic", "statistics", "fused")}
+    else:
+        m, stage = match_distance(a, b, **descriptor, **matching), {}
+    record = {**m.to_dict(), **stage}
     if output_format == "json":
         text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
     else:
@@ -60,6 +76,7 @@ def distance(curve_a, curve_b, matching, descriptor, input_format, output_format
             f"{key}\t{value}\n"
             for key, value in [
                 ("distance", f"{m.distance:.10g}"),
+                *((key, f"{value:.10g}") for key, value in stage.items()),
                 ("shift", f"{m.shift:.6f}"),
                 ("reversed", str(m.reversed).lower()),
                 ("mirrored", str(m.mirrored).lower()),
@@ -122,17 +139,21 @@ def describe(files, glob_pattern, descriptor, input_format, output_format, outpu
 @click.argument("query_spec", metavar="QUERY")
 @click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
 @match_list_options("Number of matches to list.", "Only files in folders whose name matches, e.g. '*.csv'.")
+@elastic_options
 @matching_options
 @descriptor_options
 @input_format_option
 @rows_format_option
 @output_option()
-def rank(query_spec, sources, listing, matching, descriptor, input_format, output_format, output):
+def rank(query_spec, sources, listing, stage, matching, descriptor, input_format, output_format, output):
     """Rank the curves in SOURCE... (files or folders) by similarity to QUERY, without an index.
 
     QUERY is one curve (FILE, FILE#I or `-`). Folders are searched recursively for files
     with a known extension (hidden files skipped). Inputs that cannot be read are named
     on stderr and skipped (exit 3). Rows: query, rank, match, distance.
+
+    --elastic: the elastic stage (docs/elastic.md): the exact top M ordered by the fused
+    distance; adds the columns elastic and fused.
 
     \b
     Example:
@@ -143,11 +164,11 @@ def rank(query_spec, sources, listing, matching, descriptor, input_format, outpu
     output_format = resolve_format(output_format, output)
     query = read_one(query_spec, input_format)
     inputs = read_inputs(sources, glob=listing.glob, input_format=input_format, progress="reading curves")
-    ranked = rank_curves(query, inputs.curves, **listing.search(), **descriptor, **matching)
+    ranked = rank_curves(query, inputs.curves, **listing.search(), **descriptor, **matching, stage=stage)
     spell = path_speller(listing.paths)
     write_rows(
         [{**match_row(spell(query.id), m), "match": spell(m.id)} for m in ranked],
-        match_columns(listing.details),
+        match_columns(listing.details, stage),
         output_format,
         output,
         group_by="query",

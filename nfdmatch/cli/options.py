@@ -413,6 +413,37 @@ def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
     }
 
 
+def elastic_options(command):
+    """--elastic and --elastic-depth M, passed on as ``stage``: the library's
+    :class:`~nfdmatch.search.stages.ElasticStage`, or None without --elastic."""
+    from ..defaults import DEFAULT_ELASTIC_DEPTH
+
+    def pack(elastic: bool, elastic_depth: int | None):
+        if elastic_depth is not None and not elastic:
+            raise click.UsageError("--elastic-depth needs --elastic")
+        if not elastic:
+            return None
+        from ..search.stages import ElasticStage
+
+        return ElasticStage(DEFAULT_ELASTIC_DEPTH if elastic_depth is None else elastic_depth)
+
+    f = _packed(command, "stage", ("elastic", "elastic_depth"), pack=pack)
+    f = click.option(
+        "--elastic-depth",
+        type=click.IntRange(min=1),
+        default=None,
+        metavar="M",
+        help=f"With --elastic: the exact nearest re-ordered [default: {DEFAULT_ELASTIC_DEPTH}].",
+    )(f)
+    f = click.option(
+        "--elastic",
+        is_flag=True,
+        help="The elastic stage: the exact top M re-ordered by a fused distance (exact, elastic "
+        "and shape statistics; docs/elastic.md); adds the columns elastic and fused.",
+    )(f)
+    return f
+
+
 def index_option(f):
     from ..defaults import DEFAULT_INDEX, INDEX_ENV
 

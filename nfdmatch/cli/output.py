@@ -106,15 +106,22 @@ def match_row(query_id: str, m) -> dict:
         "match": m.id,
         "distance": m.distance,
         "score": m.score,
+        "elastic": m.elastic,
+        "fused": m.fused,
         "shift": m.shift,
         "reversed": m.reversed,
         "mirrored": m.mirrored,
     }
 
 
-def match_columns(details: bool) -> list[str]:
-    """Columns of the rows `rank` and `query` print."""
-    return ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
+def match_columns(details: bool, stage=None) -> list[str]:
+    """Columns of the rows `rank` and `query` print; a re-ordering ``stage``'s columns
+    follow the distance."""
+    columns = ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
+    if stage is not None:
+        at = columns.index("distance") + 1
+        columns[at:at] = list(stage.columns)
+    return columns
 
 
 def write_rows(

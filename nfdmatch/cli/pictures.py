@@ -10,6 +10,7 @@ import click
 from .inputs import read_inputs
 from .options import (
     descriptor_options,
+    elastic_options,
     error,
     finish,
     format_option,
@@ -125,6 +126,7 @@ def _picture_names(pattern: str, queries) -> list[str]:
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
 @click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches (with --against).")
+@elastic_options
 @matching_options
 @optional_descriptor_options("with --against")
 @input_format_option
@@ -142,6 +144,7 @@ def show(
     size,
     renderer,
     glob_pattern,
+    stage,
     matching,
     descriptor,
     input_format,
@@ -156,7 +159,8 @@ def show(
     direction of its match: the query in grey under it, start points marked, direction
     of travel shown. Planar curves get a 2-D view. PNG, SVG or PDF by the extension.
     The rows drawn are printed on stdout (query, rank, match, distance, source), or
-    written to the -o FILE that is not a picture.
+    written to the -o FILE that is not a picture. --elastic draws the matches of the
+    elastic stage (as `query --elastic` orders them) and adds the columns elastic, fused.
 
     \b
     Examples:
@@ -175,10 +179,10 @@ def show(
     _check_pictures(names)
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, matching)
+        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, matching, stage)
     else:
         source_inputs = None
-        shown = _searched_drawn(queries, index_path, top, input_format, matching)
+        shown = _searched_drawn(queries, index_path, top, input_format, matching, stage)
     results = []
     if some_failed():
         _not_written(names)
@@ -187,13 +191,21 @@ def show(
             render_matches(q.points, q.id, drawn, name, size=width_height, renderer=renderer)
             for q, drawn, name in zip(queries, shown, names)
         ]
+    stage_columns = list(stage.columns) if stage is not None else []
     write_rows(
         [
-            {"query": q.id, "rank": s.rank, "match": s.id, "distance": s.distance, "source": s.source}
+            {
+                "query": q.id,
+                "rank": s.rank,
+                "match": s.id,
+                "distance": s.distance,
+                **{name: getattr(s.match, name) for name in stage_columns},
+                "source": s.source,
+            }
             for q, drawn in zip(queries, shown)
             for s in drawn
         ],
-        ["query", "rank", "match", "distance", "source"],
+        ["query", "rank", "match", "distance", *stage_columns, "source"],
         output_format,
         rows_output,
         group_by="query",
@@ -222,14 +234,14 @@ def _check_show_arguments(pictures, size: str, against: bool, sources, against_o
     return width_height
 
 
-def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict) -> list:
+def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict, stage=None) -> list:
     """What show draws per query with --against: its ``top`` matches among ``curves``."""
     from ..show import show_ranked
 
-    return [show_ranked(q, curves, top=top, **descriptor, **match) for q in queries]
+    return [show_ranked(q, curves, top=top, stage=stage, **descriptor, **match) for q in queries]
 
 
-def _searched_drawn(queries, index_path, top: int, input_format, match: dict) -> list:
+def _searched_drawn(queries, index_path, top: int, input_format, match: dict, stage=None) -> list:
     """What show draws per query from the index: its ``top`` matches, their curves read
     back from their files (notes on stderr for those that cannot be)."""
     from functools import partial
@@ -241,7 +253,9 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict) ->
     shown = []
     with open_index(index_path) as idx:
         for q in queries:
-            drawn, notes = show_searched(q, idx, top=top, read_curve=partial(read_curve, format=input_format), **match)
+            drawn, notes = show_searched(
+                q, idx, top=top, read_curve=partial(read_curve, format=input_format), stage=stage, **match
+            )
             shown.append(drawn)
             for message in notes:
                 note(message)
@@ -272,6 +286,12 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict) ->
     help="The diffused similarity over the curves' neighbour graph instead of the distance "
     "(higher is closer; docs/rerank.md).",
 )
+@click.option(
+    "--elastic",
+    is_flag=True,
+    help="The elastic stage's fused distance (exact, elastic and shape statistics at each pair's "
+    "exact optimum; docs/elastic.md) instead of the exact distance; with --rerank, its diffusion.",
+)
 @format_option(("csv", "tsv", "json"), help_extra=" of the matrix [default: by the extension of -o, else csv]")
 def matrix(
     sources,
@@ -282,6 +302,7 @@ def matrix(
     input_format,
     order,
     rerank,
+    elastic,
     output_format,
 ):
     """The distance between every pair of curves in FILE_OR_FOLDER... .
@@ -293,7 +314,8 @@ def matrix(
     similarity. With -o FILE.png, also a grey-level picture like the paper's Figure 7.
     With --rerank the entries are the re-ranked similarity of every pair (diffusion over
     the curves' 8-nearest-neighbour graph, 1 on the diagonal, higher is closer; JSON key
-    "scores"), what `query --rerank` ranks by.
+    "scores"), what `query --rerank` ranks by. With --elastic the entries are the fused
+    distance of the elastic stage (what `query --elastic` ranks by; docs/elastic.md).
 
     \b
     Examples:
@@ -310,15 +332,16 @@ def matrix(
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:
-        distances = distance_matrix(curves, progress=progress, **descriptor, **matching)
+        distances = distance_matrix(curves, progress=progress, elastic=elastic, **descriptor, **matching)
     finally:
         finish_bar()
     ids = [c.id for c in curves]
-    title = f"{matching['method']} distance, {len(ids)} curves"
+    what = "fused elastic" if elastic else matching["method"]
+    title = f"{what} distance, {len(ids)} curves"
     values = distances
     if rerank:
         values, distances = _reranked(distances, ids)
-        title = f"re-ranked similarity ({matching['method']} distance), {len(ids)} curves"
+        title = f"re-ranked similarity ({what} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
         distances = distances[permutation][:, permutation]

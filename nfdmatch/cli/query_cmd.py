@@ -9,6 +9,7 @@ from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_C
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
+    elastic_options,
     match_list_options,
     index_option,
     input_format_option,
@@ -58,6 +59,7 @@ from .group import main
     help="With --rerank: walk: the query's exact 8 nearest plus the M curves its PageRank over the "
     "graph reaches most; exact: its exact top M (~4x the time of a batch at 100,000 curves).",
 )
+@elastic_options
 @matching_options
 @input_format_option
 @scheduler_options
@@ -73,6 +75,7 @@ def query(
     rerank,
     rerank_depth,
     rerank_candidates,
+    stage,
     matching,
     input_format,
     scheduler,
@@ -96,34 +99,47 @@ def query(
     graph reaches most, --rerank-depth) are ordered by a diffusion over the whole graph, the
     top K by the diffused score (docs/rerank.md). Rows gain the column score; deterministic.
 
+    --elastic: the elastic stage (docs/elastic.md): the exact top M (--elastic-depth)
+    ordered by a fused distance of the exact distance, an elastic distance (the best
+    correspondence that bends) and pose-free shape statistics. Rows gain the columns elastic
+    and fused (what they are ranked by); distance stays the exact distance.
+
     \b
     Examples:
       nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
       nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
+      nfdmatch query scans/ --index library.h5 --elastic --top 5
       nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
     """
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
     _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
+    if stage is not None and rerank:
+        raise click.UsageError(
+            "--elastic with --rerank needs a graph of fused distances, which this version cannot build yet: "
+            "give one of them"
+        )
+    if stage is not None and scheduler:
+        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
         meshes = _mesh_queries(idx, queries, listing.glob, input_format)
         if meshes:
-            given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, input_format=input_format)
+            given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
             _query_objects(idx, meshes, listing, matching, given, output_format, output)
             return
-        _note_old_format(idx, exhaustive)
+        _note_old_format(idx, exhaustive, stage)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
         results, stats = _search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
             prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
-            **listing.search(),
+            stage=stage, **listing.search(),
         )  # fmt: skip
         spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
         match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
@@ -132,7 +148,7 @@ def query(
         for q, res in zip(inputs.curves, results)
         for m in res
     ]
-    write_rows(rows, _columns(listing.details, rerank), output_format, output, group_by="query")
+    write_rows(rows, _columns(listing.details, rerank, stage), output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
@@ -180,6 +196,7 @@ def _query_objects(idx, meshes, listing, matching, given: dict, output_format, o
 
     for name, on in (
         ("--rerank", given["rerank"]),
+        ("--elastic", given["elastic"]),
         ("--scheduler", given["scheduler"]),
         ("--details", listing.details),
         ("--method, --strict-direction or --mirror", matching != _default_matching()),
@@ -222,19 +239,27 @@ def _default_matching() -> dict:
     return {"method": DEFAULT_METHOD, "direction": DEFAULT_DIRECTION, "mirror": False}
 
 
-def _columns(details: bool, rerank: bool) -> list[str]:
-    """The columns of the match rows; with --rerank the score follows the distance."""
-    columns = match_columns(details)
+def _columns(details: bool, rerank: bool, stage=None) -> list[str]:
+    """The columns of the match rows; with --rerank the score follows the distance, with a
+    stage its columns."""
+    columns = match_columns(details, stage)
     if rerank:
         columns.insert(columns.index("distance") + 1, "score")
     return columns
 
 
-def _note_old_format(idx, exhaustive: bool) -> None:
-    """A note that a format-1 index (no search cells) bounds every row for each query."""
+def _note_old_format(idx, exhaustive: bool, stage=None) -> None:
+    """A note that a format-1 index (no search cells) bounds every row for each query, and
+    that an index before format 3 has its statistics computed on read by the elastic stage."""
     from ..index import FORMAT_VERSION
 
-    if idx.format_version < FORMAT_VERSION and not exhaustive:
+    if idx.format_version < 3 and stage is not None:
+        note(
+            f"{idx.path} is an index of format {idx.format_version}, without stored shape statistics: "
+            f"--elastic computes them for each query's candidates; `nfdmatch index build --index {idx.path}` "
+            f"upgrades it to format {FORMAT_VERSION}"
+        )
+    if idx.format_version < 2 and not exhaustive:
         note(
             f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
             f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
@@ -244,7 +269,7 @@ def _note_old_format(idx, exhaustive: bool) -> None:
 
 def _search_queries(
     idx, curves, rerank_depth, cluster_at, *, top, max_distance, prune, exclude_self, match,
-    candidates=DEFAULT_RERANK_CANDIDATES,
+    candidates=DEFAULT_RERANK_CANDIDATES, stage=None,
 ):  # fmt: skip
     """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank_depth``
     not None), or searched here or on the cluster ``cluster_at`` (--scheduler, its timeout,
@@ -263,6 +288,8 @@ def _search_queries(
                 candidates=candidates,
             )  # fmt: skip
         extra = {} if cluster is None else {"parts": ranges}
+        if stage is not None:
+            extra["stage"] = stage
         run = search_index if cluster is None else cluster.search_index
         return run(
             idx,

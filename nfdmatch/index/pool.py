@@ -45,6 +45,7 @@ from ..formats import format_of, read_curves
 from ..formats._chain import curve_id, make_curves, max_file_bytes
 from ..formats.csv import bulk_points
 from ..matching import invariants
+from ..matching.statistics import curve_statistics
 from ..mesh.objects import ObjectRule, cut_object, is_mesh_file
 
 #: curves described per descriptors_batch call (bounds the (rows x samples x 3) work arrays)
@@ -90,8 +91,9 @@ def _sha256(path: str) -> str:
 def _describe(curves, samples: int, harmonics: int, scale: str) -> dict:
     """Storage-dtype arrays of the /curves datasets (except id and file) for ``curves``:
     coefficients (m, K, 3) complex64, rotation (m, 3, 3) float32, centroid (m, 3) and
-    scale (m,) float64, plane_degenerate (m,) uint8, inv_norm (m, K), inv_sv (m, 2K) and
-    inv_block (m, 3) float32."""
+    scale (m,) float64, plane_degenerate (m,) uint8, inv_norm (m, K), inv_sv (m, 2K),
+    inv_block (m, 3) and statistics (m, LENGTH) float32 (the elastic stage's, of the stored
+    coefficients)."""
     parts = []
     for i in range(0, len(curves), _DESCRIBE_ROWS):
         b = descriptors_batch(curves[i : i + _DESCRIBE_ROWS], samples=samples, harmonics=harmonics, scale=scale)
@@ -108,6 +110,7 @@ def _describe(curves, samples: int, harmonics: int, scale: str) -> dict:
                 "inv_norm": inv["norm"].reshape(m, harmonics).astype(np.float32),
                 "inv_sv": inv["sv"].reshape(m, 2 * harmonics).astype(np.float32),
                 "inv_block": inv["block"].reshape(m, 3).astype(np.float32),
+                "statistics": curve_statistics(c64.astype(np.complex128)).reshape(m, -1).astype(np.float32),
             }
         )
     if len(parts) == 1:

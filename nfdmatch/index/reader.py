@@ -11,6 +11,7 @@ from ..mesh.objects import is_mesh_file
 from ..search.objects import ObjectLoops, search_objects
 from .objects_group import read_objects, rule_of
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
+from ..matching.statistics import curve_statistics
 from ..search.bounds import head_harmonics
 from ..search.knn import search as search_index_for
 from ..search.table import SearchTable
@@ -32,7 +33,7 @@ from .schema import (
 from .search_group import search_table
 
 #: stored numbers that must be finite (the /curves ones; /search is checked as it is read)
-_FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "inv_sv", "inv_block")
+_FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "inv_sv", "inv_block", "statistics")
 
 
 #: rows per chunk of :meth:`Index.iter_chunks` (``nfdmatch.search.memory.CHUNK_ROWS`` is the
@@ -368,6 +369,22 @@ class Index:
             raise ParameterError(f"rows must be at least 1, got {rows}")
         for start in range(0, self.n_curves, rows):
             yield start, self.read_rows(start, min(self.n_curves, start + rows), columns, upcast=upcast)
+
+    def statistics_at(self, rows) -> np.ndarray:
+        """(m, LENGTH) float64 shape statistics of the given rows (the elastic stage's,
+        :func:`nfdmatch.matching.statistics.curve_statistics` of the stored coefficients):
+        stored in format 3, computed from the coefficients in formats 1 and 2."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if "statistics" not in self._ds:
+            return curve_statistics(np.asarray(self.coefficients_at(rows), dtype=np.complex128)).reshape(len(rows), -1)
+        if len(rows) == 0:
+            return np.zeros((0, self._ds["statistics"].shape[1]))
+        if rows.min() < 0 or rows.max() >= self.n_curves:
+            raise IndexError(f"row out of range 0..{self.n_curves - 1}")
+        uniq, inverse = unique_rows(rows)
+        got = np.asarray(self._read(lambda: self._ds["statistics"][uniq], "/curves/statistics"))
+        self._finite("statistics", got, uniq)
+        return got[inverse].astype(np.float64)
 
     def _raw_rows(self, a: int, b: int) -> dict:
         """Rows [a, b) in storage dtypes, ids as str (for copying into a new index)."""

@@ -12,12 +12,14 @@ import numpy as np
 from ..defaults import default_index_path  # noqa: F401  (re-exported: nfdmatch.index.default_index_path)
 from ..descriptors import validate_parameters
 from ..errors import ParameterError, ReadError
+from ..matching.statistics import LENGTH as STATISTICS_LENGTH
 from .search_layout import check_search_group
 
 INDEX_FORMAT = "nfdmatch-index"
 FORMAT_VERSION = 3
 #: format versions this code reads (format 1: no /search group; queries scan every row;
-#: format 2: no /objects group)
+#: formats 1 and 2: no /curves/statistics, the elastic stage computes them on read, and no
+#: /objects group, meshes were not indexed)
 READABLE_VERSIONS = (1, 2, 3)
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -201,9 +203,9 @@ def _positional_chunks(ds) -> bool:
         return False
 
 
-def curve_layout(K: int) -> dict:
-    """/curves dataset name -> (storage dtype, shape after the row axis)."""
-    return {
+def curve_layout(K: int, version: int = FORMAT_VERSION) -> dict:
+    """/curves dataset name -> (storage dtype, shape after the row axis), in format ``version``."""
+    layout = {
         "id": (STR, ()),
         "file": (np.int32, ()),
         "coefficients": (np.complex64, (K, 3)),
@@ -215,6 +217,9 @@ def curve_layout(K: int) -> dict:
         "inv_sv": (np.float32, (2 * K,)),
         "inv_block": (np.float32, (3,)),
     }
+    if version >= 3:
+        layout["statistics"] = (np.float32, (STATISTICS_LENGTH,))
+    return layout
 
 
 @dataclass(frozen=True)
@@ -342,7 +347,7 @@ def _validate(h5) -> tuple[dict, dict]:
     def dataset(group, name, tail):
         return _shaped_dataset(h5, group, name, tail, file_size, checksums)
 
-    fds, cds = _tables(dataset, meta["harmonics"], checksums)
+    fds, cds = _tables(dataset, meta["harmonics"], checksums, meta["format_version"])
     F, N = fds["path"].shape[0], cds["id"].shape[0]
     if cds["coefficients"].dtype.kind != "c":
         raise Problem("corrupt", "corrupted nfdmatch index: /curves/coefficients is not complex")
@@ -422,7 +427,7 @@ def _shaped_dataset(h5, group: str, name: str, tail: tuple, file_size: int, chec
     return obj
 
 
-def _tables(dataset, harmonics: int, checksums: bool) -> tuple[dict, dict]:
+def _tables(dataset, harmonics: int, checksums: bool, version: int = FORMAT_VERSION) -> tuple[dict, dict]:
     """The /files and /curves datasets by name, each table's of one length, with their
     ``*_crc32`` datasets of the right length when the file has checksums; ``dataset(group,
     name, tail)`` opens one (:func:`_shaped_dataset`)."""
@@ -430,7 +435,7 @@ def _tables(dataset, harmonics: int, checksums: bool) -> tuple[dict, dict]:
     F = fds["path"].shape[0]
     if any(d.shape[0] != F for d in fds.values()):
         raise Problem("corrupt", "corrupted nfdmatch index: the /files datasets differ in length")
-    cds = {name: dataset("curves", name, tail) for name, (_, tail) in curve_layout(harmonics).items()}
+    cds = {name: dataset("curves", name, tail) for name, (_, tail) in curve_layout(harmonics, version).items()}
     N = cds["id"].shape[0]
     if any(d.shape[0] != N for d in cds.values()):
         raise Problem("corrupt", "corrupted nfdmatch index: the /curves datasets differ in length")

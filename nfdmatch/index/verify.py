@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
+from ..matching.statistics import curve_statistics
 from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, list_problems
 from .objects_group import read_objects
 from .paths import curve_ids
@@ -286,6 +287,31 @@ def _check_features(values, K: int, report) -> None:
             )
 
 
+def _check_statistics(values, report) -> None:
+    """``statistics`` (format 3) recomputed from the stored coefficients, equal to float32
+    rounding: the elastic stage ranks by them."""
+    coefficients, stored = values.get("/curves/coefficients"), values.get("/curves/statistics")
+    if coefficients is None or stored is None:
+        return
+    bad = []
+    N = len(coefficients)
+    for a in range(0, N, _BLOCK_ROWS):
+        b = min(N, a + _BLOCK_ROWS)
+        C = np.asarray(coefficients[a:b], dtype=np.complex128)
+        finite = np.flatnonzero(np.isfinite(C.reshape(b - a, -1)).all(axis=1))  # the others are reported already
+        want = curve_statistics(C[finite]).reshape(len(finite), -1).astype(np.float32).astype(np.float64)
+        got = np.asarray(stored[a:b], dtype=np.float64).reshape(b - a, -1)[finite]
+        # float32 rounding, and float64 sums in another order: relative to the row's largest value
+        tol = 1e-5 * np.maximum(np.abs(want).max(axis=1, initial=0.0), 1.0)[:, None]
+        with np.errstate(invalid="ignore"):
+            off = ~(np.abs(got - want) <= tol)
+        bad += (a + finite[off.any(axis=1)]).tolist()
+    if bad:
+        report.findings.append(
+            Finding("/curves/statistics", _rows_text(bad), "differs from the statistics of the stored coefficients")
+        )
+
+
 def _verify(h5, meta, files, report) -> None:
     """Every dataset scanned block by block (readable, finite, checksums), then the
     cross-checks: dtypes, ids, features, the /files blocks, /search against /curves."""
@@ -297,6 +323,7 @@ def _verify(h5, meta, files, report) -> None:
         return
     _check_paths_and_ids(h5, files, values.get("/files/path"), values.get("/curves/id"), report)
     _check_features(values, K, report)
+    _check_statistics(values, report)
     file_col = values["/curves/file"]
     want = np.repeat(np.arange(F), files["curve_count"]) if F else np.zeros(0, dtype=np.int64)
     bad = np.flatnonzero(np.asarray(file_col, dtype=np.int64) != want)
@@ -323,6 +350,7 @@ def _scan_datasets(h5, meta, files, report) -> tuple[dict, dict]:
         "/curves/inv_block": whole,
         "/curves/inv_norm": whole,
         "/curves/coefficients": whole,
+        "/curves/statistics": whole,
         "/curves/id": list,
         "/files/path": list,
     }

@@ -13,6 +13,7 @@ import re
 import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, excerpt
+from ..matching.statistics import curve_statistics
 from .schema import _SHA, STR, CRC_ROWS, FileRecord, curve_layout, block_crcs, create_checked, fill_value
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
@@ -333,6 +334,9 @@ class CopyRun:
         for a in range(self.start, self.stop, _WRITE_ROWS):
             b = min(self.stop, a + _WRITE_ROWS)
             piece = self.old._raw_rows(a, b)
+            if "statistics" not in piece:  # an index of format 1 or 2, upgraded
+                statistics = curve_statistics(np.asarray(piece["coefficients"], dtype=np.complex128))
+                piece["statistics"] = statistics.reshape(b - a, -1).astype(np.float32)
             piece["file"] = file_col[a - self.start : b - self.start]
             if new_ids is not None:
                 piece["id"] = new_ids[a - self.start : b - self.start]

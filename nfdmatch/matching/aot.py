@@ -56,7 +56,10 @@ _PUSH_SIGNATURE = (
     "i8[::1], f8, f8)"
 )
 #: the sources compiled into the module (and common.py, whose gram_entries _kernels.py compiles)
-_SOURCES = ("_kernels.py", "_graph_kernels.py", "_push_rounds.py", "common.py", "aot.py")
+_SOURCES = ("_kernels.py", "_graph_kernels.py", "_push_rounds.py", "_elastic_kernels.py", "common.py", "aot.py")
+#: the elastic distance of _elastic_kernels.py: the query, the posed rows, the shifts as
+#: fractions, the offsets, samples, band, the oriented-area share and the distances out
+_ELASTIC_SIGNATURE = "void(c16[:,::1], c16[:,:,::1], f8[::1], i8[::1], i8, i8, f8, f8[::1])"
 
 
 def source_digest() -> str:
@@ -143,6 +146,7 @@ def _module_compiler(out: str):
     """numba.pycc's compiler of the extension module into ``out``, every kernel exported."""
     from numba.pycc import CC
 
+    from . import _elastic_kernels as e
     from . import _graph_kernels as g
     from . import _kernels as k
 
@@ -157,6 +161,7 @@ def _module_compiler(out: str):
     for harmonics in _BOUND_HARMONICS:
         cc.export(f"grid_bound_rows_{harmonics}", _BOUND_SIGNATURE)(_forwarding(k.grid_bound_kernel(harmonics)))
     cc.export("push_sources", _PUSH_SIGNATURE)(_forwarding(g.push_sources, returns=True))
+    cc.export("elastic_rows", _ELASTIC_SIGNATURE)(_forwarding(e.elastic_rows))
     return cc
 
 
@@ -200,7 +205,8 @@ def _releasing_gil():
 
 class _Kernels:
     """The compiled module behind the interface of :mod:`._kernels` (``exact_rows``,
-    ``grid_bound_rows``) and of :mod:`._graph_kernels` (``push_sources``); ``threads``: its
+    ``grid_bound_rows``), of :mod:`._graph_kernels` (``push_sources``) and of
+    :mod:`._elastic_kernels` (``elastic_rows``); ``threads``: its
     functions release the GIL, and ``workers`` then splits a call's rows over threads (else
     it is ignored)."""
 
@@ -208,6 +214,7 @@ class _Kernels:
         self._module = module
         self.threads = threads
         self.push_sources = module.push_sources
+        self.elastic_rows = module.elastic_rows
 
     def _workers(self, workers: int) -> int:
         return workers if self.threads else 1

@@ -166,8 +166,12 @@ def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
     # P[j, i, d, r, k] = 2 w_k B_k[j] conj(A_k[i]): M(s)[j, i] = Re sum_k P e^{2 pi i k s / n}
     P = np.einsum("drkj,rki->jidrk", Bv, Aw)
     Pcat = np.concatenate([P.real, P.imag], axis=-1).reshape(9, D, N, 2 * K)
-    F = trace_soa((Pcat.reshape(-1, 2 * K) @ integer_shift_basis(K, n)).reshape(9, D, N, n), mirror)  # (D, N, n)
-    F = F.transpose(1, 0, 2)  # (N, D, n)
+    # one (9 D, 2K) x (2K, n) product per row: a single product of every row at once let BLAS
+    # block the rows by their count (OpenBLAS 0.3.31), so a row's last digits depended on how
+    # many rows came with it
+    per_row = np.ascontiguousarray(Pcat.transpose(2, 0, 1, 3).reshape(N, 9 * D, 2 * K))
+    M = np.matmul(per_row, integer_shift_basis(K, n)).reshape(N, 9, D, n).transpose(1, 2, 0, 3)
+    F = trace_soa(M, mirror).transpose(1, 0, 2)  # (N, D, n)
 
     local_max = (F >= np.roll(F, 1, axis=2)) & (F >= np.roll(F, -1, axis=2))
     Fm = np.where(local_max, F, -np.inf).reshape(N, D * n)

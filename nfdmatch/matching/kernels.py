@@ -249,7 +249,10 @@ def compile_kernels(ahead_of_time: bool = True) -> bool:
         _warm_up(_kernels)
     except Exception:  # ImportError, numba errors: the numpy path serves
         return False
-    _jit_graph_push()  # (numba's cache then holds the push too)
+    _jit_graph_push()  # (numba's cache then holds the push and the elastic kernel too)
+    from .elastic import _jit_kernel
+
+    _jit_kernel()
     if ahead_of_time:
         from . import aot
 

@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
     from ..curve import Curve
+    from .stages import Stage
 
 __all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS"]
 
@@ -86,6 +87,7 @@ def search_index(
     threads: int | None = None,
     truncate: bool = True,
     exclude_self: bool = False,
+    stage: Stage | None = None,
 ) -> tuple[list[list[RankedMatch]], SearchStats]:
     """k nearest curves of an index for each query curve, exactly.
 
@@ -107,6 +109,10 @@ def search_index(
     truncate : use the truncated-harmonic bound (an option for measuring its effect).
     exclude_self : drop each query's own curve from its matches (the same id, or the same
         curve of the same file however spelled: :func:`~nfdmatch.search.knn.self_rule`).
+    stage : a :class:`~nfdmatch.search.stages.Stage` (e.g. ``ElasticStage(depth=100)``):
+        the exact top :meth:`~nfdmatch.search.stages.Stage.candidates` of each query
+        (within ``max_distance``, without its own curve) re-ordered by the stage, then cut
+        to ``top``.
 
     Returns
     -------
@@ -122,9 +128,14 @@ def search_index(
     never to exceed the exact distance.
     """
     check_search_parameters(top, max_distance, method)
+    if stage is not None and method != DEFAULT_METHOD:
+        raise ParameterError(f"the {stage.name} stage is taken at the exact optimum: method must be {DEFAULT_METHOD}")
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     t0 = time.perf_counter()
+    wanted = top
+    if stage is not None:
+        top = stage.candidates(top)
     asked = top
     if exclude_self and top is not None:
         top += 1  # the query's own curve is dropped below
@@ -137,6 +148,8 @@ def search_index(
     results = ranked_rows(index, tops, top)
     if exclude_self:
         results = without_self(index, queries, results, asked)
+    if stage is not None:
+        results = [found[:wanted] for found in stage.reorder(index, qcoef, results)]
     stats.seconds = time.perf_counter() - t0
     return results, stats
 

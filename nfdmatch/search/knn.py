@@ -95,6 +95,8 @@ def search(
     max_distance: float | None = None,
     exclude_self: bool = False,
     pose: bool = True,
+    elastic: bool = False,
+    elastic_depth: int | None = None,
     **options,
 ) -> list[list[RankedMatch]]:
     """Each query's k nearest curves of ``index`` (an open :class:`~nfdmatch.index.Index`).
@@ -108,6 +110,9 @@ def search(
     pose : give each match its alignment onto the query (``RankedMatch.pose``: a
         :class:`~nfdmatch.Match` with rotation, scale, translation, start shift and
         direction), from the descriptors and pose the index stores.
+    elastic : re-order each query's exact top ``elastic_depth`` (default 100) by the fused
+        distance of the elastic stage (:class:`~nfdmatch.search.stages.ElasticStage`;
+        matches gain ``elastic`` and ``fused``; docs/elastic.md).
     options : ``method``, ``direction``, ``mirror``, ``prune``, ``threads`` as
         :func:`~nfdmatch.search.search_index`.
 
@@ -117,6 +122,13 @@ def search(
 
     if k is None and max_distance is None:
         raise ParameterError("give k or max_distance (or both)")
+    if elastic_depth is not None and not elastic:
+        raise ParameterError("elastic_depth needs elastic=True")
+    if elastic:
+        from ..defaults import DEFAULT_ELASTIC_DEPTH
+        from .stages import ElasticStage
+
+        options["stage"] = ElasticStage(DEFAULT_ELASTIC_DEPTH if elastic_depth is None else elastic_depth)
     curves = as_queries(queries)
     results, _ = search_index(index, curves, top=k, max_distance=max_distance, exclude_self=exclude_self, **options)
     if pose:

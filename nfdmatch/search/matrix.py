@@ -29,6 +29,7 @@ def distance_matrix(
     *,
     progress: Callable[[int, int], None] | None = None,
     processes: int | None = None,
+    elastic: bool = False,
     **parameters,
 ) -> np.ndarray:
     """All-pairs distances of ``curves``.
@@ -41,6 +42,9 @@ def distance_matrix(
         process, each row's call split over the kernels' threads). Workers are used when
         this process may fork (:func:`nfdmatch._fork.can_fork`); every entry is the same
         either way (each is computed by itself).
+    elastic : the fused distance of the elastic stage (rigid, elastic and statistics terms at
+        each pair's rigid optimum: :func:`nfdmatch.matching.fused.fused_rows`) instead of the
+        exact distance (``matrix --elastic``; docs/elastic.md).
     samples, harmonics, scale, method, direction, mirror, weights : by keyword, as in
         :func:`nfdmatch.distance` (the fields of :class:`~nfdmatch.matching.MatchParameters`).
 
@@ -59,7 +63,14 @@ def distance_matrix(
     p = MatchParameters(**parameters)
     if p.method not in METHODS:
         raise ParameterError(f"method must be exact or paper, got {p.method!r}")
+    if elastic and p.method != EXACT:
+        raise ParameterError("the elastic stage is taken at the exact optimum: method must be exact")
     batch = descriptors_batch(curves, **p.descriptor)
+    statistics = None
+    if elastic:
+        from ..matching.statistics import curve_statistics
+
+        statistics = curve_statistics(batch.coefficients)
     N = len(batch)
     matrix = np.zeros((N, N))
     search = exact_search if p.method == EXACT else paper_search
@@ -79,7 +90,8 @@ def distance_matrix(
     processes = (os.cpu_count() or 1) if processes is None else int(processes)
     spread = processes > 1 and total >= _FORK_FROM_PAIRS
     tasks = _row_blocks(N, _MATRIX_TASKS if spread else N)
-    run_tasks(tasks, lambda task, _: _upper_rows(batch, search, p, task), collect, processes if spread else 1)
+    rows = lambda task, _: _upper_rows(batch, search, p, task, statistics)  # noqa: E731
+    run_tasks(tasks, rows, collect, processes if spread else 1)
     return matrix + matrix.T
 
 
@@ -125,9 +137,10 @@ def cross_distances(
     return out
 
 
-def _upper_rows(batch, search, p: MatchParameters, task) -> np.ndarray:
+def _upper_rows(batch, search, p: MatchParameters, task, statistics=None) -> np.ndarray:
     """Rows ``a..b-1`` of the upper triangle (task ``(a, b)``), each against every later
-    curve of ``batch``, concatenated."""
+    curve of ``batch``, concatenated; with ``statistics`` ((N, LENGTH): the curves'
+    statistics vectors), the fused distances of the elastic stage."""
     a, b = task
     N = len(batch)
     out = []
@@ -142,7 +155,17 @@ def _upper_rows(batch, search, p: MatchParameters, task) -> np.ndarray:
                 direction=p.direction,
                 mirror=p.mirror,
             )
-            out.append(r["distance"])
+            if statistics is None:
+                out.append(r["distance"])
+                continue
+            from ..matching.fused import fused_rows
+
+            stop = min(start + BATCH_ROWS, N)
+            terms = fused_rows(
+                batch.coefficients[i], batch.coefficients[start:stop], r, p.samples,
+                query_statistics=statistics[i], row_statistics=statistics[start:stop],
+            )  # fmt: skip
+            out.append(terms.fused)
     return np.concatenate(out) if out else np.zeros(0)
 
 

@@ -55,6 +55,16 @@ class MemoryIndex:
     def coefficients_at(self, rows) -> np.ndarray:
         return self._rows["coefficients"][np.asarray(rows, dtype=np.int64)]
 
+    def statistics_at(self, rows) -> np.ndarray:
+        """(m, LENGTH) float64 shape statistics of the rows (the elastic stage's), computed
+        for every row on first use."""
+        if "statistics" not in self._rows:
+            from ..matching.statistics import curve_statistics
+
+            coefficients = np.asarray(self._rows["coefficients"], dtype=np.complex128)
+            self._rows["statistics"] = curve_statistics(coefficients).reshape(len(coefficients), -1)
+        return self._rows["statistics"][np.asarray(rows, dtype=np.int64)]
+
     def search_table(self) -> SearchTable:
         """Every row in one cell, or cells of ``rows_per_cell`` rows built as for an index."""
         K = self._rows["coefficients"].shape[1]

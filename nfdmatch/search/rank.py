@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
     from ..curve import Curve
+    from .stages import Stage
 
 
 def rank_curves(
@@ -25,6 +26,7 @@ def rank_curves(
     top: int | None = None,
     max_distance: float | None = None,
     exclude_self: bool = False,
+    stage: Stage | None = None,
     **parameters,
 ) -> list[RankedMatch]:
     """Rank ``curves`` by distance to ``query``.
@@ -36,6 +38,8 @@ def rank_curves(
     top : keep the best ``top`` (all when None).
     max_distance : drop matches farther than this.
     exclude_self : drop the query's own curve (as :func:`~nfdmatch.search.search_index`).
+    stage : a re-ordering stage (:class:`~nfdmatch.search.stages.ElasticStage`), as
+        :func:`~nfdmatch.search.search_index` takes it.
     samples, harmonics, scale, method, direction, mirror, weights : by keyword, as in
         :func:`nfdmatch.distance` (the fields of :class:`~nfdmatch.matching.MatchParameters`).
 
@@ -63,5 +67,6 @@ def rank_curves(
         **p.matching,
         prune=p.weights is None,
         exclude_self=exclude_self,
+        stage=stage,
     )
     return results[0]

@@ -1,0 +1,342 @@
+"""The elastic stage on every development collection: retrieval quality and cost
+(issues "Similarity that bends" and "3-D curves that people call alike"; docs/elastic.md).
+
+    python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--diffusion] [--constants | --timing]
+
+Every curve of a collection is a query against the rest (the library's own search with
+``exclude_self``, as ``query --exclude-self``); top-1 and bull's-eye (same class among the
+2 x class-size nearest, the query counted first: 20 for psb_dev, 22 for Kimia-99). Rows:
+
+- plain: the exact rigid distance (``query``);
+- elastic M: the exact top M re-ordered by the fused distance (``query --elastic
+  --elastic-depth M``; ``all`` = the collection);
+- the fused distance's terms alone (elastic, statistics), ranking every curve;
+- the statistics peer of the issue (sorted PCA eigenvalues + 12-bin histograms of turning
+  angle, binormal dihedral angle and distance to the centroid at 128 arc-length samples,
+  Euclidean), on the raw curve and low-passed to 16 harmonics: written here, not in the
+  library;
+- chance;
+- with ``--diffusion``: diffusion on full matrices of the exact and of the fused distance:
+  today's ``matrix --rerank`` (personalised PageRank) and a locally constrained diffusion
+  (LCDP, written here: the measurement for the diffusion still to build).
+
+With the seconds of the plain and the elastic search (the ratio is what holds on a busy
+machine), the elastic kernel's microseconds a pair, and ``query --elastic`` against the plain
+query as CLI processes on an index of each psb_dev folder and of Kimia-99 (``--timing``:
+only these). ``--constants`` prints the fused
+distance's constants recomputed from the pooled development pairs (the quantile tables
+of nfdmatch/matching/fused.py, the block scales of statistics.py).
+
+Collections: psb_dev cut loops and mid-sections (19 classes), Kimia-99 (9 x 11), the mesh
+sections (label = mesh), the bending families (benchmarks/bending_families.py: 2-D and 3-D,
+20 families of 10), and the knots check (each knotess control polygon against the smooth
+knots: top-1, copies found first). Development data is not shipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.dirname(HERE))
+
+from bending_families import families  # noqa: E402
+
+from nfdmatch import Curve, read_curves  # noqa: E402
+from nfdmatch.descriptors import descriptors_batch, resample  # noqa: E402
+from nfdmatch.matching import exact_search  # noqa: E402
+from nfdmatch.matching.elastic import elastic_rows  # noqa: E402
+from nfdmatch.matching.statistics import curve_statistics, statistics_distance  # noqa: E402
+from nfdmatch.search import MemoryIndex, search_index  # noqa: E402
+from nfdmatch.search.stages import ElasticStage  # noqa: E402
+
+
+def _folder(folder, names=None):
+    names = names or sorted(f for f in os.listdir(folder) if f.endswith(".csv") and not f.startswith("_"))
+    return [read_curves(os.path.join(folder, f))[0] for f in names]
+
+
+def collections(data):
+    """name -> (curves, labels, bull's-eye depth or None for 2 x class size)"""
+    out = {}
+    for name in ("cutloop", "midsection"):
+        with open(os.path.join(data, "psb_dev", name, "labels.csv")) as fh:
+            rows = list(csv.DictReader(fh))
+        curves = _folder(os.path.join(data, "psb_dev", name, "curves"), [r["file"] for r in rows])
+        out[f"psb {name}"] = (curves, np.array([r["class"] for r in rows]), 20)
+    with open(os.path.join(data, "kimia99", "_labels.csv")) as fh:
+        labels = {row["csv"]: row["class_name"] for row in csv.DictReader(fh)}
+    names = sorted(f for f in os.listdir(os.path.join(data, "kimia99")) if f.endswith(".csv") and f in labels)
+    out["kimia99"] = (_folder(os.path.join(data, "kimia99"), names), np.array([labels[n] for n in names]), None)
+    with open(os.path.join(data, "mesh_loops", "index.csv")) as fh:
+        rows = [r for r in csv.DictReader(fh) if r["kind"] == "section"]
+    out["mesh sections"] = (
+        _folder(os.path.join(data, "mesh_loops"), [r["file"] for r in rows]),
+        np.array([r["mesh"] for r in rows]),
+        None,
+    )
+    for dimension in (2, 3):
+        points, labels = families(np.random.default_rng(33 + dimension), 20, 10, dimension)
+        curves = [Curve(p, id=f"bend{dimension}d-{f:02d}-{i:03d}") for i, (p, f) in enumerate(zip(points, labels))]
+        out[f"bending {dimension}-D"] = (curves, labels, None)
+    return out
+
+
+def scores(order: np.ndarray, labels: np.ndarray, depth: int | None) -> tuple[float, float]:
+    """(top-1, bull's-eye) of rankings ``order`` (N, >= N - 1) without the query itself."""
+    N = len(labels)
+    size = np.array([(labels == c).sum() for c in labels])
+    top1 = float(np.mean(labels[order[:, 0]] == labels))
+    bull = [(1 + (labels[order[i, : (depth or 2 * size[i]) - 1]] == labels[i]).sum()) / size[i] for i in range(N)]
+    return top1, float(np.mean(bull))
+
+
+def _order_of(results, ids) -> np.ndarray:
+    position = {i: n for n, i in enumerate(ids)}
+    return np.array([[position[m.id] for m in found] for found in results])
+
+
+def _order_of_matrix(D: np.ndarray) -> np.ndarray:
+    X = D.astype(float).copy()
+    np.fill_diagonal(X, np.inf)
+    return np.argsort(X, axis=1, kind="stable")[:, : len(D) - 1]
+
+
+def lcdp(D: np.ndarray, k: int = 8, scale_k: int = 10, iterations: int = 6) -> np.ndarray:
+    """The locally constrained diffusion (Yang, Koknar-Tezel & Latecki 2009) of a full
+    distance matrix, as the prototype of docs/elastic.md ran it (a measurement for the next
+    step, not the library's): affinity exp(-d^2 / (s_i s_j)), s the mean distance to the 10
+    nearest others; self-affinity 1; P row-normalised, P_k its k largest per row
+    renormalised; Q <- P_k Q P_k^T from Q = P, 6 times. Returns the similarity Q."""
+    X = D.astype(float).copy()
+    np.fill_diagonal(X, np.inf)
+    s = np.sort(X, axis=1)[:, :scale_k].mean(axis=1)
+    W = np.exp(-(D**2) / np.maximum(s[:, None] * s[None, :], 1e-300))
+    np.fill_diagonal(W, 1.0)
+    W = (W + W.T) / 2
+    P = W / W.sum(axis=1, keepdims=True)
+    keep = np.argsort(-P, axis=1)[:, :k]
+    Pk = np.zeros_like(P)
+    np.put_along_axis(Pk, keep, np.take_along_axis(P, keep, axis=1), axis=1)
+    Pk /= Pk.sum(axis=1, keepdims=True)
+    Q = P
+    for _ in range(iterations):
+        Q = Pk @ Q @ Pk.T
+    return Q
+
+
+def diffusion_rows(curves, labels, depth):
+    """Diffusion on full matrices of the exact and of the fused distance: today's
+    ``matrix --rerank`` (personalised PageRank) and LCDP (the benchmark's)."""
+    from nfdmatch.search import distance_matrix
+    from nfdmatch.search.rerank import diffused_similarity
+
+    T = distance_matrix(curves)
+    F = distance_matrix(curves, elastic=True)
+    ids = [c.id for c in curves]
+    rows = []
+    for name, D in (("exact", T), ("fused", F)):
+        rows.append(
+            (
+                f"matrix --rerank (PPR) on {name}",
+                scores(_order_of_matrix(-diffused_similarity(D, ids=ids)), labels, depth),
+            )
+        )
+        rows.append((f"LCDP on {name} (benchmark only)", scores(_order_of_matrix(-lcdp(D)), labels, depth)))
+    return rows
+
+
+def peer(curves, low_pass: bool) -> np.ndarray:
+    """The issue's statistics descriptor: sorted PCA eigenvalues + 12-bin histograms of
+    turning angle, binormal dihedral angle and distance to the centroid at 128 arc-length
+    samples (optionally of the curve rebuilt from 16 harmonics)."""
+    rows = []
+    for c in curves:
+        p = resample(np.asarray(c.points if isinstance(c, Curve) else c, dtype=float), 128)
+        if low_pass:
+            F = np.fft.fft(p, axis=0)
+            F[17:-16] = 0
+            p = np.real(np.fft.ifft(F, axis=0))
+        p = p - p.mean(0)
+        p = p / np.sqrt((p**2).sum(1).mean())
+        ev = np.sort(np.linalg.eigvalsh(np.cov(p.T)))[::-1]
+        t = np.roll(p, -1, 0) - p
+        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+        turn = np.arccos(np.clip((t * np.roll(t, 1, 0)).sum(1), -1, 1))
+        b = np.cross(np.roll(t, 1, 0), t)
+        b /= np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+        dihedral = np.arccos(np.clip((b * np.roll(b, 1, 0)).sum(1), -1, 1))
+        radius = np.linalg.norm(p, axis=1)
+        h = [
+            np.histogram(v, 12, range=r)[0] / 128
+            for v, r in ((turn, (0, np.pi)), (dihedral, (0, np.pi)), (radius, (0, 3)))
+        ]
+        rows.append(np.concatenate([ev / ev.sum()] + h))
+    X = np.array(rows)
+    return np.linalg.norm(X[:, None] - X[None], axis=2)
+
+
+def run_collection(name, curves, labels, depth, depths, diffusion=False):
+    ids = [c.id for c in curves]
+    N = len(curves)
+    memory = MemoryIndex(curves)
+    t = time.perf_counter()
+    plain, _ = search_index(memory, curves, top=N - 1, exclude_self=True)
+    plain_s = time.perf_counter() - t
+    rows = [("plain (exact rigid)", scores(_order_of(plain, ids), labels, depth), plain_s)]
+    for M in depths:
+        m = N - 1 if M == "all" else int(M)
+        t = time.perf_counter()
+        top = min(40, N - 1)
+        found, _ = search_index(memory, curves, top=top, exclude_self=True, stage=ElasticStage(depth=m))
+        seconds = time.perf_counter() - t
+        order = _order_of(found, ids)  # the first 40: every score here reads at most 22
+        rows.append((f"--elastic --elastic-depth {M}", scores(order, labels, depth), seconds))
+    C = descriptors_batch(curves).coefficients
+    E = np.zeros((N, N))
+    for i in range(N):
+        r = exact_search(C[i], C, 128)
+        E[i] = elastic_rows(C[i], C, r["shift"], r["reversed"], r["mirrored"], 128)
+    S = curve_statistics(C)
+    St = np.array([statistics_distance(S[i], S) for i in range(N)])
+    rows.append(("elastic term alone", scores(_order_of_matrix(E), labels, depth), None))
+    rows.append(("statistics term alone", scores(_order_of_matrix(St), labels, depth), None))
+    rows.append(
+        ("peer: statistics descriptor, raw", scores(_order_of_matrix(peer(curves, False)), labels, depth), None)
+    )
+    rows.append(("peer: the same low-passed (16)", scores(_order_of_matrix(peer(curves, True)), labels, depth), None))
+    size = np.array([(labels == c).sum() for c in labels])
+    chance_top1 = float(np.mean((size - 1) / (N - 1)))
+    chance_bull = float(np.mean([(1 + ((depth or 2 * s) - 1) * (s - 1) / (N - 1)) / s for s in size]))
+    rows.append(("chance", (chance_top1, chance_bull), None))
+    if diffusion:
+        rows += [(what, figures, None) for what, figures in diffusion_rows(curves, labels, depth)]
+    print(f"\n{name} ({N} curves)")
+    for what, (top1, bull), seconds in rows:
+        took = "" if seconds is None else f"{seconds:8.2f} s"
+        print(f"  {what:40} top-1 {top1:.3f}  bull's-eye {bull:.3f} {took}")
+
+
+def knots_check(data):
+    """Each knotess control polygon against the smooth knots with --elastic: top-1."""
+    names = sorted(f for f in os.listdir(os.path.join(data, "knotess_smooth")) if f.endswith(".csv"))
+    smooth = _folder(os.path.join(data, "knotess_smooth"), names)
+    control = _folder(os.path.join(data, "knotess_control"), names)
+    memory = MemoryIndex(smooth)
+    for label, stage in (("plain", None), ("--elastic", ElasticStage())):
+        found, _ = search_index(memory, control, top=1, stage=stage)
+        hits = sum(os.path.basename(f[0].id) == os.path.basename(q.id) for f, q in zip(found, control))
+        print(f"  knots control -> smooth, {label:10} top-1 {hits} / {len(control)}")
+
+
+def kernel_timing():
+    rng = np.random.default_rng(0)
+    points, _ = families(rng, 4, 50, 3)
+    C = descriptors_batch(points).coefficients
+    r = exact_search(C[0], C, 128)
+    elastic_rows(C[0], C, r["shift"], r["reversed"], r["mirrored"], 128)
+    best = np.inf
+    for _ in range(5):
+        t = time.perf_counter()
+        elastic_rows(C[0], C, r["shift"], r["reversed"], r["mirrored"], 128)
+        best = min(best, time.perf_counter() - t)
+    t = time.perf_counter()
+    curve_statistics(C)
+    stats_s = time.perf_counter() - t
+    print(f"\nelastic distance: {best / len(C) * 1e6:.1f} us a pair (best of 5, {len(C)} rows, one thread); "
+          f"statistics: {stats_s / len(C) * 1e6:.1f} us a curve (once per curve)")  # fmt: skip
+
+
+def cli_timing(data, runs: int = 3):
+    """``query FOLDER --index --exclude-self --top 40`` as whole CLI processes, plain against
+    ``--elastic`` (M = 100), in turn, on an index of each folder (format 3: statistics
+    stored): the median seconds of ``runs`` each and their ratio."""
+    import subprocess
+    import tempfile
+
+    exe = os.path.join(os.path.dirname(sys.executable), "nfdmatch")
+    folders = {
+        "psb cut loops": os.path.join(data, "psb_dev", "cutloop", "curves"),
+        "psb mid-sections": os.path.join(data, "psb_dev", "midsection", "curves"),
+        "kimia99": os.path.join(data, "kimia99"),
+    }
+    print("\nCLI processes: query FOLDER --index I --exclude-self --top 40 (every curve a query), median of", runs)
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, folder in folders.items():
+            index = os.path.join(tmp, name.replace(" ", "_") + ".h5")
+            subprocess.run([exe, "-q", "index", "build", folder, "--index", index, "--glob", "[!_]*.csv"], check=True)
+            base = [exe, "query", folder, "--index", index, "--exclude-self", "--top", "40", "--glob", "[!_]*.csv"]
+            base += ["--format", "csv", "-o", os.path.join(tmp, "out.csv")]
+            times = {"plain": [], "elastic": []}
+            for _ in range(runs):
+                for label, extra in (("plain", []), ("elastic", ["--elastic"])):
+                    t = time.perf_counter()
+                    subprocess.run(base + extra, check=True)
+                    times[label].append(time.perf_counter() - t)
+            plain, elastic = (float(np.median(times[k])) for k in ("plain", "elastic"))
+            print(f"  {name:18} plain {plain:6.2f} s   --elastic {elastic:6.2f} s   ratio {elastic / plain:.2f}x")
+
+
+def constants(cols):
+    """The fused distance's constants from the pooled development pairs."""
+    from nfdmatch.matching.statistics import BLOCK_SIZES, BLOCKS
+
+    T, E, S, blocks = [], [], [], {b: [] for b in BLOCKS}
+    for name, (curves, _, _) in cols.items():
+        if name.startswith("bending"):
+            continue
+        C = descriptors_batch(curves).coefficients
+        st = curve_statistics(C)
+        upper = np.triu_indices(len(C), 1)
+        for i in range(len(C)):
+            r = exact_search(C[i], C[i + 1 :], 128)
+            T.append(r["distance"])
+            E.append(elastic_rows(C[i], C[i + 1 :], r["shift"], r["reversed"], r["mirrored"], 128))
+        at = 0
+        for b, n in zip(BLOCKS, BLOCK_SIZES):
+            X = st[:, at : at + n]
+            blocks[b].append(np.abs(X[:, None] - X[None]).sum(2)[upper])
+            at += n
+        S.append(np.concatenate([statistics_distance(st[i], st[i + 1 :]) for i in range(len(C))]))
+    print("BLOCK_SCALES =", tuple(round(float(np.median(np.concatenate(blocks[b]))), 4) for b in BLOCKS))
+    levels = np.linspace(0, 1, 17)
+    for name, values in (("RIGID", T), ("ELASTIC", E), ("STATISTICS", S)):
+        print(f"{name}_QUANTILES =", tuple(round(float(v), 4) for v in np.quantile(np.concatenate(values), levels)))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default=os.path.join(os.path.dirname(HERE), "..", "shared", "data"))
+    parser.add_argument("--depths", default="100,all", help="elastic depths to report, comma-separated ('all')")
+    parser.add_argument("--constants", action="store_true", help="print the fused distance's constants")
+    parser.add_argument("--timing", action="store_true", help="only the CLI timing (plain against --elastic)")
+    parser.add_argument("--diffusion", action="store_true", help="also diffusion on full matrices (PPR, LCDP)")
+    args = parser.parse_args()
+    if not os.path.isdir(args.data):
+        sys.exit(f"no development data at {args.data}: give --data")
+    if args.timing:
+        cli_timing(args.data)
+        kernel_timing()
+        return
+    cols = collections(args.data)
+    if args.constants:
+        constants(cols)
+        return
+    depths = args.depths.split(",")
+    for name, (curves, labels, depth) in cols.items():
+        run_collection(name, curves, labels, depth, depths, args.diffusion)
+    print()
+    knots_check(args.data)
+    kernel_timing()
+    cli_timing(args.data)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""Stages that re-order a search's exact candidates, behind one interface.
+
+A stage takes each query's exact candidates (the rows the one search engine found, with
+their rigid optimum) and returns them re-ordered, with its own columns filled in. A search
+asks the engine for :meth:`Stage.candidates` rows, hands them to :meth:`Stage.reorder`, and
+keeps the first ``top``: :func:`~nfdmatch.search.index_search.search_index` does this for
+every stage, so a new stage is a class here and its name in the CLI, never a second
+search. The stage of this module: :class:`ElasticStage` (``--elastic``; docs/elastic.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from ..defaults import DEFAULT_ELASTIC_DEPTH
+from ..errors import ParameterError
+from ..records import RankedMatch
+from .engine import TIE
+
+__all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS"]
+
+#: the columns the elastic stage adds after ``distance``
+ELASTIC_COLUMNS = ("elastic", "fused")
+
+
+class Stage(Protocol):
+    """What a re-ordering stage provides."""
+
+    #: the stage's name (its CLI flag without dashes)
+    name: str
+    #: the columns it fills in, after ``distance``
+    columns: tuple[str, ...]
+
+    def candidates(self, top: int | None) -> int | None:
+        """How many exact nearest rows a query needs for an answer of ``top`` rows."""
+        ...
+
+    def reorder(self, index, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]) -> list[list[RankedMatch]]:
+        """Each query's candidates (``results[i]``, query i's descriptors ``qcoef[i]``: (Q, K,
+        3) complex128), re-ordered and re-ranked, the stage's columns filled in."""
+        ...
+
+
+@dataclass(frozen=True)
+class ElasticStage:
+    """The exact top ``depth`` of a query ordered by the fused distance (rigid, elastic and
+    pose-free statistics: :mod:`nfdmatch.matching.fused`); ties by exact distance, then id.
+
+    depth : the exact candidates re-ordered (``--elastic-depth``)."""
+
+    depth: int = DEFAULT_ELASTIC_DEPTH
+    name: str = "elastic"
+    columns: tuple[str, ...] = ELASTIC_COLUMNS
+
+    def __post_init__(self):
+        if int(self.depth) < 1:
+            raise ParameterError(f"the elastic depth must be at least 1, got {self.depth}")
+
+    def candidates(self, top: int | None) -> int | None:
+        return None if top is None else max(int(top), int(self.depth))
+
+    def reorder(self, index, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]) -> list[list[RankedMatch]]:
+        from ..matching.fused import fused_rows
+        from ..matching.statistics import curve_statistics
+
+        found = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
+        if not any(len(rows) for rows in found):
+            return [[] for _ in results]
+        # the batch's rows read once (a scattered read costs about the same for one row or many)
+        every = np.unique(np.concatenate(found))
+        coefficients = index.coefficients_at(every)
+        stored = getattr(index, "statistics_at", None)
+        statistics = stored(every) if stored is not None else curve_statistics(coefficients)
+        mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+        out = []
+        for qi, (matches, rows) in enumerate(zip(results, found)):
+            if not len(rows):
+                out.append([])
+                continue
+            at = np.searchsorted(every, rows)
+            rigid = {
+                "distance": np.array([m.distance for m in matches]),
+                "shift": np.array([m.shift for m in matches]),
+                "reversed": np.array([m.reversed for m in matches]),
+                "mirrored": np.array([m.mirrored for m in matches]),
+            }
+            terms = fused_rows(
+                qcoef[qi], coefficients[at], rigid, index.samples, query_statistics=mine[qi],
+                row_statistics=statistics[at],
+            )  # fmt: skip
+            key = np.round(terms.fused / TIE)
+            ranked = sorted(range(len(matches)), key=lambda i: (key[i], matches[i].distance, matches[i].id))
+            out.append(
+                [
+                    matches[i].replace(rank=rank, elastic=float(terms.elastic[i]), fused=float(terms.fused[i]))
+                    for rank, i in enumerate(ranked, start=1)
+                ]
+            )
+        return out

@@ -1,0 +1,291 @@
+"""The elastic stage: the elastic distance's kernels against the numpy reference, its
+invariances, what it is for (a bent part), degenerate curves, and the stage in the search,
+the Python API and the CLI (docs/elastic.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import oracle as o
+from nfdmatch import Curve, build_index, open_index
+from nfdmatch.descriptors import descriptors_batch
+from nfdmatch.matching import NUMPY, exact_search
+from nfdmatch.matching.elastic import elastic_reference, elastic_rows, posed_rows
+from nfdmatch.matching.fused import ELASTIC_QUANTILES, RIGID_QUANTILES, fuse, fused_distance
+from nfdmatch.matching.kernels import choose
+from nfdmatch.matching.statistics import LENGTH, curve_statistics, statistics_distance
+from nfdmatch.search import rank_curves
+from nfdmatch.search.stages import ElasticStage
+
+
+def _compiled():
+    """The compiled kernels this install has (ahead of time and numba), each by name."""
+    out = []
+    for name in ("aot", "numba"):
+        kernels = choose(name)
+        if kernels.name == name:
+            out.append(kernels)
+    return out
+
+
+COMPILED = _compiled()
+
+
+def _coefficients(curves):
+    return descriptors_batch(curves).coefficients
+
+
+def _copy(points, rng, *, reverse=False):
+    """A re-posed, re-scaled, resampled, start-shifted (and maybe reversed) copy."""
+    q = o.resample_polyline(points, int(rng.integers(150, 700)), rng)
+    q = o.start_shift(q, int(rng.integers(0, len(q))))
+    if reverse:
+        q = o.reverse(q)
+    return o.random_rigid_motion(q, rng)
+
+
+@pytest.mark.skipif(not COMPILED, reason="no compiled kernels: the numpy reference is the only path")
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), mirror=st.booleans(), planar=st.booleans())
+def test_compiled_kernel_equals_the_numpy_reference(seed, mirror, planar):
+    rng = np.random.default_rng(seed)
+    curves = [o.random_smooth_curve(rng, 300, n_harmonics=int(rng.integers(2, 9))) for _ in range(4)]
+    if planar:
+        for c in curves:
+            c[:, 2] = 0.0
+    C = _coefficients(curves)
+    rigid = exact_search(C[0], C, 128, mirror=mirror)
+    reference = np.array(
+        [
+            elastic_reference(
+                C[0],
+                posed_rows(C[r : r + 1], rigid["reversed"][r : r + 1], rigid["mirrored"][r : r + 1])[0],
+                (rigid["shift"][r] / 128 + 0.5) % 1.0 - 0.5,
+            )
+            for r in range(len(C))
+        ]
+    )  # fmt: skip
+    assert np.allclose(
+        elastic_rows(C[0], C, rigid["shift"], rigid["reversed"], rigid["mirrored"], 128, kernels=NUMPY), reference
+    )
+    for kernels in COMPILED:
+        got = elastic_rows(C[0], C, rigid["shift"], rigid["reversed"], rigid["mirrored"], 128, kernels=kernels)
+        assert np.allclose(got, reference, rtol=1e-9, atol=1e-9), kernels.name
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), reverse=st.booleans())
+def test_a_reposed_resampled_restarted_copy_is_at_about_zero(seed, reverse):
+    rng = np.random.default_rng(seed)
+    p = o.random_smooth_curve(rng, 800, n_harmonics=5)
+    other = o.random_smooth_curve(rng, 800, n_harmonics=5)
+    _, same = fused_distance(p, _copy(p, rng, reverse=reverse))
+    _, different = fused_distance(p, other)
+    assert same.elastic[0] < 0.25 * different.elastic[0]
+    assert same.fused[0] < 0.1
+    assert same.fused[0] < 0.25 * different.fused[0]
+
+
+def test_the_distance_is_symmetric_and_zero_for_the_same_curve(rng):
+    a, b = o.random_smooth_curve(rng, 400), o.random_smooth_curve(rng, 400)
+    m_ab, ab = fused_distance(a, b)
+    m_ba, ba = fused_distance(b, a)
+    assert ab.elastic[0] == pytest.approx(ba.elastic[0], rel=1e-6)
+    assert ab.fused[0] == pytest.approx(ba.fused[0], rel=1e-6)
+    _, aa = fused_distance(a, a)
+    assert aa.elastic[0] == pytest.approx(0.0, abs=1e-9)
+    assert aa.fused[0] == pytest.approx(0.0, abs=1e-6)
+
+
+def _hand(bend_degrees: float = 0.0, n: int = 400) -> np.ndarray:
+    """A palm (an ellipse) with four fingers: long thin bumps of the polar radius; with
+    ``bend_degrees`` the points of the second finger turned about its base."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    r = 1.0 + sum(1.1 * np.exp(-(((t - c + np.pi) % (2 * np.pi) - np.pi) ** 2) / 0.004) for c in (0.5, 1.1, 1.7, 2.3))
+    points = np.stack([1.2 * r * np.cos(t), r * np.sin(t), np.zeros(n)], axis=1)
+    if bend_degrees:
+        finger = np.abs(((t - 1.1 + np.pi) % (2 * np.pi)) - np.pi) < 0.22
+        base = points[finger][[0, -1]].mean(axis=0)
+        a = np.radians(bend_degrees)
+        turn = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        points[finger] = (points[finger] - base) @ turn.T + base
+    return points
+
+
+def test_a_bent_finger_is_nearer_under_the_elastic_distance_than_under_the_rigid_one():
+    """Each distance on its own scale (its quantile among the development pairs, the scale
+    the fused distance sums): the bent copy ranks nearer by the elastic distance."""
+    match, terms = fused_distance(_hand(), _hand(bend_degrees=35.0))
+    rigid_rank = np.interp(match.distance, RIGID_QUANTILES, np.linspace(0, 1, 17))
+    elastic_rank = np.interp(terms.elastic[0], ELASTIC_QUANTILES, np.linspace(0, 1, 17))
+    assert elastic_rank < rigid_rank
+
+
+@pytest.mark.parametrize(
+    "points",
+    [
+        o.collinear_back_and_forth(50),
+        o.figure_eight_planar(100),
+        np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]),
+        np.repeat(o.ellipse(2, 1, 20), 3, axis=0),
+    ],
+    ids=["collinear", "figure-eight", "three-vertices", "repeated-points"],
+)
+def test_degenerate_curves_get_finite_terms(points):
+    _, terms = fused_distance(points, o.ellipse(2, 1, 50))
+    for key in ("elastic", "statistics", "fused"):
+        value = getattr(terms, key)[0]
+        assert np.isfinite(value) and value >= 0, key
+    assert np.all(np.isfinite(curve_statistics(_coefficients([points])[0])))
+
+
+def test_mirror_images_are_apart_unless_mirror_is_asked_for():
+    knot = o.torus_knot(2, 3, 300)
+    mirrored = knot * np.array([1.0, 1.0, -1.0])
+    _, strict = fused_distance(knot, mirrored)
+    _, allowed = fused_distance(knot, mirrored, mirror=True)
+    assert allowed.fused[0] < 0.05 < strict.fused[0]
+
+
+def test_statistics_are_pose_free_and_blind_to_sampling(rng):
+    p = o.random_smooth_curve(rng, 600)
+    a = curve_statistics(_coefficients([p])[0])
+    b = curve_statistics(_coefficients([_copy(p, rng, reverse=True) * np.array([1, 1, -1])])[0])
+    assert a.shape == (LENGTH,)
+    assert statistics_distance(a, b[None])[0] < 0.5
+
+
+def test_fuse_maps_each_term_through_its_quantiles():
+    assert fuse(0.0, 0.0, 0.0) == 0.0
+    assert fuse(1e9, 1e9, 1e9) == 3.0
+    assert 0 < fuse(0.2, 2.5, 5.0) < 3
+
+
+def _families(rng, count=6, members=5):
+    """Curves in families: a smooth shape each, members re-posed, resampled copies."""
+    curves = []
+    for f in range(count):
+        base = o.random_smooth_curve(rng, 500, n_harmonics=4)
+        for m in range(members):
+            curves.append(Curve(_copy(base, rng, reverse=bool(m % 2)), id=f"f{f}-{m}"))
+    return curves
+
+
+def test_the_stage_reorders_the_exact_top_m_and_equals_the_fused_distance(tmp_path, rng):
+    curves = _families(rng)
+    query = curves[0]
+    ranked = rank_curves(query, curves[1:], top=5, stage=ElasticStage(depth=12))
+    assert [m.rank for m in ranked] == [1, 2, 3, 4, 5]
+    fused = [m.fused for m in ranked]
+    assert fused == sorted(fused)
+    plain = rank_curves(query, curves[1:], top=12)
+    assert {m.id for m in ranked} <= {m.id for m in plain}
+    for m in ranked:
+        _, terms = fused_distance(query, curves[1:][m.row])
+        assert m.fused == pytest.approx(terms.fused[0], abs=1e-5)
+        assert m.distance == pytest.approx(next(p.distance for p in plain if p.id == m.id))
+    # the family members come first, by either order
+    assert all(m.id.startswith("f0-") for m in ranked[:4])
+
+
+def test_index_search_elastic_matches_rank_curves_and_checks_its_options(tmp_path, rng):
+    from nfdmatch.errors import ParameterError
+    from nfdmatch.formats import write_curves
+
+    curves = _families(rng, count=4, members=4)
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    for c in curves:
+        write_curves(str(folder / f"{c.id}.csv"), [c])
+    build_index([str(folder)], str(tmp_path / "x.h5"))
+    with open_index(str(tmp_path / "x.h5")) as idx:
+        found = idx.search(str(folder / "f1-0.csv"), k=3, elastic=True, elastic_depth=8, exclude_self=True)[0]
+        assert [m.id.split("/")[-1] for m in found] == ["f1-1.csv", "f1-2.csv", "f1-3.csv"] or all(
+            "f1-" in m.id for m in found
+        )
+        assert all(m.elastic is not None and m.fused is not None and m.pose is not None for m in found)
+        with pytest.raises(ParameterError):
+            idx.search(str(folder / "f1-0.csv"), k=3, elastic_depth=8)
+
+
+def test_query_elastic_cli(tmp_path, rng):
+    from nfdmatch.formats import write_curves
+
+    from conftest import run_cli
+
+    curves = _families(rng, count=3, members=4)
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    for c in curves:
+        write_curves(str(folder / f"{c.id}.csv"), [c])
+    index = str(tmp_path / "x.h5")
+    assert run_cli("index", "build", str(folder), "--index", index)[0] == 0
+    query = str(folder / "f2-0.csv")
+    code, out, err = run_cli(
+        "query", query, "--index", index, "--elastic", "--elastic-depth", "6", "--top", "3", "--format", "json",
+        "--exclude-self",
+    )  # fmt: skip
+    assert code == 0, err
+    rows = json.loads(out)
+    assert [row["rank"] for row in rows] == [1, 2, 3]
+    assert list(rows[0]) == ["query", "rank", "match", "distance", "elastic", "fused"]
+    assert [row["fused"] for row in rows] == sorted(row["fused"] for row in rows)
+    assert all("f2-" in row["match"] for row in rows)
+    code, out, err = run_cli("query", query, "--index", index, "--elastic-depth", "6")
+    assert code == 2 and "--elastic-depth needs --elastic" in err and not out
+    code, out, err = run_cli("query", query, "--index", index, "--elastic", "--rerank")
+    assert code == 2 and "--elastic" in err and not out
+    code, out, err = run_cli("distance", query, str(folder / "f2-1.csv"), "--elastic", "--format", "json")
+    assert code == 0, err
+    assert {"distance", "elastic", "statistics", "fused"} <= set(json.loads(out))
+    code, out, err = run_cli("matrix", str(folder), "--elastic", "--format", "json")
+    assert code == 0, err
+    values = np.array(json.loads(out)["distances"])
+    assert values.shape == (12, 12) and np.allclose(values, values.T) and np.all(np.diag(values) == 0)
+    assert np.all((values >= 0) & (values <= 3))
+    code, out, err = run_cli("rank", query, str(folder), "--elastic", "--top", "2", "--format", "csv")
+    assert code == 0, err
+    assert out.splitlines()[0] == "query,rank,match,distance,elastic,fused"
+
+
+def test_show_elastic_draws_the_stage_order_and_prints_its_columns(tmp_path, rng):
+    from nfdmatch.formats import write_curves
+
+    from conftest import run_cli
+
+    curves = _families(rng, count=2, members=3)
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    for c in curves:
+        write_curves(str(folder / f"{c.id}.csv"), [c])
+    query = str(folder / "f0-0.csv")
+    picture = tmp_path / "m.png"
+    code, out, err = run_cli(
+        "show", query, str(folder), "--against", "--elastic", "--top", "3", "-o", str(picture), "--format", "csv"
+    )
+    assert code == 0, err
+    lines = out.splitlines()
+    assert lines[0] == "query,rank,match,distance,elastic,fused,source"
+    fused = [float(line.split(",")[5]) for line in lines[1:]]
+    assert len(fused) == 3 and fused == sorted(fused)
+    assert picture.stat().st_size > 0
+
+
+def test_the_stage_needs_the_exact_method(tmp_path, rng):
+    from nfdmatch.errors import ParameterError
+    from nfdmatch.formats import write_curves
+
+    from conftest import run_cli
+
+    curves = _families(rng, count=2, members=2)
+    with pytest.raises(ParameterError, match="exact"):
+        rank_curves(curves[0], curves[1:], top=2, stage=ElasticStage(), method="paper")
+    for c in curves:
+        write_curves(str(tmp_path / f"{c.id}.csv"), [c])
+    code, out, err = run_cli("rank", tmp_path / "f0-0.csv", tmp_path, "--elastic", "--method", "paper")
+    assert code != 0 and "method must be exact" in err and not out
