@@ -184,9 +184,13 @@ def test_cli_query_errors_of_meshes(parts, tmp_path):
     result = runner.invoke(main, ["query", str(parts / "torus.ply"), str(bad), "--index", index, "--format", "csv"])
     assert result.exit_code == 3 and "bad.stl" in result.stderr
     assert {r["query"] for r in csv.DictReader(io.StringIO(result.stdout))} == {str(parts / "torus.ply")}
-    # a curve query against an index of objects still ranks curves
-    result = runner.invoke(main, ["query", str(parts / "ring.csv"), "--index", index, "--top", "1", "--format", "csv"])
-    assert result.exit_code == 0 and "curves" not in result.stdout.splitlines()[0]
+    # a curve query against an index of objects still ranks curves, with each match's object
+    result = runner.invoke(main, ["query", str(parts / "ring.csv"), "--index", index, "--top", "3", "--format", "csv"])
+    assert result.exit_code == 0, result.output
+    rows = list(csv.DictReader(io.StringIO(result.stdout)))
+    assert list(rows[0]) == ["query", "rank", "match", "distance", "object"]
+    assert rows[0]["match"].endswith("ring.csv") and rows[0]["object"] == ""
+    assert all(r["object"] == r["match"].rsplit("#", 1)[0] for r in rows[1:])
     # meshes and curves in one run: their rows differ
     result = runner.invoke(main, ["query", str(parts / "torus.ply"), str(parts / "ring.csv"), "--index", index])
     assert result.exit_code == 2 and "separate runs" in result.stderr

@@ -94,6 +94,13 @@ def query(
     exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
     Inputs that cannot be read are named on stderr and the others answered (exit 3).
 
+    A mesh QUERY (STL, PLY, OFF, GLB/GLTF, OBJ with faces) against an index of meshes is cut
+    by the index's rule and ranks its objects: rows query, rank, match (the object's mesh),
+    distance (the object distance), curves (the object's contours, #I, that were the
+    nearest of some query contour); --top at most a quarter of the objects prunes by proven
+    bounds, --exhaustive computes every object distance (docs/objects.md). A curve query
+    against such an index gains the column object (the mesh of a matched contour).
+
     --rerank: the query joins the neighbour graph stored in the index through its exact 8
     nearest; its candidates (its nearest and the M curves its personalised PageRank over the
     graph reaches most, --rerank-depth) are ordered by a diffusion over the whole graph, the
@@ -109,6 +116,7 @@ def query(
       nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
+      nfdmatch query new_part.stl --index parts.h5 --top 5
       nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
       nfdmatch query scans/ --index library.h5 --elastic --top 5
       nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
@@ -143,12 +151,14 @@ def query(
         )  # fmt: skip
         spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
         match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
+        object_of = _objects_of(idx, match_spelling, spell_match)
     rows = [
-        {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
+        {**match_row(spell_query(q.id), m), "match": match_spelling[m.id], "object": (object_of or {}).get(m.id, "")}
         for q, res in zip(inputs.curves, results)
         for m in res
     ]
-    write_rows(rows, _columns(listing.details, rerank, stage), output_format, output, group_by="query")
+    columns = _columns(listing.details, rerank, stage) + (["object"] if object_of is not None else [])
+    write_rows(rows, columns, output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
@@ -231,6 +241,26 @@ def _query_objects(idx, meshes, listing, matching, given: dict, output_format, o
     ]
     write_rows(rows, ["query", "rank", "match", "distance", "curves"], output_format, output, group_by="query")
     finish(len(failures), len(meshes), "meshes")
+
+
+def _objects_of(idx, match_spelling: dict, spell_match):
+    """For an index holding objects: each matched curve id's object (its mesh, spelled as a
+    match is; absent for a curve of a curve file), else None (no object column)."""
+    from ..errors import IndexFormatError
+
+    try:
+        if idx.object_rule() is None:
+            return None
+        objects = set(idx.object_ids())
+    except IndexFormatError as exc:  # the curves answer without it: /objects is only their tag
+        note(f"{exc}; the object column is left out (`nfdmatch index verify` lists what is bad)")
+        return None
+    found = {}
+    for curve_id in match_spelling:
+        mesh = curve_id.rsplit("#", 1)[0]
+        if "#" in curve_id and mesh in objects:
+            found[curve_id] = spell_match(mesh)
+    return found
 
 
 def _default_matching() -> dict:
