@@ -24,9 +24,19 @@ $(KERNELS): $(STAMP) nfdmatch/matching/_kernels.py nfdmatch/matching/_graph_kern
 		compile_kernels(); print('kernels that will serve:', choose().describe())" >&2
 	touch $(KERNELS)
 
+# the manual page, made from the commands' own help (`man ./nfdmatch.1` in the checkout;
+# tests/test_never_destroy.py checks that the committed page is the one the help gives)
+MAN := $(VENV)/share/man/man1/nfdmatch.1
+
+nfdmatch.1: $(STAMP) $(wildcard nfdmatch/cli/*.py)
+	$(BIN)/nfdmatch help --man > $@.tmp && mv $@.tmp $@
+
+$(MAN): nfdmatch.1
+	mkdir -p $(dir $@) && cp nfdmatch.1 $@
+
 # bytecode too: a CLI start-up without it compiles every module from source (~60 ms more
 # in an environment that sets PYTHONDONTWRITEBYTECODE, e.g. many containers)
-install: $(STAMP) $(KERNELS)
+install: $(STAMP) $(KERNELS) $(MAN)
 	@$(BIN)/python -m compileall -q nfdmatch
 
 test: install

@@ -153,6 +153,50 @@ def diffusion_rows(curves, labels, depth):
     return rows
 
 
+def rerank_rows(curves, labels, depth):
+    """``query --rerank --exclude-self`` of every curve (the library's ``rerank_index``) on an
+    index with an exact graph (``--graph 10``) and on one with a fused graph (``--graph 10
+    --elastic``): rows with their seconds."""
+    import tempfile
+
+    from nfdmatch import build_index, open_index, write_curves
+    from nfdmatch.index.graph import GraphSpec
+    from nfdmatch.search.rerank import rerank_index
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = os.path.join(tmp, "curves")
+        os.makedirs(folder)
+        stored = []
+        for i, c in enumerate(curves):
+            path = os.path.join(folder, f"{i:05d}.csv")
+            write_curves(path, [Curve(np.asarray(c.points), id=path)])
+            stored.append(Curve(np.asarray(c.points), id=path))
+        for label, graph in (("exact graph 10", 10), ("--elastic graph 10", GraphSpec(10, "fused"))):
+            index = os.path.join(tmp, "i.h5")
+            if os.path.exists(index):
+                os.remove(index)
+            build_index([folder], index, graph=graph)
+            with open_index(index) as idx:
+                t = time.perf_counter()
+                found, _ = rerank_index(idx, stored, top=min(40, len(curves) - 1), exclude_self=True)
+                seconds = time.perf_counter() - t
+                position = {os.path.basename(c.id): n for n, c in enumerate(stored)}
+                order = np.array([[position[os.path.basename(m.id)] for m in f] for f in found])
+            rows.append((f"query --rerank, {label}", scores(order, labels, depth), seconds))
+            from nfdmatch.search import distance_matrix
+            from nfdmatch.search.rerank import diffused_similarity
+
+            fused = graph != 10
+            S = diffused_similarity(distance_matrix(stored, elastic=fused), ids=[c.id for c in stored])
+            np.fill_diagonal(S, -np.inf)
+            want = np.argsort(-S, axis=1, kind="stable")[:, : order.shape[1]]
+            same = float(np.mean(order == want))
+            what = "matrix --rerank --elastic" if fused else "matrix --rerank"
+            print(f"  ({label}: the same curve as {what} at {same:.1%} of the top-40 places)")
+    return rows
+
+
 def peer(curves, low_pass: bool) -> np.ndarray:
     """The issue's statistics descriptor: sorted PCA eigenvalues + 12-bin histograms of
     turning angle, binormal dihedral angle and distance to the centroid at 128 arc-length
@@ -183,7 +227,7 @@ def peer(curves, low_pass: bool) -> np.ndarray:
     return np.linalg.norm(X[:, None] - X[None], axis=2)
 
 
-def run_collection(name, curves, labels, depth, depths, diffusion=False):
+def run_collection(name, curves, labels, depth, depths, diffusion=False, rerank=True):
     ids = [c.id for c in curves]
     N = len(curves)
     memory = MemoryIndex(curves)
@@ -216,6 +260,8 @@ def run_collection(name, curves, labels, depth, depths, diffusion=False):
     chance_top1 = float(np.mean((size - 1) / (N - 1)))
     chance_bull = float(np.mean([(1 + ((depth or 2 * s) - 1) * (s - 1) / (N - 1)) / s for s in size]))
     rows.append(("chance", (chance_top1, chance_bull), None))
+    if rerank:
+        rows += rerank_rows(curves, labels, depth)
     if diffusion:
         rows += [(what, figures, None) for what, figures in diffusion_rows(curves, labels, depth)]
     print(f"\n{name} ({N} curves)")
@@ -284,6 +330,44 @@ def cli_timing(data, runs: int = 3):
             print(f"  {name:18} plain {plain:6.2f} s   --elastic {elastic:6.2f} s   ratio {elastic / plain:.2f}x")
 
 
+def elastic_graph_timing(curves: int, work: str | None = None):
+    """``index build --graph 10`` against ``--graph 10 --elastic`` on ``curves`` generated
+    curves (benchmarks/bench_index.py's families of 10, 2 workers), and single ``query
+    --rerank`` on each (20 queries, the median)."""
+    import tempfile
+
+    import bench_index
+
+    from nfdmatch import open_index, read_curves
+    from nfdmatch.index import build_index
+    from nfdmatch.index.graph import GraphSpec
+    from nfdmatch.search.rerank import rerank_index
+
+    with tempfile.TemporaryDirectory(dir=work) as tmp:
+        folder = os.path.join(tmp, f"gen{curves}")
+        queries = bench_index.generate(folder, curves)
+        print(f"\n{curves} generated curves (families of 10), 2 workers")
+        for label, graph in (("--graph 10", 10), ("--graph 10 --elastic", GraphSpec(10, "fused"))):
+            path = os.path.join(tmp, "i.h5")
+            if os.path.exists(path):
+                os.remove(path)
+            t = time.perf_counter()
+            report = build_index([folder], path, jobs=2, graph=graph)
+            total = time.perf_counter() - t
+            with open_index(path) as idx:
+                picked = [read_curves(q)[0] if isinstance(q, str) else q for q in queries[:20]]
+                rerank_index(idx, picked[:1], top=10)
+                seconds = []
+                for q in picked:
+                    t = time.perf_counter()
+                    rerank_index(idx, [q], top=10)
+                    seconds.append(time.perf_counter() - t)
+            print(
+                f"  index build {label:22} {total:7.1f} s (graph {report.graph.seconds:6.1f} s);"
+                f" one query --rerank {np.median(seconds):.3f} s (median of {len(seconds)})"
+            )
+
+
 def constants(cols):
     """The fused distance's constants from the pooled development pairs."""
     from nfdmatch.matching.statistics import BLOCK_SIZES, BLOCKS
@@ -318,9 +402,13 @@ def main():
     parser.add_argument("--constants", action="store_true", help="print the fused distance's constants")
     parser.add_argument("--timing", action="store_true", help="only the CLI timing (plain against --elastic)")
     parser.add_argument("--diffusion", action="store_true", help="also diffusion on full matrices (PPR, LCDP)")
+    parser.add_argument("--elastic-graph", type=int, default=0, metavar="N", help="only the elastic graph's timing")
     args = parser.parse_args()
     if not os.path.isdir(args.data):
         sys.exit(f"no development data at {args.data}: give --data")
+    if args.elastic_graph:
+        elastic_graph_timing(args.elastic_graph)
+        return
     if args.timing:
         cli_timing(args.data)
         kernel_timing()

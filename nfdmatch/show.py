@@ -175,11 +175,14 @@ def show_ranked(
     method: str = EXACT,
     direction: str = INVARIANT,
     mirror: bool = False,
+    max_distance: float | None = None,
+    exclude_self: bool = False,
     stage=None,
 ) -> list[ShownMatch]:
     """The best ``top`` matches of ``query`` among ``curves`` (Curves), aligned onto it.
-    ``samples, harmonics, scale`` None take the library defaults; ``stage``: a re-ordering
-    stage (:class:`~nfdmatch.search.stages.ElasticStage`), as ``rank_curves`` takes it."""
+    ``samples, harmonics, scale`` None take the library defaults; ``max_distance``,
+    ``exclude_self`` and ``stage`` (a re-ordering stage,
+    :class:`~nfdmatch.search.stages.ElasticStage`) as ``rank_curves`` takes them."""
     from .descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
     from .search import rank_curves
 
@@ -192,7 +195,9 @@ def show_ranked(
         mirror=mirror,
     )
     _drawable(query)
-    ranked = rank_curves(query, curves, top=top, stage=stage, **params)
+    ranked = rank_curves(
+        query, curves, top=top, max_distance=max_distance, exclude_self=exclude_self, stage=stage, **params
+    )
     return matches_from_curves(query, ranked, curves, **params)
 
 
@@ -205,14 +210,20 @@ def show_searched(
     direction: str = INVARIANT,
     mirror: bool = False,
     read_curve: Callable[[str], Curve] | None = None,
+    max_distance: float | None = None,
+    exclude_self: bool = False,
     stage=None,
 ) -> tuple[list[ShownMatch], list[str]]:
     """The best ``top`` matches of ``query`` in the open ``index``, aligned onto it, and the
-    notes of :func:`matches_from_index`; ``stage`` as ``search_index`` takes it."""
+    notes of :func:`matches_from_index`; ``max_distance``, ``exclude_self`` and ``stage`` as
+    :func:`~nfdmatch.search.search_index` takes them."""
     from .search import search_index
 
     _drawable(query)
-    results, _ = search_index(index, [query], top=top, method=method, direction=direction, mirror=mirror, stage=stage)
+    results, _ = search_index(
+        index, [query], top=top, method=method, direction=direction, mirror=mirror,
+        max_distance=max_distance, exclude_self=exclude_self, stage=stage,
+    )  # fmt: skip
     return matches_from_index(
         query, results[0], index, method=method, direction=direction, mirror=mirror, read_curve=read_curve
     )

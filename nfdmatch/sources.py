@@ -22,7 +22,6 @@ made from them escape those bytes (see :func:`nfdmatch.formats._chain.curve_id`)
 
 from __future__ import annotations
 
-import fnmatch
 import os
 import stat
 from pathlib import Path
@@ -31,7 +30,69 @@ from .errors import ReadError
 from .formats import supported_extensions
 from .formats._chain import file_kind
 
-__all__ = ["find_curve_files", "walk_folder"]
+__all__ = ["find_curve_files", "walk_folder", "glob_matcher", "IGNORE_CASE"]
+
+#: a glob starting with this is matched ignoring case (``--iglob``)
+IGNORE_CASE = "(?i)"
+
+
+def glob_matcher(glob: str | None):
+    """``match(relative_path) -> bool`` for a ``--glob`` pattern (None: no pattern), as
+    ripgrep's ``-g`` and fd read one: a pattern without ``/`` matches a file's name at any
+    depth (``*.csv``); one with ``/`` matches the path below the walked folder (``fam0/*.csv``,
+    a leading ``/`` only anchors it there); ``**`` spans any number of folders
+    (``**/fam000/*.csv``), ``*`` and ``?`` stay within one name, ``[...]`` a class (``[!...]``
+    negated); a leading ``!`` keeps the files that do not match (``!bad*``); a leading
+    ``(?i)`` (:data:`IGNORE_CASE`, ``--iglob``) ignores case."""
+    if not glob:
+        return None
+    import re
+
+    flags = 0
+    if glob.startswith(IGNORE_CASE):
+        glob, flags = glob[len(IGNORE_CASE) :], re.IGNORECASE
+    negate = glob.startswith("!")
+    pattern = glob[1:] if negate else glob
+    by_path = "/" in pattern
+    regex = re.compile(_glob_regex(pattern.lstrip("/")), flags)
+
+    def match(relative: str) -> bool:
+        subject = relative if by_path else relative.rsplit("/", 1)[-1]
+        return (regex.match(subject) is not None) != negate
+
+    return match
+
+
+def _glob_regex(pattern: str) -> str:
+    import re
+
+    out, i, n = [], 0, len(pattern)
+    while i < n:
+        if pattern.startswith("**/", i):
+            out.append("(?:.*/)?")
+            i += 3
+        elif pattern.startswith("/**", i) and i + 3 == n:
+            out.append("/.*")
+            i += 3
+        elif pattern.startswith("**", i):
+            out.append(".*")
+            i += 2
+        elif pattern[i] == "*":
+            out.append("[^/]*")
+            i += 1
+        elif pattern[i] == "?":
+            out.append("[^/]")
+            i += 1
+        elif pattern[i] == "[" and pattern.find("]", i + 2) > 0:
+            end = pattern.find("]", i + 2)
+            body = pattern[i + 1 : end]
+            body = "^" + body[1:] if body.startswith("!") else body
+            out.append("[" + body.replace("\\", "\\\\") + "]")
+            i = end + 1
+        else:
+            out.append(re.escape(pattern[i]))
+            i += 1
+    return "(?s:" + "".join(out) + r")\Z"
 
 
 #: extensions of mesh files a folder walk finds when asked for meshes (``index build``); an
@@ -49,7 +110,9 @@ def find_curve_files(
     sources : iterable of paths. A file is taken as given (whatever its extension, so
         that ``--input-format`` can apply), ``file#i`` too; a folder is walked recursively, keeping
         files with a supported extension, skipping hidden files and folders.
-    glob : optional fnmatch pattern on the file name (``"*.csv"``) for files found in folders.
+    glob : optional pattern for files found in folders (:func:`glob_matcher`): on the name
+        (``"*.csv"``), or on the path below the folder (``"**/fam000/*.csv"``), ``!``
+        excluding, ``(?i)`` ignoring case.
     problems : optional list; receives a :class:`~nfdmatch.errors.ReadError` for every
         sub-folder that could not be listed and every non-regular file skipped in a
         walk (see the module docstring). Without it they are skipped silently.
@@ -87,7 +150,7 @@ def find_curve_files(
 
 def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(), problems: list | None = None):
     """Yield the files below ``folder`` whose extension (lower-cased, with the dot) is in
-    ``extensions`` and whose name matches ``glob``, recursively, sorted within each folder,
+    ``extensions`` and that ``glob`` keeps (:func:`glob_matcher`), recursively, sorted within each folder,
     skipping hidden files and folders and the folders in ``exclude``.
 
     Sub-folders that cannot be listed and entries that are not regular files are skipped;
@@ -104,14 +167,17 @@ def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(),
                 ReadError(f"cannot list the folder ({exc.strerror or exc}); its files are skipped", path=str(where))
             )
 
+    keep = glob_matcher(glob)
     for root, dirs, files in os.walk(folder, onerror=unlisted):
+        below = os.path.relpath(root, folder).replace(os.sep, "/")
+        below = "" if below == "." else below + "/"
         dirs[:] = sorted(
             d for d in dirs if not d.startswith(".") and not (skip and os.path.realpath(os.path.join(root, d)) in skip)
         )
         for name in sorted(files):
             if name.startswith(".") or Path(name).suffix.lower() not in extensions:
                 continue
-            if glob and not fnmatch.fnmatch(name, glob):
+            if keep is not None and not keep(below + name):
                 continue
             path = os.path.join(root, name)
             kind = _irregular(path)

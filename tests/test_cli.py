@@ -78,10 +78,10 @@ def test_distance_selects_a_curve_of_a_multi_curve_file(curves):
     code, out, err = run("distance", f"{curves['multi']}#2", curves["a"], "--format", "json")
     assert code == 0 and json.loads(out)["distance"] < 1e-6
     code, out, err = run("distance", curves["multi"], curves["a"])
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith("Error: ") and "multi.obj" in err and "3 curves" in err and "#0" in err
     code, out, err = run("distance", f"{curves['multi']}#7", curves["a"])
-    assert code == 1 and "#7" in err and "Traceback" not in err
+    assert code == 2 and "#7" in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize(
@@ -92,12 +92,12 @@ def test_distance_selects_a_curve_of_a_multi_curve_file(curves):
         (["unknown.xyz123"], "supported extensions"),
     ],
 )
-def test_distance_bad_input_is_exit_1_with_message(curves, tmp_path, bad_args, needle):
+def test_distance_bad_input_is_exit_2_with_message(curves, tmp_path, bad_args, needle):
     target = str(curves[bad_args[0]]) if bad_args[0] in curves else str(tmp_path / bad_args[0])
     if target.endswith(".xyz123"):
         open(target, "w").write("1 2 3\n")
     code, out, err = run("distance", target, curves["a"])
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith("Error: ") and needle in err and "Traceback" not in err
 
 
@@ -108,9 +108,9 @@ def test_usage_errors_are_exit_2(curves):
     assert run("nonsense")[0] == 2
 
 
-def test_bad_parameter_combination_is_exit_1(curves):
+def test_bad_parameter_combination_is_exit_2(curves):
     code, out, err = run("distance", curves["a"], curves["b"], "--samples", "16", "--harmonics", "8")
-    assert code == 1 and "harmonics" in err
+    assert code == 2 and "harmonics" in err
 
 
 def test_describe_csv_round_trips_the_descriptors(curves):
@@ -136,7 +136,7 @@ def test_describe_json_and_partial_failure(curves):
     assert len(records[0]["coefficients"]) == 32 and records[0]["frequencies"][:2] == [1, 2]
     assert "bad.csv" in err and "line 3" in err
     code, out, err = run("describe", curves["bad"])
-    assert code == 1 and out == "" and "bad.csv" in err
+    assert code == 2 and out == "" and "bad.csv" in err
 
 
 def test_describe_jsonl_one_object_per_line(curves):

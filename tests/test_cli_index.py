@@ -120,17 +120,17 @@ def test_index_path_from_environment(library, tmp_path):
         (b"not an index at all" * 100, "idx.h5"),
     ],
 )
-def test_query_on_a_bad_index_is_exit_1(tmp_path, content, needle):
+def test_query_on_a_bad_index_is_exit_2(tmp_path, content, needle):
     index = tmp_path / "idx.h5"
     index.write_bytes(content)
     code, out, err = run("query", os.path.join(QUERIES, "ellipse-posed.csv"), "--index", index)
-    assert code == 1 and out == "" and err.startswith("Error: ") and needle in err
+    assert code == 2 and out == "" and err.startswith("Error: ") and needle in err
     assert "Traceback" not in err
 
 
-def test_missing_index_is_exit_1_with_a_hint(tmp_path):
+def test_missing_index_is_exit_2_with_a_hint(tmp_path):
     code, out, err = run("query", os.path.join(QUERIES, "ellipse-posed.csv"), "--index", tmp_path / "none.h5")
-    assert code == 1 and "none.h5" in err and "index build" in err
+    assert code == 2 and "none.h5" in err and "index build" in err
 
 
 def test_query_folder_every_format_and_details(library, tmp_path):
@@ -175,14 +175,14 @@ def test_parameter_change_recomputes_with_a_notice(library, tmp_path):
     assert summary["unchanged"] > 0 and summary["updated"] == 0
 
 
-def test_lock_held_is_exit_1(library, tmp_path):
+def test_lock_held_is_exit_2(library, tmp_path):
     import fcntl
 
     index = tmp_path / "idx.h5"
     with open(f"{index}.lock", "w") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         code, out, err = run("index", "build", library, "--index", index)
-    assert code == 1 and "lock" in err and not index.exists()
+    assert code == 2 and "lock" in err and not index.exists()
 
 
 def test_query_exhaustive_gives_the_pruned_answer_and_stats_say_what_was_done(library, tmp_path):

@@ -93,10 +93,10 @@ def test_pairs_to_a_file_and_none_below_zero_distance(library, tmp_path):
     _, index = library
     target = tmp_path / "pairs.jsonl"
     code, out, err = run("pairs", "--index", index, "--max-distance", "0", "-o", target)
-    assert code == 0 and out == "" and err == ""
+    assert code == 1 and out == "" and err == ""  # nothing matched, as grep says it (issue 40)
     assert target.read_text() == ""
     code, out, err = run("pairs", "--index", index, "--max-distance", "0", "-v", "--format", "csv")
-    assert code == 0 and out == "a,b,distance\n" and "0 pairs: 20 curves" in err
+    assert code == 1 and out == "a,b,distance\n" and "0 pairs: 20 curves" in err
 
 
 def test_pairs_new_lists_only_pairs_with_a_curve_of_the_last_build(library, rng):
@@ -133,7 +133,7 @@ def test_pairs_new_on_an_index_without_the_record_is_a_clean_error(library):
     with h5py.File(index, "a") as f:
         del f["changes"]
     code, out, err = run("pairs", "--index", index, "--max-distance", "0.1", "--new")
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith("Error: ") and "--rebuild" in err
 
 
@@ -144,7 +144,7 @@ def test_pairs_usage_errors(library, tmp_path):
     code, out, err = run("pairs", "--index", index, "--max-distance", "-1")
     assert code == 2 and out == ""
     code, out, err = run("pairs", "--index", tmp_path / "missing.h5", "--max-distance", "1")
-    assert code == 1 and out == "" and err.startswith("Error: ")
+    assert code == 2 and out == "" and err.startswith("Error: ")
 
 
 def test_groups_are_the_families_with_their_representative(library):
@@ -184,7 +184,7 @@ def test_groups_single_linkage_and_min_size(library):
     assert code == 0 and len(rows) == FAMILIES * MEMBERS
     assert all(r["size"] == "1" and r["representative"] == r["id"] for r in rows)
     code, out, err = run("groups", "--index", index, "--max-distance", "0", "--min-size", "2", "--format", "csv")
-    assert code == 0 and out == "id,group,size,representative\n" and err == ""
+    assert code == 1 and out == "id,group,size,representative\n" and err == ""  # nothing matched
     # a distance past every pair: one group
     code, out, _ = run("groups", "--index", index, "--max-distance", "100", "--format", "jsonl")
     rows = [json.loads(line) for line in out.splitlines()]

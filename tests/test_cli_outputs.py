@@ -206,7 +206,7 @@ def test_dry_run_reports_a_broken_file_failed_the_results_count_and_the_builds_e
     assert code == 3 and real["curves"] == 25 and (real["added"], real["failed"]) == (1, 1)
 
 
-def test_dry_run_of_a_build_that_would_refuse_to_shrink_exits_1(built):
+def test_dry_run_of_a_build_that_would_refuse_to_shrink_exits_2(built):
     lib, index = built
     shutil.rmtree(lib / "knotess")
     for name in (
@@ -219,9 +219,9 @@ def test_dry_run_of_a_build_that_would_refuse_to_shrink_exits_1(built):
     ):
         os.remove(lib / name)
     code, out, err = run("index", "build", lib, "--index", index, "--dry-run")
-    assert code == 1 and "removed\tlib/trefoil.csv" in out and "--allow-shrink" in err
+    assert code == 2 and "removed\tlib/trefoil.csv" in out and "--allow-shrink" in err
     assert run("index", "build", lib, "--index", index, "--dry-run", "--allow-shrink")[0] == 0
-    assert run("index", "build", lib, "--index", index)[0] == 1  # the build refuses alike
+    assert run("index", "build", lib, "--index", index)[0] == 2  # the build refuses alike
 
 
 @pytest.mark.parametrize("dry_run", [[], ["--dry-run"]])
@@ -229,7 +229,7 @@ def test_every_json_build_writes_its_one_line_even_when_it_fails(built, tmp_path
     _, index = built
     missing = tmp_path / "unmounted"
     code, out, err = run("index", "build", missing, "--index", index, "--format", "json", *dry_run)
-    assert code == 1 and "unmounted" in err
+    assert code == 2 and "unmounted" in err
     (line,) = out.splitlines()
     record = json.loads(line)
     assert record["index"] == str(index) and record["written"] is False and "unmounted" in record["error"]
@@ -283,7 +283,7 @@ def test_query_paths_work_from_another_folder(index, tmp_path, monkeypatch, mode
     code, out, _ = run("query", query, "--index", index, "--top", 1)
     (row,) = list(csv.DictReader(io.StringIO(out)))
     assert row["query"] == query and row["match"] == "library/trefoil.csv"
-    assert run("distance", row["query"], row["match"])[0] == 1
+    assert run("distance", row["query"], row["match"])[0] == 2
 
 
 def test_rank_paths_absolute(tmp_path, monkeypatch):

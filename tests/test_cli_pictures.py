@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import os
+import re
 import shutil
 
 import numpy as np
@@ -99,9 +100,9 @@ def test_reconstruct_multi_curve_file_points_and_normalized(folder, tmp_path):
 
 def test_reconstruct_errors(folder, tmp_path):
     code, out, err = run("reconstruct", folder / "other.vtp", "-k", 4, "-o", tmp_path / "x.csv")
-    assert code == 1 and out == "" and "x.csv" in err and "exactly one curve" in err
+    assert code == 2 and out == "" and "x.csv" in err and "exactly one curve" in err
     code, out, err = run("reconstruct", folder / "missing.csv", "-k", 4, "-o", tmp_path / "y.csv")
-    assert code == 1 and "missing.csv" in err and "Traceback" not in err
+    assert code == 2 and "missing.csv" in err and "Traceback" not in err
     code, out, err = run("reconstruct", folder / "knot.csv", "-k", 70, "-n", 128, "-o", tmp_path / "z.csv")
     assert code == 2 and "samples/2" in err
     code, out, err = run("reconstruct", folder / "knot.csv", "-k", 4, "-o", tmp_path / "z.xyzzy")
@@ -133,7 +134,7 @@ def test_matrix_csv_matches_distance_for_every_pair(folder):
 
 @pytest.mark.parametrize("fmt, sep", [("csv", ","), ("tsv", "\t")])
 def test_matrix_rows_read_back_whatever_the_file_names(folder, tmp_path, fmt, sep):
-    # the ids are quoted by the csv rules; the entries are every float's repr, both triangles
+    # the ids are quoted by the csv rules (TSV: escaped); the entries are every float's repr, both triangles
     names = tmp_path / "names"
     names.mkdir()
     for name in ('a,b "c".csv', "tab\there.csv", "plain.csv"):
@@ -141,7 +142,13 @@ def test_matrix_rows_read_back_whatever_the_file_names(folder, tmp_path, fmt, se
     shutil.copy(folder / "blob.csv", names / "blob.csv")
     code, out, err = run("matrix", names, "--format", fmt)
     assert code == 0 and err == ""
-    rows = list(csv.reader(io.StringIO(out), delimiter=sep))
+    if fmt == "tsv":  # backslash escapes, never quotes (issue 40)
+        unescape = {"t": "\t", "n": "\n", "r": "\r", "\\": "\\"}
+        rows = [
+            [re.sub(r"\\(.)", lambda m: unescape[m.group(1)], f) for f in line.split(sep)] for line in out.splitlines()
+        ]
+    else:
+        rows = list(csv.reader(io.StringIO(out), delimiter=sep))
     ids = rows[0][1:]
     assert sorted(os.path.basename(i) for i in ids) == sorted(['a,b "c".csv', "tab\there.csv", "plain.csv", "blob.csv"])
     assert [r[0] for r in rows[1:]] == ids
@@ -172,7 +179,7 @@ def test_matrix_json_tsv_picture_and_partial_failure(folder, tmp_path):
     )
     assert code == 0 and out.splitlines()[0].split("\t")[0] == "id"
     code, out, err = run("matrix", folder / "bad.csv")
-    assert code == 1 and out == "" and "bad.csv" in err
+    assert code == 2 and out == "" and "bad.csv" in err
 
 
 # --------------------------------------------------------------------------- show
@@ -244,11 +251,11 @@ def test_show_usage_and_input_errors(folder, tmp_path):
     code, out, err = run("show", folder / "knot.csv", "--against", folder, "-o", png, "--size", "big")
     assert code == 2 and "WIDTHxHEIGHT" in err
     code, out, err = run("show", folder / "knot.csv", "--index", tmp_path / "none.h5", "-o", png)
-    assert code == 1 and "none.h5" in err and "Traceback" not in err
+    assert code == 2 and "none.h5" in err and "Traceback" not in err
     code, out, err = run("show", folder / "nope.csv", "--against", folder, "-o", png)
-    assert code == 1 and "nope.csv" in err
+    assert code == 2 and "nope.csv" in err
     code, out, err = run("show", folder / "knot.csv", "--against", folder, "-o", tmp_path / "no" / "dir.png")
-    assert code == 1 and "dir.png" in err and "Traceback" not in err
+    assert code == 2 and "dir.png" in err and "Traceback" not in err
     assert not png.exists()
 
 
@@ -269,14 +276,14 @@ def test_matrix_and_show_name_an_empty_source_and_check_the_picture_path_first(f
     empty = tmp_path / "empty"
     empty.mkdir()
     code, out, err = run("matrix", empty)
-    assert code == 1 and out == "" and f"Error: {empty}: no curve files found" in err
+    assert code == 2 and out == "" and f"Error: {empty}: no curve files found" in err
     code, out, err = run("matrix", folder, "--glob", "*.xyz")
-    assert code == 1 and "no curve files found matching '*.xyz'" in err
+    assert code == 2 and "no curve files found matching '*.xyz'" in err
     code, out, err = run("show", folder / "knot.csv", "--against", empty, "-o", tmp_path / "s.png")
-    assert code == 1 and "no curve files found" in err
+    assert code == 2 and "no curve files found" in err
     # a picture that cannot be written is reported before any distance is computed or printed
     code, out, err = run("matrix", folder, "-o", tmp_path / "missing" / "m.png")
-    assert code == 1 and out == "" and "m.png" in err and "folder does not exist" in err
+    assert code == 2 and out == "" and "m.png" in err and "folder does not exist" in err
     code, out, err = run("show", folder / "knot.csv", "--glob", "*.csv", "-o", tmp_path / "s.png")
     assert code == 2 and "--glob" in err
 
@@ -378,4 +385,4 @@ def test_show_and_matrix_write_svg_and_pdf_by_extension(folder, tmp_path, ext, m
     code, out, err = run("matrix", folder, "-o", matrix_picture)
     assert code == 0 and out.startswith("id,") and matrix_picture.read_bytes().startswith(magic)
     code, out, err = run("show", folder / "knot.csv", "--against", folder, "-o", picture, "--renderer", "pyvista")
-    assert code == 1 and "PNG only" in err
+    assert code == 2 and "PNG only" in err

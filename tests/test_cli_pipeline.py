@@ -68,7 +68,7 @@ def test_a_failed_command_leaves_the_output_file_untouched(index, library, tmp_p
     out = tmp_path / "matches.csv"
     out.write_text("previous\n")
     code, stdout, err = run("query", tmp_path / "nope.csv", "--index", index, "-o", out)
-    assert code == 1 and stdout == "" and "nope.csv" in err
+    assert code == 2 and stdout == "" and "nope.csv" in err
     assert out.read_text() == "previous\n"
     # partial success: the rows are not a finished target for Make, the file is kept as it was
     code, stdout, err = run("query", TREFOIL, tmp_path / "nope.csv", "--index", index, "-o", out)
@@ -77,7 +77,7 @@ def test_a_failed_command_leaves_the_output_file_untouched(index, library, tmp_p
     assert out.read_text() == "previous\n" and leftovers(tmp_path) == []
     # an output folder that does not exist is named before any work
     code, stdout, err = run("rank", TREFOIL, library, "-o", tmp_path / "no" / "r.csv")
-    assert code == 1 and stdout == "" and "r.csv" in err and "folder does not exist" in err
+    assert code == 2 and stdout == "" and "r.csv" in err and "folder does not exist" in err
 
 
 @pytest.mark.parametrize(
@@ -131,7 +131,7 @@ def test_every_command_answers_what_it_can_read_and_exits_3(index, library, tmp_
         assert len(list(csv.reader(io.StringIO(stdout)))) >= 2
     # nothing readable: exit 1, every input named, no rows
     code, stdout, err = run("query", bad, tmp_path / "nope.csv", "--index", index)
-    assert code == 1 and stdout == "" and str(bad) in err and "nope.csv" in err
+    assert code == 2 and stdout == "" and str(bad) in err and "nope.csv" in err
 
 
 def test_an_empty_folder_is_a_named_error_everywhere(index, tmp_path):
@@ -139,7 +139,7 @@ def test_an_empty_folder_is_a_named_error_everywhere(index, tmp_path):
     empty.mkdir()
     for args in (["query", empty, "--index", index], ["describe", empty], ["rank", TREFOIL, empty], ["matrix", empty]):
         code, stdout, err = run(*args)
-        assert code == 1 and stdout == "" and f"Error: {empty}: no curve files found" in err, args
+        assert code == 2 and stdout == "" and f"Error: {empty}: no curve files found" in err, args
     code, stdout, err = run("query", empty, TREFOIL, "--index", index, "--format", "csv")
     assert code == 3 and f"{empty}: no curve files found" in err and "trefoil" in stdout
 
@@ -206,7 +206,7 @@ def test_stdin_needs_an_input_format_and_is_read_like_a_file():
     )
     assert code == 0 and list(csv.DictReader(io.StringIO(stdout)))[0]["match"].endswith("trefoil.csv")
     code, stdout, err = run("describe", "-", "--input-format", "csv", input="x,y,z\n1,2,3\n4,five,6\n")
-    assert code == 1 and stdout == "" and "Error: <stdin>: line 3" in err
+    assert code == 2 and stdout == "" and "Error: <stdin>: line 3" in err
 
 
 def test_exclude_self_drops_the_query_however_its_path_is_spelled(index, library, tmp_path, monkeypatch):
@@ -376,3 +376,15 @@ def test_the_readme_makefile_runs_and_a_second_run_rebuilds_nothing(tmp_path):
     third = make()
     assert third.returncode != 0 and "bad.csv" in third.stderr
     assert os.stat(report).st_mtime_ns == before["report.csv"]
+    os.remove(tmp_path / "queries" / "bad.csv")
+
+    # a bad curve (issue 40): --strict keeps the index as it was, so every make fails until
+    # it is fixed, instead of the second one taking an index with a failed file for done
+    (tmp_path / "curves" / "broken.csv").write_text("x,y,z\n1,2,3\n4,oops,6\n")
+    for _ in range(2):
+        failing = make()
+        assert failing.returncode != 0 and "broken.csv" in failing.stderr
+        assert os.stat(tmp_path / "curves.h5").st_mtime_ns == before["curves.h5"]
+    os.remove(tmp_path / "curves" / "broken.csv")
+    fixed = make()
+    assert fixed.returncode == 0, fixed.stderr

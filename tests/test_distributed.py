@@ -330,7 +330,7 @@ def test_workers_with_another_nfdmatch_version_are_refused_at_connect(client, li
         code, out, err = run(
             "index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", client.scheduler.address
         )
-        assert code == 1 and out == "" and "Error: the workers must run nfdmatch" in err
+        assert code == 2 and out == "" and "Error: the workers must run nfdmatch" in err
         assert "Traceback" not in err and not (tmp_path / "i.h5").exists()
     finally:
         client.run(_own_version)
@@ -349,7 +349,7 @@ def test_an_unreachable_scheduler_is_an_error_after_the_timeout_not_a_hang(libra
     code, out, err = run(
         "index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", address, "--scheduler-timeout", "1"
     )
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith(f"Error: cannot reach the Dask scheduler at {address} within 1 s")
     assert "Traceback" not in err and not (tmp_path / "i.h5").exists()
     qfile = tmp_path / "q.csv"
@@ -362,7 +362,7 @@ def test_an_unreachable_scheduler_is_an_error_after_the_timeout_not_a_hang(libra
         tmp_path / "i.h5",
         env={"NFDMATCH_SCHEDULER": address, "NFDMATCH_SCHEDULER_TIMEOUT": "0.5"},
     )
-    assert code == 1 and out == "" and "cannot reach the Dask scheduler" in err and "within 0.5 s" in err
+    assert code == 2 and out == "" and "cannot reach the Dask scheduler" in err and "within 0.5 s" in err
     code, out, err = run(
         "query", qfile, "--index", tmp_path / "i.h5", "--scheduler", address, "--scheduler-timeout", "0"
     )
@@ -371,13 +371,13 @@ def test_an_unreachable_scheduler_is_an_error_after_the_timeout_not_a_hang(libra
 
 def test_bad_local_cluster_size_is_an_error(tmp_path, library):
     code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", "local:zero")
-    assert code == 1 and "local:N needs a number of workers N >= 1" in err and "Traceback" not in err
+    assert code == 2 and "local:N needs a number of workers N >= 1" in err and "Traceback" not in err
 
 
 def test_without_dask_the_scheduler_option_says_what_to_install(library, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
     code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", "local:2")
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert (
         "Error: --scheduler needs dask and distributed, which are not installed: "
         "pip install 'nfdmatch[distributed]'" in err

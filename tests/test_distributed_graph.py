@@ -141,7 +141,7 @@ def test_a_graph_task_failing_on_every_try_is_a_clear_error_and_the_old_index_st
         )
     finally:
         client.run(_graph_tasks_work)
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith("Error: a graph task failed on every try: RuntimeError: the node's search broke")
     assert "Traceback" not in err
     assert index.read_bytes() == before and _no_temp_files(library.parent)

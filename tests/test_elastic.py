@@ -5,6 +5,7 @@ the Python API and the CLI (docs/elastic.md)."""
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -289,3 +290,69 @@ def test_the_stage_needs_the_exact_method(tmp_path, rng):
         write_curves(str(tmp_path / f"{c.id}.csv"), [c])
     code, out, err = run_cli("rank", tmp_path / "f0-0.csv", tmp_path, "--elastic", "--method", "paper")
     assert code != 0 and "method must be exact" in err and not out
+
+
+def _family_folder(tmp_path, rng, count=4, members=6):
+    from nfdmatch.formats import write_curves
+
+    curves = _families(rng, count=count, members=members)
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    for c in curves:
+        write_curves(str(folder / f"{c.id}.csv"), [c])
+    return folder, curves
+
+
+def test_an_elastic_graph_is_built_verified_and_diffused_over(tmp_path, rng):
+    """index build --graph K --elastic stores fused distances; query --rerank then gives its
+    candidates their fused distances (the exact one stays the distance column) and ranks
+    like matrix --rerank --elastic; a rebuild without --elastic says the graph changes."""
+    from conftest import run_cli
+    from nfdmatch.search import distance_matrix
+    from nfdmatch.search.rerank import diffused_similarity
+
+    folder, curves = _family_folder(tmp_path, rng)
+    index = str(tmp_path / "x.h5")
+    code, out, err = run_cli("index", "build", str(folder), "--index", index, "--graph", "8", "--elastic")
+    assert code == 0, err
+    assert "fused distances" in err
+    code, out, err = run_cli("index", "info", "--index", index, "--format", "json")
+    assert json.loads(out)["graph_distance"] == "fused"
+    code, out, err = run_cli("index", "verify", "--index", index)
+    assert code == 0, out + err
+    with open_index(index) as idx:
+        assert idx.graph_distance() == "fused"
+        neighbour, distance = idx.graph_reader()(np.arange(len(curves)))
+        ids = idx.ids()
+        # each stored distance is the pair's fused distance
+        for i in (0, 7):
+            _, terms = fused_distance(curves[[c.id for c in curves].index(ids[i].split("/")[-1][:-4])],
+                                      curves[[c.id for c in curves].index(ids[neighbour[i, 0]].split("/")[-1][:-4])])  # fmt: skip
+            assert distance[i, 0] == pytest.approx(terms.fused[0], abs=1e-4)
+    files = sorted(str(p) for p in folder.iterdir())
+    code, out, err = run_cli(
+        "query", *files, "--index", index, "--rerank", "--elastic", "--exclude-self", "--top", "5", "--format", "json"
+    )
+    assert code == 0, err
+    rows = json.loads(out)
+    assert list(rows[0]) == ["query", "rank", "match", "distance", "score", "elastic", "fused"]
+    # the same order as the diffusion of the fused matrix (its curves in the index's order)
+    from nfdmatch import read_curves
+
+    stored = [read_curves(f)[0] for f in files]
+    S = diffused_similarity(distance_matrix(stored, elastic=True), ids=files)
+    agree = total = 0
+    for qi, f in enumerate(files):
+        mine = [os.path.basename(r["match"]) for r in rows if r["query"] == f]
+        others = [j for j in np.argsort(-S[qi], kind="stable") if j != qi][:5]
+        agree += sum(a == os.path.basename(files[j]) for a, j in zip(mine, others))
+        total += len(mine)
+    assert agree >= 0.9 * total
+    code, out, err = run_cli("index", "build", "--index", index, "--graph", "8")
+    assert code == 0 and "changes from fused to exact" in err
+    with open_index(index) as idx:
+        assert idx.graph_distance() == "exact"
+    code, out, err = run_cli("query", files[0], "--index", index, "--rerank", "--elastic")
+    assert code == 2 and "needs a graph of fused distances" in err and not out
+    code, out, err = run_cli("index", "build", "--index", index, "--elastic")
+    assert code == 2 and "--elastic needs --graph" in err

@@ -329,10 +329,10 @@ def test_parameters_are_checked(meshes):
         extract_contours(meshes / "cylinder.stl", sections=-1)
 
 
-def test_cli_bad_inputs_exit_1_without_traceback(bad_files, tmp_path):
+def test_cli_bad_inputs_exit_2_without_traceback(bad_files, tmp_path):
     for name, (path, _, words) in bad_files.items():
         code, out, err = run("extract", path, "-o", tmp_path / "out")
-        assert code == 1, name
+        assert code == 2, name
         assert out == "" and "Traceback" not in err, name
         assert err.startswith(f"Error: {path}: ") and words in err, (name, err)
     assert not (tmp_path / "out").exists()
@@ -370,7 +370,7 @@ def test_cli_usage_errors(meshes, tmp_path):
     assert code == 2
     # a closed mesh asked only for boundaries gives nothing: exit 1 with notes
     code, out, err = run("extract", meshes / "cylinder.stl", "-o", tmp_path / "o", "--sections", "0", "--boundaries")
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert "Note:" in err and "(the mesh is closed)" in err and "Error: no closed contour" in err
 
 

@@ -83,7 +83,7 @@ def test_a_graph_declaring_checksums_without_them_is_refused(index_copy):
         f["graph"].create_dataset("distance", data=values)
     assert any(ds == "/graph/distance" and "no checksum filter" in what for ds, _, what in _findings(index_copy))
     code, out, err = _query(index_copy)
-    assert code == 1 and out == "" and "no checksum filter" in err and "Traceback" not in err
+    assert code == 2 and out == "" and "no checksum filter" in err and "Traceback" not in err
 
 
 def test_a_flipped_bit_in_the_graph_is_found(index_copy):
@@ -96,7 +96,7 @@ def test_a_flipped_bit_in_the_graph_is_found(index_copy):
         fh.write(bytes([byte ^ 0x10]))
     assert ("/graph/distance", "0..23", "checksum mismatch (damaged chunk)") in _findings(index_copy)
     code, out, err = _query(index_copy)
-    assert code == 1 and out == "" and "checksum mismatch in /graph" in err
+    assert code == 2 and out == "" and "checksum mismatch in /graph" in err
 
 
 # each edit of a sound graph, what verify says about it, and what the query says
@@ -144,7 +144,7 @@ def test_an_edited_graph_is_refused_by_verify_and_by_the_query(index_copy, edit)
         f["graph/distance"][...] = d
     assert finding in _findings(index_copy)
     code, out, err = _query(index_copy)
-    assert code == 1 and out == "", (code, out)
+    assert code == 2 and out == "", (code, out)
     assert err.startswith(f"Error: {index_copy}: corrupted nfdmatch index: {message}"), err
     assert "Traceback" not in err and "cannot convert" not in err
     with open_index(index_copy) as idx:
@@ -169,7 +169,7 @@ def test_a_graph_of_the_wrong_shape_or_k_is_refused(index_copy):
         f["graph"].attrs["k"] = np.int64(9)
     assert any(ds == "/graph" and "k = 9" in what for ds, _, what in _findings(index_copy))
     code, out, err = _query(index_copy)
-    assert code == 1 and "corrupted nfdmatch index: /graph holds" in err
+    assert code == 2 and "corrupted nfdmatch index: /graph holds" in err
 
 
 def test_check_lists_allows_tied_distances_in_id_order_only():

@@ -109,11 +109,11 @@ def test_build_without_sources_rescans_the_recorded_ones(lib, tmp_path, monkeypa
     assert json.loads(run("index", "info", "--index", index, "--format", "json")[1])["sources"] == ["lib"]
     # no sources and no index, or an index that does not record them: clear errors, exit 1
     code, out, err = run("index", "build", "--index", tmp_path / "none.h5")
-    assert (code, out) == (1, "") and "no SOURCE given and no index to take them from" in err
+    assert (code, out) == (2, "") and "no SOURCE given and no index to take them from" in err
     with h5py.File(index, "r+") as h5:
         del h5["sources"]
     code, out, err = run("index", "build", "--index", index)
-    assert code == 1 and "does not record its sources" in err and "Traceback" not in err
+    assert code == 2 and "does not record its sources" in err and "Traceback" not in err
 
 
 def test_an_index_without_recorded_sources_is_upgraded_keeping_its_rows(lib, tmp_path, monkeypatch, reads):
@@ -174,7 +174,7 @@ def test_an_empty_or_unmounted_source_does_not_wipe_the_index(lib, tmp_path):
     empty = tmp_path / "mnt"
     empty.mkdir()
     code, out, err = run("index", "build", empty, "--index", index, "-j", 1)
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith(
         f"Error: {index}: refusing to build: it would remove all of the index's 5 files "
         f"(no curve files found under {empty}; an empty or unmounted folder?); pass "
@@ -183,11 +183,11 @@ def test_an_empty_or_unmounted_source_does_not_wipe_the_index(lib, tmp_path):
     assert index.read_bytes() == data
     code, out, err = run("index", "build", empty, "--index", index, "-j", 1, "--format", "json")
     summary = json.loads(out)
-    assert code == 1 and summary["shrink"] == {"removed": 5, "of": 5, "allowed": False}
+    assert code == 2 and summary["shrink"] == {"removed": 5, "of": 5, "allowed": False}
     assert summary["written"] is False and "refusing to build" in summary["refused"]
     code, out, err = run("index", "build", empty, "--index", index, "--dry-run")
     # the dry run says so, and exits as the build would (issue 25, item 10)
-    assert code == 1 and "a build would refuse to remove 5 of 5 files" in err
+    assert code == 2 and "a build would refuse to remove 5 of 5 files" in err
     assert index.read_bytes() == data
     code, out, err = run("index", "build", empty, "--index", index, "--allow-shrink", "--format", "json")
     summary = json.loads(out)
@@ -257,7 +257,7 @@ def test_disk_full_while_writing_keeps_the_old_index(lib, tmp_path, rng, monkeyp
     else:
         monkeypatch.setattr(nindex.writer.os, "fsync", full)
     code, out, err = run("index", "build", lib, "--index", index, "-j", 1)
-    assert (code, out) == (1, "")
+    assert (code, out) == (2, "")
     assert err == f"Error: {index}: cannot write the index: No space left on device\n"
     assert index.read_bytes() == data
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "lib"]  # no temporary file left
@@ -286,7 +286,7 @@ def test_a_real_failing_write_is_a_clear_error(lib, tmp_path):
     proc = subprocess.run(
         [sys.executable, "-c", code, str(lib), str(index)], capture_output=True, text=True, env=env, timeout=120
     )
-    assert proc.returncode == 1, proc.stderr
+    assert proc.returncode == 2, proc.stderr
     assert proc.stderr.startswith(f"Error: {index}: cannot write the index: ") and "Traceback" not in proc.stderr
     assert index.read_bytes() == data
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "lib"]
@@ -303,7 +303,7 @@ def test_rebuild_never_overwrites_a_file_that_is_not_an_index(lib, tmp_path, kin
         index.write_text("my notes, not an index\n")
     before = index.read_bytes()
     code, out, err = run("index", "build", lib, "--index", index, "--rebuild", "-j", 1)
-    assert code == 1 and out == "" and "refusing to overwrite it" in err and "Traceback" not in err
+    assert code == 2 and out == "" and "refusing to overwrite it" in err and "Traceback" not in err
     assert index.read_bytes() == before
     with pytest.raises(IndexFormatError):
         build_index([str(lib)], str(index), jobs=1, rebuild=True)
@@ -390,12 +390,12 @@ def test_an_index_moved_away_from_its_files_says_so_and_how_to_rebuild(lib, tmp_
     (tmp_path / "sub").mkdir()
     os.replace(index, tmp_path / "sub" / "idx.h5")
     code, _, err = run("index", "build", "lib", "--index", "sub/idx.h5", "-j", 1)
-    assert code == 1
+    assert code == 2
     assert "stored paths are relative to its folder and no longer lead to its files" in err
     assert "was the index moved? Move it back, or rebuild it here with" in err
     assert "`nfdmatch index build lib --index sub/idx.h5 --rebuild --allow-shrink`" in err
     code, _, err = run("index", "build", "--index", "sub/idx.h5", "-j", 1)  # its recorded sources
-    assert code == 1 and "the index records the source 'lib' relative to its folder" in err
+    assert code == 2 and "the index records the source 'lib' relative to its folder" in err
     assert "was the index moved?" in err
     code, _, err = run("index", "build", "lib", "--index", "sub/idx.h5", "-j", 1, "--rebuild", "--allow-shrink")
     assert code == 0, err
@@ -432,7 +432,7 @@ def test_a_disk_full_before_the_index_is_created_is_said_in_our_words(lib, tmp_p
     monkeypatch.setattr(nindex.commit, "h5py", H5())
     index = tmp_path / "idx.h5"
     code, out, err = run("index", "build", lib, "--index", index, "-j", 1)
-    assert (code, out) == (1, "")
+    assert (code, out) == (2, "")
     assert err == f"Error: {index}: cannot write the index: No space left on device\n"
 
 
@@ -449,7 +449,7 @@ def test_extract_on_a_full_disk_names_the_contour_not_its_temporary_file(tmp_pat
 
     monkeypatch.setattr(naming, "write_curves", full)
     code, _, err = run("extract", tmp_path / "rod.stl", "-o", tmp_path / "out", "--sections", 1)
-    assert code == 1
+    assert code == 2
     name = next(iter(os.listdir(tmp_path / "out")), None)
     assert name is None  # nothing left behind
     assert err.startswith(f"Error: {tmp_path / 'out' / 'rod_section-z00_at0_loop0.obj'}: cannot write the file")

@@ -165,7 +165,7 @@ def test_a_flipped_bit_in_what_a_query_does_not_read_leaves_its_answer_and_verif
 def test_a_flipped_bit_in_what_a_query_reads_is_an_error_not_an_answer(index_copy, dataset):
     first, last = _flip(index_copy, dataset)
     result = _cli("query", QUERY, "--index", str(index_copy), "--top", "30")
-    assert result.exit_code == 1, result.stdout
+    assert result.exit_code == 2, result.stdout
     assert result.stdout == ""
     assert result.stderr.startswith(f"Error: {index_copy}: corrupted nfdmatch index: checksum mismatch in ")
     assert "Traceback" not in result.stderr
@@ -186,7 +186,7 @@ def test_a_flipped_bit_in_an_id_is_detected(index_copy):
         fh.seek(at + len(target) - 5)
         fh.write(b"X")
     result = _cli("query", QUERY, "--index", str(index_copy), "--top", "1")
-    assert result.exit_code == 1 and result.stdout == ""
+    assert result.exit_code == 2 and result.stdout == ""
     assert "checksum mismatch in /" in result.stderr
     result = _cli("index", "verify", "--index", str(index_copy))
     assert result.exit_code == 1
@@ -241,7 +241,7 @@ def test_a_stored_nan_is_an_index_format_error_naming_dataset_and_row(index_copy
         "30",
         "--exhaustive" if dataset.startswith("curves") else "--top=30",
     )
-    assert result.exit_code == 1 and "non-finite value" in result.stderr and "Traceback" not in result.stderr
+    assert result.exit_code == 2 and "non-finite value" in result.stderr and "Traceback" not in result.stderr
     result = _cli("index", "verify", "--index", str(index_copy))
     assert result.exit_code == 1
     assert f"bad\t/{dataset}\t" in result.stdout and "non-finite values" in result.stdout
@@ -314,7 +314,7 @@ def test_a_crafted_index_is_refused_before_any_allocation(index_copy, craft, mes
         open_index(index_copy)
     assert message in str(info.value)
     proc = _index_info_limited(index_copy)
-    assert proc.returncode == 1, proc.stderr
+    assert proc.returncode == 2, proc.stderr
     assert proc.stdout == b""
     assert proc.stderr.decode().startswith(f"Error: {index_copy}: corrupted nfdmatch index: ")
     assert b"Traceback" not in proc.stderr and len(proc.stderr) < 1000
@@ -334,7 +334,7 @@ def test_external_storage_is_refused_and_its_file_never_printed(index_copy, tmp_
     _craft(index_copy, lambda f: _replace(f, "curves/id", shape=(N,), dtype="S16", external=[(str(secret), 0, 16 * N)]))
     for args in (["index", "ls", "--curves"], ["query", QUERY, "--top", "3"], ["index", "info"], ["index", "verify"]):
         result = _cli(*args, "--index", str(index_copy))
-        assert result.exit_code == 1, args
+        assert result.exit_code == 2, args
         assert "SECRET" not in result.stdout + result.stderr
         assert "/curves/id has external storage (data in another file): refused" in result.stderr
 
@@ -371,7 +371,7 @@ def test_virtual_datasets_and_links_are_refused(index_copy, tmp_path):
         with pytest.raises(IndexFormatError, match="refused"):
             open_index(path)
         result = _cli("query", QUERY, "--index", str(path))
-        assert result.exit_code == 1 and message in result.stderr, result.stderr
+        assert result.exit_code == 2 and message in result.stderr, result.stderr
 
 
 def test_a_checksummed_file_with_a_dataset_stripped_of_its_checksum_is_corrupt(index_copy):
@@ -453,7 +453,7 @@ def test_show_refuses_a_query_too_large_to_draw_clearly(tmp_path):
         result = _cli(
             "show", str(tmp_path / "huge.csv"), "--against", str(tmp_path / "lib"), "-o", str(tmp_path / "s.svg")
         )
-    assert result.exit_code == 1
+    assert result.exit_code == 2
     assert result.stdout == ""
     assert result.stderr.startswith(f"Error: {tmp_path / 'huge.csv'}: coordinates up to 1.2e+308 are too large to draw")
     assert not (tmp_path / "s.svg").exists()
@@ -526,7 +526,7 @@ def test_a_flipped_bit_in_the_file_table_is_named_on_open(index_copy):
     _flip(index_copy, "files/curve_count")
     for args in (["index", "info"], ["index", "verify"], ["query", QUERY]):
         result = _cli(*args, "--index", str(index_copy))
-        assert result.exit_code == 1 and result.stdout == ""
+        assert result.exit_code == 2 and result.stdout == ""
         assert result.stderr == (
             f"Error: {index_copy}: corrupted nfdmatch index: checksum mismatch in the file "
             "table (/files; the file is damaged)\n"

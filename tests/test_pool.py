@@ -160,13 +160,13 @@ def test_cli_segfaulting_reader_in_a_parallel_build(folder, tmp_path):
 
 
 @linux
-def test_cli_workers_dying_for_no_file_exit_1_and_keep_the_index(folder, tmp_path):
+def test_cli_workers_dying_for_no_file_exit_2_and_keep_the_index(folder, tmp_path):
     _write_folder(folder, 30)
     index = tmp_path / "idx.h5"
     assert _invoke("index", "build", folder, "--index", index, "--jobs", "1")[0] == 0
     before = index.read_bytes()
     code, out, err = _invoke("index", "build", folder, "--index", index, "--rebuild", env={HOOK: "killonce:*"})
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith("Error: worker processes keep dying (") and err.endswith("nothing was written\n")
     assert index.read_bytes() == before
 

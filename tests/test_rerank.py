@@ -338,7 +338,7 @@ def test_cli_build_graph_then_query_rerank(tmp_path, rng):
     query = tmp_path / "q.obj"
     write_curves(query, [curves[0]])
     code, out, err = run("query", query, "--index", index, "--rerank")
-    assert code == 1 and out == "" and "holds 4 neighbours per curve; --rerank needs at least 8" in err
+    assert code == 2 and out == "" and "holds 4 neighbours per curve; --rerank needs at least 8" in err
     assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "--graph", "8", "-q")[0] == 0
 
     code, out, err = run("query", query, "--index", index, "--rerank", "--top", "5", "--format", "csv")
@@ -377,7 +377,7 @@ def test_cli_rerank_errors(tmp_path, rng):
     assert run("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q")[0] == 0
     query = tmp_path / "c" / "part-00.obj"
     code, out, err = run("query", query, "--index", index, "--rerank")
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith(f"Error: {index}: the index has no neighbour graph") and "--graph" in err
     assert "Traceback" not in err
     for extra in (["--rerank-depth", "50"], ["--mirror"], ["--exhaustive"], ["--top", "150"]):
@@ -423,7 +423,7 @@ def test_cli_rerank_on_a_damaged_graph_is_a_clean_error(tmp_path, rng):
     with h5py.File(index, "a") as f:
         f["graph/neighbour"][0, 0] = 99  # a row the index does not have
     code, out, err = run("query", tmp_path / "c" / "part-00.obj#0", "--index", index, "--rerank")
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.startswith(f"Error: {index}: corrupted nfdmatch index") and "Traceback" not in err
 
 

@@ -74,5 +74,5 @@ def test_the_cup_rim_is_a_boundary_and_sections_across_its_opening_are_skipped(m
     kinds = [r["kind"] for r in csv.DictReader(io.StringIO(out))]
     assert kinds == ["section", "section", "section", "boundary"]
     code, out, err = run("extract", meshes / "cup.stl", "--sections", 3, "--axis", "x", "-o", tmp_path / "cup-x")
-    assert code == 1 and out == ""
+    assert code == 2 and out == ""
     assert err.count("open piece skipped (not closed)") == 3 and "Error: no closed contour" in err

@@ -9,7 +9,7 @@ the commands that need them.
 
 from __future__ import annotations
 
-from . import curves, export_cmd, extract_cmd, index_cmds, join_cmds, pictures, query_cmd  # noqa: F401  (register the commands)
+from . import curves, export_cmd, extract_cmd, help_cmds, index_cmds, join_cmds, pictures, query_cmd  # noqa: F401  (register the commands)
 from .group import main
 
 __all__ = ["main"]

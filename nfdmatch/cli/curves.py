@@ -16,9 +16,13 @@ from .options import (
     elastic_options,
     match_list_options,
     format_option,
+    glob_options,
     input_format_option,
     matching_options,
+    note_inputs,
+    nothing_matched,
     output_option,
+    refuse_input_as_output,
     rows_format_option,
     say,
 )
@@ -91,7 +95,7 @@ def distance(curve_a, curve_b, elastic, matching, descriptor, input_format, outp
 
 @main.command()
 @click.argument("files", nargs=-1, required=True, metavar="FILE_OR_FOLDER...")
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.csv'.")
+@glob_options()
 @descriptor_options
 @input_format_option
 @format_option(("csv", "tsv", "json", "jsonl"), help_extra=" [default: by the extension of -o, else csv]")
@@ -103,7 +107,7 @@ def describe(files, glob_pattern, descriptor, input_format, output_format, outpu
     limit plane is degenerate, then the normalized coefficients A_k for
     k = +1..+K, -1..-K: columns k+1_x_re, k+1_x_im, ..., k-K_z_im.
     Folders are searched recursively; FILE#I describes one curve of a multi-curve file.
-    A bad input is named on stderr and skipped (exit 3; exit 1 when none could be read).
+    A bad input is named on stderr and skipped (exit 3; exit 2 when none could be read).
 
     \b
     Example:
@@ -138,7 +142,7 @@ def describe(files, glob_pattern, descriptor, input_format, output_format, outpu
 @main.command()
 @click.argument("query_spec", metavar="QUERY")
 @click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
-@match_list_options("Number of matches to list.", "Only files in folders whose name matches, e.g. '*.csv'.")
+@match_list_options("Number of matches to list.", " Of the SOURCE folders.")
 @elastic_options
 @matching_options
 @descriptor_options
@@ -174,6 +178,7 @@ def rank(query_spec, sources, listing, stage, matching, descriptor, input_format
         group_by="query",
     )
     inputs.finish()
+    nothing_matched(len(ranked))
 
 
 @main.command()
@@ -258,6 +263,8 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
             if selected is not None
             else read_curves(path, format=input_format)
         )
+        note_inputs([path])
+    refuse_input_as_output(output)
     rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points, normalized=normalized)
     try:
         write_file(output, lambda temp: write_curves(temp, [r.curve for r in rebuilt], format=curve_format))

@@ -19,6 +19,7 @@ from .options import (
     finish,
     format_option,
     note,
+    note_inputs,
     report_errors,
     say,
 )
@@ -108,7 +109,7 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
 
     stdout lists the written files (file, mesh, kind, axis, level, loop, vertices).
     Notes on stderr: open section pieces skipped, meshes that gave nothing. A file
-    that is not a readable mesh is named on stderr and skipped (exit 3); exit 1 when
+    that is not a readable mesh is named on stderr and skipped (exit 3); exit 2 when
     no mesh gave any contour.
 
     \b
@@ -134,11 +135,12 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
     files = find_mesh_files(meshes, exclude=[out_dir])
     if not files:
         raise ParameterError(f"no mesh files found in {', '.join(meshes)}")
+    note_inputs(files)  # so that --list naming a mesh is refused
     results, errors = _extract_all(files, sections, axis, boundaries)
     contours, refused = _writable_contours(results, out_dir, curve_format, force)
     report_errors(errors + refused)
     if errors or refused:
-        count_failures(len(errors) + len(refused))  # exit 3 to come: --list is not written
+        count_failures(len(errors) + len(refused), errors + refused)  # exit 3 to come: --list is not written
     if not contours:
         if refused:
             error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")

@@ -8,8 +8,27 @@ from .. import __version__
 from .options import NfdGroup, verbosity_options
 
 
+def _print_version(ctx, param, value):
+    """The version and which kernels this installation runs (ahead-of-time, just-in-time or
+    numpy, with the reason): what a bug report needs first."""
+    if not value or ctx.resilient_parsing:
+        return
+    from ..matching.kernels import current
+
+    click.echo(f"nfdmatch, version {__version__}")
+    click.echo(f"kernels: {current().describe()}")
+    ctx.exit()
+
+
 @click.group(cls=NfdGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="nfdmatch")
+@click.option(
+    "--version",
+    is_flag=True,
+    expose_value=False,
+    is_eager=True,
+    callback=_print_version,
+    help="Show the version and which kernels compute (ahead-of-time, just-in-time, numpy), and exit.",
+)
 @verbosity_options
 def main():
     """Find which stored closed 3-D curves look most like a query curve.
@@ -30,6 +49,7 @@ def main():
     -o FILE written whole and only on success (an identical file keeps its bytes and
     gets a fresh mtime, so Make settles); -o - is stdout.
 
-    Exit codes: 0 ok, 1 error (nothing could be read), 2 usage error, 3 some inputs
-    failed (each named on stderr; the rest was answered).
+    Exit codes, as grep's: 0 found, 1 nothing matched (a filter left every query
+    empty), 2 error (usage, or nothing could be read), 3 some inputs failed (each named
+    on stderr; the rest was answered), 130/143 interrupted/terminated.
     """

@@ -9,11 +9,14 @@ from datetime import datetime, timezone
 import click
 
 from ..defaults import DEFAULT_GRAPH_K
+from ..errors import NfdError
 from .options import (
     EXIT_ERROR,
+    EXIT_NOTHING,
     error,
     finish,
     format_option,
+    glob_options,
     index_option,
     input_format_option,
     note,
@@ -44,7 +47,7 @@ def index():
 @index.command("build")
 @click.argument("sources", nargs=-1, required=False, metavar="[SOURCE...]")
 @index_option
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches, e.g. '*.obj'.")
+@glob_options(extra=" Recorded with the sources.")
 @click.option("--rebuild", is_flag=True, help="Recompute every curve, even unchanged files.")
 @click.option("--dry-run", is_flag=True, help="Print what would change (on stdout) and write nothing.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores].")
@@ -54,6 +57,12 @@ def index():
     default=0.0,
     show_default=True,
     help="Seconds to wait for another build's lock (0: fail at once).",
+)
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="When any file fails, write nothing (exit 3, the index as it was): a Makefile then runs "
+    "the build again until every file reads, instead of taking an index with a failed file for done.",
 )
 @click.option(
     "--allow-shrink",
@@ -91,6 +100,13 @@ def index():
     "cut by N planes per principal axis at area quantiles (docs/objects.md) [default: the index's "
     "rule, 7 for a new index].",
 )
+@click.option(
+    "--elastic",
+    "graph_elastic",
+    is_flag=True,
+    help="With --graph: the graph holds the elastic stage's fused distances (each curve's K of least "
+    "fused distance among its exact 30 nearest; docs/elastic.md), and query --rerank ranks by them.",
+)
 @optional_descriptor_options("the index's")
 @input_format_option
 @scheduler_options
@@ -105,10 +121,12 @@ def index_build(
     dry_run,
     jobs,
     wait,
+    strict,
     allow_shrink,
     file_timeout,
     graph_k,
     sections,
+    graph_elastic,
     descriptor,
     input_format,
     scheduler,
@@ -130,7 +148,7 @@ def index_build(
     Incremental: unchanged files (same size and mtime, or same SHA-256) are not
     recomputed, changed files are, files no longer under the sources are removed. A
     build that would remove more than half of the index's files, or all of them (an
-    empty or unmounted folder), refuses (exit 1) unless --allow-shrink is given.
+    empty or unmounted folder), refuses (exit 2) unless --allow-shrink is given.
     The index is written to a temporary file and moved into place when complete, so
     an interrupted build leaves the previous index intact and queries keep working.
     Bad files are named on stderr and recorded as failed; the rest is indexed.
@@ -160,6 +178,7 @@ def index_build(
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
       nfdmatch index build library/ --index library.h5 --graph
       nfdmatch index build parts/ --index parts.h5          # meshes: objects
+      nfdmatch index build library/ --index library.h5 --graph 10 --elastic
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
       nfdmatch index build --index /shared/scans.h5 --graph 10 --scheduler tcp://head:8786
     """
@@ -168,15 +187,22 @@ def index_build(
             "index build reads files and folders, not stdin ('-'): an index records each file to "
             "rebuild it incrementally; save the curve to a file and index that"
         )
+    if graph_elastic and not graph_k:
+        raise click.UsageError("--elastic needs --graph K: it says what the graph's distances are")
+    if graph_elastic:
+        from ..index.graph import GraphSpec
+
+        graph_k = GraphSpec(graph_k, "fused")
     started = datetime.now(timezone.utc)
     options = dict(
         **descriptor, glob=glob_pattern, input_format=input_format,
-        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k, sections=sections,
+        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k, strict=strict,
+        sections=sections,
     )  # fmt: skip
     report = _run_build(
         list(sources), index_path, options, jobs, file_timeout, (scheduler, scheduler_timeout), output_format, started
     )
-    _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started)
+    _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started, strict)
 
 
 def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, cluster_at: tuple, output_format, started):
@@ -209,9 +235,11 @@ def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, clu
             cluster.close()
 
 
-def _say_build_result(report, index_path, dry_run: bool, allow_shrink: bool, output_format: str, started) -> None:
+def _say_build_result(
+    report, index_path, dry_run: bool, allow_shrink: bool, output_format: str, started, strict: bool = False
+) -> None:
     """Notices and failures on stderr, the summary (or a dry run's changes) on stdout, and
-    the exit: 1 for a dry run its build would refuse, else by the failed files."""
+    the exit: 2 for a dry run its build would refuse, else by the failed files."""
     for notice in report.notices:
         note(notice, prefix="Notice: ")
     for _path, message in report.skipped + report.failures:
@@ -220,8 +248,12 @@ def _say_build_result(report, index_path, dry_run: bool, allow_shrink: bool, out
         deliver(json.dumps(_build_summary(report, index_path, started, allow_shrink)) + "\n", None)
     else:
         if dry_run:
-            deliver("".join(f"{action}\t{path}\n" for action, path in report.changes if action != "unchanged"), None)
-        _say_build(report, index_path, allow_shrink)
+            from ..names import decode_name
+            from .output import tsv_field
+
+            changed = [(action, path) for action, path in report.changes if action != "unchanged"]
+            deliver("".join(f"{action}\t{tsv_field(decode_name(path))}\n" for action, path in changed), None)
+        _say_build(report, index_path, allow_shrink, strict)
     if dry_run and report.shrink and not allow_shrink:  # the build would refuse: so does its dry run
         error(
             f"{index_path}: a build would refuse to remove {report.shrink[0]} of {report.shrink[1]} files "
@@ -273,6 +305,7 @@ def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict
     if report.graph.k:
         g = report.graph
         summary["graph"] = {
+            "distance": g.distance,
             "k": g.k,
             "searched": g.searched,
             "updated": g.updated,
@@ -291,12 +324,18 @@ def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict
     return summary
 
 
-def _say_build(report, index_path: str, allow_shrink: bool) -> None:
+def _say_build(report, index_path: str, allow_shrink: bool, strict: bool = False) -> None:
     """The build's summary in words, on stderr."""
     verb = (
         "would change"
         if report.dry_run
-        else (f"indexed into {index_path}" if report.written else f"{index_path} is up to date")
+        else (
+            f"indexed into {index_path}"
+            if report.written
+            else (
+                f"{index_path} not written (--strict)" if strict and report.failures else f"{index_path} is up to date"
+            )
+        )
     )
     shrunk = (
         ""
@@ -314,8 +353,9 @@ def _say_build(report, index_path: str, allow_shrink: bool) -> None:
     )
     if report.graph.k:
         g = report.graph
+        kind = " (fused distances)" if g.distance == "fused" else ""
         say(
-            f"graph of {g.k} neighbours: {g.searched} rows searched, {g.updated} updated by new curves, "
+            f"graph of {g.k} neighbours{kind}: {g.searched} rows searched, {g.updated} updated by new curves, "
             f"{g.kept} kept; {g.seconds:.2f} s" + _graph_where(g)
         )
 
@@ -325,6 +365,93 @@ def _graph_where(g) -> str:
     if g.scheduler:
         return f" on the cluster at {g.scheduler} ({g.workers} worker{'s' if g.workers != 1 else ''})"
     return f" on {g.processes} processes" if g.processes else ""
+
+
+def _edit_command(name: str, verb: str, doc: str):
+    """``index add`` and ``index remove``: the same options, one library function each."""
+
+    def decorate(run):
+        @index.command(name, help=doc)
+        @click.argument("files", nargs=-1, required=True, metavar="FILE...")
+        @index_option
+        @click.option(
+            "--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores]."
+        )
+        @click.option(
+            "--wait",
+            type=click.FloatRange(min=0),
+            default=0.0,
+            show_default=True,
+            help="Seconds to wait for another build's lock (0: fail at once).",
+        )
+        @click.option("--strict", is_flag=True, help="When any file fails, write nothing (exit 3).")
+        @input_format_option
+        @format_option(
+            ("text", "json"), default="text", help_extra=" of the summary (json: one line, as index build's)"
+        )
+        def command(files, index_path, jobs, wait, strict, input_format, output_format):
+            started = datetime.now(timezone.utc)
+            if "-" in files:
+                raise click.UsageError(f"index {name} takes files and folders, not stdin ('-')")
+            progress, finish_bar = progress_bar(verb)
+            try:
+                report = run(
+                    list(files), index_path, jobs=jobs, wait=wait, strict=strict, input_format=input_format,
+                    progress=progress,
+                )  # fmt: skip
+            except (NfdError, KeyboardInterrupt) as exc:
+                if output_format == "json":
+                    deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
+                raise
+            finally:
+                finish_bar()
+            _say_build_result(report, index_path, False, True, output_format, started, strict)
+
+        return command
+
+    return decorate
+
+
+@_edit_command(
+    "add",
+    "adding files",
+    """Add FILE... (files or folders) to the index; every other file stays.
+
+    The recorded sources follow (a FILE outside them becomes one of them, an excluded one
+    is excluded no more), so the next `nfdmatch index build --index X` without SOURCE
+    agrees. A missing index is built from FILE... . Exit codes as index build's.
+
+    \b
+    Example:
+      nfdmatch index add extra/one.csv --index lib.h5
+    """,
+)
+def index_add(files, index_path, **options):
+    from ..index.build import add_files
+
+    return add_files(files, index_path, **options)
+
+
+@_edit_command(
+    "remove",
+    "removing files",
+    """Remove FILE... (files, or folders: every file below) from the index; every other
+    file stays.
+
+    The recorded sources follow (a FILE that is a source is dropped, a file found in a
+    source folder is recorded as excluded from its walk), so the next `nfdmatch index
+    build --index X` without SOURCE agrees. A FILE that is not in the index is an error.
+    The file itself is not touched.
+
+    \b
+    Example:
+      nfdmatch index remove lib/old/one.csv --index lib.h5
+    """,
+)
+def index_remove(files, index_path, **options):
+    from ..index.build import remove_files
+
+    return remove_files(files, index_path, **options)
 
 
 @index.command("info")
@@ -351,11 +478,17 @@ def index_info(index_path, output_format, output):
         info = idx.info()
         info["graph"] = graph_k(idx)  # neighbours per curve stored for --rerank; 0: none
         info["objects"] = len(idx.object_ids())  # meshes indexed as objects (docs/objects.md)
+        if info["graph"]:
+            info["graph_distance"] = idx.graph_distance()
+        if idx.excluded():  # left out of the sources' walk by `index remove`
+            info["excluded"] = idx.excluded()
     if output_format == "json":
         deliver(json.dumps(info, indent=2) + "\n", output)
         return
     sources = info.get("sources")
     lines = [f"path\t{info.get('path')}", f"sources\t{'(not recorded)' if sources is None else ' '.join(sources)}"]
+    if info.get("excluded"):
+        lines.append(f"excluded\t{' '.join(info['excluded'])}")
     lines += [
         f"{key}\t{info.get(key)}"
         for key in (
@@ -369,6 +502,7 @@ def index_info(index_path, output_format, output):
             "scale",
             "graph",
             "objects",
+            *(["graph_distance"] if "graph_distance" in info else []),
             "created",
             "updated",
             "size_bytes",
@@ -434,7 +568,7 @@ def index_verify(index_path, output_format):
         f"in {len({f.dataset for f in report.findings})} dataset(s); rebuild it with "
         f"`nfdmatch index build --rebuild`"
     )
-    sys.exit(EXIT_ERROR)
+    sys.exit(EXIT_NOTHING)  # as cmp and diff: 1 the answer "they differ", 2 trouble
 
 
 @index.command("ls")
@@ -468,4 +602,4 @@ def index_ls(index_path, status, list_curves, output_format, output):
         else:
             rows = [{"file": r.path, "status": r.status, "curves": r.curve_count, "error": r.error} for r in files]
             columns = ["file", "status", "curves", "error"]
-    write_rows(rows, columns, output_format, output)
+    write_rows(rows, columns, output_format, output, names=("id", "file"))

@@ -1,7 +1,7 @@
 """Reading a command's inputs: :func:`read_inputs` (files, folders, ``-`` for stdin) and
 :func:`read_one`. One policy: every input that can be read is answered, each bad one is
 named on stderr, :func:`~nfdmatch.cli.options.finish` exits 3 when some failed, and nothing
-read at all is exit 1. Also which match is the query itself (``--exclude-self``)."""
+read at all is exit 2. Also which match is the query itself (``--exclude-self``)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import click
 
 from ..curve import STDIN_ID
 from ..errors import NfdError, NoCurvesError
-from .options import NothingRead, count_failures, detail, error, finish, report_errors
+from .options import NothingRead, count_failures, detail, error, finish, note_inputs, report_errors
 
 #: the id of a curve read from stdin (``-`` on the command line)
 
@@ -66,6 +66,7 @@ def read_one(spec: str, input_format: str | None = None):
         from ..formats import read_curve
 
         curve = read_curve(spec, format=input_format)
+        note_inputs([curve.source or spec])
     detail(f"read {curve.id} ({len(curve.points)} vertices)")
     return curve
 
@@ -81,7 +82,7 @@ def read_inputs(
 
     A missing file, an empty folder (no curve file, or none matching ``glob``) and a file
     that cannot be read are each named on stderr and counted as failed inputs; raises
-    :class:`NothingRead` (exit 1) when no curve was read at all. ``progress``: the label
+    :class:`NothingRead` (exit 2) when no curve was read at all. ``progress``: the label
     of a progress bar over the files read (on a terminal only, :func:`progress_bar`)."""
     from ..sources import find_curve_files, read_all
 
@@ -145,6 +146,7 @@ def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) 
             error(exc)
             continue
         new = [path for path in found if os.path.normpath(path) not in seen]
+        note_inputs(new)
         seen.update(os.path.normpath(path) for path in new)
         total += len(new)
         read, read_errors = read_files(new)
@@ -152,7 +154,7 @@ def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) 
         errors += read_errors
         report_errors(read_errors)
     if errors:
-        count_failures(len(errors))
+        count_failures(len(errors), errors)
     if not curves:
         raise NothingRead()
     detail(f"read {len(curves)} curve{'' if len(curves) == 1 else 's'} from {total - len(errors)} of {total} inputs")

@@ -8,7 +8,7 @@ import json
 
 import click
 
-from .options import detail, index_option, matching_options, output_option, rows_format_option
+from .options import detail, index_option, matching_options, nothing_matched, output_option, rows_format_option
 from .output import deliver, progress_bar, resolve_format, write_rows
 from .cluster import open_cluster, scheduler_options
 from .group import main
@@ -75,6 +75,7 @@ def pairs(
     write_rows(
         [{"a": p.a, "b": p.b, "distance": p.distance} for p in found], ["a", "b", "distance"], output_format, output
     )
+    nothing_matched(len(found), f"no pair at most {max_distance} apart")
 
 
 @main.command()
@@ -129,13 +130,14 @@ def groups(
             )
             g["members"].append(m.id)
         deliver(json.dumps(list(listed.values()), indent=2) + "\n", output)
-        return
-    write_rows(
-        [{"id": m.id, "group": m.group, "size": m.size, "representative": m.representative} for m in members],
-        ["id", "group", "size", "representative"],
-        output_format,
-        output,
-    )
+    else:
+        write_rows(
+            [{"id": m.id, "group": m.group, "size": m.size, "representative": m.representative} for m in members],
+            ["id", "group", "size", "representative"],
+            output_format,
+            output,
+        )
+    nothing_matched(len(members), "no group")
 
 
 def _joined(run, label: str, index_path, scheduler, scheduler_timeout, max_distance, **options):

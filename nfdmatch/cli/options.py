@@ -3,17 +3,20 @@ behaves the same.
 
 - :class:`NfdGroup`, the group class of ``nfdmatch`` and ``nfdmatch index``: every
   :class:`~nfdmatch.errors.NfdError` raised while a command runs (its options included)
-  becomes ``Error: <message>`` on stderr and exit 1, never a traceback; ``-q``/``-v``
+  becomes ``Error: <message>`` on stderr and exit 2, never a traceback; ``-q``/``-v``
   are added to every command.
 - Messages: :func:`note` (hidden by ``-q``), :func:`detail` (shown by ``-v``), :func:`error`
   (always). stdout carries data only; everything else goes to stderr.
-- The exit-code policy for inputs that failed: :func:`finish` exits 3 when some failed.
+- The exit-code policy for inputs that failed: :func:`finish` exits 3 when some failed;
+  :func:`nothing_matched` exits 1 when a filter left every query without a match.
 - Shared click options: ``--format`` (:func:`format_option`), ``-o/--output``
   (:func:`output_option`), input format, descriptor and matching options, ``--index``.
 
-Exit codes: 0 ok, 1 error (bad input or any NfdError), 2 usage error, 3 partial success
-(some inputs failed, the rest was answered), 130 interrupted (SIGINT, Ctrl-C), 143
-terminated (SIGTERM); both without a traceback, after the command cleaned up.
+Exit codes, grep's contract: 0 found (answered), 1 nothing matched (a filter such as
+``--max-distance`` left every query without a match; ``index verify``: problems found),
+2 error (a usage error, any NfdError, or no input could be read), 3 partial success (some
+inputs failed, the rest was answered), 130 interrupted (SIGINT, Ctrl-C), 143 terminated
+(SIGTERM); both without a traceback, after the command cleaned up.
 """
 
 from __future__ import annotations
@@ -28,7 +31,9 @@ import click
 
 from ..errors import NfdError, WriteError
 
-EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
+EXIT_OK, EXIT_NOTHING, EXIT_ERROR, EXIT_PARTIAL = 0, 1, 2, 3
+#: click's own exit status of a usage error: the same as any other error
+EXIT_USAGE = EXIT_ERROR
 #: 128 + the signal number, as a shell reports a process ended by SIGINT / SIGTERM
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 ROW_FORMATS = ("table", "csv", "tsv", "json", "jsonl")
@@ -41,7 +46,7 @@ _VERBOSITY = "nfdmatch.verbosity"
 
 
 class NothingRead(Exception):
-    """Raised by commands when no input could be read (each was already named): exit 1."""
+    """Raised by commands when no input could be read (each was already named): exit 2."""
 
 
 class NfdGroup(click.Group):
@@ -54,6 +59,11 @@ class NfdGroup(click.Group):
             cmd.params.extend(_verbosity_params())
         super().add_command(cmd, name)
 
+    def parse_args(self, ctx, args):
+        if ctx.parent is None:  # the words as given: --format of a command that fails to parse
+            ctx.meta[_ARGS] = list(args)
+        return super().parse_args(ctx, args)
+
     def invoke(self, ctx):
         started = time.perf_counter()
         restore = _catch_sigterm() if ctx.parent is None else None
@@ -61,13 +71,22 @@ class NfdGroup(click.Group):
             return super().invoke(ctx)
         except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the library cleaned up on its way out
             terminated = isinstance(exc, Terminated)
-            error(f"{'terminated (SIGTERM)' if terminated else 'interrupted (SIGINT)'}")
-            sys.exit(EXIT_TERMINATED if terminated else EXIT_INTERRUPTED)
+            message = "terminated (SIGTERM)" if terminated else "interrupted (SIGINT)"
+            error(message)
+            code = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+            json_failure(ctx, message, code)
+            sys.exit(code)
         except NfdError as exc:
             error(exc)
+            json_failure(ctx, str(exc), EXIT_ERROR)
             sys.exit(EXIT_ERROR)
         except NothingRead:
+            json_failure(ctx, "no input could be read", EXIT_ERROR)
             sys.exit(EXIT_ERROR)
+        except click.UsageError as exc:  # click prints it and exits 2
+            if ctx.parent is None:
+                json_failure(ctx, exc.format_message(), EXIT_USAGE)
+            raise
         except BrokenPipeError:  # e.g. `nfdmatch describe ... | head`
             sys.stderr.close()
             sys.exit(EXIT_OK)
@@ -211,12 +230,71 @@ def report_errors(errors) -> None:
 
 
 _FAILED = "nfdmatch.failed"
+_FAILURES = "nfdmatch.failures"
+_FORMAT = "nfdmatch.format"
+_ARGS = "nfdmatch.args"
+_STDOUT_USED = "nfdmatch.stdout-used"
+JSON_FORMATS = ("json", "jsonl")
 
 
-def count_failures(n: int) -> None:
+def count_failures(n: int, errors=()) -> None:
+    """``n`` more inputs failed (``errors``: their exceptions, listed in the JSON failure
+    record, :func:`json_failure`)."""
     ctx = click.get_current_context(silent=True)
     if ctx is not None:
         ctx.meta[_FAILED] = ctx.meta.get(_FAILED, 0) + n
+        ctx.meta.setdefault(_FAILURES, []).extend(errors)
+
+
+def remember_format(fmt: str | None) -> str | None:
+    """Record the output format this command resolved (the JSON failure record follows it)."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None and fmt is not None:
+        ctx.meta[_FORMAT] = fmt
+    return fmt
+
+
+def stdout_used() -> None:
+    """Rows went to stdout (a JSON list there must stay the only document)."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:
+        ctx.meta[_STDOUT_USED] = True
+
+
+def _format_asked(meta: dict) -> str | None:
+    if _FORMAT in meta:
+        return meta[_FORMAT]
+    words = meta.get(_ARGS, [])
+    for i, word in enumerate(words):  # the command failed before its options were read
+        if word == "--format" and i + 1 < len(words):
+            return words[i + 1]
+        if word.startswith("--format="):
+            return word.split("=", 1)[1]
+    return None
+
+
+def json_failure(ctx, message: str, code: int) -> None:
+    """With ``--format json`` or ``jsonl``: one JSON object on stdout saying why the command
+    did not answer in full, so that a log of JSON lines gets a line from every run:
+    ``{"error": MESSAGE, "exit": CODE, "failed": [{"input": PATH, "error": MESSAGE}, ...]}``
+    (``failed``: the inputs that could not be read). Not after a JSON list or object
+    already on stdout (``index build``'s summary, a partial run's rows with ``json``): a
+    second document would break its readers; JSON lines take one more line."""
+    import json
+
+    fmt = _format_asked(ctx.meta)
+    if fmt not in JSON_FORMATS or (fmt == "json" and ctx.meta.get(_STDOUT_USED)):
+        return
+    failed = [
+        {"input": getattr(exc, "path", None), "error": getattr(exc, "message", str(exc))}
+        for exc in ctx.meta.get(_FAILURES, [])
+    ]
+    record = {"error": message, "exit": code, "failed": failed}
+    try:
+        click.echo(json.dumps(record))
+        sys.stdout.flush()
+    except (BrokenPipeError, OSError):
+        pass
 
 
 def some_failed() -> bool:
@@ -228,8 +306,20 @@ def some_failed() -> bool:
 def finish(failed: int, total: int, what: str = "inputs") -> None:
     """The end of every command that reads several inputs: exit 3 when some failed."""
     if failed:
-        error(f"{failed} of {total} {what} could not be read")
+        message = f"{failed} of {total} {what} could not be read"
+        error(message)
+        ctx = click.get_current_context(silent=True)
+        if ctx is not None:
+            json_failure(ctx, message, EXIT_PARTIAL)
         sys.exit(EXIT_PARTIAL)
+
+
+def nothing_matched(found: int, what: str = "no match") -> None:
+    """Exit 1 (grep's "nothing matched") when ``found`` is 0: every input was answered, but a
+    filter left no row. Called after :func:`finish` (a partial run exits 3 first)."""
+    if not found:
+        detail(what)  # as grep, silent: the exit status says it
+        sys.exit(EXIT_NOTHING)
 
 
 # --------------------------------------------------------------------------- options
@@ -241,6 +331,7 @@ def format_option(formats=ROW_FORMATS, default=None, help_extra=""):
         "--format",
         "output_format",
         type=click.Choice(formats),
+        callback=lambda ctx, param, value: remember_format(value),
         default=default,
         show_default=default is not None,
         help="Output format" + help_extra + ".",
@@ -259,7 +350,7 @@ STDOUT = "-"
 
 
 def _check_output_path(ctx, param, value):
-    """Fail before any work when an output file cannot be written (exit 1, named). ``-o -``
+    """Fail before any work when an output file cannot be written (exit 2, named). ``-o -``
     is stdout: None for a single ``-o``; kept as ``-`` among several (:func:`split_outputs`)."""
     if value == STDOUT:
         return None
@@ -267,10 +358,54 @@ def _check_output_path(ctx, param, value):
     for path in paths:
         if path == STDOUT:
             continue
-        if "{" in path:  # a pattern (show): its folder is checked
-            path = path.split("{", 1)[0] + "x"
+        if "{" in path:  # a pattern (show): its folder is checked, and the pattern named
+            try:
+                check_writable(path.split("{", 1)[0] + "x")
+            except WriteError as exc:
+                raise WriteError(exc.message, path=path) from None
+            continue
         check_writable(path)
     return value
+
+
+_INPUTS = "nfdmatch.inputs"
+
+
+def note_inputs(paths) -> None:
+    """Remember files this command reads (curve files, the index), so that an output naming
+    one of them is refused (:func:`refuse_input_as_output`)."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:
+        ctx.meta.setdefault(_INPUTS, []).extend(os.fspath(p) for p in paths if p is not None and p != STDOUT)
+
+
+def refuse_input_as_output(path) -> None:
+    """A usage error (exit 2) when ``path`` is one of the files this command read, however
+    spelled (the same file: device and inode, links followed), as ``cp a a`` refuses: the
+    input is left untouched. Called just before an output is written; an output that does
+    not exist yet, or is not a regular file (/dev/null, a FIFO), is no input's."""
+    import stat
+
+    from ..errors import escape_name
+
+    ctx = click.get_current_context(silent=True)
+    inputs = () if ctx is None else ctx.meta.get(_INPUTS, ())
+    if path is None or path == STDOUT or not inputs:
+        return
+    try:
+        out = os.stat(path)
+    except OSError:
+        return
+    if not stat.S_ISREG(out.st_mode):
+        return
+    for name in dict.fromkeys(inputs):
+        try:
+            info = os.stat(name)
+        except OSError:
+            continue
+        if (info.st_dev, info.st_ino) == (out.st_dev, out.st_ino):
+            same = "" if name == path else f" ({escape_name(name)})"
+            raise click.UsageError(f"-o {escape_name(path)} is one of the inputs{same}: not overwritten")
 
 
 def check_writable(path: str) -> str:
@@ -444,6 +579,11 @@ def elastic_options(command):
     return f
 
 
+def _note_index(ctx, param, value):
+    note_inputs([value])
+    return value
+
+
 def index_option(f):
     from ..defaults import DEFAULT_INDEX, INDEX_ENV
 
@@ -454,8 +594,52 @@ def index_option(f):
         default=DEFAULT_INDEX,
         show_default=f"${INDEX_ENV} or {DEFAULT_INDEX}",
         type=click.Path(dir_okay=False),
+        callback=_note_index,
         help="The index file.",
     )(f)
+
+
+_GLOB_HELP = (
+    "Only files found in folders that match PATTERN: a name ('*.csv'), or a path below the folder "
+    "('**/fam000/*.csv', ** spans folders); '!PATTERN' keeps those that do not match ('!bad*')."
+)
+
+
+def _glob_callback(dest: str, ignore_case: bool):
+    def callback(ctx, param, value):
+        if value is None:
+            ctx.params.setdefault(dest, None)
+            return
+        if ctx.params.get(dest) is not None:
+            raise click.UsageError("--glob and --iglob exclude each other", ctx=ctx)
+        from ..sources import IGNORE_CASE
+
+        ctx.params[dest] = IGNORE_CASE + value if ignore_case else value
+
+    return callback
+
+
+def glob_options(dest: str = "glob_pattern", extra: str = ""):
+    """``--glob PATTERN`` and ``--iglob PATTERN`` (the same, ignoring case), passed on as one
+    argument ``dest``: the library's ``glob`` (:func:`nfdmatch.sources.glob_matcher`)."""
+
+    def decorate(f):
+        f = click.option(
+            "--iglob",
+            metavar="PATTERN",
+            expose_value=False,
+            callback=_glob_callback(dest, True),
+            help="As --glob, ignoring case.",
+        )(f)
+        return click.option(
+            "--glob",
+            metavar="PATTERN",
+            expose_value=False,
+            callback=_glob_callback(dest, False),
+            help=_GLOB_HELP + extra,
+        )(f)
+
+    return decorate
 
 
 # --------------------------------------------------------------------------- rows
@@ -517,7 +701,7 @@ def match_list_options(top_help: str, glob_help: str):
                     default=None,
                     help="Only list matches at most this far.",
                 ),
-                click.option("--glob", default=None, help=glob_help),
+                glob_options("glob", glob_help),
                 click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
                 paths_option,
                 exclude_self_option,

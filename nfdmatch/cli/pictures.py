@@ -14,12 +14,17 @@ from .options import (
     error,
     finish,
     format_option,
+    glob_options,
     index_option,
     input_format_option,
     matching_options,
     note,
     optional_descriptor_options,
+    exclude_self_option,
+    nothing_matched,
     output_option,
+    paths_option,
+    refuse_input_as_output,
     say,
     some_failed,
 )
@@ -28,6 +33,7 @@ from .output import (
     delimited_text,
     delimiter,
     deliver,
+    path_speller,
     progress_bar,
     resolve_format,
     split_outputs,
@@ -117,6 +123,9 @@ def _picture_names(pattern: str, queries) -> list[str]:
 )
 @index_option
 @click.option("--top", type=click.IntRange(min=1, max=23), default=5, show_default=True, help="Matches to draw.")
+@click.option("--max-distance", type=click.FloatRange(min=0), default=None, help="Only draw matches at most this far.")
+@exclude_self_option
+@paths_option
 @output_option(
     help="The picture to write (.png, .svg or .pdf); for several queries a pattern with {stem} "
     "or {n}, e.g. 'matches-{stem}.png'. Another -o FILE (not a picture) gets the rows drawn.",
@@ -125,7 +134,7 @@ def _picture_names(pattern: str, queries) -> list[str]:
 )
 @click.option("--size", default="1600x900", show_default=True, help="Picture size WIDTHxHEIGHT in pixels.")
 @_renderer_option
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches (with --against).")
+@glob_options(extra=" With --against.")
 @elastic_options
 @matching_options
 @optional_descriptor_options("with --against")
@@ -140,6 +149,9 @@ def show(
     against,
     index_path,
     top,
+    max_distance,
+    exclude_self,
+    paths,
     output,
     size,
     renderer,
@@ -170,19 +182,26 @@ def show(
     """
     from ..render import render_matches
 
-    pictures, rows_output = split_outputs(output)
+    pictures, rows_output = split_outputs(output, fmt=output_format)
     output_format = resolve_format(output_format, rows_output)
     width_height = _check_show_arguments(pictures, size, against, sources, (*descriptor.values(), glob_pattern))
     query_inputs = read_inputs([query_spec] + ([] if against else list(sources)), input_format=input_format)
     queries = query_inputs.curves
     names = _picture_names(pictures[0], queries)
     _check_pictures(names)
+    chosen = {"max_distance": max_distance, "exclude_self": exclude_self}
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
-        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, matching, stage)
+        shown = _ranked_drawn(queries, source_inputs.curves, top, descriptor, {**matching, **chosen}, stage)
+        spell_match = path_speller(paths)
     else:
         source_inputs = None
-        shown = _searched_drawn(queries, index_path, top, input_format, matching, stage)
+        shown, spell_match = _searched_drawn(
+            queries, index_path, top, input_format, {**matching, **chosen}, stage, paths
+        )
+    spell_query = path_speller(paths)
+    for path in [*names, rows_output]:
+        refuse_input_as_output(path)
     results = []
     if some_failed():
         _not_written(names)
@@ -193,18 +212,7 @@ def show(
         ]
     stage_columns = list(stage.columns) if stage is not None else []
     write_rows(
-        [
-            {
-                "query": q.id,
-                "rank": s.rank,
-                "match": s.id,
-                "distance": s.distance,
-                **{name: getattr(s.match, name) for name in stage_columns},
-                "source": s.source,
-            }
-            for q, drawn in zip(queries, shown)
-            for s in drawn
-        ],
+        _drawn_rows(queries, shown, spell_query, spell_match, stage_columns),
         ["query", "rank", "match", "distance", *stage_columns, "source"],
         output_format,
         rows_output,
@@ -214,6 +222,18 @@ def show(
         _report_picture(result)
     failed = query_inputs.errors + (source_inputs.errors if source_inputs else [])
     finish(len(failed), query_inputs.total + (source_inputs.total if source_inputs else 0))
+    nothing_matched(sum(len(drawn) for drawn in shown))
+
+
+def _drawn_rows(queries, shown, spell_query, spell_match, stage_columns=()) -> list[dict]:
+    """The rows of what show drew: query, rank, match, distance, the stage's columns, source
+    (ids as --paths says)."""
+    return [
+        {"query": spell_query(q.id), "rank": s.rank, "match": spell_match(s.id), "distance": s.distance,
+         **{name: getattr(s.match, name) for name in stage_columns}, "source": s.source}
+        for q, drawn in zip(queries, shown)
+        for s in drawn
+    ]  # fmt: skip
 
 
 def _check_show_arguments(pictures, size: str, against: bool, sources, against_only: tuple) -> tuple[int, int]:
@@ -241,9 +261,10 @@ def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict, stag
     return [show_ranked(q, curves, top=top, stage=stage, **descriptor, **match) for q in queries]
 
 
-def _searched_drawn(queries, index_path, top: int, input_format, match: dict, stage=None) -> list:
+def _searched_drawn(queries, index_path, top: int, input_format, match: dict, stage=None, paths: str = "id"):
     """What show draws per query from the index: its ``top`` matches, their curves read
-    back from their files (notes on stderr for those that cannot be)."""
+    back from their files (notes on stderr for those that cannot be); and how --paths
+    spells their ids (``id -> str``, resolved while the index is open)."""
     from functools import partial
 
     from ..formats import read_curve
@@ -259,7 +280,9 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict, st
             shown.append(drawn)
             for message in notes:
                 note(message)
-    return shown
+        speller = path_speller(paths, idx.locate)
+        spelled = {s.id: speller(s.id) for drawn in shown for s in drawn}
+    return shown, spelled.__getitem__
 
 
 @main.command()
@@ -269,7 +292,7 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict, st
     "write the matrix there instead of stdout. Give -o twice for both.",
     multiple=True,
 )
-@click.option("--glob", "glob_pattern", default=None, help="Only files in folders whose name matches.")
+@glob_options()
 @matching_options
 @descriptor_options
 @input_format_option
@@ -325,10 +348,12 @@ def matrix(
     from ..search import distance_matrix, similarity_order
 
     formats = ("csv", "tsv", "json")
-    pictures, rows_output = split_outputs(output, formats)
+    pictures, rows_output = split_outputs(output, formats, output_format)
     _check_pictures(pictures)  # before the O(N^2) work, not after it
     fmt = resolve_format(output_format, rows_output, formats, terminal="csv")
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
+    for path in [*pictures, rows_output]:
+        refuse_input_as_output(path)
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:

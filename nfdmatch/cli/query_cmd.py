@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
+from ..defaults import DEFAULT_ELASTIC_DEPTH, DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
@@ -17,6 +17,7 @@ from .options import (
     note,
     error,
     finish,
+    nothing_matched,
     output_option,
     rows_format_option,
     say,
@@ -29,7 +30,7 @@ from .group import main
 @main.command()
 @click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
 @index_option
-@match_list_options("Matches per query.", "Only query files in folders whose name matches.")
+@match_list_options("Matches per query.", " Of the QUERY folders.")
 @click.option(
     "--exhaustive",
     is_flag=True,
@@ -109,7 +110,10 @@ def query(
     --elastic: the elastic stage (docs/elastic.md): the exact top M (--elastic-depth)
     ordered by a fused distance of the exact distance, an elastic distance (the best
     correspondence that bends) and pose-free shape statistics. Rows gain the columns elastic
-    and fused (what they are ranked by); distance stays the exact distance.
+    and fused (what they are ranked by); distance stays the exact distance. On an index
+    whose graph holds fused distances (`index build --graph K --elastic`), --rerank diffuses
+    over them, the query's candidates given theirs; --elastic --rerank then adds the columns
+    elastic and fused to score.
 
     \b
     Examples:
@@ -125,11 +129,8 @@ def query(
 
     output_format = resolve_format(output_format, output)
     _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
-    if stage is not None and rerank:
-        raise click.UsageError(
-            "--elastic with --rerank needs a graph of fused distances, which this version cannot build yet: "
-            "give one of them"
-        )
+    if stage is not None and rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
+        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
     if stage is not None and scheduler:
         raise click.UsageError("--elastic runs on this machine: drop --scheduler")
     if rerank_candidates is not None and not rerank:
@@ -141,13 +142,18 @@ def query(
             _query_objects(idx, meshes, listing, matching, given, output_format, output)
             return
         _note_old_format(idx, exhaustive, stage)
+        if rerank and stage is not None and idx.graph_distance() != "fused":
+            raise click.UsageError(
+                f"--elastic with --rerank needs a graph of fused distances: build it with `nfdmatch index build "
+                f"--index {idx.path} --graph 10 --elastic` (--rerank alone diffuses over the exact graph)"
+            )
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
         results, stats = _search_queries(
             idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
             prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
-            stage=stage, **listing.search(),
+            stage=None if rerank else stage, **listing.search(),
         )  # fmt: skip
         spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
         match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
@@ -162,6 +168,7 @@ def query(
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
+    nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
 
 
 def _mesh_queries(idx, queries, glob, input_format) -> list[str]:
@@ -241,6 +248,7 @@ def _query_objects(idx, meshes, listing, matching, given: dict, output_format, o
     ]
     write_rows(rows, ["query", "rank", "match", "distance", "curves"], output_format, output, group_by="query")
     finish(len(failures), len(meshes), "meshes")
+    nothing_matched(len(rows), f"no object matched any of the {len(meshes)} query meshes")
 
 
 def _objects_of(idx, match_spelling: dict, spell_match):

@@ -51,6 +51,7 @@ def compute_batches(batches: list[list[tuple[int, tuple]]], cwd: str) -> list[di
     given, so ids and messages are those of a local build."""
     from ..errors import escape_name
     from ..index import pool
+    from ..names import encode_name
 
     out = []
     for batch in batches:
@@ -61,11 +62,11 @@ def compute_batches(batches: list[list[tuple[int, tuple]]], cwd: str) -> list[di
         for res, path, fpath in zip(pool._split(results, arrays), given, full):
             if fpath != path:
                 res["path"] = path
-                names = [(escape_name(fpath), escape_name(path)), (fpath, path)]  # ids and messages escape
+                # ids encode a name (nfdmatch.names), messages escape it (errors.escape_name)
+                names = [(escape_name(fpath), escape_name(path)), (fpath, path)]
                 if "ids" in res:
-                    res["ids"] = [
-                        next((new + i[len(old) :] for old, new in names if i.startswith(old)), i) for i in res["ids"]
-                    ]
+                    old, new = encode_name(fpath), encode_name(path)
+                    res["ids"] = [new + i[len(old) :] if i.startswith(old) else i for i in res["ids"]]
                 for old, new in names:
                     if old in res["error"]:
                         res["error"] = res["error"].replace(old, new, 1)

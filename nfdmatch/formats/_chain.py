@@ -26,7 +26,7 @@ import numpy as np
 
 from .._io import publish, temp_beside, write_file  # noqa: F401  (re-exported)
 from ..curve import Curve, clean_many, clean_points
-from ..errors import ParameterError, ParseError, ReadError, WriteError, escape_name, excerpt, os_error_message
+from ..errors import ParameterError, ParseError, ReadError, WriteError, excerpt, os_error_message
 
 __all__ = [
     "is_number",
@@ -234,9 +234,12 @@ def read_text(path) -> str:
 
 
 def curve_id(path: str, index: int, count: int) -> str:
-    """``path`` for a single-curve file, else ``path#index``; a file name that is not valid
-    UTF-8 has its undecodable bytes escaped as ``\\xNN`` (:func:`nfdmatch.errors.escape_name`)."""
-    name = escape_name(path)
+    """``path`` for a single-curve file, else ``path#index``; the name as an id
+    (:func:`nfdmatch.names.encode_name`: one-to-one, undecodable bytes as ``\\xNN``, a
+    backslash doubled)."""
+    from ..names import encode_name
+
+    name = encode_name(path)
     return name if count == 1 else f"{name}#{index}"
 
 

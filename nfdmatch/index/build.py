@@ -23,8 +23,16 @@ dry_run : report what the build would do and write nothing: files are read and
 jobs : worker processes (None: ``os.cpu_count()``; 1: in this process, unless
     ``file_timeout`` is given).
 wait : seconds to wait for another build's lock (0: fail at once).
+exclude : stored paths (docs/index-format.md "Paths and ids"; a folder: everything below
+    it) the walk leaves out, recorded with the sources (None: the recorded ones when no
+    ``sources`` are given, else none). :func:`add_files` and :func:`remove_files` set it.
+strict : when any file fails (newly or still), write nothing: the index stays as it was
+    (``written`` False, ``failures`` and ``changes`` as the build would have had them), so
+    that Make runs the build again until every file reads.
 graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --rerank``);
-    None keeps an existing graph's K (no graph for an index without one), 0 drops it.
+    None keeps an existing graph's K and distance (no graph for an index without one), 0
+    drops it; a :class:`~nfdmatch.index.graph.GraphSpec` ``(k, "fused")`` stores each row's
+    k of least fused distance (the elastic stage's) among its exact nearest.
 progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
     then as files finish; total counts the files that must be read or hashed (unchanged
     files are not counted).
@@ -87,7 +95,8 @@ from dataclasses import dataclass, field
 from ..errors import IndexFormatError, InputError, ReadError, WriteError
 from .commit import write_new_index
 from .lock import Lock
-from .paths import index_file
+from ..formats import split_selector
+from .paths import index_file, openable, source_location, stored
 from .plan import (
     Action,
     Plan,
@@ -100,7 +109,7 @@ from .plan import (
 )
 from .pool import run_tasks
 from .reader import Index
-from .graph import GraphStats, graph_changes
+from .graph import GraphStats, asked_graph, graph_changes, graph_distance, old_graph_k
 from .schema import FORMAT_VERSION, open_checked, Problem, default_index_path
 from .writer import remove_stale_temps
 
@@ -190,6 +199,8 @@ def build_index(
     graph=None,
     runner=None,
     graph_runner=None,
+    strict=False,
+    exclude=None,
     sections=None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
@@ -216,11 +227,10 @@ def build_index(
         old = _load_old(index_path, rebuild, report.notices)
         recorded = None if old is None else old.sources()
         if not sources:
-            sources = recorded_sources(old, recorded, index_path, real_index, base)
-            if glob is None:
-                glob = recorded[1]
+            sources, glob, exclude = _recorded_walk(old, recorded, glob, exclude, index_path, real_index, base)
+        exclude = list(exclude or [])  # a build naming its sources drops the recorded exclusions
         found, opens, stored_sources, unseen = find_files(sources, glob, base, report.skipped)
-        report.sources = stored_sources
+        found, report.sources = [f for f in found if not _under(f, exclude)], stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
         params, changed = parameters(old, samples, harmonics, scale, report.notices, sections)
@@ -236,21 +246,98 @@ def build_index(
         check_shrink(report, old_files, plan, found, sources, index_path, real_index, dry_run, allow_shrink)
         if dry_run:
             _dry_run_report(report, plan, old, progress, jobs, file_timeout, runner)
-        elif _needs_write(old, plan, recorded, (stored_sources, glob or None), graph, real_index, report):
+        elif _needs_write(old, plan, recorded, (stored_sources, glob or None, exclude), graph, real_index, report):
             write_new_index(
                 report, real_index, plan, old, jobs, lock, progress, file_timeout,
-                sources=(stored_sources, glob or None), name=index_path, graph=graph, runner=runner,
-                graph_runner=graph_runner,
+                sources=(stored_sources, glob or None, exclude), name=index_path, graph=graph, runner=runner,
+                graph_runner=graph_runner, strict=strict,
             )  # fmt: skip
         else:
-            _unchanged(report, plan, old, real_index, progress)
+            _unchanged(report, plan, old, real_index, progress, strict)
     finally:
         if old is not None:
             old.close()
-        if lock is not None:
-            lock.release()
+        if lock is not None:  # a build that never wrote the index leaves no lock of its own
+            lock.release(remove=lock.created and not os.path.lexists(real_index))
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _recorded_walk(old, recorded, glob, exclude, index_path: str, real_index: str, base: str):
+    """``(sources, glob, exclude)`` of a build given no sources: the recorded ones (the
+    glob and exclusions unless given)."""
+    sources = recorded_sources(old, recorded, index_path, real_index, base)
+    return sources, recorded[1] if glob is None else glob, old.excluded() if exclude is None else exclude
+
+
+def _under(path: str, places) -> bool:
+    """Whether the stored ``path`` is one of ``places`` or below one of them."""
+    return any(path == p or path.startswith(p.rstrip("/") + "/") for p in places)
+
+
+def add_files(files, index_path=None, **options) -> BuildReport:
+    """Add ``files`` (files or folders) to the index and keep every other file: a build of
+    the recorded sources plus those not under one of them, with the recorded glob, and the
+    recorded exclusions less those files; so the next plain build (no sources) agrees. A
+    missing index is built from ``files``. ``options``: those of :func:`build_index`."""
+    index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
+    files = _as_paths(files)
+    real_index, base = _index_location(index_path)
+    old = _load_old(index_path, False, [])
+    if old is None:
+        return build_index(files, index_path, **options)
+    with old:
+        recorded, excluded = _recorded(old, index_path), old.excluded()
+    sources, glob = list(recorded[0]), recorded[1]
+    for file in files:
+        key = stored(source_location(file), base)
+        if not os.path.lexists(split_selector(file)[0]):
+            raise ReadError("no such file or folder", path=file)
+        excluded = [e for e in excluded if not _under(e, [key]) and not _under(key, [e])]
+        if not _under(key, sources):
+            sources.append(key)
+    return build_index([openable(s, base) for s in sources], index_path, glob=glob, exclude=excluded, **options)
+
+
+def remove_files(files, index_path=None, **options) -> BuildReport:
+    """Remove ``files`` (files or folders: every file below) from the index and keep every
+    other file: a named source is dropped from the recorded sources, a file found in a
+    source folder is recorded as excluded from its walk; so the next plain build agrees.
+    Each must be in the index (``InputError`` naming it otherwise). ``options``: those of
+    :func:`build_index` (a removal is never refused as a shrink: it was asked for)."""
+    index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
+    files = _as_paths(files)
+    real_index, base = _index_location(index_path)
+    old = _load_old(index_path, False, [])
+    if old is None:
+        raise InputError("no index to remove files from", path=index_path)
+    with old:
+        recorded, excluded = _recorded(old, index_path), old.excluded()
+        held = [r.path for r in old.files()]
+    sources, glob = list(recorded[0]), recorded[1]
+    for file in files:
+        key = stored(source_location(file), base)
+        if not any(_under(h, [key]) for h in held) and key not in sources:
+            raise InputError("not in the index: nothing to remove", path=file)
+        if key in sources:
+            sources.remove(key)
+        elif not _under(key, excluded):
+            excluded.append(key)
+    options.setdefault("allow_shrink", True)
+    if not sources:
+        raise InputError("removing every source would leave the index empty; delete the file instead", path=index_path)
+    return build_index([openable(s, base) for s in sources], index_path, glob=glob, exclude=excluded, **options)
+
+
+def _recorded(old, index_path: str) -> tuple:
+    recorded = old.sources()
+    if recorded is None:
+        raise InputError(
+            "the index does not record its sources (it was built by an older nfdmatch); rebuild it once "
+            "with its sources named",
+            path=index_path,
+        )
+    return recorded
 
 
 def _as_paths(sources) -> list[str]:
@@ -280,13 +367,23 @@ def _index_location(index_path: str) -> tuple[str, str]:
 
 def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str, report: BuildReport) -> bool:
     """Whether the build must write a new index file (temporary files of an interrupted
-    build are removed first; an upgrade of format 1 is noted)."""
+    build are removed first; an upgrade of format 1 is noted). ``recorded``: the old
+    index's ``(sources, glob)``; ``new_sources``: this build's ``(sources, glob, exclude)``."""
+    if recorded is not None:
+        recorded = (*recorded, old.excluded())
     stale = remove_stale_temps(real_index)
     if stale:
         report.notices.append(
             f"removed {len(stale)} temporary file(s) left by an interrupted build: {', '.join(stale)}"
         )
-    # a format-1 index is rewritten as format 2 (with its cells) even when nothing changed
+    if graph is not None and old is not None:
+        k, distance = asked_graph(old, graph)
+        if k and old_graph_k(old) and distance != graph_distance(old):
+            how = "give --elastic to keep it" if distance == "exact" else "without --elastic it is exact again"
+            report.notices.append(
+                f"the neighbour graph changes from {graph_distance(old)} to {distance} distances ({how})"
+            )
+    # an index of an older format is rewritten in today's (cells, statistics) even when nothing changed
     upgrade = old is not None and old.format_version < FORMAT_VERSION
     if upgrade:
         report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
@@ -302,12 +399,15 @@ def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str,
     )
 
 
-def _unchanged(report: BuildReport, plan: Plan, old, real_index: str, progress) -> None:
+def _unchanged(report: BuildReport, plan: Plan, old, real_index: str, progress, strict: bool = False) -> None:
     """Nothing to change: the index is not rewritten, but it is made newer than its sources
     (under the build's lock), as Make expects of a command that succeeded: else a rule
-    ``index.h5: $(CURVES)`` reruns after every ``touch``, forever."""
+    ``index.h5: $(CURVES)`` reruns after every ``touch``, forever. ``strict`` with a file
+    that stays failed: not touched either (the build did not succeed)."""
+    stays_failed = any(item.action is not Action.COPY for item in plan.items)
     try:
-        os.utime(real_index)
+        if not (strict and stays_failed):
+            os.utime(real_index)
     except OSError:
         pass  # not ours to touch (read-only, another owner): the index is still right
     if progress is not None:

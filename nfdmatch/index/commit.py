@@ -16,13 +16,14 @@ import h5py
 import numpy as np
 
 from .._version import __version__
-from ..errors import NfdError, WriteError
+from ..errors import InputError, NfdError, WriteError, escape_name
+from ..names import decode_name
 from .changes import write_changes
 from .graph import GraphStats
 from ..mesh.objects import ObjectRule
 from .objects_group import ObjectEntry, write_objects
 from .graph_build import blocks_to_search, plan_graph, store_graph, write_graph
-from .paths import curve_ids
+from .paths import curve_ids, id_collision
 from .plan import Action, Plan
 from .pool import run_tasks
 from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short
@@ -51,11 +52,13 @@ def write_new_index(
     graph=None,
     runner=None,
     graph_runner=None,
+    strict=False,
 ):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
     it (messages); ``graph_runner``: searches the graph's rows elsewhere (see
-    :func:`nfdmatch.index.build_index`), in the temporary file closed meanwhile."""
+    :func:`nfdmatch.index.build_index`), in the temporary file closed meanwhile. ``strict``:
+    when a file failed, the temporary file is removed instead (``report.written`` False)."""
     shown = index_path if name is None else name
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)
@@ -65,7 +68,9 @@ def write_new_index(
     now = _utcnow()
     try:
         graph_job = (graph, jobs, None if lock is None else lock.fd, graph_runner)
-        pending = _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now)
+        pending = _write_file(
+            tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now, strict
+        )
         if pending is not None:
             report.graph = _graph_elsewhere(tmp, shown, *pending, graph_runner)
         Space.release(tmp)
@@ -77,12 +82,24 @@ def write_new_index(
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(exc, _FailedStrictly):
+            _count(report, actions)
+            report.curves = 0 if old is None else old.n_curves  # the index as it was
+            return
         # h5py reports a failed write (disk full, quota, file-size limit) as OSError, or as
         # RuntimeError when it surfaces while closing the file
         if isinstance(exc, (OSError, RuntimeError)) and not isinstance(exc, NfdError):
             raise WriteError(f"cannot write the index: {_write_cause(exc)}", path=shown) from None
         raise
     report.written = True
+    _count(report, actions)
+
+
+class _FailedStrictly(Exception):
+    """A strict build's file failed: the new index is not written (never leaves this module)."""
+
+
+def _count(report, actions: dict[str, str]) -> None:
     for path in sorted(actions):
         action = actions[path]
         report.changes.append((action, path))
@@ -114,7 +131,7 @@ def _start_tasks(tasks, jobs, lock, progress, file_timeout, runner):
     return stream, result_of
 
 
-def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now):
+def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now, strict=False):
     """Write the whole new index to ``tmp``: attributes, curve rows, /files, /sources,
     /changes, /search and /graph (``graph_job``: ``(K, processes, lock descriptor,
     graph_runner)``, see :func:`write_graph`). Closes the task stream and the file, also on
@@ -130,6 +147,9 @@ def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sourc
             run = CopyRun(old, writer)
             objects = _OldObjects(old)
             records, fresh = _write_rows(plan.items, result_of, writer, run, report, actions, objects)
+            if strict and report.failures:
+                raise _FailedStrictly()
+            _check_ids(records)
             run.flush()
             writer.flush()
             write_files_table(h5, records, space)
@@ -149,6 +169,20 @@ def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sourc
     finally:
         stream.close()  # shuts the worker pool down
     return pending
+
+
+def _check_ids(records) -> None:
+    """An InputError naming both files when two curves would share an id (the index keeps
+    one row per id: one of them would be lost without a word)."""
+    counts = {r.path: r.curve_count for r in records if r.status == "ok" and ("#" in r.path or r.curve_count > 1)}
+    both = id_collision(counts)
+    if both is not None:
+        multi, single = (escape_name(decode_name(p)) for p in both)
+        raise InputError(
+            f"curve {single[len(multi) + 1 :]} of this file and the file {single} would share the id "
+            f"{single}; rename one of them (ids are FILE and FILE#I)",
+            path=decode_name(both[0]),
+        )
 
 
 def _graph_here(h5, old, graph, reuse: bool, space: Space, report):

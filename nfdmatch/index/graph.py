@@ -21,6 +21,9 @@ from .arrays import unique_rows
 from .schema import Problem, stored_dataset
 
 __all__ = [
+    "GraphSpec",
+    "GRAPH_DISTANCES",
+    "graph_distance",
     "read_graph",
     "read_graph_rows",
     "graph_changes",
@@ -30,6 +33,24 @@ __all__ = [
     "DEFAULT_GRAPH_K",
     "GRAPH_CHECKSUMS",
 ]
+
+#: what a graph's distances are (``/graph`` attribute ``distance``; absent: ``"exact"``): the
+#: exact distance, or the fused distance of the elastic stage (``index build --graph K --elastic``)
+GRAPH_DISTANCES = ("exact", "fused")
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """The graph a build is asked for: ``k`` neighbours per row, by the ``distance`` of
+    :data:`GRAPH_DISTANCES` (a build's ``graph=`` takes it, or a plain K for the exact one)."""
+
+    k: int
+    distance: str = "exact"
+
+    def __post_init__(self):
+        if self.distance not in GRAPH_DISTANCES:
+            raise ValueError(f"graph distance must be one of {', '.join(GRAPH_DISTANCES)}, got {self.distance!r}")
+
 
 #: ``/graph`` attribute ``checksums``: its datasets carry Fletcher-32 (docs/index-format.md)
 GRAPH_CHECKSUMS = "fletcher32"
@@ -51,6 +72,7 @@ class GraphStats:
     machine), ``seconds``."""
 
     k: int = 0
+    distance: str = "exact"
     searched: int = 0
     updated: int = 0
     kept: int = 0
@@ -189,10 +211,34 @@ def old_graph_k(old) -> int:
         return 0
 
 
-def graph_changes(old, k: int | None) -> bool:
-    """True when a build asked for ``k`` must rewrite an index that is otherwise up to date
-    (a graph asked for that it lacks or has with another K, or one to drop)."""
-    return k is not None and int(k) != old_graph_k(old)
+def graph_distance(index) -> str:
+    """What an open index's graph holds (:data:`GRAPH_DISTANCES`): ``"exact"`` also for an
+    index without a graph."""
+    if index is None or index._h5 is None or "graph" not in index._h5:
+        return "exact"
+    value = index._h5["graph"].attrs.get("distance", "exact")
+    value = value.decode() if isinstance(value, bytes) else str(value)
+    return value if value in GRAPH_DISTANCES else "exact"
+
+
+def asked_graph(old, graph) -> tuple[int, str]:
+    """``(k, distance)`` a build writes for its ``graph`` argument (None: the old index's
+    graph, as it is; an int K: exact; a :class:`GraphSpec`)."""
+    if graph is None:
+        return old_graph_k(old), graph_distance(old)
+    if isinstance(graph, GraphSpec):
+        return int(graph.k), graph.distance
+    return int(graph), "exact"
+
+
+def graph_changes(old, graph) -> bool:
+    """True when a build asked for ``graph`` (as :func:`asked_graph` reads it) must rewrite
+    an index that is otherwise up to date (a graph asked for that it lacks or has with
+    another K or distance, or one to drop)."""
+    if graph is None:
+        return False
+    k, distance = asked_graph(old, graph)
+    return k != old_graph_k(old) or (k > 0 and distance != graph_distance(old))
 
 
 def read_graph_rows(index):

@@ -14,11 +14,24 @@ from ..errors import IndexFormatError
 from ..search.engine import Cascade
 from ..search.graph import GraphLists, graph_blocks, neighbour_lists, update_copied
 from .arrays import unique_rows
-from .graph import GRAPH_CHECKSUMS, GRAPH_CHUNK_ROWS, IN_MEMORY_ROWS, GraphStats, old_graph_k, read_graph
+from ..search.graph import fused_lists
+from .graph import (
+    GRAPH_CHECKSUMS,
+    GRAPH_CHUNK_ROWS,
+    IN_MEMORY_ROWS,
+    GraphStats,
+    asked_graph,
+    graph_distance,
+    old_graph_k,
+    read_graph,
+)
 from .schema import create_checked
 from .search_group import search_table
 
-__all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan"]
+__all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan", "FUSED_CANDIDATES"]
+
+#: a fused graph's candidates per row: its exact nearest (at least 3 k)
+FUSED_CANDIDATES = 30
 
 
 @dataclass
@@ -37,6 +50,12 @@ class GraphPlan:
     table: object = None
     read_coefficients: object = None
     ids: object = None
+    #: what the stored distances are (``"exact"`` or ``"fused"``); a fused graph's search
+    #: finds each row's exact ``k`` nearest (the candidates) and keeps its ``final_k`` of
+    #: least fused distance
+    distance: str = "exact"
+    final_k: int = 0
+    read_statistics: object = None
 
     def store(self, rows, neighbour, distance) -> None:
         """The lists ((m, k) int64 / float64) of ``rows``, searched elsewhere."""
@@ -82,12 +101,20 @@ def plan_graph(h5, old, k: int | None, *, reuse: bool) -> GraphPlan | None:
     lists kept from ``old`` and the rows to search (arguments as that function's). None
     when no graph is to be written (``k`` 0, or None and the old index had none)."""
     t0 = time.perf_counter()
-    k = old_graph_k(old) if k is None else int(k)
+    k, kind = asked_graph(old, k)
     if k <= 0:
         return None
-    plan = GraphPlan(GraphStats(k=k), k, t0)
     curves = h5["curves"]
     N = curves["coefficients"].shape[0]
+    final_k = k
+    if kind == "fused":
+        # the candidates of a row's fused list: its exact nearest; a fused list is no exact
+        # top K, so an old one is never reused (a row's candidates may change with any row)
+        k = min(max(FUSED_CANDIDATES, 3 * final_k), max(N - 1, final_k))
+        reuse = False
+    elif graph_distance(old) != "exact":
+        reuse = False
+    plan = GraphPlan(GraphStats(k=final_k, distance=kind), k, t0, distance=kind, final_k=final_k)
     K = int(h5.attrs["harmonics"])
     plan.samples = int(h5.attrs["samples"])
     plan.ids = np.asarray(curves["id"].asstr()[...], dtype=object)
@@ -111,6 +138,9 @@ def plan_graph(h5, old, k: int | None, *, reuse: bool) -> GraphPlan | None:
         raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
 
     plan.read_coefficients = read_coefficients
+    if kind == "fused":
+        statistics = curves["statistics"][...]
+        plan.read_statistics = lambda rows: statistics[np.asarray(rows, dtype=np.int64)].astype(np.float64)
     plan.table = search_table(h5, N, K, read_coefficients, fail)
     fresh_rows = plan.lists.fresh_rows
     if len(check) and len(fresh_rows):
@@ -143,8 +173,14 @@ def blocks_to_search(plan: GraphPlan, threads: int | None = None) -> list[np.nda
 
 def store_graph(h5, plan: GraphPlan) -> GraphStats:
     """Write the lists of ``plan`` (complete) as ``/graph`` of the new index file ``h5``;
-    returns its stats, their time taken."""
-    _write_group(h5, plan.k, plan.lists.neighbour, plan.lists.distance)
+    returns its stats, their time taken. A fused graph's lists of exact candidates (searched
+    here or elsewhere) are cut to its rows of least fused distance first."""
+    if plan.distance == "fused":
+        plan.lists.neighbour, plan.lists.distance = fused_lists(
+            plan.read_coefficients, plan.read_statistics, plan.ids, plan.lists.neighbour, plan.final_k, plan.samples
+        )
+        plan.k = plan.stats.k = plan.final_k
+    _write_group(h5, plan.k, plan.lists.neighbour, plan.lists.distance, plan.distance)
     plan.stats.seconds = time.perf_counter() - plan.t0
     return plan.stats
 
@@ -183,10 +219,12 @@ def _keep_old_lists(h5, old, k: int, reuse: bool, neighbour, distance):
     return todo, check, fresh
 
 
-def _write_group(h5, k: int, neighbour, distance) -> None:
+def _write_group(h5, k: int, neighbour, distance, kind: str = "exact") -> None:
     """The /graph group: its attributes and checked datasets."""
     g = h5.create_group("graph")
     g.attrs["k"] = np.int64(k)
+    if kind != "exact":
+        g.attrs["distance"] = kind
     g.attrs["method"] = "exact"
     g.attrs["direction"] = "invariant"
     g.attrs["mirror"] = np.int64(0)

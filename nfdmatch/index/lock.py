@@ -19,17 +19,38 @@ class Lock:
     def __init__(self, index_path: str, wait: float, name: str | None = None):
         self.path = index_path + ".lock"
         index_path = index_path if name is None else name
+        deadline = time.monotonic() + max(0.0, float(wait or 0.0))
+        while True:
+            self.fd, self.created = self._open(index_path)
+            self._lock(index_path, deadline, wait)
+            if self._still_the_file():
+                break
+            # the build holding it removed the file (it wrote no index): lock the new one
+            os.close(self.fd)
+        try:  # the pid is for other builds' messages only: a full disk must not stop this one here
+            os.ftruncate(self.fd, 0)
+            os.pwrite(self.fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:
+            pass
+
+    def _open(self, index_path: str) -> tuple[int, bool]:
+        """The lock file's descriptor, and whether this call created it."""
+        flags = os.O_RDWR | getattr(os, "O_CLOEXEC", 0)
         try:
-            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:
+                return os.open(self.path, flags | os.O_CREAT | os.O_EXCL, 0o644), True
+            except FileExistsError:
+                return os.open(self.path, flags), False
         except OSError as exc:
             raise WriteError(
                 f"cannot create the lock file {self.path}: {exc.strerror or exc}", path=index_path
             ) from None
-        deadline = time.monotonic() + max(0.0, float(wait or 0.0))
+
+    def _lock(self, index_path: str, deadline: float, wait) -> None:
         while True:
             try:
                 fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
+                return
             except OSError as exc:
                 if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                     os.close(self.fd)
@@ -45,11 +66,15 @@ class Lock:
                         path=index_path,
                     ) from None
                 time.sleep(min(0.05, left))
-        try:  # the pid is for other builds' messages only: a full disk must not stop this one here
-            os.ftruncate(self.fd, 0)
-            os.pwrite(self.fd, f"{os.getpid()}\n".encode(), 0)
+
+    def _still_the_file(self) -> bool:
+        """Whether the locked descriptor is still the file at the lock's path (a lock on a
+        file removed meanwhile would exclude nobody)."""
+        try:
+            held, there = os.fstat(self.fd), os.stat(self.path)
         except OSError:
-            pass
+            return False
+        return (held.st_dev, held.st_ino) == (there.st_dev, there.st_ino)
 
     def _holder(self) -> str:
         try:
@@ -58,8 +83,16 @@ class Lock:
         except OSError:
             return "unknown"
 
-    def release(self) -> None:
+    def release(self, remove: bool = False) -> None:
+        """Unlock; ``remove``: delete the lock file first, while still holding it (a build
+        that created it and wrote no index leaves nothing beside an index that does not
+        exist; a build waiting on it sees the file gone and locks a new one)."""
         if self.fd is not None:
+            if remove:
+                try:
+                    os.unlink(self.path)
+                except OSError:
+                    pass
             try:
                 fcntl.flock(self.fd, fcntl.LOCK_UN)
             finally:

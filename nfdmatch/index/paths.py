@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import os
 
-from ..errors import escape_name
 from ..formats import split_selector
+from ..names import decode_name, encode_name
 
 
 def index_file(index_path: str) -> str:
@@ -34,15 +34,16 @@ def _real_parent(path: str) -> str:
 
 def stored(location: str, base: str) -> str:
     """The stored form of an absolute real ``location``: relative to ``base`` inside it, else
-    absolute; undecodable bytes escaped (HDF5 strings are UTF-8)."""
+    absolute; as an id (:func:`~nfdmatch.names.encode_name`: HDF5 strings are UTF-8, and two
+    names never share a stored form)."""
     # a string prefix first: relpath costs ~70 us, and a build calls this once per file
     prefix = base if base.endswith(os.sep) else base + os.sep
     if location.startswith(prefix) and os.pardir not in location.split(os.sep):
-        return escape_name(location[len(prefix) :])
+        return encode_name(location[len(prefix) :])
     rel = os.path.relpath(location, base)
     if rel == os.pardir or rel.startswith(os.pardir + os.sep):
-        return escape_name(location)
-    return escape_name(rel)
+        return encode_name(location)
+    return encode_name(rel)
 
 
 def source_location(source: str) -> str:
@@ -77,12 +78,25 @@ def curve_ids(path: str, count: int) -> list[str]:
     return [path] if count == 1 else [f"{path}#{i}" for i in range(count)]
 
 
+def id_collision(counts: dict) -> tuple[str, str] | None:
+    """Two files whose curve ids would meet, from ``{stored path: curve count}``: ``(P, P#i)``
+    when the file P holds more than i curves (ids ``P#0``, ``P#1``, ...) and another file is
+    named ``P#i``; None when every id is unique. The one collision the id rule cannot avoid
+    (names are encoded one-to-one, :mod:`nfdmatch.names`, but ``#`` is the rule's own)."""
+    for path in counts:
+        head, sep, tail = path.rpartition("#")
+        if sep and tail.isdigit() and str(int(tail)) == tail and counts.get(head, 0) > max(1, int(tail)):
+            return head, path
+    return None
+
+
 def openable(path: str, base: str) -> str:
     """A path that opens the stored ``path`` (``file#i`` kept) from the working directory:
     a stored absolute path as it is (the spelling ``index ls`` shows, in messages and the
     build's failures alike, from any working directory: cron runs in ``/``); a stored
     relative one relative to the working directory when the file is below it (messages
-    stay short), else absolute."""
+    stay short), else absolute. The file's name, decoded (:func:`~nfdmatch.names.decode_name`)."""
+    path = decode_name(path)
     if os.path.isabs(path):
         return path
     return display(os.path.join(base, path))

@@ -15,6 +15,7 @@ from ..errors import InputError, ParameterError, ReadError, ShrinkRefusedError
 from ..formats import format_of, split_selector
 from ..mesh.objects import ObjectRule, is_mesh_file
 from ..sources import _irregular, find_curve_files
+from ..names import decode_name
 from .paths import found_location, openable, source_location, stored
 from .schema import FileRecord
 
@@ -204,7 +205,7 @@ def plan_files(old, old_files, recorded, found, opens, unseen, base, params, rec
     retry_meshes = old is not None and old.format_version < 3
     old_rows = {}
     for i, r in enumerate(old_files):
-        key = stored(source_location(r.path), base) if rekey else r.path
+        key = stored(source_location(decode_name(r.path)), base) if rekey else r.path
         old_rows.setdefault(key, (i, r))
     found_set = set(found)
     held = {

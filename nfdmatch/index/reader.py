@@ -17,7 +17,8 @@ from ..search.knn import search as search_index_for
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
 from .changes import read_changes
-from .graph import graph_k, read_graph_rows
+from .graph import graph_distance, graph_k, read_graph_rows
+from ..names import decode_name
 from .paths import index_folder, openable
 from .schema import (
     STATUS,
@@ -257,6 +258,19 @@ class Index:
 
         return self._read(read)
 
+    def excluded(self) -> list[str]:
+        """Stored paths (files, or folders and all below them) the recorded sources' walk
+        leaves out (``index remove`` of a file found in a source folder); [] for none."""
+
+        def read():
+            g = self._h5.get("sources")
+            ds = g.get("exclude") if isinstance(g, h5py.Group) else None
+            if not isinstance(ds, h5py.Dataset) or len(ds.shape) != 1 or ds.dtype.kind not in "OS":
+                return []
+            return ds.asstr()[...].tolist() if ds.shape[0] else []
+
+        return self._read(read)
+
     def locate(self, curve_id: str) -> str:
         """A path (``file#i`` kept) that opens the file of a stored id from the working
         directory: a relative stored path is relative to the index's folder. An index that does
@@ -264,7 +278,7 @@ class Index:
         are then returned as they are."""
 
         if os.path.isabs(curve_id) or self.sources() is None:
-            return curve_id
+            return decode_name(curve_id)
         return openable(curve_id, index_folder(self.path))
 
     # -- curves
@@ -487,6 +501,11 @@ class Index:
         """Neighbours per row of the index's stored neighbour graph (``index build --graph``);
         0 when it has none."""
         return graph_k(self)
+
+    def graph_distance(self) -> str:
+        """What the stored graph's distances are: ``"exact"`` (also without a graph) or
+        ``"fused"`` (the elastic stage's: ``index build --graph K --elastic``)."""
+        return graph_distance(self)
 
     def graph_reader(self):
         """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,

@@ -240,11 +240,14 @@ def write_files_table(h5, records: list[FileRecord], space: "Space | None" = Non
         create_checked(g, name, np.array(values, dtype=object if dtype is STR else dtype).reshape(F), dtype)
 
 
-def write_sources(h5, paths: list[str], glob: str | None) -> None:
-    """/sources: the stored sources of this build and its glob (docs/index-format.md)."""
+def write_sources(h5, paths: list[str], glob: str | None, exclude=()) -> None:
+    """/sources: the stored sources of this build, its glob and the stored paths its walk
+    leaves out (written only when there are some; docs/index-format.md)."""
     g = h5.create_group("sources")
     create_checked(g, "path", np.array(list(paths), dtype=object), STR)
     g.attrs["glob"] = glob or ""
+    if exclude:
+        create_checked(g, "exclude", np.array(list(exclude), dtype=object), STR)
 
 
 def fsync_path(path: str, directory: bool = False, strict: bool = False) -> None:

@@ -20,7 +20,7 @@ from .engine import TIE, Cascade, BestRows, search_block
 from .table import SearchTable
 from .workers import run_tasks
 
-__all__ = ["GraphLists", "neighbour_lists", "graph_blocks", "nearest_others", "update_copied"]
+__all__ = ["GraphLists", "neighbour_lists", "graph_blocks", "nearest_others", "update_copied", "fused_lists"]
 
 
 #: rows searched per block (their descriptors and lists held at once)
@@ -179,3 +179,42 @@ def _ordered(i, rows, d, ids, k):
     nb[: len(order)] = rows[order]
     dist[: len(order)] = d[order]
     return nb, dist
+
+
+def fused_lists(read_coefficients, read_statistics, ids, candidates: np.ndarray, k: int, samples: int):
+    """A fused graph's lists (``index build --graph K --elastic``): of each row's candidates
+    (``candidates``: (N, m) int64, its exact m nearest, -1 padded), the ``k`` of least fused
+    distance (:func:`nfdmatch.matching.fused.fused_rows`, at each pair's exact optimum), ties
+    within ``TIE`` by id. ``read_coefficients(rows)``, ``read_statistics(rows)``: the rows'
+    descriptors and shape statistics; ``ids``: every row's id. Returns ``(neighbour (N, k)
+    int64, distance (N, k) float64)``, -1 and inf padded."""
+    from ..matching.exact import exact_search
+    from ..matching.fused import fused_rows
+
+    N = len(candidates)
+    neighbour = np.full((N, k), -1, dtype=np.int64)
+    distance = np.full((N, k), np.inf)
+    for a in range(0, N, _BLOCK_ROWS):
+        b = min(N, a + _BLOCK_ROWS)
+        rows = np.arange(a, b)
+        mine = np.asarray(read_coefficients(rows), dtype=np.complex128)
+        mine_statistics = read_statistics(rows)
+        block = candidates[a:b]
+        every = np.unique(block[block >= 0])
+        theirs = np.asarray(read_coefficients(every), dtype=np.complex128)
+        their_statistics = read_statistics(every)
+        for i in range(b - a):
+            found = block[i][block[i] >= 0]
+            if not len(found):
+                continue
+            at = np.searchsorted(every, found)
+            rigid = exact_search(mine[i], theirs[at], samples)
+            terms = fused_rows(
+                mine[i], theirs[at], rigid, samples, query_statistics=mine_statistics[i],
+                row_statistics=their_statistics[at],
+            )  # fmt: skip
+            key = np.round(terms.fused / TIE)
+            order = sorted(range(len(found)), key=lambda j: (key[j], ids[found[j]]))[:k]
+            neighbour[a + i, : len(order)] = found[order]
+            distance[a + i, : len(order)] = terms.fused[order]
+    return neighbour, distance

@@ -58,9 +58,11 @@ def self_rule(locate=None):
     stdin). ``locate``: id -> a path that opens it here (an index's ids are relative to its
     folder: ``Index.locate``). Each id is resolved once per rule (a batch asks about the
     same ids query after query)."""
-    where = locate or (lambda i: i)
+    from ..names import decode_name
+
+    where = locate or decode_name  # an id is a file's name encoded (nfdmatch.names)
     stored_key = functools.lru_cache(maxsize=None)(lambda i: _curve_key(where(i)))
-    query_key = functools.lru_cache(maxsize=None)(_curve_key)
+    query_key = functools.lru_cache(maxsize=None)(lambda i: _curve_key(decode_name(i)))
 
     def rule(query_id: str, match_id: str) -> bool:
         if query_id == STDIN_ID:

@@ -157,7 +157,9 @@ def rerank_index(
     candidates : ``"walk"`` (the default: the query's exact ``max(top, 8)`` nearest plus the
         ``depth`` stored rows of largest mass in its first-step PageRank, each with its exact
         distance; no exact top-M search) or ``"exact"`` (the query's exact top ``depth``: ~4x
-        the time of a batch at 100,000 curves, docs/rerank.md).
+        the time of a batch at 100,000 curves, docs/rerank.md). On a graph of fused distances
+        (``index build --graph K --elastic``) always ``"exact"``, each candidate given its fused
+        distance (the elastic stage's), the matches their ``elastic`` and ``fused``.
 
     Returns
     -------
@@ -185,9 +187,14 @@ def rerank_index(
     N = index.n_curves
     walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA)
     qcoef = query_descriptors(index, queries)
-    if candidates == "exact":
+    fused = getattr(index, "graph_distance", lambda: "exact")() == "fused"
+    if candidates == "exact" or fused:
+        # a graph of fused distances: the query's exact top M, each given its fused distance
+        # (the elastic stage's), which it joins the graph by
         found, stats = search_rows(index, qcoef, Cascade(index.samples), top=depth, progress=progress, threads=threads)
         rank_rows(index, found, depth)
+        if fused:
+            _fused_distances(index, qcoef, found)
         union = _union(found)
         vectors = _Vectors(union, *walk.pagerank(union))  # every candidate's, once for the batch
     else:
@@ -199,6 +206,30 @@ def rerank_index(
     results = _answers(index, walk, vectors, found, merged, top)
     stats.seconds = time.perf_counter() - t0
     return results, stats
+
+
+def _fused_distances(index, qcoef, found) -> None:
+    """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
+    distances) given their fused distances instead (the exact ones kept in ``extra["exact"]``,
+    the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then id."""
+    from .stages import fused_candidates
+
+    rigid = [
+        {"distance": tk.dist, "shift": tk.extra["shift"], "reversed": tk.extra["reversed"],
+         "mirrored": tk.extra["mirrored"]}
+        for tk in found
+    ]  # fmt: skip
+    for tk, terms in zip(found, fused_candidates(index, qcoef, [tk.rows for tk in found], rigid)):
+        if terms is None:
+            continue
+        tk.extra = {**tk.extra, "exact": tk.dist.copy(), "elastic": terms.elastic}
+        tk.dist = terms.fused
+    # by fused distance (within TIE), then exact distance, then id (rank_rows: distance, id)
+    for tk in found:
+        if "exact" in tk.extra and len(tk.rows) > 1:
+            order = np.lexsort((tk.extra["exact"], np.round(tk.dist / TIE)))
+            tk.rows, tk.dist = tk.rows[order], tk.dist[order]
+            tk.extra = {key: v[order] for key, v in tk.extra.items()}
 
 
 def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: int) -> list[list[RankedMatch]]:
@@ -224,12 +255,14 @@ def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: in
                 RankedMatch(
                     rank=rank,
                     id=ids[at + rank - 1],
-                    distance=float(tk.dist[i]),
+                    distance=float(tk.extra["exact"][i] if "exact" in tk.extra else tk.dist[i]),
                     shift=float(tk.extra["shift"][i]),
                     reversed=bool(tk.extra["reversed"][i]),
                     mirrored=bool(tk.extra["mirrored"][i]),
                     row=int(tk.rows[i]),
                     score=float(scores[i]),
+                    elastic=float(tk.extra["elastic"][i]) if "elastic" in tk.extra else None,
+                    fused=float(tk.dist[i]) if "exact" in tk.extra else None,
                 )
                 for rank, i in enumerate(order.tolist(), start=1)
             ]

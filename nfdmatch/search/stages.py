@@ -21,7 +21,7 @@ from ..errors import ParameterError
 from ..records import RankedMatch
 from .engine import TIE
 
-__all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS"]
+__all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates"]
 
 #: the columns the elastic stage adds after ``distance``
 ELASTIC_COLUMNS = ("elastic", "fused")
@@ -64,34 +64,21 @@ class ElasticStage:
         return None if top is None else max(int(top), int(self.depth))
 
     def reorder(self, index, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]) -> list[list[RankedMatch]]:
-        from ..matching.fused import fused_rows
-        from ..matching.statistics import curve_statistics
-
-        found = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
-        if not any(len(rows) for rows in found):
-            return [[] for _ in results]
-        # the batch's rows read once (a scattered read costs about the same for one row or many)
-        every = np.unique(np.concatenate(found))
-        coefficients = index.coefficients_at(every)
-        stored = getattr(index, "statistics_at", None)
-        statistics = stored(every) if stored is not None else curve_statistics(coefficients)
-        mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+        rigid = [
+            {
+                "distance": np.array([m.distance for m in matches], dtype=np.float64),
+                "shift": np.array([m.shift for m in matches], dtype=np.float64),
+                "reversed": np.array([m.reversed for m in matches], dtype=bool),
+                "mirrored": np.array([m.mirrored for m in matches], dtype=bool),
+            }
+            for matches in results
+        ]
+        rows = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
         out = []
-        for qi, (matches, rows) in enumerate(zip(results, found)):
-            if not len(rows):
+        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid)):
+            if terms is None:
                 out.append([])
                 continue
-            at = np.searchsorted(every, rows)
-            rigid = {
-                "distance": np.array([m.distance for m in matches]),
-                "shift": np.array([m.shift for m in matches]),
-                "reversed": np.array([m.reversed for m in matches]),
-                "mirrored": np.array([m.mirrored for m in matches]),
-            }
-            terms = fused_rows(
-                qcoef[qi], coefficients[at], rigid, index.samples, query_statistics=mine[qi],
-                row_statistics=statistics[at],
-            )  # fmt: skip
             key = np.round(terms.fused / TIE)
             ranked = sorted(range(len(matches)), key=lambda i: (key[i], matches[i].distance, matches[i].id))
             out.append(
@@ -101,3 +88,38 @@ class ElasticStage:
                 ]
             )
         return out
+
+
+def fused_candidates(index, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid: Sequence[dict]) -> list:
+    """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
+    without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
+    optimum ``rigid[i]`` (``distance``, ``shift``, ``reversed``, ``mirrored`` arrays), the
+    batch's rows read once (a scattered read costs about as much for one row as for many);
+    the rows' statistics stored by the index (``statistics_at``) or computed."""
+    from ..matching.fused import fused_rows
+    from ..matching.statistics import curve_statistics
+
+    if not any(len(r) for r in rows):
+        return [None for _ in rows]
+    every = np.unique(np.concatenate(rows))
+    coefficients = index.coefficients_at(every)
+    stored = getattr(index, "statistics_at", None)
+    statistics = stored(every) if stored is not None else curve_statistics(coefficients)
+    mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+    out = []
+    for qi, found in enumerate(rows):
+        if not len(found):
+            out.append(None)
+            continue
+        at = np.searchsorted(every, found)
+        out.append(
+            fused_rows(
+                qcoef[qi],
+                coefficients[at],
+                rigid[qi],
+                index.samples,
+                query_statistics=mine[qi],
+                row_statistics=statistics[at],
+            )  # fmt: skip
+        )
+    return out
