@@ -200,7 +200,7 @@ def test_cli_query_errors_of_meshes(parts, tmp_path):
     curves = str(tmp_path / "curves.h5")
     build_index([str(parts / "ring.csv")], curves, jobs=1)
     result = runner.invoke(main, ["query", str(parts / "torus.ply"), "--index", curves])
-    assert result.exit_code == 1 and "no mesh objects" in result.stderr
+    assert result.exit_code == 2 and "no mesh objects" in result.stderr
 
 
 def test_frozen_v3_index_reads_forever(tmp_path):
@@ -268,7 +268,7 @@ def test_verify_checks_objects_and_a_query_refuses_a_bad_group(parts, tmp_path):
     result = runner.invoke(main, ["index", "verify", "--index", index])
     assert result.exit_code == 1 and "/objects" in result.output
     result = runner.invoke(main, ["query", str(parts / "torus.ply"), "--index", index])
-    assert result.exit_code == 1 and "corrupted nfdmatch index: /objects" in result.stderr
+    assert result.exit_code == 2 and "corrupted nfdmatch index: /objects" in result.stderr
     # curves are still answered: /objects is read only by what needs it
     result = runner.invoke(main, ["query", str(parts / "ring.csv"), "--index", index, "--top", "1"])
     assert result.exit_code == 0
