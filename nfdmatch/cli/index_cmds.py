@@ -133,12 +133,8 @@ def index_build(
     scheduler_timeout,
     output_format,
 ):
-    """Index the curves in SOURCE... (files or folders, recursively).
-
-    Meshes (STL, PLY, OFF, GLB/GLTF, OBJ with faces) are indexed as objects: each is cut
-    into closed contours by the index's rule (--sections planes per principal axis at area
-    quantiles, plus the boundary loops of an open mesh); its contours are its curves
-    (MESH#I), and `nfdmatch query MESH` ranks the objects (docs/objects.md).
+    """Index the curves in SOURCE... (files or folders, recursively); meshes (STL, PLY, OFF,
+    GLB/GLTF, OBJ with faces) as objects, their contours MESH#I (docs/objects.md).
 
     Without SOURCE, the sources (and --glob) of the index's last build are re-scanned:
     the index records them. Files are stored relative to the index's folder (absolute
@@ -177,7 +173,6 @@ def index_build(
       nfdmatch index build --index demo.h5          # again, from its recorded sources
       nfdmatch index build scans/ --glob '*.vtp' --jobs 2 --wait 600 --format json
       nfdmatch index build library/ --index library.h5 --graph
-      nfdmatch index build parts/ --index parts.h5          # meshes: objects
       nfdmatch index build library/ --index library.h5 --graph 10 --elastic
       nfdmatch index build /shared/scans --index /shared/scans.h5 --scheduler tcp://head:8786
       nfdmatch index build --index /shared/scans.h5 --graph 10 --scheduler tcp://head:8786
@@ -187,22 +182,28 @@ def index_build(
             "index build reads files and folders, not stdin ('-'): an index records each file to "
             "rebuild it incrementally; save the curve to a file and index that"
         )
-    if graph_elastic and not graph_k:
-        raise click.UsageError("--elastic needs --graph K: it says what the graph's distances are")
-    if graph_elastic:
-        from ..index.graph import GraphSpec
-
-        graph_k = GraphSpec(graph_k, "fused")
+    graph_k = _graph_asked(graph_k, graph_elastic)
     started = datetime.now(timezone.utc)
     options = dict(
-        **descriptor, glob=glob_pattern, input_format=input_format,
-        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k, strict=strict,
-        sections=sections,
+        **descriptor, glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run, wait=wait,
+        allow_shrink=allow_shrink, graph=graph_k, strict=strict, sections=sections,
     )  # fmt: skip
     report = _run_build(
         list(sources), index_path, options, jobs, file_timeout, (scheduler, scheduler_timeout), output_format, started
     )
     _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started, strict)
+
+
+def _graph_asked(graph_k: int | None, elastic: bool):
+    """The build's ``graph`` of --graph K and --elastic: K (exact), a ``GraphSpec`` of fused
+    distances, or None (keep the index's)."""
+    if elastic and not graph_k:
+        raise click.UsageError("--elastic needs --graph K: it says what the graph's distances are")
+    if not elastic:
+        return graph_k
+    from ..index.graph import GraphSpec
+
+    return GraphSpec(graph_k, "fused")
 
 
 def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, cluster_at: tuple, output_format, started):

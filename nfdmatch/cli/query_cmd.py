@@ -93,14 +93,9 @@ def query(
     rows are visited in increasing order of proven lower bounds (cells of the index, then
     invariant features, then the first harmonics) and the search stops when the next bound
     exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
-    Inputs that cannot be read are named on stderr and the others answered (exit 3).
-
-    A mesh QUERY (STL, PLY, OFF, GLB/GLTF, OBJ with faces) against an index of meshes is cut
-    by the index's rule and ranks its objects: rows query, rank, match (the object's mesh),
-    distance (the object distance), curves (the object's contours, #I, that were the
-    nearest of some query contour); --top at most a quarter of the objects prunes by proven
-    bounds, --exhaustive computes every object distance (docs/objects.md). A curve query
-    against such an index gains the column object (the mesh of a matched contour).
+    Inputs that cannot be read are named on stderr and the others answered (exit 3). A mesh
+    QUERY (STL, PLY, OFF, GLB/GLTF, OBJ with faces) ranks an index's objects: rows query,
+    rank, match, distance, curves (docs/objects.md); a curve's rows gain object.
 
     --rerank: the query joins the neighbour graph stored in the index through its exact 8
     nearest; its candidates (its nearest and the M curves its personalised PageRank over the
@@ -120,7 +115,6 @@ def query(
       nfdmatch query sample_curves/queries/trefoil-posed.obj --index demo.h5 --top 5
       nfdmatch query new_scans/ --index curves.h5 --top 1 --format jsonl -o matches.jsonl
       nfdmatch query library/ --index library.h5 --exclude-self --top 3
-      nfdmatch query new_part.stl --index parts.h5 --top 5
       nfdmatch query library/ --index library.h5 --exclude-self --rerank --top 3
       nfdmatch query scans/ --index library.h5 --elastic --top 5
       nfdmatch query batch/ --index /shared/scans.h5 --scheduler tcp://head:8786 -o matches.csv
@@ -128,18 +122,10 @@ def query(
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
-    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
-    if stage is not None and rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
-        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
-    if stage is not None and scheduler:
-        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
-    if rerank_candidates is not None and not rerank:
-        raise click.UsageError("--rerank-candidates needs --rerank")
+    _check_options(stage, rerank, scheduler, rerank_candidates, (rerank_depth, listing, exhaustive, matching))
     with open_index(index_path) as idx:
-        meshes = _mesh_queries(idx, queries, listing.glob, input_format)
-        if meshes:
-            given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
-            _query_objects(idx, meshes, listing, matching, given, output_format, output)
+        given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
+        if _query_meshes(idx, queries, listing, matching, input_format, given, (output_format, output)):
             return
         _note_old_format(idx, exhaustive, stage)
         if rerank and stage is not None and idx.graph_distance() != "fused":
@@ -155,20 +141,48 @@ def query(
             prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
             stage=None if rerank else stage, **listing.search(),
         )  # fmt: skip
-        spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
-        match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
-        object_of = _objects_of(idx, match_spelling, spell_match)
-    rows = [
-        {**match_row(spell_query(q.id), m), "match": match_spelling[m.id], "object": (object_of or {}).get(m.id, "")}
-        for q, res in zip(inputs.curves, results)
-        for m in res
-    ]
-    columns = _columns(listing.details, rerank, stage) + (["object"] if object_of is not None else [])
+        rows, columns = _curve_rows(idx, inputs.curves, results, listing, _columns(listing.details, rerank, stage))
     write_rows(rows, columns, output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
     nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
+
+
+def _check_options(stage, rerank, scheduler, rerank_candidates, listing_at) -> None:
+    """Usage errors of --rerank (:func:`_check_rerank_options`; ``listing_at``: its
+    ``(rerank_depth, listing, exhaustive, matching)``), --elastic and --rerank-candidates."""
+    depth, listing, exhaustive, matching = listing_at
+    _check_rerank_options(rerank, depth, listing, exhaustive, matching, scheduler)
+    if stage is not None and rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
+        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
+    if stage is not None and scheduler:
+        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
+    if rerank_candidates is not None and not rerank:
+        raise click.UsageError("--rerank-candidates needs --rerank")
+
+
+def _curve_rows(idx, curves, results, listing, columns: list) -> tuple[list, list]:
+    """The rows and columns of a curve query's answers (the match spelled while the index is
+    open); an index of objects adds the column object (the mesh of a matched contour)."""
+    spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
+    match_spelling = {m.id: spell_match(m.id) for res in results for m in res}
+    object_of = _objects_of(idx, match_spelling, spell_match)
+    rows = [
+        {**match_row(spell_query(q.id), m), "match": match_spelling[m.id], "object": (object_of or {}).get(m.id, "")}
+        for q, res in zip(curves, results)
+        for m in res
+    ]
+    return rows, columns + (["object"] if object_of is not None else [])
+
+
+def _query_meshes(idx, queries, listing, matching, input_format, given: dict, output_at) -> bool:
+    """Answer a query of meshes (:func:`_query_objects`) and say so; False for a query of
+    curves (nothing done)."""
+    meshes = _mesh_queries(idx, queries, listing.glob, input_format)
+    if meshes:
+        _query_objects(idx, meshes, listing, matching, given, *output_at)
+    return bool(meshes)
 
 
 def _mesh_queries(idx, queries, glob, input_format) -> list[str]:

@@ -210,10 +210,9 @@ def build_index(
     ``samples, harmonics, scale``: None keeps the index's values; ``dry_run``: read and
     describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
     build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
-    total)``; ``file_timeout``: seconds one file may take; ``runner``: computes the tasks
-    instead of the local pool; ``graph_runner``: searches the graph's rows. Every
-    parameter, the files' paths and the errors raised are described in full in this
-    module's docstring.
+    total)``; ``file_timeout``: seconds one file may take; ``runner``, ``graph_runner``:
+    compute the tasks, search the graph's rows; ``sections``: the meshes' planes per axis.
+    Every parameter, the paths and the errors: this module's docstring.
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
