@@ -122,17 +122,16 @@ def query(
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
-    _check_options(stage, rerank, scheduler, rerank_candidates, (rerank_depth, listing, exhaustive, matching))
+    _check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
+    _check_stage_options(stage, rerank, scheduler)
+    if rerank_candidates is not None and not rerank:
+        raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
         given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
         if _query_meshes(idx, queries, listing, matching, input_format, given, (output_format, output)):
             return
         _note_old_format(idx, exhaustive, stage)
-        if rerank and stage is not None and idx.graph_distance() != "fused":
-            raise click.UsageError(
-                f"--elastic with --rerank needs a graph of fused distances: build it with `nfdmatch index build "
-                f"--index {idx.path} --graph 10 --elastic` (--rerank alone diffuses over the exact graph)"
-            )
+        _check_stage_options(stage, rerank, scheduler, idx)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
@@ -147,19 +146,6 @@ def query(
         say(_stats_line(stats))
     inputs.finish()
     nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
-
-
-def _check_options(stage, rerank, scheduler, rerank_candidates, listing_at) -> None:
-    """Usage errors of --rerank (:func:`_check_rerank_options`; ``listing_at``: its
-    ``(rerank_depth, listing, exhaustive, matching)``), --elastic and --rerank-candidates."""
-    depth, listing, exhaustive, matching = listing_at
-    _check_rerank_options(rerank, depth, listing, exhaustive, matching, scheduler)
-    if stage is not None and rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
-        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
-    if stage is not None and scheduler:
-        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
-    if rerank_candidates is not None and not rerank:
-        raise click.UsageError("--rerank-candidates needs --rerank")
 
 
 def _curve_rows(idx, curves, results, listing, columns: list) -> tuple[list, list]:
@@ -358,6 +344,22 @@ def _search_queries(
         finish_bar()
         if cluster is not None:
             cluster.close()
+
+
+def _check_stage_options(stage, rerank: bool, scheduler, idx=None) -> None:
+    """Usage errors of --elastic (``stage``) with --rerank and --scheduler; given the open
+    index ``idx``, --elastic --rerank needs its graph to hold fused distances."""
+    if stage is None:
+        return
+    if rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
+        raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
+    if scheduler:
+        raise click.UsageError("--elastic runs on this machine: drop --scheduler")
+    if idx is not None and rerank and idx.graph_distance() != "fused":
+        raise click.UsageError(
+            f"--elastic with --rerank needs a graph of fused distances: build it with `nfdmatch index build "
+            f"--index {idx.path} --graph 10 --elastic` (--rerank alone diffuses over the exact graph)"
+        )
 
 
 def _check_rerank_options(rerank, depth, listing, exhaustive, matching: dict, scheduler) -> None:

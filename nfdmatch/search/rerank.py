@@ -35,6 +35,7 @@ from ..records import RankedMatch
 from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
 from .knn import self_rule
+from .stages import fused_best_rows
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -194,7 +195,7 @@ def rerank_index(
         found, stats = search_rows(index, qcoef, Cascade(index.samples), top=depth, progress=progress, threads=threads)
         rank_rows(index, found, depth)
         if fused:
-            _fused_distances(index, qcoef, found)
+            fused_best_rows(index, qcoef, found)
         union = _union(found)
         vectors = _Vectors(union, *walk.pagerank(union))  # every candidate's, once for the batch
     else:
@@ -206,30 +207,6 @@ def rerank_index(
     results = _answers(index, walk, vectors, found, merged, top)
     stats.seconds = time.perf_counter() - t0
     return results, stats
-
-
-def _fused_distances(index, qcoef, found) -> None:
-    """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
-    distances) given their fused distances instead (the exact ones kept in ``extra["exact"]``,
-    the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then id."""
-    from .stages import fused_candidates
-
-    rigid = [
-        {"distance": tk.dist, "shift": tk.extra["shift"], "reversed": tk.extra["reversed"],
-         "mirrored": tk.extra["mirrored"]}
-        for tk in found
-    ]  # fmt: skip
-    for tk, terms in zip(found, fused_candidates(index, qcoef, [tk.rows for tk in found], rigid)):
-        if terms is None:
-            continue
-        tk.extra = {**tk.extra, "exact": tk.dist.copy(), "elastic": terms.elastic}
-        tk.dist = terms.fused
-    # by fused distance (within TIE), then exact distance, then id (rank_rows: distance, id)
-    for tk in found:
-        if "exact" in tk.extra and len(tk.rows) > 1:
-            order = np.lexsort((tk.extra["exact"], np.round(tk.dist / TIE)))
-            tk.rows, tk.dist = tk.rows[order], tk.dist[order]
-            tk.extra = {key: v[order] for key, v in tk.extra.items()}
 
 
 def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: int) -> list[list[RankedMatch]]:

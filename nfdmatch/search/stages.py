@@ -21,7 +21,7 @@ from ..errors import ParameterError
 from ..records import RankedMatch
 from .engine import TIE
 
-__all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates"]
+__all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates", "fused_best_rows"]
 
 #: the columns the elastic stage adds after ``distance``
 ELASTIC_COLUMNS = ("elastic", "fused")
@@ -123,3 +123,25 @@ def fused_candidates(index, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid
             )  # fmt: skip
         )
     return out
+
+
+def fused_best_rows(index, qcoef: np.ndarray, found) -> None:
+    """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
+    distances) given their fused distances instead (the exact ones kept in ``extra["exact"]``,
+    the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then id."""
+    rigid = [
+        {"distance": tk.dist, "shift": tk.extra["shift"], "reversed": tk.extra["reversed"],
+         "mirrored": tk.extra["mirrored"]}
+        for tk in found
+    ]  # fmt: skip
+    for tk, terms in zip(found, fused_candidates(index, qcoef, [tk.rows for tk in found], rigid)):
+        if terms is None:
+            continue
+        tk.extra = {**tk.extra, "exact": tk.dist.copy(), "elastic": terms.elastic}
+        tk.dist = terms.fused
+    # by fused distance (within TIE), then exact distance, then id (rank_rows: distance, id)
+    for tk in found:
+        if "exact" in tk.extra and len(tk.rows) > 1:
+            order = np.lexsort((tk.extra["exact"], np.round(tk.dist / TIE)))
+            tk.rows, tk.dist = tk.rows[order], tk.dist[order]
+            tk.extra = {key: v[order] for key, v in tk.extra.items()}
