@@ -1,8 +1,10 @@
-"""Ctrl-C / SIGTERM during a parallel build, as a terminal or `timeout -s INT` delivers them.
+"""Ctrl-C / SIGTERM at any moment, as a terminal or `timeout -s INT` delivers them.
 
-    python benchmarks/sigint_trials.py [--trials 30] [--files 10000] [--jobs 2] [--workdir /tmp/nfdmatch-small]
+    python benchmarks/sigint_trials.py [--mode build|startup|stuck] [--trials 30] [--files 10000]
+                                       [--jobs 2] [--workdir /tmp/nfdmatch-small]
                                        [--min-delay 0.5] [--max-delay 3.0]
 
+``--mode build`` (the default), a parallel build:
 Builds an index of ``--files`` one-curve CSV files once, then runs ``--trials`` rebuilds
 (``nfdmatch index build FOLDER --index I.h5 --rebuild -j JOBS`` in a new session), each
 sent SIGINT or SIGTERM (alternating, random order) to its whole process group after a
@@ -12,7 +14,19 @@ temporary files left, the previous index intact (same bytes), processes of the g
 alive, and builds that finished before the signal came. A signal that comes while Python
 is still starting up (importing numpy, before nfdmatch's code runs and takes the lock) gets
 Python's own behaviour (SIGINT: a KeyboardInterrupt traceback from the import, SIGTERM:
-killed at once); those trials are counted apart ("while starting up").
+killed at once); those trials are counted apart ("while starting up"). The build's
+process is the watchdog's child (``nfdmatch/cli/start.py``): the lock holds its pid.
+
+``--mode startup``: ``nfdmatch describe`` of one sample curve, signalled ``--min-delay`` to
+``--max-delay`` s after it starts (use 0 to 0.3: interpreter start-up, imports, the
+command); counts exit codes, stderr lines and tracebacks per delay bucket of 25 ms.
+Python's own start-up (before nfdmatch's first line, while ``site`` imports) keeps Python's
+behaviour: the first bucket(s) show it.
+
+``--mode stuck``: a command inside a C call that never returns and holds the GIL (h5py
+reading a root attribute of ``tests/data/index/hang-heap-v2.h5`` directly, HDF5's loop of
+issue 34), signalled ``--min-delay`` to ``--max-delay`` s after it says it is about to call:
+the watchdog must end it (signal-to-exit ~0.8 s).
 """
 
 from __future__ import annotations
@@ -52,8 +66,91 @@ def _group_alive(pgid: int) -> list[int]:
     return out
 
 
+def _parent(pid: int) -> int | None:
+    try:
+        return int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+STUCK = """
+import sys
+from nfdmatch.cli import main
+
+@main.command("stuck")
+def stuck():
+    import h5py
+    f = h5py.File({hang!r}, "r", locking=False)
+    print("ready", file=sys.stderr, flush=True)
+    f.attrs["format"]  # HDF5 loops here for ever, holding the GIL
+
+from nfdmatch.cli.start import run
+run()
+"""
+
+
+def short_trials(args) -> None:
+    """``--mode startup`` and ``--mode stuck``: one short command per trial."""
+    env = dict(os.environ, PYTHONPATH=REPO)
+    os.makedirs(args.workdir, exist_ok=True)
+    if args.mode == "startup":
+        cmd = [sys.executable, "-m", "nfdmatch", "describe", os.path.join(REPO, "sample_curves/library/circle.tsv")]
+    else:
+        script = os.path.join(args.workdir, "stuck.py")
+        with open(script, "w") as fh:
+            fh.write(STUCK.format(hang=os.path.join(REPO, "tests/data/index/hang-heap-v2.h5")))
+        cmd = [sys.executable, script, "stuck"]
+    rnd = random.Random(args.seed)
+    plan = [signal.SIGINT, signal.SIGTERM] * ((args.trials + 1) // 2)
+    rnd.shuffle(plan)
+    rows = collections.defaultdict(collections.Counter)
+    latencies = collections.defaultdict(list)
+    for sig in plan[: args.trials]:
+        delay = rnd.uniform(args.min_delay, args.max_delay)
+        proc = subprocess.Popen(
+            cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
+        if args.mode == "stuck":
+            proc.stderr.readline()  # "ready"
+        time.sleep(delay)
+        sent = time.monotonic()
+        os.killpg(proc.pid, sig)
+        try:
+            _, err = proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            _, err = proc.communicate()
+            err += "HANG"
+        latency = time.monotonic() - sent
+        key = (
+            sig.name,
+            f"{int(delay / 0.025) * 25:3d}-{int(delay / 0.025) * 25 + 25} ms" if args.mode == "startup" else "",
+        )
+        c = rows[key]
+        c["trials"] += 1
+        c["hangs"] += "HANG" in err
+        c["within 1 s"] += latency <= 1.0
+        c[f"exit {proc.returncode}"] += 1
+        c["tracebacks"] += "Traceback" in err or "Fatal Python error" in err
+        c["one line"] += len(err.splitlines()) == 1
+        latencies[sig.name].append(latency)
+        time.sleep(0.02)
+        for pid in _group_alive(proc.pid):
+            rows[key]["processes left"] += 1
+            os.kill(pid, signal.SIGKILL)
+    print(
+        f"{args.trials} trials, --mode {args.mode}: `{' '.join(cmd[1:])}`, signal after {args.min_delay}-{args.max_delay} s"
+    )
+    for (name, bucket), c in sorted(rows.items()):
+        print(f"{name} {bucket}: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))
+    for name, lat in sorted(latencies.items()):
+        lat.sort()
+        print(f"{name}: signal-to-exit median {lat[len(lat) // 2]:.3f} s, worst {lat[-1]:.3f} s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--mode", choices=("build", "startup", "stuck"), default="build")
     ap.add_argument("--trials", type=int, default=30)
     ap.add_argument("--files", type=int, default=10000)
     ap.add_argument("--jobs", type=int, default=2)
@@ -67,6 +164,8 @@ def main() -> None:
     ap.add_argument("--max-delay", type=float, default=3.0)
     ap.add_argument("--seed", type=int, default=20261201)
     args = ap.parse_args()
+    if args.mode != "build":
+        return short_trials(args)
     folder = os.path.join(args.workdir, f"{args.files}-csv")
     generate(folder, args.files, "csv", 0)
     work = os.path.join(args.workdir, "sigint")
@@ -100,8 +199,9 @@ def main() -> None:
             original = _digest(index)  # a finished rebuild is the new "previous index"
             continue
         try:  # the build writes its pid into the lock file once it runs (imports done, lock held)
-            started = open(index + ".lock").read().strip() == str(proc.pid)
-        except OSError:
+            holder = int(open(index + ".lock").read().strip() or 0)
+            started = holder == proc.pid or _parent(holder) == proc.pid  # the watchdog's child
+        except (OSError, ValueError):
             started = False
         if not started:
             c["signalled while starting up"] += 1

@@ -12,16 +12,15 @@ Public API::
 Zhang & Fiume, "Shape Matching of 3-D Contours using Normalized Fourier
 Descriptors" (SMI 2002), with an exact shift x rotation search.
 
-The index side (h5py) loads on first use of its names: ``import nfdmatch`` does not import it.
+Every name loads its module on first use: ``import nfdmatch`` imports nothing heavy (no
+numpy), so that the program's first step (``nfdmatch.cli.start``: its signal handling)
+runs before any heavy import.
 """
 
+import sys
+import types
+
 from ._version import __version__
-from .curve import Curve
-from .descriptors import Descriptors, descriptors
-from .errors import NfdError
-from .formats import read_curve, read_curves, write_curves
-from .matching import Match, distance, match_descriptors
-from .records import RankedMatch
 
 __all__ = [
     "__version__",
@@ -42,8 +41,19 @@ __all__ = [
     "BuildReport",
 ]
 
-#: names loaded on first use, and their modules
+#: public names and their modules, each loaded on first use
 _LAZY = {
+    "Curve": "nfdmatch.curve",
+    "Descriptors": "nfdmatch.descriptors",
+    "descriptors": "nfdmatch.descriptors",
+    "NfdError": "nfdmatch.errors",
+    "read_curve": "nfdmatch.formats",
+    "read_curves": "nfdmatch.formats",
+    "write_curves": "nfdmatch.formats",
+    "Match": "nfdmatch.matching",
+    "distance": "nfdmatch.matching",
+    "match_descriptors": "nfdmatch.matching",
+    "RankedMatch": "nfdmatch.records",
     "build_index": "nfdmatch.index",
     "BuildReport": "nfdmatch.index",
     "open_index": "nfdmatch.index",
@@ -63,3 +73,16 @@ def __getattr__(name):
 
 def __dir__():
     return sorted(set(globals()) | set(_LAZY))
+
+
+class _Package(types.ModuleType):
+    """The package: loading submodule ``nfdmatch.descriptors`` binds the package's name
+    ``descriptors``; it stays the function of that name (``nfdmatch.descriptors(...)``)."""
+
+    def __setattr__(self, name, value):
+        if isinstance(value, types.ModuleType) and _LAZY.get(name) == value.__name__:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -1,5 +1,5 @@
-from .cli import main
+from .cli.start import run
 
 # guarded: worker processes started by spawn (a Dask LocalCluster) re-import the main module
 if __name__ == "__main__":
-    main()
+    run()

@@ -97,6 +97,44 @@ def check_no_garbage_of_the_parent_is_finalized_in_a_worker(folder):
     assert pids == [str(os.getpid())] * 2, pids
 
 
+def check_no_garbage_of_the_parent_is_finalized_in_a_build_worker(folder):
+    """The same for the worker processes of a build (index/pool.py, forked when the process
+    has one thread): the parent's uncollected cycle is finalized in the parent only."""
+    import gc
+
+    from nfdmatch import write_curves
+    from nfdmatch.index import build_index, pool
+
+    log = os.path.join(folder, "finalized")
+    os.mkdir(os.path.join(folder, "c"))
+    for i in range(6):
+        write_curves(os.path.join(folder, "c", f"c{i}.csv"), np.random.default_rng(i).normal(size=(20, 3)))
+
+    class Held:
+        def __del__(self):
+            with open(log, "a") as f:
+                f.write(f"{os.getpid()}\n")
+
+    compute = pool._compute_batch
+
+    def collecting(batch, slot=None):  # the test hook: what a worker's allocations do in time
+        gc.collect()
+        return compute(batch, slot)
+
+    pool._compute_batch = collecting
+    pool._batches = lambda tasks: [[i] for i in range(len(tasks))]  # one file a batch: both workers busy
+    gc.disable()
+    a, b = Held(), Held()
+    a.other, b.other = b, a
+    del a, b
+    build_index([os.path.join(folder, "c")], os.path.join(folder, "i.h5"), jobs=2)
+    gc.enable()
+    gc.collect()
+    with open(log) as f:
+        pids = f.read().split()
+    assert pids == [str(os.getpid())] * 2, pids
+
+
 def check_no_fork_while_another_thread_runs(folder):
     assert can_fork()
     stop = threading.Event()

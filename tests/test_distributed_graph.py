@@ -59,10 +59,14 @@ def test_a_cluster_graph_is_the_local_graph_byte_for_byte_fresh_and_incremental(
 
     monkeypatch.setattr(graph, "_BLOCK_ROWS", 32)  # several blocks: several tasks on both workers
     local, remote = library.parent / "local.h5", library.parent / "remote.h5"
-    rl = build_index([library], local, jobs=2, graph=8)
-    rr = cluster.build_index([library], remote, graph=8)
+    seen = {"local": [], "remote": []}  # the progress of the graph's search, row counts
+    rl = build_index([library], local, jobs=2, graph=8, graph_progress=lambda *c: seen["local"].append(c))
+    rr = cluster.build_index([library], remote, graph=8, graph_progress=lambda *c: seen["remote"].append(c))
     assert _graph_bytes(local) == _graph_bytes(remote)
     assert (rl.graph.searched, rr.graph.searched) == (240, 240)
+    for calls in seen.values():
+        assert calls[0] == (0, 240) and calls[-1] == (240, 240) and len(calls) > 2
+        assert [done for done, _ in calls] == sorted(done for done, _ in calls)
     assert (rl.graph.scheduler, rl.graph.workers) == ("", 0)
     assert (rr.graph.scheduler, rr.graph.workers, rr.graph.processes) == (cluster.address, 2, 0)
     assert _no_temp_files(library.parent)

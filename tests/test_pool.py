@@ -202,6 +202,13 @@ def _children(pid):
     return out
 
 
+def _command(proc) -> int:
+    """The process running the command: the one child of the program's watchdog process
+    (``nfdmatch.cli.start``); the build's workers are its children."""
+    _wait_for(lambda: len(_children(proc.pid)) == 1, proc)
+    return _children(proc.pid)[0]
+
+
 def _alive(pid):
     try:
         return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
@@ -245,8 +252,9 @@ def test_workers_killed_from_outside_are_replaced(folder, tmp_path):
     # c010 hangs the first time it is read, so that a worker is surely busy when we kill
     proc = _cli(["index", "build", folder, "--index", index, "--jobs", "2"], env={HOOK: "sleeponce:c010.csv"})
     _wait_for(lambda: os.path.exists(paths[10] + ".hooked"), proc)
-    _wait_for(lambda: len(_children(proc.pid)) >= 1, proc)
-    for pid in _children(proc.pid):
+    command = _command(proc)
+    _wait_for(lambda: len(_children(command)) >= 1, proc)
+    for pid in _children(command):
         os.kill(pid, signal.SIGKILL)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
@@ -335,7 +343,7 @@ def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, g
         start_new_session=True,
     )
     _wait_for(lambda: os.path.exists(paths[150] + ".hooked") and any(".tmp-" in n for n in os.listdir(tmp_path)), proc)
-    workers = _children(proc.pid)
+    workers = _children(_command(proc))
     if sig == signal.SIGINT:
         # workers ignore SIGINT (only the parent acts on it): not one of them may die of it
         for pid in workers:

@@ -216,6 +216,15 @@ def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, clu
     scheduler, scheduler_timeout = cluster_at
     cluster = None
     progress, finish_bar = progress_bar("indexing files")
+    graph_bar = []
+
+    def graph_progress(done, total):  # the files' bar gives way to the graph's (one at a time)
+        if not graph_bar:
+            finish_bar()
+            graph_bar.extend(progress_bar("searching the graph"))
+        if graph_bar[0] is not None:
+            graph_bar[0](done, total)
+
     try:
         if scheduler and not options["dry_run"]:  # a dry run reads locally: nothing for workers to do
             if jobs is not None:
@@ -223,15 +232,23 @@ def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, clu
             cluster = open_cluster(scheduler, scheduler_timeout)
         if cluster is None:
             return build_index(
-                sources, index_path, jobs=jobs, file_timeout=file_timeout or None, progress=progress, **options
+                sources,
+                index_path,
+                jobs=jobs,
+                file_timeout=file_timeout or None,
+                progress=progress,
+                graph_progress=graph_progress,
+                **options,
             )
-        return cluster.build_index(sources, index_path, progress=progress, **options)
+        return cluster.build_index(sources, index_path, progress=progress, graph_progress=graph_progress, **options)
     except (NfdError, KeyboardInterrupt) as exc:
         if output_format == "json":  # cron logs one line per run: it says why nothing was written
             deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
         raise
     finally:
         finish_bar()
+        if graph_bar:
+            graph_bar[1]()
         if cluster is not None:
             cluster.close()
 
@@ -495,6 +512,7 @@ def index_info(index_path, output_format, output):
         for key in (
             "format",
             "format_version",
+            "metadata",
             "nfdmatch_version",
             "files",
             "curves",

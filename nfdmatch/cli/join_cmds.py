@@ -8,7 +8,15 @@ import json
 
 import click
 
-from .options import detail, index_option, matching_options, nothing_matched, output_option, rows_format_option
+from .options import (
+    check_max_distance,
+    detail,
+    index_option,
+    matching_options,
+    nothing_matched,
+    output_option,
+    rows_format_option,
+)
 from .output import deliver, progress_bar, resolve_format, write_rows
 from .cluster import open_cluster, scheduler_options
 from .group import main
@@ -16,6 +24,7 @@ from .group import main
 _DISTANCE = click.option(
     "--max-distance",
     type=click.FloatRange(min=0),
+    callback=check_max_distance,
     required=True,
     metavar="D",
     help="Two curves at most this exact distance apart are a pair (near-duplicates).",

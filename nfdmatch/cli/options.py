@@ -30,12 +30,13 @@ from dataclasses import dataclass, fields
 import click
 
 from ..errors import NfdError, WriteError
+from .signals import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, raising
 
 EXIT_OK, EXIT_NOTHING, EXIT_ERROR, EXIT_PARTIAL = 0, 1, 2, 3
 #: click's own exit status of a usage error: the same as any other error
 EXIT_USAGE = EXIT_ERROR
-#: 128 + the signal number, as a shell reports a process ended by SIGINT / SIGTERM
-EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
+# EXIT_INTERRUPTED, EXIT_TERMINATED (signals.py): 128 + the signal number, as a shell
+# reports a process ended by SIGINT / SIGTERM
 ROW_FORMATS = ("table", "csv", "tsv", "json", "jsonl")
 
 QUIET, NORMAL, VERBOSE = 0, 1, 2
@@ -66,7 +67,8 @@ class NfdGroup(click.Group):
 
     def invoke(self, ctx):
         started = time.perf_counter()
-        restore = _catch_sigterm() if ctx.parent is None else None
+        # the first SIGINT/SIGTERM raises while the command runs, later ones are ignored
+        restore = raising() if ctx.parent is None else None
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the library cleaned up on its way out
@@ -109,27 +111,6 @@ def _say_kernels_unused() -> None:
     reason = aot.unused_reason() if aot is not None else None
     if reason:
         note(reason, prefix="Warning: ")
-
-
-class Terminated(KeyboardInterrupt):
-    """Raised in the main thread on SIGTERM, so that a command unwinds as on Ctrl-C
-    (temporary files removed, worker processes stopped) and exits 143."""
-
-
-def _raise_terminated(signum, frame):
-    raise Terminated()
-
-
-def _catch_sigterm():
-    """SIGTERM raises :class:`Terminated` while a command runs; returns what restores the
-    previous handler (None off the main thread, where handlers cannot be set)."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 def _set_verbosity(ctx, param, value):
@@ -667,6 +648,19 @@ exclude_self_option = click.option(
 )
 
 
+def check_max_distance(ctx, param, value):
+    """``--max-distance`` by the library's rule (``search.limits``): a number >= 0, inf for
+    no limit; NaN refused as a usage error, as a negative number is."""
+    if value is not None:
+        from ..search.limits import check_limits
+
+        try:
+            check_limits(max_distance=value)
+        except NfdError:
+            raise click.BadParameter(f"{value} is not a distance (a number >= 0; inf: no limit)") from None
+    return value
+
+
 @dataclass(frozen=True)
 class MatchListing:
     """What a command that lists a query's matches was asked for (:func:`match_list_options`):
@@ -699,6 +693,7 @@ def match_list_options(top_help: str, glob_help: str):
                     "--max-distance",
                     type=click.FloatRange(min=0),
                     default=None,
+                    callback=check_max_distance,
                     help="Only list matches at most this far.",
                 ),
                 glob_options("glob", glob_help),

@@ -103,7 +103,7 @@ def path_speller(mode: str, locate=None):
     no file (stdin) stay as they are."""
     if mode == "id":
         return lambda curve_id: curve_id
-    from .inputs import STDIN_ID
+    from ..curve import STDIN_ID
 
     from ..names import decode_name, encode_name
 

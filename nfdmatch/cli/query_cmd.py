@@ -287,8 +287,9 @@ def _columns(details: bool, rerank: bool, stage=None) -> list[str]:
 
 
 def _note_old_format(idx, exhaustive: bool, stage=None) -> None:
-    """A note that a format-1 index (no search cells) bounds every row for each query, and
-    that an index before format 3 has its statistics computed on read by the elastic stage."""
+    """A note that a format-1 index (no search cells) bounds every row for each query, that
+    an index before format 3 has its statistics computed on read by the elastic stage, and
+    that an older file (not ``checked_metadata``) is read whole at each open."""
     from ..index import FORMAT_VERSION
 
     if idx.format_version < 3 and stage is not None:
@@ -302,6 +303,12 @@ def _note_old_format(idx, exhaustive: bool, stage=None) -> None:
             f"{idx.path} is an index of format {idx.format_version}, without search cells: every row is "
             f"bounded for each query (slower on large indexes); `nfdmatch index build --index "
             f"{idx.path}` upgrades it"
+        )
+    if not idx.checked_metadata and idx.format_version >= 2:
+        note(
+            f"{idx.path} was written before its metadata was checked: every open reads the whole "
+            f'file first (docs/index-format.md, "Global heap collections"); `nfdmatch index build '
+            f"--index {idx.path}` rewrites it"
         )
 
 

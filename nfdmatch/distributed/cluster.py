@@ -12,7 +12,7 @@ from .._version import __version__
 from .build_tasks import batches, compute_batches, failed_answer, file_size
 from .cluster_search import ClusterSearch
 from .search_tasks import forget_index, graph_part, index_stamp, pairs_part
-from .settings import RETRIES, ClusterError, first_line, task_result, worker_info
+from .settings import CLEANUP_TIMEOUT, RETRIES, ClusterError, first_line, task_result, worker_info
 
 __all__ = ["Cluster"]
 
@@ -63,7 +63,7 @@ class Cluster(ClusterSearch):
                 f"start some with `dask worker {self.address}`"
             ) from None
         try:
-            info = self.client.run(worker_info)
+            info = self.client.run(worker_info, callback_timeout=timeout)
         except Exception as exc:  # nfdmatch not importable on a worker, ...
             raise ClusterError(
                 f"the Dask workers cannot run nfdmatch ({type(exc).__name__}: "
@@ -131,8 +131,8 @@ class Cluster(ClusterSearch):
             if futures:
                 self.client.cancel(list(futures))
             try:
-                self.client.run(forget_index, path)
-            except Exception:  # a worker gone: its process, and the file it held, went with it
+                self.client.run(forget_index, path, callback_timeout=CLEANUP_TIMEOUT)
+            except Exception:  # a worker gone (its process, and the file it held, went with it) or stuck
                 pass
         return self.address, len(self.workers)
 

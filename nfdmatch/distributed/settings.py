@@ -7,6 +7,7 @@ from ..errors import NfdError
 __all__ = [
     "ClusterError",
     "DEFAULT_TIMEOUT",
+    "CLEANUP_TIMEOUT",
     "TASK_BYTES",
     "TASK_FILES",
     "QUERY_BLOCK",
@@ -18,6 +19,9 @@ __all__ = [
 
 #: seconds to reach the scheduler and see a worker before giving up (``--scheduler-timeout``)
 DEFAULT_TIMEOUT = 10.0
+#: seconds the clean-up after a graph search (each worker closes the index it held) may take:
+#: a worker stuck in a long call must not hold the build, whose result is complete
+CLEANUP_TIMEOUT = 10.0
 #: bytes of input files per build task at most: big enough that a task's overhead (~1 ms on
 #: the scheduler, a round trip) is small next to reading and describing, small enough that
 #: a retried task redoes little and that every worker gets several tasks

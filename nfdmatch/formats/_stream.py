@@ -71,12 +71,14 @@ def check_line_lengths(data: bytes, name: str, line_limit: int) -> None:
             raise ParseError(_too_long(line_limit), path=name, line=line)
 
 
+#: Longest line of a CSV file, in bytes (1 MiB): a row holds one vertex. Checked before any
+#: line is split (the CSV reader, and stdin's copy), so that one huge line (a hostile input of
+#: hundreds of MB) fails in a second instead of being split into millions of cells.
+MAX_LINE_BYTES = 1 << 20
+
+
 def stdin_line_limit(format: str) -> int | None:
     """The longest line a stream of ``format`` may hold (checked while it is copied): the
-    CSV reader's :data:`~nfdmatch.formats.csv.MAX_LINE_BYTES`; None for formats whose
-    lines may legitimately be long (an OBJ ``l`` line lists a whole polyline)."""
-    if format == "csv":
-        from .csv import MAX_LINE_BYTES
-
-        return MAX_LINE_BYTES
-    return None
+    CSV reader's :data:`MAX_LINE_BYTES`; None for formats whose lines may legitimately be
+    long (an OBJ ``l`` line lists a whole polyline)."""
+    return MAX_LINE_BYTES if format == "csv" else None

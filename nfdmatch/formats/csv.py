@@ -29,16 +29,13 @@ import numpy as np
 
 from ..errors import CurveError, ParameterError, ParseError, excerpt
 from ._chain import is_number, points_list, read_text_bytes, write_text
-from ._stream import check_line_lengths
+from ._stream import MAX_LINE_BYTES, check_line_lengths
 
 __all__ = ["read_points", "write"]
 
 _ANY_DELIMITER = re.compile(r"\s*[,;\t]\s*|\s+")
 
-#: Longest line read, in bytes (1 MiB): a row holds one vertex. Checked before any line is
-#: split, so that one huge line (a hostile input of hundreds of MB) fails in a second instead
-#: of being split into millions of cells.
-MAX_LINE_BYTES = 1 << 20
+# MAX_LINE_BYTES (_stream.py, where stdin's copy checks it too): the longest line read
 
 
 def _unquote(token: str) -> str:

@@ -36,6 +36,8 @@ graph : store each row's ``graph`` nearest rows (``/graph``, for ``query --reran
 progress : optional ``progress(done_files, total_files)``, called with (0, total) first and
     then as files finish; total counts the files that must be read or hashed (unchanged
     files are not counted).
+graph_progress : optional ``graph_progress(done_rows, total_rows)`` for the graph's search
+    (``graph``), here or by ``graph_runner``: (0, total) first, then as blocks of rows finish.
 allow_shrink : allow a build that removes more than half of the index's files, or all.
 file_timeout : seconds one file may take to be read and hashed (None or 0: no limit);
     a file over it fails alone (its worker is killed), the build goes on. With a limit,
@@ -201,6 +203,7 @@ def build_index(
     graph_runner=None,
     strict=False,
     exclude=None,
+    graph_progress=None,
     sections=None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
@@ -211,8 +214,9 @@ def build_index(
     describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
     build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
     total)``; ``file_timeout``: seconds one file may take; ``runner``, ``graph_runner``:
-    compute the tasks, search the graph's rows; ``sections``: the meshes' planes per axis.
-    Every parameter, the paths and the errors: this module's docstring.
+    compute the tasks, search the graph's rows; ``graph_progress(done, total)``: its rows;
+    ``sections``: the meshes' planes per axis. Every parameter, the paths and the errors:
+    this module's docstring.
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
@@ -249,7 +253,7 @@ def build_index(
             write_new_index(
                 report, real_index, plan, old, jobs, lock, progress, file_timeout,
                 sources=(stored_sources, glob or None, exclude), name=index_path, graph=graph, runner=runner,
-                graph_runner=graph_runner, strict=strict,
+                graph_runner=graph_runner, strict=strict, graph_progress=graph_progress,
             )  # fmt: skip
         else:
             _unchanged(report, plan, old, real_index, progress, strict)
@@ -386,12 +390,17 @@ def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str,
     upgrade = old is not None and old.format_version < FORMAT_VERSION
     if upgrade:
         report.notices.append(f"upgrading the index from format {old.format_version} to {FORMAT_VERSION}")
+    # a file whose metadata HDF5 parses unchecked is rewritten in the checked kind
+    rewrite = old is not None and not upgrade and not old.checked_metadata
+    if rewrite:
+        report.notices.append("rewriting the index with checked metadata (older HDF5 structures or heap attributes)")
     return (
         old is None
         or plan.recompute_all
         or bool(plan.tasks)
         or bool(plan.removed)
         or upgrade
+        or rewrite
         or recorded != new_sources
         or graph_changes(old, graph)
         or any(it.path != it.old.path for it in plan.items if it.old)

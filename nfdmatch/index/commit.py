@@ -26,7 +26,7 @@ from .graph_build import blocks_to_search, plan_graph, store_graph, write_graph
 from .paths import curve_ids, id_collision
 from .plan import Action, Plan
 from .pool import run_tasks
-from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short
+from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short, set_text
 from .search_group import write_search_group
 from .writer import CopyRun, CurveWriter, Space, fsync_path, write_files_table, write_sources
 
@@ -53,6 +53,7 @@ def write_new_index(
     runner=None,
     graph_runner=None,
     strict=False,
+    graph_progress=None,
 ):
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
@@ -67,12 +68,12 @@ def write_new_index(
     actions: dict[str, str] = {p: "removed" for p in plan.removed}
     now = _utcnow()
     try:
-        graph_job = (graph, jobs, None if lock is None else lock.fd, graph_runner)
+        graph_job = (graph, jobs, None if lock is None else lock.fd, graph_runner, graph_progress)
         pending = _write_file(
             tmp, shown, plan, old, stream, result_of, report, actions, sources, graph_job, now, strict
         )
         if pending is not None:
-            report.graph = _graph_elsewhere(tmp, shown, *pending, graph_runner)
+            report.graph = _graph_elsewhere(tmp, shown, *pending, graph_runner, graph_progress)
         Space.release(tmp)
         fsync_path(tmp, strict=True)  # a full disk may show only here: never replace then
         os.replace(tmp, index_path)
@@ -159,10 +160,12 @@ def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sourc
             # the cells: features, squared norms, row numbers and first harmonics of every row
             space.reserve(writer.rows * (8 * (2 * K + 3) + 24 * K + 160))
             report.cells = write_search_group(h5, K, id_crcs=writer.id_crcs())
-            graph, processes, lock_fd, graph_runner = graph_job
+            graph, processes, lock_fd, graph_runner, graph_progress = graph_job
             reuse = not plan.recompute_all
             if graph_runner is None:
-                report.graph = write_graph(h5, old, graph, reuse=reuse, processes=processes, close_fds=(lock_fd,))
+                report.graph = write_graph(
+                    h5, old, graph, reuse=reuse, processes=processes, close_fds=(lock_fd,), progress=graph_progress
+                )
             else:
                 pending = _graph_here(h5, old, graph, reuse, space, report)
             report.curves = writer.rows
@@ -201,13 +204,21 @@ def _graph_here(h5, old, graph, reuse: bool, space: Space, report):
     return None
 
 
-def _graph_elsewhere(tmp: str, shown: str, graph_plan, blocks: list, graph_runner) -> GraphStats:
+def _graph_elsewhere(tmp: str, shown: str, graph_plan, blocks: list, graph_runner, progress=None) -> GraphStats:
     """The graph's rows searched by ``graph_runner`` in ``tmp`` (closed: complete but for
     /graph, so that other processes and machines can open it by its path), then written
-    into it (reopened for writing). A failure leaves ``tmp`` to the caller (removed)."""
+    into it (reopened for writing); ``progress(done_rows, total_rows)``. A failure leaves
+    ``tmp`` to the caller (removed)."""
+    total, done = sum(len(b) for b in blocks), 0
+    if progress is not None:
+        progress(0, total)
 
     def store(number, neighbour, distance):
+        nonlocal done
         graph_plan.store(blocks[number], neighbour, distance)
+        done += len(blocks[number])
+        if progress is not None:
+            progress(done, total)
 
     graph_plan.stats.scheduler, graph_plan.stats.workers = graph_runner(tmp, blocks, graph_plan.k, store)
     with _new_file(tmp, shown, "r+") as (h5, space):
@@ -321,14 +332,14 @@ def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, act
 
 def _write_attributes(attrs, params: dict, old, now: str) -> None:
     """The root attributes of a new index file (docs/index-format.md)."""
-    attrs["format"] = INDEX_FORMAT
+    set_text(attrs, "format", INDEX_FORMAT)
     attrs["format_version"] = np.int64(FORMAT_VERSION)
-    attrs["nfdmatch_version"] = __version__
+    set_text(attrs, "nfdmatch_version", __version__)
     attrs["samples"] = np.int64(params["samples"])
     attrs["harmonics"] = np.int64(params["harmonics"])
-    attrs["scale"] = params["scale"]
-    attrs["created"] = old.created if old is not None and old.created else now
-    attrs["updated"] = now
+    set_text(attrs, "scale", params["scale"])
+    set_text(attrs, "created", old.created if old is not None and old.created else now)
+    set_text(attrs, "updated", now)
 
 
 def _write_cause(exc: BaseException) -> str:

@@ -18,7 +18,7 @@ from ..defaults import DEFAULT_GRAPH_K  # neighbours per row when --graph is giv
 from ..errors import IndexFormatError
 from ..search.engine import TIE
 from .arrays import unique_rows
-from .schema import Problem, stored_dataset
+from .schema import Problem, stored_dataset, text_attr
 
 __all__ = [
     "GraphSpec",
@@ -144,8 +144,12 @@ def graph_datasets(index):
     h5 = index._h5
     if h5 is None or "graph" not in h5:
         return None
-    g = h5["graph"]
-    checksums = _graph_checksums(g)
+    try:  # a damaged group header fails HDF5's own checksum here
+        g = h5["graph"]
+        checksums = _graph_checksums(g)
+    except Exception as exc:  # noqa: BLE001 - h5py raises KeyError, OSError, ... for damage
+        text = (str(exc).strip().strip("'\"").splitlines() or [type(exc).__name__])[0][:200]
+        raise IndexFormatError(f"corrupted nfdmatch index: cannot read /graph ({text})", path=index.path) from None
     if checksums is None:
         raise IndexFormatError("corrupted nfdmatch index: /graph has an unknown checksums attribute", path=index.path)
     file_size = int(h5.id.get_filesize())
@@ -168,11 +172,9 @@ def graph_datasets(index):
 
 
 def _graph_checksums(g) -> bool | None:
-    value = g.attrs.get("checksums")
-    if value is None:
+    if "checksums" not in g.attrs:
         return False
-    if isinstance(value, bytes):
-        value = value.decode("utf-8", "replace")
+    value = text_attr(g.attrs, "checksums")
     return True if value == GRAPH_CHECKSUMS else None
 
 

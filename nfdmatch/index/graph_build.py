@@ -25,7 +25,7 @@ from .graph import (
     old_graph_k,
     read_graph,
 )
-from .schema import create_checked
+from .schema import create_checked, set_text
 from .search_group import search_table
 
 __all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan", "FUSED_CANDIDATES"]
@@ -63,7 +63,7 @@ class GraphPlan:
 
 
 def write_graph(
-    h5, old, k: int | None, *, reuse: bool, threads: int | None = None, processes: int = 1, close_fds=()
+    h5, old, k: int | None, *, reuse: bool, threads: int | None = None, processes: int = 1, close_fds=(), progress=None
 ) -> GraphStats:
     """Write ``/graph`` into the new index file ``h5`` (``/curves``, ``/files``, ``/search``
     complete); returns :class:`GraphStats`.
@@ -75,6 +75,7 @@ def write_graph(
     threads, processes, close_fds : how the rows are searched
         (:func:`~nfdmatch.search.graph.neighbour_lists`): ``processes`` forked workers (a
         build's ``jobs``), each closing ``close_fds`` (the index lock), else ``threads``.
+    progress : ``progress(done_rows, total_rows)`` as the rows are searched.
     """
     plan = plan_graph(h5, old, k, reuse=reuse)
     if plan is None:
@@ -91,6 +92,7 @@ def write_graph(
             threads=threads,
             processes=processes,
             close_fds=[fd for fd in close_fds if fd is not None],
+            progress=progress,
         )
         stats.kept = len(plan.lists.check) - stats.updated
     return store_graph(h5, plan)
@@ -224,11 +226,11 @@ def _write_group(h5, k: int, neighbour, distance, kind: str = "exact") -> None:
     g = h5.create_group("graph")
     g.attrs["k"] = np.int64(k)
     if kind != "exact":
-        g.attrs["distance"] = kind
-    g.attrs["method"] = "exact"
-    g.attrs["direction"] = "invariant"
+        set_text(g.attrs, "distance", kind)
+    set_text(g.attrs, "method", "exact")
+    set_text(g.attrs, "direction", "invariant")
     g.attrs["mirror"] = np.int64(0)
-    g.attrs["checksums"] = GRAPH_CHECKSUMS
+    set_text(g.attrs, "checksums", GRAPH_CHECKSUMS)
     create_checked(g, "neighbour", neighbour, chunk_rows=GRAPH_CHUNK_ROWS)
     create_checked(g, "distance", distance, chunk_rows=GRAPH_CHUNK_ROWS)
 

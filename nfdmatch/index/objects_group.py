@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import IndexFormatError
 from ..mesh.objects import MEASURES, PROFILE_FEATURES, ObjectRule
-from .schema import Problem, create_checked, stored_dataset
+from .schema import Problem, create_checked, set_text, stored_dataset, text_attr
 
 __all__ = ["ObjectEntry", "ObjectsGroup", "write_objects", "read_objects", "rule_of"]
 
@@ -63,7 +63,7 @@ def write_objects(h5, rule: ObjectRule, entries: list[ObjectEntry], n_rows: int)
     if not entries:
         return
     g = h5.create_group("objects")
-    g.attrs["rule"] = rule.name
+    set_text(g.attrs, "rule", rule.name)
     g.attrs["sections"] = np.int64(rule.sections)
     g.attrs["min_vertices"] = np.int64(rule.min_vertices)
     g.attrs["boundaries"] = np.int64(int(rule.boundaries))
@@ -102,7 +102,7 @@ def rule_of(h5) -> ObjectRule | None:
     g = h5.get("objects")
     if g is None:
         return None
-    name, sections = _attr(g.attrs, "rule"), _attr(g.attrs, "sections")
+    name, sections = text_attr(g.attrs, "rule"), _attr(g.attrs, "sections")
     min_vertices, boundaries = _attr(g.attrs, "min_vertices"), _attr(g.attrs, "boundaries")
     try:
         return ObjectRule(sections=sections, min_vertices=min_vertices, boundaries=bool(boundaries), name=name)

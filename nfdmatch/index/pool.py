@@ -28,6 +28,7 @@ one batch; a test replaces it on cluster workers to kill them) are used by tests
 from __future__ import annotations
 
 import collections
+import gc
 import hashlib
 import os
 import signal
@@ -497,8 +498,8 @@ class _Pool:
     def __init__(self, tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None):
         self.tasks = tasks
         self.file_timeout = file_timeout
-        self.ctx, forked = _context(tasks)
-        self.lock_fd = lock_fd if forked else None
+        self.ctx, self.forked = _context(tasks)
+        self.lock_fd = lock_fd if self.forked else None
         self.env = _environment()
         self.queue = collections.deque(_batches(tasks))
         self.jobs = max(1, min(jobs, len(self.queue)))
@@ -510,10 +511,18 @@ class _Pool:
     def start(self) -> _Worker:
         # SIGINT/SIGTERM held back across the fork: a worker gets them only once it ignores them
         old = signal.pthread_sigmask(signal.SIG_BLOCK, _BLOCKED)
+        if self.forked:
+            # as _fork.fork_map: no garbage of the parent's is finalized in a forked worker (a
+            # file object collected there would be flushed and closed behind the parent's
+            # back); collected here first, the rest frozen for the worker's collector
+            gc.collect()
+            gc.freeze()
         try:
             w = _Worker(self.ctx, self.lock_fd)
             self.workers.append(w)
         finally:
+            if self.forked:
+                gc.unfreeze()
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
         return w
 

@@ -30,7 +30,9 @@ from .schema import (
     _short,
     block_crcs,
     default_index_path,
+    text_attr,
 )
+from .heap import HeapProblem, check_string_rows
 from .search_group import search_table
 
 #: stored numbers that must be finite (the /curves ones; /search is checked as it is read)
@@ -94,6 +96,9 @@ class Index:
         self._file_records = None
         self._objects = None
         self.checksums: bool = meta.get("checksums", False)
+        #: HDF5 parses nothing of the file unchecked (schema.checked_metadata); False: an
+        #: older file, read after a check of every heap collection, rewritten by a build
+        self.checked_metadata: bool = meta.get("checked_metadata", False)
         self._crc = meta.get("crc", {})
         self.format_version: int = meta["format_version"]
         self.nfdmatch_version: str = meta["nfdmatch_version"]
@@ -144,6 +149,8 @@ class Index:
             return fn()
         except NfdError:
             raise
+        except HeapProblem as exc:
+            self._bad(str(exc))
         except Exception as exc:
             raise IndexFormatError(read_error(exc, where), path=self.path) from None
 
@@ -171,12 +178,25 @@ class Index:
             if int(block_crcs(values, len(values) or 1)[0] if values else 0) != int(stored[b - lo]):
                 self._bad(f"checksum mismatch in {name}, rows {b * CRC_ROWS}..{b * CRC_ROWS + len(values) - 1}")
 
+    def _strings(self, ds, runs, read):
+        """``read()`` of string dataset ``ds``'s rows ``runs`` once the heap collections they
+        use passed their check (heap.py: HDF5 could loop forever on a damaged one)."""
+
+        def checked():
+            check_string_rows(ds, runs)
+            return read()
+
+        return checked
+
     def _id_blocks(self, lo: int, hi: int) -> list[str]:
         """Ids of rows [lo, hi) read in whole CRC_ROWS-row blocks, each block's CRC checked."""
+        ids = self._ds["id"]
         if not self.checksums:
-            return self._read(lambda: self._ds["id"].asstr()[lo:hi].tolist(), "/curves/id")
+            return self._read(self._strings(ids, [(lo, hi)], lambda: ids.asstr()[lo:hi].tolist()), "/curves/id")
         a, b = lo // CRC_ROWS * CRC_ROWS, min(self.n_curves, -(-hi // CRC_ROWS) * CRC_ROWS)
-        values = self._read(lambda: self._ds["id"].asstr()[a:b].tolist(), f"/curves/id, rows {a}..{b - 1}")
+        values = self._read(
+            self._strings(ids, [(a, b)], lambda: ids.asstr()[a:b].tolist()), f"/curves/id, rows {a}..{b - 1}"
+        )
         self._check_strings(
             self._crc.get("id_crc32"),
             "/curves/id",
@@ -198,6 +218,8 @@ class Index:
                 fds, F = self._files["datasets"], self.n_files
                 if F == 0:
                     return []
+                check_string_rows(fds["path"], [(0, F)])
+                check_string_rows(fds["error"], [(0, F)])
                 paths = fds["path"].asstr()[...].tolist()
                 errors = fds["error"].asstr()[...].tolist()
                 crc = self._files.get("crc", {})
@@ -251,9 +273,9 @@ class Index:
                 or ds.shape[0] > 100_000
             ):
                 return None
+            check_string_rows(ds, [(0, ds.shape[0])])
             paths = ds.asstr()[...].tolist() if ds.shape[0] else []
-            glob = g.attrs.get("glob", "")
-            glob = glob.decode("utf-8", "replace") if isinstance(glob, bytes) else str(glob)
+            glob = text_attr(g.attrs, "glob") or ""
             return paths, (glob or None)
 
         return self._read(read)
@@ -304,7 +326,8 @@ class Index:
         elif self.checksums:  # whole CRC blocks, to check them, in one read
             blocks = unique_rows(uniq // CRC_ROWS)[0]
             runs = [(int(b) * CRC_ROWS, min(self.n_curves, (int(b) + 1) * CRC_ROWS)) for b in blocks]
-            values = self._read(lambda: read_runs(self._ds["id"], runs), "/curves/id")
+            ids = self._ds["id"]
+            values = self._read(self._strings(ids, runs, lambda: read_runs(ids, runs)), "/curves/id")
             offset = {int(b): i * CRC_ROWS for i, b in enumerate(blocks)}  # every block but the last is full
             self._check_strings(
                 self._crc.get("id_crc32"),
@@ -314,7 +337,11 @@ class Index:
             )
             got = np.asarray([values[offset[int(r) // CRC_ROWS] + int(r) % CRC_ROWS] for r in uniq], dtype=object)
         else:
-            got = np.asarray(self._read(lambda: self._ds["id"].asstr()[uniq], "/curves/id"), dtype=object)
+            ids = self._ds["id"]
+            cut = np.flatnonzero(np.diff(uniq) != 1) + 1  # runs of consecutive rows
+            runs = [(int(s[0]), int(s[-1]) + 1) for s in np.split(uniq, cut)]
+            values = self._read(self._strings(ids, runs, lambda: ids.asstr()[uniq]), "/curves/id")
+            got = np.asarray(values, dtype=object)
         return got[inverse].tolist()
 
     def coefficients_at(self, rows) -> np.ndarray:
@@ -559,6 +586,7 @@ class Index:
             "sources": None if recorded is None else recorded[0],
             "format": INDEX_FORMAT,
             "format_version": self.format_version,
+            "metadata": "checked" if self.checked_metadata else "older",
             "nfdmatch_version": self.nfdmatch_version,
             "files": self.n_files,
             "curves": self.n_curves,

@@ -13,6 +13,7 @@ from ..defaults import default_index_path  # noqa: F401  (re-exported: nfdmatch.
 from ..descriptors import validate_parameters
 from ..errors import ParameterError, ReadError
 from ..matching.statistics import LENGTH as STATISTICS_LENGTH
+from .heap import check_every_collection
 from .search_layout import check_search_group
 
 INDEX_FORMAT = "nfdmatch-index"
@@ -193,6 +194,20 @@ def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
     return None
 
 
+def checked_metadata(h5) -> bool:
+    """Whether HDF5 parses nothing of file ``h5`` before a check: HDF5 1.10's structures
+    (superblock 3: checksummed metadata) and no root attribute in the unchecksummed global
+    heap (variable-length strings; heap.py checks the heap collections of the string
+    datasets as rows are read). nfdmatch writes such files since issue 34; others are read
+    after a check of every heap collection of the file, and a build rewrites them."""
+    try:
+        if h5.id.get_create_plist().get_version()[0] < 3:
+            return False
+        return not any(heap_attribute(h5.attrs, name) for name in h5.attrs.keys())
+    except Exception:  # noqa: BLE001 - unknown: the older kind
+        return False
+
+
 def _positional_chunks(ds) -> bool:
     """True when ``ds``'s file has HDF5 1.10's structures (superblock version 3, which nfdmatch
     writes since December 2026): chunk indexes then find a chunk by its position (fixed and
@@ -274,7 +289,27 @@ def _has_hdf5_signature(path: str) -> bool:
     return False
 
 
-def _attr_str(attrs, name):
+def set_text(attrs, name: str, value: str) -> None:
+    """Attribute ``name`` = ``value`` as a fixed-length UTF-8 string: its characters stay in
+    the (checksummed) object header, never in the global heap (heap.py)."""
+    data = value.encode("utf-8")
+    attrs.create(name, np.bytes_(data), dtype=h5py.string_dtype("utf-8", max(1, len(data))))
+
+
+def heap_attribute(attrs, name: str) -> bool:
+    """Whether attribute ``name`` keeps its value in the global heap (variable length)."""
+    tid = attrs.get_id(name).get_type()
+    return isinstance(tid, h5py.h5t.TypeVlenID) or (isinstance(tid, h5py.h5t.TypeStringID) and tid.is_variable_str())
+
+
+def text_attr(attrs, name):
+    """String attribute ``name`` (None when absent or not a string). One whose value lives in
+    the global heap is read only after every heap collection of the file passed
+    :func:`~nfdmatch.index.heap.check_every_collection` (raises HeapProblem)."""
+    if name not in attrs:
+        return None
+    if heap_attribute(attrs, name):
+        check_every_collection(h5py.h5i.get_file_id(attrs.get_id(name)))
     value = attrs.get(name)
     if value is None:
         return None
@@ -341,6 +376,7 @@ def _validate(h5) -> tuple[dict, dict]:
     lengths of its tables, their checksum datasets, the /files blocks and /search; raises
     Problem at the first fault."""
     meta = _root_attributes(h5.attrs)
+    meta["checked_metadata"] = checked_metadata(h5)
     file_size = int(h5.id.get_filesize())
     checksums = meta["checksums"]
 
@@ -380,7 +416,7 @@ def _validate(h5) -> tuple[dict, dict]:
 def _root_attributes(attrs) -> dict:
     """The checked root attributes of an index (format, version, descriptor parameters,
     checksums) as the start of its ``meta``; raises Problem."""
-    fmt = _attr_str(attrs, "format")
+    fmt = text_attr(attrs, "format")
     if fmt != INDEX_FORMAT:
         what = "no 'format' attribute" if fmt is None else f"format attribute {fmt!r}"
         raise Problem("foreign", f"an HDF5 file but not an nfdmatch index ({what})")
@@ -393,14 +429,14 @@ def _root_attributes(attrs) -> dict:
             f"written by a newer nfdmatch (format {version}); "
             f"this version reads formats {', '.join(map(str, READABLE_VERSIONS[:-1]))} and {READABLE_VERSIONS[-1]}",
         )
-    samples, harmonics, scale = _attr_int(attrs, "samples"), _attr_int(attrs, "harmonics"), _attr_str(attrs, "scale")
+    samples, harmonics, scale = _attr_int(attrs, "samples"), _attr_int(attrs, "harmonics"), text_attr(attrs, "scale")
     try:
         validate_parameters(samples, harmonics, scale)
     except ParameterError as exc:
         raise Problem("corrupt", f"corrupted nfdmatch index: {exc.message}") from None
     if samples > MAX_SAMPLES:
         raise Problem("corrupt", f"corrupted nfdmatch index: samples {samples} above the limit {MAX_SAMPLES}")
-    checksums_attr = _attr_str(attrs, "checksums")
+    checksums_attr = text_attr(attrs, "checksums")
     if checksums_attr not in (None, CHECKSUMS):
         raise Problem("corrupt", f"corrupted nfdmatch index: unknown checksums {checksums_attr!r}")
     return {
@@ -409,9 +445,9 @@ def _root_attributes(attrs) -> dict:
         "harmonics": harmonics,
         "scale": scale,
         "checksums": checksums_attr == CHECKSUMS,
-        "nfdmatch_version": _attr_str(attrs, "nfdmatch_version") or "",
-        "created": _attr_str(attrs, "created") or "",
-        "updated": _attr_str(attrs, "updated") or "",
+        "nfdmatch_version": text_attr(attrs, "nfdmatch_version") or "",
+        "created": text_attr(attrs, "created") or "",
+        "updated": text_attr(attrs, "updated") or "",
     }
 
 

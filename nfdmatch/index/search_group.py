@@ -11,7 +11,7 @@ from ..search import cells as search_cells
 from ..search.table import SearchTable
 from .arrays import first_nonfinite
 from .arrays import read_runs as read_runs_of
-from .schema import CHECKSUMS, CRC_ROWS, create_checked, write_string_checks
+from .schema import CHECKSUMS, CRC_ROWS, create_checked, set_text, write_string_checks
 
 __all__ = ["write_search_group", "search_table"]
 
@@ -80,7 +80,7 @@ def _finish_checksums(h5, id_crcs=None) -> None:
         for a in range(0, ids.shape[0], step):
             values.extend(ids.asstr()[a : a + step].tolist())
         write_string_checks(h5["curves"], "id", values)
-    h5.attrs["checksums"] = CHECKSUMS
+    set_text(h5.attrs, "checksums", CHECKSUMS)
 
 
 def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None):

@@ -25,7 +25,8 @@ from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, list_problems
 from .objects_group import read_objects
 from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
-from .schema import FILE_FIELDS, _SHA, STR, curve_layout
+from .heap import check_string_rows
+from .schema import FILE_FIELDS, _SHA, STR, curve_layout, text_attr
 
 __all__ = ["Finding", "VerifyReport", "verify_index"]
 
@@ -91,6 +92,8 @@ def _scan(ds, name, report, *, label="row", keep=None, crc=None):
     kept, bad, nonfinite, crc_bad = [], [], [], []
     for a, b in _blocks(ds) if ds.shape else []:
         try:
+            if strings:
+                check_string_rows(ds, [(a, b)])
             values = ds.asstr()[a:b].tolist() if strings else ds[a:b]
         except Exception as exc:
             bad.append((a, b, exc))
@@ -461,8 +464,7 @@ def _verify_graph(h5, meta, report) -> None:
     if g is None:
         return
     N = meta["n_curves"]
-    attr = g.attrs.get("checksums")
-    attr = attr.decode("utf-8", "replace") if isinstance(attr, bytes) else attr
+    attr = (text_attr(g.attrs, "checksums") or g.attrs.get("checksums")) if "checksums" in g.attrs else None
     if attr not in (None, GRAPH_CHECKSUMS):
         report.findings.append(Finding("/graph", "", f"unknown checksums attribute {attr!r}"))
         return

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import MAX_MESSAGE_CHARS, excerpt
 from ..matching.statistics import curve_statistics
-from .schema import _SHA, STR, CRC_ROWS, FileRecord, curve_layout, block_crcs, create_checked, fill_value
+from .schema import _SHA, STR, CRC_ROWS, FileRecord, curve_layout, block_crcs, create_checked, fill_value, set_text
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
@@ -245,7 +245,7 @@ def write_sources(h5, paths: list[str], glob: str | None, exclude=()) -> None:
     leaves out (written only when there are some; docs/index-format.md)."""
     g = h5.create_group("sources")
     create_checked(g, "path", np.array(list(paths), dtype=object), STR)
-    g.attrs["glob"] = glob or ""
+    set_text(g.attrs, "glob", glob or "")
     if exclude:
         create_checked(g, "exclude", np.array(list(exclude), dtype=object), STR)
 

@@ -131,9 +131,7 @@ def exact_search(
     if N and kernels.module is not None:
         # compiled: every stage per row in one call (F per row stays in cache)
         workers = kernels.workers(N)
-        limit = np.inf
-        if refine and refine_below is not None and np.isfinite(refine_below):
-            limit = refine_below**2 * (1 + 1e-9) + 1e-12
+        limit = _squared_limit(refine_below) if refine else np.inf
         basis, quarter = folded_basis(K, n)
         dist, shift, R, reversed_, mirrored = kernels.module.exact_rows(
             np.ascontiguousarray(A),
@@ -154,6 +152,17 @@ def exact_search(
     # the numpy path takes the query per row, so that a row's digits are the same whichever
     # rows come with it
     return _exact_numpy(np.repeat(A[None], N, axis=0), B, w, n, direction, mirror, C, refine, refine_below)
+
+
+def _squared_limit(refine_below: float | None) -> float:
+    """The squared distance below which a row is refined, with its margin; inf for no
+    limit, and for a limit whose square overflows (above ~1.3e154: no distance is that far,
+    so it limits nothing, as inf)."""
+    if refine_below is None:
+        return np.inf
+    with np.errstate(over="ignore", invalid="ignore"):
+        limit = float(np.float64(refine_below) ** 2 * (1 + 1e-9) + 1e-12)
+    return limit if np.isfinite(limit) else np.inf
 
 
 def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
@@ -185,14 +194,14 @@ def _exact_numpy(A, B, w, n, direction, mirror, C, refine, refine_below):
     values = values.reshape(-1)
     if refine:
         todo = np.ones(N * C, dtype=bool)
-        if refine_below is not None and np.isfinite(refine_below):
+        if np.isfinite(_squared_limit(refine_below)):
             k = np.arange(1, K + 1)
             norm_a = np.linalg.norm(A, axis=2)  # (N, K)
             norm_b = np.linalg.norm(B, axis=2)
             curvature = (2.0 * w * (2.0 * np.pi * k / n) ** 2 * norm_a * norm_b).sum(axis=1)
             squared = 2.0 * (w * norm_a**2).sum(axis=1) + 2.0 * (w * norm_b**2).sum(axis=1)
             lower2 = squared - 2.0 * (Fmax + curvature / 8.0)
-            todo = np.repeat(lower2 <= refine_below**2 * (1 + 1e-9) + 1e-12, C)
+            todo = np.repeat(lower2 <= _squared_limit(refine_below), C)
         if todo.any():
             sel = np.flatnonzero(todo)
             Pc = Pcat[:, dirs[sel], rows[sel], :].transpose(1, 0, 2)  # (m, 9, 2K)

@@ -54,6 +54,7 @@ def neighbour_lists(
     threads: int | None = None,
     processes: int = 1,
     close_fds=(),
+    progress=None,
 ) -> tuple[int, int, int]:
     """Fill ``lists`` with each row's k nearest other rows of ``table``: the rows in
     ``lists.todo`` searched in the whole table, the rows in ``lists.check`` updated where
@@ -71,16 +72,25 @@ def neighbour_lists(
     thread, when this process may fork (:func:`nfdmatch._fork.can_fork`) and the table hands
     out every harmonic (it is read whole first: the workers never read the file); else
     here, on ``threads``. The lists are the same either way (each row's search is its own).
-    ``close_fds``: descriptors a worker must not keep (the index lock).
+    ``close_fds``: descriptors a worker must not keep (the index lock). ``progress(done,
+    total)``: rows searched, (0, total) first.
     """
     neighbour, distance = lists.neighbour, lists.distance
     cascade = Cascade(samples)
     blocks = graph_blocks(table, lists.todo)
     queries = _Queries(blocks, read_coefficients)
 
+    total, done = sum(len(block) for block in blocks), 0
+    if progress is not None:
+        progress(0, total)
+
     def store(number, got):
+        nonlocal done
         block, nb, d = got
         neighbour[block], distance[block] = nb, d
+        done += len(block)
+        if progress is not None:
+            progress(done, total)
 
     complete = table.stored_harmonics >= table.harmonics  # else workers would read the file
     processes = run_tasks(

@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import ParameterError
 from .engine import TIE, Cascade
 from .join import JoinStats, pairs_within
+from .limits import check_limits
 
 __all__ = ["Pair", "GroupMember", "index_pairs", "index_groups"]
 
@@ -141,8 +142,7 @@ def index_groups(
 
 
 def _pairs(index, max_distance, cascade, rows, progress, threads, cluster):
-    if not max_distance >= 0:
-        raise ParameterError(f"max_distance must be a number >= 0, got {max_distance}")
+    check_limits(max_distance=max_distance)
     if cluster is not None:
         return cluster.pairs_within(index, max_distance, cascade, rows=rows, progress=progress)
     return pairs_within(

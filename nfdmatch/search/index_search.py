@@ -15,6 +15,8 @@ from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
 from .engine import TIE, Cascade, BestRows, search_block
 from .bounds import feature_vector
+from .limits import check_limits
+from .selfmatch import drop_self, self_rule
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -66,8 +68,7 @@ def check_search_parameters(top: int | None, max_distance: float | None, method:
     """The checks every search of an index makes on its arguments (local or on a cluster)."""
     if top is None and max_distance is None:
         raise ParameterError("give top or max_distance (or both)")
-    if top is not None and top < 1:
-        raise ParameterError(f"top must be at least 1, got {top}")
+    check_limits(top, max_distance)
     if method not in METHODS:
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
@@ -227,8 +228,6 @@ def _pruned(index, qcoef, tops, cascade: Cascade, stats: SearchStats, threads, p
 def without_self(index, queries, results: list[list[RankedMatch]], top: int | None) -> list[list[RankedMatch]]:
     """Each query's matches without its own curve (:func:`~nfdmatch.search.knn.drop_self`),
     at most ``top``: the answer of a search asked for ``top + 1``."""
-    from .knn import drop_self, self_rule
-
     rule = self_rule(getattr(index, "locate", None))
     return [drop_self(q.id, found, top, rule=rule) for q, found in zip(queries, results)]
 

@@ -49,6 +49,7 @@ from .bounds import (
     truncated_stages,
 )
 from .engine import EXACT_BATCH, FIRST_BATCH, TIE, Cascade, margin
+from .limits import check_limits
 
 __all__ = ["JoinStats", "join_input", "nearest_others", "pairs_within"]
 
@@ -414,8 +415,7 @@ def nearest_others(
     other row) and float64 distances (inf there), sorted by distance (ties by
     ``tie_key``), N the table's rows; :class:`JoinStats`.
     """
-    if k < 1:
-        raise ParameterError(f"k must be at least 1, got {k}")
+    check_limits(k, top_name="k")
     t0 = time.perf_counter()
     col, left = _prepare(table, read_coefficients, cascade, rows)
     join = _Join(col, cascade, left, k, None, _threads(threads))
@@ -459,8 +459,7 @@ def pairs_within(
     Returns ``(a, b, distance, stats)``: index rows with a < b, sorted by (a, b), and
     the distances (float64).
     """
-    if not max_distance >= 0:
-        raise ParameterError(f"max_distance must be a number >= 0, got {max_distance}")
+    check_limits(max_distance=max_distance)
     t0 = time.perf_counter()
     col, left = _prepare(table, read_coefficients, cascade, rows)
     join = _Join(col, cascade, left, None, max_distance, _threads(threads))

@@ -627,7 +627,7 @@ def search_objects(
     import os
 
     from ..errors import InputError, ParameterError
-    from .knn import self_rule
+    from .selfmatch import self_rule
 
     if k is None and max_distance is None:
         raise ParameterError("give k or max_distance (or both)")

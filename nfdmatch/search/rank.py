@@ -7,9 +7,9 @@ from typing import TYPE_CHECKING
 
 from ..matching import MatchParameters
 from ..descriptors import descriptors
-from ..errors import ParameterError
 from ..records import RankedMatch
 from .index_search import search_index
+from .limits import check_limits
 from .memory import MemoryIndex
 
 if TYPE_CHECKING:
@@ -54,8 +54,7 @@ def rank_curves(
     if not isinstance(query, Curve):
         query = Curve(query, id="<query>")
     if not curves:
-        if top is not None and top < 1:
-            raise ParameterError(f"top must be at least 1, got {top}")
+        check_limits(top)
         descriptors(query, **p.descriptor)  # validates
         return []
     memory = MemoryIndex(curves, **p.descriptor)

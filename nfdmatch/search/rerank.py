@@ -34,7 +34,7 @@ from ..errors import IndexFormatError, ParameterError
 from ..records import RankedMatch
 from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
-from .knn import self_rule
+from .selfmatch import self_rule
 from .stages import fused_best_rows
 
 if TYPE_CHECKING:
