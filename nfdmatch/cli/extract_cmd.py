@@ -177,10 +177,17 @@ def _extract_all(files, sections, axis, boundaries):
     each result's notes go to stderr."""
     from ..mesh import extract_contours
 
+    from ..mesh.objects import principal_contours
+
     results, errors = [], []
+    if axis == "principal" and sections < 1:
+        raise click.UsageError("--axis principal needs --sections 1 or more")
     for path in files:
         try:
-            results.append(extract_contours(path, sections=sections, axis=axis, boundaries=boundaries))
+            if axis == "principal":  # the rule index build cuts objects by
+                results.append(principal_contours(path, sections=sections, boundaries=boundaries))
+            else:
+                results.append(extract_contours(path, sections=sections, axis=axis, boundaries=boundaries))
         except NfdError as exc:
             errors.append(exc)
     for result in results:

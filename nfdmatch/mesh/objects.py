@@ -33,6 +33,9 @@ import numpy as np
 
 from ..errors import MeshError, ParameterError
 from ..sources import MESH_EXTENSIONS
+from .contours import Contour, ExtractResult
+from .load import load_mesh
+from .sections import boundary_loops, section_loops
 
 __all__ = [
     "ObjectRule",
@@ -263,9 +266,6 @@ def cut_object(mesh, rule: ObjectRule | None = None, *, name: str | None = None)
     ``rule``: an :class:`ObjectRule` (None: the default); ``name``: what the notes call it.
     Raises ReadError, UnknownFormatError, MeshError (:func:`~.load.load_mesh`; a surface
     of zero area)."""
-    from .load import load_mesh
-    from .sections import boundary_loops, section_loops
-
     rule = ObjectRule() if rule is None else rule
     if isinstance(mesh, (str, bytes, os.PathLike)):
         where = str(os.fspath(mesh)) if name is None else name
@@ -335,12 +335,10 @@ PRINCIPAL_AXES = ("pa", "pb", "pc")
 
 def principal_contours(path, *, sections: int, boundaries: bool):
     """``extract --axis principal``: the contours of the mesh at ``path`` cut by the object
-    rule (:func:`cut_object` with ``sections`` planes per principal axis), as an
+    rule (:func:`cut_object` with ``sections`` >= 1 planes per principal axis; ``boundaries``:
+    the boundary loops of an open mesh too), as an
     :class:`~.contours.ExtractResult` whose contours name their axis ``pa``, ``pb``, ``pc``
     and their level as the plane's offset from the area centroid along it."""
-    from .contours import Contour, ExtractResult
-    from .load import load_mesh
-
     p = str(os.fspath(path))
     mesh = load_mesh(p)
     cut = cut_object(mesh, ObjectRule(sections=sections, boundaries=boundaries), name=p)

@@ -58,9 +58,8 @@ def extract_contours(
     sections : number N >= 0 of section levels (see :func:`section_levels`);
         0 with ``boundaries=True`` extracts only the boundary loops.
     axis : ``"x"``, ``"y"``, ``"z"`` or ``"auto"`` (the longest extent of the
-        bounding box), or ``"principal"``: the rule an index cuts objects by
-        (:func:`~.objects.cut_object`: ``sections`` planes along each of the three principal
-        axes at area quantiles, loops of 8 or more vertices; axes named ``pa``, ``pb``, ``pc``).
+        bounding box). The principal axes of an object's rule are
+        :func:`~.objects.principal_contours` (``extract --axis principal``).
     boundaries : also extract the boundary loops (edges used by one face).
 
     Returns
@@ -77,14 +76,8 @@ def extract_contours(
     if isinstance(sections, bool) or not isinstance(sections, (int, np.integer)) or sections < 0:
         raise ParameterError(f"sections must be an integer >= 0, got {sections!r}")
     sections = int(sections)
-    if axis == "principal":
-        if sections < 1:
-            raise ParameterError("axis principal needs sections >= 1")
-        from .objects import principal_contours
-
-        return principal_contours(path, sections=sections, boundaries=boundaries)
     if axis != "auto" and axis not in AXES:
-        raise ParameterError(f"unknown axis {axis!r}; choose one of x, y, z, auto, principal")
+        raise ParameterError(f"unknown axis {axis!r}; choose one of x, y, z, auto")
     if sections == 0 and not boundaries:
         raise ParameterError("nothing to extract: sections is 0 and boundaries are off")
     p = str(os.fspath(path))
