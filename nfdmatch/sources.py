@@ -95,7 +95,14 @@ def _glob_regex(pattern: str) -> str:
     return "(?s:" + "".join(out) + r")\Z"
 
 
-def find_curve_files(sources, *, glob: str | None = None, problems: list | None = None) -> list[str]:
+#: extensions of mesh files a folder walk finds when asked for meshes (``index build``); an
+#: ``.obj`` is found anyway (a curve format too) and read as a mesh when it has faces
+MESH_EXTENSIONS = (".stl", ".ply", ".off", ".glb", ".gltf")
+
+
+def find_curve_files(
+    sources, *, glob: str | None = None, problems: list | None = None, meshes: bool = False
+) -> list[str]:
     """Curve files named by ``sources``, in a deterministic order.
 
     Parameters
@@ -109,6 +116,7 @@ def find_curve_files(sources, *, glob: str | None = None, problems: list | None 
     problems : optional list; receives a :class:`~nfdmatch.errors.ReadError` for every
         sub-folder that could not be listed and every non-regular file skipped in a
         walk (see the module docstring). Without it they are skipped silently.
+    meshes : also find mesh files in folders (:data:`MESH_EXTENSIONS`).
 
     Returns
     -------
@@ -119,6 +127,8 @@ def find_curve_files(sources, *, glob: str | None = None, problems: list | None 
     ReadError : a source that does not exist.
     """
     extensions = {e.lower() for e in supported_extensions()}
+    if meshes:
+        extensions |= set(MESH_EXTENSIONS)
     found = UniquePaths()
 
     from .formats import split_selector

@@ -144,7 +144,7 @@ def test_the_program_exits_as_its_command_did(tmp_path):
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
     run = [sys.executable, "-m", "nfdmatch"]
     done = subprocess.run([*run, "describe", str(tmp_path / "missing.csv")], env=env, capture_output=True, text=True)
-    assert done.returncode == 1 and done.stderr.startswith("Error: ") and done.stdout == ""
+    assert done.returncode == 2 and done.stderr.startswith("Error: ") and done.stdout == ""
     done = subprocess.run([*run, "nosuchcommand"], env=env, capture_output=True, text=True)
     assert done.returncode == 2
     circle = os.path.join(REPO, "sample_curves", "library", "circle.tsv")

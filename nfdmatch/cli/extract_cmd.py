@@ -63,10 +63,12 @@ def _check_list(ctx, param, value):
 )
 @click.option(
     "--axis",
-    type=click.Choice(["x", "y", "z", "auto"]),
+    type=click.Choice(["x", "y", "z", "auto", "principal"]),
     default="auto",
     show_default=True,
-    help="Axis the planes are perpendicular to; auto: the longest side of the bounding box.",
+    help="Axis the planes are perpendicular to; auto: the longest side of the bounding box; principal: "
+    "the rule `index build` cuts meshes by (N planes along each principal axis of the surface, pa, pb, "
+    "pc, at area quantiles; docs/objects.md).",
 )
 @click.option("--boundaries", is_flag=True, help="Also extract the boundary loops of open meshes.")
 @click.option(
@@ -114,6 +116,7 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
     Examples:
       nfdmatch extract part.stl -o contours/ --sections 20
       nfdmatch extract scans/ -o contours/ --axis z --boundaries --output-format vtp
+      nfdmatch extract part.stl -o contours/ --axis principal --sections 7   # as index build cuts it
       nfdmatch extract parts/ -o contours/ --prune   # the folder then holds this run's contours
       nfdmatch index build contours/ --index parts.h5
     """
@@ -174,10 +177,17 @@ def _extract_all(files, sections, axis, boundaries):
     each result's notes go to stderr."""
     from ..mesh import extract_contours
 
+    from ..mesh.objects import principal_contours
+
     results, errors = [], []
+    if axis == "principal" and sections < 1:
+        raise click.UsageError("--axis principal needs --sections 1 or more")
     for path in files:
         try:
-            results.append(extract_contours(path, sections=sections, axis=axis, boundaries=boundaries))
+            if axis == "principal":  # the rule index build cuts objects by
+                results.append(principal_contours(path, sections=sections, boundaries=boundaries))
+            else:
+                results.append(extract_contours(path, sections=sections, axis=axis, boundaries=boundaries))
         except NfdError as exc:
             errors.append(exc)
     for result in results:

@@ -92,6 +92,15 @@ def index():
     "[default: keep the index's graph, if it has one].",
 )
 @click.option(
+    "--sections",
+    type=click.IntRange(min=1),
+    default=None,
+    metavar="N",
+    help="Meshes among the sources (STL, PLY, OFF, GLB/GLTF, OBJ with faces) are indexed as objects, "
+    "cut by N planes per principal axis at area quantiles (docs/objects.md) [default: the index's "
+    "rule, 7 for a new index].",
+)
+@click.option(
     "--elastic",
     "graph_elastic",
     is_flag=True,
@@ -116,6 +125,7 @@ def index_build(
     allow_shrink,
     file_timeout,
     graph_k,
+    sections,
     graph_elastic,
     descriptor,
     input_format,
@@ -123,7 +133,8 @@ def index_build(
     scheduler_timeout,
     output_format,
 ):
-    """Index the curves in SOURCE... (files or folders, recursively).
+    """Index the curves in SOURCE... (files or folders, recursively); meshes (STL, PLY, OFF,
+    GLB/GLTF, OBJ with faces) as objects, their contours MESH#I (docs/objects.md).
 
     Without SOURCE, the sources (and --glob) of the index's last build are re-scanned:
     the index records them. Files are stored relative to the index's folder (absolute
@@ -174,8 +185,8 @@ def index_build(
     graph_k = _graph_asked(graph_k, graph_elastic)
     started = datetime.now(timezone.utc)
     options = dict(
-        **descriptor, glob=glob_pattern, input_format=input_format,
-        rebuild=rebuild, dry_run=dry_run, wait=wait, allow_shrink=allow_shrink, graph=graph_k, strict=strict,
+        **descriptor, glob=glob_pattern, input_format=input_format, rebuild=rebuild, dry_run=dry_run, wait=wait,
+        allow_shrink=allow_shrink, graph=graph_k, strict=strict, sections=sections,
     )  # fmt: skip
     report = _run_build(
         list(sources), index_path, options, jobs, file_timeout, (scheduler, scheduler_timeout), output_format, started
@@ -469,7 +480,8 @@ def index_info(index_path, output_format, output):
     """Describe an index: sources, files, curves, failed files with reasons, parameters, format, times, size.
 
     `graph` is the number of nearest curves stored per curve for `query --rerank` (0: no
-    graph; `index build --graph` adds it).
+    graph; `index build --graph` adds it); `objects` the number of meshes indexed as
+    objects (their contours are among the curves).
 
     \b
     Example:
@@ -483,6 +495,7 @@ def index_info(index_path, output_format, output):
     with open_index(index_path) as idx:
         info = idx.info()
         info["graph"] = graph_k(idx)  # neighbours per curve stored for --rerank; 0: none
+        info["objects"] = len(idx.object_ids())  # meshes indexed as objects (docs/objects.md)
         if info["graph"]:
             info["graph_distance"] = idx.graph_distance()
         if idx.excluded():  # left out of the sources' walk by `index remove`
@@ -507,6 +520,7 @@ def index_info(index_path, output_format, output):
             "harmonics",
             "scale",
             "graph",
+            "objects",
             *(["graph_distance"] if "graph_distance" in info else []),
             "created",
             "updated",

@@ -15,6 +15,8 @@ from .options import (
     input_format_option,
     matching_options,
     note,
+    error,
+    finish,
     nothing_matched,
     output_option,
     rows_format_option,
@@ -91,7 +93,9 @@ def query(
     rows are visited in increasing order of proven lower bounds (cells of the index, then
     invariant features, then the first harmonics) and the search stops when the next bound
     exceeds the K-th distance; --exhaustive computes every distance instead (same answer).
-    Inputs that cannot be read are named on stderr and the others answered (exit 3).
+    Inputs that cannot be read are named on stderr and the others answered (exit 3). A mesh
+    QUERY (STL, PLY, OFF, GLB/GLTF, OBJ with faces) ranks an index's objects: rows query,
+    rank, match, distance, curves (docs/objects.md); a curve's rows gain object.
 
     --rerank: the query joins the neighbour graph stored in the index through its exact 8
     nearest; its candidates (its nearest and the M curves its personalised PageRank over the
@@ -123,6 +127,9 @@ def query(
     if rerank_candidates is not None and not rerank:
         raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
+        given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
+        if _query_meshes(idx, queries, listing, matching, input_format, given, (output_format, output)):
+            return
         note_old_format(idx, exhaustive, stage)
         check_stage_options(stage, rerank, scheduler, idx)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
@@ -133,18 +140,141 @@ def query(
             prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
             stage=None if rerank else stage, **listing.search(),
         )  # fmt: skip
-        spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
-        match_spelling = {m.id: spell_match(m.id) for res in results for m in res}  # while idx is open
-    rows = [
-        {**match_row(spell_query(q.id), m), "match": match_spelling[m.id]}
-        for q, res in zip(inputs.curves, results)
-        for m in res
-    ]
-    write_rows(rows, row_columns(listing.details, rerank, stage), output_format, output, group_by="query")
+        rows, columns = _curve_rows(idx, inputs.curves, results, listing, row_columns(listing.details, rerank, stage))
+    write_rows(rows, columns, output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
     inputs.finish()
     nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
+
+
+def _curve_rows(idx, curves, results, listing, columns: list) -> tuple[list, list]:
+    """The rows and columns of a curve query's answers (the match spelled while the index is
+    open); an index of objects adds the column object (the mesh of a matched contour)."""
+    spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
+    match_spelling = {m.id: spell_match(m.id) for res in results for m in res}
+    object_of = _objects_of(idx, match_spelling, spell_match)
+    rows = [
+        {**match_row(spell_query(q.id), m), "match": match_spelling[m.id], "object": (object_of or {}).get(m.id, "")}
+        for q, res in zip(curves, results)
+        for m in res
+    ]
+    return rows, columns + (["object"] if object_of is not None else [])
+
+
+def _query_meshes(idx, queries, listing, matching, input_format, given: dict, output_at) -> bool:
+    """Answer a query of meshes (:func:`_query_objects`) and say so; False for a query of
+    curves (nothing done)."""
+    meshes = _mesh_queries(idx, queries, listing.glob, input_format)
+    if meshes:
+        _query_objects(idx, meshes, listing, matching, given, *output_at)
+    return bool(meshes)
+
+
+def _mesh_queries(idx, queries, glob, input_format) -> list[str]:
+    """The query meshes among QUERY... (files named directly; in folders too when the index
+    holds objects), or [] for a query of curves. A mix of meshes and curve files is a usage
+    error: their rows differ."""
+    import os
+
+    from ..mesh.objects import is_mesh_file
+    from ..sources import find_curve_files
+
+    if input_format is not None:
+        return []
+    has_objects = idx.object_rule() is not None
+    meshes, curves, in_folders = [], [], []
+    for q in queries:
+        if q != "-" and os.path.isdir(q) and has_objects:
+            for f in find_curve_files([q], glob=glob, meshes=True):
+                (meshes if is_mesh_file(f) else in_folders).append(f)
+        elif q != "-" and os.path.isfile(q) and is_mesh_file(q):
+            meshes.append(q)
+        else:
+            curves.append(q)
+    if not meshes:
+        return []
+    if in_folders:
+        note(f"{len(in_folders)} curve file(s) in the folders left out: the query is of meshes (e.g. {in_folders[0]})")
+    if curves:
+        raise click.UsageError(
+            f"query meshes and curves in separate runs (a mesh ranks objects, a curve ranks curves): "
+            f"{meshes[0]} is a mesh, {curves[0]} is not"
+        )
+    return meshes
+
+
+def _query_objects(idx, meshes, listing, matching, given: dict, output_format, output) -> None:
+    """Rank the index's objects for each query mesh (docs/objects.md): rows query, rank,
+    match (the object's mesh), distance, curves (its contours that were the nearest of some
+    query contour). Bad meshes are named and the others answered (exit 3)."""
+    from ..errors import InputError
+    from .options import NothingRead
+
+    for name, on in (
+        ("--rerank", given["rerank"]),
+        ("--elastic", given["elastic"]),
+        ("--scheduler", given["scheduler"]),
+        ("--details", listing.details),
+        ("--method, --strict-direction or --mirror", matching != _default_matching()),
+    ):
+        if on:
+            raise click.UsageError(f"{name} does not apply to a mesh query (it ranks objects)")
+    if idx.object_rule() is None:
+        raise InputError(
+            "the index holds no mesh objects: a mesh query ranks objects; build the index from meshes",
+            path=idx.path,
+        )
+    failures: list = []
+    results = idx.search_objects(
+        meshes, k=listing.top, max_distance=listing.max_distance, exclude_self=listing.exclude_self,
+        failures=failures, prune=not given["exhaustive"],
+    )  # fmt: skip
+    for _, exc in failures:
+        error(exc)
+    if len(failures) == len(meshes):
+        raise NothingRead()
+    spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
+    rows = [
+        {
+            "query": spell_query(q),
+            "rank": m.rank,
+            "match": spell_match(m.id),
+            "distance": m.distance,
+            "curves": " ".join("#" + c.rsplit("#", 1)[1] for c in m.curves),
+        }
+        for q, res in zip(meshes, results)
+        for m in res
+    ]
+    write_rows(rows, ["query", "rank", "match", "distance", "curves"], output_format, output, group_by="query")
+    finish(len(failures), len(meshes), "meshes")
+    nothing_matched(len(rows), f"no object matched any of the {len(meshes)} query meshes")
+
+
+def _objects_of(idx, match_spelling: dict, spell_match):
+    """For an index holding objects: each matched curve id's object (its mesh, spelled as a
+    match is; absent for a curve of a curve file), else None (no object column)."""
+    from ..errors import IndexFormatError
+
+    try:
+        if idx.object_rule() is None:
+            return None
+        objects = set(idx.object_ids())
+    except IndexFormatError as exc:  # the curves answer without it: /objects is only their tag
+        note(f"{exc}; the object column is left out (`nfdmatch index verify` lists what is bad)")
+        return None
+    found = {}
+    for curve_id in match_spelling:
+        mesh = curve_id.rsplit("#", 1)[0]
+        if "#" in curve_id and mesh in objects:
+            found[curve_id] = spell_match(mesh)
+    return found
+
+
+def _default_matching() -> dict:
+    from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
+
+    return {"method": DEFAULT_METHOD, "direction": DEFAULT_DIRECTION, "mirror": False}
 
 
 def row_columns(details: bool, rerank: bool, stage=None) -> list[str]:

@@ -62,6 +62,11 @@ graph_runner : what searches the rows of the graph (None: this process and ``job
     neighbour (m, k) int64, distance (m, k) float64)``, in any order; it returns ``(where,
     workers)``, what searched (reported in ``BuildReport.graph``). The file is then
     reopened to write the graph, and moved into place as always.
+sections : planes per principal axis of the rule meshes are cut by (docs/objects.md;
+    None keeps the index's recorded rule, 7 for a new one). A mesh file (STL, PLY, OFF,
+    GLB/GLTF, an OBJ with faces; not with ``input_format``) is indexed as an object: its
+    contours are its rows (``path#i``), tied to it in ``/objects``. A value that differs
+    from the index's recorded one recomputes every file (with a notice).
 
 Files are stored, and compared with the index's, by the rule of docs/index-format.md
 ("Paths and ids"): relative to the index's folder, whatever the working directory and
@@ -205,6 +210,7 @@ def build_index(
     strict: bool = False,
     exclude: Any = None,
     graph_progress: Callable[[int, int], None] | None = None,
+    sections: Any = None,
     curves_file: str | os.PathLike[str] | None = None,
 ) -> BuildReport:
     """Build or update the index of every curve under ``sources`` (files, and folders
@@ -214,10 +220,10 @@ def build_index(
     ``samples, harmonics, scale``: None keeps the index's values; ``dry_run``: read and
     describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
     build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
-    total)``; ``file_timeout``: seconds one file may take; ``runner``: computes the tasks
-    instead of the local pool; ``graph_runner``: searches the graph's rows;
-    ``graph_progress(done, total)``: its rows; ``curves_file``: see ``sources``. Each is
-    described in full in this module's docstring.
+    total)``; ``file_timeout``: seconds one file may take; ``runner``, ``graph_runner``:
+    compute the tasks, search the graph's rows; ``graph_progress(done, total)``: its rows;
+    ``sections``: the meshes' planes per axis; ``curves_file``: see ``sources``. Every
+    parameter, the paths and the errors: this module's docstring.
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
@@ -237,7 +243,7 @@ def build_index(
         found, report.sources = [f for f in found if not _under(f, exclude)], stored_sources
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
-        params, changed = parameters(old, samples, harmonics, scale, report.notices)
+        params, changed = parameters(old, samples, harmonics, scale, report.notices, sections)
         if not found and old is not None and not unseen:
             report.notices.append(
                 f"no curve files found under {', '.join(sources)}: every file would be removed from the index"

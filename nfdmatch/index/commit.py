@@ -20,6 +20,8 @@ from ..errors import InputError, NfdError, WriteError, escape_name
 from ..names import decode_name
 from .changes import write_changes
 from .graph import GraphStats
+from ..mesh.objects import ObjectRule
+from .objects_group import ObjectEntry, write_objects
 from .graph_build import blocks_to_search, plan_graph, store_graph, write_graph
 from .paths import curve_ids, id_collision
 from .plan import Action, Plan
@@ -144,13 +146,15 @@ def _write_file(tmp, shown, plan, old, stream, result_of, report, actions, sourc
             _write_attributes(h5.attrs, plan.params, old, now)
             writer = CurveWriter(h5, K, space)
             run = CopyRun(old, writer)
-            records, fresh = _write_rows(plan.items, result_of, writer, run, report, actions)
+            objects = _OldObjects(old)
+            records, fresh = _write_rows(plan.items, result_of, writer, run, report, actions, objects)
             if strict and report.failures:
                 raise _FailedStrictly()
             _check_ids(records)
             run.flush()
             writer.flush()
             write_files_table(h5, records, space)
+            write_objects(h5, ObjectRule.from_tuple(plan.params["objects"]), objects.entries, writer.rows)
             write_sources(h5, *sources)
             write_changes(h5, fresh)
             # the cells: features, squared norms, row numbers and first harmonics of every row
@@ -248,7 +252,30 @@ def _new_file(tmp: str, shown: str, mode: str):
                 raise
 
 
-def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, actions: dict[str, str]):
+class _OldObjects:
+    """The objects of the new file as its rows are written: each computed mesh's record, and
+    the old index's record of each copied one (by its old first row)."""
+
+    def __init__(self, old):
+        self.entries: list[ObjectEntry] = []
+        self.old = None if old is None else old.objects()
+        self.by_start = {}
+        if self.old is not None:
+            starts = old._files["curve_start"]
+            self.by_start = {int(starts[f]): m for m, f in enumerate(self.old.file.tolist())}
+
+    def copied(self, file_row: int, start: int, r) -> None:
+        m = self.by_start.get(int(r.curve_start)) if r.curve_count else None
+        if m is not None:
+            record = self.old.record(m, int(r.curve_start), int(r.curve_count))
+            self.entries.append(ObjectEntry(file_row, start, int(r.curve_count), record))
+
+    def computed(self, file_row: int, start: int, n: int, res: dict) -> None:
+        if "object" in res:
+            self.entries.append(ObjectEntry(file_row, start, n, res["object"]))
+
+
+def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, actions: dict[str, str], objects):
     """The curve rows of every file in plan order: copied from the old index (unchanged
     files, and files whose mtime changed over the same contents) or computed by the workers.
     Returns the /files records and the ``(start, count)`` runs of rows added or recomputed
@@ -269,6 +296,7 @@ def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, act
         # keeps its rows under ids made from the new path
         new_ids = None if r is None or r.path == path else curve_ids(path, r.curve_count)
         if item.action is Action.COPY:
+            objects.copied(file_row, start, r)
             run.add(r.curve_start, r.curve_count, file_row, new_ids)
             records.append(FileRecord(path, r.size, r.mtime_ns, r.sha256, "ok", "", start, r.curve_count))
             actions[path] = "unchanged"
@@ -279,6 +307,7 @@ def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, act
         res = result_of(item.task)
         if res["status"] == "same":  # mtime changed, contents did not
             if r.status == "ok":
+                objects.copied(file_row, start, r)
                 run.add(r.curve_start, r.curve_count, file_row, new_ids)
                 records.append(FileRecord(path, res["size"], res["mtime_ns"], r.sha256, "ok", "", start, r.curve_count))
                 actions[path] = "unchanged"
@@ -292,6 +321,7 @@ def _write_rows(items, result_of, writer: CurveWriter, run: CopyRun, report, act
             piece["id"] = np.asarray(curve_ids(path, n), dtype=object)
             piece["file"] = np.full(n, file_row, dtype=np.int32)
             writer.append(piece)
+            objects.computed(file_row, start, n, res)
             records.append(FileRecord(path, res["size"], res["mtime_ns"], res["sha256"], "ok", "", start, n))
             fresh.append((start, n))
             actions[path] = "added" if r is None else "updated"

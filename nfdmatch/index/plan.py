@@ -13,6 +13,7 @@ import numpy as np
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, validate_parameters
 from ..errors import InputError, ParameterError, ReadError, ShrinkRefusedError
 from ..formats import format_of, split_selector
+from ..mesh.objects import ObjectRule, is_mesh_file
 from ..sources import _irregular, find_curve_files
 from ..names import decode_name
 from .paths import found_location, openable, source_location, stored
@@ -66,7 +67,8 @@ class PlanItem:
 @dataclass
 class Plan:
     """Every found file's :class:`PlanItem` in stored-path order, the pool ``tasks`` (one per
-    file that is read: ``(file, input_format, samples, harmonics, scale, old sha256)``), the
+    file that is read: ``(file, input_format, samples, harmonics, scale, old sha256, object
+    rule tuple)``), the
     stored paths ``removed`` from the index, and the descriptor ``params`` with whether every
     curve is recomputed (``recompute_all``)."""
 
@@ -139,7 +141,7 @@ def find_files(sources: list[str], glob, base: str, skipped: list):
         real = source_location(source)
         is_folder = os.path.isdir(source)
         problems: list = []
-        files = find_curve_files([source], glob=glob, problems=problems)  # ReadError: a missing source
+        files = find_curve_files([source], glob=glob, problems=problems, meshes=True)  # ReadError: a missing source
         kind = None if is_folder else _irregular(split_selector(source)[0])
         if kind is not None:  # a FIFO named directly: opening it would block the build
             files = []
@@ -161,10 +163,11 @@ def find_files(sources: list[str], glob, base: str, skipped: list):
     return sorted(opens), opens, stored_sources, unseen
 
 
-def parameters(old, samples, harmonics, scale, notices: list) -> tuple[dict, bool]:
+def parameters(old, samples, harmonics, scale, notices: list, sections=None) -> tuple[dict, bool]:
     """The descriptor parameters of the build (given, else the old index's, else the
     defaults) and whether they changed from the old index's (every curve then recomputed;
-    a notice says so)."""
+    a notice says so). ``params["objects"]``: the object rule (``sections`` given, else
+    the old index's, else the default) as :meth:`ObjectRule.as_tuple`."""
     given = {"samples": samples, "harmonics": harmonics, "scale": scale}
     defaults = {"samples": DEFAULT_SAMPLES, "harmonics": DEFAULT_HARMONICS, "scale": DEFAULT_SCALE}
     params = {}
@@ -178,6 +181,11 @@ def parameters(old, samples, harmonics, scale, notices: list) -> tuple[dict, boo
             changed.append(f"{name} {previous} -> {given[name]}")
     params["samples"], params["harmonics"] = int(params["samples"]), int(params["harmonics"])
     validate_parameters(params["samples"], params["harmonics"], params["scale"])
+    old_rule = old.object_rule() if old is not None else None
+    rule = ObjectRule(sections=sections) if sections is not None else (old_rule or ObjectRule())
+    if old_rule is not None and rule != old_rule:
+        changed.append(f"sections {old_rule.sections} -> {rule.sections}")
+    params["objects"] = rule.as_tuple()
     if changed:
         notices.append(f"parameters changed ({', '.join(changed)}): recomputing all curves")
     return params, bool(changed)
@@ -193,6 +201,8 @@ def plan_files(old, old_files, recorded, found, opens, unseen, base, params, rec
     as they were: a fault of the machine must not remove curves."""
     plan = Plan(params=params, recompute_all=recompute_all)
     rekey = old is not None and recorded is None
+    # a mesh failed as a curve file before meshes were objects (format < 3): cut it now
+    retry_meshes = old is not None and old.format_version < 3
     old_rows = {}
     for i, r in enumerate(old_files):
         key = stored(source_location(decode_name(r.path)), base) if rekey else r.path
@@ -212,10 +222,13 @@ def plan_files(old, old_files, recorded, found, opens, unseen, base, params, rec
             continue
         file = opens[path]
         action, old_sha = _action(file, r, recompute_all)
+        if action is Action.KEEP_FAILED and retry_meshes and input_format is None and is_mesh_file(file):
+            action = Action.COMPUTE
         task = None
         if action.reads_file:
             task = len(plan.tasks)
-            plan.tasks.append((file, input_format, params["samples"], params["harmonics"], params["scale"], old_sha))
+            descriptor = (params["samples"], params["harmonics"], params["scale"])
+            plan.tasks.append((file, input_format, *descriptor, old_sha, params["objects"]))
         plan.items.append(PlanItem(path, action, r, task, file))
     plan.removed = [r.path for key, (_, r) in old_rows.items() if key not in found_set and key not in held]
     return plan

@@ -48,6 +48,7 @@ from ..formats._chain import curve_id, make_curves, max_file_bytes
 from ..formats.csv import bulk_points
 from ..matching import invariants
 from ..matching.statistics import curve_statistics
+from ..mesh.objects import ObjectRule, cut_object, is_mesh_file
 
 #: curves described per descriptors_batch call (bounds the (rows x samples x 3) work arrays)
 _DESCRIBE_ROWS = 4096
@@ -171,7 +172,7 @@ def _fast_points(path: str, data: bytes, input_format) -> np.ndarray | None:
     return bulk_points(data, path)
 
 
-def _read_file(path: str, input_format, old_sha, raw: bool = False) -> tuple[dict, Any]:
+def _read_file(path: str, input_format, old_sha, raw: bool = False, rule=None) -> tuple[dict, Any]:
     """Stat, hash and read one file: ``(result, curves)``. Never raises (except
     BaseException such as KeyboardInterrupt): a failure is ``status "failed"`` with its
     message; ``status "same"`` when the hash equals ``old_sha`` (the file is not parsed);
@@ -179,7 +180,12 @@ def _read_file(path: str, input_format, old_sha, raw: bool = False) -> tuple[dic
 
     ``raw``: a small one-curve CSV file read by the bulk path may come back as its
     uncleaned (n, 3) vertex array instead of a list of curves (the caller cleans many
-    at once: :func:`_clean_raw`)."""
+    at once: :func:`_clean_raw`).
+
+    ``rule``: the object rule as a tuple (:meth:`ObjectRule.as_tuple`): a mesh file (no
+    ``input_format``, :func:`~nfdmatch.mesh.objects.is_mesh_file`) is then cut into its
+    contours, and the result has ``object``: their axes, levels and measures and the
+    object's profile, area and frame (docs/index-format.md, ``/objects``)."""
     out = {"path": path, "size": 0, "mtime_ns": 0, "sha256": "", "status": "failed", "error": ""}
     try:
         st = os.stat(path)
@@ -212,15 +218,35 @@ def _read_file(path: str, input_format, old_sha, raw: bool = False) -> tuple[dic
                 return out, fast
             curves = make_curves(path, [fast])
             return out, curves
-        curves = read_curves(path, format=input_format)
+        if rule is not None and input_format is None and is_mesh_file(path):
+            curves = _cut(path, rule, out)
+        else:
+            curves = read_curves(path, format=input_format)
         out["ids"] = [c.id for c in curves]
         out["status"] = "ok"
         return out, curves
     except Exception as exc:  # a bug must not sink the build: record it against the file
         out["error"] = _failure(path, exc)
         out.pop("ids", None)
+        out.pop("object", None)
         out["status"] = "failed"
         return out, []
+
+
+def _cut(path: str, rule: tuple, out: dict) -> list:
+    """The contours of the mesh at ``path`` as curves ``path#i``, its object record in
+    ``out["object"]``."""
+    cut = cut_object(path, ObjectRule.from_tuple(rule))
+    n = len(cut.loops)
+    out["object"] = {
+        "axis": cut.axis,
+        "level": cut.level,
+        "measures": cut.measures,
+        "profile": cut.profile,
+        "area": cut.area,
+        "frame": cut.frame,
+    }
+    return [Curve.trusted(pts, curve_id(path, i, n), path, i) for i, pts in enumerate(cut.loops)]
 
 
 def _clean_raw(results: list, raw: list) -> list:
@@ -244,10 +270,10 @@ def _clean_raw(results: list, raw: list) -> list:
     return good
 
 
-def _compute_file(path: str, input_format, samples: int, harmonics: int, scale: str, old_sha) -> dict:
+def _compute_file(path: str, input_format, samples: int, harmonics: int, scale: str, old_sha, rule=None) -> dict:
     """One file's result: as :func:`_read_file`, with ``arrays`` (see :func:`_describe`)
     when ``status`` is "ok"."""
-    out, curves = _read_file(path, input_format, old_sha)
+    out, curves = _read_file(path, input_format, old_sha, rule=rule)
     if out["status"] == "ok":
         try:
             out["arrays"] = _describe(curves, samples, harmonics, scale)
@@ -269,11 +295,11 @@ def _compute_batch(batch: list[tuple[int, tuple]], slot=None) -> tuple[list, dic
     between files: the pool reads it to blame a death or a timeout on one file.
     """
     results, raw, per_file = [], [], []
-    for number, (path, input_format, _samples, _harmonics, _scale, old_sha) in batch:
+    for number, (path, input_format, _samples, _harmonics, _scale, old_sha, *rule) in batch:
         if slot is not None:
             slot[1] = time.monotonic()
             slot[0] = number
-        out, file_curves = _read_file(path, input_format, old_sha, raw=True)
+        out, file_curves = _read_file(path, input_format, old_sha, raw=True, rule=rule[0] if rule else None)
         if isinstance(file_curves, np.ndarray):
             raw.append((len(results), path, file_curves))
         elif file_curves:
@@ -293,7 +319,7 @@ def _compute_batch(batch: list[tuple[int, tuple]], slot=None) -> tuple[list, dic
         curves.extend(file_curves)
     if not curves:
         return results, None
-    _, _, samples, harmonics, scale, _ = batch[0][1]
+    samples, harmonics, scale = batch[0][1][2:5]
     try:
         return results, _describe(curves, samples, harmonics, scale)
     except Exception:
@@ -309,6 +335,7 @@ def _compute_batch(batch: list[tuple[int, tuple]], slot=None) -> tuple[list, dic
             out.update(status="failed", error=_failure(out["path"], exc))
             out.pop("ids", None)
             out.pop("rows", None)
+            out.pop("object", None)
         start += n
     if not parts:
         return results, None

@@ -9,10 +9,15 @@ from typing import Any
 import h5py
 import numpy as np
 
+from ..mesh.objects import is_mesh_file
+from ..search.objects import ObjectLoops, search_objects
+from .objects_group import read_objects, rule_of
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
 from ..matching.statistics import curve_statistics
 from ..search.bounds import head_harmonics
 from ..records import RowIds
+from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
+from ..search.knn import DEFAULT_K
 from ..search.knn import search as search_index_for
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
@@ -107,6 +112,7 @@ class Index:
         self._files = files
         self._file_records = None
         self._sources: Any = _UNREAD
+        self._objects = None
         self.checksums: bool = meta.get("checksums", False)
         #: HDF5 parses nothing of the file unchecked (schema.checked_metadata); False: an
         #: older file, read after a check of every heap collection, rewritten by a build
@@ -477,9 +483,95 @@ class Index:
         """The curves (rows) of the index."""
         return self.n_curves
 
-    #: :func:`nfdmatch.search.knn.search`: the one search of an index file and of curves in
-    #: memory (:class:`nfdmatch.MemoryIndex`), every option a named parameter
-    search = search_index_for
+    def search(
+        self,
+        queries: Any,
+        k: int | None = None,
+        *,
+        max_distance: float | None = None,
+        exclude_self: bool = False,
+        method: str = DEFAULT_METHOD,
+        direction: str = DEFAULT_DIRECTION,
+        mirror: bool = False,
+        prune: bool = True,
+        threads: int | None = None,
+        pose: bool = True,
+        elastic: bool = False,
+        elastic_depth: int | None = None,
+        arrays: bool = False,
+    ) -> Any:
+        """:func:`nfdmatch.search.knn.search` of this index: the one search of an index file
+        and of curves in memory (:class:`nfdmatch.MemoryIndex`), every option named; its
+        docstring says what each does. A mesh query (a mesh file path, a
+        ``trimesh.Trimesh``, or a list of them) ranks the index's objects instead
+        (:meth:`search_objects`: ``k``, ``max_distance``, ``exclude_self``, ``prune``)."""
+        if _is_mesh_query(queries):
+            return self.search_objects(
+                queries, k=DEFAULT_K if k is None and max_distance is None else k, max_distance=max_distance,
+                exclude_self=exclude_self, prune=prune,
+            )  # fmt: skip
+        return search_index_for(
+            self, queries, k, max_distance=max_distance, exclude_self=exclude_self, method=method,
+            direction=direction, mirror=mirror, prune=prune, threads=threads, pose=pose, elastic=elastic,
+            elastic_depth=elastic_depth, arrays=arrays,
+        )  # fmt: skip
+
+    def objects(self):
+        """The index's objects (:class:`~nfdmatch.index.objects_group.ObjectsGroup`: the meshes
+        it holds, their contours' axes, levels and measures, their profiles), read and
+        checked once; None when it holds none (docs/index-format.md, ``/objects``)."""
+        if self._objects is None:
+
+            def read():
+                size = int(self._h5.id.get_filesize())
+                return read_objects(self._h5, self.n_curves, self.n_files, size, self.checksums)
+
+            self._objects = (self._read(read, "/objects"),)
+        return self._objects[0]
+
+    def object_ids(self) -> list[str]:
+        """The objects' ids: their meshes' stored paths, in ``objects()`` order."""
+        groups = self.objects()
+        if groups is None:
+            return []
+        records = self.files()
+        return [records[int(f)].path for f in groups.file]
+
+    def object_loops(self):
+        """Every object's contours as :class:`~nfdmatch.search.objects.ObjectLoops` (their
+        stored descriptors, axes, levels, measures; ``rows`` their /curves rows), what a mesh
+        query compares with; None when the index holds no object."""
+        groups = self.objects()
+        if groups is None:
+            return None
+        records = self.files()
+        owner = np.full(self.n_curves, -1, dtype=np.int64)
+        for m, f in enumerate(groups.file.tolist()):
+            r = records[f]
+            owner[r.curve_start : r.curve_start + r.curve_count] = m
+        rows = np.flatnonzero((owner >= 0) & (groups.axis >= 0))
+        return ObjectLoops(
+            coefficients=self.coefficients_at(rows),
+            axis=groups.axis[rows],
+            level=groups.level[rows],
+            measures=groups.measures[rows],
+            owner=owner[rows],
+            profile=groups.profile,
+            sections=groups.rule.sections,
+            rows=rows,
+        )
+
+    def search_objects(self, meshes, k: int | None = 10, max_distance=None, exclude_self: bool = False, **options):
+        """Each query mesh's nearest objects (:func:`nfdmatch.search.objects.search_objects`):
+        ``meshes`` a mesh path, a ``trimesh.Trimesh`` or a list of them; one list of
+        :class:`~nfdmatch.search.objects.ObjectMatch` per mesh. ``Index.search`` of a mesh
+        comes here."""
+        return search_objects(self, meshes, k=k, max_distance=max_distance, exclude_self=exclude_self, **options)
+
+    def object_rule(self):
+        """The :class:`~nfdmatch.mesh.objects.ObjectRule` the index's meshes were cut by, or
+        None when it holds no mesh."""
+        return self._read(lambda: rule_of(self._h5), "/objects")
 
     def graph_k(self) -> int:
         """Neighbours per row of the index's stored neighbour graph (``index build --graph``);
@@ -555,3 +647,15 @@ class Index:
             "updated": self.updated,
             "size_bytes": size,
         }
+
+
+def _is_mesh_query(queries) -> bool:
+    """Whether ``queries`` are meshes (a ``trimesh.Trimesh``, a mesh file path, or a list of
+    them) rather than curves."""
+    items = queries if isinstance(queries, (list, tuple)) else [queries]
+    if not items:
+        return False
+    first = items[0]
+    if type(first).__module__.startswith("trimesh"):
+        return True
+    return isinstance(first, (str, os.PathLike)) and "#" not in str(first) and is_mesh_file(str(first))

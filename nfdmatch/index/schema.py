@@ -19,7 +19,8 @@ from .search_layout import check_search_group
 INDEX_FORMAT = "nfdmatch-index"
 FORMAT_VERSION = 3
 #: format versions this code reads (format 1: no /search group; queries scan every row;
-#: formats 1 and 2: no /curves/statistics, the elastic stage computes them on read)
+#: formats 1 and 2: no /curves/statistics, the elastic stage computes them on read, and no
+#: /objects group, meshes were not indexed)
 READABLE_VERSIONS = (1, 2, 3)
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"

@@ -22,6 +22,7 @@ from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
 from ..matching.statistics import curve_statistics
 from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, list_problems
+from .objects_group import read_objects
 from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
 from .heap import check_string_rows
@@ -139,7 +140,7 @@ def _scan(ds, name, report, *, label="row", keep=None, crc=None):
 
 
 def verify_index(path) -> VerifyReport:
-    """Check a whole index (formats 1 and 2); returns a :class:`VerifyReport`.
+    """Check a whole index (formats 1, 2 and 3); returns a :class:`VerifyReport`.
 
     Raises ReadError (missing, unreadable) or IndexFormatError when the file does not even
     open as an index (its structure is checked first, as for any reader); everything found
@@ -154,6 +155,7 @@ def verify_index(path) -> VerifyReport:
         report = VerifyReport(p, meta["format_version"], meta["checksums"], curves=meta["n_curves"])
         _verify(h5, meta, files, report)
         _verify_graph(h5, meta, report)
+        _verify_objects(h5, meta, report)
     finally:
         h5.close()
     return report
@@ -426,6 +428,29 @@ def _check_cells(values, row, split: int, report) -> None:
                     f"cells with members outside their radius (positions {_rows_text(bad)})",
                 )
             )
+
+
+# --------------------------------------------------------------------------- /objects
+
+
+def _verify_objects(h5, meta, report) -> None:
+    """``/objects``, when the index has one: every check a reader makes of it (every chunk
+    read: its checksums), and each object's file holding only contours."""
+    try:
+        groups = read_objects(h5, meta["n_curves"], meta["n_files"], int(h5.id.get_filesize()), meta["checksums"])
+    except IndexFormatError as exc:
+        what = exc.message.removeprefix("corrupted nfdmatch index: ").removeprefix("/objects: ")
+        report.findings.append(Finding("/objects", "", what))
+        return
+    if groups is None:
+        return
+    starts = h5["files/curve_start"][...]
+    counts = h5["files/curve_count"][...]
+    for f in groups.file.tolist():
+        rows = groups.axis[starts[f] : starts[f] + counts[f]]
+        if counts[f] == 0 or (rows < 0).any():
+            report.findings.append(Finding("/objects/axis", f"{starts[f]}..{starts[f] + counts[f] - 1}",
+                                           f"object file row {f} has rows that are not contours"))  # fmt: skip
 
 
 # --------------------------------------------------------------------------- /graph

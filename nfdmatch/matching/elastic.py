@@ -23,11 +23,10 @@ sign under a reflection, so a mirror image is not at 0 unless asked for.
 
 from __future__ import annotations
 
-from functools import lru_cache
 
 import numpy as np
 
-from .kernels import Kernels, current
+from .kernels import Kernels, elastic_kernel
 
 __all__ = [
     "SAMPLES",
@@ -99,7 +98,7 @@ def elastic_rows(
     out = np.zeros(len(posed))
     if not len(posed):
         return out
-    kernel = _kernel(kernels or current())
+    kernel = elastic_kernel(kernels)
     if kernel is None:
         for r in range(len(posed)):
             out[r] = elastic_reference(A, posed[r], fractions[r])
@@ -116,28 +115,6 @@ def _writable_offsets() -> np.ndarray:
     if not _offsets_copy:
         _offsets_copy.append(np.array(OFFSETS, dtype=np.int64))
     return _offsets_copy[0]
-
-
-def _kernel(kernels: Kernels):
-    """The compiled elastic kernel of ``kernels``, or None for the numpy reference."""
-    if kernels.name == "aot":
-        return getattr(kernels.module, "elastic_rows", None)
-    if kernels.name == "numba":
-        return _jit_kernel()
-    return None
-
-
-@lru_cache(maxsize=1)
-def _jit_kernel():
-    try:
-        from ._elastic_kernels import elastic_rows as kernel
-
-        warm = np.zeros((1, 2, 3), dtype=np.complex128)
-        warm[0, 0, 0] = warm[0, 0, 1] = 1.0
-        kernel(warm[0], warm, np.zeros(1), _writable_offsets(), SAMPLES, BAND, ORIENTED_AREA, np.zeros(1))
-    except Exception:  # numba errors: the numpy reference serves
-        return None
-    return kernel
 
 
 # --------------------------------------------------------------------------- numpy reference

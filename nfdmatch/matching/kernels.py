@@ -49,6 +49,7 @@ __all__ = [
     "before_fork",
     "compile_kernels",
     "graph_push",
+    "elastic_kernel",
 ]
 
 #: the one setting: which kernels a process uses (read when the first exact distance needs it)
@@ -199,6 +200,34 @@ def graph_push(kernels: Kernels | None = None):
     return None
 
 
+def elastic_kernel(kernels: Kernels | None = None):
+    """The compiled elastic distance (:func:`._elastic_kernels.elastic_rows`) of ``kernels``
+    (default: the process's): the ahead-of-time module's, or numba's just-in-time one; None
+    for the numpy kernels, or when numba cannot compile it (the numpy reference of
+    :mod:`.elastic` then serves)."""
+    kernels = kernels or current()
+    if kernels.name == "aot":
+        return getattr(kernels.module, "elastic_rows", None)
+    if kernels.name == "numba":
+        return _jit_elastic()
+    return None
+
+
+@lru_cache(maxsize=1)
+def _jit_elastic():
+    """numba's elastic kernel, compiled (or loaded from numba's cache) and tried once on a
+    one-harmonic circle; None when it cannot be."""
+    try:
+        from ._elastic_kernels import elastic_rows
+
+        circle = np.zeros((1, 1, 3), dtype=np.complex128)
+        circle[0, 0, 0], circle[0, 0, 1] = 0.5, -0.5j
+        elastic_rows(circle[0], circle, np.zeros(1), np.array([1, 2], dtype=np.int64), 8, 1, 1e-3, np.zeros(1))
+    except Exception:  # numba errors: the numpy reference serves
+        return None
+    return elastic_rows
+
+
 @lru_cache(maxsize=1)
 def _jit_graph_push():
     """numba's push, compiled (or loaded from numba's cache) and tried once; None when it
@@ -250,9 +279,7 @@ def compile_kernels(ahead_of_time: bool = True) -> bool:
     except Exception:  # ImportError, numba errors: the numpy path serves
         return False
     _jit_graph_push()  # (numba's cache then holds the push and the elastic kernel too)
-    from .elastic import _jit_kernel
-
-    _jit_kernel()
+    _jit_elastic()
     if ahead_of_time:
         from . import aot
 

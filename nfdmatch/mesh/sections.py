@@ -58,7 +58,8 @@ def extract_contours(
     sections : number N >= 0 of section levels (see :func:`section_levels`);
         0 with ``boundaries=True`` extracts only the boundary loops.
     axis : ``"x"``, ``"y"``, ``"z"`` or ``"auto"`` (the longest extent of the
-        bounding box).
+        bounding box). The principal axes of an object's rule are
+        :func:`~.objects.principal_contours` (``extract --axis principal``).
     boundaries : also extract the boundary loops (edges used by one face).
 
     Returns
@@ -90,7 +91,7 @@ def extract_contours(
         _add_sections(result, mesh, vertices, faces, sections, axis)
 
     if boundaries:
-        loops = _boundary_loops(mesh, f"{p}: boundary", notes)
+        loops = boundary_loops(mesh, f"{p}: boundary", notes)
         if not loops and not any(n.startswith(f"{p}: boundary") for n in notes):
             notes.append(f"{p}: no boundary loops (the mesh is closed)")
         result.contours.extend(
@@ -122,7 +123,7 @@ def _add_sections(result: ExtractResult, mesh, vertices, faces, sections: int, a
         width = max(2, len(str(sections - 1)))
         for i, level in enumerate(levels.tolist()):
             where = f"{p}: section {axis_name}{i:0{width}d} at {level + 0.0:.6g}"
-            loops = _section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a, level, where, notes)
+            loops = section_loops(vertices, faces, edges, face_edges, face_lo, face_hi, a, level, where, notes)
             loops = _orient_ccw(loops, a)
             result.contours.extend(
                 Contour(
@@ -140,7 +141,7 @@ def _add_sections(result: ExtractResult, mesh, vertices, faces, sections: int, a
             )
 
 
-def _section_loops(
+def section_loops(
     vertices, faces, edges, face_edges, face_lo, face_hi, a: int, level: float, where: str, notes: list[str]
 ) -> list[np.ndarray]:
     """Closed loops of the plane ``coordinate a == level``, as cleaned (m, 3) float64 arrays.
@@ -176,7 +177,7 @@ def _section_loops(
     return _loops_to_points(np.searchsorted(ids, segments), points, where, notes)
 
 
-def _boundary_loops(mesh, where: str, notes: list[str]) -> list[np.ndarray]:
+def boundary_loops(mesh, where: str, notes: list[str]) -> list[np.ndarray]:
     """Boundary loops (edges used by exactly one face) as cleaned (m, 3) float64 arrays,
     by decreasing perimeter."""
     from trimesh.grouping import group_rows

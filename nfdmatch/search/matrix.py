@@ -95,6 +95,48 @@ def distance_matrix(
     return matrix + matrix.T
 
 
+def cross_distances(
+    A: np.ndarray,
+    B: np.ndarray,
+    samples: int,
+    *,
+    processes: int = 1,
+    direction: str = "invariant",
+    mirror: bool = False,
+    weights=None,
+) -> np.ndarray:
+    """(len A, len B) exact distances between two sets of stored descriptors ``A`` (m, K, 3)
+    and ``B`` (n, K, 3) (complex; each row against every column, in batches of
+    :data:`BATCH_ROWS` as :func:`distance_matrix` does, over ``processes`` forked workers
+    when there are enough pairs). What an object's loops are compared with (docs/objects.md)."""
+    A, B = np.asarray(A), np.asarray(B)
+    m, n = len(A), len(B)
+    out = np.zeros((m, n))
+    if m == 0 or n == 0:
+        return out
+    spread = processes > 1 and m * n >= _FORK_FROM_PAIRS
+    edges = np.linspace(0, m, (min(m, _MATRIX_TASKS) if spread else 1) + 1).astype(int)
+    tasks = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+    def compute(task, _threads):
+        a, b = task
+        rows = np.empty((b - a, n))
+        for i in range(a, b):
+            for start in range(0, n, BATCH_ROWS):
+                r = exact_search(
+                    A[i], B[start : start + BATCH_ROWS], samples, weights=weights, direction=direction, mirror=mirror
+                )
+                rows[i - a, start : start + BATCH_ROWS] = r["distance"]
+        return rows
+
+    def collect(number, rows):
+        a, b = tasks[number]
+        out[a:b] = rows
+
+    run_tasks(tasks, compute, collect, processes if spread else 1)
+    return out
+
+
 def _upper_rows(batch, search, p: MatchParameters, task, statistics=None) -> np.ndarray:
     """Rows ``a..b-1`` of the upper triangle (task ``(a, b)``), each against every later
     curve of ``batch``, concatenated; with ``statistics`` ((N, LENGTH): the curves'

@@ -20,7 +20,8 @@ and keep reading the old formats instead). ``v1-sample.h5`` was made by this scr
 commit 646aae6 (format 1), ``v2-sample.h5`` at commit e3d24f2 (format 2: last regenerated
 while format 2 was unreleased, to carry the checksums: Fletcher-32 chunks and CRC-32 string
 blocks); today's code writes format 3 (with /curves/statistics), so running it now makes
-``v3-sample.h5``.
+``v3-sample.h5``, and ``v3-objects-sample.h5``: ``circle.tsv`` and ``part.off``, a mesh
+indexed as an object (a squashed capsule, 21 contours: format 3's optional ``/objects``).
 """
 
 import os
@@ -37,6 +38,8 @@ SOURCES = [
     "sample_curves/library/lissajous-family.obj",
     "tests/data/index/bad.csv",
 ]
+#: format 3's optional /objects: a curve file and a mesh (its contours tied to it)
+OBJECT_SOURCES = ["sample_curves/library/circle.tsv", "tests/data/index/part.off"]
 TARGET = os.path.join(os.path.dirname(os.path.abspath(__file__)), f"v{index.FORMAT_VERSION}-sample.h5")
 
 
@@ -50,17 +53,21 @@ def main() -> int:
     cells.ROWS_PER_CELL = 2
     # built at the repository root (ids relative to the index's folder: the paths above,
     # on every machine), then moved here with nothing else left behind
-    with tempfile.TemporaryDirectory(dir=".") as tmp:
-        path = os.path.join(os.path.basename(tmp) + "-" + os.path.basename(TARGET))
-        try:
-            report = index.build_index(SOURCES, path, samples=32, harmonics=4, scale="rms", jobs=1)
-            print(report.curves, "curves;", report.failed, "failed:", report.failures, file=sys.stderr)
-            shutil.copyfile(path, TARGET)
-        finally:
-            for leftover in (path, path + ".lock"):
-                if os.path.exists(leftover):
-                    os.remove(leftover)
-    print(TARGET)
+    targets = [(SOURCES, TARGET)]
+    if index.FORMAT_VERSION >= 3:
+        targets.append((OBJECT_SOURCES, TARGET.replace("-sample.h5", "-objects-sample.h5")))
+    for sources, target in targets:
+        with tempfile.TemporaryDirectory(dir=".") as tmp:
+            path = os.path.join(os.path.basename(tmp) + "-" + os.path.basename(target))
+            try:
+                report = index.build_index(sources, path, samples=32, harmonics=4, scale="rms", jobs=1)
+                print(report.curves, "curves;", report.failed, "failed:", report.failures, file=sys.stderr)
+                shutil.copyfile(path, target)
+            finally:
+                for leftover in (path, path + ".lock"):
+                    if os.path.exists(leftover):
+                        os.remove(leftover)
+        print(target)
     return 0
 
 
