@@ -44,20 +44,27 @@ def index():
     """
 
 
-@index.command("build")
-@click.argument("sources", nargs=-1, required=False, metavar="[SOURCE...]")
-@index_option
-@glob_options(extra=" Recorded with the sources.")
-@click.option("--rebuild", is_flag=True, help="Recompute every curve, even unchanged files.")
-@click.option("--dry-run", is_flag=True, help="Print what would change (on stdout) and write nothing.")
-@click.option("--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores].")
-@click.option(
+#: the options of every command that writes the index (build, add, remove), defined once
+_JOBS = click.option(
+    "--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores]."
+)
+_WAIT = click.option(
     "--wait",
     type=click.FloatRange(min=0),
     default=0.0,
     show_default=True,
     help="Seconds to wait for another build's lock (0: fail at once).",
 )
+
+
+@index.command("build")
+@click.argument("sources", nargs=-1, required=False, metavar="[SOURCE...]")
+@index_option
+@glob_options(extra=" Recorded with the sources.")
+@click.option("--rebuild", is_flag=True, help="Recompute every curve, even unchanged files.")
+@click.option("--dry-run", is_flag=True, help="Print what would change (on stdout) and write nothing.")
+@_JOBS
+@_WAIT
 @click.option(
     "--strict",
     is_flag=True,
@@ -392,16 +399,8 @@ def _edit_command(name: str, verb: str, doc: str):
         @index.command(name, help=doc)
         @click.argument("files", nargs=-1, required=True, metavar="FILE...")
         @index_option
-        @click.option(
-            "--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores]."
-        )
-        @click.option(
-            "--wait",
-            type=click.FloatRange(min=0),
-            default=0.0,
-            show_default=True,
-            help="Seconds to wait for another build's lock (0: fail at once).",
-        )
+        @_JOBS
+        @_WAIT
         @click.option("--strict", is_flag=True, help="When any file fails, write nothing (exit 3).")
         @input_format_option
         @format_option(

@@ -236,11 +236,9 @@ def build_index(
     try:
         old = _load_old(index_path, rebuild, report.notices)
         recorded = None if old is None else old.sources()
-        if not sources:
-            sources, glob, exclude = _recorded_walk(old, recorded, glob, exclude, index_path, real_index, base)
-        exclude = list(exclude or [])  # a build naming its sources drops the recorded exclusions
-        found, opens, stored_sources, unseen = find_files(sources, glob, base, report.skipped)
-        found, report.sources = [f for f in found if not _under(f, exclude)], stored_sources
+        sources, glob, exclude, (found, opens, stored_sources, unseen) = _walk(
+            sources, glob, exclude, old, recorded, (index_path, real_index, base), report
+        )
         if not found and old is None:
             raise InputError(f"no curve files found under {', '.join(sources) or '(no sources)'}")
         params, changed = parameters(old, samples, harmonics, scale, report.notices, sections)
@@ -271,6 +269,19 @@ def build_index(
             lock.release(remove=lock.created and not os.path.lexists(real_index))
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _walk(sources, glob, exclude, old, recorded, where, report):
+    """``(sources, glob, exclude, (found, opens, stored sources, unseen))``: the files a
+    build reads, from its sources or the recorded ones (``where``: the index path as given,
+    its real path and folder), the excluded paths left out."""
+    index_path, real_index, base = where
+    if not sources:
+        sources, glob, exclude = _recorded_walk(old, recorded, glob, exclude, index_path, real_index, base)
+    exclude = list(exclude or [])  # a build naming its sources drops the recorded exclusions
+    found, opens, stored_sources, unseen = find_files(sources, glob, base, report.skipped)
+    found, report.sources = [f for f in found if not _under(f, exclude)], stored_sources
+    return sources, glob, exclude, (found, opens, stored_sources, unseen)
 
 
 def _recorded_walk(old, recorded, glob, exclude, index_path: str, real_index: str, base: str):
