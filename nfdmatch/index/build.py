@@ -217,13 +217,12 @@ def build_index(
     walked; None or empty: the sources the index records) in ``index_path`` (None:
     :func:`default_index_path`); returns a :class:`BuildReport`.
 
-    ``samples, harmonics, scale``: None keeps the index's values; ``dry_run``: read and
-    describe, write nothing; ``jobs``: worker processes; ``wait``: seconds for another
-    build's lock; ``graph``: /graph's K (None keeps it, 0 drops it); ``progress(done,
-    total)``; ``file_timeout``: seconds one file may take; ``runner``, ``graph_runner``:
-    compute the tasks, search the graph's rows; ``graph_progress(done, total)``: its rows;
-    ``sections``: the meshes' planes per axis; ``curves_file``: see ``sources``. Every
-    parameter, the paths and the errors: this module's docstring.
+    ``samples, harmonics, scale``: None keeps the index's values; ``dry_run``: read and describe, write nothing;
+    ``jobs``: worker processes; ``wait``: seconds for another build's lock; ``graph``: /graph's K (None keeps
+    it, 0 drops it); ``progress(done, total)``; ``file_timeout``: seconds one file may take; ``runner``,
+    ``graph_runner``: compute the tasks, search the graph's rows; ``graph_progress(done, total)``: its rows;
+    ``sections``: the meshes' planes per axis; ``curves_file``: see ``sources`` (all in full, with the paths and
+    the errors, in this module's docstring).
     """
     t0 = time.perf_counter()
     index_path = default_index_path() if index_path is None else str(os.fspath(index_path))
