@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import click
 
-from ..defaults import DEFAULT_ELASTIC_DEPTH, DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
+from ..defaults import DEFAULT_ELASTIC_DEPTH, DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
+    rerank_depth_options,
     elastic_options,
     match_list_options,
     index_option,
@@ -44,22 +45,7 @@ from .group import main
     help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
     "--graph`); adds the column score (higher is closer), distance stays the exact distance.",
 )
-@click.option(
-    "--rerank-depth",
-    type=click.IntRange(min=DEFAULT_RERANK_DEPTH),
-    default=DEFAULT_RERANK_DEPTH,
-    show_default=True,
-    metavar="M",
-    help="With --rerank: the candidates the diffusion re-orders besides the query's nearest.",
-)
-@click.option(
-    "--rerank-candidates",
-    type=click.Choice(RERANK_CANDIDATES),
-    default=None,
-    show_default=DEFAULT_RERANK_CANDIDATES,
-    help="With --rerank: walk: the query's exact 8 nearest plus the M curves its PageRank over the "
-    "graph reaches most; exact: its exact top M (~4x the time of a batch at 100,000 curves).",
-)
+@rerank_depth_options
 @elastic_options
 @matching_options
 @input_format_option

@@ -9,10 +9,11 @@ import time
 
 import click
 
-from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
+from ..defaults import DEFAULT_RERANK_CANDIDATES
 from .group import main
 from .inputs import read_inputs
 from .options import (
+    rerank_depth_options,
     elastic_options,
     index_option,
     input_format_option,
@@ -30,21 +31,7 @@ from .query_cmd import check_rerank_options, check_stage_options, note_old_forma
 @match_list_options("Matches per query (each drawn).", "Only query files in folders whose name matches.")
 @click.option("--exhaustive", is_flag=True, help="Compute every exact distance, no pruning (as `query --exhaustive`).")
 @click.option("--rerank", is_flag=True, help="Order the matches by the diffusion over the index's graph (as `query`).")
-@click.option(
-    "--rerank-depth",
-    type=click.IntRange(min=DEFAULT_RERANK_DEPTH),
-    default=DEFAULT_RERANK_DEPTH,
-    show_default=True,
-    metavar="M",
-    help="With --rerank: the candidates the diffusion re-orders besides the query's nearest.",
-)
-@click.option(
-    "--rerank-candidates",
-    type=click.Choice(RERANK_CANDIDATES),
-    default=None,
-    show_default=DEFAULT_RERANK_CANDIDATES,
-    help="With --rerank: where the candidates come from (as `query`).",
-)
+@rerank_depth_options
 @elastic_options
 @matching_options
 @input_format_option
