@@ -177,6 +177,17 @@ def _families(rng, count=6, members=5):
     return curves
 
 
+def _family_folder(tmp_path, rng, count=4, members=6):
+    from nfdmatch.formats import write_curves
+
+    curves = _families(rng, count=count, members=members)
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    for c in curves:
+        write_curves(str(folder / f"{c.id}.csv"), [c])
+    return folder, curves
+
+
 def test_the_stage_reorders_the_exact_top_m_and_equals_the_fused_distance(tmp_path, rng):
     curves = _families(rng)
     query = curves[0]
@@ -196,34 +207,21 @@ def test_the_stage_reorders_the_exact_top_m_and_equals_the_fused_distance(tmp_pa
 
 def test_index_search_elastic_matches_rank_curves_and_checks_its_options(tmp_path, rng):
     from nfdmatch.errors import ParameterError
-    from nfdmatch.formats import write_curves
 
-    curves = _families(rng, count=4, members=4)
-    folder = tmp_path / "lib"
-    folder.mkdir()
-    for c in curves:
-        write_curves(str(folder / f"{c.id}.csv"), [c])
+    folder, _ = _family_folder(tmp_path, rng, count=4, members=4)
     build_index([str(folder)], str(tmp_path / "x.h5"))
     with open_index(str(tmp_path / "x.h5")) as idx:
         found = idx.search(str(folder / "f1-0.csv"), k=3, elastic=True, elastic_depth=8, exclude_self=True)[0]
-        assert [m.id.split("/")[-1] for m in found] == ["f1-1.csv", "f1-2.csv", "f1-3.csv"] or all(
-            "f1-" in m.id for m in found
-        )
+        assert len(found) == 3 and all("f1-" in m.id for m in found)
         assert all(m.elastic is not None and m.fused is not None and m.pose is not None for m in found)
         with pytest.raises(ParameterError):
             idx.search(str(folder / "f1-0.csv"), k=3, elastic_depth=8)
 
 
 def test_query_elastic_cli(tmp_path, rng):
-    from nfdmatch.formats import write_curves
-
     from conftest import run_cli
 
-    curves = _families(rng, count=3, members=4)
-    folder = tmp_path / "lib"
-    folder.mkdir()
-    for c in curves:
-        write_curves(str(folder / f"{c.id}.csv"), [c])
+    folder, _ = _family_folder(tmp_path, rng, count=3, members=4)
     index = str(tmp_path / "x.h5")
     assert run_cli("index", "build", str(folder), "--index", index)[0] == 0
     query = str(folder / "f2-0.csv")
@@ -255,15 +253,9 @@ def test_query_elastic_cli(tmp_path, rng):
 
 
 def test_show_elastic_draws_the_stage_order_and_prints_its_columns(tmp_path, rng):
-    from nfdmatch.formats import write_curves
-
     from conftest import run_cli
 
-    curves = _families(rng, count=2, members=3)
-    folder = tmp_path / "lib"
-    folder.mkdir()
-    for c in curves:
-        write_curves(str(folder / f"{c.id}.csv"), [c])
+    folder, _ = _family_folder(tmp_path, rng, count=2, members=3)
     query = str(folder / "f0-0.csv")
     picture = tmp_path / "m.png"
     code, out, err = run_cli(
@@ -290,17 +282,6 @@ def test_the_stage_needs_the_exact_method(tmp_path, rng):
         write_curves(str(tmp_path / f"{c.id}.csv"), [c])
     code, out, err = run_cli("rank", tmp_path / "f0-0.csv", tmp_path, "--elastic", "--method", "paper")
     assert code != 0 and "method must be exact" in err and not out
-
-
-def _family_folder(tmp_path, rng, count=4, members=6):
-    from nfdmatch.formats import write_curves
-
-    curves = _families(rng, count=count, members=members)
-    folder = tmp_path / "lib"
-    folder.mkdir()
-    for c in curves:
-        write_curves(str(folder / f"{c.id}.csv"), [c])
-    return folder, curves
 
 
 def test_an_elastic_graph_is_built_verified_and_diffused_over(tmp_path, rng):
