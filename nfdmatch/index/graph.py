@@ -218,8 +218,13 @@ def graph_distance(index) -> str:
     index without a graph."""
     if index is None or index._h5 is None or "graph" not in index._h5:
         return "exact"
-    value = index._h5["graph"].attrs.get("distance", "exact")
-    value = value.decode() if isinstance(value, bytes) else str(value)
+    return group_distance(index._h5["graph"])
+
+
+def group_distance(g) -> str:
+    """What a ``/graph`` group's distances are, by its attribute ``distance`` (absent or
+    unknown: ``"exact"``)."""
+    value = text_attr(g.attrs, "distance")
     return value if value in GRAPH_DISTANCES else "exact"
 
 

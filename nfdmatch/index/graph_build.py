@@ -12,9 +12,8 @@ import numpy as np
 
 from ..errors import IndexFormatError
 from ..search.engine import Cascade
-from ..search.graph import GraphLists, graph_blocks, neighbour_lists, update_copied
+from ..search.graph import GraphLists, fused_lists, graph_blocks, neighbour_lists, update_copied
 from .arrays import unique_rows
-from ..search.graph import fused_lists
 from .graph import (
     GRAPH_CHECKSUMS,
     GRAPH_CHUNK_ROWS,

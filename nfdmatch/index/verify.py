@@ -21,7 +21,7 @@ from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
 from ..matching.statistics import curve_statistics
-from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, list_problems
+from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, group_distance, list_problems
 from .objects_group import read_objects
 from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
@@ -513,7 +513,7 @@ def _verify_graph(h5, meta, report) -> None:
             found = True
     if found or not N:
         return
-    if g.attrs.get("distance", "exact") not in ("exact", b"exact"):
+    if group_distance(g) != "exact":
         # a fused graph's lists are each row's least fused among its exact nearest, not top-K
         # lists of one metric, and a pair whose exact optimum is ambiguous may bend otherwise
         # one way than the other: the cross-checks of exact lists do not hold

@@ -23,7 +23,6 @@ sign under a reflection, so a mirror image is not at 0 unless asked for.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from .kernels import Kernels, elastic_kernel
@@ -170,12 +169,10 @@ def elastic_reference(A: np.ndarray, posed: np.ndarray, fraction: float) -> floa
     total[0, 0] = 0.0
     for i in range(1, n):
         for j in range(max(1, i - BAND), min(n, i + BAND + 1)):
-            steps = []
-            if i > 0 and j > 0:
-                steps.append(total[i - 1, j - 1] + (cost[i - 1, j - 1] + cost[i, j]))
-            if i > 0:
-                steps.append(total[i - 1, j] + 0.5 * (cost[i - 1, j] + cost[i, j]))
-            if j > 0:
-                steps.append(total[i, j - 1] + 0.5 * (cost[i, j - 1] + cost[i, j]))
-            total[i, j] = min(steps)
+            # row and column 0 hold only (0, 0): the path leaves it diagonally
+            total[i, j] = min(
+                total[i - 1, j - 1] + (cost[i - 1, j - 1] + cost[i, j]),
+                total[i - 1, j] + 0.5 * (cost[i - 1, j] + cost[i, j]),
+                total[i, j - 1] + 0.5 * (cost[i, j - 1] + cost[i, j]),
+            )
     return float((total[n - 1, n - 1] + cost[n - 1, n - 1] + cost[0, 0]) / (2.0 * n))

@@ -31,6 +31,7 @@ __all__ = [
     "ELASTIC_QUANTILES",
     "STATISTICS_QUANTILES",
     "TERMS",
+    "require_exact",
 ]
 
 #: the terms summed, in this order
@@ -49,6 +50,16 @@ STATISTICS_QUANTILES = (
     8.7232, 9.5512, 10.5404, 15.9714,
 )  # fmt: skip
 _LEVELS = np.linspace(0.0, 1.0, 17)
+
+
+def require_exact(method: str) -> None:
+    """The elastic stage is taken at the exact optimum (its pose and its rigid term): a
+    ``ParameterError`` for any other method."""
+    from . import EXACT
+    from ..errors import ParameterError
+
+    if method != EXACT:
+        raise ParameterError(f"the elastic stage is taken at the exact optimum: method must be {EXACT}")
 
 
 def fuse(rigid, elastic, statistics) -> np.ndarray:
@@ -106,12 +117,10 @@ def fused_distance(a, b, **parameters) -> tuple:
     :class:`FusedDistances` of one row (the elastic distance taken at the match's pose).
 
     a, b : as :func:`nfdmatch.distance`; parameters : its keywords (the method must be exact)."""
-    from ..errors import ParameterError
-    from . import EXACT, MatchParameters, _as_descriptors, match_descriptors
+    from . import MatchParameters, _as_descriptors, match_descriptors
 
     p = MatchParameters(**parameters)
-    if p.method != EXACT:
-        raise ParameterError("the elastic stage is taken at the exact optimum: method must be exact")
+    require_exact(p.method)
     da = _as_descriptors(a, **p.descriptor)
     db = _as_descriptors(b, **p.descriptor)
     match = match_descriptors(da, db, **p.matching)

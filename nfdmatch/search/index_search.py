@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD, METHODS
+from ..matching.fused import require_exact
 from ..matching.kernels import current as current_kernels
 from ..records import RankedMatch
 from .engine import TIE, Cascade, BestRows, search_block
@@ -143,8 +144,8 @@ def search_index(
     """
     top = k_or_top(k, top, "search_index")
     check_search_parameters(top, max_distance, method)
-    if stage is not None and method != DEFAULT_METHOD:
-        raise ParameterError(f"the {stage.name} stage is taken at the exact optimum: method must be {DEFAULT_METHOD}")
+    if stage is not None:
+        require_exact(method)
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     t0 = time.perf_counter()

@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..matching import EXACT, METHODS, MatchParameters, exact_search, paper_search
+from ..matching.fused import fused_rows, require_exact
+from ..matching.statistics import curve_statistics
 from ..errors import ParameterError
 from .workers import run_tasks
 
@@ -63,14 +65,10 @@ def distance_matrix(
     p = MatchParameters(**parameters)
     if p.method not in METHODS:
         raise ParameterError(f"method must be exact or paper, got {p.method!r}")
-    if elastic and p.method != EXACT:
-        raise ParameterError("the elastic stage is taken at the exact optimum: method must be exact")
-    batch = descriptors_batch(curves, **p.descriptor)
-    statistics = None
     if elastic:
-        from ..matching.statistics import curve_statistics
-
-        statistics = curve_statistics(batch.coefficients)
+        require_exact(p.method)
+    batch = descriptors_batch(curves, **p.descriptor)
+    statistics = curve_statistics(batch.coefficients) if elastic else None
     N = len(batch)
     matrix = np.zeros((N, N))
     search = exact_search if p.method == EXACT else paper_search
@@ -158,8 +156,6 @@ def _upper_rows(batch, search, p: MatchParameters, task, statistics=None) -> np.
             if statistics is None:
                 out.append(r["distance"])
                 continue
-            from ..matching.fused import fused_rows
-
             stop = min(start + BATCH_ROWS, N)
             terms = fused_rows(
                 batch.coefficients[i], batch.coefficients[start:stop], r, p.samples,

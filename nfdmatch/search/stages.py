@@ -137,11 +137,9 @@ def fused_best_rows(index, qcoef: np.ndarray, found) -> None:
     for tk, terms in zip(found, fused_candidates(index, qcoef, [tk.rows for tk in found], rigid)):
         if terms is None:
             continue
-        tk.extra = {**tk.extra, "exact": tk.dist.copy(), "elastic": terms.elastic}
-        tk.dist = terms.fused
-    # by fused distance (within TIE), then exact distance, then id (rank_rows: distance, id)
-    for tk in found:
-        if "exact" in tk.extra and len(tk.rows) > 1:
-            order = np.lexsort((tk.extra["exact"], np.round(tk.dist / TIE)))
-            tk.rows, tk.dist = tk.rows[order], tk.dist[order]
-            tk.extra = {key: v[order] for key, v in tk.extra.items()}
+        # by fused distance (within TIE), then exact distance, then id (the rows come ranked
+        # by exact distance, then id, and the sort is stable)
+        order = np.lexsort((tk.dist, np.round(terms.fused / TIE)))
+        extra = {**tk.extra, "exact": tk.dist, "elastic": terms.elastic}
+        tk.rows, tk.dist = tk.rows[order], terms.fused[order]
+        tk.extra = {key: v[order] for key, v in extra.items()}
