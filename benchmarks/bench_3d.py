@@ -2,6 +2,7 @@
 (issues "Similarity that bends" and "3-D curves that people call alike"; docs/elastic.md).
 
     python benchmarks/bench_3d.py [--data ../shared/data] [--depths 100,all] [--diffusion] [--constants | --timing]
+                                   [--only NAMES] [--large]
 
 Every curve of a collection is a query against the rest (the library's own search with
 ``exclude_self``, as ``query --exclude-self``); top-1 and bull's-eye (same class among the
@@ -163,7 +164,7 @@ def rerank_rows(curves, labels, depth):
     from nfdmatch.index.graph import GraphSpec
     from nfdmatch.search.rerank import rerank_index
 
-    rows = []
+    rows, N = [], len(curves)
     with tempfile.TemporaryDirectory() as tmp:
         folder = os.path.join(tmp, "curves")
         os.makedirs(folder)
@@ -188,12 +189,19 @@ def rerank_rows(curves, labels, depth):
             from nfdmatch.search.rerank import diffused_similarity
 
             fused = graph != 10
-            S = diffused_similarity(distance_matrix(stored, elastic=fused), ids=[c.id for c in stored])
+            D = distance_matrix(stored, elastic=fused)
+            S = diffused_similarity(D, ids=[c.id for c in stored])
             np.fill_diagonal(S, -np.inf)
-            want = np.argsort(-S, axis=1, kind="stable")[:, : order.shape[1]]
-            same = float(np.mean(order == want))
+            # the matrix's order: score, then (below the score floor, where scores are 0) the
+            # distance, then id (the files' order)
+            want = np.array([np.lexsort((np.arange(N), D[i], -S[i])) for i in range(N)])[:, : order.shape[1]]
+            place = float(np.mean(order == want))
+            shared = float(np.mean([len(set(a) & set(b)) / len(a) for a, b in zip(order, want)]))
             what = "matrix --rerank --elastic" if fused else "matrix --rerank"
-            print(f"  ({label}: the same curve as {what} at {same:.1%} of the top-40 places)")
+            print(
+                f"  ({label}: the top {order.shape[1]} of {what}: the same set at {shared:.1%}, "
+                f"the same curve at {place:.1%} of the places)"
+            )
     return rows
 
 
@@ -403,6 +411,10 @@ def main():
     parser.add_argument("--timing", action="store_true", help="only the CLI timing (plain against --elastic)")
     parser.add_argument("--diffusion", action="store_true", help="also diffusion on full matrices (PPR, LCDP)")
     parser.add_argument("--elastic-graph", type=int, default=0, metavar="N", help="only the elastic graph's timing")
+    parser.add_argument("--only", default=None, help="only these collections (comma-separated names)")
+    parser.add_argument(
+        "--large", action="store_true", help="also 1,400 bending 2-D curves in 70 families of 20 (the held-out shape)"
+    )
     args = parser.parse_args()
     if not os.path.isdir(args.data):
         sys.exit(f"no development data at {args.data}: give --data")
@@ -414,6 +426,11 @@ def main():
         kernel_timing()
         return
     cols = collections(args.data)
+    if args.large:
+        points, labels = families(np.random.default_rng(7), 70, 20, 2)
+        cols["bending 2-D, 70 x 20"] = ([Curve(p, id=f"large-{i:04d}") for i, p in enumerate(points)], labels, 40)
+    if args.only:
+        cols = {name: c for name, c in cols.items() if name in args.only.split(",")}
     if args.constants:
         constants(cols)
         return

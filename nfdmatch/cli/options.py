@@ -573,7 +573,7 @@ def _note_index(ctx, param, value):
 def rerank_depth_options(command):
     """--rerank-depth M and --rerank-candidates, of every command that re-ranks by diffusion
     (``query``, ``report``)."""
-    from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, RERANK_CANDIDATES
+    from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, MIN_RERANK_DEPTH, RERANK_CANDIDATES
 
     f = click.option(
         "--rerank-candidates",
@@ -585,7 +585,7 @@ def rerank_depth_options(command):
     )(command)
     return click.option(
         "--rerank-depth",
-        type=click.IntRange(min=DEFAULT_RERANK_DEPTH),
+        type=click.IntRange(min=MIN_RERANK_DEPTH),
         default=DEFAULT_RERANK_DEPTH,
         show_default=True,
         metavar="M",
