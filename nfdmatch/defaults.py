@@ -29,10 +29,8 @@ DEFAULT_INDEX = "nfdmatch.h5"
 #: neighbours per row when ``--graph`` is given without a number (:mod:`nfdmatch.index.graph`)
 DEFAULT_GRAPH_K = 10
 #: a query's candidates for a re-ranking (``--rerank-depth``), by default and at least
-#: (:mod:`nfdmatch.search.rerank`): 400 puts the same top 40 as ``matrix --rerank`` in 99.4% of
-#: the places of 1,400 generated curves in families of 20, 100 in 95.7%, at 1.4x the batch's
-#: time (docs/rerank.md)
-DEFAULT_RERANK_DEPTH = 400
+#: (:mod:`nfdmatch.search.rerank`; docs/rerank.md, "Depth": 400 measured no better)
+DEFAULT_RERANK_DEPTH = 100
 MIN_RERANK_DEPTH = 100
 #: where a re-ranking's candidates can come from (``--rerank-candidates``;
 #: :mod:`nfdmatch.search.rerank`), and by default

@@ -165,8 +165,7 @@ def rerank_index(
     index : an open :class:`nfdmatch.index.Index` with a graph (``index build --graph``).
     queries : sequence of :class:`~nfdmatch.curve.Curve`.
     k : matches per query (at most ``depth``); ``top`` is its deprecated older name.
-    depth : M, the query's candidates besides its nearest (see ``candidates``), >= 100;
-        default 400 (:data:`~nfdmatch.defaults.DEFAULT_RERANK_DEPTH`).
+    depth : M, the query's candidates besides its nearest (see ``candidates``), >= 100.
     exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is the
         query in the graph (its stored row and PageRank) and is left out of the results;
         the scores are then ``matrix --rerank``'s within :data:`MATRIX_TOLERANCE`.
