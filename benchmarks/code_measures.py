@@ -1,5 +1,6 @@
 """The shape of the code, as issue 21 counts it: long functions and modules, private names
-imported across modules, imports inside functions, import circles between modules.
+imported across modules, imports inside functions, import circles between modules; and, as
+issue 37 counts it, the public functions fully annotated (``public_functions``: the rule).
 
     python benchmarks/code_measures.py [PACKAGE_DIR]
 
@@ -39,11 +40,62 @@ def resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
     return ".".join(parts + ([node.module] if node.module else []))
 
 
+def public_module(dotted: str) -> bool:
+    """A module is public when no part of its dotted name starts with ``_`` (a package's
+    ``__init__.py`` is the package itself: ``nfdmatch.formats``, not ``nfdmatch.formats.__init__``)."""
+    return not any(part.startswith("_") for part in dotted.split("."))
+
+
+def _fully_annotated(node: ast.FunctionDef | ast.AsyncFunctionDef, method: bool) -> bool:
+    args = node.args
+    params = [*args.posonlyargs, *args.args]
+    static = any(isinstance(d, ast.Name) and d.id == "staticmethod" for d in node.decorator_list)
+    if method and not static and params:
+        params = params[1:]  # self or cls
+    params += [*args.kwonlyargs, *(a for a in (args.vararg, args.kwarg) if a is not None)]
+    return node.returns is not None and all(p.annotation is not None for p in params)
+
+
+def public_functions(package: str) -> list[tuple[str, bool]]:
+    """``(dotted name, fully annotated)`` of every public function under ``package``.
+
+    Public: in a public module (``public_module``), a function defined at the module's top
+    level or a method of a class defined there (classes in classes too), neither the function
+    nor any enclosing class named with a leading ``_``; a class's ``__init__`` counts (it is the
+    signature of calling the class), other dunder methods and functions inside functions do
+    not. Fully annotated: every parameter has an annotation (but a method's first, ``self`` or
+    ``cls``, unless it is a ``staticmethod``), and so has the return.
+    """
+    out = []
+
+    def visit(body: list[ast.stmt], prefix: str, in_class: bool) -> None:
+        for node in body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                if not node.name.startswith("_") or (in_class and node.name == "__init__"):
+                    out.append((f"{prefix}.{node.name}", _fully_annotated(node, in_class)))
+            elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+                visit(node.body, f"{prefix}.{node.name}", True)
+
+    for name, path in sorted(modules(package).items()):
+        if public_module(name):
+            with open(path, encoding="utf-8") as f:
+                visit(ast.parse(f.read()).body, name, False)
+    return out
+
+
+def _is_type_checking(test: ast.expr) -> bool:
+    """``TYPE_CHECKING`` or ``typing.TYPE_CHECKING``."""
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
 def main() -> None:
     package = sys.argv[1] if len(sys.argv) > 1 else os.path.join(ROOT, "nfdmatch")
     mods = modules(package)
     long_functions, long_modules, private, inner, edges = [], [], [], defaultdict(int), defaultdict(set)
     every_edge = defaultdict(set)  # with the imports inside functions
+    type_checking_imports = 0
     for name, path in sorted(mods.items()):
         with open(path, encoding="utf-8") as f:
             source = f.read()
@@ -52,7 +104,21 @@ def main() -> None:
         if lines > 500:
             long_modules.append((lines, name))
         is_package = path.endswith("__init__.py")
+        # imports under `if TYPE_CHECKING:` are never run (the names of annotations, for the
+        # type checker): neither circles nor imports inside functions; counted apart
+        typing_only = {
+            id(sub)
+            for node in ast.walk(tree)
+            if isinstance(node, ast.If) and _is_type_checking(node.test)
+            for stmt in node.body
+            for sub in ast.walk(stmt)
+        }
+        type_checking_imports += sum(
+            isinstance(node, ast.ImportFrom) and id(node) in typing_only for node in ast.walk(tree)
+        )
         for node in ast.walk(tree):
+            if id(node) in typing_only:
+                continue
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 length = node.end_lineno - node.lineno + 1
                 if length > 80:
@@ -91,6 +157,14 @@ def main() -> None:
     # an import moved into a function hides a circle from the line above, it does not remove it
     every = _circles(every_edge)
     print(f"| import circles, every import counted (also inside functions) | {len(every)} {every[:3]} |")
+    print(
+        f"| imports for the type checker only (under if TYPE_CHECKING, not counted above) | {type_checking_imports} |"
+    )
+    functions = public_functions(package)
+    bare = [name for name, annotated in functions if not annotated]
+    print(f"| public functions fully annotated | {len(functions) - len(bare)} of {len(functions)} |")
+    for name in bare[:12]:
+        print(f"|   not: {name} | |")
 
 
 def _circles(edges: dict) -> list:

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .errors import CurveError
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["Curve", "clean_points", "as_points", "STDIN_ID"]
 
@@ -60,7 +66,7 @@ class Curve:
         return bool(np.all(self.points[:, 2] == 0.0))
 
 
-def clean_points(points, *, path: str | None = None, curve: int | None = None) -> np.ndarray:
+def clean_points(points: ArrayLike, *, path: str | None = None, curve: int | None = None) -> NDArray[np.float64]:
     """Validate and clean the vertices of one closed polyline.
 
     Parameters
@@ -108,7 +114,7 @@ def clean_points(points, *, path: str | None = None, curve: int | None = None) -
     return pts
 
 
-def clean_many(arrays, *, path: str | None = None) -> list[np.ndarray]:
+def clean_many(arrays: Sequence[NDArray[np.float64]], *, path: str | None = None) -> list[NDArray[np.float64]]:
     """:func:`clean_points` for many curves at once, vectorized over their vertices.
 
     Parameters
@@ -165,7 +171,7 @@ def _distinct_up_to_three(pts: np.ndarray) -> int:
     return 3 if third.any() else 2
 
 
-def as_points(curve) -> np.ndarray:
+def as_points(curve: Curve | ArrayLike) -> NDArray[np.float64]:
     """(n, 3) float64 vertices of a :class:`Curve` or an array-like, cleaned and validated."""
     if isinstance(curve, Curve):
         return curve.points

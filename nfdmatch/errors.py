@@ -19,7 +19,7 @@ from __future__ import annotations
 MAX_MESSAGE_CHARS = 1000
 
 
-def escape_name(text) -> str:
+def escape_name(text: str) -> str:
     """``text`` as valid UTF-8: the undecodable bytes of a file name, which Python's
     ``os.fsdecode`` (surrogateescape) turns into lone surrogates ``\\udc80``-``\\udcff``,
     are written as ``\\xNN`` (byte 0xff -> the four characters ``\\xff``); any other
@@ -40,7 +40,7 @@ def escape_name(text) -> str:
         return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
-def excerpt(text, limit: int = 80) -> str:
+def excerpt(text: str | bytes, limit: int = 80) -> str:
     """``text`` (str, or bytes shown as Latin-1) cut to ``limit`` characters, marking the
     cut with how much was left out: ``"12345...[cut: 5000000 characters in all]"``."""
     if isinstance(text, (bytes, bytearray)):
@@ -72,7 +72,9 @@ class NfdError(Exception):
     curve : 0-based curve number within a multi-curve file, if known.
     """
 
-    def __init__(self, message: str, *, path: str | None = None, line: int | None = None, curve: int | None = None):
+    def __init__(
+        self, message: str, *, path: str | None = None, line: int | None = None, curve: int | None = None
+    ) -> None:
         message = str(message)
         if len(message) > MAX_MESSAGE_CHARS:
             message = excerpt(message, MAX_MESSAGE_CHARS)

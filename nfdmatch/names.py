@@ -24,7 +24,7 @@ __all__ = ["encode_name", "decode_name"]
 _ESCAPE = re.compile(r"\\(\\|x[89a-f][0-9a-f]|ud[89a-f][0-9a-f]{2})")
 
 
-def encode_name(name) -> str:
+def encode_name(name: str) -> str:
     """The id of a file name (str as ``os.fsdecode`` gives it): valid UTF-8, one-to-one."""
     name = str(name)
     if "\\" not in name:
@@ -56,7 +56,7 @@ def _unescape(match: re.Match) -> str:
     return chr(int(text[1:], 16))
 
 
-def decode_name(text) -> str:
+def decode_name(text: str) -> str:
     """The file name of an id (:func:`encode_name` undone): the str that opens the file
     (``os.fsencode`` gives its bytes). A backslash that starts no escape is kept as it is
     (ids stored before this rule held a file name's backslashes single)."""

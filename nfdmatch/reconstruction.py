@@ -4,12 +4,18 @@ pictures (docs/architecture.md), as :mod:`nfdmatch.show`: it measures with the d
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from dataclasses import dataclass
 
 from .curve import Curve
 from .descriptors import DEFAULT_SAMPLES, descriptors, reconstruct
 from .errors import ParameterError
 from .matching import distance
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from .curve import Curve
 
 __all__ = ["Reconstruction", "reconstruct_curves", "reconstruction_samples"]
 
@@ -44,7 +50,12 @@ def reconstruction_samples(harmonics: int, samples: int | None = None) -> int:
 
 
 def reconstruct_curves(
-    curves, *, harmonics: int, samples: int | None = None, points: int | None = None, normalized: bool = False
+    curves: Sequence[Curve],
+    *,
+    harmonics: int,
+    samples: int | None = None,
+    points: int | None = None,
+    normalized: bool = False,
 ) -> list[Reconstruction]:
     """Rebuild every curve of ``curves`` (Curves) from its first ``harmonics`` harmonics.
 

@@ -13,10 +13,15 @@ This module sits at the base of the layers (docs/architecture.md): it imports nu
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 __all__ = ["RankedMatch", "ShownMatch", "RowIds", "SOURCES", "INDEX_NOTE"]
 
@@ -58,7 +63,7 @@ class RankedMatch:
     elastic: float | None = None
     fused: float | None = None
 
-    def replace(self, **changes) -> RankedMatch:
+    def replace(self, **changes: Any) -> RankedMatch:
         """A copy with some fields changed (e.g. ``rank`` after dropping rows)."""
         return dataclasses.replace(self, **changes)
 
@@ -111,7 +116,9 @@ class RowIds:
     not read whole to name the five a search returned. Calling it, ``index.ids(start,
     stop)``, is the older spelling of ``index.ids[start:stop]`` (a list)."""
 
-    def __init__(self, count: int, at, span):
+    def __init__(
+        self, count: int, at: Callable[[np.ndarray], list[str]], span: Callable[[int, int], list[str]]
+    ) -> None:
         self._count = count
         self._at = at  # rows -> list[str]
         self._span = span  # (start, stop) -> list[str]

@@ -11,7 +11,7 @@ keeps each curve's centroid, scale and rotation).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +22,9 @@ from .errors import CurveError, NfdError
 from .matching import Match, match_descriptors
 from .records import RankedMatch, ShownMatch
 from .search.knn import stored_descriptors
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
 
 __all__ = [
     "ShownMatch",
@@ -61,7 +64,7 @@ def align_match(
     *,
     source: str,
     alignment: Match | None = None,
-    **matching,
+    **matching: Any,
 ) -> ShownMatch:
     """The ranked match ``ranked`` with ``points_b`` ((m, 3) float64, the curve behind
     ``db``) mapped into the frame of the query behind ``dq`` by the alignment of their match
@@ -244,7 +247,7 @@ def show_searched(
     )
 
 
-def match_panels(shown) -> list[ShownMatch]:
+def match_panels(shown: Iterable[ShownMatch]) -> list[ShownMatch]:
     """Deprecated: :func:`~nfdmatch.render.render_matches` draws :class:`ShownMatch` es as
     they are; this returns them as a list."""
     return list(shown)

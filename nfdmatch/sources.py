@@ -22,6 +22,8 @@ made from them escape those bytes (see :func:`nfdmatch.formats._chain.curve_id`)
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 import stat
 from pathlib import Path
@@ -30,13 +32,18 @@ from .errors import ReadError
 from .formats import supported_extensions
 from .formats._chain import file_kind
 
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable, Iterator
+    from .curve import Curve
+    from .errors import NfdError
+
 __all__ = ["find_curve_files", "walk_folder", "glob_matcher", "IGNORE_CASE"]
 
 #: a glob starting with this is matched ignoring case (``--iglob``)
 IGNORE_CASE = "(?i)"
 
 
-def glob_matcher(glob: str | None):
+def glob_matcher(glob: str | None) -> Callable[[str], bool] | None:
     """``match(relative_path) -> bool`` for a ``--glob`` pattern (None: no pattern), as
     ripgrep's ``-g`` and fd read one: a pattern without ``/`` matches a file's name at any
     depth (``*.csv``); one with ``/`` matches the path below the walked folder (``fam0/*.csv``,
@@ -101,7 +108,7 @@ MESH_EXTENSIONS = (".stl", ".ply", ".off", ".glb", ".gltf")
 
 
 def find_curve_files(
-    sources, *, glob: str | None = None, problems: list | None = None, meshes: bool = False
+    sources: Iterable[str], *, glob: str | None = None, problems: list | None = None, meshes: bool = False
 ) -> list[str]:
     """Curve files named by ``sources``, in a deterministic order.
 
@@ -148,7 +155,14 @@ def find_curve_files(
     return found.paths
 
 
-def walk_folder(folder: str, extensions, *, glob: str | None = None, exclude=(), problems: list | None = None):
+def walk_folder(
+    folder: str,
+    extensions: Iterable[str],
+    *,
+    glob: str | None = None,
+    exclude: Iterable[str] = (),
+    problems: list | None = None,
+) -> Iterator[str]:
     """Yield the files below ``folder`` whose extension (lower-cased, with the dot) is in
     ``extensions`` and that ``glob`` keeps (:func:`glob_matcher`), recursively, sorted within each folder,
     skipping hidden files and folders and the folders in ``exclude``.
@@ -203,7 +217,7 @@ def _irregular(path: str) -> str | None:
 class UniquePaths:
     """Paths in first-seen order, a path given twice (up to normpath) kept once."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.paths: list[str] = []
         self._seen: set[str] = set()
 
@@ -214,7 +228,7 @@ class UniquePaths:
             self.paths.append(path)
 
 
-def read_all(paths, *, format: str | None = None):
+def read_all(paths: Iterable[str], *, format: str | None = None) -> tuple[list[Curve], list[NfdError]]:
     """Read every curve of every file; a bad file does not stop the others.
 
     Parameters

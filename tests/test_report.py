@@ -145,6 +145,88 @@ def test_chromium_runs_the_script_that_filters_by_distance(library, tmp_path):
     assert [float(d) for d in hidden] == [best[2]]
 
 
+_ROWS = """JSON.stringify(Array.prototype.map.call(document.querySelectorAll(%s),
+  function(r){return {d: r.getAttribute('data-d'), key: r.cells[%d].getAttribute('data-v') || r.cells[%d].textContent,
+                      hidden: r.hidden}}))"""
+
+
+def _rows(browser, selector: str, key_column: int = 0) -> list[dict]:
+    """The rows matching ``selector`` in the page's current order: distance, a key cell, hidden."""
+    import json
+
+    return json.loads(browser.evaluate(_ROWS % (json.dumps(selector), key_column, key_column)))
+
+
+@pytest.mark.slow
+def test_chromium_sorts_and_filters_when_clicked(library, tmp_path):
+    """The inline script driven in a real browser: mouse clicks on the distance headings,
+    typing into the filter; the order and what is shown read back from the page."""
+    from devtools import Browser
+
+    chromium = _chromium_or_skip()
+    home, _ = library
+    lib = home / "sample_curves" / "library"
+    code, _, err, out = _report(library, lib, "--exclude-self", "--top", "3")
+    assert code == 0, err
+    overview = "#queries table tbody tr"
+    with Browser(chromium, tmp_path / "profile") as browser:
+        browser.open(f"file://{out}")
+        rows = _rows(browser, overview)
+        assert len(rows) == 24 and not any(r["hidden"] for r in rows)
+        distances = [float(r["d"]) for r in rows]
+        assert distances != sorted(distances) and distances != sorted(distances, reverse=True)  # not sorted yet
+        numbers = [int(r["key"]) for r in rows]
+        assert numbers == list(range(1, 25))
+
+        heading = "#queries th:nth-child(5)"  # best distance
+        assert browser.evaluate(f"document.querySelector({heading!r}).textContent") == "best distance"
+        browser.click(heading)
+        rows = _rows(browser, overview)
+        assert [float(r["d"]) for r in rows] == sorted(distances)  # ascending
+        assert sorted(int(r["key"]) for r in rows) == numbers  # the same rows, moved
+        assert browser.evaluate(f"document.querySelector({heading!r}).getAttribute('data-dir')") == "asc"
+        browser.click(heading)
+        assert [float(r["d"]) for r in _rows(browser, overview)] == sorted(distances, reverse=True)
+        assert browser.evaluate(f"document.querySelector({heading!r}).getAttribute('data-dir')") == "desc"
+        browser.click("#queries th:nth-child(1)")  # back to the order of the queries: numbers, not text
+        assert [int(r["key"]) for r in _rows(browser, overview)] == numbers
+
+        # a query's own rows: rank ascending as written; the distance heading twice: descending
+        first = "section#q1 table tbody tr"
+        written = [float(r["d"]) for r in _rows(browser, first)]
+        assert len(written) == 3 and written == sorted(written)
+        browser.click("section#q1 th:nth-child(3)")
+        browser.click("section#q1 th:nth-child(3)")
+        rows = _rows(browser, first)
+        assert [float(r["d"]) for r in rows] == sorted(written, reverse=True)
+        assert [int(r["key"]) for r in rows] == [3, 2, 1]  # the rank column moved with its rows
+
+        # the filter: typed into, it hides the queries (rows and sections) and matches beyond it
+        limit = float(np.median(distances))
+        browser.click("#maxd")
+        browser.type_text(repr(limit))
+        kept = sum(d <= limit for d in distances)
+        assert 0 < kept < 24
+        rows = _rows(browser, overview)
+        assert sorted(float(r["d"]) for r in rows if not r["hidden"]) == sorted(d for d in distances if d <= limit)
+        assert all(float(r["d"]) > limit for r in rows if r["hidden"])
+        assert browser.evaluate("document.getElementById('shown').textContent") == f"{kept} of 24 queries shown"
+        sections = browser.evaluate(
+            "Array.prototype.map.call(document.querySelectorAll('section.query'),"
+            "function(s){return [parseFloat(s.getAttribute('data-d')), s.hidden]})"
+        )
+        assert len(sections) == 24 and all(hidden == (d > limit) for d, hidden in sections)
+        match_rows = _rows(browser, "section.query table tbody tr")
+        assert match_rows and all(r["hidden"] == (float(r["d"]) > limit) for r in match_rows)
+        # cleared, everything shows again
+        browser.evaluate("document.getElementById('maxd').select()")
+        browser.send("Input.dispatchKeyEvent", {"type": "keyDown", "key": "Backspace", "windowsVirtualKeyCode": 8})
+        browser.send("Input.dispatchKeyEvent", {"type": "keyUp", "key": "Backspace", "windowsVirtualKeyCode": 8})
+        assert browser.evaluate("document.getElementById('maxd').value") == ""
+        assert not any(r["hidden"] for r in _rows(browser, overview))
+        assert browser.evaluate("document.getElementById('shown').textContent") == "24 of 24 queries shown"
+
+
 @pytest.mark.slow
 def test_chromium_draws_the_pictures(library, tmp_path):
     from PIL import Image

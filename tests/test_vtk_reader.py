@@ -454,6 +454,52 @@ def test_base64_in_too_many_pieces_is_refused(tmp_path):
     _refused(tmp_path, "b64.vtp", xml, "separately padded pieces")
 
 
+def _binary_points_vtp(points_b64: str) -> str:
+    """The template with its points as inline binary (base64 of a UInt32 byte count, then the values)."""
+    return _vtp().replace('format="ascii">0 0 0 1 0 0 1 1 0 0 1 0', f'format="binary">{points_b64}')
+
+
+def _square_b64() -> str:
+    """The unit square's points with their UInt32 byte count, in one base64 stream (ends in '==')."""
+    import base64
+
+    raw = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float64).tobytes()
+    return base64.b64encode(struct.pack("<I", len(raw)) + raw).decode()
+
+
+def test_base64_reads_without_strict_mode(tmp_path, monkeypatch):
+    """Python 3.10's a2b_base64 has no strict_mode: the reader must not ask for it."""
+    real = _vtk_read.binascii.a2b_base64
+
+    def a2b_base64_of_python_310(data, /):  # the 3.10 signature: a keyword is a TypeError
+        return real(data)
+
+    monkeypatch.setattr(_vtk_read.binascii, "a2b_base64", a2b_base64_of_python_310)
+    p = tmp_path / "binary.vtp"
+    p.write_text(_binary_points_vtp(_square_b64()))
+    (curve,) = read_curves(str(p))
+    assert curve.points.dtype == np.float64
+    np.testing.assert_array_equal(curve.points, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+
+
+@pytest.mark.parametrize(
+    "damage, needle",
+    [
+        (lambda t: t[:-1] + "A", "padding inside a 4-character group"),  # '...x=A': the one-piece path
+        (lambda t: t[:-2] + "=A", "padding inside a 4-character group"),
+        (lambda t: t[:-4] + "=" + t[-3:], "cut short"),  # padding mid-text: the piece before it is short
+        (lambda t: "=" + t[1:], "cut short"),
+        (lambda t: t + "====", "cut short"),  # excess padding
+        (lambda t: t[:-3], "cut short"),
+        (lambda t: t[:8] + "*" + t[9:], "'*' is not base64"),
+    ],
+)
+def test_malformed_base64_is_refused_naming_the_file(tmp_path, damage, needle):
+    good = _square_b64()
+    assert good.endswith("==") and "=" not in good[:-2]
+    _refused(tmp_path, "b64.vtp", _binary_points_vtp(damage(good)), "could not be read as VTK", needle)
+
+
 def test_reading_vtk_files_never_loads_vtk(variants):
     import subprocess
     import sys

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 
 from .settings import TASK_BYTES, TASK_FILES, TASKS_PER_THREAD
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 
 def file_size(path: str) -> int:
@@ -14,7 +19,9 @@ def file_size(path: str) -> int:
         return 0
 
 
-def batches(tasks: list[tuple], threads: int, *, sizes=None, counts=None) -> list[list[int]]:
+def batches(
+    tasks: list[tuple], threads: int, *, sizes: Sequence[int] | None = None, counts: Sequence[int] | None = None
+) -> list[list[int]]:
     """Items grouped in order into Dask tasks of at most TASK_BYTES (a bigger item is a task
     alone) and TASK_FILES files. An item is a task (one file: its size on disk), or, with
     ``sizes`` and ``counts``, a local batch of ``counts[i]`` files and ``sizes[i]`` bytes."""

@@ -3,6 +3,8 @@ the search's methods in :mod:`.cluster_search`)."""
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import os
 import time
 
@@ -13,6 +15,14 @@ from .build_tasks import batches, compute_batches, failed_answer, file_size
 from .cluster_search import ClusterSearch
 from .search_tasks import forget_index, graph_part, index_stamp, pairs_part
 from .settings import CLEANUP_TIMEOUT, RETRIES, ClusterError, first_line, task_result, worker_info
+
+if TYPE_CHECKING:
+    import os
+    from collections.abc import Callable, Sequence
+    from ..index.build import BuildReport
+    from ..index.reader import Index
+    from ..search.engine import Cascade
+    from ..search.join import JoinStats
 
 __all__ = ["Cluster"]
 
@@ -26,7 +36,7 @@ class Cluster(ClusterSearch):
     :class:`~.cluster_search.ClusterSearch`.
     """
 
-    def __init__(self, client, owned_client: bool, owned_cluster, address: str):
+    def __init__(self, client: Any, owned_client: bool, owned_cluster: Any, address: str) -> None:
         self.client = client
         self._owned_client = owned_client
         self._owned_cluster = owned_cluster
@@ -90,7 +100,12 @@ class Cluster(ClusterSearch):
 
     # ----------------------------------------------------------------------- build
 
-    def build_index(self, sources, index_path=None, **options):
+    def build_index(
+        self,
+        sources: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | None,
+        index_path: str | os.PathLike[str] | None = None,
+        **options: Any,
+    ) -> BuildReport:
         """:func:`nfdmatch.index.build_index` with the files computed on the workers, and
         the rows of its graph (``graph=K``) searched there.
 
@@ -184,7 +199,16 @@ class Cluster(ClusterSearch):
 
     # ----------------------------------------------------------------------- self-join
 
-    def pairs_within(self, index, max_distance: float, cascade, *, rows=None, progress=None, parts=None):
+    def pairs_within(
+        self,
+        index: Index,
+        max_distance: float,
+        cascade: Cascade,
+        *,
+        rows: np.ndarray | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        parts: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, JoinStats]:
         """:func:`nfdmatch.search.join.pairs_within` of an open index on the workers, split
         by ranges of its search cells (a task joins the rows of its cells with every row
         after them; tasks taken as workers free up): the same pairs as a local run.

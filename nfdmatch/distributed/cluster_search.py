@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +23,14 @@ from .settings import (
     WINDOW_ROWS,
     task_result,
 )
+
+if TYPE_CHECKING:
+    import os
+    from collections.abc import Callable, Sequence
+    from ..curve import Curve
+    from ..index.reader import Index
+    from ..records import RankedMatch
+    from ..search.index_search import SearchStats
 
 __all__ = ["ClusterSearch"]
 
@@ -42,8 +50,8 @@ class ClusterSearch:
 
     def search_index(
         self,
-        index,
-        queries,
+        index: str | os.PathLike[str] | Index,
+        queries: Sequence[Curve],
         *,
         k: int | None = 10,
         max_distance: float | None = None,
@@ -51,12 +59,12 @@ class ClusterSearch:
         direction: str = INVARIANT,
         mirror: bool = False,
         prune: bool = True,
-        progress=None,
+        progress: Callable[[int, int], None] | None = None,
         parts: int | None = None,
         window: int | None = None,
         exclude_self: bool = False,
-        top=UNSET,
-    ):
+        top: Any = UNSET,
+    ) -> tuple[list[list[RankedMatch]], SearchStats]:
         """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
 
         Parameters

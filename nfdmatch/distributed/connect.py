@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import os
 
 from ..errors import ParameterError
@@ -37,7 +39,7 @@ _LOCAL_CLUSTER_CONFIG = {
 }
 
 
-def connect(scheduler, timeout: float = DEFAULT_TIMEOUT) -> "Cluster":
+def connect(scheduler: Any, timeout: float = DEFAULT_TIMEOUT) -> Cluster:
     """Connect to a Dask cluster and check its workers.
 
     Parameters

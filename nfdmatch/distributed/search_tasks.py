@@ -3,6 +3,8 @@ the first round, over each query's window of cells), answered by the one search 
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import numpy as np
 
 from ..search.bounds import feature_vector
@@ -10,8 +12,14 @@ from ..search.engine import BestRows, Cascade, QueryWork, search_block
 from ..errors import ReadError
 from .settings import ClusterError
 
+if TYPE_CHECKING:
+    from ..index.reader import Index
+    from ..search.engine import BestRows, Cascade
+    from ..records import RankedMatch
+    from collections.abc import Sequence
 
-def index_ranges(idx, parts: int, prune: bool):
+
+def index_ranges(idx: Index, parts: int, prune: bool) -> tuple[list[tuple[str, int, int]], int]:
     """``(ranges, cell_count)``: the index split into at most ``parts`` ranges of about equal
     rows. A pruned search takes ranges of search cells ``("cells", first, stop)`` (format
     2; format 1 has one cell holding every row), an exhaustive one ranges of rows
@@ -56,7 +64,9 @@ def _worker_index(path: str, stamp: tuple):
     return entry
 
 
-def pairs_part(path: str, stamp: tuple, first: int, stop: int, max_distance: float, cascade, rows) -> dict:
+def pairs_part(
+    path: str, stamp: tuple, first: int, stop: int, max_distance: float, cascade: Cascade, rows: np.ndarray | None
+) -> dict:
     """On a worker: the pairs within ``max_distance`` whose first row lies in the search
     cells ``[first, stop)`` (:func:`nfdmatch.search.join.pairs_within`); the index's rows
     are read once per worker process and kept for its other parts.
@@ -79,7 +89,7 @@ def pairs_part(path: str, stamp: tuple, first: int, stop: int, max_distance: flo
     return out
 
 
-def index_stamp(idx) -> tuple:
+def index_stamp(idx: Index) -> tuple:
     """What a worker checks that the index it opened is the client's: rows, time of
     writing, descriptor parameters."""
     return (idx.n_curves, idx.updated, idx.samples, idx.harmonics, idx.scale_mode)
@@ -129,7 +139,7 @@ class SeededBestRows(BestRows):
     """A BestRows holding rows found elsewhere (seeds) from the start: a row of this range that
     is also a seed is not added twice (it would count twice towards the K-th distance)."""
 
-    def __init__(self, k, max_distance, seed: dict | None):
+    def __init__(self, k: int | None, max_distance: float | None, seed: dict | None) -> None:
         super().__init__(k, max_distance)
         self._seen = np.zeros(0, dtype=np.int64)
         if seed is not None and len(seed["rows"]):
@@ -140,7 +150,7 @@ class SeededBestRows(BestRows):
             )
             self._seen = np.sort(np.asarray(seed["rows"], dtype=np.int64))
 
-    def add(self, dist, rows, result) -> None:
+    def add(self, dist: np.ndarray, rows: np.ndarray, result: dict[str, np.ndarray]) -> None:
         if len(self._seen):
             new = ~_member(rows, self._seen)
             dist, rows = dist[new], rows[new]
@@ -156,7 +166,14 @@ def _member(rows: np.ndarray, sorted_rows: np.ndarray) -> np.ndarray:
     return sorted_rows[at] == rows
 
 
-def search_range(path: str, stamp: tuple, rng, qcoef: np.ndarray, seeds, params: dict) -> dict:
+def search_range(
+    path: str,
+    stamp: tuple,
+    rng: tuple[str, int, int] | None,
+    qcoef: np.ndarray,
+    seeds: Sequence[Any] | None,
+    params: dict,
+) -> dict:
     """On a worker: each query's exact top K among the rows of one range of the index.
 
     rng : ``("cells", first, stop)``, ``("rows", start, stop)`` (exhaustive), or None: the
@@ -363,7 +380,7 @@ def _account(out: dict, work) -> None:
         out[key] += getattr(work, key)
 
 
-def ranked(idx, tops, top) -> list[list]:
+def ranked(idx: Index, tops: Sequence[BestRows], top: int | None) -> list[list[RankedMatch]]:
     """The :class:`~nfdmatch.records.RankedMatch` es of :func:`nfdmatch.search.search_index`
     from merged BestRows objects (the same code)."""
     from ..search.index_search import ranked_rows

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from ..errors import NfdError
 
 __all__ = [
@@ -69,12 +71,12 @@ def worker_info() -> dict:
     }
 
 
-def first_line(exc) -> str:
+def first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return text[0] if text else type(exc).__name__
 
 
-def task_result(fut, what: str):
+def task_result(fut: Any, what: str) -> Any:
     """A finished task's answer; a task that failed on every retry is a ClusterError (an
     NfdError it raised stays what it is)."""
     try:

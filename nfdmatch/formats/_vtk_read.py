@@ -590,9 +590,13 @@ def _b64decode(text: bytes, what: str) -> bytes:
     for piece in pieces:
         if len(piece) % 4:
             raise _Bad(f"{what}: base64 text of {len(piece)} characters is cut short")
+        # checked here, not by a2b_base64's strict_mode (Python 3.11+; the package supports 3.10):
+        # a piece of whole 4-character groups whose only padding is its last one or two
+        # characters holds nothing a strict decoder refuses, and decodes the same without it
+        if not _B64_CHUNK.fullmatch(piece):
+            raise _Bad(f"{what}: invalid base64 (padding inside a 4-character group)")
         try:
-            # strict_mode is Python 3.11+: on 3.10 this call raises TypeError (not caught below)
-            out.append(binascii.a2b_base64(piece, strict_mode=True))  # type: ignore[call-arg]
+            out.append(binascii.a2b_base64(piece))
         except (binascii.Error, ValueError):
             raise _Bad(f"{what}: invalid base64") from None
     return b"".join(out)

@@ -20,6 +20,8 @@ space for ``.txt`` / ``.xyz``).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import io
 import os
 import re
@@ -30,6 +32,12 @@ import numpy as np
 from ..errors import CurveError, ParameterError, ParseError, excerpt
 from ._chain import is_number, points_list, read_text_bytes, write_text
 from ._stream import MAX_LINE_BYTES, check_line_lengths
+
+if TYPE_CHECKING:
+    import os
+    from collections.abc import Sequence
+    from numpy.typing import NDArray
+    from ..curve import Curve
 
 __all__ = ["read_points", "write"]
 
@@ -154,7 +162,7 @@ def _named_columns(names: list[str]) -> list[int]:
     return []
 
 
-def read_points(path) -> list[np.ndarray]:
+def read_points(path: str | os.PathLike[str]) -> list[NDArray[np.float64]]:
     """The vertices of the one curve in a delimited text file.
 
     Returns
@@ -273,7 +281,9 @@ def _raise_first_bad_cell(path, data, table, delim) -> None:
                 raise ParseError(f"not a number: {excerpt(tok)!r}{hint}", path=path, line=lineno) from None
 
 
-def write(path, curves) -> None:
+def write(
+    path: str | os.PathLike[str], curves: Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]]
+) -> None:
     """Write exactly one curve: header ``x,y,z`` then one row per vertex.
 
     Parameters

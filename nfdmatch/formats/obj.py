@@ -25,6 +25,8 @@ it is taken and that both parsers read the same curves.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import warnings
 
 import numpy as np
@@ -32,6 +34,12 @@ import numpy as np
 from .._graph import chain_segments
 from ..errors import CurveError, NoCurvesError, ParseError, excerpt
 from ._chain import is_number, ordered_curves, points_list, read_text, write_text
+
+if TYPE_CHECKING:
+    import os
+    from collections.abc import Sequence
+    from numpy.typing import NDArray
+    from ..curve import Curve
 
 __all__ = ["read_points", "write"]
 
@@ -57,7 +65,7 @@ def _logical_lines(text: str):
             yield start, line
 
 
-def read_points(path) -> list[np.ndarray]:
+def read_points(path: str | os.PathLike[str]) -> list[NDArray[np.float64]]:
     """The vertices of every curve of an OBJ file, in file order.
 
     Returns
@@ -280,7 +288,9 @@ def _token_counts(rows: list[str]) -> np.ndarray:
     return np.bincount(row[first], minlength=len(rows))
 
 
-def write(path, curves) -> None:
+def write(
+    path: str | os.PathLike[str], curves: Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]]
+) -> None:
     """Write curves as ``v`` lines then one closed ``l`` element per curve.
 
     Parameters

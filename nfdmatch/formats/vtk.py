@@ -25,6 +25,8 @@ set first); tests write their reference files with it.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 import re
 import shutil
@@ -37,6 +39,12 @@ import numpy as np
 from .._graph import chain_segments
 from ..errors import NoCurvesError, ParseError, UnknownFormatError, WriteError
 from ._chain import check_readable, ordered_curves, points_list, publish, read_bytes, temp_beside
+
+if TYPE_CHECKING:
+    import os
+    from collections.abc import Sequence
+    from numpy.typing import NDArray
+    from ..curve import Curve
 
 __all__ = ["read_points", "write", "KINDS"]
 
@@ -85,7 +93,7 @@ def _silenced(pv, stack: ExitStack):
     return stack.enter_context(pv.VtkErrorCatcher(raise_errors=False, send_to_logging=False))
 
 
-def read_points(path, format: str | None = None) -> list[np.ndarray]:
+def read_points(path: str | os.PathLike[str], format: str | None = None) -> list[NDArray[np.float64]]:
     """The vertices of every line-cell curve of a VTK file, in cell order.
 
     Parameters
@@ -153,7 +161,11 @@ def read_points(path, format: str | None = None) -> list[np.ndarray]:
     return [points[idx] for idx in ordered_curves(polylines, loops)]
 
 
-def write(path, curves, format: str | None = None) -> None:
+def write(
+    path: str | os.PathLike[str],
+    curves: Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]],
+    format: str | None = None,
+) -> None:
     """Write curves as one closed poly-line cell each, float64 points.
 
     Parameters

@@ -3,13 +3,22 @@ a read, unique rows. Plain numpy and h5py datasets: no format knowledge (schema.
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import h5py
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from collections.abc import Iterable
+    from numpy.typing import NDArray
 
 __all__ = ["read_runs", "read_string_runs", "first_nonfinite", "unique_rows"]
 
 
-def read_runs(ds, runs, columns: slice | None = None):
+def read_runs(
+    ds: h5py.Dataset, runs: Iterable[tuple[int, int]], columns: slice | None = None
+) -> NDArray[Any] | list[str]:
     """Rows ``[a, b)`` of dataset ``ds`` for each ``(a, b)`` of ``runs``, concatenated (a
     read per run: HDF5 reads a union of hyperslabs ~10x slower than the runs one by one);
     ``columns``: only that slice of the second axis. Variable-length strings come back as
@@ -28,7 +37,7 @@ def read_runs(ds, runs, columns: slice | None = None):
     return np.concatenate([ds[(slice(a, b),) + tail] for a, b in runs])
 
 
-def read_string_runs(ds, runs) -> list[str]:
+def read_string_runs(ds: h5py.Dataset, runs: Sequence[tuple[int, int]]) -> list[str]:
     """Variable-length strings of the (ascending, disjoint) ``runs`` of a 1-D dataset in one
     HDF5 call on their union: a string read costs ~40-250 us whatever its length (type
     conversion, global heap), so the ids of a batch's matches, 10-200 scattered blocks,
@@ -42,7 +51,9 @@ def read_string_runs(ds, runs) -> list[str]:
     return [v.decode("utf-8") for v in out.tolist()]
 
 
-def first_nonfinite(values, rows) -> int | None:
+def first_nonfinite(
+    values: NDArray[np.floating] | NDArray[np.complexfloating], rows: NDArray[np.int64] | int
+) -> int | None:
     """The row (of ``rows``, (m,) ints, or a start row) of the first non-finite entry of
     ``values`` (m, ...) float or complex, or None when all are finite."""
     values = np.asarray(values)

@@ -97,7 +97,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
 from ..errors import IndexFormatError, InputError, ReadError, WriteError
 from .commit import write_new_index
@@ -120,6 +120,9 @@ from .reader import Index
 from .graph import GraphStats, asked_graph, graph_changes, graph_distance, old_graph_k
 from .schema import FORMAT_VERSION, open_checked, Problem, default_index_path
 from .writer import remove_stale_temps
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 
 @dataclass
@@ -295,7 +298,11 @@ def _under(path: str, places) -> bool:
     return any(path == p or path.startswith(p.rstrip("/") + "/") for p in places)
 
 
-def add_files(files, index_path=None, **options) -> BuildReport:
+def add_files(
+    files: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    index_path: str | os.PathLike[str] | None = None,
+    **options: Any,
+) -> BuildReport:
     """Add ``files`` (files or folders) to the index and keep every other file: a build of
     the recorded sources plus those not under one of them, with the recorded glob, and the
     recorded exclusions less those files; so the next plain build (no sources) agrees. A
@@ -319,7 +326,11 @@ def add_files(files, index_path=None, **options) -> BuildReport:
     return build_index([openable(s, base) for s in sources], index_path, glob=glob, exclude=excluded, **options)
 
 
-def remove_files(files, index_path=None, **options) -> BuildReport:
+def remove_files(
+    files: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    index_path: str | os.PathLike[str] | None = None,
+    **options: Any,
+) -> BuildReport:
     """Remove ``files`` (files or folders: every file below) from the index and keep every
     other file: a named source is dropped from the recorded sources, a file found in a
     source folder is recorded as excluded from its walk; so the next plain build agrees.

@@ -8,15 +8,22 @@ names the rows of the last build that wrote it.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..errors import IndexFormatError
 from .schema import create_checked
 
+if TYPE_CHECKING:
+    import h5py
+    from numpy.typing import NDArray
+    from .reader import Index
+
 __all__ = ["write_changes", "read_changes"]
 
 
-def write_changes(h5, runs: list[tuple[int, int]]) -> None:
+def write_changes(h5: h5py.File, runs: list[tuple[int, int]]) -> None:
     """``/changes/rows``: (R, 2) int64 ``[start, stop)`` ranges of the rows the build added
     or recomputed (adjacent ranges joined), in row order."""
     merged: list[list[int]] = []
@@ -32,7 +39,7 @@ def write_changes(h5, runs: list[tuple[int, int]]) -> None:
     create_checked(g, "rows", np.asarray(merged, dtype=np.int64).reshape(-1, 2), np.int64)
 
 
-def read_changes(index) -> np.ndarray | None:
+def read_changes(index: Index) -> NDArray[np.int64] | None:
     """The rows (int64, ascending) that the build which wrote an open
     :class:`~nfdmatch.index.Index` added or recomputed; None when the index does not record
     them. Raises IndexFormatError when the group is there but malformed."""

@@ -7,6 +7,8 @@ reopened to write it."""
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import os
 import secrets
 import time
@@ -30,6 +32,12 @@ from .schema import FORMAT_VERSION, INDEX_FORMAT, FileRecord, _short, set_text
 from .search_group import write_search_group
 from .writer import CopyRun, CurveWriter, Space, fsync_path, write_files_table, write_sources
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from .build import BuildReport
+    from .lock import Lock
+    from .reader import Index
+
 __all__ = ["write_new_index"]
 
 
@@ -38,23 +46,23 @@ def _utcnow() -> str:
 
 
 def write_new_index(
-    report,
+    report: BuildReport,
     index_path: str,
     plan: Plan,
-    old,
-    jobs,
-    lock,
-    progress,
-    file_timeout=None,
+    old: Index | None,
+    jobs: int,
+    lock: Lock | None,
+    progress: Any,
+    file_timeout: float | None = None,
     *,
-    sources=((), None),
-    name=None,
-    graph=None,
-    runner=None,
-    graph_runner=None,
-    strict=False,
-    graph_progress=None,
-):
+    sources: tuple[Sequence[str], str | None] = ((), None),
+    name: str | None = None,
+    graph: Any = None,
+    runner: Any = None,
+    graph_runner: Any = None,
+    strict: bool = False,
+    graph_progress: Any = None,
+) -> None:
     """Write the new index beside ``index_path`` (the real file) and move it into place;
     ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
     it (messages); ``graph_runner``: searches the graph's rows elsewhere (see

@@ -10,6 +10,8 @@ from-scratch build (each list is an exact top K, ties by id).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +21,12 @@ from ..errors import IndexFormatError
 from ..search.engine import TIE
 from .arrays import unique_rows
 from .schema import Problem, stored_dataset, text_attr
+
+if TYPE_CHECKING:
+    import h5py
+    from numpy.typing import NDArray
+    from collections.abc import Callable
+    from .reader import Index
 
 __all__ = [
     "GraphSpec",
@@ -82,7 +90,9 @@ class GraphStats:
     workers: int = 0
 
 
-def check_lists(rows, neighbour, distance, N: int) -> str | None:
+def check_lists(
+    rows: NDArray[np.int64], neighbour: NDArray[np.int64], distance: NDArray[np.float64], N: int
+) -> str | None:
     """Why some of these graph rows are not valid lists (docs/index-format.md, "/graph"), or
     None: ``rows`` (m,) their row numbers, ``neighbour`` / ``distance`` (m, K).
 
@@ -101,7 +111,9 @@ def check_lists(rows, neighbour, distance, N: int) -> str | None:
 NEIGHBOUR_PROBLEMS = ("a neighbour outside the index", "a row naming itself", "a row named twice")
 
 
-def list_problems(rows, neighbour, distance, N: int) -> dict:
+def list_problems(
+    rows: NDArray[np.int64], neighbour: NDArray[np.int64], distance: NDArray[np.float64], N: int
+) -> dict[str, NDArray[np.int64]]:
     """What :func:`check_lists` checks, as ``{problem: (n,) rows that have it}``."""
     rows = np.asarray(rows, dtype=np.int64).reshape(-1)
     nb = np.asarray(neighbour, dtype=np.int64)
@@ -135,7 +147,7 @@ def list_problems(rows, neighbour, distance, N: int) -> dict:
     }
 
 
-def graph_datasets(index):
+def graph_datasets(index: Index) -> tuple[h5py.Dataset, h5py.Dataset] | None:
     """``(neighbour, distance)`` datasets of an open index's ``/graph``, checked as a reader
     checks every dataset (stored in the file, size, Fletcher-32 when the group says it has
     it, shapes (N, k) with k its attribute), or None when the index has no graph.
@@ -178,7 +190,7 @@ def _graph_checksums(g) -> bool | None:
     return True if value == GRAPH_CHECKSUMS else None
 
 
-def read_graph(index):
+def read_graph(index: Index) -> tuple[NDArray[np.int64], NDArray[np.float64]] | None:
     """The graph of an open :class:`~nfdmatch.index.Index`: ``(neighbour, distance)``,
     (N, K) int64 and (N, K) float64, or None when the index has none.
 
@@ -199,12 +211,12 @@ def read_graph(index):
     return nb, dist
 
 
-def graph_k(index) -> int:
+def graph_k(index: Index) -> int:
     """Neighbours per row in an open index's graph; 0 when it has none."""
     return old_graph_k(index)
 
 
-def old_graph_k(old) -> int:
+def old_graph_k(old: Index | None) -> int:
     if old is None or old._h5 is None or "graph" not in old._h5:
         return 0
     try:
@@ -213,7 +225,7 @@ def old_graph_k(old) -> int:
         return 0
 
 
-def graph_distance(index) -> str:
+def graph_distance(index: Index) -> str:
     """What an open index's graph holds (:data:`GRAPH_DISTANCES`): ``"exact"`` also for an
     index without a graph."""
     if index is None or index._h5 is None or "graph" not in index._h5:
@@ -221,14 +233,14 @@ def graph_distance(index) -> str:
     return group_distance(index._h5["graph"])
 
 
-def group_distance(g) -> str:
+def group_distance(g: h5py.Group) -> str:
     """What a ``/graph`` group's distances are, by its attribute ``distance`` (absent or
     unknown: ``"exact"``)."""
     value = text_attr(g.attrs, "distance")
     return value if value in GRAPH_DISTANCES else "exact"
 
 
-def asked_graph(old, graph) -> tuple[int, str]:
+def asked_graph(old: Index | None, graph: int | GraphSpec | None) -> tuple[int, str]:
     """``(k, distance)`` a build writes for its ``graph`` argument (None: the old index's
     graph, as it is; an int K: exact; a :class:`GraphSpec`)."""
     if graph is None:
@@ -238,7 +250,7 @@ def asked_graph(old, graph) -> tuple[int, str]:
     return int(graph), "exact"
 
 
-def graph_changes(old, graph) -> bool:
+def graph_changes(old: Index | None, graph: int | GraphSpec | None) -> bool:
     """True when a build asked for ``graph`` (as :func:`asked_graph` reads it) must rewrite
     an index that is otherwise up to date (a graph asked for that it lacks or has with
     another K or distance, or one to drop)."""
@@ -248,7 +260,9 @@ def graph_changes(old, graph) -> bool:
     return k != old_graph_k(old) or (k > 0 and distance != graph_distance(old))
 
 
-def read_graph_rows(index):
+def read_graph_rows(
+    index: Index,
+) -> Callable[[NDArray[np.int64]], tuple[NDArray[np.int64], NDArray[np.float64]]] | None:
     """A reader of an open index's graph rows, ``rows -> (neighbour, distance)`` ((m, K)
     int64 / float64, in the order of ``rows``, repeats allowed), or None when the index has
     no graph. Reads only the rows asked for (a query needs about M + M K of them); every

@@ -5,6 +5,8 @@ the group into the new index file. Loaded by a build only (a query reads /graph 
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import time
 from dataclasses import dataclass
 
@@ -26,6 +28,12 @@ from .graph import (
 )
 from .schema import create_checked, set_text
 from .search_group import search_table
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    import h5py
+    from numpy.typing import NDArray
+    from .reader import Index
 
 __all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan", "FUSED_CANDIDATES"]
 
@@ -56,13 +64,21 @@ class GraphPlan:
     final_k: int = 0
     read_statistics: object = None
 
-    def store(self, rows, neighbour, distance) -> None:
+    def store(self, rows: NDArray[np.int64], neighbour: NDArray[np.int64], distance: NDArray[np.float64]) -> None:
         """The lists ((m, k) int64 / float64) of ``rows``, searched elsewhere."""
         self.lists.neighbour[rows], self.lists.distance[rows] = neighbour, distance
 
 
 def write_graph(
-    h5, old, k: int | None, *, reuse: bool, threads: int | None = None, processes: int = 1, close_fds=(), progress=None
+    h5: h5py.File,
+    old: Index | None,
+    k: int | None,
+    *,
+    reuse: bool,
+    threads: int | None = None,
+    processes: int = 1,
+    close_fds: Sequence[int] = (),
+    progress: Any = None,
 ) -> GraphStats:
     """Write ``/graph`` into the new index file ``h5`` (``/curves``, ``/files``, ``/search``
     complete); returns :class:`GraphStats`.
@@ -97,7 +113,7 @@ def write_graph(
     return store_graph(h5, plan)
 
 
-def plan_graph(h5, old, k: int | None, *, reuse: bool) -> GraphPlan | None:
+def plan_graph(h5: h5py.File, old: Index | None, k: int | None, *, reuse: bool) -> GraphPlan | None:
     """What :func:`write_graph` computes in the new index file ``h5``, before any search: the
     lists kept from ``old`` and the rows to search (arguments as that function's). None
     when no graph is to be written (``k`` 0, or None and the old index had none)."""
@@ -172,7 +188,7 @@ def blocks_to_search(plan: GraphPlan, threads: int | None = None) -> list[np.nda
     return blocks
 
 
-def store_graph(h5, plan: GraphPlan) -> GraphStats:
+def store_graph(h5: h5py.File, plan: GraphPlan) -> GraphStats:
     """Write the lists of ``plan`` (complete) as ``/graph`` of the new index file ``h5``;
     returns its stats, their time taken. A fused graph's lists of exact candidates (searched
     here or elsewhere) are cut to its rows of least fused distance first."""
@@ -195,7 +211,7 @@ def _keep_old_lists(h5, old, k: int, reuse: bool, neighbour, distance):
     old_to_new = _copied_rows(h5, old) if reuse and old_graph_k(old) == k else {}
     if old_to_new:
         try:
-            old_nb, old_d = read_graph(old)
+            old_nb, old_d = read_graph(old)  # type: ignore[misc]  # not None: its K is k > 0
         except IndexFormatError:  # a damaged old graph: computed afresh
             old_to_new = {}
     todo = np.ones(N, dtype=bool)

@@ -20,12 +20,17 @@ Each collection is checked once per process and file (by device, inode, size and
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import mmap
 import os
 import struct
 
 import h5py
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable
 
 _SIGNATURE = b"GCOL"
 #: HDF5 never allocates a smaller collection (H5HG_MINSIZE)
@@ -54,7 +59,9 @@ def _fd(fid) -> int:
     return int(fid.get_vfd_handle())
 
 
-def collection_problem(read, address: int, file_size: int, length_size: int = 8) -> str | None:
+def collection_problem(
+    read: Callable[[int, int], bytes], address: int, file_size: int, length_size: int = 8
+) -> str | None:
     """Why the collection at ``address`` would mislead HDF5, or None. ``read(offset, n)``
     returns file bytes. Walks the objects as HDF5 does (H5HG__cache_heap_deserialize): each
     object a 16-byte header then its size rounded up to 8 bytes; the free-space object
@@ -126,7 +133,7 @@ def _raw_rows(ds, a: int, b: int, item: int) -> bytes | None:
     return b"".join(out)
 
 
-def check_string_rows(ds, runs) -> None:
+def check_string_rows(ds: h5py.Dataset, runs: Iterable[tuple[int, int]]) -> None:
     """Check the collections that rows ``[a, b)`` of each run of variable-length string
     dataset ``ds`` refer to; raises :class:`HeapProblem`."""
     fid = ds.file.id
@@ -156,7 +163,7 @@ def check_string_rows(ds, runs) -> None:
     _check_addresses(fid, sorted(addresses))
 
 
-def check_every_collection(fid) -> None:
+def check_every_collection(fid: h5py.h5f.FileID) -> None:
     """Check every global heap collection of file ``fid`` (an h5py FileID), each found by
     its signature and version (8 bytes: stored numbers hold them by chance about once in
     2**64 positions); raises :class:`HeapProblem`."""

@@ -16,7 +16,7 @@ class Lock:
     ``index_path`` should be the index's real file (symbolic links resolved), so that every
     name of one index takes one lock; ``name`` is the index as the user named it (messages)."""
 
-    def __init__(self, index_path: str, wait: float, name: str | None = None):
+    def __init__(self, index_path: str, wait: float, name: str | None = None) -> None:
         self.path = index_path + ".lock"
         index_path = index_path if name is None else name
         deadline = time.monotonic() + max(0.0, float(wait or 0.0))

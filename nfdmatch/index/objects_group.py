@@ -5,6 +5,8 @@ object's file, profile, area and frame. Written by a build whose sources hold me
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,6 +14,9 @@ import numpy as np
 from ..errors import IndexFormatError
 from ..mesh.objects import MEASURES, PROFILE_FEATURES, ObjectRule
 from .schema import Problem, create_checked, set_text, stored_dataset, text_attr
+
+if TYPE_CHECKING:
+    import h5py
 
 __all__ = ["ObjectEntry", "ObjectsGroup", "write_objects", "read_objects", "rule_of"]
 
@@ -57,7 +62,7 @@ class ObjectsGroup:
         }
 
 
-def write_objects(h5, rule: ObjectRule, entries: list[ObjectEntry], n_rows: int) -> None:
+def write_objects(h5: h5py.File, rule: ObjectRule, entries: list[ObjectEntry], n_rows: int) -> None:
     """Write ``/objects`` for ``entries`` (in /files order) over ``n_rows`` curve rows;
     nothing when there is no object (a curve-only index has no ``/objects``)."""
     if not entries:
@@ -96,7 +101,7 @@ def _attr(attrs, name):
     return value if isinstance(value, (str, int)) and not isinstance(value, bool) else None
 
 
-def rule_of(h5) -> ObjectRule | None:
+def rule_of(h5: h5py.File) -> ObjectRule | None:
     """The recorded rule of ``/objects`` (None without the group); IndexFormatError for a
     rule this version does not know."""
     g = h5.get("objects")
@@ -114,7 +119,7 @@ def rule_of(h5) -> ObjectRule | None:
         ) from None
 
 
-def read_objects(h5, n_rows: int, n_files: int, file_size: int, checksums: bool) -> ObjectsGroup | None:
+def read_objects(h5: h5py.File, n_rows: int, n_files: int, file_size: int, checksums: bool) -> ObjectsGroup | None:
     """``/objects`` checked (shapes, rows, finite values; docs/index-format.md) or None when
     the index has none; IndexFormatError when it is bad."""
     rule = rule_of(h5)

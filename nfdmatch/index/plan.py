@@ -4,6 +4,8 @@ sources, a shrink). :func:`nfdmatch.index.build.build_index` carries the plan ou
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import enum
 import os
 from dataclasses import dataclass, field
@@ -18,6 +20,11 @@ from ..sources import _irregular, find_curve_files
 from ..names import decode_name
 from .paths import found_location, openable, source_location, stored
 from .schema import FileRecord
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from .build import BuildReport
+    from .reader import Index
 
 __all__ = [
     "Action",
@@ -79,7 +86,9 @@ class Plan:
     recompute_all: bool = False
 
 
-def check_arguments(jobs, file_timeout, input_format, samples, harmonics) -> int:
+def check_arguments(
+    jobs: int | None, file_timeout: float | None, input_format: str | None, samples: int | None, harmonics: int | None
+) -> int:
     """Raise ParameterError for a bad argument of a build, before any work; returns ``jobs``
     (None: the cores)."""
     if jobs is None:
@@ -101,7 +110,9 @@ def check_arguments(jobs, file_timeout, input_format, samples, harmonics) -> int
     return int(jobs)
 
 
-def recorded_sources(old, recorded, index_path: str, real_index: str, base: str) -> list[str]:
+def recorded_sources(
+    old: Index | None, recorded: tuple[Sequence[str], str | None] | None, index_path: str, real_index: str, base: str
+) -> list[str]:
     """The sources a build without SOURCE takes: those the old index records, opened from
     here. Raises InputError when there is no index or it records none, ReadError when a
     recorded relative source no longer resolves (the index was moved)."""
@@ -128,7 +139,9 @@ def recorded_sources(old, recorded, index_path: str, real_index: str, base: str)
     return sources
 
 
-def find_files(sources: list[str], glob, base: str, skipped: list):
+def find_files(
+    sources: list[str], glob: str | None, base: str, skipped: list[tuple[str, str]]
+) -> tuple[list[str], dict[str, str], list[str], list[str]]:
     """The curve files under ``sources`` by stored path: ``(sorted stored paths, {stored path:
     path that opens it, as found}, stored sources, stored paths of folders that could not be
     listed)``. Two spellings of one file (``lib`` and ``/abs/lib``, a link to ``lib``) are one
@@ -163,7 +176,14 @@ def find_files(sources: list[str], glob, base: str, skipped: list):
     return sorted(opens), opens, stored_sources, unseen
 
 
-def parameters(old, samples, harmonics, scale, notices: list, sections=None) -> tuple[dict, bool]:
+def parameters(
+    old: Index | None,
+    samples: int | None,
+    harmonics: int | None,
+    scale: str | None,
+    notices: list[str],
+    sections: int | None = None,
+) -> tuple[dict[str, Any], bool]:
     """The descriptor parameters of the build (given, else the old index's, else the
     defaults) and whether they changed from the old index's (every curve then recomputed;
     a notice says so). ``params["objects"]``: the object rule (``sections`` given, else
@@ -191,7 +211,18 @@ def parameters(old, samples, harmonics, scale, notices: list, sections=None) -> 
     return params, bool(changed)
 
 
-def plan_files(old, old_files, recorded, found, opens, unseen, base, params, recompute_all, input_format) -> Plan:
+def plan_files(
+    old: Index | None,
+    old_files: Sequence[FileRecord],
+    recorded: tuple[Sequence[str], str | None] | None,
+    found: list[str],
+    opens: dict[str, str],
+    unseen: list[str],
+    base: str,
+    params: dict[str, Any],
+    recompute_all: bool,
+    input_format: str | None,
+) -> Plan:
     """What each found file needs, from its old ``/files`` row and a stat.
 
     An index that does not record its sources stored paths relative to its build's working
@@ -251,7 +282,17 @@ def _action(file: str, r: FileRecord | None, recompute_all: bool) -> tuple[Actio
     return Action.COMPUTE, None
 
 
-def check_shrink(report, old_files, plan: Plan, found, sources, index_path, real_index, dry_run, allow_shrink) -> None:
+def check_shrink(
+    report: BuildReport,
+    old_files: Sequence[FileRecord],
+    plan: Plan,
+    found: list[str],
+    sources: Sequence[str],
+    index_path: str,
+    real_index: str,
+    dry_run: bool,
+    allow_shrink: bool,
+) -> None:
     """An empty or unmounted source folder must not wipe an index from cron: a build that
     removes more than half of the index's files (or all) raises ShrinkRefusedError unless
     ``allow_shrink`` (a dry run notes it instead); ``report.shrink`` records it."""

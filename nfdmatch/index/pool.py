@@ -33,7 +33,7 @@ import hashlib
 import os
 import signal
 import stat as _stat
-from typing import Any
+from typing import Any, Iterator
 import threading
 import time
 
@@ -682,7 +682,9 @@ def _run_pool(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None
         pool.close()
 
 
-def run_tasks(tasks: list[tuple], jobs: int, lock_fd, file_timeout: float | None = None):
+def run_tasks(
+    tasks: list[tuple], jobs: int, lock_fd: int | None, file_timeout: float | None = None
+) -> Iterator[tuple[int, Any]]:
     """Yield ``(task_number, result)`` for every task (in batch order, not task order).
 
     In this process when ``jobs`` is 1 and there is no ``file_timeout`` (a hung or

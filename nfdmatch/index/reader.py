@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
 import h5py
 import numpy as np
@@ -39,6 +39,11 @@ from .schema import (
 )
 from .heap import HeapProblem, check_string_rows
 from .search_group import search_table
+
+if TYPE_CHECKING:
+    from ..mesh.objects import ObjectRule
+    from ..search.objects import ObjectMatch
+    from .objects_group import ObjectsGroup
 
 #: stored numbers that must be finite (the /curves ones; /search is checked as it is read)
 _FLOAT_COLUMNS = ("coefficients", "rotation", "centroid", "scale", "inv_norm", "inv_sv", "inv_block", "statistics")
@@ -105,7 +110,7 @@ class Index:
     ``scale`` is a deprecated alias of ``scale_mode`` (a descriptor's ``scale`` is its size).
     """
 
-    def __init__(self, path: str, h5, meta: dict, files: dict):
+    def __init__(self, path: str, h5: h5py.File, meta: dict[str, Any], files: dict[str, Any]) -> None:
         self.path = path
         self._h5 = h5
         self._ds = meta["datasets"]
@@ -516,7 +521,7 @@ class Index:
             elastic_depth=elastic_depth, arrays=arrays,
         )  # fmt: skip
 
-    def objects(self):
+    def objects(self) -> ObjectsGroup | None:
         """The index's objects (:class:`~nfdmatch.index.objects_group.ObjectsGroup`: the meshes
         it holds, their contours' axes, levels and measures, their profiles), read and
         checked once; None when it holds none (docs/index-format.md, ``/objects``)."""
@@ -537,7 +542,7 @@ class Index:
         records = self.files()
         return [records[int(f)].path for f in groups.file]
 
-    def object_loops(self):
+    def object_loops(self) -> ObjectLoops | None:
         """Every object's contours as :class:`~nfdmatch.search.objects.ObjectLoops` (their
         stored descriptors, axes, levels, measures; ``rows`` their /curves rows), what a mesh
         query compares with; None when the index holds no object."""
@@ -561,14 +566,21 @@ class Index:
             rows=rows,
         )
 
-    def search_objects(self, meshes, k: int | None = 10, max_distance=None, exclude_self: bool = False, **options):
+    def search_objects(
+        self,
+        meshes: Any,
+        k: int | None = 10,
+        max_distance: float | None = None,
+        exclude_self: bool = False,
+        **options: Any,
+    ) -> list[list[ObjectMatch]]:
         """Each query mesh's nearest objects (:func:`nfdmatch.search.objects.search_objects`):
         ``meshes`` a mesh path, a ``trimesh.Trimesh`` or a list of them; one list of
         :class:`~nfdmatch.search.objects.ObjectMatch` per mesh. ``Index.search`` of a mesh
         comes here."""
         return search_objects(self, meshes, k=k, max_distance=max_distance, exclude_self=exclude_self, **options)
 
-    def object_rule(self):
+    def object_rule(self) -> ObjectRule | None:
         """The :class:`~nfdmatch.mesh.objects.ObjectRule` the index's meshes were cut by, or
         None when it holds no mesh."""
         return self._read(lambda: rule_of(self._h5), "/objects")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import os
 import stat as _stat
 from dataclasses import dataclass
@@ -15,6 +17,10 @@ from ..errors import ParameterError, ReadError
 from ..matching.statistics import LENGTH as STATISTICS_LENGTH
 from .heap import check_every_collection
 from .search_layout import check_search_group
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from numpy.typing import DTypeLike, NDArray
 
 INDEX_FORMAT = "nfdmatch-index"
 FORMAT_VERSION = 3
@@ -49,7 +55,7 @@ _PLAIN_FILTERS = {h5py.h5z.FILTER_FLETCHER32, h5py.h5z.FILTER_SHUFFLE}
 _CHUNK_ROWS = 4096
 
 
-def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
+def block_crcs(values: Sequence[str], rows: int = CRC_ROWS) -> NDArray[np.uint32]:
     """(ceil(len(values) / rows),) uint32: CRC-32 of each block of ``rows`` strings, every
     string's UTF-8 bytes followed by one NUL (the ``NAME_crc32`` companion datasets)."""
     import zlib
@@ -74,7 +80,15 @@ def block_crcs(values, rows: int = CRC_ROWS) -> np.ndarray:
     return out
 
 
-def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHUNK_ROWS, chunk_columns: int = 0):
+def create_checked(
+    group: h5py.Group,
+    name: str,
+    data: Any,
+    dtype: DTypeLike = None,
+    *,
+    chunk_rows: int = _CHUNK_ROWS,
+    chunk_columns: int = 0,
+) -> h5py.Dataset:
     """Create dataset ``name`` in ``group`` holding ``data`` (rows along axis 0), with the
     checksums of the format: numbers chunked with Fletcher-32 (``chunk_rows`` rows and, if
     given, ``chunk_columns`` along the second axis per chunk); strings (HDF5 does not filter
@@ -102,7 +116,7 @@ def create_checked(group, name: str, data, dtype=None, *, chunk_rows: int = _CHU
     )
 
 
-def fill_value(dtype):
+def fill_value(dtype: DTypeLike) -> Any:
     """The fill value nfdmatch gives a new dataset of ``dtype``: NaN for floats (NaN + NaN j
     for complex), so that a chunk HDF5 cannot find (damaged chunk index) reads as NaN, which
     every reader refuses, instead of zeros; None (HDF5's default) for other types."""
@@ -148,12 +162,12 @@ def _chunk_problem(ds, where: str, walk: bool = True) -> str | None:
     return None
 
 
-def write_string_checks(group, name: str, values) -> None:
+def write_string_checks(group: h5py.Group, name: str, values: Sequence[str]) -> None:
     """The ``NAME_crc32`` companion of string dataset ``name`` (values: its strings in row order)."""
     group.create_dataset(f"{name}_crc32", data=block_crcs(values), chunks=True, fletcher32=True)
 
 
-def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
+def check_stored(ds: h5py.Dataset, where: str, file_size: int, checksums: bool) -> str | None:
     """Why dataset ``ds`` (at path ``where``) cannot be read safely, from its metadata only, or None.
 
     Refuses external storage and virtual datasets (their bytes live in other files), a
@@ -194,7 +208,7 @@ def check_stored(ds, where: str, file_size: int, checksums: bool) -> str | None:
     return None
 
 
-def checked_metadata(h5) -> bool:
+def checked_metadata(h5: h5py.File) -> bool:
     """Whether HDF5 parses nothing of file ``h5`` before a check: HDF5 1.10's structures
     (superblock 3: checksummed metadata) and no root attribute in the unchecksummed global
     heap (variable-length strings; heap.py checks the heap collections of the string
@@ -263,7 +277,7 @@ class Problem(Exception):
     ``empty``, ``not_hdf5``, ``foreign``, ``unopenable`` (HDF5 that does not open: never
     overwritten), ``corrupt``, ``newer``."""
 
-    def __init__(self, kind: str, message: str):
+    def __init__(self, kind: str, message: str) -> None:
         super().__init__(message)
         self.kind, self.message = kind, message
 
@@ -289,20 +303,20 @@ def _has_hdf5_signature(path: str) -> bool:
     return False
 
 
-def set_text(attrs, name: str, value: str) -> None:
+def set_text(attrs: h5py.AttributeManager, name: str, value: str) -> None:
     """Attribute ``name`` = ``value`` as a fixed-length UTF-8 string: its characters stay in
     the (checksummed) object header, never in the global heap (heap.py)."""
     data = value.encode("utf-8")
     attrs.create(name, np.bytes_(data), dtype=h5py.string_dtype("utf-8", max(1, len(data))))
 
 
-def heap_attribute(attrs, name: str) -> bool:
+def heap_attribute(attrs: h5py.AttributeManager, name: str) -> bool:
     """Whether attribute ``name`` keeps its value in the global heap (variable length)."""
     tid = attrs.get_id(name).get_type()
     return isinstance(tid, h5py.h5t.TypeVlenID) or (isinstance(tid, h5py.h5t.TypeStringID) and tid.is_variable_str())
 
 
-def text_attr(attrs, name):
+def text_attr(attrs: h5py.AttributeManager, name: str) -> str | None:
     """String attribute ``name`` (None when absent or not a string). One whose value lives in
     the global heap is read only after every heap collection of the file passed
     :func:`~nfdmatch.index.heap.check_every_collection` (raises HeapProblem)."""
@@ -329,7 +343,7 @@ def _attr_int(attrs, name):
     return int(value)
 
 
-def open_checked(path: str):
+def open_checked(path: str) -> tuple[h5py.File, dict[str, Any], dict[str, Any]]:
     """Open ``path`` read-only and validate it as a format-1 or format-2 index.
 
     Returns ``(h5py.File, meta dict, files dict of arrays)``.
@@ -490,7 +504,7 @@ def _tables(dataset, harmonics: int, checksums: bool, version: int = FORMAT_VERS
     return fds, cds
 
 
-def stored_dataset(h5, name: str, file_size: int, checksums: bool):
+def stored_dataset(h5: h5py.File | h5py.Group, name: str, file_size: int, checksums: bool) -> h5py.Dataset:
     """The dataset at ``name`` (no leading slash) if it is a hard link to a dataset stored in
     this file that passes :func:`check_stored`; else raises Problem. Links are not followed:
     a soft or external link could point anywhere, including into another file."""

@@ -4,6 +4,8 @@ finished ``/curves`` table; read cell by cell by a search."""
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import numpy as np
 
 from ..search.bounds import TRUNCATED_HARMONICS, feature_split, squared_norms
@@ -12,6 +14,12 @@ from ..search.table import SearchTable
 from .arrays import first_nonfinite
 from .arrays import read_runs as read_runs_of
 from .schema import CHECKSUMS, CRC_ROWS, create_checked, set_text, write_string_checks
+
+if TYPE_CHECKING:
+    import h5py
+    from collections.abc import Callable
+    from numpy.typing import NDArray
+    from ..search.table import SearchTable
 
 __all__ = ["write_search_group", "search_table"]
 
@@ -22,7 +30,9 @@ _READ_ROWS = 1 << 18
 _POSITION_CHUNK_ROWS = 256
 
 
-def write_search_group(h5, harmonics: int, *, rows_per_cell: int | None = None, id_crcs=None) -> int:
+def write_search_group(
+    h5: h5py.File, harmonics: int, *, rows_per_cell: int | None = None, id_crcs: NDArray[np.uint32] | None = None
+) -> int:
     """Write ``/search`` from the file's ``/curves`` (inv_sv, inv_block); returns the number of cells.
 
     Deterministic: the same curves give the same group (seeded k-means). ``id_crcs``: the
@@ -83,7 +93,10 @@ def _finish_checksums(h5, id_crcs=None) -> None:
     set_text(h5.attrs, "checksums", CHECKSUMS)
 
 
-def search_table(h5, N: int, harmonics: int, read_coefficients, fail, guard=None):
+def search_table(
+    h5: h5py.File, N: int, harmonics: int, read_coefficients: Callable[[NDArray[np.int64]], NDArray[np.complex128]],
+    fail: Callable[[str], Any], guard: Callable[[Callable[[], Any], str], Any] | None = None,
+) -> SearchTable:  # fmt: skip
     """A :class:`~nfdmatch.search.table.SearchTable` reading ``/search`` cell by cell.
 
     ``fail(message)`` raises the reader's error for a corrupted file (rows out of range,

@@ -3,7 +3,13 @@ and the check of a file's group against them."""
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    import h5py
+    from collections.abc import Callable
 
 __all__ = ["SEARCH_DATASETS", "check_search_group"]
 
@@ -19,7 +25,7 @@ SEARCH_DATASETS = {
 }
 
 
-def check_search_group(h5, N: int, harmonics: int, get=None) -> str | None:
+def check_search_group(h5: h5py.File, N: int, harmonics: int, get: Callable[[str], Any] | None = None) -> str | None:
     """Why the file's ``/search`` group is not valid for N rows and K harmonics, or None.
 
     ``get(name)`` returns dataset ``/search/NAME`` after checking how it is stored (raising

@@ -12,6 +12,8 @@ that no relative path leads out of the index's folder.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 from dataclasses import dataclass, field
 
@@ -27,6 +29,9 @@ from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
 from .heap import check_string_rows
 from .schema import FILE_FIELDS, _SHA, STR, curve_layout, text_attr
+
+if TYPE_CHECKING:
+    import os
 
 __all__ = ["Finding", "VerifyReport", "verify_index"]
 
@@ -139,7 +144,7 @@ def _scan(ds, name, report, *, label="row", keep=None, crc=None):
     return kept[0] if len(kept) == 1 else np.concatenate(kept)
 
 
-def verify_index(path) -> VerifyReport:
+def verify_index(path: str | os.PathLike[str]) -> VerifyReport:
     """Check a whole index (formats 1, 2 and 3); returns a :class:`VerifyReport`.
 
     Raises ReadError (missing, unreadable) or IndexFormatError when the file does not even

@@ -6,6 +6,8 @@ crafted records and replaced, where :mod:`.commit` looks it up, to act out a ful
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import errno
 import os
 import re
@@ -15,6 +17,11 @@ import numpy as np
 from ..errors import MAX_MESSAGE_CHARS, excerpt
 from ..matching.statistics import curve_statistics
 from .schema import _SHA, STR, CRC_ROWS, FileRecord, curve_layout, block_crcs, create_checked, fill_value, set_text
+
+if TYPE_CHECKING:
+    import h5py
+    from collections.abc import Sequence
+    from .reader import Index
 
 #: rows per HDF5 chunk of the /curves datasets (any layout is valid for readers)
 CHUNK_ROWS = 4096
@@ -41,7 +48,7 @@ class Space:
     closing the dead file cannot fail either. File systems without ``fallocate`` are
     written unreserved (as before)."""
 
-    def __init__(self, h5):
+    def __init__(self, h5: h5py.File) -> None:
         try:
             self.fd = int(h5.id.get_vfd_handle())
         except Exception:  # another driver: nothing to reserve on
@@ -136,7 +143,7 @@ class CurveWriter:
     write)`` rows, so that a small index is not padded to whole large chunks. ``space``: a
     :class:`Space` that each write reserves its bytes in first."""
 
-    def __init__(self, h5, K: int, space: "Space | None" = None):
+    def __init__(self, h5: h5py.File, K: int, space: Space | None = None) -> None:
         self.group = h5.create_group("curves")
         self.space = space
         self.K = K
@@ -215,7 +222,7 @@ class CurveWriter:
         return np.concatenate(parts) if parts else np.zeros(0, dtype=np.uint32)
 
 
-def write_files_table(h5, records: list[FileRecord], space: "Space | None" = None) -> None:
+def write_files_table(h5: h5py.File, records: list[FileRecord], space: Space | None = None) -> None:
     g = h5.create_group("files")
     F = len(records)
     if space is not None:
@@ -240,7 +247,7 @@ def write_files_table(h5, records: list[FileRecord], space: "Space | None" = Non
         create_checked(g, name, np.array(values, dtype=object if dtype is STR else dtype).reshape(F), dtype)
 
 
-def write_sources(h5, paths: list[str], glob: str | None, exclude=()) -> None:
+def write_sources(h5: h5py.File, paths: list[str], glob: str | None, exclude: Sequence[str] = ()) -> None:
     """/sources: the stored sources of this build, its glob and the stored paths its walk
     leaves out (written only when there are some; docs/index-format.md)."""
     g = h5.create_group("sources")
@@ -295,7 +302,7 @@ def remove_stale_temps(index_path: str) -> list[str]:
 class CopyRun:
     """Rows copied from the old index, merged into contiguous runs (one read per run)."""
 
-    def __init__(self, old, writer: CurveWriter):
+    def __init__(self, old: Index, writer: CurveWriter) -> None:
         self.old, self.writer = old, writer
         self.start = self.stop = 0
         self.file_rows: list[int] = []

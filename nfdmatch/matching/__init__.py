@@ -27,7 +27,7 @@ For a fixed shift, ``max_R Re sum A_k^H R B_k = max_R tr(R M)`` with
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Any, TYPE_CHECKING
 
 import numpy as np
 
@@ -130,7 +130,7 @@ class Match:
         """
         return self.scale * np.asarray(points, dtype=np.float64) @ self.rotation.T + self.translation
 
-    def partner_fractions(self, fractions_a, samples: int) -> np.ndarray:
+    def partner_fractions(self, fractions_a: ArrayLike, samples: int) -> np.ndarray:
         """Where on b (fraction of b's length from its first vertex, in [0, 1)) the points of a
         at ``fractions_a`` ((m,) float, fractions of a's length) land under this match.
 
@@ -243,7 +243,7 @@ def match_descriptors(
     )
 
 
-def distance(a: Curve | Descriptors | ArrayLike, b: Curve | Descriptors | ArrayLike, **parameters) -> Match:
+def distance(a: Curve | Descriptors | ArrayLike, b: Curve | Descriptors | ArrayLike, **parameters: Any) -> Match:
     """Similarity distance between two closed curves, with the alignment that achieves it.
 
     Parameters

@@ -23,6 +23,8 @@ answers on one thread (:mod:`.kernels`).
 
 from __future__ import annotations
 
+from typing import Any
+
 import importlib
 import importlib.util
 import os
@@ -260,7 +262,7 @@ def unused_reason() -> str | None:
     return _unused[0]
 
 
-def load_checked(folder: str | None = None, stamp_path: str | None = None):
+def load_checked(folder: str | None = None, stamp_path: str | None = None) -> tuple[Any, str | None]:
     """``(kernels, reason)``: the compiled kernels when a build for the current source is
     present and the module file is the one that build wrote (its digest, :func:`module_digest`,
     equal to the stamp's), else ``(None, reason)``; ``reason`` is None when there is simply
@@ -310,7 +312,7 @@ def load_checked(folder: str | None = None, stamp_path: str | None = None):
     return _Kernels(module, threads=stamp[1:2] == [_NOGIL]), None
 
 
-def load():
+def load() -> Any:
     """The compiled kernels when a build for the current source is present and its module is
     intact (:func:`load_checked`), else None; why not, when something is wrong with the
     module, is then :func:`unused_reason`."""

@@ -3,16 +3,21 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 
 import numpy as np
 
 from .common import _weights
 
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
 
 # --------------------------------------------------------------------------- bounds
 
 
-def invariants(coefficients: np.ndarray, weights=None) -> dict[str, np.ndarray]:
+def invariants(coefficients: np.ndarray, weights: ArrayLike | None = None) -> dict[str, np.ndarray]:
     """Shift-, rotation-, reflection- and reversal-invariant features of descriptors.
 
     Parameters
@@ -58,7 +63,7 @@ def _singular_values_3x2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([s1, np.minimum(s2, s1)], axis=-1) * t[..., None]
 
 
-def lower_bound(A: np.ndarray, B: np.ndarray, weights=None) -> np.ndarray:
+def lower_bound(A: np.ndarray, B: np.ndarray, weights: ArrayLike | None = None) -> np.ndarray:
     """max of the three invariant lower bounds of mu(A, B): A (K, 3), B (..., K, 3) -> (...,)."""
     ia, ib = invariants(A, weights), invariants(B, weights)
     return np.max([np.linalg.norm(ib[key] - ia[key], axis=-1) for key in ia], axis=0)

@@ -3,11 +3,16 @@ the closed-form Kabsch trace of 3x3 matrices, and the DFT bases over start shift
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 from functools import lru_cache
 
 import numpy as np
 
 from ..errors import ParameterError
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, NDArray
 
 
 METHODS = ("exact", "paper")
@@ -43,7 +48,9 @@ def check_direction(direction: str) -> None:
         raise ParameterError(f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}")
 
 
-def search_inputs(A, B, samples, weights, direction):
+def search_inputs(
+    A: ArrayLike, B: ArrayLike, samples: int, weights: ArrayLike | None, direction: str
+) -> tuple[NDArray[np.complex128], NDArray[np.complex128], NDArray[np.float64], int]:
     """A search's arguments checked once: ``(A (K, 3) complex128, B (N, K, 3) complex128,
     w (K,) float64, n int)``; a single row ``B`` (K, 3) becomes (1, K, 3)."""
     A = np.asarray(A, dtype=np.complex128)
@@ -68,7 +75,7 @@ def _lmax_soa(s00, s11, s22, s01, s02, s12):
     return np.maximum(q + 2.0 * p * np.cos(np.arccos(r) * (1.0 / 3.0)), 0.0)
 
 
-def gram_entries(a, b, c, d, e, f, g, h, i):
+def gram_entries(a: Any, b: Any, c: Any, d: Any, e: Any, f: Any, g: Any, h: Any, i: Any) -> tuple[Any, ...]:
     """The entries 00, 11, 22, 01, 02, 12 of X^T X for X = [[a, b, c], [d, e, f], [g, h, i]]
     given entry-wise, as a tuple: of arrays here (:func:`_lmax_gram_soa`), of floats in the
     compiled kernels, which compile this same function (:mod:`._kernels`)."""

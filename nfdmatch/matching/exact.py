@@ -5,6 +5,8 @@ best local maxima refined to a sub-sample shift), and its integer stage alone on
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .common import INVARIANT
@@ -19,6 +21,9 @@ from .common import (
     trace_soa,
 )
 from .kernels import Kernels, folded_basis, current
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 
 # --------------------------------------------------------------------------- exact
@@ -85,13 +90,13 @@ def exact_search(
     B: np.ndarray,
     samples: int,
     *,
-    weights=None,
+    weights: ArrayLike | None = None,
     direction: str = INVARIANT,
     mirror: bool = False,
     refine: bool = True,
     refine_below: float | None = None,
     kernels: Kernels | None = None,
-):
+) -> dict[str, np.ndarray]:
     """The global optimum over start shift x rotation for one query against many rows.
 
     Parameters

@@ -27,6 +27,8 @@ is shut down at exit (:func:`._threads.shutdown`), or before a fork (:func:`befo
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import os
 import threading
 from dataclasses import dataclass
@@ -35,6 +37,9 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import ParameterError
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 __all__ = [
     "Kernels",
@@ -187,7 +192,7 @@ def cpu_count() -> int:
     return _cpu_count[0]
 
 
-def graph_push(kernels: Kernels | None = None):
+def graph_push(kernels: Kernels | None = None) -> Callable[..., Any] | None:
     """The compiled personalised-PageRank push (:func:`._graph_kernels.push_sources`) of
     ``kernels`` (default: the process's, :func:`current`): the ahead-of-time module's, or
     numba's just-in-time one; None for the numpy kernels, or when numba cannot compile it
@@ -200,7 +205,7 @@ def graph_push(kernels: Kernels | None = None):
     return None
 
 
-def elastic_kernel(kernels: Kernels | None = None):
+def elastic_kernel(kernels: Kernels | None = None) -> Callable[..., Any] | None:
     """The compiled elastic distance (:func:`._elastic_kernels.elastic_rows`) of ``kernels``
     (default: the process's): the ahead-of-time module's, or numba's just-in-time one; None
     for the numpy kernels, or when numba cannot compile it (the numpy reference of

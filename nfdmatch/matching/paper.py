@@ -3,10 +3,15 @@ integer shift a rotation about z by the angle between bisectors. Kept to reprodu
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .common import INVARIANT
 from .common import search_inputs
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 
 # --------------------------------------------------------------------------- paper
@@ -33,8 +38,14 @@ def _bisector_angle(c1: np.ndarray) -> np.ndarray:
 
 
 def paper_search(
-    A: np.ndarray, B: np.ndarray, samples: int, *, weights=None, direction: str = INVARIANT, mirror: bool = False
-):
+    A: np.ndarray,
+    B: np.ndarray,
+    samples: int,
+    *,
+    weights: ArrayLike | None = None,
+    direction: str = INVARIANT,
+    mirror: bool = False,
+) -> dict[str, np.ndarray]:
     """The paper's matching step (Zhang & Fiume 2002, section 4.2.3), one query against many rows.
 
     Both ``A`` (K, 3) and ``B`` (N, K, 3) must be limit-plane aligned (as returned by

@@ -3,11 +3,16 @@ where it came from) and an :class:`ExtractResult` (one mesh's contours and notes
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 import re
 from dataclasses import dataclass, field
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import os
 
 
 #: the axes a section can be perpendicular to
@@ -110,7 +115,7 @@ class ExtractResult:
 # ---------------------------------------------------------------------------
 
 
-def mesh_stem(path) -> str:
+def mesh_stem(path: str | os.PathLike[str]) -> str:
     """The mesh file name without extension, made filesystem- and selector-safe.
 
     Runs of characters other than ``A-Z a-z 0-9 . _ -`` become ``_``; a name

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import logging
 import os
 from collections.abc import Iterable
@@ -13,6 +15,10 @@ from ..errors import MeshError, NfdError, ReadError, UnknownFormatError
 from ..formats import FORMATS
 from ..formats._chain import check_readable
 from .contours import NOT_MESH_FORMATS
+
+if TYPE_CHECKING:
+    import os
+    import trimesh
 
 
 def mesh_extensions() -> list[str]:
@@ -77,7 +83,7 @@ def _captured_trimesh_log(messages: list[str]):
         logger.removeHandler(handler)
 
 
-def load_mesh(path):
+def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
     """Read a triangle mesh with trimesh; every geometry of a scene, concatenated.
 
     Parameters

@@ -3,11 +3,17 @@
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import os
 from dataclasses import dataclass, field
 
 from ..errors import WriteError
 from ..formats._chain import write_if_changed
+
+if TYPE_CHECKING:
+    import os
+    from collections.abc import Iterable
 
 
 #: the manifest's file name in an output folder (hidden: no curve reader or walk sees it)
@@ -36,7 +42,7 @@ def sha256_file(path: str) -> str | None:
         return None
 
 
-def read_manifest(out_dir) -> tuple[dict, str | None]:
+def read_manifest(out_dir: str | os.PathLike[str]) -> tuple[dict[str, dict[str, Any]], str | None]:
     """The manifest of ``out_dir``: ``({file name: {"mesh": real path, "sha256": hex}}, problem)``;
     ``problem`` is None, or why an existing manifest could not be used (it is then empty)."""
     import json
@@ -102,7 +108,9 @@ def _record(d: str, produced: dict) -> None:
     _write_manifest(d, entries)
 
 
-def prune_contours(out_dir, written, *, keep_meshes=()) -> PruneResult:
+def prune_contours(
+    out_dir: str | os.PathLike[str], written: Iterable[str], *, keep_meshes: Iterable[str] = ()
+) -> PruneResult:
     """Remove the contour files of ``out_dir`` that extract wrote in an earlier run and this
     run (``written``, the paths :func:`write_contours` returned) no longer produces: a mesh
     whose levels moved, a deleted mesh. Only files the folder's manifest lists are candidates,

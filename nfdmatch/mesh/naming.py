@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 from collections.abc import Sequence
 
@@ -11,6 +13,9 @@ from ..formats import FORMATS, format_of, write_curves
 from ..formats._chain import temp_beside, write_if_changed
 from .contours import UNSAFE, Contour, mesh_stem
 from .manifest import _record, sha256_file, read_manifest
+
+if TYPE_CHECKING:
+    import os
 
 
 def _unique_stems(meshes: Sequence[str]) -> dict[str, str]:
@@ -60,7 +65,9 @@ def _same_as_written(c: Contour, target: str, fmt: str) -> bool:
             os.remove(temp)
 
 
-def refused_targets(contours: Sequence[Contour], out_dir, *, format: str = "obj") -> list[OverwriteRefusedError]:
+def refused_targets(
+    contours: Sequence[Contour], out_dir: str | os.PathLike[str], *, format: str = "obj"
+) -> list[OverwriteRefusedError]:
     """The files :func:`write_contours` would have to replace without ``force`` although they
     are not extract's: one :class:`~nfdmatch.errors.OverwriteRefusedError` per mesh (naming
     its first such file, ``.mesh`` set), in contour order; empty when none.
@@ -104,7 +111,9 @@ def refused_targets(contours: Sequence[Contour], out_dir, *, format: str = "obj"
     return refused
 
 
-def write_contours(contours: Sequence[Contour], out_dir, *, format: str = "obj", force: bool = False) -> list[str]:
+def write_contours(
+    contours: Sequence[Contour], out_dir: str | os.PathLike[str], *, format: str = "obj", force: bool = False
+) -> list[str]:
     """Write each contour to its own curve file in ``out_dir`` (created if needed).
 
     Parameters

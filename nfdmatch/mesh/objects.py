@@ -26,6 +26,8 @@ trimesh is imported inside the functions (through :func:`~.load.load_mesh`).
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import os
 from dataclasses import dataclass, field
 
@@ -36,6 +38,11 @@ from ..sources import MESH_EXTENSIONS
 from .contours import Contour, ExtractResult
 from .load import load_mesh
 from .sections import boundary_loops, section_loops
+
+if TYPE_CHECKING:
+    import os
+    import trimesh
+    from .contours import ExtractResult
 
 __all__ = [
     "ObjectRule",
@@ -91,7 +98,7 @@ class ObjectRule:
         return (int(self.sections), int(self.min_vertices), bool(self.boundaries))
 
     @classmethod
-    def from_tuple(cls, t) -> "ObjectRule":
+    def from_tuple(cls, t: tuple[Any, ...]) -> ObjectRule:
         return cls(sections=int(t[0]), min_vertices=int(t[1]), boundaries=bool(t[2]))
 
 
@@ -259,7 +266,9 @@ def _loop_measures(loop: np.ndarray, a: int | None, area: float) -> tuple[float,
     return perimeter, enclosed / area, elongation, float(np.log(max(perimeter / root, 1e-12)))
 
 
-def cut_object(mesh, rule: ObjectRule | None = None, *, name: str | None = None) -> ObjectCut:
+def cut_object(
+    mesh: str | os.PathLike[str] | trimesh.Trimesh, rule: ObjectRule | None = None, *, name: str | None = None
+) -> ObjectCut:
     """The contours and measures of one object (see the module doc).
 
     ``mesh``: a mesh file path (read with :func:`~.load.load_mesh`) or a ``trimesh.Trimesh``;
@@ -333,7 +342,7 @@ def cut_object(mesh, rule: ObjectRule | None = None, *, name: str | None = None)
 PRINCIPAL_AXES = ("pa", "pb", "pc")
 
 
-def principal_contours(path, *, sections: int, boundaries: bool):
+def principal_contours(path: str | os.PathLike[str], *, sections: int, boundaries: bool) -> ExtractResult:
     """``extract --axis principal``: the contours of the mesh at ``path`` cut by the object
     rule (:func:`cut_object` with ``sections`` >= 1 planes per principal axis; ``boundaries``:
     the boundary loops of an open mesh too), as an

@@ -3,6 +3,8 @@ package docstring: how a section is computed, orientation, branching points)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 
 import numpy as np
@@ -13,8 +15,13 @@ from ..errors import CurveError, ParameterError
 from .contours import AXES, Contour, DEFAULT_SECTIONS, ExtractResult
 from .load import load_mesh
 
+if TYPE_CHECKING:
+    import os
+    import trimesh
+    from numpy.typing import ArrayLike, NDArray
 
-def section_levels(bounds, sections: int, axis: str = "auto") -> tuple[str, np.ndarray]:
+
+def section_levels(bounds: ArrayLike, sections: int, axis: str = "auto") -> tuple[str, NDArray[np.float64]]:
     """The axis and levels of ``sections`` evenly spaced planes.
 
     Parameters
@@ -48,7 +55,7 @@ def section_levels(bounds, sections: int, axis: str = "auto") -> tuple[str, np.n
 
 
 def extract_contours(
-    path, *, sections: int = DEFAULT_SECTIONS, axis: str = "auto", boundaries: bool = False
+    path: str | os.PathLike[str], *, sections: int = DEFAULT_SECTIONS, axis: str = "auto", boundaries: bool = False
 ) -> ExtractResult:
     """Closed section loops (and boundary loops) of the triangle mesh in ``path``.
 
@@ -142,8 +149,17 @@ def _add_sections(result: ExtractResult, mesh, vertices, faces, sections: int, a
 
 
 def section_loops(
-    vertices, faces, edges, face_edges, face_lo, face_hi, a: int, level: float, where: str, notes: list[str]
-) -> list[np.ndarray]:
+    vertices: NDArray[np.float64],
+    faces: NDArray[np.int64],
+    edges: NDArray[np.int64],
+    face_edges: NDArray[np.int64],
+    face_lo: NDArray[np.float64],
+    face_hi: NDArray[np.float64],
+    a: int,
+    level: float,
+    where: str,
+    notes: list[str],
+) -> list[NDArray[np.float64]]:
     """Closed loops of the plane ``coordinate a == level``, as cleaned (m, 3) float64 arrays.
 
     vertices (n, 3) float64, faces (f, 3) int64, edges (e, 2) int64 unique
@@ -177,7 +193,7 @@ def section_loops(
     return _loops_to_points(np.searchsorted(ids, segments), points, where, notes)
 
 
-def boundary_loops(mesh, where: str, notes: list[str]) -> list[np.ndarray]:
+def boundary_loops(mesh: trimesh.Trimesh, where: str, notes: list[str]) -> list[NDArray[np.float64]]:
     """Boundary loops (edges used by exactly one face) as cleaned (m, 3) float64 arrays,
     by decreasing perimeter."""
     from trimesh.grouping import group_rows

@@ -8,13 +8,17 @@ import math
 import os
 import re
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence, TYPE_CHECKING
 
 import numpy as np
 
 from ..descriptors import START_STEP, points_at
 from ..errors import ParameterError, WriteError
 from ..records import ShownMatch
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+    from collections.abc import Sequence
 
 
 RENDERERS = ("matplotlib", "pyvista")
@@ -191,7 +195,7 @@ def _as_points(x, what: str, min_points: int = 2) -> np.ndarray:
     return a
 
 
-def as_vector(x, what: str) -> np.ndarray:
+def as_vector(x: ArrayLike, what: str) -> np.ndarray:
     try:
         v = np.array(x, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError) as exc:
@@ -203,7 +207,7 @@ def as_vector(x, what: str) -> np.ndarray:
     return v
 
 
-def check_size(size) -> tuple[int, int]:
+def check_size(size: Any) -> tuple[int, int]:
     try:
         w, h = size
         if isinstance(w, bool) or isinstance(h, bool) or int(w) != w or int(h) != h:
@@ -263,7 +267,7 @@ def _write(path: str, data: bytes) -> None:
         raise WriteError(f"cannot write the picture: {exc.strerror or exc}", path=path) from None
 
 
-def check_renderer(renderer) -> str:
+def check_renderer(renderer: str | None) -> str:
     if renderer != "auto" and renderer not in RENDERERS:
         raise ParameterError(f"renderer must be auto, {' or '.join(RENDERERS)}, got {renderer!r}")
     return renderer
@@ -393,7 +397,7 @@ def choose_grid(n: int, size: tuple[int, int], data_w: float, data_h: float) -> 
     return rows, cols
 
 
-def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size) -> Scene:
+def build_scene(query: np.ndarray, query_id: str, panels: list[ShownMatch], size: Sequence[int]) -> Scene:
     """The :class:`Scene` both renderers draw: ``query`` ((n, 3) float64) and the checked
     ``panels`` in view coordinates, the panel grid for ``size`` (width, height) pixels,
     titles and subtitles (what a picture shows, testable without drawing it)."""

@@ -3,16 +3,22 @@ bytes; 3-D views projected here and drawn far to near with halos at crossings.""
 
 from __future__ import annotations
 
+from typing import Any, TYPE_CHECKING
+
 import io
 
 import numpy as np
 
 from .layout import MATCH_COLOR, NOTE_COLOR, QUERY_COLOR, Scene, TEXT_COLOR, UNDER_COLOR, screen_direction
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from matplotlib.figure import Figure
+
 # --------------------------------------------------------------------------- matplotlib
 
 
-def new_figure(size, **kwargs):
+def new_figure(size: Sequence[float], **kwargs: Any) -> Figure:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -21,7 +27,7 @@ def new_figure(size, **kwargs):
     return fig
 
 
-def png_bytes(fig, fmt: str = "png") -> bytes:
+def png_bytes(fig: Figure, fmt: str = "png") -> bytes:
     """The figure as PNG, SVG or PDF bytes; the same figure gives the same bytes (no date in
     the metadata, fixed SVG ids), so an unchanged picture keeps its file's bytes."""
     import matplotlib

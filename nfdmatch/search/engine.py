@@ -14,6 +14,8 @@ out, so the result is the exhaustive one; the order only decides how little is c
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
@@ -22,6 +24,9 @@ import numpy as np
 
 from ..matching import EXACT, INVARIANT
 from .bounds import row_lower_bounds, truncated_lower_bounds, truncated_stages
+
+if TYPE_CHECKING:
+    from .table import SearchTable
 
 __all__ = ["BestRows", "QueryWork", "Cascade", "search_block", "margin", "TIE"]
 
@@ -57,7 +62,7 @@ class BestRows:
     the search table holds the row's descriptors (-1 when added from elsewhere), so that
     they can be read again without a scattered read of the index."""
 
-    def __init__(self, k: int | None, max_distance: float | None):
+    def __init__(self, k: int | None, max_distance: float | None) -> None:
         self.k, self.max_distance = k, max_distance
         self.dist = np.zeros(0)
         self.rows = np.zeros(0, dtype=np.int64)
@@ -72,7 +77,7 @@ class BestRows:
             limit = min(limit, float(np.partition(self.dist, self.k - 1)[self.k - 1]))
         return limit
 
-    def add(self, dist, rows, result) -> None:
+    def add(self, dist: np.ndarray, rows: np.ndarray, result: dict[str, np.ndarray]) -> None:
         keep = dist <= (np.inf if self.max_distance is None else self.max_distance)
         self.dist = np.concatenate([self.dist, dist[keep]])
         self.rows = np.concatenate([self.rows, rows[keep]])
@@ -120,7 +125,7 @@ class Cascade:
     truncate: bool = True
 
     @property
-    def distance(self):
+    def distance(self) -> Callable[..., dict[str, np.ndarray]]:
         """The distance function of ``method``: ``exact_search`` or ``paper_search``."""
         from ..matching import exact_search, paper_search
 
@@ -128,10 +133,10 @@ class Cascade:
 
 
 def search_block(
-    table,
+    table: SearchTable,
     query_coefficients: np.ndarray,
     query_features: np.ndarray,
-    nearest: Sequence["BestRows"],
+    nearest: Sequence[BestRows],
     cascade: Cascade,
     *,
     skip_cells: Sequence[np.ndarray | None] | None = None,

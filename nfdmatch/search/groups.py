@@ -8,6 +8,8 @@ of the pairs, in whole-array steps) with a plain union-find on random graphs."""
 
 from __future__ import annotations
 
+from typing import Any
+
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -64,14 +66,14 @@ def _new_rows(index) -> np.ndarray:
 
 
 def index_pairs(
-    index,
+    index: Any,
     max_distance: float,
     *,
     new: bool = False,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
-    cluster=None,
-    **options,
+    cluster: Any = None,
+    **options: Any,
 ) -> tuple[list[Pair], JoinStats]:
     """Every pair of curves of an open :class:`~nfdmatch.index.Index` (or a
     :class:`~nfdmatch.search.MemoryIndex`) at most ``max_distance`` apart, each once.
@@ -95,14 +97,14 @@ def index_pairs(
 
 
 def index_groups(
-    index,
+    index: Any,
     max_distance: float,
     *,
     min_size: int = 1,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
-    cluster=None,
-    **options,
+    cluster: Any = None,
+    **options: Any,
 ) -> tuple[list[GroupMember], JoinStats]:
     """The near-duplicate groups of an index: the connected components of the pairs within
     ``max_distance`` (single linkage: a chain of near-duplicates is one group, however far

@@ -21,6 +21,7 @@ from .limits import check_limits
 from .selfmatch import drop_self, self_rule
 
 if TYPE_CHECKING:
+    from collections.abc import Iterable
     from numpy.typing import ArrayLike
 
     from ..curve import Curve
@@ -89,7 +90,7 @@ def check_search_parameters(top: int | None, max_distance: float | None, method:
 
 
 def search_index(
-    index,
+    index: Any,
     queries: Sequence[Curve],
     *,
     k: int | None = 10,
@@ -170,7 +171,7 @@ def search_index(
     return results, stats
 
 
-def query_descriptors(index, queries: Sequence[Curve]) -> np.ndarray:
+def query_descriptors(index: Any, queries: Sequence[Curve]) -> np.ndarray:
     """(Q, K, 3) complex128: the queries' descriptors with the index's samples, harmonics and
     scale."""
     from ..descriptors import descriptors_batch
@@ -181,9 +182,17 @@ def query_descriptors(index, queries: Sequence[Curve]) -> np.ndarray:
 
 
 def search_rows(
-    index, qcoef: np.ndarray, cascade: Cascade, *, top: int | None, max_distance=None, prune=True, progress=None,
-    weights=None, threads=None,
-) -> tuple[list[BestRows], SearchStats]:  # fmt: skip
+    index: Any,
+    qcoef: np.ndarray,
+    cascade: Cascade,
+    *,
+    top: int | None,
+    max_distance: float | None = None,
+    prune: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+    weights: ArrayLike | None = None,
+    threads: int | None = None,
+) -> tuple[list[BestRows], SearchStats]:
     """:func:`search_index`'s search, its answer as rows: ``(tops, stats)``, ``tops[i]`` the
     :class:`~nfdmatch.search.engine.BestRows` of query i (descriptors ``qcoef[i]``, (K, 3)
     complex128) in no particular order, every row's figures computed alone
@@ -240,14 +249,16 @@ def _pruned(index, qcoef, tops, cascade: Cascade, stats: SearchStats, threads, p
     return table
 
 
-def without_self(index, queries, results: list[list[RankedMatch]], top: int | None) -> list[list[RankedMatch]]:
+def without_self(
+    index: Any, queries: Sequence[Curve], results: list[list[RankedMatch]], top: int | None
+) -> list[list[RankedMatch]]:
     """Each query's matches without its own curve (:func:`~nfdmatch.search.knn.drop_self`),
     at most ``top``: the answer of a search asked for ``top + 1``."""
     rule = self_rule(getattr(index, "locate", None))
     return [drop_self(q.id, found, top, rule=rule) for q, found in zip(queries, results)]
 
 
-def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
+def ranked_rows(index: Any, tops: Sequence[BestRows], top: int | None) -> list[list[RankedMatch]]:
     """Each :class:`~nfdmatch.search.engine.BestRows` as the matches :func:`search_index`
     returns: sorted by distance, distances within ``TIE`` by id, at most ``top``
     (:func:`rank_rows`, which orders ``tops`` in place)."""
@@ -276,7 +287,7 @@ def ranked_rows(index, tops, top: int | None) -> list[list[RankedMatch]]:
     return results
 
 
-def rank_rows(index, tops, top: int | None = None) -> None:
+def rank_rows(index: Any, tops: Sequence[BestRows], top: int | None = None) -> None:
     """Order each :class:`~nfdmatch.search.engine.BestRows` of ``tops`` in place as
     :func:`ranked_rows` does (by distance, distances within ``TIE`` by id), keeping at most
     ``top``: its rows, distances and ``extra`` permuted. Ids are read only for the queries
@@ -302,7 +313,17 @@ def rank_rows(index, tops, top: int | None = None) -> None:
         tk.extra = {key: v[order] for key, v in tk.extra.items()}
 
 
-def recompute_reported(index, queries, tops, search, *, direction, mirror, weights, tables=None) -> None:
+def recompute_reported(
+    index: Any,
+    queries: np.ndarray,
+    tops: Sequence[BestRows],
+    search: Callable[..., dict[str, np.ndarray]],
+    *,
+    direction: str,
+    mirror: bool,
+    weights: ArrayLike | None,
+    tables: Any = None,
+) -> None:
     """Replace the distances, shifts and flags of the rows the queries found by a full
     computation of each: refined at every candidate shift, whatever the threshold was when
     the search met the row.
@@ -348,7 +369,17 @@ def recompute_reported(index, queries, tops, search, *, direction, mirror, weigh
 
 
 def exhaustive_rows(
-    qcoef, tops, chunks, search, samples: int, *, direction, mirror, weights=None, progress=None, total=None
+    qcoef: np.ndarray,
+    tops: Sequence[BestRows],
+    chunks: Iterable[tuple[int, np.ndarray]],
+    search: Callable[..., dict[str, np.ndarray]],
+    samples: int,
+    *,
+    direction: str,
+    mirror: bool,
+    weights: ArrayLike | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    total: int | None = None,
 ) -> tuple[int, int]:
     """Every exact distance between the queries and the rows of ``chunks`` (no bound
     consulted): ``chunks`` yields ``(first row, (m, K, 3) descriptors)`` in order; each

@@ -31,6 +31,8 @@ only those rows' lists (a build's new rows; ``pairs --new``).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import os
 import threading
 import time
@@ -50,6 +52,9 @@ from .bounds import (
 )
 from .engine import EXACT_BATCH, FIRST_BATCH, TIE, Cascade, margin
 from .limits import check_limits
+
+if TYPE_CHECKING:
+    from .table import SearchTable
 
 __all__ = ["JoinStats", "join_input", "nearest_others", "pairs_within"]
 
@@ -364,7 +369,7 @@ def _threads(threads: int | None) -> int:
     return max(1, threads or min(os.cpu_count() or 1, 4))
 
 
-def join_input(table, read_coefficients: Callable):
+def join_input(table: SearchTable, read_coefficients: Callable[[np.ndarray], np.ndarray]) -> _Collection:
     """What a join reads, read once: every row's features and descriptors. A join given it
     instead of the table reads nothing (the several parts of one join on a worker)."""
     return _Collection(table, read_coefficients)
@@ -385,12 +390,12 @@ def _prepare(table, read_coefficients, cascade: Cascade, rows) -> tuple[_Collect
 
 
 def nearest_others(
-    table,
-    read_coefficients: Callable,
+    table: SearchTable | _Collection,
+    read_coefficients: Callable[[np.ndarray], np.ndarray],
     k: int,
     cascade: Cascade,
     *,
-    rows=None,
+    rows: np.ndarray | None = None,
     tie_key: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
@@ -441,12 +446,12 @@ def nearest_others(
 
 
 def pairs_within(
-    table,
-    read_coefficients: Callable,
+    table: SearchTable | _Collection,
+    read_coefficients: Callable[[np.ndarray], np.ndarray],
     max_distance: float,
     cascade: Cascade,
     *,
-    rows=None,
+    rows: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
     cells: tuple[int, int] | None = None,

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 __all__ = ["as_queries", "self_rule", "is_self", "drop_self", "search", "as_arrays", "stored_descriptors", "DEFAULT_K"]
 
 
-def as_queries(queries) -> list[Curve]:
+def as_queries(queries: Any) -> list[Curve]:
     """Query curves from what a user holds: one or a sequence of :class:`~nfdmatch.Curve`,
     (n, 3) or (n, 2) float arrays (ids ``<array i>``) and paths (str or PathLike: every curve
     of the file; ``"file#i"`` for one)."""

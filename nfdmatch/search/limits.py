@@ -12,7 +12,7 @@ from ..errors import ParameterError
 __all__ = ["check_limits"]
 
 
-def check_limits(top=None, max_distance=None, *, top_name: str = "top") -> None:
+def check_limits(top: int | None = None, max_distance: float | None = None, *, top_name: str = "top") -> None:
     """Raise ParameterError unless ``top`` is None or an integer >= 1 and ``max_distance`` is
     None or a number >= 0 (``inf``: no limit; NaN refused: it would compare false with
     every distance, and a search would quietly answer nothing)."""

@@ -60,7 +60,7 @@ class MemoryIndex:
         harmonics: int = DEFAULT_HARMONICS,
         scale: str = DEFAULT_SCALE,
         rows_per_cell: int | None = None,
-    ):
+    ) -> None:
         from ..descriptors import descriptors_batch
         from ..matching import invariants
 
@@ -109,7 +109,9 @@ class MemoryIndex:
         every = {"coefficients": self._rows["coefficients"], **self._pose}
         return {k: v[start:stop] for k, v in every.items() if columns is None or k in columns}
 
-    def iter_chunks(self, rows: int = CHUNK_ROWS, columns=None, *, upcast: bool = True) -> Iterator[tuple[int, dict]]:
+    def iter_chunks(
+        self, rows: int = CHUNK_ROWS, columns: slice | None = None, *, upcast: bool = True
+    ) -> Iterator[tuple[int, dict]]:
         for start in range(0, self.n_curves, rows):
             yield start, {k: v[start : start + rows] for k, v in self._rows.items() if columns is None or k in columns}
 

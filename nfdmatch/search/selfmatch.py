@@ -3,11 +3,16 @@ every search that offers it (``query``, ``show``, ``Index.search``, the re-ranki
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import functools
 import os
 
 from ..curve import STDIN_ID
 from ..records import RankedMatch
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 __all__ = ["self_rule", "is_self", "drop_self"]
 
@@ -26,7 +31,7 @@ def _curve_key(curve_id: str) -> tuple | None:
     return st.st_dev, st.st_ino, selected
 
 
-def self_rule(locate=None):
+def self_rule(locate: Callable[[str], str | None] | None = None) -> Callable[[str, str], bool]:
     """``rule(query_id, match_id) -> bool``: whether a match names the query's curve: the
     same id, or the same curve of the same file however the path is spelled (never for
     stdin). ``locate``: id -> a path that opens it here (an index's ids are relative to its
@@ -49,12 +54,18 @@ def self_rule(locate=None):
     return rule
 
 
-def is_self(query_id: str, match_id: str, locate=None) -> bool:
+def is_self(query_id: str, match_id: str, locate: Callable[[str], str | None] | None = None) -> bool:
     """One question of :func:`self_rule`."""
     return self_rule(locate)(query_id, match_id)
 
 
-def drop_self(query_id: str, matches: list[RankedMatch], k: int | None, locate=None, rule=None) -> list[RankedMatch]:
+def drop_self(
+    query_id: str,
+    matches: list[RankedMatch],
+    k: int | None,
+    locate: Callable[[str], str | None] | None = None,
+    rule: Callable[[str, str], bool] | None = None,
+) -> list[RankedMatch]:
     """``matches`` (ranked) without those naming the query's curve (:func:`self_rule`;
     ``rule`` one made already, for a batch), ranks renumbered, at most ``k``. The search
     asked for one match more."""

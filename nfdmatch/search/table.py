@@ -8,11 +8,14 @@ every row) behind the same calls, so the best-first loop has one form.
 from __future__ import annotations
 
 import threading
-from typing import Callable
+from typing import Callable, TYPE_CHECKING
 
 import numpy as np
 
 from .bounds import cell_lower_bounds, feature_split, squared_norms
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 __all__ = ["SearchTable"]
 
@@ -99,9 +102,9 @@ class SearchTable:
     def __init__(
         self,
         harmonics: int,
-        start,
-        centre,
-        radius,
+        start: np.ndarray,
+        centre: np.ndarray,
+        radius: np.ndarray,
         read_positions: Callable,
         read_coefficients: Callable,
         read_descriptors: Callable | None = None,
@@ -109,7 +112,7 @@ class SearchTable:
         read_runs: Callable | None = None,
         read_descriptor_runs: Callable | None = None,
         head_harmonics: int = 0,
-    ):
+    ) -> None:
         self.harmonics = harmonics
         self.split = feature_split(harmonics)
         self.start = np.asarray(start, dtype=np.int64)
@@ -191,7 +194,7 @@ class SearchTable:
             read_coefficients,
         )
 
-    def subset(self, cells) -> "SearchTable":
+    def subset(self, cells: Sequence[int] | np.ndarray | tuple[int, int]) -> SearchTable:
         """The table of the given cells only (ascending cell numbers, or a ``(first, stop)``
         range); their rows keep their index row numbers. A search over it answers for that
         part of the index, so parts searched apart merge into the whole table's answer

@@ -18,7 +18,7 @@ def run_tasks(
     processes: int,
     *,
     prepare: Callable[[], None] | None = None,
-    close_fds=(),
+    close_fds: Sequence[int] = (),
 ) -> int:
     """``collect(number, compute(task, threads))`` for every task, in any order.
 
