@@ -23,8 +23,6 @@ PENDING = {
     "nfdmatch.cli.join_cmds", "nfdmatch.cli.options", "nfdmatch.cli.output", "nfdmatch.cli.pictures",
     "nfdmatch.cli.query_cmd", "nfdmatch.cli.report_cmd", "nfdmatch.cli.signals",
     "nfdmatch.search.objects",
-    "nfdmatch.matching.fused", "nfdmatch.search.diffusion", "nfdmatch.search.graph", "nfdmatch.search.matrix",
-    "nfdmatch.search.stages",
 }  # fmt: skip
 
 

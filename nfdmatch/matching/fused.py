@@ -15,12 +15,18 @@ quantiles measured no better (docs/elastic.md).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .elastic import elastic_rows
 from .kernels import Kernels
 from .statistics import curve_statistics, statistics_distance
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, NDArray
+
+    from . import Match
 
 __all__ = [
     "FusedDistances",
@@ -62,7 +68,7 @@ def require_exact(method: str) -> None:
         raise ParameterError(f"the elastic stage is taken at the exact optimum: method must be {EXACT}")
 
 
-def fuse(rigid, elastic, statistics) -> np.ndarray:
+def fuse(rigid: ArrayLike, elastic: ArrayLike, statistics: ArrayLike) -> NDArray[np.float64]:
     """The fused distance of arrays of the three terms (the same shape): in [0, 3], 0 for
     the same curve; each term through its quantile table (linear between the knots, 1
     beyond the last)."""
@@ -111,7 +117,7 @@ def fused_rows(
     return FusedDistances(distance, elastic, statistics, fuse(distance, elastic, statistics))
 
 
-def fused_distance(a, b, **parameters) -> tuple:
+def fused_distance(a: Any, b: Any, **parameters: Any) -> tuple[Match, FusedDistances]:
     """The elastic stage's terms for one pair of curves: ``(match, terms)``, ``match`` the
     exact :class:`~nfdmatch.matching.Match` (:func:`nfdmatch.distance`) and ``terms`` a
     :class:`FusedDistances` of one row (the elastic distance taken at the match's pose).

@@ -35,13 +35,23 @@ laid over it for one query (:meth:`GraphWalk.overlay`).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from functools import partial
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..matching._threads import run_all
 from ..matching.kernels import current, graph_push
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, NDArray
+
+    from ..matching.kernels import Kernels
+
+    #: ``rows -> (neighbour (m, K) int64, distance (m, K) float64)``
+    GraphReader = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 __all__ = ["GraphWalk", "TOLERANCE", "SCALE_FLOOR", "row_scales", "sorted_unique", "sum_by_key"]
 
@@ -94,7 +104,7 @@ class GraphWalk:
     alpha : probability of following an edge.
     """
 
-    def __init__(self, reader, N: int, k: int, alpha: float):
+    def __init__(self, reader: GraphReader, N: int, k: int, alpha: float) -> None:
         self.reader, self.N, self.k, self.alpha = reader, int(N), int(k), float(alpha)
         size = self.N + 1
         # full-size arrays, written only where rows are read (untouched pages cost nothing)
@@ -130,7 +140,7 @@ class GraphWalk:
         self._known[missing] = True
         self.rows_read += len(missing)
 
-    def scales(self, nodes) -> np.ndarray:
+    def scales(self, nodes: ArrayLike) -> NDArray[np.float64]:
         """Each node's scale (its k-th distance)."""
         nodes = np.asarray(nodes, dtype=np.int64)
         self.ensure(nodes)
@@ -170,7 +180,7 @@ class GraphWalk:
         return targets, w
 
     @contextmanager
-    def overlay(self, rows: np.ndarray, neighbour: np.ndarray, distance: np.ndarray):
+    def overlay(self, rows: np.ndarray, neighbour: np.ndarray, distance: np.ndarray) -> Iterator[GraphWalk]:
         """For the duration of the block, the lists of ``rows`` (which may include the extra
         node N, the query) are ``neighbour`` / ``distance`` ((m, k), ascending, -1 / inf
         padding; neighbour N is the query), and their scales follow; restored afterwards."""
@@ -189,7 +199,9 @@ class GraphWalk:
             self._overlaid = False
 
     # -- the push
-    def pagerank(self, sources, tolerance: float = TOLERANCE, kernels=None):
+    def pagerank(
+        self, sources: ArrayLike, tolerance: float = TOLERANCE, kernels: Kernels | None = None
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
         """The personalised PageRank of each source, by push.
 
         ``kernels``: which push computes (a :class:`~nfdmatch.matching.kernels.Kernels`;

@@ -11,6 +11,7 @@ equals a from-scratch build (each list is an exact top K, ties by id).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,9 @@ from .bounds import feature_vector, head_harmonics
 from .engine import TIE, Cascade, BestRows, search_block
 from .table import SearchTable
 from .workers import run_tasks
+
+#: ``rows -> their (m, K, 3) complex descriptors`` (or statistics), read from the index
+RowReader = Callable[[np.ndarray], np.ndarray]
 
 __all__ = ["GraphLists", "neighbour_lists", "graph_blocks", "nearest_others", "update_copied", "fused_lists"]
 
@@ -44,17 +48,17 @@ class GraphLists:
 
 
 def neighbour_lists(
-    table,
-    read_coefficients,
-    ids,
+    table: SearchTable,
+    read_coefficients: RowReader,
+    ids: Sequence[str],
     lists: GraphLists,
     k: int,
     samples: int,
     *,
     threads: int | None = None,
     processes: int = 1,
-    close_fds=(),
-    progress=None,
+    close_fds: Sequence[int] = (),
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[int, int, int]:
     """Fill ``lists`` with each row's k nearest other rows of ``table``: the rows in
     ``lists.todo`` searched in the whole table, the rows in ``lists.check`` updated where
@@ -105,7 +109,7 @@ def neighbour_lists(
     return sum(len(block) for block in blocks), updated, processes
 
 
-def graph_blocks(table, todo) -> list[np.ndarray]:
+def graph_blocks(table: SearchTable, todo: np.ndarray) -> list[np.ndarray]:
     """The rows to search (``todo`` (N,) bool) in blocks of at most :data:`_BLOCK_ROWS`,
     in the table's order (cell by cell): a block's rows share the cells they read."""
     N = len(todo)
@@ -133,7 +137,10 @@ class _Queries:
         return block, np.asarray(self.read(block), dtype=np.complex128)
 
 
-def nearest_others(table, task, ids, k, cascade, threads):
+def nearest_others(
+    table: SearchTable, task: tuple[np.ndarray, np.ndarray], ids: Sequence[str], k: int, cascade: Cascade,
+    threads: int | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """``(block, neighbour, distance)``: the lists ((m, k) int64 / float64) of the m rows of
     ``task`` ``(block, their (m, K, 3) complex128 descriptors)``, each from one search."""
     block, q = task
@@ -146,7 +153,10 @@ def nearest_others(table, task, ids, k, cascade, threads):
     return block, nb, d
 
 
-def update_copied(table, read_coefficients, ids, lists: GraphLists, k, cascade, threads):
+def update_copied(
+    table: SearchTable, read_coefficients: RowReader, ids: Sequence[str], lists: GraphLists, k: int,
+    cascade: Cascade, threads: int | None,
+) -> int:  # fmt: skip
     """Update the copied lists of the rows ``lists.check`` where one of ``lists.fresh_rows``
     enters them (see :func:`neighbour_lists`); returns how many changed."""
     neighbour, distance, check, fresh_rows = lists.neighbour, lists.distance, lists.check, lists.fresh_rows
@@ -191,7 +201,10 @@ def _ordered(i, rows, d, ids, k):
     return nb, dist
 
 
-def fused_lists(read_coefficients, read_statistics, ids, candidates: np.ndarray, k: int, samples: int):
+def fused_lists(
+    read_coefficients: RowReader, read_statistics: RowReader, ids: Sequence[str], candidates: np.ndarray, k: int,
+    samples: int,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """A fused graph's lists (``index build --graph K --elastic``): of each row's candidates
     (``candidates``: (N, m) int64, its exact m nearest, -1 padded), the ``k`` of least fused
     distance (:func:`nfdmatch.matching.fused.fused_rows`, at each pair's exact optimum), ties

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,6 +15,8 @@ from ..errors import ParameterError
 from .workers import run_tasks
 
 if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, NDArray
+
     from ..curve import Curve
 
 #: rows matched per vectorized batch: bounds the (rows x shifts x 9) working set
@@ -32,8 +34,8 @@ def distance_matrix(
     progress: Callable[[int, int], None] | None = None,
     processes: int | None = None,
     elastic: bool = False,
-    **parameters,
-) -> np.ndarray:
+    **parameters: Any,
+) -> NDArray[np.float64]:
     """All-pairs distances of ``curves``.
 
     Parameters
@@ -101,8 +103,8 @@ def cross_distances(
     processes: int = 1,
     direction: str = "invariant",
     mirror: bool = False,
-    weights=None,
-) -> np.ndarray:
+    weights: ArrayLike | None = None,
+) -> NDArray[np.float64]:
     """(len A, len B) exact distances between two sets of stored descriptors ``A`` (m, K, 3)
     and ``B`` (n, K, 3) (complex; each row against every column, in batches of
     :data:`BATCH_ROWS` as :func:`distance_matrix` does, over ``processes`` forked workers

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -20,6 +20,10 @@ from ..defaults import DEFAULT_ELASTIC_DEPTH
 from ..errors import ParameterError
 from ..records import RankedMatch
 from .engine import TIE
+
+if TYPE_CHECKING:
+    from ..matching.fused import FusedDistances
+    from .engine import BestRows
 
 __all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates", "fused_best_rows"]
 
@@ -39,7 +43,9 @@ class Stage(Protocol):
         """How many exact nearest rows a query needs for an answer of ``top`` rows."""
         ...
 
-    def reorder(self, index, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]) -> list[list[RankedMatch]]:
+    def reorder(
+        self, index: Any, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]
+    ) -> list[list[RankedMatch]]:
         """Each query's candidates (``results[i]``, query i's descriptors ``qcoef[i]``: (Q, K,
         3) complex128), re-ordered and re-ranked, the stage's columns filled in."""
         ...
@@ -63,7 +69,9 @@ class ElasticStage:
     def candidates(self, top: int | None) -> int | None:
         return None if top is None else max(int(top), int(self.depth))
 
-    def reorder(self, index, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]) -> list[list[RankedMatch]]:
+    def reorder(
+        self, index: Any, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]
+    ) -> list[list[RankedMatch]]:
         rigid = [
             {
                 "distance": np.array([m.distance for m in matches], dtype=np.float64),
@@ -90,7 +98,9 @@ class ElasticStage:
         return out
 
 
-def fused_candidates(index, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid: Sequence[dict]) -> list:
+def fused_candidates(
+    index: Any, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid: Sequence[dict]
+) -> list[FusedDistances | None]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
     optimum ``rigid[i]`` (``distance``, ``shift``, ``reversed``, ``mirrored`` arrays), the
@@ -106,7 +116,7 @@ def fused_candidates(index, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid
     stored = getattr(index, "statistics_at", None)
     statistics = stored(every) if stored is not None else curve_statistics(coefficients)
     mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
-    out = []
+    out: list[FusedDistances | None] = []
     for qi, found in enumerate(rows):
         if not len(found):
             out.append(None)
@@ -125,7 +135,7 @@ def fused_candidates(index, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid
     return out
 
 
-def fused_best_rows(index, qcoef: np.ndarray, found) -> None:
+def fused_best_rows(index: Any, qcoef: np.ndarray, found: Sequence[BestRows]) -> None:
     """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
     distances) given their fused distances instead (the exact ones kept in ``extra["exact"]``,
     the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then id."""
