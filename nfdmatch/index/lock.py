@@ -37,10 +37,15 @@ class Lock:
         """The lock file's descriptor, and whether this call created it."""
         flags = os.O_RDWR | getattr(os, "O_CLOEXEC", 0)
         try:
-            try:
-                return os.open(self.path, flags | os.O_CREAT | os.O_EXCL, 0o644), True
-            except FileExistsError:
-                return os.open(self.path, flags), False
+            while True:
+                try:
+                    return os.open(self.path, flags | os.O_CREAT | os.O_EXCL, 0o644), True
+                except FileExistsError:
+                    pass
+                try:
+                    return os.open(self.path, flags), False
+                except FileNotFoundError:
+                    continue  # its holder removed it between the two opens: create it
         except OSError as exc:
             raise WriteError(
                 f"cannot create the lock file {self.path}: {exc.strerror or exc}", path=index_path
