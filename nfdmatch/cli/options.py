@@ -410,12 +410,14 @@ def output_option(
     "file keeps its bytes, with a fresh mtime) instead of stdout; '-': stdout.",
     multiple=False,
     required=False,
+    names=("--output", "-o"),
+    dest="output",
 ):
-    """The one ``-o/--output`` option of commands that write rows (and pictures)."""
+    """The one ``-o/--output`` option of commands that write rows (and pictures); ``names``
+    and ``dest`` for another output file of that kind (``extract --list``)."""
     return click.option(
-        "--output",
-        "-o",
-        "output",
+        *names,
+        dest,
         type=click.Path(dir_okay=False),
         default=None,
         multiple=multiple,
