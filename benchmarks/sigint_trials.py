@@ -23,6 +23,15 @@ command); counts exit codes, stderr lines and tracebacks per delay bucket of 25 
 Python's own start-up (before nfdmatch's first line, while ``site`` imports) keeps Python's
 behaviour: the first bucket(s) show it.
 
+``--mode startup-grid``: the console script as a user runs it (``--entry script``: the
+``nfdmatch`` beside this Python, default; ``--entry module``: ``python -m nfdmatch``) with
+``--args`` (default ``--help``), sent SIGINT (``--signal``) to its process group at each
+delay from ``--min-delay`` to ``--max-delay`` in steps of ``--step`` (default 0 to 0.15 s by
+0.01), ``--runs`` times each; one row per delay: clean ends (exit 130, one line on stderr,
+no traceback), other exit codes, tracebacks, finished before the signal. E.g.
+
+    python benchmarks/sigint_trials.py --mode startup-grid --min-delay 0 --max-delay 0.15 --runs 10
+
 ``--mode stuck``: a command inside a C call that never returns and holds the GIL (h5py
 reading a root attribute of ``tests/data/index/hang-heap-v2.h5`` directly, HDF5's loop of
 issue 34), signalled ``--min-delay`` to ``--max-delay`` s after it says it is about to call:
@@ -148,9 +157,77 @@ def short_trials(args) -> None:
         print(f"{name}: signal-to-exit median {lat[len(lat) // 2]:.3f} s, worst {lat[-1]:.3f} s")
 
 
+def startup_grid(args) -> None:
+    """``--mode startup-grid``: a signal at fixed delays after the program starts, per delay
+    the ends counted."""
+    sig = signal.Signals[args.signal]
+    code = 143 if sig == signal.SIGTERM else 130
+    if args.entry == "script":
+        cmd = [os.path.join(os.path.dirname(sys.executable), "nfdmatch")]
+    else:
+        cmd = [sys.executable, "-m", "nfdmatch"]
+    cmd += args.args.split()
+    steps = int(round((args.max_delay - args.min_delay) / args.step)) + 1
+    delays = [args.min_delay + i * args.step for i in range(steps)]
+    print(
+        f"`{' '.join(os.path.basename(c) if i == 0 else c for i, c in enumerate(cmd))}`, {sig.name} to its process group, {args.runs} runs per delay"
+    )
+    print(
+        f"{'delay s':>8} {'clean':>6} {'tracebacks':>10} {'in site':>8} {'after site':>10} {'finished':>8}  other ends"
+    )
+    totals = collections.Counter()
+    for delay in delays:
+        c = collections.Counter()
+        for _ in range(args.runs):
+            proc = subprocess.Popen(
+                cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True
+            )
+            time.sleep(delay)
+            finished = proc.poll() is not None
+            if not finished:
+                os.killpg(proc.pid, sig)
+            try:
+                _, err = proc.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                _, err = proc.communicate()
+                err += "HANG"
+            traceback = "Traceback" in err or "Fatal Python error" in err
+            # Python's own start-up (the site module, .pth files) or later (the console
+            # script and what it imports before nfdmatch holds the signals)
+            c["in site" if "init_import_site" in err else "after site"] += traceback
+            if finished:
+                c["finished"] += 1
+            elif proc.returncode == code and len(err.splitlines()) == 1 and not traceback:
+                c["clean"] += 1
+            else:
+                c[
+                    f"exit {proc.returncode}"
+                    + (" + traceback" if traceback else "")
+                    + (" HANG" if "HANG" in err else "")
+                ] += 1
+            c["tracebacks"] += traceback
+        totals.update(c)
+        other = ", ".join(f"{k}: {v}" for k, v in sorted(c.items()) if k.startswith("exit"))
+        print(
+            f"{delay:8.4g} {c['clean']:6d} {c['tracebacks']:10d} {c['in site']:8d} {c['after site']:10d} "
+            f"{c['finished']:8d}  {other or '-'}"
+        )
+    other = ", ".join(f"{k}: {v}" for k, v in sorted(totals.items()) if k.startswith("exit"))
+    print(
+        f"{'all':>8} {totals['clean']:6d} {totals['tracebacks']:10d} {totals['in site']:8d} {totals['after site']:10d} "
+        f"{totals['finished']:8d}  {other or '-'}  (of {len(delays) * args.runs})"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--mode", choices=("build", "startup", "stuck"), default="build")
+    ap.add_argument("--mode", choices=("build", "startup", "startup-grid", "stuck"), default="build")
+    ap.add_argument("--entry", choices=("script", "module"), default="script", help="startup-grid: what to start.")
+    ap.add_argument("--args", default="--help", help="startup-grid: the command's arguments.")
+    ap.add_argument("--step", type=float, default=0.01, help="startup-grid: seconds between delays.")
+    ap.add_argument("--runs", type=int, default=5, help="startup-grid: runs per delay.")
+    ap.add_argument("--signal", choices=("SIGINT", "SIGTERM"), default="SIGINT", help="startup-grid: the signal.")
     ap.add_argument("--trials", type=int, default=30)
     ap.add_argument("--files", type=int, default=10000)
     ap.add_argument("--jobs", type=int, default=2)
@@ -158,12 +235,18 @@ def main() -> None:
     ap.add_argument(
         "--min-delay",
         type=float,
-        default=0.5,
-        help="Earliest signal (s after start; before ~0.4 s the interpreter is still importing).",
+        default=None,
+        help="Earliest signal (s after start; before ~0.4 s the interpreter is still importing) "
+        "[default: 0.5; startup-grid: 0].",
     )
-    ap.add_argument("--max-delay", type=float, default=3.0)
+    ap.add_argument("--max-delay", type=float, default=None, help="[default: 3.0; startup-grid: 0.15]")
     ap.add_argument("--seed", type=int, default=20261201)
     args = ap.parse_args()
+    grid = args.mode == "startup-grid"
+    args.min_delay = (0.0 if grid else 0.5) if args.min_delay is None else args.min_delay
+    args.max_delay = (0.15 if grid else 3.0) if args.max_delay is None else args.max_delay
+    if grid:
+        return startup_grid(args)
     if args.mode != "build":
         return short_trials(args)
     folder = os.path.join(args.workdir, f"{args.files}-csv")

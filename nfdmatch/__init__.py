@@ -26,8 +26,6 @@ runs before any heavy import.
 import sys
 import types
 
-from ._version import __version__
-
 __all__ = [
     "__version__",
     "Curve",
@@ -50,6 +48,7 @@ __all__ = [
 
 #: public names and their modules, each loaded on first use
 _LAZY = {
+    "__version__": "nfdmatch._version",
     "Curve": "nfdmatch.curve",
     "Descriptors": "nfdmatch.descriptors",
     "descriptors": "nfdmatch.descriptors",

@@ -541,6 +541,15 @@ def test_list_file_is_written_whole_as_its_extension_says(meshes, tmp_path):
     assert [n for n in os.listdir(tmp_path) if n.startswith(".")] == []
 
 
+def test_list_file_is_checked_before_any_work_as_an_output_is(meshes, tmp_path):
+    out = tmp_path / "contours"
+    code, stdout, err = run("extract", meshes / "cylinder.stl", "-o", out, "--list", tmp_path / "no" / "c.list")
+    assert code == 2 and stdout == "" and "the folder does not exist" in err
+    assert not out.exists()  # nothing extracted
+    code, stdout, _ = run("extract", meshes / "cylinder.stl", "-o", out, "--sections", 3, "--list", "-")
+    assert code == 0 and stdout.startswith("file,mesh,") and len(stdout.splitlines()) == 4  # '-': stdout, as -o
+
+
 def test_list_file_is_not_written_when_a_mesh_failed(meshes, tmp_path):
     bad = tmp_path / "bad.stl"
     bad.write_bytes(b"solid nothing\nendsolid\n")

@@ -50,13 +50,24 @@ def test_memory_and_file_share_one_search_with_named_options():
 
     from nfdmatch.search.knn import search
 
-    assert MemoryIndex.search is search
-    # an index file's search is the same, with the same named options (a mesh query aside)
-    assert list(inspect.signature(Index.search).parameters)[1:] == list(inspect.signature(search).parameters)[1:]
-    params = inspect.signature(Index.search).parameters
+    # one function: an index file's search and that of curves in memory take the same
+    # named options (a mesh query ranks an index file's objects: tests/test_objects.py)
+    assert MemoryIndex.search is search and Index.search is search
+    params = inspect.signature(search).parameters
     assert not any(p.kind == p.VAR_KEYWORD for p in params.values())
     for name in ("k", "max_distance", "exclude_self", "elastic", "elastic_depth", "arrays", "method", "prune"):
         assert name in params
+
+
+def test_a_mesh_query_of_curves_in_memory_is_refused_by_name(small, tmp_path):
+    import trimesh
+
+    _, memory, _ = small
+    mesh = tmp_path / "ball.stl"
+    trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    for query in (trimesh.creation.icosphere(subdivisions=1), str(mesh), [str(mesh)]):
+        with pytest.raises(ParameterError, match="mesh query ranks the objects of an index file"):
+            memory.search(query, k=1)
 
 
 def test_arrays_are_faiss_shaped_and_padded(small):

@@ -66,6 +66,25 @@ run()
 """
 
 
+# the program's own first imports (before run() installs the handlers): the import of
+# cli/signals, which start.py imports, says "importing" and takes a second; the signal meets
+# the program there, before any handler of its own exists
+SLOW_FIRST_IMPORT = """
+import importlib.abc, sys, time
+
+class Slow(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name == "nfdmatch.cli.signals":
+            print("importing", file=sys.stderr, flush=True)
+            time.sleep(1)
+        return None
+
+sys.meta_path.insert(0, Slow())
+from nfdmatch.cli.start import run
+run()
+"""
+
+
 def _start(script: str, tmp_path, *args):
     path = tmp_path / "program.py"
     path.write_text(textwrap.dedent(script))
@@ -150,3 +169,14 @@ def test_the_program_exits_as_its_command_did(tmp_path):
     circle = os.path.join(REPO, "sample_curves", "library", "circle.tsv")
     done = subprocess.run([*run, "describe", circle, "--format", "csv"], env=env, capture_output=True, text=True)
     assert done.returncode == 0 and done.stdout.count("\n") == 2, done.stderr  # a header and its row
+
+
+@linux
+@pytest.mark.parametrize("group", [True, False], ids=["group", "alone"])
+@pytest.mark.parametrize("sig, code, words", SIGNALS, ids=["SIGINT", "SIGTERM"])
+def test_a_signal_before_the_handlers_exist_is_held_for_them(tmp_path, sig, code, words, group):
+    # held from start.py's first statement: no KeyboardInterrupt traceback (SIGINT), no
+    # silent death (SIGTERM): the handlers, once installed, end the program with one line
+    proc = _start(SLOW_FIRST_IMPORT, tmp_path, "--help")
+    got, out, err = _finish(proc, "importing", sig, group)
+    assert (got, out, err) == (code, "", f"Error: {words}\n")

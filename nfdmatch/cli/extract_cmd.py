@@ -13,24 +13,18 @@ from .options import (
     EXIT_PARTIAL,
     ROW_FORMATS,
     count_failures,
-    check_writable,
     detail,
     error,
     finish,
     format_option,
     note,
     note_inputs,
+    output_option,
     report_errors,
     say,
 )
 from .output import FORMAT_OF_EXTENSION, deliver, write_rows
 from .group import main
-
-
-def _check_list(ctx, param, value):
-    if value == "-":
-        return None
-    return None if value is None else check_writable(value)
 
 
 @main.command()
@@ -44,13 +38,9 @@ def _check_list(ctx, param, value):
     type=click.Path(file_okay=False),
     help="Folder for the contour files (created if needed); once.",
 )
-@click.option(
-    "--list",
-    "list_file",
-    default=None,
-    type=click.Path(dir_okay=False),
-    metavar="FILE",
-    callback=_check_list,
+@output_option(
+    names=("--list",),
+    dest="list_file",
     help="Write the list of contour files to FILE instead of stdout (whole, and only on success; "
     "a Make target): rows as its extension says (.csv, .tsv, .json, .jsonl), else one path per line.",
 )

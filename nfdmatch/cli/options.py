@@ -410,12 +410,14 @@ def output_option(
     "file keeps its bytes, with a fresh mtime) instead of stdout; '-': stdout.",
     multiple=False,
     required=False,
+    names=("--output", "-o"),
+    dest="output",
 ):
-    """The one ``-o/--output`` option of commands that write rows (and pictures)."""
+    """The one ``-o/--output`` option of commands that write rows (and pictures); ``names``
+    and ``dest`` for another output file of that kind (``extract --list``)."""
     return click.option(
-        "--output",
-        "-o",
-        "output",
+        *names,
+        dest,
         type=click.Path(dir_okay=False),
         default=None,
         multiple=multiple,
@@ -478,6 +480,14 @@ def _packed(command, name: str, keys: tuple, pack=dict):
         return command(*args, **{name: pack(**values)}, **kwargs)
 
     return packed
+
+
+def _with_options(command, *options):
+    """``command`` with the click ``options`` (decorators), which ``--help`` lists in the order
+    given (a decorator stack applies the last first)."""
+    for option in reversed(options):
+        command = option(command)
+    return command
 
 
 def _descriptor_options(command, what: str | None = None):
@@ -570,27 +580,56 @@ def _note_index(ctx, param, value):
     return value
 
 
-def rerank_depth_options(command):
-    """--rerank-depth M and --rerank-candidates, of every command that re-ranks by diffusion
-    (``query``, ``report``)."""
+@dataclass(frozen=True)
+class Rerank:
+    """The re-ranking by diffusion over the index's graph that ``--rerank`` asks for
+    (:func:`rerank_options`): the candidates it re-orders besides the query's nearest
+    (``depth``, --rerank-depth) and how they are found (``candidates``, --rerank-candidates)."""
+
+    depth: int
+    candidates: str
+
+
+def rerank_options(command):
+    """--rerank, --rerank-depth M and --rerank-candidates of every command that re-ranks by
+    diffusion (``query``, ``report``), passed on as ``rerank``: a :class:`Rerank`, or None
+    without --rerank (the other two then a usage error)."""
     from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, MIN_RERANK_DEPTH, RERANK_CANDIDATES
 
-    f = click.option(
-        "--rerank-candidates",
-        type=click.Choice(RERANK_CANDIDATES),
-        default=None,
-        show_default=DEFAULT_RERANK_CANDIDATES,
-        help="With --rerank: walk: the query's exact 8 nearest plus the M curves its PageRank over the "
-        "graph reaches most; exact: its exact top M (~4x the time of a batch at 100,000 curves).",
-    )(command)
-    return click.option(
-        "--rerank-depth",
-        type=click.IntRange(min=MIN_RERANK_DEPTH),
-        default=DEFAULT_RERANK_DEPTH,
-        show_default=True,
-        metavar="M",
-        help="With --rerank: the candidates the diffusion re-orders besides the query's nearest.",
-    )(f)
+    def pack(rerank: bool, rerank_depth: int, rerank_candidates: str | None) -> Rerank | None:
+        if rerank:
+            return Rerank(rerank_depth, rerank_candidates or DEFAULT_RERANK_CANDIDATES)
+        if rerank_depth != DEFAULT_RERANK_DEPTH:
+            raise click.UsageError("--rerank-depth needs --rerank")
+        if rerank_candidates is not None:
+            raise click.UsageError("--rerank-candidates needs --rerank")
+        return None
+
+    return _with_options(
+        _packed(command, "rerank", ("rerank", "rerank_depth", "rerank_candidates"), pack=pack),
+        click.option(
+            "--rerank",
+            is_flag=True,
+            help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
+            "--graph`); adds the column score (higher is closer), distance stays the exact distance.",
+        ),
+        click.option(
+            "--rerank-depth",
+            type=click.IntRange(min=MIN_RERANK_DEPTH),
+            default=DEFAULT_RERANK_DEPTH,
+            show_default=True,
+            metavar="M",
+            help="With --rerank: the candidates the diffusion re-orders besides the query's nearest.",
+        ),
+        click.option(
+            "--rerank-candidates",
+            type=click.Choice(RERANK_CANDIDATES),
+            default=None,
+            show_default=DEFAULT_RERANK_CANDIDATES,
+            help="With --rerank: walk: the query's exact 8 nearest plus the M curves its PageRank over the "
+            "graph reaches most; exact: its exact top M (~4x the time of a batch at 100,000 curves).",
+        ),
+    )
 
 
 def index_option(f):
@@ -713,24 +752,20 @@ def match_list_options(top_help: str, glob_help: str):
     ``listing``: a :class:`MatchListing`."""
 
     def decorate(command):
-        f = _packed(command, "listing", tuple(field.name for field in fields(MatchListing)), pack=MatchListing)
-        for option in reversed(
-            (
-                click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help=top_help),
-                click.option(
-                    "--max-distance",
-                    type=click.FloatRange(min=0),
-                    default=None,
-                    callback=check_max_distance,
-                    help="Only list matches at most this far.",
-                ),
-                glob_options("glob", glob_help),
-                click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
-                paths_option,
-                exclude_self_option,
-            )
-        ):
-            f = option(f)
-        return f
+        return _with_options(
+            _packed(command, "listing", tuple(field.name for field in fields(MatchListing)), pack=MatchListing),
+            click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help=top_help),
+            click.option(
+                "--max-distance",
+                type=click.FloatRange(min=0),
+                default=None,
+                callback=check_max_distance,
+                help="Only list matches at most this far.",
+            ),
+            glob_options("glob", glob_help),
+            click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
+            paths_option,
+            exclude_self_option,
+        )
 
     return decorate

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import click
 
-from ..defaults import DEFAULT_ELASTIC_DEPTH, DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH
+from ..defaults import DEFAULT_ELASTIC_DEPTH
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
-    rerank_depth_options,
+    Rerank,
+    rerank_options,
     elastic_options,
     match_list_options,
     index_option,
@@ -39,13 +40,7 @@ from .group import main
     "returns the same rows and distances).",
 )
 @click.option("--stats", "show_stats", is_flag=True, help="Print on stderr how many exact distances the search needed.")
-@click.option(
-    "--rerank",
-    is_flag=True,
-    help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
-    "--graph`); adds the column score (higher is closer), distance stays the exact distance.",
-)
-@rerank_depth_options
+@rerank_options
 @elastic_options
 @matching_options
 @input_format_option
@@ -60,8 +55,6 @@ def query(
     exhaustive,
     show_stats,
     rerank,
-    rerank_depth,
-    rerank_candidates,
     stage,
     matching,
     input_format,
@@ -108,12 +101,10 @@ def query(
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
-    check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, scheduler)
+    check_rerank_options(rerank, listing, exhaustive, matching, scheduler)
     check_stage_options(stage, rerank, scheduler)
-    if rerank_candidates is not None and not rerank:
-        raise click.UsageError("--rerank-candidates needs --rerank")
     with open_index(index_path) as idx:
-        given = dict(rerank=rerank, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
+        given = dict(rerank=rerank is not None, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
         if _query_meshes(idx, queries, listing, matching, input_format, given, (output_format, output)):
             return
         note_old_format(idx, exhaustive, stage)
@@ -122,9 +113,8 @@ def query(
         if ranges is not None and not scheduler:
             raise click.UsageError("--ranges needs --scheduler")
         results, stats = search_queries(
-            idx, inputs.curves, rerank_depth if rerank else None, (scheduler, scheduler_timeout, ranges),
-            prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
-            stage=None if rerank else stage, **listing.search(),
+            idx, inputs.curves, rerank, (scheduler, scheduler_timeout, ranges), prune=not exhaustive,
+            match=matching, stage=stage, **listing.search(),
         )  # fmt: skip
         rows, columns = _curve_rows(idx, inputs.curves, results, listing, row_columns(listing.details, rerank, stage))
     write_rows(rows, columns, output_format, output, group_by="query")
@@ -263,11 +253,11 @@ def _default_matching() -> dict:
     return {"method": DEFAULT_METHOD, "direction": DEFAULT_DIRECTION, "mirror": False}
 
 
-def row_columns(details: bool, rerank: bool, stage=None) -> list[str]:
+def row_columns(details: bool, rerank: Rerank | None, stage=None) -> list[str]:
     """The columns of the match rows; with --rerank the score follows the distance, with a
     stage its columns."""
     columns = match_columns(details, stage)
-    if rerank:
+    if rerank is not None:
         columns.insert(columns.index("distance") + 1, "score")
     return columns
 
@@ -299,24 +289,23 @@ def note_old_format(idx, exhaustive: bool, stage=None) -> None:
 
 
 def search_queries(
-    idx, curves, rerank_depth, cluster_at, *, k, max_distance, prune, exclude_self, match,
-    candidates=DEFAULT_RERANK_CANDIDATES, stage=None,
+    idx, curves, rerank: Rerank | None, cluster_at, *, k, max_distance, prune, exclude_self, match, stage=None
 ):  # fmt: skip
-    """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank_depth``
-    not None), or searched here or on the cluster ``cluster_at`` (--scheduler, its timeout,
-    --ranges)."""
+    """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank`` a
+    :class:`~.options.Rerank`; ``stage`` then left to the graph's distances), or searched
+    here or on the cluster ``cluster_at`` (--scheduler, its timeout, --ranges)."""
     from ..search import search_index
 
     scheduler, scheduler_timeout, ranges = cluster_at
     cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
     progress, finish_bar = progress_bar("searching")
     try:
-        if rerank_depth is not None:
+        if rerank is not None:
             from ..search.rerank import rerank_index
 
             return rerank_index(
-                idx, curves, k=k, depth=rerank_depth, progress=progress, exclude_self=exclude_self,
-                candidates=candidates,
+                idx, curves, k=k, depth=rerank.depth, progress=progress, exclude_self=exclude_self,
+                candidates=rerank.candidates,
             )  # fmt: skip
         extra = {} if cluster is None else {"parts": ranges}
         if stage is not None:
@@ -339,28 +328,26 @@ def search_queries(
             cluster.close()
 
 
-def check_stage_options(stage, rerank: bool, scheduler, idx=None) -> None:
+def check_stage_options(stage, rerank: Rerank | None, scheduler, idx=None) -> None:
     """Usage errors of --elastic (``stage``) with --rerank and --scheduler; given the open
     index ``idx``, --elastic --rerank needs its graph to hold fused distances."""
     if stage is None:
         return
-    if rerank and stage.depth != DEFAULT_ELASTIC_DEPTH:
+    if rerank is not None and stage.depth != DEFAULT_ELASTIC_DEPTH:
         raise click.UsageError("--elastic-depth does not go with --rerank: give --rerank-depth")
     if scheduler:
         raise click.UsageError("--elastic runs on this machine: drop --scheduler")
-    if idx is not None and rerank and idx.graph_distance() != "fused":
+    if idx is not None and rerank is not None and idx.graph_distance() != "fused":
         raise click.UsageError(
             f"--elastic with --rerank needs a graph of fused distances: build it with `nfdmatch index build "
             f"--index {idx.path} --graph 10 --elastic` (--rerank alone diffuses over the exact graph)"
         )
 
 
-def check_rerank_options(rerank, depth, listing, exhaustive, matching: dict, scheduler) -> None:
-    """Usage errors for options that --rerank cannot take (or that need it); ``listing`` a
+def check_rerank_options(rerank: Rerank | None, listing, exhaustive, matching: dict, scheduler) -> None:
+    """Usage errors for options that --rerank cannot take; ``listing`` a
     :class:`~.options.MatchListing`."""
-    if not rerank:
-        if depth != DEFAULT_RERANK_DEPTH:
-            raise click.UsageError("--rerank-depth needs --rerank")
+    if rerank is None:
         return
     for given, name in (
         (exhaustive, "--exhaustive"),
@@ -374,8 +361,8 @@ def check_rerank_options(rerank, depth, listing, exhaustive, matching: dict, sch
                 f"--rerank cannot be combined with {name}: the stored graph holds exact, "
                 f"direction-invariant distances without mirror images"
             )
-    if listing.top > depth:
-        raise click.UsageError(f"--top {listing.top} is more than --rerank-depth {depth}")
+    if listing.top > rerank.depth:
+        raise click.UsageError(f"--top {listing.top} is more than --rerank-depth {rerank.depth}")
     if scheduler:
         raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
 

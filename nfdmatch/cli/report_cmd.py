@@ -9,11 +9,10 @@ import time
 
 import click
 
-from ..defaults import DEFAULT_RERANK_CANDIDATES
 from .group import main
 from .inputs import read_inputs
 from .options import (
-    rerank_depth_options,
+    rerank_options,
     elastic_options,
     index_option,
     input_format_option,
@@ -30,8 +29,7 @@ from .query_cmd import check_rerank_options, check_stage_options, note_old_forma
 @index_option
 @match_list_options("Matches per query (each drawn).", "Only query files in folders whose name matches.")
 @click.option("--exhaustive", is_flag=True, help="Compute every exact distance, no pruning (as `query --exhaustive`).")
-@click.option("--rerank", is_flag=True, help="Order the matches by the diffusion over the index's graph (as `query`).")
-@rerank_depth_options
+@rerank_options
 @elastic_options
 @matching_options
 @input_format_option
@@ -51,8 +49,6 @@ def report(
     listing,
     exhaustive,
     rerank,
-    rerank_depth,
-    rerank_candidates,
     stage,
     matching,
     input_format,
@@ -80,23 +76,22 @@ def report(
     t0 = time.perf_counter()
     if os.path.splitext(output)[1].lower() not in (".html", ".htm"):
         raise click.UsageError(f"-o {output}: the report is an HTML page: name it FILE.html")
-    check_rerank_options(rerank, rerank_depth, listing, exhaustive, matching, None)
+    check_rerank_options(rerank, listing, exhaustive, matching, None)
     check_stage_options(stage, rerank, None)
-    if rerank_candidates is not None and not rerank:
-        raise click.UsageError("--rerank-candidates needs --rerank")
     columns = [c for c in row_columns(listing.details, rerank, stage) if c != "query"] + ["source"]
     with open_index(index_path) as idx:
         note_old_format(idx, exhaustive, stage)
         check_stage_options(stage, rerank, None, idx)
         inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
         results, stats = search_queries(
-            idx, inputs.curves, rerank_depth if rerank else None, (None, None, None),
-            prune=not exhaustive, match=matching, candidates=rerank_candidates or DEFAULT_RERANK_CANDIDATES,
-            stage=None if rerank else stage, **listing.search(),
+            idx, inputs.curves, rerank, (None, None, None), prune=not exhaustive, match=matching, stage=stage,
+            **listing.search(),
         )  # fmt: skip
         spell = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
         pages = _pages(idx, inputs.curves, results, spell, input_format, matching)
-        order = "diffused score (--rerank)" if rerank else ("fused distance (--elastic)" if stage else "distance")
+        order = "fused distance (--elastic)" if stage else "distance"
+        if rerank is not None:
+            order = "diffused score (--rerank)"
         summary = _summary(idx, title or f"nfdmatch report of {index_path or idx.path}", pages, order, stats)
     if inputs.errors:
         inputs.finish()  # exits: a page of part of a batch is not written

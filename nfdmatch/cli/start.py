@@ -24,17 +24,33 @@ The command's exit status is the watchdog's: its exit code, or, when a signal ki
 (a crash), the same signal. ``NFDMATCH_NO_WATCHDOG=1`` runs the command in the one process
 (no fork; a command inside a long C call then waits for the call).
 
+Its first statement holds SIGINT/SIGTERM (blocked; those ignored when the program started
+stay ignored) until :func:`run` has installed their handlers: from there on a signal at any
+moment ends the program as above, never as a ``KeyboardInterrupt`` traceback. Importing
+this module is starting the program: only an entry point imports it (the console script,
+``python -m nfdmatch``). What comes before is Python's own start-up, where Python's
+behaviour stays (docs/performance.md, "Signals at start-up": the window, measured).
+
 Imports here: the standard library's cheapest modules only (it runs before numpy).
 """
 
 from __future__ import annotations
 
-import os
-import signal
-import time
+# first: ``_signal`` is the interpreter's own module, loaded before any Python code runs
+# (``signal`` would import its enums first)
+import _signal
 
-from . import signals
-from .signals import WAITED, exit_code, heeded, install, message, say
+#: the signals held from the first statement until :func:`run` has set their handlers
+HELD = [s for s in (_signal.SIGINT, _signal.SIGTERM) if _signal.getsignal(s) != _signal.SIG_IGN]
+if hasattr(_signal, "pthread_sigmask"):
+    _signal.pthread_sigmask(_signal.SIG_BLOCK, HELD)
+
+import os  # noqa: E402
+import signal  # noqa: E402
+import time  # noqa: E402
+
+from . import signals  # noqa: E402
+from .signals import WAITED, exit_code, heeded, install, message, say  # noqa: E402
 
 #: seconds a command has after SIGINT/SIGTERM before the watchdog kills it (the goal: gone
 #: within 1 s; a command's own clean-up takes milliseconds)
@@ -93,7 +109,8 @@ def run() -> None:
     """The console script ``nfdmatch`` and ``python -m nfdmatch``."""
     watchdog = hasattr(os, "fork") and hasattr(signal, "sigtimedwait") and not os.environ.get("NFDMATCH_NO_WATCHDOG")
     if watchdog:
-        # blocked before the fork: in the watchdog for good, in the command until its handlers are set
+        # blocked before the fork (SIGINT/SIGTERM since the first statement, HELD): in the
+        # watchdog for good, in the command until its handlers are set
         signal.pthread_sigmask(signal.SIG_BLOCK, heeded(WAITED))
         child_handler = signal.signal(signal.SIGCHLD, signal.SIG_DFL)  # ignored: no status to wait for
         pid = os.fork()
@@ -102,8 +119,8 @@ def run() -> None:
         signal.signal(signal.SIGCHLD, child_handler)
     signals.program = True
     install()
-    if watchdog:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, heeded(WAITED))
+    if hasattr(signal, "pthread_sigmask"):  # a signal held until now comes, to its handler
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, heeded(WAITED) if watchdog else HELD)
     from . import main
 
     try:

@@ -9,16 +9,13 @@ from typing import Any, TYPE_CHECKING
 import h5py
 import numpy as np
 
-from ..mesh.objects import is_mesh_file
 from ..search.objects import ObjectLoops, search_objects
 from .objects_group import read_objects, rule_of
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
 from ..matching.statistics import curve_statistics
 from ..search.bounds import head_harmonics
 from ..records import RowIds
-from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
-from ..search.knn import DEFAULT_K
-from ..search.knn import search as search_index_for
+from ..search.knn import SearchFace
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
 from .changes import read_changes
@@ -98,7 +95,7 @@ def _reopen(path: str, stamp: tuple) -> Index:
 _UNREAD = object()
 
 
-class Index:
+class Index(SearchFace):
     """An open index (read side). Use :func:`open_index`; a context manager.
 
     Attributes
@@ -166,11 +163,6 @@ class Index:
             f"Index({self.path!r}, curves={self.n_curves}, files={self.n_files}, samples={self.samples}, "
             f"harmonics={self.harmonics}, scale_mode={self.scale_mode!r})"
         )
-
-    @property
-    def scale(self) -> str:
-        """Deprecated alias of :attr:`scale_mode`."""
-        return self.scale_mode
 
     def _read(self, fn, where: str = "the index"):
         """``fn()``, with any failure of the read as an IndexFormatError about ``where``."""
@@ -484,43 +476,6 @@ class Index:
         out["id"] = np.asarray(self._id_blocks(a, b), dtype=object)
         return out
 
-    def __len__(self) -> int:
-        """The curves (rows) of the index."""
-        return self.n_curves
-
-    def search(
-        self,
-        queries: Any,
-        k: int | None = None,
-        *,
-        max_distance: float | None = None,
-        exclude_self: bool = False,
-        method: str = DEFAULT_METHOD,
-        direction: str = DEFAULT_DIRECTION,
-        mirror: bool = False,
-        prune: bool = True,
-        threads: int | None = None,
-        pose: bool = True,
-        elastic: bool = False,
-        elastic_depth: int | None = None,
-        arrays: bool = False,
-    ) -> Any:
-        """:func:`nfdmatch.search.knn.search` of this index: the one search of an index file
-        and of curves in memory (:class:`nfdmatch.MemoryIndex`), every option named; its
-        docstring says what each does. A mesh query (a mesh file path, a
-        ``trimesh.Trimesh``, or a list of them) ranks the index's objects instead
-        (:meth:`search_objects`: ``k``, ``max_distance``, ``exclude_self``, ``prune``)."""
-        if _is_mesh_query(queries):
-            return self.search_objects(
-                queries, k=DEFAULT_K if k is None and max_distance is None else k, max_distance=max_distance,
-                exclude_self=exclude_self, prune=prune,
-            )  # fmt: skip
-        return search_index_for(
-            self, queries, k, max_distance=max_distance, exclude_self=exclude_self, method=method,
-            direction=direction, mirror=mirror, prune=prune, threads=threads, pose=pose, elastic=elastic,
-            elastic_depth=elastic_depth, arrays=arrays,
-        )  # fmt: skip
-
     def objects(self) -> ObjectsGroup | None:
         """The index's objects (:class:`~nfdmatch.index.objects_group.ObjectsGroup`: the meshes
         it holds, their contours' axes, levels and measures, their profiles), read and
@@ -659,15 +614,3 @@ class Index:
             "updated": self.updated,
             "size_bytes": size,
         }
-
-
-def _is_mesh_query(queries) -> bool:
-    """Whether ``queries`` are meshes (a ``trimesh.Trimesh``, a mesh file path, or a list of
-    them) rather than curves."""
-    items = queries if isinstance(queries, (list, tuple)) else [queries]
-    if not items:
-        return False
-    first = items[0]
-    if type(first).__module__.startswith("trimesh"):
-        return True
-    return isinstance(first, (str, os.PathLike)) and "#" not in str(first) and is_mesh_file(str(first))

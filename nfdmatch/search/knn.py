@@ -21,7 +21,10 @@ from .selfmatch import drop_self, is_self, self_rule
 if TYPE_CHECKING:
     from ..descriptors import Descriptors
 
-__all__ = ["as_queries", "self_rule", "is_self", "drop_self", "search", "as_arrays", "stored_descriptors", "DEFAULT_K"]
+__all__ = [
+    "as_queries", "is_mesh_query", "self_rule", "is_self", "drop_self", "search", "SearchFace", "as_arrays",
+    "stored_descriptors", "DEFAULT_K",
+]  # fmt: skip
 
 
 def as_queries(queries: Any) -> list[Curve]:
@@ -44,6 +47,20 @@ def as_queries(queries: Any) -> list[Curve]:
     return out
 
 
+def is_mesh_query(queries: Any) -> bool:
+    """Whether ``queries`` are meshes (a ``trimesh.Trimesh``, a mesh file path, or a list of
+    them) rather than curves."""
+    from ..mesh.objects import is_mesh_file
+
+    items = queries if isinstance(queries, (list, tuple)) else [queries]
+    if not items:
+        return False
+    first = items[0]
+    if type(first).__module__.startswith("trimesh"):
+        return True
+    return isinstance(first, (str, os.PathLike)) and "#" not in str(first) and is_mesh_file(str(first))
+
+
 def search(
     index: Any,
     queries: Any,
@@ -62,7 +79,11 @@ def search(
     arrays: bool = False,
 ) -> list[list[RankedMatch]] | tuple[np.ndarray, np.ndarray]:
     """Each query's k nearest curves of ``index`` (an open :class:`~nfdmatch.index.Index` or
-    a :class:`~nfdmatch.MemoryIndex`: their ``search`` is this function).
+    a :class:`~nfdmatch.MemoryIndex`: their ``search`` is this function, :class:`SearchFace`).
+    A mesh query (:func:`is_mesh_query`: a mesh file path, a ``trimesh.Trimesh``, or a list
+    of them) ranks the objects of an index file instead (``index.search_objects``: ``k``,
+    ``max_distance``, ``exclude_self``, ``prune``; one list of
+    :class:`~nfdmatch.search.objects.ObjectMatch` per mesh).
 
     queries : a :class:`~nfdmatch.Curve`, an (n, 3) array, a path, or a sequence of them
         (:func:`as_queries`).
@@ -95,6 +116,12 @@ def search(
     check_limits(k, max_distance, top_name="k")
     if elastic_depth is not None and not elastic:
         raise ParameterError("elastic_depth needs elastic=True")
+    if is_mesh_query(queries):
+        if not hasattr(index, "search_objects"):
+            raise ParameterError(
+                "a mesh query ranks the objects of an index file (built from meshes): curves in memory have none"
+            )
+        return index.search_objects(queries, k=k, max_distance=max_distance, exclude_self=exclude_self, prune=prune)
     stage = None
     if elastic:
         from ..defaults import DEFAULT_ELASTIC_DEPTH
@@ -116,6 +143,28 @@ def search(
 
 #: matches per query when a search is given neither k nor max_distance
 DEFAULT_K = 10
+
+
+class SearchFace:
+    """What an index file (:class:`~nfdmatch.index.Index`) and curves in memory
+    (:class:`~nfdmatch.MemoryIndex`) share: :meth:`search` (:func:`search`, the one search of
+    both), ``len()``, and ``scale``, the deprecated alias of ``scale_mode``. A subclass sets
+    ``n_curves`` and ``scale_mode``."""
+
+    n_curves: int
+    scale_mode: str
+
+    #: :func:`search` of this index
+    search = search
+
+    def __len__(self) -> int:
+        """The curves (rows) of the index."""
+        return self.n_curves
+
+    @property
+    def scale(self) -> str:
+        """Deprecated alias of :attr:`scale_mode`."""
+        return self.scale_mode
 
 
 def as_arrays(results: Sequence[Sequence[RankedMatch]], k: int | None) -> tuple[np.ndarray, np.ndarray]:

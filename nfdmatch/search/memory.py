@@ -9,7 +9,7 @@ import numpy as np
 
 from ..curve import Curve
 from ..records import RowIds
-from .knn import search as _search
+from .knn import SearchFace
 from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE
 from .table import SearchTable
 
@@ -36,7 +36,7 @@ def _as_curves(curves: Any, ids: Sequence[str] | None) -> list[Curve]:
     return out
 
 
-class MemoryIndex:
+class MemoryIndex(SearchFace):
     """Curves held in memory with the same interface as :class:`nfdmatch.index.Index`:
     ``search`` (the same function, every option named; ``arrays=True`` for faiss's
     ``(distances, rows)``), ``ids[row]``, and the reading interface (``samples``,
@@ -47,9 +47,6 @@ class MemoryIndex:
     curves : :class:`~nfdmatch.Curve` s or (n, 3) / (n, 2) arrays; row i is curve i.
     ids : names of the rows (default: each curve's id, ``<array i>`` for an array).
     """
-
-    #: :func:`nfdmatch.search.knn.search`, as :meth:`nfdmatch.index.Index.search`
-    search = _search
 
     def __init__(
         self,
@@ -83,14 +80,6 @@ class MemoryIndex:
         self.n_curves = len(curves)
         #: None: every row in one cell; else cells of about this many rows (as an index file)
         self.rows_per_cell = rows_per_cell
-
-    @property
-    def scale(self) -> str:
-        """Deprecated alias of :attr:`scale_mode`."""
-        return self.scale_mode
-
-    def __len__(self) -> int:
-        return self.n_curves
 
     def __repr__(self) -> str:
         return (
