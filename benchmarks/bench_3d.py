@@ -428,7 +428,7 @@ def main():
     cols = collections(args.data)
     if args.large:
         points, labels = families(np.random.default_rng(7), 70, 20, 2)
-        cols["bending 2-D, 70 x 20"] = ([Curve(p, id=f"large-{i:04d}") for i, p in enumerate(points)], labels, 40)
+        cols["bending 2-D 70x20"] = ([Curve(p, id=f"large-{i:04d}") for i, p in enumerate(points)], labels, 40)
     if args.only:
         cols = {name: c for name, c in cols.items() if name in args.only.split(",")}
     if args.constants:

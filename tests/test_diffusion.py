@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nfdmatch.matching.kernels import NUMPY, choose, graph_push
-from nfdmatch.search.diffusion import TOLERANCE, GraphWalk
+from nfdmatch.search.diffusion import REVERSE_TOLERANCE, TOLERANCE, GraphWalk
 
 COMPILED = ("aot", "numba")
 
@@ -105,6 +105,42 @@ def test_the_compiled_push_gives_the_numpy_push_bit_for_bit(seed, N, K, k, alpha
         assert_same_doubles(got, want)
         again, _ = push(nb, d, sources[::-1], compiled(kind), min(k, K), alpha, tolerance, walk=walk)  # rows known
         assert_same_doubles(again, push(nb, d, sources[::-1], NUMPY, min(k, K), alpha, tolerance)[0])
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    N=st.integers(2, 150),
+    K=st.integers(1, 10),
+    alpha=st.sampled_from([0.5, 0.8, 0.95]),
+    tolerance=st.sampled_from([1e-2, 1e-4, REVERSE_TOLERANCE]),
+    padded=st.sampled_from([0.0, 0.2]),
+    hub=st.booleans(),
+)
+def test_the_walk_backwards_estimates_the_pagerank_columns_from_below(seed, N, K, alpha, tolerance, padded, hub):
+    """reverse_pagerank against the dense (1 - alpha) (I - alpha P)^-1 of the same walk: for
+    every row u, c_u is below sum_v A[u, v] r_v (the starting residuals r: one source on
+    itself, another spread over several rows as a query laid over the graph starts) by less
+    than the tolerance."""
+    rng = np.random.default_rng(seed)
+    nb, d = random_graph(rng, N, K, padded=padded, hub=hub)
+    walk = GraphWalk(reader_of(nb, d), N, min(K, 8), alpha)
+    targets, prob = walk.transitions(np.arange(N))
+    P = np.zeros((N, N))
+    np.add.at(P, (np.repeat(np.arange(N), targets.shape[1]), targets.ravel()), prob.ravel())
+    A = (1 - alpha) * np.linalg.inv(np.eye(N) - alpha * P)
+    spread = rng.choice(N, size=min(N, 3), replace=False)
+    start = np.zeros((2, N))
+    start[0, int(rng.integers(N))] = 1.0
+    start[1, spread] = rng.random(len(spread)) * alpha
+    owner = np.concatenate([[0], np.ones(len(spread), np.int64)])
+    node = np.concatenate([np.flatnonzero(start[0]), spread])
+    src, reached, mass = walk.reverse_pagerank(owner, node, np.concatenate([[1.0], start[1, spread]]), tolerance)
+    for s in (0, 1):
+        got = np.zeros(N)
+        got[reached[src == s]] = mass[src == s]
+        want = A @ start[s]
+        assert np.all(got <= want + 1e-12) and np.all(want - got < tolerance + 1e-12)
 
 
 @pytest.mark.parametrize("kind", COMPILED)

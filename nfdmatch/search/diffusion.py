@@ -53,10 +53,13 @@ if TYPE_CHECKING:
     #: ``rows -> (neighbour (m, K) int64, distance (m, K) float64)``
     GraphReader = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
-__all__ = ["GraphWalk", "TOLERANCE", "SCALE_FLOOR", "row_scales", "sorted_unique", "sum_by_key"]
+__all__ = ["GraphWalk", "TOLERANCE", "REVERSE_TOLERANCE", "SCALE_FLOOR", "row_scales", "sorted_unique", "sum_by_key"]
 
 #: residual below which a node is not pushed (per source, whose total mass is 1)
 TOLERANCE = 1e-5
+#: the same for the walk backwards (:meth:`GraphWalk.reverse_pagerank`), which only ranks
+#: the rows that reach a source most
+REVERSE_TOLERANCE = 1e-4
 #: the smallest scale a node gets. The descriptors are stored as complex64 (~1e-7 of their
 #: unit norm), so one distance measured by two paths (the stored graph, the query's row, the
 #: matrix's float64) differs by up to ~5e-8, and a curve and its exact copy lie 1e-11 to 4e-8
@@ -118,6 +121,7 @@ class GraphWalk:
         self._walk_known = np.zeros(size, dtype=bool)
         self._overlaid = False
         self._slots = []  # the compiled push's work arrays, one per thread: (N + 1,) int64
+        self._reverse: tuple[np.ndarray, np.ndarray] | None = None
         self.rows_read = 0
 
     # -- rows
@@ -197,6 +201,71 @@ class GraphWalk:
         finally:
             self._nb[rows], self._d[rows], self._scale[rows], self._known[rows] = saved
             self._overlaid = False
+
+    # -- the walk backwards
+    def reverse_lists(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """``(start, source)``: the rows whose lists hold row v (its in-edges) are
+        ``source[start[v]:start[v + 1]]``, ascending; from every stored row's list, read once
+        (all N rows: O(N k) memory and time, once per walk)."""
+        if self._reverse is None:
+            if self._overlaid:
+                raise RuntimeError("the reverse lists are of the stored graph: not while a query is laid over it")
+            every = np.arange(self.N, dtype=np.int64)
+            self.ensure(every)
+            target = self._nb[: self.N].reshape(-1)
+            source = np.repeat(every, self.k)
+            real = target >= 0
+            source, target = source[real], target[real]
+            order = np.argsort(target, kind="stable")
+            start = np.concatenate([[0], np.cumsum(np.bincount(target, minlength=self.N))]).astype(np.int64)
+            self._reverse = (start, source[order])
+        return self._reverse
+
+    def reverse_pagerank(
+        self, owner: np.ndarray, node: np.ndarray, residual: np.ndarray, tolerance: float = REVERSE_TOLERANCE
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+        """How much each row's walk reaches each source: an estimate of the source's column of
+        the PageRank matrix, ``c_u ~ pi_u(source)``, by reverse push (Andersen, Borgs, Chayes,
+        Hopcroft, Mirrokni & Teng 2007) over the stored graph's in-edges
+        (:meth:`reverse_lists`). A push of v keeps ``(1 - alpha) r_v`` and gives each row u
+        that lists v ``alpha P_uv r_v`` (the self loop summed at once, as in :meth:`_push`);
+        only residuals of at least ``tolerance`` are pushed, and every estimate is below its
+        value by less than ``tolerance``.
+
+        owner, node, residual : (m,) the starting residuals: source ``owner[i]`` (0, 1, ...)
+            puts ``residual[i]`` on ``node[i]`` (a stored row: 1 on itself; a query laid over
+            the graph: ``alpha P_uq`` on each row u whose list it enters).
+
+        Returns ``(owner, node, mass)``, sorted by (owner, node): the rows reached."""
+        start, source = self.reverse_lists()
+        size, alpha = self.N + 1, self.alpha
+        r_key, r_val = sum_by_key(np.asarray(owner, np.int64) * size + node, np.asarray(residual, np.float64))
+        kept_keys, kept_vals = [], []
+        while True:
+            active = r_val >= tolerance
+            if not active.any():
+                break
+            a_key, a_val = r_key[active], r_val[active]
+            src, v = np.divmod(a_key, size)
+            targets, prob = self.transitions(v)
+            stay = a_val / (1.0 - alpha * prob[:, 0])
+            kept_keys.append(a_key)
+            kept_vals.append((1 - alpha) * stay)
+            counts = start[v + 1] - start[v]
+            edge = np.repeat(np.arange(len(v)), counts)
+            at = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(start[v], counts)
+            u = source[at]
+            u_targets, u_prob = self.transitions(u)
+            p_uv = (u_prob[:, 1:] * (u_targets[:, 1:] == v[edge][:, None])).sum(axis=1)
+            r_key, r_val = sum_by_key(
+                np.concatenate([r_key[~active], src[edge] * size + u]),
+                np.concatenate([r_val[~active], alpha * stay[edge] * p_uv]),
+            )
+        if not kept_keys:
+            return _NO_NODES, _NO_NODES, _NO_VALUES
+        key, val = sum_by_key(np.concatenate(kept_keys), np.concatenate(kept_vals))
+        src, node = np.divmod(key, size)
+        return src, node, val
 
     # -- the push
     def pagerank(

@@ -83,8 +83,9 @@ MATRIX_TOLERANCE = 1e-3
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
 #: where a query's candidates come from (``rerank_index(candidates=...)``): ``"walk"`` (the
-#: default) its exact k nearest plus the M stored rows of largest personalised-PageRank mass
-#: from its first step, each given its exact distance; ``"exact"`` its exact top M
+#: default) its exact k nearest, the M stored rows of largest personalised-PageRank mass from
+#: its first step and the M / 2 whose own PageRank reaches it most, each given its exact
+#: distance; ``"exact"`` its exact top M
 CANDIDATES = RERANK_CANDIDATES
 
 
@@ -170,9 +171,10 @@ def rerank_index(
         query in the graph (its stored row and PageRank) and is left out of the results;
         the scores are then ``matrix --rerank``'s within :data:`MATRIX_TOLERANCE`.
     progress, threads : as in :func:`~nfdmatch.search.search_index`.
-    candidates : ``"walk"`` (the default: the query's exact ``max(top, 8)`` nearest plus the
-        ``depth`` stored rows of largest mass in its first-step PageRank, each with its exact
-        distance; no exact top-M search) or ``"exact"`` (the query's exact top ``depth``: ~4x
+    candidates : ``"walk"`` (the default: the query's exact ``max(top, 8)`` nearest, the
+        ``depth`` stored rows of largest mass in its first-step PageRank and the ``depth // 2``
+        whose PageRank reaches it most (:meth:`GraphWalk.reverse_pagerank`), each with its
+        exact distance; no exact top-M search) or ``"exact"`` (the query's exact top ``depth``: ~4x
         the time of a batch at 100,000 curves, docs/rerank.md). On a graph of fused distances
         (``index build --graph K --elastic``) always ``"exact"``, each candidate given its fused
         distance (the elastic stage's), the matches their ``elastic`` and ``fused``.
@@ -302,29 +304,36 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
     union = _union(near)
     vectors = _Vectors(union, *walk.pagerank(union))
     more = []  # per query, the rows its walk adds (their exact distances computed below)
-    for tk, merged in zip(near, _self_flags(index, queries, near, exclude_self, is_self)):
+    backwards = []  # per query with candidates: (query, where its walk backwards starts, the node left out)
+    for qi, (tk, merged) in enumerate(zip(near, _self_flags(index, queries, near, exclude_self, is_self))):
         rows, qd = tk.rows, tk.dist
         extra = BestRows(None, None)
         more.append(extra)
+        extra.rows = np.zeros(0, np.int64)
         if not len(rows):
             continue
         if merged.any():
             self_row = int(rows[np.flatnonzero(merged)[0]])
             _, node, mass = vectors.entries(np.array([self_row]))
-            exclude = self_row
+            exclude, start = self_row, (np.array([self_row]), np.ones(1))
         else:
-            with _joined(walk, rows, qd):
+            with _joined(walk, rows, qd) as into:
                 q_targets, q_prob = walk.transitions(np.array([N]))
+                in_targets, in_prob = walk.transitions(into)
             nbrs, p_nb = q_targets[0, 1:], q_prob[0, 1:]
             real = nbrs != N
             nbrs, p_nb = nbrs[real], p_nb[real]
             v_owner, v_node, v_value = vectors.entries(nbrs)
             node, mass = sum_by_key(v_node, alpha * p_nb[v_owner] * v_value)
-            exclude = N
+            # the rows whose lists the query entered reach it first: where its column starts
+            exclude, start = N, (into, alpha * (in_prob * (in_targets == N)).sum(axis=1))
         other = node != exclude
         node, mass = node[other], mass[other]
         picked = node[np.lexsort((node, -mass))[:depth]]
         extra.rows = sorted_unique(picked[~np.isin(picked, rows)])
+        backwards.append((qi, start, exclude))
+    _add_reaching(walk, near, more, backwards, depth // 2)
+    for extra in more:
         extra.dist = np.zeros(len(extra.rows))
         extra.extra = {
             key: np.full(len(extra.rows), -1 if key == "position" else 0, dtype=v.dtype)
@@ -343,6 +352,27 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
         tk.extra = {key: np.concatenate([v, extra.extra[key]]) for key, v in tk.extra.items()}
     rank_rows(index, near)
     return near, stats, vectors
+
+
+def _add_reaching(walk: GraphWalk, near, more, backwards, count: int) -> None:
+    """Add to each query's walk rows (``more[i].rows``) the ``count`` rows whose own walks
+    reach it most (its column of the PageRank matrix, by :meth:`GraphWalk.reverse_pagerank`
+    for the whole batch), other than its nearest (``near[i].rows``), the rows already added
+    and the node left out; ties by row. Such a row's PageRank overlaps the query's though the
+    query's walk hardly reaches it (docs/rerank.md, "Depth"). ``backwards``: ``(query, (node,
+    residual), left out)`` per query with candidates."""
+    if not backwards or count < 1:
+        return
+    owner = np.concatenate([np.full(len(start[0]), qi, np.int64) for qi, start, _ in backwards])
+    node = np.concatenate([start[0] for _, start, _ in backwards])
+    residual = np.concatenate([start[1] for _, start, _ in backwards])
+    src, reached, mass = walk.reverse_pagerank(owner, node, residual)
+    bounds = np.searchsorted(src, np.arange(len(near) + 1))
+    for qi, _, exclude in backwards:
+        rows, their = reached[bounds[qi] : bounds[qi + 1]], mass[bounds[qi] : bounds[qi + 1]]
+        new = (rows != exclude) & ~np.isin(rows, near[qi].rows) & ~np.isin(rows, more[qi].rows)
+        rows, their = rows[new], their[new]
+        more[qi].rows = sorted_unique(np.concatenate([more[qi].rows, rows[np.lexsort((rows, -their))[:count]]]))
 
 
 class _Read:
