@@ -1,7 +1,8 @@
 """Objects by their curves: every mesh of a labelled folder a query against the others.
 
     python benchmarks/bench_objects.py [--data ../shared/data/psb_dev/meshes] [--jobs 2]
-                                       [--no-baselines] [--no-terms] [--scale 100000]
+                                       [--no-table] [--no-baselines] [--no-terms] [--scale 100000]
+                                       [--file-scale 100000 [--keep DIR]]
 
 For the folder's meshes (``labels.csv``: ``file,class``), as a user runs it:
 
@@ -29,6 +30,17 @@ a factor in [0.7, 1.3], their invariant features given (as an index stores them)
 meshes of the folder are the queries. It reports seconds per query after the first (which
 makes the per-object tables once) and how many objects needed the loops' bounds and the
 exact distance.
+
+``--file-scale M`` (0: skipped) does the same through an index file, as a user's query
+reads it: ``index build`` (:func:`nfdmatch.index.build_index`, the real writer: ``/curves``,
+``/files``, ``/objects``, ``/search``) of M small stand-in files ``generated/gNNN/oNNNNNN.ply``
+whose results are given by a ``runner`` (build_index's hook for computing files elsewhere):
+the folder's objects as the build's workers cut them, copied with the same perturbations
+(cutting 100,000 real meshes would take hours). Then ``nfdmatch query MESH --index FILE
+--top 10`` of a few folder meshes, each in a new process, cold (the file evicted from the
+page cache first, ``posix_fadvise``) and warm, and in one process the open of the index
+apart from each query (``Index.search_objects``, the median). ``--keep DIR`` builds the index
+there (kept, and reused when it is there) instead of a temporary folder.
 
 The Princeton segmentation meshes are research data, not shipped: the benchmark says so
 and stops when the folder is absent.
@@ -209,23 +221,118 @@ def scale(folder: str, names: list, objects_wanted: int, jobs: int) -> None:
         module._exact, module.object_lower_bounds = exact, bounds
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", default=DEFAULT_DATA, help="a folder of meshes with labels.csv")
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--no-baselines", action="store_true")
-    ap.add_argument("--no-terms", action="store_true")
-    ap.add_argument("--scale", type=int, default=0, metavar="M", help="generated objects of the pruned search")
-    args = ap.parse_args()
-    if not os.path.isfile(os.path.join(args.data, "labels.csv")):
-        print(
-            f"skipped: no labelled meshes at {args.data} (the Princeton segmentation meshes are research "
-            "data, not shipped with nfdmatch; pass --data)",
-            file=sys.stderr,
-        )
-        return 0
-    classes = labels_of(args.data)
-    names = sorted(classes)
+def _base_results(folder: str, names: list, jobs: int) -> list:
+    """Each mesh's result as a build's worker computes it (cut, described, its object record)."""
+    from nfdmatch.index.pool import run_tasks
+    from nfdmatch.mesh.objects import ObjectRule
+
+    rule = ObjectRule().as_tuple()
+    tasks = [(os.path.join(folder, n), None, 128, 16, "rms", None, rule) for n in names]
+    got = dict(run_tasks(tasks, jobs, None))
+    return [got[i] for i in range(len(names))]
+
+
+def generated_index(folder: str, names: list, objects_wanted: int, where: str, jobs: int) -> str:
+    """An index file of ``objects_wanted`` generated objects in ``where`` (module doc)."""
+    import hashlib
+
+    from nfdmatch.index import build_index
+
+    index = os.path.join(where, "objects.h5")
+    if os.path.exists(index):
+        return index
+    t0 = time.perf_counter()
+    base = _base_results(folder, names, jobs)
+    stand_ins = os.path.join(where, "generated")
+    for i in range(objects_wanted):
+        sub = os.path.join(stand_ins, f"g{i // 1000:03d}")
+        if i % 1000 == 0:
+            os.makedirs(sub, exist_ok=True)
+        with open(os.path.join(sub, f"o{i:06d}.ply"), "w") as f:
+            f.write(f"nfdmatch benchmark: generated object {i}, a copy of {names[i % len(names)]}\n")
+    t1 = time.perf_counter()
+
+    def runner(tasks, _jobs, _lock_fd):
+        for number, task in enumerate(tasks):
+            path = task[0]
+            i = int(os.path.basename(path)[1:7])
+            b, rng = base[i % len(base)], np.random.default_rng(i)
+            with open(path, "rb") as f:
+                sha = hashlib.sha256(f.read()).hexdigest()
+            st = os.stat(path)
+            record = dict(b["object"])
+            n = len(record["measures"])
+            record["measures"] = record["measures"] + np.c_[rng.normal(scale=0.2, size=n), np.zeros((n, 2))]
+            record["profile"] = record["profile"] * rng.uniform(0.7, 1.3, size=record["profile"].shape)
+            yield number, {"path": path, "size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": sha,
+                           "status": "ok", "error": "", "ids": list(b["ids"]), "arrays": b["arrays"],
+                           "object": record}  # fmt: skip
+
+    report = build_index([stand_ins], index, jobs=jobs, runner=runner)
+    t2 = time.perf_counter()
+    print(f"\n## an index file of {report.added:,} generated objects, {report.curves:,} contours\n")
+    print(f"built in {t2 - t0:.0f} s ({t1 - t0:.0f} s the folder's cuts and the stand-in files, {t2 - t1:.0f} s "
+          f"index build); {os.path.getsize(index) / 1e9:.2f} GB: {index}")  # fmt: skip
+    return index
+
+
+def _evicted(path: str) -> None:
+    """The file dropped from the page cache (its next read comes from the disk)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
+
+
+def file_scale(folder: str, names: list, objects_wanted: int, jobs: int, keep: str | None) -> None:
+    """Mesh queries against an index file of ``objects_wanted`` generated objects (module doc)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        where = keep or tmp
+        os.makedirs(where, exist_ok=True)
+        index = generated_index(folder, names, objects_wanted, where, jobs)
+        queries = [os.path.join(folder, names[q]) for q in (0, 57, 101, 150, 189)]
+        print("\n| query (a new process each: `nfdmatch query MESH --index FILE --top 10`) | cold s | warm s |")
+        print("|---|---|---|")
+        cold, warm = [], []
+        for q in queries:
+            run = NFDMATCH + ["-q", "query", q, "--index", index, "--top", "10", "--format", "csv"]
+            times = []
+            for evict in (True, False):
+                if evict:
+                    _evicted(index)
+                t = time.perf_counter()
+                subprocess.run(run, check=True, capture_output=True)
+                times.append(time.perf_counter() - t)
+            cold.append(times[0])
+            warm.append(times[1])
+            print(f"| {os.path.basename(q)} | {times[0]:.2f} | {times[1]:.2f} |", flush=True)
+        print(f"| median | {np.median(cold):.2f} | {np.median(warm):.2f} |")
+        _in_process(index, queries, jobs)
+
+
+def _in_process(index: str, queries: list, jobs: int) -> None:
+    """The open of the index (cold) apart from each query in the same process (the median)."""
+    from nfdmatch.index import open_index
+
+    _evicted(index)
+    t = time.perf_counter()
+    idx = open_index(index)
+    idx.object_loops()  # what every mesh query reads first: /objects, the objects' rows
+    opened = time.perf_counter() - t
+    seconds = []
+    with idx:
+        for q in queries:
+            t = time.perf_counter()
+            idx.search_objects([q], k=10, processes=jobs)
+            seconds.append(time.perf_counter() - t)
+    print(f"\nin one process: open and /objects read (cold) {opened:.2f} s; then a query (its mesh cut "
+          f"included) median {np.median(seconds):.2f} s (min {min(seconds):.2f}, max {max(seconds):.2f})")  # fmt: skip
+
+
+def retrieval(args, names: list, classes: dict) -> None:
+    """The retrieval table: the tool, the baselines, each term (module doc)."""
     print(f"# objects by their curves: {len(names)} meshes of {len(set(classes.values()))} classes, {args.data}")
     print(f"every mesh a query against the other {len(names) - 1}; bull's-eye: same class among the 20 nearest\n")
     print("| method | top-1 | bull's-eye | seconds |")
@@ -261,8 +368,34 @@ def main() -> int:
                 print(
                     f"\nmean share of the object distance: curves (shape + size) {share:.3f}, profile {1 - share:.3f}"
                 )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=DEFAULT_DATA, help="a folder of meshes with labels.csv")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--no-table", action="store_true", help="skip the retrieval table (tool, baselines, terms)")
+    ap.add_argument("--no-baselines", action="store_true")
+    ap.add_argument("--no-terms", action="store_true")
+    ap.add_argument("--scale", type=int, default=0, metavar="M", help="generated objects of the pruned search")
+    ap.add_argument("--file-scale", type=int, default=0, metavar="M", help="generated objects of an index file")
+    ap.add_argument("--keep", default=None, metavar="DIR", help="where --file-scale builds (and keeps) its index")
+    args = ap.parse_args()
+    if not os.path.isfile(os.path.join(args.data, "labels.csv")):
+        print(
+            f"skipped: no labelled meshes at {args.data} (the Princeton segmentation meshes are research "
+            "data, not shipped with nfdmatch; pass --data)",
+            file=sys.stderr,
+        )
+        return 0
+    classes = labels_of(args.data)
+    names = sorted(classes)
+    if not args.no_table:
+        retrieval(args, names, classes)
     if args.scale:
         scale(args.data, names, args.scale, args.jobs)
+    if args.file_scale:
+        file_scale(args.data, names, args.file_scale, args.jobs, args.keep)
     return 0
 
 

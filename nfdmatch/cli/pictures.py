@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 
 import click
 
@@ -11,7 +10,6 @@ from .inputs import read_inputs
 from .options import (
     descriptor_options,
     elastic_options,
-    error,
     finish,
     format_option,
     glob_options,
@@ -25,7 +23,6 @@ from .options import (
     output_option,
     paths_option,
     refuse_input_as_output,
-    say,
     some_failed,
 )
 from .output import (
@@ -40,6 +37,8 @@ from .output import (
     write_rows,
 )
 from .group import main
+from .picture_files import check_pictures, not_written, picture_names, report_picture
+from .show_meshes import show_meshes
 
 
 def _parse_size(value: str) -> tuple[int, int]:
@@ -62,55 +61,6 @@ def _renderer_option(f):
         show_default=True,
         help="Drawing library; auto uses the default and falls back to the other one.",
     )(f)
-
-
-def _report_picture(result) -> None:
-    if result.note:
-        note(result.note)
-    say(f"wrote {result.path} ({result.renderer}, {result.seconds:.2f} s)")
-
-
-def _not_written(pictures) -> list:
-    """Pictures, like row files, are written only when every input was read."""
-    for path in pictures:
-        error(f"{path} not written: some inputs could not be read")
-    return []
-
-
-def _check_pictures(pictures) -> None:
-    """Every picture path writable, before any long work."""
-    from ..render import check_output
-
-    for path in pictures:
-        check_output(path)
-
-
-def _stem(curve_id: str) -> str:
-    """The {stem} of a query's pictures: its file name without extension, ``-I`` for curve I."""
-    from ..formats import split_selector
-
-    path, selected = split_selector(curve_id)
-    stem = os.path.splitext(os.path.basename(path))[0].strip("<>") or "curve"
-    return stem if selected is None else f"{stem}-{selected}"
-
-
-def _picture_names(pattern: str, queries) -> list[str]:
-    """One picture file per query, from ``pattern`` with ``{stem}`` and ``{n}`` (1-based)."""
-    if "{" not in pattern:
-        if len(queries) > 1:
-            raise click.UsageError(
-                f"{len(queries)} queries give {len(queries)} pictures: name them with a "
-                "pattern, e.g. -o 'matches-{stem}.png' ({stem}: the query file's name, "
-                "{n}: its number)"
-            )
-        return [pattern]
-    try:
-        names = [pattern.format(stem=_stem(q.id), n=n) for n, q in enumerate(queries, start=1)]
-    except (KeyError, IndexError, ValueError) as exc:
-        raise click.UsageError(f"-o {pattern!r}: the pattern may use {{stem}} and {{n}} only ({exc})") from None
-    if len(set(names)) < len(names):
-        raise click.UsageError(f"-o {pattern!r} gives two queries the same picture name; add {{n}}")
-    return names
 
 
 @main.command()
@@ -173,22 +123,28 @@ def show(
     The rows drawn are printed on stdout (query, rank, match, distance, source), or
     written to the -o FILE that is not a picture. --elastic draws the matches of the
     elastic stage (as `query --elastic` orders them) and adds the columns elastic, fused.
+    A mesh QUERY against an index of objects draws its contours beside each best object's
+    matched contours, all in their principal frames; rows gain curves (docs/objects.md).
 
     \b
     Examples:
       nfdmatch show sample_curves/queries/trefoil-posed.obj --index demo.h5 -o matches.png
       nfdmatch show q.csv --against library/ --top 8 -o q.svg -o q.csv
       nfdmatch show sample_curves/queries --index demo.h5 -o 'matches-{stem}.png'
+      nfdmatch show new_part.stl --index parts.h5 --top 4 -o new_part.png
     """
-    from ..render import render_matches
-
     pictures, rows_output = split_outputs(output, fmt=output_format)
     output_format = resolve_format(output_format, rows_output)
     width_height = _check_show_arguments(pictures, size, against, sources, (*descriptor.values(), glob_pattern))
+    drawing = dict(top=top, max_distance=max_distance, exclude_self=exclude_self, paths=paths, size=width_height,
+                   renderer=renderer, stage=stage, matching=matching)  # fmt: skip
+    outputs = (pictures[0], rows_output, output_format)
+    if not against and show_meshes([query_spec, *sources], index_path, input_format, drawing, outputs):
+        return
     query_inputs = read_inputs([query_spec] + ([] if against else list(sources)), input_format=input_format)
     queries = query_inputs.curves
-    names = _picture_names(pictures[0], queries)
-    _check_pictures(names)
+    names = picture_names(pictures[0], queries)
+    check_pictures(names)
     chosen = {"max_distance": max_distance, "exclude_self": exclude_self}
     if against:
         source_inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
@@ -202,27 +158,28 @@ def show(
     spell_query = path_speller(paths)
     for path in [*names, rows_output]:
         refuse_input_as_output(path)
-    results = []
-    if some_failed():
-        _not_written(names)
-    else:
-        results = [
-            render_matches(q.points, q.id, drawn, name, size=width_height, renderer=renderer)
-            for q, drawn, name in zip(queries, shown, names)
-        ]
+    results = _pictures(queries, shown, names, width_height, renderer)
     stage_columns = list(stage.columns) if stage is not None else []
-    write_rows(
-        _drawn_rows(queries, shown, spell_query, spell_match, stage_columns),
-        ["query", "rank", "match", "distance", *stage_columns, "source"],
-        output_format,
-        rows_output,
-        group_by="query",
-    )
+    write_rows(_drawn_rows(queries, shown, spell_query, spell_match, stage_columns),
+               ["query", "rank", "match", "distance", *stage_columns, "source"], output_format, rows_output,
+               group_by="query")  # fmt: skip
     for result in results:
-        _report_picture(result)
+        report_picture(result)
     failed = query_inputs.errors + (source_inputs.errors if source_inputs else [])
     finish(len(failed), query_inputs.total + (source_inputs.total if source_inputs else 0))
     nothing_matched(sum(len(drawn) for drawn in shown))
+
+
+def _pictures(queries, shown, names, size, renderer) -> list:
+    """Each query's picture drawn (none when some input could not be read)."""
+    from ..render import render_matches
+
+    if some_failed():
+        return not_written(names)
+    return [
+        render_matches(q.points, q.id, drawn, name, size=size, renderer=renderer)
+        for q, drawn, name in zip(queries, shown, names)
+    ]
 
 
 def _drawn_rows(queries, shown, spell_query, spell_match, stage_columns=()) -> list[dict]:
@@ -349,7 +306,7 @@ def matrix(
 
     formats = ("csv", "tsv", "json")
     pictures, rows_output = split_outputs(output, formats, output_format)
-    _check_pictures(pictures)  # before the O(N^2) work, not after it
+    check_pictures(pictures)  # before the O(N^2) work, not after it
     fmt = resolve_format(output_format, rows_output, formats, terminal="csv")
     inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
     for path in [*pictures, rows_output]:
@@ -375,12 +332,12 @@ def matrix(
     text = _matrix_text(ids, values, fmt, rerank)
     deliver(text, rows_output)
     if some_failed():
-        pictures = _not_written(pictures)
+        pictures = not_written(pictures)
     if pictures:
         from ..render import render_matrix
 
         for path in pictures:
-            _report_picture(render_matrix(distances, ids, path, title=title))
+            report_picture(render_matrix(distances, ids, path, title=title))
     inputs.finish()
 
 

@@ -141,13 +141,13 @@ def _curve_rows(idx, curves, results, listing, columns: list) -> tuple[list, lis
 def _query_meshes(idx, queries, listing, matching, input_format, given: dict, output_at) -> bool:
     """Answer a query of meshes (:func:`_query_objects`) and say so; False for a query of
     curves (nothing done)."""
-    meshes = _mesh_queries(idx, queries, listing.glob, input_format)
+    meshes = mesh_queries(idx, queries, listing.glob, input_format)
     if meshes:
         _query_objects(idx, meshes, listing, matching, given, *output_at)
     return bool(meshes)
 
 
-def _mesh_queries(idx, queries, glob, input_format) -> list[str]:
+def mesh_queries(idx, queries, glob, input_format) -> list[str]:
     """The query meshes among QUERY... (files named directly; in folders too when the index
     holds objects), or [] for a query of curves. A mix of meshes and curve files is a usage
     error: their rows differ."""

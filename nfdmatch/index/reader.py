@@ -9,7 +9,7 @@ from typing import Any, TYPE_CHECKING
 import h5py
 import numpy as np
 
-from ..search.objects import ObjectLoops, search_objects
+from ..search.objects import ObjectLoops, StoredRows, search_objects
 from .objects_group import read_objects, rule_of
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
 from ..matching.statistics import curve_statistics
@@ -494,32 +494,72 @@ class Index(SearchFace):
         groups = self.objects()
         if groups is None:
             return []
-        records = self.files()
-        return [records[int(f)].path for f in groups.file]
+        if self._file_records is not None:
+            records = self._file_records
+            return [records[int(f)].path for f in groups.file]
+        paths = self._file_paths()  # not the whole /files table: 1 s at 100,000 files
+        return [paths[int(f)] for f in groups.file]
+
+    def _file_paths(self) -> list[str]:
+        """``/files/path`` alone, read and checked as :meth:`files` reads it."""
+
+        def read():
+            ds, F = self._files["datasets"]["path"], self.n_files
+            if F == 0:
+                return []
+            check_string_rows(ds, [(0, F)])
+            paths = ds.asstr()[...].tolist()
+            if self.checksums:
+                self._check_strings(
+                    self._files.get("crc", {}).get("path_crc32"),
+                    "/files/path",
+                    range(-(-F // CRC_ROWS)),
+                    lambda b: paths[b * CRC_ROWS : (b + 1) * CRC_ROWS],
+                )
+            return paths
+
+        return self._read(read, "/files")
 
     def object_loops(self) -> ObjectLoops | None:
-        """Every object's contours as :class:`~nfdmatch.search.objects.ObjectLoops` (their
+        """Every object's contours as :class:`~nfdmatch.search.object_distance.ObjectLoops` (their
         stored descriptors, axes, levels, measures; ``rows`` their /curves rows), what a mesh
         query compares with; None when the index holds no object."""
         groups = self.objects()
         if groups is None:
             return None
-        records = self.files()
+        # each object's rows [curve_start, curve_start + curve_count) of its file, in order
+        starts, counts = self._files["curve_start"][groups.file], self._files["curve_count"][groups.file]
         owner = np.full(self.n_curves, -1, dtype=np.int64)
-        for m, f in enumerate(groups.file.tolist()):
-            r = records[f]
-            owner[r.curve_start : r.curve_start + r.curve_count] = m
+        owner[_ranges_of(starts, counts)] = np.repeat(np.arange(len(starts)), counts)
         rows = np.flatnonzero((owner >= 0) & (groups.axis >= 0))
+        # an index of meshes alone: one run of rows, taken as views (4 M rows: no 150 MB copy)
+        at = slice(int(rows[0]), int(rows[-1]) + 1) if len(rows) and rows[-1] - rows[0] + 1 == len(rows) else rows
         return ObjectLoops(
-            coefficients=self.coefficients_at(rows),
-            axis=groups.axis[rows],
-            level=groups.level[rows],
-            measures=groups.measures[rows],
-            owner=owner[rows],
+            coefficients=StoredRows(rows, lambda at: self._runs_at(("coefficients",), at)),
+            axis=groups.axis[at],
+            level=groups.level[at],
+            measures=groups.measures[at],
+            owner=owner[at],
             profile=groups.profile,
             sections=groups.rule.sections,
             rows=rows,
+            features=StoredRows(rows, lambda at: self._runs_at(("inv_sv", "inv_block"), at)),
         )
+
+    def _runs_at(self, names: tuple[str, ...], rows: Any) -> np.ndarray:
+        """The /curves datasets ``names`` (their columns side by side) at ``rows`` (any order),
+        read by runs of consecutive rows: an object's contours are one run, so a mesh query
+        reads a few runs per object its bounds reach, never every row of the index."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        uniq, inverse = unique_rows(rows)
+        cut = np.flatnonzero(np.diff(uniq) != 1) + 1
+        runs = [(int(r[0]), int(r[-1]) + 1) for r in np.split(uniq, cut) if len(r)]
+        parts = []
+        for name in names:
+            ds = self._ds[name]
+            got = np.asarray(self._read(lambda: read_runs(ds, runs), f"/curves/{name}"))
+            parts.append(self._finite(name, got, uniq))
+        return (parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1))[inverse]
 
     def search_objects(
         self,
@@ -614,3 +654,10 @@ class Index(SearchFace):
             "updated": self.updated,
             "size_bytes": size,
         }
+
+
+def _ranges_of(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The positions ``[start, start + count)`` of each run, concatenated."""
+    total = int(counts.sum())
+    ends = np.cumsum(counts)
+    return np.arange(total, dtype=np.int64) - np.repeat(ends - counts, counts) + np.repeat(starts, counts)

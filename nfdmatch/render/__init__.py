@@ -80,6 +80,7 @@ from .layout import (
 )
 from .matplotlib_backend import draw_matplotlib
 from .matrix import render_matrix
+from .objects import render_objects
 from .pyvista_backend import draw_pyvista
 
 __all__ = [
@@ -96,6 +97,7 @@ __all__ = [
     "picture_format",
     "render_matches",
     "render_matrix",
+    "render_objects",
     "is_coplanar",
     "short_label",
     "short_labels",
