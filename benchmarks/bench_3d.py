@@ -186,11 +186,14 @@ def rerank_rows(curves, labels, depth):
                 order = np.array([[position[os.path.basename(m.id)] for m in f] for f in found])
             rows.append((f"query --rerank, {label}", scores(order, labels, depth), seconds))
             from nfdmatch.search import distance_matrix
-            from nfdmatch.search.rerank import diffused_similarity
+            from nfdmatch.search.rerank import diffused_similarity, fused_graph_lists
 
             fused = graph != 10
             D = distance_matrix(stored, elastic=fused)
-            S = diffused_similarity(D, ids=[c.id for c in stored])
+            ids = [c.id for c in stored]
+            # --elastic: the lists of the graph the index stores (fused among exact candidates)
+            lists = fused_graph_lists(distance_matrix(stored), D, ids) if fused else None
+            S = diffused_similarity(D, ids=ids, lists=lists)
             np.fill_diagonal(S, -np.inf)
             # the matrix's order: score, then (below the score floor, where scores are 0) the
             # distance, then id (the files' order)

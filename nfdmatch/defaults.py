@@ -15,6 +15,7 @@ __all__ = [
     "DEFAULT_INDEX",
     "default_index_path",
     "DEFAULT_GRAPH_K",
+    "FUSED_CANDIDATES",
     "DEFAULT_RERANK_DEPTH",
     "MIN_RERANK_DEPTH",
     "RERANK_CANDIDATES",
@@ -28,6 +29,9 @@ INDEX_ENV = "NFDMATCH_INDEX"
 DEFAULT_INDEX = "nfdmatch.h5"
 #: neighbours per row when ``--graph`` is given without a number (:mod:`nfdmatch.index.graph`)
 DEFAULT_GRAPH_K = 10
+#: a fused graph's (``--graph K --elastic``) candidates per row: its exact nearest, at least
+#: 3 K (:mod:`nfdmatch.index.graph_build`, :func:`nfdmatch.search.rerank.fused_graph_lists`)
+FUSED_CANDIDATES = 30
 #: a query's candidates for a re-ranking (``--rerank-depth``), by default and at least
 #: (:mod:`nfdmatch.search.rerank`; docs/rerank.md, "Depth": 400 measured no better)
 DEFAULT_RERANK_DEPTH = 100

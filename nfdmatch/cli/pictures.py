@@ -322,7 +322,12 @@ def matrix(
     title = f"{what} distance, {len(ids)} curves"
     values = distances
     if rerank:
-        values, distances = _reranked(distances, ids)
+        lists = None
+        if elastic:  # the graph `index build --graph --elastic` stores: fused lists of exact candidates
+            from ..search.rerank import fused_graph_lists
+
+            lists = fused_graph_lists(distance_matrix(curves, **descriptor, **matching), distances, ids)
+        values, distances = _reranked(distances, ids, lists)
         title = f"re-ranked similarity ({what} distance), {len(ids)} curves"
     if order == "similar":
         permutation = similarity_order(distances)
@@ -341,15 +346,16 @@ def matrix(
     inputs.finish()
 
 
-def _reranked(distances, ids):
+def _reranked(distances, ids, lists=None):
     """``(similarity, dissimilarity)``: the diffused similarity of every pair (ties among a
-    curve's neighbours by ``ids``, as the stored graph orders them) and, for the pictures and
-    the similarity order, 1 - it (0 on the diagonal)."""
+    curve's neighbours by ``ids``, as the stored graph orders them; ``lists``: a fused graph's
+    lists, with --elastic) and, for the pictures and the similarity order, 1 - it (0 on the
+    diagonal)."""
     import numpy as np
 
     from ..search.rerank import diffused_similarity
 
-    values = diffused_similarity(distances, ids=ids)
+    values = diffused_similarity(distances, ids=ids, lists=lists)
     distances = np.clip(1 - values, 0, None)
     np.fill_diagonal(distances, 0.0)
     return values, distances

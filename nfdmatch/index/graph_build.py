@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import IndexFormatError
 from ..search.engine import Cascade
+from ..defaults import FUSED_CANDIDATES
 from ..search.graph import GraphLists, fused_lists, graph_blocks, neighbour_lists, update_copied
 from .arrays import unique_rows
 from .graph import (
@@ -36,9 +37,6 @@ if TYPE_CHECKING:
     from .reader import Index
 
 __all__ = ["write_graph", "plan_graph", "blocks_to_search", "store_graph", "GraphPlan", "FUSED_CANDIDATES"]
-
-#: a fused graph's candidates per row: its exact nearest (at least 3 k)
-FUSED_CANDIDATES = 30
 
 
 @dataclass

@@ -31,7 +31,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..defaults import DEFAULT_RERANK_CANDIDATES, DEFAULT_RERANK_DEPTH, MIN_RERANK_DEPTH, RERANK_CANDIDATES
+from ..defaults import (
+    DEFAULT_GRAPH_K,
+    DEFAULT_RERANK_CANDIDATES,
+    DEFAULT_RERANK_DEPTH,
+    FUSED_CANDIDATES,
+    MIN_RERANK_DEPTH,
+    RERANK_CANDIDATES,
+)
 from ..errors import IndexFormatError, ParameterError
 from ..records import RankedMatch
 from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
@@ -48,6 +55,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "diffused_similarity",
+    "fused_graph_lists",
     "rerank_index",
     "SCALE_NEIGHBOURS",
     "ALPHA",
@@ -106,6 +114,7 @@ def diffused_similarity(
     alpha: float = ALPHA,
     mix: float = MIX,
     ids: Sequence[str] | None = None,
+    lists: np.ndarray | None = None,
 ) -> np.ndarray:
     """The re-ranked similarity of every pair of a collection.
 
@@ -115,6 +124,9 @@ def diffused_similarity(
     ids : the N curves' ids: a row's k nearest are taken as the stored graph takes them
         (distances within the search's ``TIE`` are ties, ordered by id), so that
         ``query --rerank`` of a stored curve agrees with this; None: ties by position.
+    lists : (N, >= k) int, each row's neighbours in order (the first k walked), instead of
+        its k nearest: a fused graph's (:func:`fused_graph_lists`; ``matrix --rerank
+        --elastic``).
 
     Returns
     -------
@@ -134,7 +146,10 @@ def diffused_similarity(
     off = D.copy()
     np.fill_diagonal(off, np.inf)
     tie_rank = np.arange(N) if ids is None else np.argsort(np.argsort(np.asarray(ids, dtype=object), kind="stable"))
-    order = np.lexsort((np.broadcast_to(tie_rank, (N, N)), np.round(off / TIE)))[:, : min(k, N - 1)]
+    if lists is None:
+        order = np.lexsort((np.broadcast_to(tie_rank, (N, N)), np.round(off / TIE)))[:, : min(k, N - 1)]
+    else:
+        order = np.asarray(lists, dtype=np.int64)[:, : min(k, N - 1)]
     s = row_scales(np.take_along_axis(off, order, axis=1), k)
     W = np.exp(-(D**2) / (s[:, None] * s[None, :]))
     mask = np.zeros((N, N), dtype=bool)
@@ -145,6 +160,32 @@ def diffused_similarity(
     S = (1 - mix) * _pagerank_cosine(P, alpha) + mix * W
     S = (S + S.T) / 2  # symmetric to rounding: the cosine and W are, up to round-off
     return np.where(S >= SCORE_FLOOR, S, 0.0)
+
+
+def fused_graph_lists(
+    exact: ArrayLike, fused: ArrayLike, ids: Sequence[str] | None = None, k: int = DEFAULT_GRAPH_K
+) -> np.ndarray:
+    """Each row's list in the graph ``index build --graph k --elastic`` stores, from full
+    matrices: of its exact ``max(FUSED_CANDIDATES, 3 k)`` nearest (ties within ``TIE`` by
+    id), the ``k`` of least fused distance (ties by id), as
+    :func:`nfdmatch.search.graph.fused_lists` takes them; so that ``matrix --rerank
+    --elastic`` walks the graph ``query --rerank`` walks.
+
+    exact, fused : (N, N) float, the exact and the fused distances (``distance_matrix``
+        without and with ``elastic``); ids : as :func:`diffused_similarity`'s.
+    Returns (N, min(k, N - 1)) int64 positions."""
+    T, F = np.array(exact, dtype=np.float64), np.array(fused, dtype=np.float64)
+    N = len(T)
+    if T.shape != (N, N) or F.shape != (N, N):
+        raise ParameterError(f"expected two square matrices of one size, got {T.shape} and {F.shape}")
+    tie_rank = np.arange(N) if ids is None else np.argsort(np.argsort(np.asarray(ids, dtype=object), kind="stable"))
+    np.fill_diagonal(T, np.inf)
+    m = min(max(FUSED_CANDIDATES, 3 * k), N - 1)
+    ties = np.broadcast_to(tie_rank, (N, N))
+    candidates = np.lexsort((ties, np.round(T / TIE)))[:, :m]
+    f = np.take_along_axis(F, candidates, axis=1)
+    pick = np.lexsort((tie_rank[candidates], np.round(f / TIE)))[:, : min(k, N - 1)]
+    return np.take_along_axis(candidates, pick, axis=1)
 
 
 def rerank_index(
@@ -217,6 +258,10 @@ def rerank_index(
             fused_best_rows(index, qcoef, found)
         union = _union(found)
         vectors = _Vectors(union, *walk.pagerank(union))  # every candidate's, once for the batch
+        if fused:  # and the rows of its walk over the fused graph, given their fused distances
+            more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
+            stats.exact += _add_rows(index, qcoef, found, more, fused=True)
+            vectors = vectors.with_rows(walk, _union(found))
     else:
         found, stats, pushed = _walk_candidates(
             index, walk, queries, qcoef, top, depth, exclude_self, is_self, progress=progress, threads=threads
@@ -289,21 +334,32 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
     """``(found, stats, vectors)`` for ``candidates="walk"``: each query's candidates as a
     :class:`~nfdmatch.search.engine.BestRows` ranked as the search ranks its rows (exact
     distance, ties by id: :func:`~nfdmatch.search.index_search.rank_rows`): its exact
-    ``max(top, k)`` nearest (one more with ``exclude_self``: its own curve) and the ``depth``
-    stored rows other than itself of largest mass in its PageRank (a stored query's: its
-    row's; any other: from its first step, as in :func:`_query_scores`), ties by row, each
-    with its exact distance; ``vectors`` the :class:`_Vectors` pushed on the way (of every
-    query's k nearest). (qcoef: (Q, K, 3) complex128, the queries' descriptors.)"""
-    from .index_search import rank_rows, recompute_reported, search_rows
+    ``max(top, k)`` nearest (one more with ``exclude_self``: its own curve) and the rows of
+    its walk (:func:`_walk_rows`), each with its exact distance; ``vectors`` the
+    :class:`_Vectors` pushed on the way (of every query's k nearest). (qcoef: (Q, K, 3)
+    complex128, the queries' descriptors.)"""
+    from .index_search import rank_rows, search_rows
 
-    k, N, alpha = walk.k, walk.N, walk.alpha
-    first = max(top, k) + (1 if exclude_self else 0)
+    first = max(top, walk.k) + (1 if exclude_self else 0)
     cascade = Cascade(index.samples)  # the exact distance, invariant to direction, no mirror
     near, stats = search_rows(index, qcoef, cascade, top=first, progress=progress, threads=threads)
     rank_rows(index, near, first)
     union = _union(near)
     vectors = _Vectors(union, *walk.pagerank(union))
-    more = []  # per query, the rows its walk adds (their exact distances computed below)
+    more = _walk_rows(index, walk, queries, near, vectors, depth, exclude_self, is_self)
+    stats.exact += _add_rows(index, qcoef, near, more, fused=False)
+    return near, stats, vectors
+
+
+def _walk_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth, exclude_self, is_self) -> list:
+    """Per query, a :class:`~nfdmatch.search.engine.BestRows` of the rows its walk adds to its
+    candidates ``near[i]`` (ranked; distances as the graph's: exact or fused): the ``depth``
+    stored rows other than itself of largest mass in its PageRank (a stored query's: its
+    row's; any other: from its first step, as in :func:`_query_scores`) and the ``depth //
+    2`` whose PageRank reaches it most (:func:`_add_reaching`), ties by row; only ``rows``
+    set. ``vectors``: the PageRank of every row of ``near``."""
+    N, alpha = walk.N, walk.alpha
+    more = []
     backwards = []  # per query with candidates: (query, where its walk backwards starts, the node left out)
     for qi, (tk, merged) in enumerate(zip(near, _self_flags(index, queries, near, exclude_self, is_self))):
         rows, qd = tk.rows, tk.dist
@@ -339,19 +395,37 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
             key: np.full(len(extra.rows), -1 if key == "position" else 0, dtype=v.dtype)
             for key, v in extra.extra.items()
         }
-    # the added rows' exact distances, each computed alone as the search computes the rows it found
+    return more
+
+
+def _add_rows(index, qcoef, found, more, fused: bool) -> int:
+    """Merge each query's rows ``more[i]`` (:func:`_walk_rows`) into its candidates
+    ``found[i]``, each given its exact distance (computed alone, as the search computes the
+    rows it found) and, on a fused graph, its fused distance (:func:`fused_best_rows`); each
+    list ranked again: by distance, ties by id (fused: ties by exact distance, then as
+    found). Returns how many exact distances it computed."""
+    from .index_search import rank_rows, recompute_reported
+
+    cascade = Cascade(index.samples)
     added = _union(more)
-    if len(added):
-        recompute_reported(
-            _Read(index, added), qcoef, more, cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
-            weights=None,
-        )  # fmt: skip
-    stats.exact += sum(len(extra.rows) for extra in more)
-    for tk, extra in zip(near, more):
+    if not len(added):
+        return 0
+    recompute_reported(
+        _Read(index, added), qcoef, more, cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
+        weights=None,
+    )  # fmt: skip
+    if fused:
+        fused_best_rows(index, qcoef, more)
+    for tk, extra in zip(found, more):
         tk.rows, tk.dist = np.concatenate([tk.rows, extra.rows]), np.concatenate([tk.dist, extra.dist])
-        tk.extra = {key: np.concatenate([v, extra.extra[key]]) for key, v in tk.extra.items()}
-    rank_rows(index, near)
-    return near, stats, vectors
+        tk.extra = {key: np.concatenate([v, extra.extra.get(key, v[:0])]) for key, v in tk.extra.items()}
+        if fused:
+            order = np.lexsort((tk.extra["exact"], np.round(tk.dist / TIE)))
+            tk.rows, tk.dist = tk.rows[order], tk.dist[order]
+            tk.extra = {key: v[order] for key, v in tk.extra.items()}
+    if not fused:
+        rank_rows(index, found)
+    return sum(len(extra.rows) for extra in more)
 
 
 def _add_reaching(walk: GraphWalk, near, more, backwards, count: int) -> None:
