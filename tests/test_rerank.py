@@ -501,3 +501,39 @@ def test_a_damaged_old_graph_is_rebuilt_not_trusted(tmp_path, rng):
     got, fresh = graph_of(index), graph_of(tmp_path / "fresh.h5")
     np.testing.assert_array_equal(got[0], fresh[0])
     np.testing.assert_allclose(got[1], fresh[1])
+
+
+def test_the_graph_stores_its_lists_turned_round_and_the_walk_backwards_reads_them(tmp_path, rng):
+    """index build --graph writes /graph/reverse_start and reverse_source (the rows naming each
+    row); the reader gives them row by row; index verify checks they are the lists turned
+    round; a graph without them (written before) ranks the same, turning the lists round in
+    memory."""
+    from nfdmatch.index.graph import read_graph, reverse_of
+
+    curves, _ = family_curves(rng, families=10, members=12)
+    write_parts(tmp_path / "c", curves, 2)
+    index = tmp_path / "i.h5"
+    build_index([tmp_path / "c"], index, jobs=1, graph=10)
+    stored = _read_back(tmp_path / "c")
+    with open_index(index) as idx:
+        neighbour, _ = read_graph(idx)
+        start, source = reverse_of(neighbour, len(neighbour))
+        rows = rng.permutation(len(neighbour))[:30]
+        count, got = idx.graph_reverse_reader()(rows)
+        assert count.tolist() == (start[rows + 1] - start[rows]).tolist()
+        assert got.tolist() == np.concatenate([source[start[r] : start[r + 1]] for r in rows]).tolist()
+        stored_answers, _ = rerank_index(idx, stored[::7], k=20, exclude_self=True)
+    assert run_cli("index", "verify", "--index", str(index))[0] == 0
+    older = tmp_path / "older.h5"
+    older.write_bytes(index.read_bytes())
+    with h5py.File(older, "r+") as h5:
+        del h5["graph/reverse_start"], h5["graph/reverse_source"]
+    with open_index(older) as idx:
+        assert idx.graph_reverse_reader() is None
+        in_memory, _ = rerank_index(idx, stored[::7], k=20, exclude_self=True)
+    assert [[(m.id, m.score) for m in r] for r in in_memory] == [[(m.id, m.score) for m in r] for r in stored_answers]
+    with h5py.File(index, "r+") as h5:
+        ds = h5["graph/reverse_source"]
+        ds[0] = (int(ds[0]) + 1) % len(neighbour)
+    code, out, err = run_cli("index", "verify", "--index", str(index))
+    assert code == 1 and "reverse_source" in out + err and "turned round" in out + err

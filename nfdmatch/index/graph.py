@@ -34,6 +34,8 @@ __all__ = [
     "graph_distance",
     "read_graph",
     "read_graph_rows",
+    "read_reverse_rows",
+    "reverse_of",
     "graph_changes",
     "graph_k",
     "check_lists",
@@ -258,6 +260,88 @@ def graph_changes(old: Index | None, graph: int | GraphSpec | None) -> bool:
         return False
     k, distance = asked_graph(old, graph)
     return k != old_graph_k(old) or (k > 0 and distance != graph_distance(old))
+
+
+def reverse_of(neighbour: NDArray[np.int64], N: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The graph's lists turned round (``/graph/reverse_start``, ``/graph/reverse_source``):
+    the rows whose lists name row v are ``source[start[v]:start[v + 1]]``, ascending.
+    ``neighbour``: (N, K) int, -1 padded. Returns ``start`` (N + 1,) and ``source`` (E,)
+    int64, E the real entries of ``neighbour``."""
+    neighbour = np.asarray(neighbour, dtype=np.int64)
+    target = neighbour.reshape(-1)
+    source = np.repeat(np.arange(len(neighbour), dtype=np.int64), neighbour.shape[1] if neighbour.ndim == 2 else 0)
+    real = target >= 0
+    source, target = source[real], target[real]
+    order = np.argsort(target, kind="stable")
+    start = np.zeros(N + 1, dtype=np.int64)
+    np.cumsum(np.bincount(target, minlength=N)[:N], out=start[1:])
+    return start, source[order]
+
+
+def reverse_datasets(index: Index) -> tuple[h5py.Dataset, h5py.Dataset] | None:
+    """``(reverse_start, reverse_source)`` of an open index's ``/graph``, checked as
+    :func:`graph_datasets` checks its lists (shapes (N + 1,) and (E,)), or None when the graph
+    has none (written before turn 4's second session: the walk then turns the lists round
+    in memory). Raises IndexFormatError when they are there but malformed."""
+    found = graph_datasets(index)
+    g = index._h5["graph"] if found is not None else None
+    if g is None or "reverse_start" not in g or "reverse_source" not in g:
+        return None
+    file_size = int(index._h5.id.get_filesize())
+    try:
+        start = stored_dataset(index._h5, "graph/reverse_start", file_size, bool(_graph_checksums(g)))
+        source = stored_dataset(index._h5, "graph/reverse_source", file_size, bool(_graph_checksums(g)))
+    except Problem as exc:
+        raise IndexFormatError(exc.message, path=index.path) from None
+    N = index.n_curves
+    kinds = start.dtype.kind + source.dtype.kind
+    if start.shape != (N + 1,) or len(source.shape) != 1 or any(kind not in "iu" for kind in kinds):
+        raise IndexFormatError(
+            f"corrupted nfdmatch index: /graph/reverse_start {start.shape} and reverse_source {source.shape} "
+            f"do not fit {N} curves",
+            path=index.path,
+        )
+    return start, source
+
+
+def read_reverse_rows(
+    index: Index,
+) -> Callable[[NDArray[np.int64]], tuple[NDArray[np.int64], NDArray[np.int64]]] | None:
+    """A reader of the rows that name given rows in their lists, ``rows -> (count, source)``:
+    ``count`` (m,) int64 per row of ``rows`` and ``source`` their sources concatenated in that
+    order (ascending within a row); or None when the graph does not store them
+    (:func:`reverse_datasets`). Reads only what it is asked for; every read checked: offsets
+    that do not rise within ``/graph/reverse_source``, a source outside the index, are an
+    IndexFormatError."""
+    found = reverse_datasets(index)
+    if found is None:
+        return None
+    ds_start, ds_source = found
+    N, E = index.n_curves, ds_source.shape[0]
+
+    def fail(what: str) -> IndexFormatError:
+        return IndexFormatError(f"corrupted nfdmatch index: /graph/reverse_{what}", path=index.path)
+
+    def read(rows):
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if not len(rows):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        ends, inverse = unique_rows(np.concatenate([rows, rows + 1]))
+        at = np.asarray(index._read(lambda: ds_start[ends], "/graph"), dtype=np.int64)[inverse]
+        first, last = at[: len(rows)], at[len(rows) :]
+        count = last - first
+        if (count < 0).any() or first.min() < 0 or last.max() > E:
+            raise fail("start: offsets that do not rise within reverse_source")
+        if not count.sum():
+            return count, np.zeros(0, np.int64)
+        positions = np.repeat(first - np.cumsum(count) + count, count) + np.arange(count.sum())
+        uniq, back = unique_rows(positions)
+        source = np.asarray(index._read(lambda: ds_source[uniq], "/graph"), dtype=np.int64)[back]
+        if source.min() < 0 or source.max() >= N:
+            raise fail("source: a source outside the index")
+        return count, source
+
+    return read
 
 
 def read_graph_rows(

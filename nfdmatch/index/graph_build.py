@@ -20,6 +20,7 @@ from .arrays import unique_rows
 from .graph import (
     GRAPH_CHECKSUMS,
     GRAPH_CHUNK_ROWS,
+    reverse_of,
     IN_MEMORY_ROWS,
     GraphStats,
     asked_graph,
@@ -246,6 +247,10 @@ def _write_group(h5, k: int, neighbour, distance, kind: str = "exact") -> None:
     set_text(g.attrs, "checksums", GRAPH_CHECKSUMS)
     create_checked(g, "neighbour", neighbour, chunk_rows=GRAPH_CHUNK_ROWS)
     create_checked(g, "distance", distance, chunk_rows=GRAPH_CHUNK_ROWS)
+    # the lists turned round: what the walk backwards of query --rerank reads (docs/rerank.md)
+    start, source = reverse_of(neighbour, len(neighbour))
+    create_checked(g, "reverse_start", start, chunk_rows=GRAPH_CHUNK_ROWS * 8)
+    create_checked(g, "reverse_source", source, chunk_rows=GRAPH_CHUNK_ROWS * 8)
 
 
 def _copied_rows(h5, old) -> dict:

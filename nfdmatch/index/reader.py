@@ -19,7 +19,7 @@ from ..search.knn import SearchFace
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
 from .changes import read_changes
-from .graph import graph_distance, graph_k, read_graph_rows
+from .graph import graph_distance, graph_k, read_graph_rows, read_reverse_rows
 from ..names import decode_name
 from .paths import index_folder, openable
 from .schema import (
@@ -594,6 +594,12 @@ class Index(SearchFace):
         """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,
         in the order of ``rows``; None when the index has no graph (docs/index-format.md)."""
         return read_graph_rows(self)
+
+    def graph_reverse_reader(self) -> Callable[[Any], tuple[np.ndarray, np.ndarray]] | None:
+        """``rows -> (count (m,), source)``: the rows whose graph lists name each of ``rows``,
+        concatenated (:func:`~nfdmatch.index.graph.read_reverse_rows`); None when the graph
+        does not store them (a graph written before turn 4's second session, or none)."""
+        return read_reverse_rows(self)
 
     def new_rows(self) -> np.ndarray | None:
         """The rows (int64, ascending) that the build which wrote the index added or

@@ -23,7 +23,7 @@ from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
 from ..matching.statistics import curve_statistics
-from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, group_distance, list_problems
+from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, group_distance, list_problems, reverse_of
 from .objects_group import read_objects
 from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
@@ -518,6 +518,7 @@ def _verify_graph(h5, meta, report) -> None:
             found = True
     if found or not N:
         return
+    _verify_reverse(h5, g, nb, attr == GRAPH_CHECKSUMS, report)
     if group_distance(g) != "exact":
         # a fused graph's lists are each row's least fused among its exact nearest, not top-K
         # lists of one metric, and a pair whose exact optimum is ambiguous may bend otherwise
@@ -533,6 +534,36 @@ def _verify_graph(h5, meta, report) -> None:
                 f"missing from a list it is near enough to be in), {len(bad)} rows",
             )
         )
+
+
+def _verify_reverse(h5, g, nb: np.ndarray, checksums: bool, report) -> None:
+    """``/graph/reverse_start`` and ``reverse_source``, when the graph stores them (graphs
+    written from turn 4's second session): stored, every chunk readable, and exactly the
+    valid lists ``nb`` turned round (:func:`~.graph.reverse_of`)."""
+    if "reverse_start" not in g and "reverse_source" not in g:
+        return
+    file_size = int(h5.id.get_filesize())
+    got = {}
+    for name in ("reverse_start", "reverse_source"):
+        try:
+            ds = stored_dataset(h5, f"graph/{name}", file_size, checksums)
+        except Problem as exc:
+            report.findings.append(
+                Finding(f"/graph/{name}", "", exc.message.removeprefix("corrupted nfdmatch index: "))
+            )
+            continue
+        try:
+            got[name] = np.asarray(ds[...], dtype=np.int64)
+        except Exception as exc:
+            text = _short(exc)
+            what = "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
+            report.findings.append(Finding(f"/graph/{name}", "", what))
+    if len(got) < 2:
+        return
+    report.datasets += 2
+    start, source = reverse_of(nb, len(nb))
+    if not (np.array_equal(got["reverse_start"], start) and np.array_equal(got["reverse_source"], source)):
+        report.findings.append(Finding("/graph/reverse_source", "", "not the graph's lists turned round"))
 
 
 #: relative tolerance of the graph's consistency checks (distances from complex64 coefficients)

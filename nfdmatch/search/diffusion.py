@@ -52,6 +52,8 @@ if TYPE_CHECKING:
 
     #: ``rows -> (neighbour (m, K) int64, distance (m, K) float64)``
     GraphReader = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+    #: ``rows -> (count (m,) int64, source int64)``: the rows naming each row, concatenated
+    ReverseReader = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 __all__ = ["GraphWalk", "TOLERANCE", "REVERSE_TOLERANCE", "SCALE_FLOOR", "row_scales", "sorted_unique", "sum_by_key"]
 
@@ -105,10 +107,14 @@ class GraphWalk:
     N : rows in the graph.
     k : neighbours per node in the walk (the first k of each stored list).
     alpha : probability of following an edge.
+    reverse : the stored lists turned round (the index's
+        :meth:`~nfdmatch.index.Index.graph_reverse_reader`), for :meth:`reverse_pagerank`;
+        None: turned round here from every row's list (:meth:`reverse_lists`).
     """
 
-    def __init__(self, reader: GraphReader, N: int, k: int, alpha: float) -> None:
+    def __init__(self, reader: GraphReader, N: int, k: int, alpha: float, reverse: ReverseReader | None = None) -> None:
         self.reader, self.N, self.k, self.alpha = reader, int(N), int(k), float(alpha)
+        self.reverse = reverse
         size = self.N + 1
         # full-size arrays, written only where rows are read (untouched pages cost nothing)
         self._nb = np.empty((size, k), dtype=np.int64)
@@ -221,6 +227,17 @@ class GraphWalk:
             self._reverse = (start, source[order])
         return self._reverse
 
+    def in_edges(self, rows: np.ndarray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """``(count, source)``: the stored rows whose lists name each of ``rows`` (count (m,)),
+        concatenated in that order; read from the index when it stores them, else from
+        :meth:`reverse_lists`."""
+        if self.reverse is not None:
+            return self.reverse(rows)
+        start, source = self.reverse_lists()
+        counts = start[rows + 1] - start[rows]
+        at = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(start[rows], counts)
+        return counts, source[at]
+
     def reverse_pagerank(
         self, owner: np.ndarray, node: np.ndarray, residual: np.ndarray, tolerance: float = REVERSE_TOLERANCE
     ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
@@ -237,7 +254,6 @@ class GraphWalk:
             the graph: ``alpha P_uq`` on each row u whose list it enters).
 
         Returns ``(owner, node, mass)``, sorted by (owner, node): the rows reached."""
-        start, source = self.reverse_lists()
         size, alpha = self.N + 1, self.alpha
         r_key, r_val = sum_by_key(np.asarray(owner, np.int64) * size + node, np.asarray(residual, np.float64))
         kept_keys, kept_vals = [], []
@@ -251,10 +267,8 @@ class GraphWalk:
             stay = a_val / (1.0 - alpha * prob[:, 0])
             kept_keys.append(a_key)
             kept_vals.append((1 - alpha) * stay)
-            counts = start[v + 1] - start[v]
+            counts, u = self.in_edges(v)
             edge = np.repeat(np.arange(len(v)), counts)
-            at = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(start[v], counts)
-            u = source[at]
             u_targets, u_prob = self.transitions(u)
             p_uv = (u_prob[:, 1:] * (u_targets[:, 1:] == v[edge][:, None])).sum(axis=1)
             r_key, r_val = sum_by_key(

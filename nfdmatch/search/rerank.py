@@ -246,7 +246,8 @@ def rerank_index(
     reader = _checked_graph(index, top, depth)
     is_self = self_rule(getattr(index, "locate", None))
     N = index.n_curves
-    walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA)
+    reverse = getattr(index, "graph_reverse_reader", lambda: None)()
+    walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA, reverse)
     qcoef = query_descriptors(index, queries)
     fused = getattr(index, "graph_distance", lambda: "exact")() == "fused"
     if candidates == "exact" or fused:
