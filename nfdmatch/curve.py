@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeAlias
 
 from dataclasses import dataclass, field
 
@@ -14,10 +14,15 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
     from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["Curve", "clean_points", "as_points", "STDIN_ID"]
+__all__ = ["Curve", "CurvesLike", "clean_points", "as_points", "STDIN_ID"]
 
 #: the id of a curve read from stdin (``-`` on the command line): it names no file
 STDIN_ID = "<stdin>"
+
+#: the curves a writer takes (``write_curves`` and every format's ``write``): a sequence of
+#: :class:`Curve` or (n, 3) / (n, 2) float arrays; a bare Curve or 2-D array is one curve.
+#: Their vertices are cleaned (:func:`clean_points`) before anything is written.
+CurvesLike: TypeAlias = "Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]]"
 
 
 @dataclass(frozen=True)
