@@ -70,7 +70,7 @@ class SearchStats:
 #: what a search of an index returns (:func:`search_index`, ``Cluster.search_index``,
 #: :func:`~nfdmatch.search.rerank.rerank_index`): ``(results, stats)``, each query's list of
 #: matches, best first, and what the search did
-SearchResults: TypeAlias = "tuple[list[list[RankedMatch]], SearchStats]"
+SearchResults: TypeAlias = tuple[list[list[RankedMatch]], SearchStats]
 
 
 #: ``top=``, the older name of ``k=`` (kept working, with a DeprecationWarning)
