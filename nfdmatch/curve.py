@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeAlias
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import CurveError
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
-    from numpy.typing import ArrayLike, NDArray
+    from numpy.typing import ArrayLike
 
-__all__ = ["Curve", "clean_points", "as_points", "STDIN_ID"]
+__all__ = ["Curve", "CurvesLike", "clean_points", "as_points", "STDIN_ID"]
 
 #: the id of a curve read from stdin (``-`` on the command line): it names no file
 STDIN_ID = "<stdin>"
@@ -64,6 +65,12 @@ class Curve:
         """True when all vertices have z == 0 (2-D silhouettes read as z = 0); see
         :func:`nfdmatch.render.is_coplanar` for "in some plane, within a tolerance"."""
         return bool(np.all(self.points[:, 2] == 0.0))
+
+
+#: the curves a writer takes (``write_curves`` and every format's ``write``): a sequence of
+#: :class:`Curve` or (n, 3) / (n, 2) float arrays; a bare Curve or 2-D array is one curve.
+#: Their vertices are cleaned (:func:`clean_points`) before anything is written.
+CurvesLike: TypeAlias = Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]]
 
 
 def clean_points(points: ArrayLike, *, path: str | None = None, curve: int | None = None) -> NDArray[np.float64]:

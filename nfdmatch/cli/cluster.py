@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from .options import VERBOSE, detail, verbosity
+from .options import VERBOSE, detail, int_option, verbosity
 
 #: the default of --scheduler-timeout (nfdmatch.distributed.DEFAULT_TIMEOUT, not imported here
 #: so that the CLI starts without dask)
@@ -50,10 +50,8 @@ def open_cluster(scheduler: str, timeout: float):
 
 def ranges_option(f):
     """``--ranges N`` of ``query``: how the cluster splits the index."""
-    return click.option(
+    return int_option(
         "--ranges",
-        type=click.IntRange(min=1),
-        default=None,
         metavar="N",
         help="With --scheduler: split the index into N row ranges, each searched by one "
         "worker for every query [default: 1 (each worker searches the whole index for "

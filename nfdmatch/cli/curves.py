@@ -18,6 +18,7 @@ from .options import (
     format_option,
     glob_options,
     input_format_option,
+    int_option,
     matching_options,
     note_inputs,
     nothing_matched,
@@ -200,11 +201,10 @@ def rank(query_spec, sources, listing, stage, matching, descriptor, input_format
     default=None,
     help="Vertices of the rebuilt curve [default: the samples].",
 )
-@click.option(
+@int_option(
     "--samples",
     "-n",
-    type=click.IntRange(min=3),
-    default=None,
+    minimum=3,
     help=f"Arc-length samples of the transform [default: max({DEFAULT_SAMPLES}, 4K)].",
 )
 @click.option(

@@ -17,6 +17,7 @@ from .options import (
     error,
     finish,
     format_option,
+    int_option,
     note,
     note_inputs,
     output_option,
@@ -44,11 +45,10 @@ from .group import main
     help="Write the list of contour files to FILE instead of stdout (whole, and only on success; "
     "a Make target): rows as its extension says (.csv, .tsv, .json, .jsonl), else one path per line.",
 )
-@click.option(
+@int_option(
     "--sections",
-    type=click.IntRange(min=0),
+    minimum=0,
     default=10,
-    show_default=True,
     help="Number N of section planes (0: boundaries only, with --boundaries).",
 )
 @click.option(

@@ -19,6 +19,7 @@ from .options import (
     glob_options,
     index_option,
     input_format_option,
+    int_option,
     note,
     optional_descriptor_options,
     output_option,
@@ -45,9 +46,7 @@ def index():
 
 
 #: the options of every command that writes the index (build, add, remove), defined once
-_JOBS = click.option(
-    "--jobs", "-j", type=click.IntRange(min=1), default=None, help="Parallel workers [default: all cores]."
-)
+_JOBS = int_option("--jobs", "-j", help="Parallel workers [default: all cores].")
 _WAIT = click.option(
     "--wait",
     type=click.FloatRange(min=0),
@@ -98,10 +97,8 @@ _WAIT = click.option(
     "--scheduler its rows are searched by the cluster's workers "
     "[default: keep the index's graph, if it has one].",
 )
-@click.option(
+@int_option(
     "--sections",
-    type=click.IntRange(min=1),
-    default=None,
     metavar="N",
     help="Meshes among the sources (STL, PLY, OFF, GLB/GLTF, OBJ with faces) are indexed as objects, "
     "cut by N planes per principal axis at area quantiles (docs/objects.md) [default: the index's "

@@ -12,6 +12,7 @@ from .options import (
     check_max_distance,
     detail,
     index_option,
+    int_option,
     matching_options,
     nothing_matched,
     output_option,
@@ -90,11 +91,9 @@ def pairs(
 @main.command()
 @index_option
 @_DISTANCE
-@click.option(
+@int_option(
     "--min-size",
-    type=click.IntRange(min=1),
     default=1,
-    show_default=True,
     help="Only list groups of at least this many curves (2: only the duplicates).",
 )
 @matching_options

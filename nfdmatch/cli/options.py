@@ -428,6 +428,14 @@ def output_option(
     )
 
 
+def int_option(*names: str, minimum: int = 1, default: int | None = None, metavar: str | None = None, help: str):
+    """A whole-number option of at least ``minimum`` (--top, --sections, --jobs, ...); its
+    default, when it has one, shown in --help (when it has none, ``help`` says what then)."""
+    return click.option(
+        *names, type=click.IntRange(min=minimum), default=default, show_default=True, metavar=metavar, help=help
+    )
+
+
 def input_format_option(f):
     from ..formats import FORMATS
 
@@ -559,10 +567,8 @@ def elastic_options(command):
         return ElasticStage(DEFAULT_ELASTIC_DEPTH if elastic_depth is None else elastic_depth)
 
     f = _packed(command, "stage", ("elastic", "elastic_depth"), pack=pack)
-    f = click.option(
+    f = int_option(
         "--elastic-depth",
-        type=click.IntRange(min=1),
-        default=None,
         metavar="M",
         help=f"With --elastic: the exact nearest re-ordered [default: {DEFAULT_ELASTIC_DEPTH}].",
     )(f)
@@ -613,11 +619,10 @@ def rerank_options(command):
             help="Order the matches by a diffusion over the index's neighbour graph (needs `index build "
             "--graph`); adds the column score (higher is closer), distance stays the exact distance.",
         ),
-        click.option(
+        int_option(
             "--rerank-depth",
-            type=click.IntRange(min=MIN_RERANK_DEPTH),
+            minimum=MIN_RERANK_DEPTH,
             default=DEFAULT_RERANK_DEPTH,
-            show_default=True,
             metavar="M",
             help="With --rerank: the candidates the diffusion re-orders besides the query's nearest.",
         ),
@@ -755,7 +760,7 @@ def match_list_options(top_help: str, glob_help: str):
     def decorate(command):
         return _with_options(
             _packed(command, "listing", tuple(field.name for field in fields(MatchListing)), pack=MatchListing),
-            click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help=top_help),
+            int_option("--top", default=10, help=top_help),
             click.option(
                 "--max-distance",
                 type=click.FloatRange(min=0),

@@ -29,8 +29,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
     from ..curve import Curve
     from ..index.reader import Index
-    from ..records import RankedMatch
-    from ..search.index_search import SearchStats
+    from ..search.index_search import SearchResults
 
 __all__ = ["ClusterSearch"]
 
@@ -64,7 +63,7 @@ class ClusterSearch:
         window: int | None = None,
         exclude_self: bool = False,
         top: Any = UNSET,
-    ) -> tuple[list[list[RankedMatch]], SearchStats]:
+    ) -> SearchResults:
         """:func:`nfdmatch.search.search_index` over ranges of the index on the workers.
 
         Parameters

@@ -36,13 +36,13 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
 
-from ..curve import Curve
+from ..curve import Curve, CurvesLike
 from ..errors import CurveSelectionError, NoCurvesError, UnknownFormatError
 from . import csv as _csv
 from . import obj as _obj
@@ -226,16 +226,13 @@ def read_curve(spec: str | os.PathLike[str], format: str | None = None) -> Curve
     return make_curve(path, arrays[sel], sel, n)
 
 
-def write_curves(
-    path: str | os.PathLike[str], curves: Curve | np.ndarray | Sequence[Curve | np.ndarray], format: str | None = None
-) -> None:
+def write_curves(path: str | os.PathLike[str], curves: CurvesLike, format: str | None = None) -> None:
     """Write curves to one file.
 
     Parameters
     ----------
     path : target file (overwritten).
-    curves : list of :class:`Curve` or (n, 3) / (n, 2) float arrays; a bare
-        Curve or 2-D array counts as one curve. Vertices are cleaned first.
+    curves : :data:`~nfdmatch.curve.CurvesLike`: one or more curves (cleaned first).
     format : format name or extension overriding the file's extension.
 
     CSV holds exactly one curve (header ``x,y,z``, ``repr`` precision); OBJ

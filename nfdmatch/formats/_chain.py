@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .._io import publish, temp_beside, write_file  # noqa: F401  (re-exported)
-from ..curve import Curve, clean_many, clean_points
+from ..curve import Curve, CurvesLike, clean_many, clean_points
 from ..errors import ParameterError, ParseError, ReadError, WriteError, excerpt, os_error_message
 
 __all__ = [
@@ -265,11 +265,11 @@ def make_curves(path, point_arrays: Sequence[np.ndarray]) -> list[Curve]:
     return [Curve.trusted(pts, curve_id(p, i, n), p, i) for i, pts in enumerate(cleaned)]
 
 
-def points_list(curves, *, path=None) -> list[np.ndarray]:
+def points_list(curves: CurvesLike, *, path=None) -> list[np.ndarray]:
     """Normalise what the writers accept into a list of cleaned (n, 3) float64 arrays.
 
-    ``curves`` is a sequence of :class:`Curve` or (n, 3)/(n, 2) array-likes; a
-    single :class:`Curve` or a single 2-D array is taken as one curve.
+    ``curves``: :data:`~nfdmatch.curve.CurvesLike` (a single :class:`Curve` or 2-D array is
+    one curve).
 
     Raises
     ------

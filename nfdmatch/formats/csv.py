@@ -35,9 +35,8 @@ from ._stream import MAX_LINE_BYTES, check_line_lengths
 
 if TYPE_CHECKING:
     import os
-    from collections.abc import Sequence
     from numpy.typing import NDArray
-    from ..curve import Curve
+    from ..curve import CurvesLike
 
 __all__ = ["read_points", "write"]
 
@@ -281,18 +280,15 @@ def _raise_first_bad_cell(path, data, table, delim) -> None:
                 raise ParseError(f"not a number: {excerpt(tok)!r}{hint}", path=path, line=lineno) from None
 
 
-def write(
-    path: str | os.PathLike[str], curves: Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]]
-) -> None:
+def write(path: str | os.PathLike[str], curves: CurvesLike) -> None:
     """Write exactly one curve: header ``x,y,z`` then one row per vertex.
 
     Parameters
     ----------
     path : target file; ``.tsv`` is tab separated, ``.txt`` / ``.xyz`` space
         separated, anything else comma separated.
-    curves : a list holding one :class:`Curve` or one (n, 3) / (n, 2) array
-        (a bare Curve or 2-D array is accepted too). Vertices are cleaned
-        (duplicates, repeated closing vertex) before writing.
+    curves : :data:`~nfdmatch.curve.CurvesLike` holding exactly one curve (cleaned before
+        writing: duplicates, repeated closing vertex).
 
     Raises
     ------

@@ -37,9 +37,8 @@ from ._chain import is_number, ordered_curves, points_list, read_text, write_tex
 
 if TYPE_CHECKING:
     import os
-    from collections.abc import Sequence
     from numpy.typing import NDArray
-    from ..curve import Curve
+    from ..curve import CurvesLike
 
 __all__ = ["read_points", "write"]
 
@@ -288,16 +287,13 @@ def _token_counts(rows: list[str]) -> np.ndarray:
     return np.bincount(row[first], minlength=len(rows))
 
 
-def write(
-    path: str | os.PathLike[str], curves: Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]]
-) -> None:
+def write(path: str | os.PathLike[str], curves: CurvesLike) -> None:
     """Write curves as ``v`` lines then one closed ``l`` element per curve.
 
     Parameters
     ----------
     path : target file.
-    curves : list of :class:`Curve` or (n, 3) / (n, 2) arrays (a bare Curve or
-        2-D array is one curve). Vertices are cleaned before writing.
+    curves : :data:`~nfdmatch.curve.CurvesLike`, one or more (cleaned before writing).
 
     Raises
     ------

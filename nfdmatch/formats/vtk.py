@@ -42,9 +42,8 @@ from ._chain import check_readable, ordered_curves, points_list, publish, read_b
 
 if TYPE_CHECKING:
     import os
-    from collections.abc import Sequence
     from numpy.typing import NDArray
-    from ..curve import Curve
+    from ..curve import CurvesLike
 
 __all__ = ["read_points", "write", "KINDS"]
 
@@ -161,18 +160,13 @@ def read_points(path: str | os.PathLike[str], format: str | None = None) -> list
     return [points[idx] for idx in ordered_curves(polylines, loops)]
 
 
-def write(
-    path: str | os.PathLike[str],
-    curves: Curve | NDArray[np.floating] | Sequence[Curve | NDArray[np.floating]],
-    format: str | None = None,
-) -> None:
+def write(path: str | os.PathLike[str], curves: CurvesLike, format: str | None = None) -> None:
     """Write curves as one closed poly-line cell each, float64 points.
 
     Parameters
     ----------
     path : target file.
-    curves : list of :class:`Curve` or (n, 3) / (n, 2) arrays (a bare Curve or
-        2-D array is one curve). Vertices are cleaned before writing.
+    curves : :data:`~nfdmatch.curve.CurvesLike`, one or more (cleaned before writing).
     format : "vtk" (legacy binary PolyData), "vtp" (XML PolyData) or "vtu"
         (XML UnstructuredGrid); default from the extension.
 

@@ -33,7 +33,7 @@ from .search_group import write_search_group
 from .writer import CopyRun, CurveWriter, Space, fsync_path, write_files_table, write_sources
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import Callable, Sequence
     from .build import BuildReport
     from .lock import Lock
     from .reader import Index
@@ -52,22 +52,23 @@ def write_new_index(
     old: Index | None,
     jobs: int,
     lock: Lock | None,
-    progress: Any,
+    progress: Callable[[int, int], None] | None,
     file_timeout: float | None = None,
     *,
-    sources: tuple[Sequence[str], str | None] = ((), None),
+    sources: tuple[Sequence[str], str | None, Sequence[str]] = ((), None, ()),
     name: str | None = None,
     graph: Any = None,
-    runner: Any = None,
-    graph_runner: Any = None,
+    runner: Callable[..., Any] | None = None,
+    graph_runner: Callable[..., Any] | None = None,
     strict: bool = False,
-    graph_progress: Any = None,
+    graph_progress: Callable[[int, int], None] | None = None,
 ) -> None:
     """Write the new index beside ``index_path`` (the real file) and move it into place;
-    ``sources`` ``(stored paths, glob)`` go to /sources; ``name``: the index as the user named
-    it (messages); ``graph_runner``: searches the graph's rows elsewhere (see
-    :func:`nfdmatch.index.build_index`), in the temporary file closed meanwhile. ``strict``:
-    when a file failed, the temporary file is removed instead (``report.written`` False)."""
+    ``sources`` ``(stored paths, glob, excluded paths)`` go to /sources; ``name``: the index as
+    the user named it (messages); ``graph``, ``runner``, ``graph_runner``, ``graph_progress``:
+    as :func:`nfdmatch.index.build_index` takes them (``graph_runner`` searches the graph's rows
+    elsewhere, in the temporary file closed meanwhile). ``strict``: when a file failed, the
+    temporary file is removed instead (``report.written`` False)."""
     shown = index_path if name is None else name
     folder = os.path.dirname(index_path) or "."
     name = os.path.basename(index_path)

@@ -6,7 +6,7 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from ..curve import Curve
     from .stages import Stage
 
-__all__ = ["search_index", "SearchStats", "EXHAUSTIVE_ROWS", "k_or_top"]
+__all__ = ["search_index", "SearchStats", "SearchResults", "EXHAUSTIVE_ROWS", "k_or_top"]
 
 #: rows per exact call of the exhaustive search: bounds the (rows x shifts x 9) working set
 EXHAUSTIVE_ROWS = 2048
@@ -65,6 +65,12 @@ class SearchStats:
 
     def per_query(self, value: float) -> float:
         return value / self.queries if self.queries else 0.0
+
+
+#: what a search of an index returns (:func:`search_index`, ``Cluster.search_index``,
+#: :func:`~nfdmatch.search.rerank.rerank_index`): ``(results, stats)``, each query's list of
+#: matches, best first, and what the search did
+SearchResults: TypeAlias = tuple[list[list[RankedMatch]], SearchStats]
 
 
 #: ``top=``, the older name of ``k=`` (kept working, with a DeprecationWarning)
@@ -106,7 +112,7 @@ def search_index(
     exclude_self: bool = False,
     stage: Stage | None = None,
     top: Any = UNSET,
-) -> tuple[list[list[RankedMatch]], SearchStats]:
+) -> SearchResults:
     """k nearest curves of an index for each query curve, exactly.
 
     Parameters
