@@ -149,7 +149,7 @@ def d2(folder: str, names: list, seed: int = 0) -> np.ndarray:
 def terms(folder: str, names: list, jobs: int) -> list:
     """Retrieval by each term alone and the curves' and profile's shares: library ablations."""
     from nfdmatch.mesh.objects import cut_object
-    from nfdmatch.search.objects import SIZE_WEIGHT, object_distances, object_loops
+    from nfdmatch.search.object_distance import SIZE_WEIGHT, object_distances, object_loops
 
     loops = object_loops([cut_object(os.path.join(folder, n)) for n in names], 128, 16, "rms")
     runs = {

@@ -88,7 +88,7 @@ def test_a_reposed_rescaled_retriangulated_copy_finds_its_original_first(parts, 
 
 
 def test_object_distance_is_symmetric_and_zero_for_an_object_itself(parts, tmp_path):
-    from nfdmatch.search.objects import object_distances
+    from nfdmatch.search.object_distance import object_distances
 
     index = str(tmp_path / "parts.h5")
     build_index([str(parts)], index, jobs=1)
@@ -278,7 +278,7 @@ def _synthetic_objects(seed: int, n_objects: int, families: int = 3, sections: i
     """ObjectLoops of ``n_objects`` made-up objects: noisy copies of a few families (random
     smooth closed curves per axis and level, 0 to 2 loops a level, random sizes)."""
     from nfdmatch.descriptors import descriptors_batch
-    from nfdmatch.search.objects import ObjectLoops
+    from nfdmatch.search.object_distance import ObjectLoops
 
     rng = np.random.default_rng(seed)
     t = np.linspace(0, 2 * np.pi, 48, endpoint=False)
@@ -355,7 +355,8 @@ def test_the_pruned_object_search_skips_most_objects():
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(2, 40))
 def test_coarse_and_loop_bounds_never_exceed_the_object_distance(seed, n):
-    from nfdmatch.search.objects import object_coarse_bounds, object_distances, object_lower_bounds
+    from nfdmatch.search.object_bounds import object_coarse_bounds, object_lower_bounds
+    from nfdmatch.search.object_distance import object_distances
 
     objects = _synthetic_objects(seed, n)
     for q in range(min(n, 3)):

@@ -9,7 +9,8 @@ from typing import Any, TYPE_CHECKING
 import h5py
 import numpy as np
 
-from ..search.objects import ObjectLoops, StoredRows, search_objects
+from ..search.object_distance import ObjectLoops, StoredRows
+from ..search.objects import search_objects
 from .objects_group import read_objects, rule_of
 from ..errors import MAX_MESSAGE_CHARS, IndexFormatError, NfdError, ParameterError, excerpt
 from ..matching.statistics import curve_statistics

@@ -96,6 +96,28 @@ def row_scales(distances: np.ndarray, k: int) -> np.ndarray:
     return np.maximum(s, SCALE_FLOOR)
 
 
+def _rounds(r_key: np.ndarray, r_val: np.ndarray, tolerance: float, step) -> tuple[np.ndarray, np.ndarray]:
+    """The rounds of a push, either way: every residual (``r_val`` at keys ``r_key``, src * (N
+    + 1) + node, unique) of at least ``tolerance`` pushed at once by ``step(key, value) ->
+    (kept, spread_key, spread_value)``, what it spreads added to what was left, until none is.
+    Returns the kept mass summed by key, keys ascending (empty arrays when nothing was)."""
+    kept_keys, kept_vals = [], []
+    while True:
+        active = r_val >= tolerance
+        if not active.any():
+            break
+        a_key, a_val = r_key[active], r_val[active]
+        kept, spread_key, spread_val = step(a_key, a_val)
+        kept_keys.append(a_key)
+        kept_vals.append(kept)
+        r_key, r_val = sum_by_key(
+            np.concatenate([r_key[~active], spread_key]), np.concatenate([r_val[~active], spread_val])
+        )
+    if not kept_keys:
+        return _NO_NODES, _NO_VALUES
+    return sum_by_key(np.concatenate(kept_keys), np.concatenate(kept_vals))
+
+
 class GraphWalk:
     """The random walk over ``N`` stored rows plus one extra node ``N`` (a query laid over
     the graph with :meth:`overlay`); rows are read through ``reader`` on first use.
@@ -255,29 +277,19 @@ class GraphWalk:
 
         Returns ``(owner, node, mass)``, sorted by (owner, node): the rows reached."""
         size, alpha = self.N + 1, self.alpha
-        r_key, r_val = sum_by_key(np.asarray(owner, np.int64) * size + node, np.asarray(residual, np.float64))
-        kept_keys, kept_vals = [], []
-        while True:
-            active = r_val >= tolerance
-            if not active.any():
-                break
-            a_key, a_val = r_key[active], r_val[active]
-            src, v = np.divmod(a_key, size)
+
+        def step(key, value):
+            src, v = np.divmod(key, size)
             targets, prob = self.transitions(v)
-            stay = a_val / (1.0 - alpha * prob[:, 0])
-            kept_keys.append(a_key)
-            kept_vals.append((1 - alpha) * stay)
+            stay = value / (1.0 - alpha * prob[:, 0])
             counts, u = self.in_edges(v)
             edge = np.repeat(np.arange(len(v)), counts)
             u_targets, u_prob = self.transitions(u)
             p_uv = (u_prob[:, 1:] * (u_targets[:, 1:] == v[edge][:, None])).sum(axis=1)
-            r_key, r_val = sum_by_key(
-                np.concatenate([r_key[~active], src[edge] * size + u]),
-                np.concatenate([r_val[~active], alpha * stay[edge] * p_uv]),
-            )
-        if not kept_keys:
-            return _NO_NODES, _NO_NODES, _NO_VALUES
-        key, val = sum_by_key(np.concatenate(kept_keys), np.concatenate(kept_vals))
+            return (1 - alpha) * stay, src[edge] * size + u, alpha * stay[edge] * p_uv
+
+        start = sum_by_key(np.asarray(owner, np.int64) * size + node, np.asarray(residual, np.float64))
+        key, val = _rounds(*start, tolerance, step)
         src, node = np.divmod(key, size)
         return src, node, val
 
@@ -352,31 +364,20 @@ class GraphWalk:
         numpy push: the reference, the same doubles as the compiled one)."""
         size = self.N + 1
         alpha = self.alpha
-        # residuals and estimates as keys src * size + node, one entry per key
-        r_key = np.arange(len(sources), dtype=np.int64) * size + sources
-        r_val = np.ones(len(sources))
-        p_keys, p_vals = [], []
-        while True:
-            active = r_val >= tolerance
-            if not active.any():
-                break
-            a_key, a_val = r_key[active], r_val[active]
-            p_keys.append(a_key)
-            p_vals.append((1 - alpha) * a_val)
-            src, node = np.divmod(a_key, size)
+
+        def step(key, value):
+            src, node = np.divmod(key, size)
             targets, prob = self.transitions(node)
             # the self loop's returns summed at once: r_u (1 - alpha) / (1 - alpha P_uu) kept,
             # r_u alpha P_uv / (1 - alpha P_uu) to each other v
             stay = 1.0 / (1.0 - alpha * prob[:, 0])
-            p_vals[-1] *= stay
             spread_key = (src[:, None] * size + targets[:, 1:]).reshape(-1)
-            spread_val = (alpha * (a_val * stay)[:, None] * prob[:, 1:]).reshape(-1)
-            r_key, r_val = sum_by_key(
-                np.concatenate([r_key[~active], spread_key]), np.concatenate([r_val[~active], spread_val])
-            )
-        if not p_keys:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-        key, val = sum_by_key(np.concatenate(p_keys), np.concatenate(p_vals))
+            spread_val = (alpha * (value * stay)[:, None] * prob[:, 1:]).reshape(-1)
+            return ((1 - alpha) * value) * stay, spread_key, spread_val
+
+        # residuals and estimates as keys src * size + node, one entry per key
+        start = np.arange(len(sources), dtype=np.int64) * size + sources
+        key, val = _rounds(start, np.ones(len(sources)), tolerance, step)
         src, node = np.divmod(key, size)
         return src, node, val
 

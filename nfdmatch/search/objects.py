@@ -20,38 +20,13 @@ import numpy as np
 
 from .object_bounds import object_coarse_bounds, object_lower_bounds
 from .object_distance import (
-    EMPTY_LEVEL,
-    PROFILE_SCALE,
-    PROFILE_UNITS,
-    SHAPE_SCALE,
-    SIZE_WEIGHT,
-    ObjectDistances,
     ObjectLoops,
-    StoredRows,
     object_distances,
     object_loops,
 )
 from .workers import run_tasks
 
-__all__ = [
-    "SIZE_WEIGHT",
-    "EMPTY_LEVEL",
-    "SHAPE_SCALE",
-    "PROFILE_SCALE",
-    "PROFILE_UNITS",
-    "ObjectLoops",
-    "StoredRows",
-    "ObjectDistances",
-    "object_distances",
-    "ObjectMatch",
-    "FoundObject",
-    "object_loops",
-    "object_lower_bounds",
-    "object_coarse_bounds",
-    "nearest_objects",
-    "all_nearest_objects",
-    "search_objects",
-]
+__all__ = ["ObjectMatch", "FoundObject", "nearest_objects", "all_nearest_objects", "search_objects"]
 
 
 #: objects whose exact distance is computed in the first round of :func:`nearest_objects`
