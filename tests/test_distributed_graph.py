@@ -219,8 +219,9 @@ def test_an_interrupted_cluster_graph_leaves_the_old_index_and_no_file_open(clie
     searching = cluster._run_graph_tasks
 
     def interrupted(*args):
-        # Ctrl-C (as the CLI's handler raises it) half a second into the graph's search
-        timers.append(threading.Timer(0.5, _thread.interrupt_main))
+        # Ctrl-C (as the CLI's handler raises it) just after the graph's search starts (each of its
+        # tasks waits a second: on a loaded machine half a second was once after a fast build)
+        timers.append(threading.Timer(0.05, _thread.interrupt_main))
         timers[-1].start()
         return searching(*args)
 
