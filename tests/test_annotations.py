@@ -17,7 +17,7 @@ from code_measures import modules, public_functions  # noqa: E402
 #: modules not annotated yet, each with at least one public function left (the list only
 #: shrinks): the command line and the object search (being reorganised on other branches),
 #: and the modules of the elastic and graph stages (annotated with their next change)
-PENDING = {"nfdmatch.cli.index_cmds", "nfdmatch.search.objects"}
+PENDING = {"nfdmatch.search.objects"}
 
 
 def _module_of(name: str, modules: set[str]) -> str:
