@@ -12,36 +12,14 @@ import sys
 from conftest import ROOT
 
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-from code_measures import modules, public_functions  # noqa: E402
-
-#: modules not annotated yet, each with at least one public function left (the list only
-#: shrinks): the command line and the object search (being reorganised on other branches),
-#: and the modules of the elastic and graph stages (annotated with their next change)
-PENDING = {
-    "nfdmatch.cli.cluster", "nfdmatch.cli.curves", "nfdmatch.cli.export_cmd", "nfdmatch.cli.extract_cmd",
-    "nfdmatch.cli.group", "nfdmatch.cli.help_cmds", "nfdmatch.cli.index_cmds", "nfdmatch.cli.inputs",
-    "nfdmatch.cli.join_cmds", "nfdmatch.cli.options", "nfdmatch.cli.output", "nfdmatch.cli.pictures",
-    "nfdmatch.cli.query_cmd", "nfdmatch.cli.report_cmd", "nfdmatch.cli.signals",
-    "nfdmatch.search.objects",
-}  # fmt: skip
-
-
-def _module_of(name: str, modules: set[str]) -> str:
-    while name not in modules:
-        name = name.rsplit(".", 1)[0]
-    return name
+from code_measures import public_functions  # noqa: E402
 
 
 def test_every_public_function_is_annotated():
     functions = public_functions(os.path.join(ROOT, "nfdmatch"))
     assert len(functions) > 400  # the rule finds the library's functions at all
-    known = set(modules(os.path.join(ROOT, "nfdmatch")))
     bare = [name for name, annotated in functions if not annotated]
-    missing = [name for name in bare if _module_of(name, known) not in PENDING]
-    assert not missing, f"public functions without full annotations: {missing}"
-    still_pending = {_module_of(name, known) for name in bare}
-    done = sorted(PENDING - still_pending)
-    assert not done, f"fully annotated now: take them off PENDING: {done}"
+    assert not bare, f"public functions without full annotations: {bare}"
 
 
 def test_the_rule_of_the_count(tmp_path):

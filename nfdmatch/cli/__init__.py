@@ -12,10 +12,15 @@ loaded on first use, so that ``start`` runs before click and numpy are imported.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import click
+
 __all__ = ["main"]
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> click.Group:
     if name == "main":
         from . import curves, export_cmd, extract_cmd, help_cmds, index_cmds, join_cmds, pictures, query_cmd, report_cmd  # noqa: F401  (register the commands)
         from .group import main

@@ -3,16 +3,21 @@ options and opening the cluster (nfdmatch.distributed, imported only when asked 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import click
 
-from .options import VERBOSE, detail, int_option, verbosity
+from .options import VERBOSE, F, detail, int_option, verbosity
+
+if TYPE_CHECKING:
+    from ..distributed import Cluster
 
 #: the default of --scheduler-timeout (nfdmatch.distributed.DEFAULT_TIMEOUT, not imported here
 #: so that the CLI starts without dask)
 _TIMEOUT = 10.0
 
 
-def scheduler_options(f):
+def scheduler_options(f: F) -> F:
     """``--scheduler ADDRESS`` (or $NFDMATCH_SCHEDULER) and ``--scheduler-timeout SECONDS``."""
     f = click.option(
         "--scheduler-timeout",
@@ -33,7 +38,7 @@ def scheduler_options(f):
     )(f)
 
 
-def open_cluster(scheduler: str, timeout: float):
+def open_cluster(scheduler: str, timeout: float) -> Cluster:
     """The connected :class:`nfdmatch.distributed.Cluster` (a context manager); dask's own
     log lines (worker restarts, lost connections) are shown only with -v."""
     import logging
@@ -48,7 +53,7 @@ def open_cluster(scheduler: str, timeout: float):
     return cluster
 
 
-def ranges_option(f):
+def ranges_option(f: F) -> F:
     """``--ranges N`` of ``query``: how the cluster splits the index."""
     return int_option(
         "--ranges",

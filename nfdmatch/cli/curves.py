@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -30,6 +31,11 @@ from .options import (
 from .output import deliver, match_columns, match_row, path_speller, resolve_format, write_rows
 from .group import main
 
+if TYPE_CHECKING:
+    from ..descriptors import Descriptors
+    from ..search.stages import ElasticStage
+    from .options import MatchListing
+
 
 @main.command()
 @click.argument("curve_a", metavar="A")
@@ -44,7 +50,16 @@ from .group import main
 @input_format_option
 @format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
-def distance(curve_a, curve_b, elastic, matching, descriptor, input_format, output_format, output):
+def distance(
+    curve_a: str,
+    curve_b: str,
+    elastic: bool,
+    matching: dict[str, Any],
+    descriptor: dict[str, Any],
+    input_format: str | None,
+    output_format: str | None,
+    output: str | None,
+) -> None:
     """Similarity distance between two curves A and B, and the alignment of B onto A.
 
     A and B are files (FILE#I for curve I of a multi-curve file; `-` for stdin). The
@@ -101,7 +116,14 @@ def distance(curve_a, curve_b, elastic, matching, descriptor, input_format, outp
 @input_format_option
 @format_option(("csv", "tsv", "json", "jsonl"), help_extra=" [default: by the extension of -o, else csv]")
 @output_option()
-def describe(files, glob_pattern, descriptor, input_format, output_format, output):
+def describe(
+    files: tuple[str, ...],
+    glob_pattern: str | None,
+    descriptor: dict[str, Any],
+    input_format: str | None,
+    output_format: str | None,
+    output: str | None,
+) -> None:
     """Print the normalized Fourier descriptors of every curve in FILE_OR_FOLDER....
 
     One row per curve: id, parameters, centroid and scale (input units), whether the
@@ -150,7 +172,17 @@ def describe(files, glob_pattern, descriptor, input_format, output_format, outpu
 @input_format_option
 @rows_format_option
 @output_option()
-def rank(query_spec, sources, listing, stage, matching, descriptor, input_format, output_format, output):
+def rank(
+    query_spec: str,
+    sources: tuple[str, ...],
+    listing: MatchListing,
+    stage: ElasticStage | None,
+    matching: dict[str, Any],
+    descriptor: dict[str, Any],
+    input_format: str | None,
+    output_format: str | None,
+    output: str | None,
+) -> None:
     """Rank the curves in SOURCE... (files or folders) by similarity to QUERY, without an index.
 
     QUERY is one curve (FILE, FILE#I or `-`). Folders are searched recursively for files
@@ -220,7 +252,17 @@ def rank(query_spec, sources, listing, stage, matching, descriptor, input_format
     help="Write this curve format whatever OUT's extension (csv, obj, vtk, vtp, vtu).",
 )
 @format_option(help_extra=" of the summary rows on stdout (default: a table on a terminal, CSV otherwise)")
-def reconstruct(curve_spec, harmonics, output, points, samples, normalized, input_format, curve_format, output_format):
+def reconstruct(
+    curve_spec: str,
+    harmonics: int,
+    output: str,
+    points: int | None,
+    samples: int | None,
+    normalized: bool,
+    input_format: str | None,
+    curve_format: str | None,
+    output_format: str | None,
+) -> None:
     """Rebuild the curve(s) in FILE from their first K harmonics: what the descriptor sees.
 
     The rebuilt curve keeps the input's position, size and orientation (unless
@@ -280,7 +322,7 @@ def reconstruct(curve_spec, harmonics, output, points, samples, normalized, inpu
     say(f"wrote {output}")
 
 
-def _descriptor_row(d) -> dict:
+def _descriptor_row(d: Descriptors) -> dict:
     freqs, coeffs = d.band()
     return {
         "id": d.id,

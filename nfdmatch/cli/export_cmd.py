@@ -15,7 +15,7 @@ from .output import resolve_format, write_rows
 @index_option
 @format_option(("csv", "jsonl", "npz"), help_extra=" [default: by the extension of -o, else csv]")
 @output_option(help="The file to write (.csv, .jsonl or .npz), whole and only on success [default: stdout].")
-def index_export(index_path, output_format, output):
+def index_export(index_path: str, output_format: str | None, output: str | None) -> None:
     """Export the stored descriptors and poses of every curve, for use without h5py.
 
     Per curve: id, file, the index's samples, harmonics and scale_mode, then scale and

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import TYPE_CHECKING
 
 import click
 
@@ -26,6 +27,10 @@ from .options import (
 )
 from .output import FORMAT_OF_EXTENSION, deliver, write_rows
 from .group import main
+
+if TYPE_CHECKING:
+    from ..errors import OverwriteRefusedError
+    from ..mesh.contours import Contour, ExtractResult
 
 
 @main.command()
@@ -82,7 +87,18 @@ from .group import main
     "changed since); without it such a file is an error for its mesh (exit 3) and left alone.",
 )
 @format_option(help_extra=" of the list of written files (default: a table on a terminal, CSV otherwise)")
-def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format, prune, force, output_format):
+def extract(
+    meshes: tuple[str, ...],
+    out_dir: tuple[str, ...],
+    list_file: str | None,
+    sections: int,
+    axis: str,
+    boundaries: bool,
+    curve_format: str,
+    prune: bool,
+    force: bool,
+    output_format: str | None,
+) -> None:
     """Write closed contours of triangle meshes (STL, PLY, OBJ, OFF, GLB/GLTF) as curve files.
 
     Each MESH (a file, or a folder searched recursively for mesh files) is cut by N
@@ -150,7 +166,7 @@ def extract(meshes, out_dir, list_file, sections, axis, boundaries, curve_format
         sys.exit(EXIT_PARTIAL)
 
 
-def _list_format(list_file, output_format):
+def _list_format(list_file: str | None, output_format: str | None) -> str | None:
     """The format of --list FILE: --format, else its extension's; "paths" (one a line) for
     a table or an unknown extension; None without --list."""
     if list_file is None:
@@ -162,7 +178,9 @@ def _list_format(list_file, output_format):
     return list_format
 
 
-def _extract_all(files, sections, axis, boundaries):
+def _extract_all(
+    files: list[str], sections: int, axis: str, boundaries: bool
+) -> tuple[list[ExtractResult], list[NfdError]]:
     """The contours of every mesh file, and the errors of those that could not be read;
     each result's notes go to stderr."""
     from ..mesh import extract_contours
@@ -186,7 +204,9 @@ def _extract_all(files, sections, axis, boundaries):
     return results, errors
 
 
-def _writable_contours(results, out_dir, curve_format, force):
+def _writable_contours(
+    results: list[ExtractResult], out_dir: str, curve_format: str, force: bool
+) -> tuple[list[Contour], list[OverwriteRefusedError]]:
     """The contours to write and the errors of the meshes refused: without --force, a mesh
     with a file in the way that extract did not write fails (exit 3), the others go on."""
     from ..mesh import read_manifest, refused_targets
@@ -204,7 +224,13 @@ def _writable_contours(results, out_dir, curve_format, force):
     return contours, refused
 
 
-def _write_list(written, contours, list_file, list_format, output_format) -> None:
+def _write_list(
+    written: list[str],
+    contours: list[Contour],
+    list_file: str | None,
+    list_format: str | None,
+    output_format: str | None,
+) -> None:
     """The list of the written files: rows (stdout or --list FILE), or paths one a line."""
     rows = [
         {
@@ -225,7 +251,7 @@ def _write_list(written, contours, list_file, list_format, output_format) -> Non
         write_rows(rows, columns, list_format or output_format, list_file, group_by="mesh")
 
 
-def _prune(out_dir, written, errors, refused) -> str:
+def _prune(out_dir: str, written: list[str], errors: list[NfdError], refused: list[OverwriteRefusedError]) -> str:
     """--prune: remove the stale contour files of earlier runs (keeping those of meshes
     that failed this run); returns the summary's clause."""
     from ..mesh import prune_contours

@@ -8,7 +8,7 @@ from .. import __version__
 from .options import NfdGroup, verbosity_options
 
 
-def _print_version(ctx, param, value):
+def _print_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     """The version and which kernels this installation runs (ahead-of-time, just-in-time or
     numpy, with the reason): what a bug report needs first."""
     if not value or ctx.resilient_parsing:
@@ -30,7 +30,7 @@ def _print_version(ctx, param, value):
     help="Show the version and which kernels compute (ahead-of-time, just-in-time, numpy), and exit.",
 )
 @verbosity_options
-def main():
+def main() -> None:
     """Find which stored closed 3-D curves look most like a query curve.
 
     Curves are read from CSV/TSV/TXT (x,y,z or x,y), OBJ (`l` polylines) and VTK

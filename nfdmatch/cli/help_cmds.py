@@ -6,11 +6,15 @@ from __future__ import annotations
 
 import re
 import textwrap
+from typing import TYPE_CHECKING
 
 import click
 
 from .. import __version__
 from .group import main
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
 
 SHELLS = ("bash", "zsh", "fish")
 
@@ -19,7 +23,7 @@ SHELLS = ("bash", "zsh", "fish")
 @click.argument("command", nargs=-1, metavar="[COMMAND...]")
 @click.option("--man", is_flag=True, help="Print the manual page (roff) of every command instead: man -l -.")
 @click.pass_context
-def help_command(ctx, command, man):
+def help_command(ctx: click.Context, command: tuple[str, ...], man: bool) -> None:
     """Print the help of COMMAND (e.g. `nfdmatch help index build`), or of nfdmatch.
 
     \b
@@ -36,7 +40,7 @@ def help_command(ctx, command, man):
         click.echo(target.get_help(sub))
 
 
-def _find(root, words: list[str]):
+def _find(root: click.Context, words: list[str]) -> tuple[click.Command, list[str]]:
     """The command named by ``words`` under the root context's group, and its names."""
     cmd, path = root.command, [root.info_name or "nfdmatch"]
     for word in words:
@@ -47,18 +51,18 @@ def _find(root, words: list[str]):
     return cmd, path
 
 
-def _parents(root, path: list[str]):
+def _parents(root: click.Context, path: list[str]) -> click.Context:
     """A context chain for ``path`` (so the usage line reads `nfdmatch index build ...`)."""
     ctx, cmd = root, root.command  # the group's settings (-h) pass down the chain
     for word in path[1:-1]:
-        cmd = cmd.get_command(ctx, word)
+        cmd = cmd.get_command(ctx, word)  # type: ignore[attr-defined]  # a group: a word before the last
         ctx = click.Context(cmd, info_name=word, parent=ctx)
     return ctx
 
 
 @main.command()
 @click.argument("shell", type=click.Choice(SHELLS))
-def completion(shell):
+def completion(shell: str) -> None:
     """Print the completion script of SHELL for nfdmatch.
 
     \b
@@ -69,7 +73,7 @@ def completion(shell):
     """
     from click.shell_completion import get_completion_class
 
-    complete = get_completion_class(shell)(main, {}, "nfdmatch", "_NFDMATCH_COMPLETE")
+    complete = get_completion_class(shell)(main, {}, "nfdmatch", "_NFDMATCH_COMPLETE")  # type: ignore[misc]  # one of SHELLS
     click.echo(complete.source())
 
 
@@ -82,7 +86,7 @@ def _roff(text: str) -> str:
     return "\n".join("\\&" + line if line[:1] in (".", "'") else line for line in text.split("\n"))
 
 
-def _paragraphs(help_text: str) -> str:
+def _paragraphs(help_text: str | None) -> str:
     """A command's help as roff: paragraphs joined, ``\\b`` blocks kept line by line."""
     out = []
     for block in re.split(r"\n\s*\n", click.unstyle(help_text or "").strip()):
@@ -95,7 +99,9 @@ def _paragraphs(help_text: str) -> str:
     return "\n".join(out)
 
 
-def _commands(group, ctx, prefix=()):
+def _commands(
+    group: click.Group, ctx: click.Context, prefix: tuple[str, ...] = ()
+) -> Iterator[tuple[tuple[str, ...], click.Command, click.Context]]:
     for name in group.list_commands(ctx):
         cmd = group.get_command(ctx, name)
         if cmd is None or cmd.hidden:
@@ -106,7 +112,7 @@ def _commands(group, ctx, prefix=()):
             yield prefix + (name,), cmd, click.Context(cmd, info_name=name, parent=ctx)
 
 
-def man_page(group) -> str:
+def man_page(group: click.Group) -> str:
     """The manual page of nfdmatch (roff, section 1): the group's help, then every command's
     usage, help and options, as their ``--help`` says them."""
     root = click.Context(group, info_name="nfdmatch", **group.context_settings)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 from datetime import datetime, timezone
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -30,9 +31,15 @@ from .output import deliver, progress_bar, resolve_format, write_rows
 from .cluster import open_cluster, scheduler_options
 from .group import main
 
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from ..index.build import BuildReport
+    from ..index.graph import GraphSpec, GraphStats
+
 
 @main.group()
-def index():
+def index() -> None:
     """Build and inspect the HDF5 index of curve descriptors.
 
     \b
@@ -118,25 +125,25 @@ _WAIT = click.option(
     ("text", "json"), default="text", help_extra=": text, a summary on stderr; json, one summary object on stdout"
 )
 def index_build(
-    sources,
-    index_path,
-    glob_pattern,
-    rebuild,
-    dry_run,
-    jobs,
-    wait,
-    strict,
-    allow_shrink,
-    file_timeout,
-    graph_k,
-    sections,
-    graph_elastic,
-    descriptor,
-    input_format,
-    scheduler,
-    scheduler_timeout,
-    output_format,
-):
+    sources: tuple[str, ...],
+    index_path: str,
+    glob_pattern: str | None,
+    rebuild: bool,
+    dry_run: bool,
+    jobs: int | None,
+    wait: float,
+    strict: bool,
+    allow_shrink: bool,
+    file_timeout: float,
+    graph_k: int | None,
+    sections: int | None,
+    graph_elastic: bool,
+    descriptor: dict[str, Any],
+    input_format: str | None,
+    scheduler: str | None,
+    scheduler_timeout: float,
+    output_format: str,
+) -> None:
     """Index the curves in SOURCE... (files or folders, recursively); meshes (STL, PLY, OFF,
     GLB/GLTF, OBJ with faces) as objects, their contours MESH#I (docs/objects.md).
 
@@ -198,7 +205,7 @@ def index_build(
     _say_build_result(report, index_path, dry_run, allow_shrink, output_format, started, strict)
 
 
-def _graph_asked(graph_k: int | None, elastic: bool):
+def _graph_asked(graph_k: int | None, elastic: bool) -> int | GraphSpec | None:
     """The build's ``graph`` of --graph K and --elastic: K (exact), a ``GraphSpec`` of fused
     distances, or None (keep the index's)."""
     if elastic and not graph_k:
@@ -210,7 +217,16 @@ def _graph_asked(graph_k: int | None, elastic: bool):
     return GraphSpec(graph_k, "fused")
 
 
-def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, cluster_at: tuple, output_format, started):
+def _run_build(
+    sources: list[str],
+    index_path: str,
+    options: dict[str, Any],
+    jobs: int | None,
+    file_timeout: float,
+    cluster_at: tuple[str | None, float],
+    output_format: str,
+    started: datetime,
+) -> BuildReport:
     """The build, here or on the cluster ``cluster_at`` (``--scheduler`` and its timeout),
     under a progress bar. A build that fails or is interrupted still prints its JSON line
     (with ``--format json``) before the error goes on."""
@@ -222,7 +238,7 @@ def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, clu
     progress, finish_bar = progress_bar("indexing files")
     graph_bar = []
 
-    def graph_progress(done, total):  # the files' bar gives way to the graph's (one at a time)
+    def graph_progress(done: int, total: int | None) -> None:  # the files' bar gives way to the graph's (one at a time)
         if not graph_bar:
             finish_bar()
             graph_bar.extend(progress_bar("searching the graph"))
@@ -258,7 +274,13 @@ def _run_build(sources: list, index_path, options: dict, jobs, file_timeout, clu
 
 
 def _say_build_result(
-    report, index_path, dry_run: bool, allow_shrink: bool, output_format: str, started, strict: bool = False
+    report: BuildReport,
+    index_path: str,
+    dry_run: bool,
+    allow_shrink: bool,
+    output_format: str,
+    started: datetime,
+    strict: bool = False,
 ) -> None:
     """Notices and failures on stderr, the summary (or a dry run's changes) on stdout, and
     the exit: 2 for a dry run its build would refuse, else by the failed files."""
@@ -291,7 +313,7 @@ def _say_build_result(
     )
 
 
-def _failed_build_record(exc: BaseException, index_path: str, started) -> dict:
+def _failed_build_record(exc: BaseException, index_path: str, started: datetime) -> dict:
     """The JSON line of a build that wrote nothing (an error, an interruption)."""
     from ..errors import ShrinkRefusedError
 
@@ -306,7 +328,7 @@ def _failed_build_record(exc: BaseException, index_path: str, started) -> dict:
     return record
 
 
-def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict:
+def _build_summary(report: BuildReport, index_path: str, started: datetime, allow_shrink: bool) -> dict:
     """The JSON line of a build that ran (or of its dry run)."""
     summary = {
         "index": index_path,
@@ -346,7 +368,7 @@ def _build_summary(report, index_path: str, started, allow_shrink: bool) -> dict
     return summary
 
 
-def _say_build(report, index_path: str, allow_shrink: bool, strict: bool = False) -> None:
+def _say_build(report: BuildReport, index_path: str, allow_shrink: bool, strict: bool = False) -> None:
     """The build's summary in words, on stderr."""
     verb = (
         "would change"
@@ -382,17 +404,17 @@ def _say_build(report, index_path: str, allow_shrink: bool, strict: bool = False
         )
 
 
-def _graph_where(g) -> str:
+def _graph_where(g: GraphStats) -> str:
     """Where the graph's rows were searched, for the summary line ("" : this process)."""
     if g.scheduler:
         return f" on the cluster at {g.scheduler} ({g.workers} worker{'s' if g.workers != 1 else ''})"
     return f" on {g.processes} processes" if g.processes else ""
 
 
-def _edit_command(name: str, verb: str, doc: str):
+def _edit_command(name: str, verb: str, doc: str) -> Callable[[Callable[..., BuildReport]], click.Command]:
     """``index add`` and ``index remove``: the same options, one library function each."""
 
-    def decorate(run):
+    def decorate(run: Callable[..., BuildReport]) -> click.Command:
         @index.command(name, help=doc)
         @click.argument("files", nargs=-1, required=True, metavar="FILE...")
         @index_option
@@ -403,7 +425,15 @@ def _edit_command(name: str, verb: str, doc: str):
         @format_option(
             ("text", "json"), default="text", help_extra=" of the summary (json: one line, as index build's)"
         )
-        def command(files, index_path, jobs, wait, strict, input_format, output_format):
+        def command(
+            files: tuple[str, ...],
+            index_path: str,
+            jobs: int | None,
+            wait: float,
+            strict: bool,
+            input_format: str | None,
+            output_format: str,
+        ) -> None:
             started = datetime.now(timezone.utc)
             if "-" in files:
                 raise click.UsageError(f"index {name} takes files and folders, not stdin ('-')")
@@ -440,7 +470,7 @@ def _edit_command(name: str, verb: str, doc: str):
       nfdmatch index add extra/one.csv --index lib.h5
     """,
 )
-def index_add(files, index_path, **options):
+def index_add(files: list[str], index_path: str, **options: Any) -> BuildReport:
     from ..index.build import add_files
 
     return add_files(files, index_path, **options)
@@ -462,7 +492,7 @@ def index_add(files, index_path, **options):
       nfdmatch index remove lib/old/one.csv --index lib.h5
     """,
 )
-def index_remove(files, index_path, **options):
+def index_remove(files: list[str], index_path: str, **options: Any) -> BuildReport:
     from ..index.build import remove_files
 
     return remove_files(files, index_path, **options)
@@ -472,7 +502,7 @@ def index_remove(files, index_path, **options):
 @index_option
 @format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
-def index_info(index_path, output_format, output):
+def index_info(index_path: str, output_format: str | None, output: str | None) -> None:
     """Describe an index: sources, files, curves, failed files with reasons, parameters, format, times, size.
 
     `graph` is the number of nearest curves stored per curve for `query --rerank` (0: no
@@ -532,7 +562,7 @@ def index_info(index_path, output_format, output):
 @index.command("verify")
 @index_option
 @format_option(("text", "json"), default="text")
-def index_verify(index_path, output_format):
+def index_verify(index_path: str, output_format: str) -> None:
     """Check a whole index: every checksum, every value finite, the search cells consistent.
 
     Reads every chunk of every dataset (a query reads and checks only what it needs) and
@@ -592,7 +622,9 @@ def index_verify(index_path, output_format):
 @click.option("--curves", "list_curves", is_flag=True, help="One row per curve (id, file) instead of per file.")
 @rows_format_option
 @output_option()
-def index_ls(index_path, status, list_curves, output_format, output):
+def index_ls(
+    index_path: str, status: str | None, list_curves: bool, output_format: str | None, output: str | None
+) -> None:
     """List the files of an index (file, status, curves, error) or, with --curves, its curves (id, file).
 
     \b
@@ -608,7 +640,7 @@ def index_ls(index_path, status, list_curves, output_format, output):
         files = [r for r in idx.files() if status is None or r.status == status]
         if list_curves:
             ids = idx.ids()
-            rows = [
+            rows: list[dict[str, Any]] = [
                 {"id": ids[row], "file": r.path}
                 for r in files
                 for row in range(r.curve_start, r.curve_start + r.curve_count)

@@ -9,12 +9,21 @@ import os
 import sys
 import tempfile
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import click
 
 from ..curve import STDIN_ID
 from ..errors import NfdError, NoCurvesError
 from .options import NothingRead, count_failures, detail, error, finish, note_inputs, report_errors
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
+    from ..curve import Curve
+
+    #: a progress bar's update (:func:`~.output.progress_bar`): files done, of how many
+    Update = Callable[[int, int | None], None]
 
 #: the id of a curve read from stdin (``-`` on the command line)
 
@@ -55,7 +64,7 @@ def _stdin_curves(input_format: str | None) -> list:
     return [Curve(c.points, id=f"{STDIN_ID}#{i}") for i, c in enumerate(curves)]
 
 
-def read_one(spec: str, input_format: str | None = None):
+def read_one(spec: str, input_format: str | None = None) -> Curve:
     """One curve (``FILE``, ``FILE#I`` or ``-``): a curve the command cannot do without."""
     if spec == "-":
         curves = _stdin_curves(input_format)
@@ -76,7 +85,11 @@ _PROGRESS_CHUNK = 64
 
 
 def read_inputs(
-    specs, *, glob: str | None = None, input_format: str | None = None, progress: str | None = None
+    specs: Sequence[str | os.PathLike[str]],
+    *,
+    glob: str | None = None,
+    input_format: str | None = None,
+    progress: str | None = None,
 ) -> Inputs:
     """Read every curve of the files and folders ``specs`` (``-``: stdin).
 
@@ -94,13 +107,20 @@ def read_inputs(
             finish_bar()
 
 
-def _progress_bar(label: str):
+def _progress_bar(label: str) -> tuple[Update | None, Callable[[], None]]:
     from .output import progress_bar
 
     return progress_bar(label)
 
 
-def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) -> Inputs:
+def _read_inputs(
+    specs: Sequence[str | os.PathLike[str]],
+    glob: str | None,
+    input_format: str | None,
+    update: Update | None,
+    find_curve_files: Callable[..., list[str]],
+    read_all: Callable[..., tuple[list[Curve], list[NfdError]]],
+) -> Inputs:
     expected = None
     if update is not None:  # the files to read, for the bar's total (a second walk: cheap beside reading)
         expected = 0
@@ -112,7 +132,7 @@ def _read_inputs(specs, glob, input_format, update, find_curve_files, read_all) 
         update(0, expected)
     done = 0
 
-    def read_files(paths):
+    def read_files(paths: list[str]) -> tuple[list[Curve], list[NfdError]]:
         nonlocal done
         if update is None:
             return read_all(paths, format=input_format)

@@ -5,6 +5,7 @@ connected components); the library's :func:`nfdmatch.search.groups.index_pairs` 
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -22,6 +23,11 @@ from .output import deliver, progress_bar, resolve_format, write_rows
 from .cluster import open_cluster, scheduler_options
 from .group import main
 
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from ..search.join import JoinStats
+
 _DISTANCE = click.option(
     "--max-distance",
     type=click.FloatRange(min=0),
@@ -32,7 +38,7 @@ _DISTANCE = click.option(
 )
 
 
-def _work(stats, what: str) -> None:
+def _work(stats: JoinStats, what: str) -> None:
     detail(
         f"{what}: {stats.rows} curves, {stats.cell_pairs} pairs of cells opened, {stats.bounded} pairs bounded, "
         f"{stats.exact} exact distances; {stats.seconds:.2f} s"
@@ -54,15 +60,15 @@ def _work(stats, what: str) -> None:
 @rows_format_option
 @output_option()
 def pairs(
-    index_path,
-    max_distance,
-    new_only,
-    matching,
-    scheduler,
-    scheduler_timeout,
-    output_format,
-    output,
-):
+    index_path: str,
+    max_distance: float,
+    new_only: bool,
+    matching: dict[str, Any],
+    scheduler: str | None,
+    scheduler_timeout: float,
+    output_format: str | None,
+    output: str | None,
+) -> None:
     """List every pair of curves of the index at most D apart, each once (a < b).
 
     Rows: a, b, distance (the exact distance, sorted by a then b). Computed for the index
@@ -101,15 +107,15 @@ def pairs(
 @rows_format_option
 @output_option()
 def groups(
-    index_path,
-    max_distance,
-    min_size,
-    matching,
-    scheduler,
-    scheduler_timeout,
-    output_format,
-    output,
-):
+    index_path: str,
+    max_distance: float,
+    min_size: int,
+    matching: dict[str, Any],
+    scheduler: str | None,
+    scheduler_timeout: float,
+    output_format: str | None,
+    output: str | None,
+) -> None:
     """Group the curves of the index into near-duplicate groups.
 
     A group is a connected component of the pairs at most D apart (`nfdmatch pairs`):
@@ -148,7 +154,15 @@ def groups(
     nothing_matched(len(members), "no group")
 
 
-def _joined(run, label: str, index_path, scheduler, scheduler_timeout, max_distance, **options):
+def _joined(
+    run: Callable[..., tuple[list[Any], JoinStats]],
+    label: str,
+    index_path: str,
+    scheduler: str | None,
+    scheduler_timeout: float,
+    max_distance: float,
+    **options: Any,
+) -> tuple[list[Any], JoinStats]:
     """``run(index, max_distance, progress=, cluster=, **options)`` (the library's pairs or
     groups) over the open index, on a cluster when one is named, with a progress bar."""
     from ..index import open_index

@@ -21,7 +21,7 @@ inputs failed, the rest was answered), 130 interrupted (SIGINT, Ctrl-C), 143 ter
 
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import functools
 import os
@@ -33,6 +33,19 @@ import click
 
 from ..errors import NfdError, WriteError
 from .signals import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, raising
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable, Sequence
+    from typing import TypeAlias
+
+    from ..search.stages import ElasticStage
+
+    #: a command function taking the values of some options packed into one argument
+    #: (:func:`_packed`): its parameters change, so it is any callable again
+    Packing: TypeAlias = Callable[[Callable[..., Any]], Callable[..., Any]]
+
+#: a function that click decorates (a command's, or another option's decorator's result)
+F = TypeVar("F", bound="Callable[..., Any]")
 
 EXIT_OK, EXIT_NOTHING, EXIT_ERROR, EXIT_PARTIAL = 0, 1, 2, 3
 #: click's own exit status of a usage error: the same as any other error
@@ -57,17 +70,17 @@ class NfdGroup(click.Group):
 
     group_class = type  # subgroups (``index``) are NfdGroups too
 
-    def add_command(self, cmd, name=None):
+    def add_command(self, cmd: click.Command, name: str | None = None) -> None:
         if not isinstance(cmd, click.Group):
             cmd.params.extend(_verbosity_params())
         super().add_command(cmd, name)
 
-    def parse_args(self, ctx, args):
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         if ctx.parent is None:  # the words as given: --format of a command that fails to parse
             ctx.meta[_ARGS] = list(args)
         return super().parse_args(ctx, args)
 
-    def invoke(self, ctx):
+    def invoke(self, ctx: click.Context) -> Any:
         started = time.perf_counter()
         # the first SIGINT/SIGTERM raises while the command runs, later ones are ignored
         restore = raising() if ctx.parent is None else None
@@ -115,7 +128,7 @@ def _say_kernels_unused() -> None:
         note(reason, prefix="Warning: ")
 
 
-def _set_verbosity(ctx, param, value):
+def _set_verbosity(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     if value:
         level = QUIET if param.name == "quiet" else VERBOSE
         if ctx.meta.get(_VERBOSITY, level) != level:
@@ -137,12 +150,12 @@ _COLOR_HELP = (
 )
 
 
-def _set_color(ctx, param, value):
+def _set_color(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
     if value is not None:
         ctx.meta[_COLOR] = value
 
 
-def _color_kwargs() -> dict:
+def _color_kwargs() -> dict[str, Any]:
     return dict(
         type=click.Choice(COLOR_CHOICES), default=None, expose_value=False, callback=_set_color, help=_COLOR_HELP
     )
@@ -155,7 +168,7 @@ def _verbosity_params() -> list[click.Option]:
     ] + [click.Option(["--color"], **_color_kwargs())]
 
 
-def verbosity_options(f):
+def verbosity_options(f: F) -> F:
     """``-q``/``-v`` and ``--color`` on the group itself (``nfdmatch -q query ...``)."""
     f = click.option("--color", **_color_kwargs())(f)
     for names, text in reversed(_VERBOSITY_OPTIONS):
@@ -202,12 +215,12 @@ def detail(message: str) -> None:
         click.echo(message, err=True)
 
 
-def error(exc_or_message) -> None:
+def error(exc_or_message: object) -> None:
     """``Error: <message>`` on stderr, always (the message names the file and line)."""
     click.echo(f"Error: {exc_or_message}", err=True)
 
 
-def report_errors(errors) -> None:
+def report_errors(errors: Iterable[object]) -> None:
     for exc in errors:
         error(exc)
 
@@ -220,7 +233,7 @@ _STDOUT_USED = "nfdmatch.stdout-used"
 JSON_FORMATS = ("json", "jsonl")
 
 
-def count_failures(n: int, errors=()) -> None:
+def count_failures(n: int, errors: Iterable[BaseException] = ()) -> None:
     """``n`` more inputs failed (``errors``: their exceptions, listed in the JSON failure
     record, :func:`json_failure`)."""
     ctx = click.get_current_context(silent=True)
@@ -247,7 +260,7 @@ def stdout_used() -> None:
         ctx.meta[_STDOUT_USED] = True
 
 
-def _format_asked(meta: dict) -> str | None:
+def _format_asked(meta: dict[str, Any]) -> str | None:
     if _FORMAT in meta:
         return meta[_FORMAT]
     words = meta.get(_ARGS, [])
@@ -259,7 +272,7 @@ def _format_asked(meta: dict) -> str | None:
     return None
 
 
-def json_failure(ctx, message: str, code: int) -> None:
+def json_failure(ctx: click.Context, message: str, code: int) -> None:
     """With ``--format json`` or ``jsonl``: one JSON object on stdout saying why the command
     did not answer in full, so that a log of JSON lines gets a line from every run:
     ``{"error": MESSAGE, "exit": CODE, "failed": [{"input": PATH, "error": MESSAGE}, ...]}``
@@ -311,7 +324,9 @@ def nothing_matched(found: int, what: str = "no match") -> None:
 # --------------------------------------------------------------------------- options
 
 
-def format_option(formats=ROW_FORMATS, default=None, help_extra=""):
+def format_option(
+    formats: Sequence[str] = ROW_FORMATS, default: str | None = None, help_extra: str = ""
+) -> Callable[[F], F]:
     """The one ``--format`` option: every command that writes rows or a summary uses it."""
     return click.option(
         "--format",
@@ -325,7 +340,7 @@ def format_option(formats=ROW_FORMATS, default=None, help_extra=""):
 
 
 # rows formats with the default that every row-writing command has
-def rows_format_option(f):
+def rows_format_option(f: F) -> F:
     return format_option(help_extra=" (default: by the extension of -o, else a table on a terminal and CSV otherwise)")(
         f
     )
@@ -335,7 +350,9 @@ def rows_format_option(f):
 STDOUT = "-"
 
 
-def _check_output_path(ctx, param, value):
+def _check_output_path(
+    ctx: click.Context, param: click.Parameter, value: str | tuple[str, ...] | None
+) -> str | tuple[str, ...] | None:
     """Fail before any work when an output file cannot be written (exit 2, named). ``-o -``
     is stdout: None for a single ``-o``; kept as ``-`` among several (:func:`split_outputs`)."""
     if value == STDOUT:
@@ -357,7 +374,7 @@ def _check_output_path(ctx, param, value):
 _INPUTS = "nfdmatch.inputs"
 
 
-def note_inputs(paths) -> None:
+def note_inputs(paths: Iterable[str | os.PathLike[str] | None]) -> None:
     """Remember files this command reads (curve files, the index), so that an output naming
     one of them is refused (:func:`refuse_input_as_output`)."""
     ctx = click.get_current_context(silent=True)
@@ -365,7 +382,7 @@ def note_inputs(paths) -> None:
         ctx.meta.setdefault(_INPUTS, []).extend(os.fspath(p) for p in paths if p is not None and p != STDOUT)
 
 
-def refuse_input_as_output(path) -> None:
+def refuse_input_as_output(path: str | None) -> None:
     """A usage error (exit 2) when ``path`` is one of the files this command read, however
     spelled (the same file: device and inode, links followed), as ``cp a a`` refuses: the
     input is left untouched. Called just before an output is written; an output that does
@@ -406,13 +423,13 @@ def check_writable(path: str) -> str:
 
 
 def output_option(
-    help="Write the rows to FILE (whole, and only when the command succeeds; an identical "
+    help: str = "Write the rows to FILE (whole, and only when the command succeeds; an identical "
     "file keeps its bytes, with a fresh mtime) instead of stdout; '-': stdout.",
-    multiple=False,
-    required=False,
-    names=("--output", "-o"),
-    dest="output",
-):
+    multiple: bool = False,
+    required: bool = False,
+    names: tuple[str, ...] = ("--output", "-o"),
+    dest: str = "output",
+) -> Callable[[F], F]:
     """The one ``-o/--output`` option of commands that write rows (and pictures); ``names``
     and ``dest`` for another output file of that kind (``extract --list``)."""
     return click.option(
@@ -428,7 +445,9 @@ def output_option(
     )
 
 
-def int_option(*names: str, minimum: int = 1, default: int | None = None, metavar: str | None = None, help: str):
+def int_option(
+    *names: str, minimum: int = 1, default: int | None = None, metavar: str | None = None, help: str
+) -> Callable[[F], F]:
     """A whole-number option of at least ``minimum`` (--top, --sections, --jobs, ...); its
     default, when it has one, shown in --help (when it has none, ``help`` says what then)."""
     return click.option(
@@ -436,7 +455,7 @@ def int_option(*names: str, minimum: int = 1, default: int | None = None, metava
     )
 
 
-def input_format_option(f):
+def input_format_option(f: F) -> F:
     from ..formats import FORMATS
 
     return click.option(
@@ -448,7 +467,7 @@ def input_format_option(f):
     )(f)
 
 
-def _descriptor_option_table():
+def _descriptor_option_table() -> tuple[tuple[tuple[str, ...], click.ParamType, Any, str, str], ...]:
     """The three descriptor options, defined once: ``(names, type, default, help, short
     help)``, in the order --help lists them."""
     from ..descriptors import DEFAULT_HARMONICS, DEFAULT_SAMPLES, DEFAULT_SCALE, SCALES
@@ -478,19 +497,21 @@ def _descriptor_option_table():
     )
 
 
-def _packed(command, name: str, keys: tuple, pack=dict):
+def _packed(
+    command: Callable[..., Any], name: str, keys: tuple[str, ...], pack: Callable[..., Any] = dict
+) -> Callable[..., Any]:
     """``command`` taking the values of the options ``keys`` as one argument ``name``:
     ``pack(**values)`` (a dict by default)."""
 
     @functools.wraps(command)
-    def packed(*args, **kwargs):
+    def packed(*args: Any, **kwargs: Any) -> Any:
         values = {key: kwargs.pop(key) for key in keys}
         return command(*args, **{name: pack(**values)}, **kwargs)
 
     return packed
 
 
-def _with_options(command, *options):
+def _with_options(command: Callable[..., Any], *options: Callable[[Any], Any]) -> Callable[..., Any]:
     """``command`` with the click ``options`` (decorators), which ``--help`` lists in the order
     given (a decorator stack applies the last first)."""
     for option in reversed(options):
@@ -498,7 +519,7 @@ def _with_options(command, *options):
     return command
 
 
-def _descriptor_options(command, what: str | None = None):
+def _descriptor_options(command: Callable[..., Any], what: str | None = None) -> Callable[..., Any]:
     """--samples, --harmonics, --scale, passed on as ``descriptor``: a dict of the keyword
     arguments ``samples``, ``harmonics``, ``scale`` of the library. With the library's
     defaults; or, given ``what`` (who else decides), without: None where not given."""
@@ -511,17 +532,17 @@ def _descriptor_options(command, what: str | None = None):
     return f
 
 
-def descriptor_options(command):
+def descriptor_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """The descriptor options with the library's defaults (inputs read from files)."""
     return _descriptor_options(command)
 
 
-def optional_descriptor_options(what: str):
+def optional_descriptor_options(what: str) -> Packing:
     """The descriptor options without defaults: an index fixes them, files take the defaults."""
     return functools.partial(_descriptor_options, what=what)
 
 
-def matching_options(command):
+def matching_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """--method, --strict-direction and --mirror, passed on as ``matching``: a dict of
     the keyword arguments ``method``, ``direction``, ``mirror`` of the library."""
     from ..matching import DEFAULT_METHOD, METHODS
@@ -541,7 +562,7 @@ def matching_options(command):
     return f
 
 
-def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
+def matching(method: str, strict_direction: bool, mirror: bool) -> dict[str, Any]:
     """The library's matching keyword arguments from the options of :func:`matching_options`."""
     from ..matching import DEFAULT_DIRECTION, STRICT_DIRECTION
 
@@ -552,12 +573,12 @@ def matching(method: str, strict_direction: bool, mirror: bool) -> dict:
     }
 
 
-def elastic_options(command):
+def elastic_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """--elastic and --elastic-depth M, passed on as ``stage``: the library's
     :class:`~nfdmatch.search.stages.ElasticStage`, or None without --elastic."""
     from ..defaults import DEFAULT_ELASTIC_DEPTH
 
-    def pack(elastic: bool, elastic_depth: int | None):
+    def pack(elastic: bool, elastic_depth: int | None) -> ElasticStage | None:
         if elastic_depth is not None and not elastic:
             raise click.UsageError("--elastic-depth needs --elastic")
         if not elastic:
@@ -581,7 +602,7 @@ def elastic_options(command):
     return f
 
 
-def _note_index(ctx, param, value):
+def _note_index(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
     note_inputs([value])
     return value
 
@@ -596,7 +617,7 @@ class Rerank:
     candidates: str
 
 
-def rerank_options(command):
+def rerank_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """--rerank, --rerank-depth M and --rerank-candidates of every command that re-ranks by
     diffusion (``query``, ``report``), passed on as ``rerank``: a :class:`Rerank`, or None
     without --rerank (the other two then a usage error)."""
@@ -638,7 +659,7 @@ def rerank_options(command):
     )
 
 
-def index_option(f):
+def index_option(f: F) -> F:
     from ..defaults import DEFAULT_INDEX, INDEX_ENV
 
     return click.option(
@@ -659,8 +680,8 @@ _GLOB_HELP = (
 )
 
 
-def _glob_callback(dest: str, ignore_case: bool):
-    def callback(ctx, param, value):
+def _glob_callback(dest: str, ignore_case: bool) -> Callable[[click.Context, click.Parameter, str | None], None]:
+    def callback(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
         if value is None:
             ctx.params.setdefault(dest, None)
             return
@@ -673,11 +694,11 @@ def _glob_callback(dest: str, ignore_case: bool):
     return callback
 
 
-def glob_options(dest: str = "glob_pattern", extra: str = ""):
+def glob_options(dest: str = "glob_pattern", extra: str = "") -> Callable[[F], F]:
     """``--glob PATTERN`` and ``--iglob PATTERN`` (the same, ignoring case), passed on as one
     argument ``dest``: the library's ``glob`` (:func:`nfdmatch.sources.glob_matcher`)."""
 
-    def decorate(f):
+    def decorate(f: F) -> F:
         f = click.option(
             "--iglob",
             metavar="PATTERN",
@@ -721,7 +742,7 @@ exclude_self_option = click.option(
 )
 
 
-def check_max_distance(ctx, param, value):
+def check_max_distance(ctx: click.Context, param: click.Parameter, value: float | None) -> float | None:
     """``--max-distance`` by the library's rule (``search.limits``): a number >= 0, inf for
     no limit; NaN refused as a usage error, as a negative number is."""
     if value is not None:
@@ -747,17 +768,17 @@ class MatchListing:
     paths: str
     exclude_self: bool
 
-    def search(self) -> dict:
+    def search(self) -> dict[str, Any]:
         """The library's keyword arguments among them: ``k`` (``--top``), ``max_distance``, ``exclude_self``."""
         return {"k": self.top, "max_distance": self.max_distance, "exclude_self": self.exclude_self}
 
 
-def match_list_options(top_help: str, glob_help: str):
+def match_list_options(top_help: str, glob_help: str) -> Packing:
     """The options of every command that lists a query's matches (``rank``, ``query``):
     --top, --max-distance, --glob, --details, --paths, --exclude-self, passed on as
     ``listing``: a :class:`MatchListing`."""
 
-    def decorate(command):
+    def decorate(command: Callable[..., Any]) -> Callable[..., Any]:
         return _with_options(
             _packed(command, "listing", tuple(field.name for field in fields(MatchListing)), pack=MatchListing),
             int_option("--top", default=10, help=top_help),

@@ -13,6 +13,7 @@ import json
 import os
 import sys
 import time
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -32,6 +33,12 @@ from .options import (
     verbosity,
 )
 
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable, Sequence
+
+    from ..records import RankedMatch
+    from ..search.stages import Stage
+
 #: the format a ``-o FILE`` gets from its extension when --format is not given (each
 #: command accepts those of its formats); any other extension is a usage error
 FORMAT_OF_EXTENSION = {
@@ -46,7 +53,9 @@ FORMAT_OF_EXTENSION = {
 PICTURE_EXTENSIONS = (".png", ".svg", ".pdf")
 
 
-def split_outputs(paths, formats=ROW_FORMATS, fmt: str | None = None) -> tuple[list[str], str | None]:
+def split_outputs(
+    paths: Sequence[str], formats: Sequence[str] = ROW_FORMATS, fmt: str | None = None
+) -> tuple[list[str], str | None]:
     """``-o`` paths of a picture command: pictures by extension (.png, .svg, .pdf), rows
     for the one other path (None: stdout; ``-o -`` is stdout too). An extension that is
     neither a picture's nor one of ``formats`` is a usage error naming both, unless
@@ -74,7 +83,12 @@ def _extension_text(ext: str) -> str:
 
 
 def resolve_format(
-    fmt: str | None, output: str | None, formats=ROW_FORMATS, *, terminal: str = "table", piped: str = "csv"
+    fmt: str | None,
+    output: str | None,
+    formats: Sequence[str] = ROW_FORMATS,
+    *,
+    terminal: str = "table",
+    piped: str = "csv",
 ) -> str:
     """The output format: as given (``--format``), else by the extension of ``output``
     (:data:`FORMAT_OF_EXTENSION`, among ``formats``: any other extension is a usage error
@@ -96,7 +110,7 @@ def resolve_format(
     return remember_format(terminal if stdout_is_terminal() else piped)
 
 
-def path_speller(mode: str, locate=None):
+def path_speller(mode: str, locate: Callable[[str], str] | None = None) -> Callable[[str], str]:
     """``id -> id`` as ``--paths`` asks: ``id`` leaves it; ``absolute`` / ``relative`` (to the
     working directory) spell the file of the id, ``#i`` kept. ``locate``: a stored id -> a
     path that opens it from here (an index's ids are relative to its folder). Ids that are
@@ -117,7 +131,7 @@ def path_speller(mode: str, locate=None):
     return spell
 
 
-def match_row(query_id: str, m) -> dict:
+def match_row(query_id: str, m: RankedMatch) -> dict[str, Any]:
     """The row `rank` and `query` print for one :class:`~nfdmatch.records.RankedMatch`
     (columns: :func:`match_columns`, and ``score`` after a re-ranking)."""
     return {
@@ -134,7 +148,7 @@ def match_row(query_id: str, m) -> dict:
     }
 
 
-def match_columns(details: bool, stage=None) -> list[str]:
+def match_columns(details: bool, stage: Stage | None = None) -> list[str]:
     """Columns of the rows `rank` and `query` print; a re-ordering ``stage``'s columns
     follow the distance."""
     columns = ["query", "rank", "match", "distance"] + (["shift", "reversed", "mirrored"] if details else [])
@@ -149,7 +163,7 @@ def match_columns(details: bool, stage=None) -> list[str]:
 NAME_COLUMNS = ("query", "match", "id", "curve")
 
 
-def decoded_names(rows: list[dict], names=NAME_COLUMNS) -> list[dict]:
+def decoded_names(rows: list[dict], names: Iterable[str] = NAME_COLUMNS) -> list[dict]:
     """``rows`` with the ids of the columns ``names`` decoded to the file names they encode
     (:func:`nfdmatch.names.decode_name`): what goes to a pipe or a file."""
     from ..names import decode_name
@@ -167,7 +181,7 @@ def write_rows(
     output: str | None = None,
     *,
     group_by: str | None = None,
-    names=NAME_COLUMNS,
+    names: Iterable[str] = NAME_COLUMNS,
 ) -> None:
     """Write rows to ``output`` (stdout when None) as a table, CSV, TSV, JSON (a list) or
     JSON lines. Machine formats carry no markup; floats keep full precision (repr).
@@ -211,7 +225,7 @@ def tsv_field(value: str) -> str:
     return value.translate(_TSV_SPECIAL)
 
 
-def delimited_text(header: list[str], rows, fmt: str) -> str:
+def delimited_text(header: list[str], rows: Iterable[Sequence[str]], fmt: str) -> str:
     """A header line then the rows (lists of str), as CSV (RFC 4180 quoting) or TSV
     (backslash escapes, :func:`tsv_field`)."""
     if fmt == "tsv":
@@ -239,7 +253,7 @@ def delimited_fields(values: list[str], fmt: str) -> list[str]:
     return fields
 
 
-def _cell_text(value, pretty: bool = False) -> str:
+def _cell_text(value: object, pretty: bool = False) -> str:
     if value is None:
         return ""
     if isinstance(value, bool):
@@ -255,7 +269,7 @@ def _cell_text(value, pretty: bool = False) -> str:
 PATH_COLUMNS = ("query", "match", "id", "file", "curve", "mesh", "path")
 
 
-def common_folder(values) -> str:
+def common_folder(values: Iterable[str]) -> str:
     """The longest folder prefix (ending in ``/``) shared by all ``values``; '' if none."""
     values = [v for v in values if v]
     if not values:
@@ -390,7 +404,7 @@ REDRAW_SECONDS = 0.1
 _clock = time.monotonic
 
 
-def progress_bar(description: str):
+def progress_bar(description: str) -> tuple[Callable[[int, int | None], None] | None, Callable[[], None]]:
     """(callback, finish) for a rich progress bar on stderr, only when stderr is a terminal
     and not ``-q``."""
     if not stderr_is_terminal() or verbosity() < NORMAL:
@@ -412,7 +426,7 @@ def progress_bar(description: str):
     bar.start()
     last = -float("inf")
 
-    def update(done, total):
+    def update(done: int, total: int | None) -> None:
         nonlocal last
         bar.update(task, completed=done, total=total)
         now = _clock()

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from .inputs import read_inputs
 from .options import (
+    F,
     descriptor_options,
     elastic_options,
     finish,
@@ -40,6 +42,15 @@ from .group import main
 from .picture_files import check_pictures, not_written, picture_names, report_picture
 from .show_meshes import show_meshes
 
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable
+
+    import numpy as np
+
+    from ..curve import Curve
+    from ..records import ShownMatch
+    from ..search.stages import ElasticStage, Stage
+
 
 def _parse_size(value: str) -> tuple[int, int]:
     from ..render import MAX_SIDE, MIN_SIDE
@@ -53,7 +64,7 @@ def _parse_size(value: str) -> tuple[int, int]:
     return width, height
 
 
-def _renderer_option(f):
+def _renderer_option(f: F) -> F:
     return click.option(
         "--renderer",
         type=click.Choice(["auto", "matplotlib", "pyvista"]),
@@ -94,24 +105,24 @@ def _renderer_option(f):
     "terminal and CSV otherwise)"
 )
 def show(
-    query_spec,
-    sources,
-    against,
-    index_path,
-    top,
-    max_distance,
-    exclude_self,
-    paths,
-    output,
-    size,
-    renderer,
-    glob_pattern,
-    stage,
-    matching,
-    descriptor,
-    input_format,
-    output_format,
-):
+    query_spec: str,
+    sources: tuple[str, ...],
+    against: bool,
+    index_path: str,
+    top: int,
+    max_distance: float | None,
+    exclude_self: bool,
+    paths: str,
+    output: tuple[str, ...],
+    size: str,
+    renderer: str,
+    glob_pattern: str | None,
+    stage: ElasticStage | None,
+    matching: dict[str, Any],
+    descriptor: dict[str, Any],
+    input_format: str | None,
+    output_format: str | None,
+) -> None:
     """Draw each query and its best matches, aligned onto the query, into one picture per query.
 
     The matches come from the index (--index, as `query` finds them; every QUERY... is a
@@ -170,7 +181,9 @@ def show(
     nothing_matched(sum(len(drawn) for drawn in shown))
 
 
-def _pictures(queries, shown, names, size, renderer) -> list:
+def _pictures(
+    queries: list[Curve], shown: list[list[ShownMatch]], names: list[str], size: tuple[int, int], renderer: str
+) -> list:
     """Each query's picture drawn (none when some input could not be read)."""
     from ..render import render_matches
 
@@ -182,7 +195,13 @@ def _pictures(queries, shown, names, size, renderer) -> list:
     ]
 
 
-def _drawn_rows(queries, shown, spell_query, spell_match, stage_columns=()) -> list[dict]:
+def _drawn_rows(
+    queries: list[Curve],
+    shown: list[list[ShownMatch]],
+    spell_query: Callable[[str], str],
+    spell_match: Callable[[str], str],
+    stage_columns: Iterable[str] = (),
+) -> list[dict]:
     """The rows of what show drew: query, rank, match, distance, the stage's columns, source
     (ids as --paths says)."""
     return [
@@ -193,7 +212,9 @@ def _drawn_rows(queries, shown, spell_query, spell_match, stage_columns=()) -> l
     ]  # fmt: skip
 
 
-def _check_show_arguments(pictures, size: str, against: bool, sources, against_only: tuple) -> tuple[int, int]:
+def _check_show_arguments(
+    pictures: list[str], size: str, against: bool, sources: tuple[str, ...], against_only: tuple
+) -> tuple[int, int]:
     """show's usage errors, in this order: one picture -o, --size (returned parsed),
     SOURCE... with --against, and the options that go with --against only
     (``against_only``: samples, harmonics, scale, glob)."""
@@ -211,14 +232,24 @@ def _check_show_arguments(pictures, size: str, against: bool, sources, against_o
     return width_height
 
 
-def _ranked_drawn(queries, curves, top: int, descriptor: dict, match: dict, stage=None) -> list:
+def _ranked_drawn(
+    queries: list[Curve], curves: list[Curve], top: int, descriptor: dict, match: dict, stage: Stage | None = None
+) -> list[list[ShownMatch]]:
     """What show draws per query with --against: its ``top`` matches among ``curves``."""
     from ..show import show_ranked
 
     return [show_ranked(q, curves, k=top, stage=stage, **descriptor, **match) for q in queries]
 
 
-def _searched_drawn(queries, index_path, top: int, input_format, match: dict, stage=None, paths: str = "id"):
+def _searched_drawn(
+    queries: list[Curve],
+    index_path: str,
+    top: int,
+    input_format: str | None,
+    match: dict,
+    stage: Stage | None = None,
+    paths: str = "id",
+) -> tuple[list[list[ShownMatch]], Callable[[str], str]]:
     """What show draws per query from the index: its ``top`` matches, their curves read
     back from their files (notes on stderr for those that cannot be); and how --paths
     spells their ids (``id -> str``, resolved while the index is open)."""
@@ -274,17 +305,17 @@ def _searched_drawn(queries, index_path, top: int, input_format, match: dict, st
 )
 @format_option(("csv", "tsv", "json"), help_extra=" of the matrix [default: by the extension of -o, else csv]")
 def matrix(
-    sources,
-    output,
-    glob_pattern,
-    matching,
-    descriptor,
-    input_format,
-    order,
-    rerank,
-    elastic,
-    output_format,
-):
+    sources: tuple[str, ...],
+    output: tuple[str, ...],
+    glob_pattern: str | None,
+    matching: dict[str, Any],
+    descriptor: dict[str, Any],
+    input_format: str | None,
+    order: str,
+    rerank: bool,
+    elastic: bool,
+    output_format: str | None,
+) -> None:
     """The distance between every pair of curves in FILE_OR_FOLDER... .
 
     Rows (stdout, or -o FILE.csv/.tsv/.json): CSV/TSV with a header row
@@ -346,7 +377,7 @@ def matrix(
     inputs.finish()
 
 
-def _reranked(distances, ids, lists=None):
+def _reranked(distances: np.ndarray, ids: list[str], lists: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(similarity, dissimilarity)``: the diffused similarity of every pair (ties among a
     curve's neighbours by ``ids``, as the stored graph orders them; ``lists``: a fused graph's
     lists, with --elastic) and, for the pictures and the similarity order, 1 - it (0 on the
@@ -361,7 +392,7 @@ def _reranked(distances, ids, lists=None):
     return values, distances
 
 
-def _matrix_text(ids, values, fmt: str, rerank: bool) -> str:
+def _matrix_text(ids: list[str], values: np.ndarray, fmt: str, rerank: bool) -> str:
     """The matrix as JSON (``ids`` and ``distances``, or ``scores`` with --rerank) or as
     CSV/TSV rows (a header row of ids, then each curve's id and row)."""
     if fmt == "json":
@@ -377,7 +408,7 @@ def _matrix_text(ids, values, fmt: str, rerank: bool) -> str:
     return "".join(lines)
 
 
-def _entry_rows(values, sep: str) -> list[str]:
+def _entry_rows(values: np.ndarray, sep: str) -> list[str]:
     """Each row's entries as text joined by ``sep`` (``repr``: the shortest that reads back
     the same float); a symmetric matrix's entries are written out once for both triangles
     (2 M entries of 1,400 curves: half of the formatting time)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -28,6 +29,16 @@ from .output import match_columns, match_row, path_speller, progress_bar, resolv
 from .cluster import open_cluster, ranges_option, scheduler_options
 from .group import main
 
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable
+
+    from ..curve import Curve
+    from ..index import Index
+    from ..records import RankedMatch
+    from ..search.index_search import SearchResults, SearchStats
+    from ..search.stages import ElasticStage, Stage
+    from .options import MatchListing
+
 
 @main.command()
 @click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
@@ -49,21 +60,21 @@ from .group import main
 @rows_format_option
 @output_option()
 def query(
-    queries,
-    index_path,
-    listing,
-    exhaustive,
-    show_stats,
-    rerank,
-    stage,
-    matching,
-    input_format,
-    scheduler,
-    scheduler_timeout,
-    ranges,
-    output_format,
-    output,
-):
+    queries: tuple[str, ...],
+    index_path: str,
+    listing: MatchListing,
+    exhaustive: bool,
+    show_stats: bool,
+    rerank: Rerank | None,
+    stage: ElasticStage | None,
+    matching: dict[str, Any],
+    input_format: str | None,
+    scheduler: str | None,
+    scheduler_timeout: float,
+    ranges: int | None,
+    output_format: str | None,
+    output: str | None,
+) -> None:
     """Find the curves of the index most similar to each curve in QUERY... .
 
     QUERY: files (FILE#I for one curve of a multi-curve file; `-` for stdin) or folders;
@@ -124,7 +135,9 @@ def query(
     nothing_matched(len(rows), f"no match for any of the {len(inputs.curves)} queries")
 
 
-def _curve_rows(idx, curves, results, listing, columns: list) -> tuple[list, list]:
+def _curve_rows(
+    idx: Index, curves: list[Curve], results: list[list[RankedMatch]], listing: MatchListing, columns: list[str]
+) -> tuple[list[dict], list[str]]:
     """The rows and columns of a curve query's answers (the match spelled while the index is
     open); an index of objects adds the column object (the mesh of a matched contour)."""
     spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
@@ -138,7 +151,15 @@ def _curve_rows(idx, curves, results, listing, columns: list) -> tuple[list, lis
     return rows, columns + (["object"] if object_of is not None else [])
 
 
-def _query_meshes(idx, queries, listing, matching, input_format, given: dict, output_at) -> bool:
+def _query_meshes(
+    idx: Index,
+    queries: Iterable[str],
+    listing: MatchListing,
+    matching: dict[str, Any],
+    input_format: str | None,
+    given: dict[str, Any],
+    output_at: tuple[str, str | None],
+) -> bool:
     """Answer a query of meshes (:func:`_query_objects`) and say so; False for a query of
     curves (nothing done)."""
     meshes = mesh_queries(idx, queries, listing.glob, input_format)
@@ -147,7 +168,7 @@ def _query_meshes(idx, queries, listing, matching, input_format, given: dict, ou
     return bool(meshes)
 
 
-def mesh_queries(idx, queries, glob, input_format) -> list[str]:
+def mesh_queries(idx: Index, queries: Iterable[str], glob: str | None, input_format: str | None) -> list[str]:
     """The query meshes among QUERY... (files named directly; in folders too when the index
     holds objects), or [] for a query of curves. A mix of meshes and curve files is a usage
     error: their rows differ."""
@@ -180,7 +201,15 @@ def mesh_queries(idx, queries, glob, input_format) -> list[str]:
     return meshes
 
 
-def _query_objects(idx, meshes, listing, matching, given: dict, output_format, output) -> None:
+def _query_objects(
+    idx: Index,
+    meshes: list[str],
+    listing: MatchListing,
+    matching: dict[str, Any],
+    given: dict[str, Any],
+    output_format: str,
+    output: str | None,
+) -> None:
     """Rank the index's objects for each query mesh (docs/objects.md): rows query, rank,
     match (the object's mesh), distance, curves (its contours that were the nearest of some
     query contour). Bad meshes are named and the others answered (exit 3)."""
@@ -227,7 +256,7 @@ def _query_objects(idx, meshes, listing, matching, given: dict, output_format, o
     nothing_matched(len(rows), f"no object matched any of the {len(meshes)} query meshes")
 
 
-def _objects_of(idx, match_spelling: dict, spell_match):
+def _objects_of(idx: Index, match_spelling: dict[str, str], spell_match: Callable[[str], str]) -> dict[str, str] | None:
     """For an index holding objects: each matched curve id's object (its mesh, spelled as a
     match is; absent for a curve of a curve file), else None (no object column)."""
     from ..errors import IndexFormatError
@@ -247,13 +276,13 @@ def _objects_of(idx, match_spelling: dict, spell_match):
     return found
 
 
-def _default_matching() -> dict:
+def _default_matching() -> dict[str, Any]:
     from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 
     return {"method": DEFAULT_METHOD, "direction": DEFAULT_DIRECTION, "mirror": False}
 
 
-def row_columns(details: bool, rerank: Rerank | None, stage=None) -> list[str]:
+def row_columns(details: bool, rerank: Rerank | None, stage: Stage | None = None) -> list[str]:
     """The columns of the match rows; with --rerank the score follows the distance, with a
     stage its columns."""
     columns = match_columns(details, stage)
@@ -262,7 +291,7 @@ def row_columns(details: bool, rerank: Rerank | None, stage=None) -> list[str]:
     return columns
 
 
-def note_old_format(idx, exhaustive: bool, stage=None) -> None:
+def note_old_format(idx: Index, exhaustive: bool, stage: Stage | None = None) -> None:
     """A note that a format-1 index (no search cells) bounds every row for each query, that
     an index before format 3 has its statistics computed on read by the elastic stage, and
     that an older file (not ``checked_metadata``) is read whole at each open."""
@@ -289,8 +318,10 @@ def note_old_format(idx, exhaustive: bool, stage=None) -> None:
 
 
 def search_queries(
-    idx, curves, rerank: Rerank | None, cluster_at, *, k, max_distance, prune, exclude_self, match, stage=None
-):  # fmt: skip
+    idx: Index, curves: list[Curve], rerank: Rerank | None, cluster_at: tuple[str | None, float | None, int | None],
+    *, k: int, max_distance: float | None, prune: bool, exclude_self: bool, match: dict[str, Any],
+    stage: Stage | None = None,
+) -> SearchResults:  # fmt: skip
     """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank`` a
     :class:`~.options.Rerank`; ``stage`` then left to the graph's distances), or searched
     here or on the cluster ``cluster_at`` (--scheduler, its timeout, --ranges)."""
@@ -328,7 +359,9 @@ def search_queries(
             cluster.close()
 
 
-def check_stage_options(stage, rerank: Rerank | None, scheduler, idx=None) -> None:
+def check_stage_options(
+    stage: ElasticStage | None, rerank: Rerank | None, scheduler: str | None, idx: Index | None = None
+) -> None:
     """Usage errors of --elastic (``stage``) with --rerank and --scheduler; given the open
     index ``idx``, --elastic --rerank needs its graph to hold fused distances."""
     if stage is None:
@@ -344,7 +377,9 @@ def check_stage_options(stage, rerank: Rerank | None, scheduler, idx=None) -> No
         )
 
 
-def check_rerank_options(rerank: Rerank | None, listing, exhaustive, matching: dict, scheduler) -> None:
+def check_rerank_options(
+    rerank: Rerank | None, listing: MatchListing, exhaustive: bool, matching: dict[str, Any], scheduler: str | None
+) -> None:
     """Usage errors for options that --rerank cannot take; ``listing`` a
     :class:`~.options.MatchListing`."""
     if rerank is None:
@@ -367,7 +402,7 @@ def check_rerank_options(rerank: Rerank | None, listing, exhaustive, matching: d
         raise click.UsageError("--rerank runs on this machine (the graph and the top M are small): drop --scheduler")
 
 
-def _stats_line(stats) -> str:
+def _stats_line(stats: SearchStats) -> str:
     """What ``--stats`` says of a search (:class:`~nfdmatch.search.SearchStats`)."""
     line = (
         f"{stats.queries} queries x {stats.rows} rows: {stats.exact} exact distances "

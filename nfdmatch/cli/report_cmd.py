@@ -6,6 +6,7 @@ import os
 import shlex
 import sys
 import time
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -22,6 +23,17 @@ from .options import (
 )
 from .output import match_row, path_speller, progress_bar
 from .query_cmd import check_rerank_options, check_stage_options, note_old_format, row_columns, search_queries
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from ..curve import Curve
+    from ..index import Index
+    from ..records import RankedMatch
+    from ..report import ReportQuery
+    from ..search.index_search import SearchStats
+    from ..search.stages import ElasticStage
+    from .options import MatchListing, Rerank
 
 
 @main.command()
@@ -44,17 +56,17 @@ from .query_cmd import check_rerank_options, check_stage_options, note_old_forma
 )
 @click.option("--title", default=None, help="The page's title [default: nfdmatch report of INDEX].")
 def report(
-    queries,
-    index_path,
-    listing,
-    exhaustive,
-    rerank,
-    stage,
-    matching,
-    input_format,
-    output,
-    title,
-):
+    queries: tuple[str, ...],
+    index_path: str,
+    listing: MatchListing,
+    exhaustive: bool,
+    rerank: Rerank | None,
+    stage: ElasticStage | None,
+    matching: dict[str, Any],
+    input_format: str | None,
+    output: str,
+    title: str | None,
+) -> None:
     """Write one HTML page of a batch: each query drawn, its matches aligned onto it, its rows.
 
     The matches are those `query` finds with the same options (--top, --exclude-self,
@@ -101,7 +113,14 @@ def report(
     inputs.finish()
 
 
-def _pages(idx, curves, results, spell, input_format, matching: dict) -> list:
+def _pages(
+    idx: Index,
+    curves: list[Curve],
+    results: list[list[RankedMatch]],
+    spell: tuple[Callable[[str], str], Callable[[str], str]],
+    input_format: str | None,
+    matching: dict,
+) -> list[ReportQuery]:
     """Each query of the report: its matches aligned onto it (their curves read once each),
     its rows as `query` spells them (``spell``: the query's and the matches' spellers)."""
     from functools import partial
@@ -134,7 +153,7 @@ def _pages(idx, curves, results, spell, input_format, matching: dict) -> list:
     return pages
 
 
-def _summary(idx, title: str, pages: list, order: str, stats) -> dict:
+def _summary(idx: Index, title: str, pages: list[ReportQuery], order: str, stats: SearchStats) -> dict:
     """The page's summary: what was searched, how, when, and how long it took."""
     return {
         "title": title,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import click
 
@@ -12,6 +13,9 @@ from .options import NothingRead, error, finish, note, note_inputs, nothing_matc
 from .output import path_speller, write_rows
 from .picture_files import check_pictures, not_written, picture_names, report_picture
 from .query_cmd import mesh_queries
+
+if TYPE_CHECKING:
+    from ..index import Index
 
 __all__ = ["show_meshes"]
 
@@ -65,7 +69,9 @@ def _has_meshes(query: str) -> bool:
     return os.path.isfile(query) and is_mesh_file(query)
 
 
-def _drawn(idx, meshes: list, drawing: dict, picture: str, rows_output):
+def _drawn(
+    idx: Index, meshes: list[str], drawing: dict, picture: str, rows_output: str | None
+) -> tuple[list, list[dict], list[str], list]:
     """``(drawn, rows, picture names, failures)`` of the query meshes against the open index:
     usage errors first, the pictures checked writable before the search."""
     from ..errors import InputError

@@ -11,6 +11,11 @@ from __future__ import annotations
 
 import os
 import signal
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable
+    from types import FrameType
 
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 STOPPING = (signal.SIGINT, signal.SIGTERM)
@@ -38,7 +43,7 @@ def say(line: str) -> None:
         pass
 
 
-def _exit_now(signum, frame):
+def _exit_now(signum: int, frame: FrameType | None) -> None:
     """Before a command runs: nothing to clean up, so the one line and the exit code now."""
     for s in STOPPING:  # a second signal would run this again, between two of its lines
         signal.signal(s, signal.SIG_IGN)
@@ -59,7 +64,7 @@ def deaf() -> None:
         signal.signal(s, signal.SIG_IGN)
 
 
-def _raise_once(signum, frame):
+def _raise_once(signum: int, frame: FrameType | None) -> None:
     global _raised
     if _raised:
         return  # the first signal is unwinding; the watchdog keeps the deadline
@@ -67,7 +72,7 @@ def _raise_once(signum, frame):
     raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
-def raising():
+def raising() -> Callable[[], None] | None:
     """While a command runs (main thread only): the first SIGINT/SIGTERM raises
     KeyboardInterrupt/Terminated, later ones are ignored. Returns what restores the
     previous handlers, or None off the main thread."""
@@ -79,7 +84,7 @@ def raising():
     _raised = False
     previous = {s: signal.signal(s, _raise_once) for s in heeded(STOPPING)}
 
-    def restore():
+    def restore() -> None:
         if _raised and program:
             deaf()
             return
@@ -89,7 +94,7 @@ def raising():
     return restore
 
 
-def heeded(signals) -> list:
+def heeded(signals: Iterable[signal.Signals]) -> list[signal.Signals]:
     """``signals`` minus those ignored when the program started (a job started in the
     background of a non-interactive shell, or by nohup: it must stay deaf to them)."""
     return [s for s in signals if s not in _IGNORED]

@@ -15,6 +15,7 @@ the objects each stage reached.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,6 +26,16 @@ from .object_distance import (
     object_loops,
 )
 from .workers import run_tasks
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Sequence
+
+    from numpy.typing import ArrayLike
+
+    from ..errors import NfdError
+    from ..index import Index
+    from ..mesh.objects import ObjectCut, ObjectRule
+    from .object_distance import ObjectDistances
 
 __all__ = ["ObjectMatch", "FoundObject", "nearest_objects", "all_nearest_objects", "search_objects"]
 
@@ -57,8 +68,8 @@ def nearest_objects(
     *,
     k: int | None,
     max_distance: float | None = None,
-    skip=(),
-    order_rank=None,
+    skip: Sequence[int] = (),
+    order_rank: ArrayLike | None = None,
     processes: int = 1,
     prune: bool = True,
     first_round: int = _ROUND,
@@ -119,8 +130,8 @@ def all_nearest_objects(
     *,
     k: int | None,
     max_distance: float | None = None,
-    skips=None,
-    order_rank=None,
+    skips: dict[int, Sequence[int]] | None = None,
+    order_rank: ArrayLike | None = None,
     processes: int = 1,
 ) -> list[list[FoundObject]]:
     """Every query object's nearest objects (as :func:`nearest_objects` without pruning),
@@ -145,7 +156,9 @@ def all_nearest_objects(
     return out
 
 
-def _exact(query: ObjectLoops, objects: ObjectLoops, chosen: list, samples: int, processes: int):
+def _exact(
+    query: ObjectLoops, objects: ObjectLoops, chosen: list[int], samples: int, processes: int
+) -> list[FoundObject]:
     """The :class:`FoundObject` of each of the objects ``chosen``."""
     if not chosen:
         return []
@@ -163,7 +176,7 @@ def _exact(query: ObjectLoops, objects: ObjectLoops, chosen: list, samples: int,
     return out
 
 
-def _mirror(d, q: int, m: int) -> tuple:
+def _mirror(d: ObjectDistances, q: int, m: int) -> tuple:
     return tuple(bool(v) for v in d.mirror[q, m])
 
 
@@ -172,7 +185,7 @@ def _positions(objects: ObjectLoops, m: int) -> np.ndarray:
     return np.arange(np.searchsorted(objects.owner, m), np.searchsorted(objects.owner, m, side="right"))
 
 
-def _best(found: list, k, max_distance, rank) -> list:
+def _best(found: list[FoundObject], k: int | None, max_distance: float | None, rank: np.ndarray) -> list[FoundObject]:
     kept = [f for f in found if max_distance is None or f.distance <= max_distance]
     kept.sort(key=lambda f: (f.distance, rank[f.position]))
     return kept[:k] if k is not None else kept
@@ -196,14 +209,14 @@ class ObjectMatch:
 
 
 def search_objects(
-    index,
-    meshes,
+    index: Index,
+    meshes: Any,
     *,
     k: int | None = 10,
     max_distance: float | None = None,
     exclude_self: bool = False,
     processes: int | None = None,
-    names=None,
+    names: Iterable[str] | None = None,
     failures: list | None = None,
     prune: bool = True,
     cuts: list | None = None,
@@ -274,7 +287,9 @@ def search_objects(
     return [_answers(index, found[cut_at[p]], ids) if p in cut_at else [] for p in range(len(meshes))]
 
 
-def _cut_queries(meshes, names, rule, processes: int, failures):
+def _cut_queries(
+    meshes: Sequence[Any], names: list[str], rule: ObjectRule, processes: int, failures: list | None
+) -> tuple[list[ObjectCut], dict[int, int]]:
     """The query meshes cut by ``rule`` over forked workers (each mesh alone: 0.1-0.5 s of
     numpy): ``(cuts, {query position: its cut's number})``; a mesh that cannot be cut goes
     to ``failures`` (``(position, NfdError)``), or its error is raised when that is None."""
@@ -283,7 +298,7 @@ def _cut_queries(meshes, names, rule, processes: int, failures):
 
     cut_of: dict = {}
 
-    def cut(task, _threads):
+    def cut(task: int, _threads: int) -> ObjectCut | NfdError:
         try:
             return cut_object(meshes[task], rule, name=names[task])
         except NfdError as exc:
@@ -302,7 +317,7 @@ def _cut_queries(meshes, names, rule, processes: int, failures):
     return cuts, cut_at
 
 
-def _answers(index, found: list, ids) -> list[ObjectMatch]:
+def _answers(index: Index, found: list[FoundObject], ids: Sequence[str]) -> list[ObjectMatch]:
     """The :class:`ObjectMatch` records of a query's ranked :class:`FoundObject` (the ids of
     their matched contours read in one call)."""
     rows = sorted({r for f in found for r in f.matched})
