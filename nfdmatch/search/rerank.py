@@ -237,7 +237,7 @@ def rerank_index(
     Deterministic: the same index and queries give the same rows and scores, and a query
     gets the same scores alone as in any batch (each source's push is independent).
     """
-    from .index_search import query_descriptors, rank_rows, search_rows
+    from .index_search import query_descriptors
 
     top = k_or_top(k, top, "rerank_index")
     t0 = time.perf_counter()
@@ -251,18 +251,9 @@ def rerank_index(
     qcoef = query_descriptors(index, queries)
     fused = getattr(index, "graph_distance", lambda: "exact")() == "fused"
     if candidates == "exact" or fused:
-        # a graph of fused distances: the query's exact top M, each given its fused distance
-        # (the elastic stage's), which it joins the graph by
-        found, stats = search_rows(index, qcoef, Cascade(index.samples), top=depth, progress=progress, threads=threads)
-        rank_rows(index, found, depth)
-        if fused:
-            fused_best_rows(index, qcoef, found)
-        union = _union(found)
-        vectors = _Vectors(union, *walk.pagerank(union))  # every candidate's, once for the batch
-        if fused:  # and the rows of its walk over the fused graph, given their fused distances
-            more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
-            stats.exact += _add_rows(index, qcoef, found, more, fused=True)
-            vectors = vectors.with_rows(walk, _union(found))
+        found, stats, vectors = _exact_candidates(
+            index, walk, queries, qcoef, depth, exclude_self, is_self, fused, progress=progress, threads=threads
+        )
     else:
         found, stats, pushed = _walk_candidates(
             index, walk, queries, qcoef, top, depth, exclude_self, is_self, progress=progress, threads=threads
@@ -329,6 +320,28 @@ def _self_flags(index, queries, tops, exclude_self: bool, is_self) -> list[np.nd
         np.array([is_self(q.id, ids[p]) for p in np.searchsorted(every, tk.rows).tolist()], dtype=bool)
         for q, tk in zip(queries, tops)
     ]
+
+
+def _exact_candidates(
+    index, walk: GraphWalk, queries, qcoef, depth, exclude_self, is_self, fused, *, progress, threads
+):
+    """``(found, stats, vectors)`` for ``candidates="exact"`` and on a fused graph: each
+    query's exact top ``depth``; on a graph of fused distances each given its fused distance
+    (the elastic stage's), which it joins the graph by, and the rows of its walks added
+    (:func:`_walk_rows`, their fused distances too); ``vectors`` every candidate's PageRank,
+    once for the batch."""
+    from .index_search import rank_rows, search_rows
+
+    found, stats = search_rows(index, qcoef, Cascade(index.samples), top=depth, progress=progress, threads=threads)
+    rank_rows(index, found, depth)
+    if fused:
+        fused_best_rows(index, qcoef, found)
+    vectors = _Vectors(_union(found), *walk.pagerank(_union(found)))
+    if fused:
+        more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
+        stats.exact += _add_rows(index, qcoef, found, more, fused=True)
+        vectors = vectors.with_rows(walk, _union(found))
+    return found, stats, vectors
 
 
 def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude_self, is_self, *, progress, threads):
