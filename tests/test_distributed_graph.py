@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 
 import h5py
 import numpy as np
@@ -219,17 +220,20 @@ def test_an_interrupted_cluster_graph_leaves_the_old_index_and_no_file_open(clie
     searching = cluster._run_graph_tasks
 
     def interrupted(*args):
-        # Ctrl-C (as the CLI's handler raises it) just after the graph's search starts (each of its
-        # tasks waits a second: on a loaded machine half a second was once after a fast build)
-        timers.append(threading.Timer(0.05, _thread.interrupt_main))
+        # Ctrl-C (as the CLI's handler raises it) half a second into the graph's search
+        timers.append(threading.Timer(0.5, _thread.interrupt_main))
         timers[-1].start()
         return searching(*args)
 
     monkeypatch.setattr(cluster, "_run_graph_tasks", interrupted)
+    # Python's own Ctrl-C handler even when the test run inherited SIGINT ignored (`make test &`
+    # from a non-interactive shell): interrupt_main does nothing then
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt):
             cluster.build_index([library], index, graph=8)
     finally:
+        signal.signal(signal.SIGINT, previous)
         for timer in timers:
             timer.cancel()
         client.run(_graph_tasks_work)
