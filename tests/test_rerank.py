@@ -247,6 +247,18 @@ def test_query_rerank_orders_a_stored_curve_as_matrix_rerank(tmp_path, rng, cand
         _agrees_with_the_matrix(res, S, i, position, candidates == "exact")
 
 
+def _graph_and_matrix(tmp_path, curves, parts):
+    """``curves`` indexed (in ``parts`` files, ``tmp_path/i.h5``) with a graph of 10:
+    ``(stored, ids, D, S)``, the curves read back, their ids as the index names them, their
+    exact distances and matrix --rerank's similarity."""
+    write_parts(tmp_path / "c", curves, parts)
+    build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
+    stored = _read_back(tmp_path / "c")
+    ids = [os.path.relpath(c.id, tmp_path) for c in stored]
+    D = distance_matrix(stored)
+    return stored, ids, D, diffused_similarity(D, ids=ids)
+
+
 def test_below_the_score_floor_the_exact_distance_orders(tmp_path, rng):
     """Tight groups of more near-copies than the walk's neighbours (a mesh cut at nearly the
     same place, as the mesh sections hold): a walk mostly stays in its group, so past the
@@ -254,12 +266,7 @@ def test_below_the_score_floor_the_exact_distance_orders(tmp_path, rng):
     scores are 0 in the matrix and in the query, and the answers follow by exact distance,
     so the two rank alike there too."""
     curves, _ = family_curves(rng, families=12, members=10, spread=0.03)
-    write_parts(tmp_path / "c", curves, 2)
-    build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
-    stored = _read_back(tmp_path / "c")
-    ids = [os.path.relpath(c.id, tmp_path) for c in stored]
-    D = distance_matrix(stored)
-    S = diffused_similarity(D, ids=ids)
+    stored, ids, D, S = _graph_and_matrix(tmp_path, curves, 2)
     assert ((S == 0) | (S >= SCORE_FLOOR)).all() and (S == 0).mean() > 0.5
     with open_index(tmp_path / "i.h5") as idx:
         results, _ = rerank_index(idx, stored, k=40, exclude_self=True)
@@ -281,12 +288,7 @@ def test_query_rerank_finds_the_top_40_of_matrix_rerank(tmp_path, rng, monkeypat
     from nfdmatch.search import rerank
 
     curves, _ = family_curves(rng, families=30, members=15, spread=0.2)
-    write_parts(tmp_path / "c", curves, 3)
-    build_index([tmp_path / "c"], tmp_path / "i.h5", jobs=1, graph=10)
-    stored = _read_back(tmp_path / "c")
-    ids = [os.path.relpath(c.id, tmp_path) for c in stored]
-    D = distance_matrix(stored)
-    S = diffused_similarity(D, ids=ids)
+    stored, ids, D, S = _graph_and_matrix(tmp_path, curves, 3)
     np.fill_diagonal(S, -np.inf)
     tie = np.argsort(np.argsort(np.array(ids, dtype=object), kind="stable"))
     want = [set(np.lexsort((tie, D[i], -S[i]))[:40].tolist()) for i in range(len(ids))]
