@@ -217,8 +217,9 @@ def rerank_index(
         whose PageRank reaches it most (:meth:`GraphWalk.reverse_pagerank`), each with its
         exact distance; no exact top-M search) or ``"exact"`` (the query's exact top ``depth``: ~4x
         the time of a batch at 100,000 curves, docs/rerank.md). On a graph of fused distances
-        (``index build --graph K --elastic``) always ``"exact"``, each candidate given its fused
-        distance (the elastic stage's), the matches their ``elastic`` and ``fused``.
+        (``index build --graph K --elastic``) always ``"exact"`` plus the rows of the walks,
+        each candidate given its fused distance (the elastic stage's), the matches their
+        ``elastic`` and ``fused``.
 
     Returns
     -------
@@ -336,7 +337,8 @@ def _exact_candidates(
     rank_rows(index, found, depth)
     if fused:
         fused_best_rows(index, qcoef, found)
-    vectors = _Vectors(_union(found), *walk.pagerank(_union(found)))
+    union = _union(found)
+    vectors = _Vectors(union, *walk.pagerank(union))
     if fused:
         more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
         stats.exact += _add_rows(index, qcoef, found, more, fused=True)
