@@ -796,3 +796,47 @@ def match_list_options(top_help: str, glob_help: str) -> Packing:
         )
 
     return decorate
+
+
+@dataclass(frozen=True)
+class QueryBatch:
+    """A batch of query curves searched in an index (:func:`query_batch_options`; ``query``,
+    and ``report``, which draws what ``query`` lists): the queries (QUERY...), the index
+    (``index_path``, --index), which matches, listed how (``listing``, a :class:`MatchListing`),
+    ``exhaustive`` (--exhaustive), the re-ranking (``rerank``, a :class:`Rerank` or None), the
+    elastic stage (``stage``, or None), the library's matching keywords (``matching``) and
+    how the queries are read (``input_format``)."""
+
+    queries: tuple[str, ...]
+    index_path: str
+    listing: MatchListing
+    exhaustive: bool
+    rerank: Rerank | None
+    stage: ElasticStage | None
+    matching: dict[str, Any]
+    input_format: str | None
+
+
+def query_batch_options(
+    top_help: str, glob_help: str, exhaustive_help: str, *after_exhaustive: Callable[[Any], Any]
+) -> Packing:
+    """The argument QUERY... and the options of every command that answers a batch of
+    queries from an index: --index, :func:`match_list_options`, --exhaustive, the command's
+    own ``after_exhaustive`` (passed through), :func:`rerank_options`, :func:`elastic_options`,
+    :func:`matching_options` and --input-format, passed on as ``batch``: a :class:`QueryBatch`."""
+
+    def decorate(command: Callable[..., Any]) -> Callable[..., Any]:
+        return _with_options(
+            _packed(command, "batch", tuple(field.name for field in fields(QueryBatch)), pack=QueryBatch),
+            click.argument("queries", nargs=-1, required=True, metavar="QUERY..."),
+            index_option,
+            match_list_options(top_help, glob_help),
+            click.option("--exhaustive", is_flag=True, help=exhaustive_help),
+            *after_exhaustive,
+            rerank_options,
+            elastic_options,
+            matching_options,
+            input_format_option,
+        )
+
+    return decorate
