@@ -13,6 +13,7 @@ from ..errors import NfdError, WriteError
 from .inputs import read_inputs, read_one
 from .options import (
     check_writable,
+    comparison_options,
     descriptor_options,
     elastic_options,
     match_list_options,
@@ -20,7 +21,6 @@ from .options import (
     glob_options,
     input_format_option,
     int_option,
-    matching_options,
     note_inputs,
     nothing_matched,
     output_option,
@@ -34,7 +34,7 @@ from .group import main
 if TYPE_CHECKING:
     from ..descriptors import Descriptors
     from ..search.stages import ElasticStage
-    from .options import MatchListing
+    from .options import Comparison, MatchListing
 
 
 @main.command()
@@ -45,18 +45,14 @@ if TYPE_CHECKING:
     is_flag=True,
     help="Also the elastic stage's terms at the exact optimum: elastic, statistics and fused (docs/elastic.md).",
 )
-@matching_options
-@descriptor_options
-@input_format_option
+@comparison_options
 @format_option(("text", "json"), help_extra=" [default: by the extension of -o (.json, .txt), else text]")
 @output_option()
 def distance(
     curve_a: str,
     curve_b: str,
     elastic: bool,
-    matching: dict[str, Any],
-    descriptor: dict[str, Any],
-    input_format: str | None,
+    comparison: Comparison,
     output_format: str | None,
     output: str | None,
 ) -> None:
@@ -79,15 +75,15 @@ def distance(
     output_format = resolve_format(output_format, output, ("text", "json"), terminal="text", piped="text")
     if curve_a == "-" and curve_b == "-":
         raise click.UsageError("stdin ('-') can be read once: give it for A or B, not both")
-    a = read_one(curve_a, input_format)
-    b = read_one(curve_b, input_format)
+    a = read_one(curve_a, comparison.input_format)
+    b = read_one(curve_b, comparison.input_format)
     if elastic:
         from ..matching.fused import fused_distance
 
-        m, terms = fused_distance(a, b, **descriptor, **matching)
+        m, terms = fused_distance(a, b, **comparison.keywords())
         stage = {key: float(getattr(terms, key)[0]) for key in ("elastic", "statistics", "fused")}
     else:
-        m, stage = match_distance(a, b, **descriptor, **matching), {}
+        m, stage = match_distance(a, b, **comparison.keywords()), {}
     record = {**m.to_dict(), **stage}
     if output_format == "json":
         text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
@@ -167,9 +163,7 @@ def describe(
 @click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
 @match_list_options("Number of matches to list.", " Of the SOURCE folders.")
 @elastic_options
-@matching_options
-@descriptor_options
-@input_format_option
+@comparison_options
 @rows_format_option
 @output_option()
 def rank(
@@ -177,9 +171,7 @@ def rank(
     sources: tuple[str, ...],
     listing: MatchListing,
     stage: ElasticStage | None,
-    matching: dict[str, Any],
-    descriptor: dict[str, Any],
-    input_format: str | None,
+    comparison: Comparison,
     output_format: str | None,
     output: str | None,
 ) -> None:
@@ -199,9 +191,9 @@ def rank(
     from ..search import rank_curves
 
     output_format = resolve_format(output_format, output)
-    query = read_one(query_spec, input_format)
-    inputs = read_inputs(sources, glob=listing.glob, input_format=input_format, progress="reading curves")
-    ranked = rank_curves(query, inputs.curves, **listing.search(), **descriptor, **matching, stage=stage)
+    query = read_one(query_spec, comparison.input_format)
+    inputs = read_inputs(sources, glob=listing.glob, input_format=comparison.input_format, progress="reading curves")
+    ranked = rank_curves(query, inputs.curves, **listing.search(), **comparison.keywords(), stage=stage)
     spell = path_speller(listing.paths)
     write_rows(
         [{**match_row(spell(query.id), m), "match": spell(m.id)} for m in ranked],

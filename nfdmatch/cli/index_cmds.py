@@ -36,6 +36,7 @@ if TYPE_CHECKING:
 
     from ..index.build import BuildReport
     from ..index.graph import GraphSpec, GraphStats
+    from .options import F
 
 
 @main.group()
@@ -61,6 +62,11 @@ _WAIT = click.option(
     show_default=True,
     help="Seconds to wait for another build's lock (0: fail at once).",
 )
+
+
+def _summary_format(help_extra: str) -> Callable[[F], F]:
+    """--format text|json of the summary of every command that writes the index."""
+    return format_option(("text", "json"), default="text", help_extra=help_extra)
 
 
 @index.command("build")
@@ -121,9 +127,7 @@ _WAIT = click.option(
 @optional_descriptor_options("the index's")
 @input_format_option
 @scheduler_options
-@format_option(
-    ("text", "json"), default="text", help_extra=": text, a summary on stderr; json, one summary object on stdout"
-)
+@_summary_format(": text, a summary on stderr; json, one summary object on stdout")
 def index_build(
     sources: tuple[str, ...],
     index_path: str,
@@ -262,8 +266,7 @@ def _run_build(
             )
         return cluster.build_index(sources, index_path, progress=progress, graph_progress=graph_progress, **options)
     except (NfdError, KeyboardInterrupt) as exc:
-        if output_format == "json":  # cron logs one line per run: it says why nothing was written
-            deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
+        _say_failed_build(exc, index_path, started, output_format)
         raise
     finally:
         finish_bar()
@@ -311,6 +314,13 @@ def _say_build_result(
         report.added + report.updated + report.unchanged + report.failed + len(report.skipped),
         "files",
     )
+
+
+def _say_failed_build(exc: BaseException, index_path: str, started: datetime, output_format: str) -> None:
+    """With --format json, the JSON line of a build that wrote nothing on stdout (cron logs
+    one line per run: it says why nothing was written); the error itself goes on."""
+    if output_format == "json":
+        deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
 
 
 def _failed_build_record(exc: BaseException, index_path: str, started: datetime) -> dict:
@@ -422,9 +432,7 @@ def _edit_command(name: str, verb: str, doc: str) -> Callable[[Callable[..., Bui
         @_WAIT
         @click.option("--strict", is_flag=True, help="When any file fails, write nothing (exit 3).")
         @input_format_option
-        @format_option(
-            ("text", "json"), default="text", help_extra=" of the summary (json: one line, as index build's)"
-        )
+        @_summary_format(" of the summary (json: one line, as index build's)")
         def command(
             files: tuple[str, ...],
             index_path: str,
@@ -444,8 +452,7 @@ def _edit_command(name: str, verb: str, doc: str) -> Callable[[Callable[..., Bui
                     progress=progress,
                 )  # fmt: skip
             except (NfdError, KeyboardInterrupt) as exc:
-                if output_format == "json":
-                    deliver(json.dumps(_failed_build_record(exc, index_path, started)) + "\n", None)
+                _say_failed_build(exc, index_path, started, output_format)
                 raise
             finally:
                 finish_bar()

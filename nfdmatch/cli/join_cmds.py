@@ -5,17 +5,19 @@ connected components); the library's :func:`nfdmatch.search.groups.index_pairs` 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import click
 
 from .options import (
-    check_max_distance,
     detail,
     index_option,
     int_option,
     matching_options,
+    max_distance_option,
     nothing_matched,
+    options_bundle,
     output_option,
     rows_format_option,
 )
@@ -27,15 +29,38 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from ..search.join import JoinStats
+    from .options import Packing
 
-_DISTANCE = click.option(
-    "--max-distance",
-    type=click.FloatRange(min=0),
-    callback=check_max_distance,
-    required=True,
-    metavar="D",
-    help="Two curves at most this exact distance apart are a pair (near-duplicates).",
-)
+
+@dataclass(frozen=True)
+class SelfJoin:
+    """What ``pairs`` and ``groups`` join the index against itself by (:func:`_self_join_options`):
+    the index (--index), the distance D (--max-distance), the library's matching keywords and
+    the cluster (--scheduler, --scheduler-timeout)."""
+
+    index_path: str
+    max_distance: float
+    matching: dict[str, Any]
+    scheduler: str | None
+    scheduler_timeout: float
+
+
+def _self_join_options(own: Callable[[Any], Any]) -> Packing:
+    """--index, --max-distance D, the command's ``own`` option (passed through), the matching
+    options and the cluster's, passed on as ``join``: a :class:`SelfJoin`."""
+    return options_bundle(
+        "join",
+        SelfJoin,
+        index_option,
+        max_distance_option(
+            required=True,
+            metavar="D",
+            help="Two curves at most this exact distance apart are a pair (near-duplicates).",
+        ),
+        own,
+        matching_options,
+        scheduler_options,
+    )
 
 
 def _work(stats: JoinStats, what: str) -> None:
@@ -46,29 +71,18 @@ def _work(stats: JoinStats, what: str) -> None:
 
 
 @main.command()
-@index_option
-@_DISTANCE
-@click.option(
-    "--new",
-    "new_only",
-    is_flag=True,
-    help="Only pairs with at least one curve that the index's last build added or recomputed "
-    "(a nightly job: what arrived since).",
+@_self_join_options(
+    click.option(
+        "--new",
+        "new_only",
+        is_flag=True,
+        help="Only pairs with at least one curve that the index's last build added or recomputed "
+        "(a nightly job: what arrived since).",
+    )
 )
-@matching_options
-@scheduler_options
 @rows_format_option
 @output_option()
-def pairs(
-    index_path: str,
-    max_distance: float,
-    new_only: bool,
-    matching: dict[str, Any],
-    scheduler: str | None,
-    scheduler_timeout: float,
-    output_format: str | None,
-    output: str | None,
-) -> None:
+def pairs(join: SelfJoin, new_only: bool, output_format: str | None, output: str | None) -> None:
     """List every pair of curves of the index at most D apart, each once (a < b).
 
     Rows: a, b, distance (the exact distance, sorted by a then b). Computed for the index
@@ -83,39 +97,21 @@ def pairs(
     """
     from ..search.groups import index_pairs
 
-    found, stats = _joined(
-        index_pairs, "pairs", index_path, scheduler, scheduler_timeout, max_distance,
-        new=new_only, **matching,
-    )  # fmt: skip
+    found, stats = _joined(index_pairs, "pairs", join, new=new_only)
     _work(stats, f"{len(found)} pairs")
     write_rows(
         [{"a": p.a, "b": p.b, "distance": p.distance} for p in found], ["a", "b", "distance"], output_format, output
     )
-    nothing_matched(len(found), f"no pair at most {max_distance} apart")
+    nothing_matched(len(found), f"no pair at most {join.max_distance} apart")
 
 
 @main.command()
-@index_option
-@_DISTANCE
-@int_option(
-    "--min-size",
-    default=1,
-    help="Only list groups of at least this many curves (2: only the duplicates).",
+@_self_join_options(
+    int_option("--min-size", default=1, help="Only list groups of at least this many curves (2: only the duplicates).")
 )
-@matching_options
-@scheduler_options
 @rows_format_option
 @output_option()
-def groups(
-    index_path: str,
-    max_distance: float,
-    min_size: int,
-    matching: dict[str, Any],
-    scheduler: str | None,
-    scheduler_timeout: float,
-    output_format: str | None,
-    output: str | None,
-) -> None:
+def groups(join: SelfJoin, min_size: int, output_format: str | None, output: str | None) -> None:
     """Group the curves of the index into near-duplicate groups.
 
     A group is a connected component of the pairs at most D apart (`nfdmatch pairs`):
@@ -131,10 +127,7 @@ def groups(
     """
     from ..search.groups import index_groups
 
-    members, stats = _joined(
-        index_groups, "groups", index_path, scheduler, scheduler_timeout, max_distance,
-        min_size=min_size, **matching,
-    )  # fmt: skip
+    members, stats = _joined(index_groups, "groups", join, min_size=min_size)
     _work(stats, f"{len({m.group for m in members})} groups")
     if resolve_format(output_format, output) == "json":
         listed: dict[int, dict] = {}
@@ -155,23 +148,18 @@ def groups(
 
 
 def _joined(
-    run: Callable[..., tuple[list[Any], JoinStats]],
-    label: str,
-    index_path: str,
-    scheduler: str | None,
-    scheduler_timeout: float,
-    max_distance: float,
-    **options: Any,
+    run: Callable[..., tuple[list[Any], JoinStats]], label: str, join: SelfJoin, **options: Any
 ) -> tuple[list[Any], JoinStats]:
     """``run(index, max_distance, progress=, cluster=, **options)`` (the library's pairs or
-    groups) over the open index, on a cluster when one is named, with a progress bar."""
+    groups) over the open index as ``join`` says (its matching keywords among the options),
+    on a cluster when one is named, with a progress bar."""
     from ..index import open_index
 
-    with open_index(index_path) as idx:
-        cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
+    with open_index(join.index_path) as idx:
+        cluster = open_cluster(join.scheduler, join.scheduler_timeout) if join.scheduler else None
         progress, finish_bar = progress_bar(label)
         try:
-            return run(idx, max_distance, progress=progress, cluster=cluster, **options)
+            return run(idx, join.max_distance, progress=progress, cluster=cluster, **options, **join.matching)
         finally:
             finish_bar()
             if cluster is not None:

@@ -519,6 +519,18 @@ def _with_options(command: Callable[..., Any], *options: Callable[[Any], Any]) -
     return command
 
 
+def options_bundle(name: str, bundle: type, *options: Callable[[Any], Any]) -> Packing:
+    """The click ``options`` (decorators, listed by ``--help`` in the order given) whose values
+    a command takes as one argument ``name``: ``bundle(**values)``, a dataclass with a field
+    for each value it packs (the others reach the command as they are)."""
+
+    def decorate(command: Callable[..., Any]) -> Callable[..., Any]:
+        keys = tuple(field.name for field in fields(bundle))
+        return _with_options(_packed(command, name, keys, pack=bundle), *options)
+
+    return decorate
+
+
 def _descriptor_options(command: Callable[..., Any], what: str | None = None) -> Callable[..., Any]:
     """--samples, --harmonics, --scale, passed on as ``descriptor``: a dict of the keyword
     arguments ``samples``, ``harmonics``, ``scale`` of the library. With the library's
@@ -571,6 +583,28 @@ def matching(method: str, strict_direction: bool, mirror: bool) -> dict[str, Any
         "direction": STRICT_DIRECTION if strict_direction else DEFAULT_DIRECTION,
         "mirror": mirror,
     }
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """How a command without an index reads curves and compares them
+    (:func:`comparison_options`; ``distance``, ``rank``, ``matrix``): the library's matching
+    keywords (``matching``, :func:`matching_options`), its descriptor keywords
+    (``descriptor``, :func:`descriptor_options`) and ``input_format`` (--input-format)."""
+
+    matching: dict[str, Any]
+    descriptor: dict[str, Any]
+    input_format: str | None
+
+    def keywords(self) -> dict[str, Any]:
+        """The library's keyword arguments of a comparison: the descriptor's and the matching's."""
+        return {**self.descriptor, **self.matching}
+
+
+def comparison_options(command: Callable[..., Any]) -> Callable[..., Any]:
+    """:func:`matching_options`, :func:`descriptor_options` (with the library's defaults)
+    and --input-format, passed on as ``comparison``: a :class:`Comparison`."""
+    return options_bundle("comparison", Comparison, matching_options, descriptor_options, input_format_option)(command)
 
 
 def elastic_options(command: Callable[..., Any]) -> Callable[..., Any]:
@@ -755,6 +789,14 @@ def check_max_distance(ctx: click.Context, param: click.Parameter, value: float 
     return value
 
 
+def max_distance_option(*, help: str, **extra: Any) -> Callable[[F], F]:
+    """``--max-distance``, a distance by the library's rule (:func:`check_max_distance`):
+    the limit of the matches listed (``query``, ``rank``, ``report``; ``extra``
+    ``default=None``), or the distance that makes a pair (``pairs``, ``groups``; ``extra``
+    ``required=True``); ``extra``: click's other keywords."""
+    return click.option("--max-distance", type=click.FloatRange(min=0), callback=check_max_distance, help=help, **extra)
+
+
 @dataclass(frozen=True)
 class MatchListing:
     """What a command that lists a query's matches was asked for (:func:`match_list_options`):
@@ -777,22 +819,54 @@ def match_list_options(top_help: str, glob_help: str) -> Packing:
     """The options of every command that lists a query's matches (``rank``, ``query``):
     --top, --max-distance, --glob, --details, --paths, --exclude-self, passed on as
     ``listing``: a :class:`MatchListing`."""
+    return options_bundle(
+        "listing",
+        MatchListing,
+        int_option("--top", default=10, help=top_help),
+        max_distance_option(default=None, help="Only list matches at most this far."),
+        glob_options("glob", glob_help),
+        click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
+        paths_option,
+        exclude_self_option,
+    )
 
-    def decorate(command: Callable[..., Any]) -> Callable[..., Any]:
-        return _with_options(
-            _packed(command, "listing", tuple(field.name for field in fields(MatchListing)), pack=MatchListing),
-            int_option("--top", default=10, help=top_help),
-            click.option(
-                "--max-distance",
-                type=click.FloatRange(min=0),
-                default=None,
-                callback=check_max_distance,
-                help="Only list matches at most this far.",
-            ),
-            glob_options("glob", glob_help),
-            click.option("--details", is_flag=True, help="Add the columns shift, reversed, mirrored."),
-            paths_option,
-            exclude_self_option,
-        )
 
-    return decorate
+@dataclass(frozen=True)
+class QueryBatch:
+    """A batch of query curves searched in an index (:func:`query_batch_options`; ``query``,
+    and ``report``, which draws what ``query`` lists): the queries (QUERY...), the index
+    (``index_path``, --index), which matches, listed how (``listing``, a :class:`MatchListing`),
+    ``exhaustive`` (--exhaustive), the re-ranking (``rerank``, a :class:`Rerank` or None), the
+    elastic stage (``stage``, or None), the library's matching keywords (``matching``) and
+    how the queries are read (``input_format``)."""
+
+    queries: tuple[str, ...]
+    index_path: str
+    listing: MatchListing
+    exhaustive: bool
+    rerank: Rerank | None
+    stage: ElasticStage | None
+    matching: dict[str, Any]
+    input_format: str | None
+
+
+def query_batch_options(
+    top_help: str, glob_help: str, exhaustive_help: str, *after_exhaustive: Callable[[Any], Any]
+) -> Packing:
+    """The argument QUERY... and the options of every command that answers a batch of
+    queries from an index: --index, :func:`match_list_options`, --exhaustive, the command's
+    own ``after_exhaustive`` (passed through), :func:`rerank_options`, :func:`elastic_options`,
+    :func:`matching_options` and --input-format, passed on as ``batch``: a :class:`QueryBatch`."""
+    return options_bundle(
+        "batch",
+        QueryBatch,
+        click.argument("queries", nargs=-1, required=True, metavar="QUERY..."),
+        index_option,
+        match_list_options(top_help, glob_help),
+        click.option("--exhaustive", is_flag=True, help=exhaustive_help),
+        *after_exhaustive,
+        rerank_options,
+        elastic_options,
+        matching_options,
+        input_format_option,
+    )

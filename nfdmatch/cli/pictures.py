@@ -10,7 +10,7 @@ import click
 from .inputs import read_inputs
 from .options import (
     F,
-    descriptor_options,
+    comparison_options,
     elastic_options,
     finish,
     format_option,
@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from ..curve import Curve
     from ..records import ShownMatch
     from ..search.stages import ElasticStage, Stage
+    from .options import Comparison
 
 
 def _parse_size(value: str) -> tuple[int, int]:
@@ -281,9 +282,7 @@ def _searched_drawn(
     multiple=True,
 )
 @glob_options()
-@matching_options
-@descriptor_options
-@input_format_option
+@comparison_options
 @click.option(
     "--order",
     type=click.Choice(["input", "similar"]),
@@ -308,9 +307,7 @@ def matrix(
     sources: tuple[str, ...],
     output: tuple[str, ...],
     glob_pattern: str | None,
-    matching: dict[str, Any],
-    descriptor: dict[str, Any],
-    input_format: str | None,
+    comparison: Comparison,
     order: str,
     rerank: bool,
     elastic: bool,
@@ -339,17 +336,17 @@ def matrix(
     pictures, rows_output = split_outputs(output, formats, output_format)
     check_pictures(pictures)  # before the O(N^2) work, not after it
     fmt = resolve_format(output_format, rows_output, formats, terminal="csv")
-    inputs = read_inputs(sources, glob=glob_pattern, input_format=input_format)
+    inputs = read_inputs(sources, glob=glob_pattern, input_format=comparison.input_format)
     for path in [*pictures, rows_output]:
         refuse_input_as_output(path)
     curves = inputs.curves
     progress, finish_bar = progress_bar("distances")
     try:
-        distances = distance_matrix(curves, progress=progress, elastic=elastic, **descriptor, **matching)
+        distances = distance_matrix(curves, progress=progress, elastic=elastic, **comparison.keywords())
     finally:
         finish_bar()
     ids = [c.id for c in curves]
-    what = "fused elastic" if elastic else matching["method"]
+    what = "fused elastic" if elastic else comparison.matching["method"]
     title = f"{what} distance, {len(ids)} curves"
     values = distances
     if rerank:
@@ -357,7 +354,7 @@ def matrix(
         if elastic:  # the graph `index build --graph --elastic` stores: fused lists of exact candidates
             from ..search.rerank import fused_graph_lists
 
-            lists = fused_graph_lists(distance_matrix(curves, **descriptor, **matching), distances, ids)
+            lists = fused_graph_lists(distance_matrix(curves, **comparison.keywords()), distances, ids)
         values, distances = _reranked(distances, ids, lists)
         title = f"re-ranked similarity ({what} distance), {len(ids)} curves"
     if order == "similar":

@@ -10,13 +10,7 @@ from ..defaults import DEFAULT_ELASTIC_DEPTH
 from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
-    Rerank,
-    rerank_options,
-    elastic_options,
-    match_list_options,
-    index_option,
-    input_format_option,
-    matching_options,
+    query_batch_options,
     note,
     error,
     finish,
@@ -36,39 +30,28 @@ if TYPE_CHECKING:
     from ..index import Index
     from ..records import RankedMatch
     from ..search.index_search import SearchResults, SearchStats
-    from ..search.stages import ElasticStage, Stage
-    from .options import MatchListing
+    from ..search.stages import Stage
+    from .inputs import Inputs
+    from .options import QueryBatch, MatchListing, Rerank
 
 
 @main.command()
-@click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
-@index_option
-@match_list_options("Matches per query.", " Of the QUERY folders.")
-@click.option(
-    "--exhaustive",
-    is_flag=True,
-    help="Compute every exact distance, no pruning (to check a result: the pruned search "
+@query_batch_options(
+    "Matches per query.",
+    " Of the QUERY folders.",
+    "Compute every exact distance, no pruning (to check a result: the pruned search "
     "returns the same rows and distances).",
+    click.option(
+        "--stats", "show_stats", is_flag=True, help="Print on stderr how many exact distances the search needed."
+    ),
 )
-@click.option("--stats", "show_stats", is_flag=True, help="Print on stderr how many exact distances the search needed.")
-@rerank_options
-@elastic_options
-@matching_options
-@input_format_option
 @scheduler_options
 @ranges_option
 @rows_format_option
 @output_option()
 def query(
-    queries: tuple[str, ...],
-    index_path: str,
-    listing: MatchListing,
-    exhaustive: bool,
+    batch: QueryBatch,
     show_stats: bool,
-    rerank: Rerank | None,
-    stage: ElasticStage | None,
-    matching: dict[str, Any],
-    input_format: str | None,
     scheduler: str | None,
     scheduler_timeout: float,
     ranges: int | None,
@@ -112,22 +95,13 @@ def query(
     from ..index import open_index
 
     output_format = resolve_format(output_format, output)
-    check_rerank_options(rerank, listing, exhaustive, matching, scheduler)
-    check_stage_options(stage, rerank, scheduler)
-    with open_index(index_path) as idx:
-        given = dict(rerank=rerank is not None, exhaustive=exhaustive, scheduler=scheduler, elastic=stage is not None)
-        if _query_meshes(idx, queries, listing, matching, input_format, given, (output_format, output)):
+    check_search_options(batch, scheduler)
+    with open_index(batch.index_path) as idx:
+        if _query_meshes(idx, batch, scheduler, (output_format, output)):
             return
-        note_old_format(idx, exhaustive, stage)
-        check_stage_options(stage, rerank, scheduler, idx)
-        inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
-        if ranges is not None and not scheduler:
-            raise click.UsageError("--ranges needs --scheduler")
-        results, stats = search_queries(
-            idx, inputs.curves, rerank, (scheduler, scheduler_timeout, ranges), prune=not exhaustive,
-            match=matching, stage=stage, **listing.search(),
-        )  # fmt: skip
-        rows, columns = _curve_rows(idx, inputs.curves, results, listing, row_columns(listing.details, rerank, stage))
+        inputs, (results, stats) = answer_queries(idx, batch, (scheduler, scheduler_timeout, ranges))
+        columns = row_columns(batch.listing.details, batch.rerank, batch.stage)
+        rows, columns = _curve_rows(idx, inputs.curves, results, batch.listing, columns)
     write_rows(rows, columns, output_format, output, group_by="query")
     if show_stats:
         say(_stats_line(stats))
@@ -151,21 +125,28 @@ def _curve_rows(
     return rows, columns + (["object"] if object_of is not None else [])
 
 
-def _query_meshes(
-    idx: Index,
-    queries: Iterable[str],
-    listing: MatchListing,
-    matching: dict[str, Any],
-    input_format: str | None,
-    given: dict[str, Any],
-    output_at: tuple[str, str | None],
-) -> bool:
+def _query_meshes(idx: Index, batch: QueryBatch, scheduler: str | None, output_at: tuple[str, str | None]) -> bool:
     """Answer a query of meshes (:func:`_query_objects`) and say so; False for a query of
     curves (nothing done)."""
-    meshes = mesh_queries(idx, queries, listing.glob, input_format)
+    meshes = mesh_queries(idx, batch.queries, batch.listing.glob, batch.input_format)
     if meshes:
-        _query_objects(idx, meshes, listing, matching, given, *output_at)
+        _query_objects(idx, meshes, batch, scheduler, *output_at)
     return bool(meshes)
+
+
+def answer_queries(
+    idx: Index, batch: QueryBatch, cluster_at: tuple[str | None, float | None, int | None]
+) -> tuple[Inputs, SearchResults]:
+    """The curves of the batch's QUERY... read and searched in the open index ``idx``
+    (:func:`search_queries`), after the notes on an old index and the options checked
+    against it; ``cluster_at``: --scheduler, its timeout, --ranges."""
+    scheduler, _, ranges = cluster_at
+    note_old_format(idx, batch.exhaustive, batch.stage)
+    check_stage_options(batch, scheduler, idx)
+    inputs = read_inputs(batch.queries, glob=batch.listing.glob, input_format=batch.input_format)
+    if ranges is not None and not scheduler:
+        raise click.UsageError("--ranges needs --scheduler")
+    return inputs, search_queries(idx, inputs.curves, batch, cluster_at)
 
 
 def mesh_queries(idx: Index, queries: Iterable[str], glob: str | None, input_format: str | None) -> list[str]:
@@ -202,13 +183,7 @@ def mesh_queries(idx: Index, queries: Iterable[str], glob: str | None, input_for
 
 
 def _query_objects(
-    idx: Index,
-    meshes: list[str],
-    listing: MatchListing,
-    matching: dict[str, Any],
-    given: dict[str, Any],
-    output_format: str,
-    output: str | None,
+    idx: Index, meshes: list[str], batch: QueryBatch, scheduler: str | None, output_format: str, output: str | None
 ) -> None:
     """Rank the index's objects for each query mesh (docs/objects.md): rows query, rank,
     match (the object's mesh), distance, curves (its contours that were the nearest of some
@@ -216,12 +191,13 @@ def _query_objects(
     from ..errors import InputError
     from .options import NothingRead
 
+    listing = batch.listing
     for name, on in (
-        ("--rerank", given["rerank"]),
-        ("--elastic", given["elastic"]),
-        ("--scheduler", given["scheduler"]),
+        ("--rerank", batch.rerank is not None),
+        ("--elastic", batch.stage is not None),
+        ("--scheduler", scheduler),
         ("--details", listing.details),
-        ("--method, --strict-direction or --mirror", matching != _default_matching()),
+        ("--method, --strict-direction or --mirror", batch.matching != _default_matching()),
     ):
         if on:
             raise click.UsageError(f"{name} does not apply to a mesh query (it ranks objects)")
@@ -233,7 +209,7 @@ def _query_objects(
     failures: list = []
     results = idx.search_objects(
         meshes, k=listing.top, max_distance=listing.max_distance, exclude_self=listing.exclude_self,
-        failures=failures, prune=not given["exhaustive"],
+        failures=failures, prune=not batch.exhaustive,
     )  # fmt: skip
     for _, exc in failures:
         error(exc)
@@ -318,15 +294,14 @@ def note_old_format(idx: Index, exhaustive: bool, stage: Stage | None = None) ->
 
 
 def search_queries(
-    idx: Index, curves: list[Curve], rerank: Rerank | None, cluster_at: tuple[str | None, float | None, int | None],
-    *, k: int, max_distance: float | None, prune: bool, exclude_self: bool, match: dict[str, Any],
-    stage: Stage | None = None,
-) -> SearchResults:  # fmt: skip
-    """``(results, stats)`` of the queries under a progress bar: re-ranked (``rerank`` a
-    :class:`~.options.Rerank`; ``stage`` then left to the graph's distances), or searched
+    idx: Index, curves: list[Curve], batch: QueryBatch, cluster_at: tuple[str | None, float | None, int | None]
+) -> SearchResults:
+    """``(results, stats)`` of the queries under a progress bar, as ``batch`` asks:
+    re-ranked (``batch.rerank``; the stage then left to the graph's distances), or searched
     here or on the cluster ``cluster_at`` (--scheduler, its timeout, --ranges)."""
     from ..search import search_index
 
+    rerank, listing = batch.rerank, batch.listing
     scheduler, scheduler_timeout, ranges = cluster_at
     cluster = open_cluster(scheduler, scheduler_timeout) if scheduler else None
     progress, finish_bar = progress_bar("searching")
@@ -335,23 +310,15 @@ def search_queries(
             from ..search.rerank import rerank_index
 
             return rerank_index(
-                idx, curves, k=k, depth=rerank.depth, progress=progress, exclude_self=exclude_self,
+                idx, curves, k=listing.top, depth=rerank.depth, progress=progress, exclude_self=listing.exclude_self,
                 candidates=rerank.candidates,
             )  # fmt: skip
         extra = {} if cluster is None else {"parts": ranges}
-        if stage is not None:
-            extra["stage"] = stage
+        if batch.stage is not None:
+            extra["stage"] = batch.stage
         run = search_index if cluster is None else cluster.search_index
         return run(
-            idx,
-            curves,
-            k=k,
-            max_distance=max_distance,
-            progress=progress,
-            prune=prune,
-            exclude_self=exclude_self,
-            **extra,
-            **match,
+            idx, curves, progress=progress, prune=not batch.exhaustive, **listing.search(), **extra, **batch.matching
         )
     finally:
         finish_bar()
@@ -359,11 +326,17 @@ def search_queries(
             cluster.close()
 
 
-def check_stage_options(
-    stage: ElasticStage | None, rerank: Rerank | None, scheduler: str | None, idx: Index | None = None
-) -> None:
-    """Usage errors of --elastic (``stage``) with --rerank and --scheduler; given the open
-    index ``idx``, --elastic --rerank needs its graph to hold fused distances."""
+def check_search_options(batch: QueryBatch, scheduler: str | None) -> None:
+    """Usage errors of the search options (:func:`check_rerank_options`,
+    :func:`check_stage_options`) before the index is opened."""
+    check_rerank_options(batch, scheduler)
+    check_stage_options(batch, scheduler)
+
+
+def check_stage_options(batch: QueryBatch, scheduler: str | None, idx: Index | None = None) -> None:
+    """Usage errors of --elastic (``batch.stage``) with --rerank and --scheduler; given the
+    open index ``idx``, --elastic --rerank needs its graph to hold fused distances."""
+    stage, rerank = batch.stage, batch.rerank
     if stage is None:
         return
     if rerank is not None and stage.depth != DEFAULT_ELASTIC_DEPTH:
@@ -377,15 +350,13 @@ def check_stage_options(
         )
 
 
-def check_rerank_options(
-    rerank: Rerank | None, listing: MatchListing, exhaustive: bool, matching: dict[str, Any], scheduler: str | None
-) -> None:
-    """Usage errors for options that --rerank cannot take; ``listing`` a
-    :class:`~.options.MatchListing`."""
+def check_rerank_options(batch: QueryBatch, scheduler: str | None) -> None:
+    """Usage errors for options that --rerank (``batch.rerank``) cannot take."""
+    rerank, listing, matching = batch.rerank, batch.listing, batch.matching
     if rerank is None:
         return
     for given, name in (
-        (exhaustive, "--exhaustive"),
+        (batch.exhaustive, "--exhaustive"),
         (listing.max_distance is not None, "--max-distance"),
         (matching["method"] != DEFAULT_METHOD, f"--method {matching['method']}"),
         (matching["direction"] != DEFAULT_DIRECTION, "--strict-direction"),

@@ -6,23 +6,14 @@ import os
 import shlex
 import sys
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import click
 
 from .group import main
-from .inputs import read_inputs
-from .options import (
-    rerank_options,
-    elastic_options,
-    index_option,
-    input_format_option,
-    match_list_options,
-    matching_options,
-    say,
-)
+from .options import query_batch_options, say
 from .output import match_row, path_speller, progress_bar
-from .query_cmd import check_rerank_options, check_stage_options, note_old_format, row_columns, search_queries
+from .query_cmd import answer_queries, check_search_options, row_columns
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -32,19 +23,15 @@ if TYPE_CHECKING:
     from ..records import RankedMatch
     from ..report import ReportQuery
     from ..search.index_search import SearchStats
-    from ..search.stages import ElasticStage
-    from .options import MatchListing, Rerank
+    from .options import QueryBatch
 
 
 @main.command()
-@click.argument("queries", nargs=-1, required=True, metavar="QUERY...")
-@index_option
-@match_list_options("Matches per query (each drawn).", "Only query files in folders whose name matches.")
-@click.option("--exhaustive", is_flag=True, help="Compute every exact distance, no pruning (as `query --exhaustive`).")
-@rerank_options
-@elastic_options
-@matching_options
-@input_format_option
+@query_batch_options(
+    "Matches per query (each drawn).",
+    "Only query files in folders whose name matches.",
+    "Compute every exact distance, no pruning (as `query --exhaustive`).",
+)
 @click.option(
     "--output",
     "-o",
@@ -56,14 +43,7 @@ if TYPE_CHECKING:
 )
 @click.option("--title", default=None, help="The page's title [default: nfdmatch report of INDEX].")
 def report(
-    queries: tuple[str, ...],
-    index_path: str,
-    listing: MatchListing,
-    exhaustive: bool,
-    rerank: Rerank | None,
-    stage: ElasticStage | None,
-    matching: dict[str, Any],
-    input_format: str | None,
+    batch: QueryBatch,
     output: str,
     title: str | None,
 ) -> None:
@@ -88,23 +68,17 @@ def report(
     t0 = time.perf_counter()
     if os.path.splitext(output)[1].lower() not in (".html", ".htm"):
         raise click.UsageError(f"-o {output}: the report is an HTML page: name it FILE.html")
-    check_rerank_options(rerank, listing, exhaustive, matching, None)
-    check_stage_options(stage, rerank, None)
-    columns = [c for c in row_columns(listing.details, rerank, stage) if c != "query"] + ["source"]
-    with open_index(index_path) as idx:
-        note_old_format(idx, exhaustive, stage)
-        check_stage_options(stage, rerank, None, idx)
-        inputs = read_inputs(queries, glob=listing.glob, input_format=input_format)
-        results, stats = search_queries(
-            idx, inputs.curves, rerank, (None, None, None), prune=not exhaustive, match=matching, stage=stage,
-            **listing.search(),
-        )  # fmt: skip
+    check_search_options(batch, None)
+    listing = batch.listing
+    columns = [c for c in row_columns(listing.details, batch.rerank, batch.stage) if c != "query"] + ["source"]
+    with open_index(batch.index_path) as idx:
+        inputs, (results, stats) = answer_queries(idx, batch, (None, None, None))
         spell = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
-        pages = _pages(idx, inputs.curves, results, spell, input_format, matching)
-        order = "fused distance (--elastic)" if stage else "distance"
-        if rerank is not None:
+        pages = _pages(idx, inputs.curves, results, spell, batch.input_format, batch.matching)
+        order = "fused distance (--elastic)" if batch.stage else "distance"
+        if batch.rerank is not None:
             order = "diffused score (--rerank)"
-        summary = _summary(idx, title or f"nfdmatch report of {index_path or idx.path}", pages, order, stats)
+        summary = _summary(idx, title or f"nfdmatch report of {batch.index_path or idx.path}", pages, order, stats)
     if inputs.errors:
         inputs.finish()  # exits: a page of part of a batch is not written
     summary["seconds"] = round(time.perf_counter() - t0, 3)
