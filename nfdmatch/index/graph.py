@@ -287,10 +287,10 @@ def reverse_datasets(index: Index) -> tuple[h5py.Dataset, h5py.Dataset] | None:
     g = index._h5["graph"] if found is not None else None
     if g is None or "reverse_start" not in g or "reverse_source" not in g:
         return None
-    file_size = int(index._h5.id.get_filesize())
+    file_size, checksums = int(index._h5.id.get_filesize()), bool(_graph_checksums(g))
     try:
-        start = stored_dataset(index._h5, "graph/reverse_start", file_size, bool(_graph_checksums(g)))
-        source = stored_dataset(index._h5, "graph/reverse_source", file_size, bool(_graph_checksums(g)))
+        start = stored_dataset(index._h5, "graph/reverse_start", file_size, checksums)
+        source = stored_dataset(index._h5, "graph/reverse_source", file_size, checksums)
     except Problem as exc:
         raise IndexFormatError(exc.message, path=index.path) from None
     N = index.n_curves

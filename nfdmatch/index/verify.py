@@ -118,9 +118,7 @@ def _scan(ds, name, report, *, label="row", keep=None, crc=None):
         if keep is not None:
             kept.append(keep(values))
     for a, b, exc in bad:  # type: ignore[misc]
-        text = _short(exc)
-        what = "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
-        report.findings.append(Finding(name, f"{a}..{b - 1}", what))
+        report.findings.append(Finding(name, f"{a}..{b - 1}", _unreadable(exc)))
     if bad:
         report.unreadable[name] = [(a, b) for a, b, _ in bad]
     if nonfinite:
@@ -502,11 +500,7 @@ def _verify_graph(h5, meta, report) -> None:
             try:
                 out[a:b] = ds[a:b]
             except Exception as exc:
-                text = _short(exc)
-                what = (
-                    "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
-                )
-                report.findings.append(Finding(f"/graph/{name}", f"{a}..{b - 1}", what))
+                report.findings.append(Finding(f"/graph/{name}", f"{a}..{b - 1}", _unreadable(exc)))
                 unreadable = True
     if unreadable:
         return
@@ -536,6 +530,12 @@ def _verify_graph(h5, meta, report) -> None:
         )
 
 
+def _unreadable(exc: Exception) -> str:
+    """What a failed read of stored values says: a Fletcher-32 mismatch, or why it failed."""
+    text = _short(exc)
+    return "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
+
+
 def _verify_reverse(h5, g, nb: np.ndarray, checksums: bool, report) -> None:
     """``/graph/reverse_start`` and ``reverse_source``, when the graph stores them (graphs
     written from turn 4's second session): stored, every chunk readable, and exactly the
@@ -555,9 +555,7 @@ def _verify_reverse(h5, g, nb: np.ndarray, checksums: bool, report) -> None:
         try:
             got[name] = np.asarray(ds[...], dtype=np.int64)
         except Exception as exc:
-            text = _short(exc)
-            what = "checksum mismatch (damaged chunk)" if "filter returned failure" in text else f"unreadable ({text})"
-            report.findings.append(Finding(f"/graph/{name}", "", what))
+            report.findings.append(Finding(f"/graph/{name}", "", _unreadable(exc)))
     if len(got) < 2:
         return
     report.datasets += 2
