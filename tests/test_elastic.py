@@ -16,7 +16,7 @@ import oracle as o
 from nfdmatch import Curve, build_index, open_index
 from nfdmatch.descriptors import descriptors_batch
 from nfdmatch.matching import NUMPY, exact_search
-from nfdmatch.matching.elastic import elastic_reference, elastic_rows, posed_rows
+from nfdmatch.matching.elastic import elastic_distances, elastic_reference, elastic_rows, posed_rows
 from nfdmatch.matching.fused import ELASTIC_QUANTILES, RIGID_QUANTILES, fuse, fused_distance
 from nfdmatch.matching.kernels import choose
 from nfdmatch.matching.statistics import LENGTH, curve_statistics, statistics_distance
@@ -90,6 +90,34 @@ def test_a_reposed_resampled_restarted_copy_is_at_about_zero(seed, reverse):
     assert same.elastic[0] < 0.25 * different.elastic[0]
     assert same.fused[0] < 0.1
     assert same.fused[0] < 0.25 * different.fused[0]
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), planar=st.booleans(), mirror=st.booleans())
+def test_the_elastic_distance_is_the_lesser_of_both_directions_best_poses(seed, planar, mirror):
+    """At the rigid optimum and at the other direction's best pose (searched as the rigid
+    one): the lesser, symmetric in the pair; a search strict in direction keeps one pose."""
+    rng = np.random.default_rng(seed)
+    curves = [o.random_smooth_curve(rng, 300, n_harmonics=int(rng.integers(2, 9))) for _ in range(5)]
+    if planar:
+        for c in curves:
+            c[:, 2] = 0.0
+    C = _coefficients(curves)
+    rigid = exact_search(C[0], C, 128, mirror=mirror)
+    at_rigid = elastic_rows(C[0], C, rigid["shift"], rigid["reversed"], rigid["mirrored"], 128)
+    got = elastic_distances(C[0], C, rigid, 128, mirror=mirror)
+    other_way = np.where(rigid["reversed"][:, None, None], C, np.conj(C))
+    other = exact_search(C[0], other_way, 128, direction="strict", mirror=mirror)
+    at_other = elastic_rows(C[0], other_way, other["shift"], np.zeros(len(C), bool), other["mirrored"], 128)
+    assert np.array_equal(got, np.minimum(at_rigid, at_other))
+    for r in range(1, len(C)):
+        back = exact_search(C[r], C[:1], 128, mirror=mirror)
+        assert elastic_distances(C[r], C[:1], back, 128, mirror=mirror)[0] == pytest.approx(got[r], rel=1e-6, abs=1e-9)
+    strict = exact_search(C[0], C, 128, direction="strict", mirror=mirror)
+    assert np.array_equal(
+        elastic_distances(C[0], C, strict, 128, direction="strict", mirror=mirror),
+        elastic_rows(C[0], C, strict["shift"], strict["reversed"], strict["mirrored"], 128),
+    )
 
 
 def test_the_distance_is_symmetric_and_zero_for_the_same_curve(rng):

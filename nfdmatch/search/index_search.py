@@ -172,7 +172,8 @@ def search_index(
     if exclude_self:
         results = without_self(index, queries, results, asked)
     if stage is not None:
-        results = [found[:wanted] for found in stage.reorder(index, qcoef, results)]
+        matching = {"direction": direction, "mirror": mirror, "weights": weights}
+        results = [found[:wanted] for found in stage.reorder(index, qcoef, results, matching=matching)]
     stats.seconds = time.perf_counter() - t0
     return results, stats
 

@@ -10,7 +10,7 @@ search. The stage of this module: :class:`ElasticStage` (``--elastic``; docs/ela
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -44,10 +44,16 @@ class Stage(Protocol):
         ...
 
     def reorder(
-        self, index: Any, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]
+        self,
+        index: Any,
+        qcoef: np.ndarray,
+        results: Sequence[Sequence[RankedMatch]],
+        *,
+        matching: Mapping[str, Any] | None = None,
     ) -> list[list[RankedMatch]]:
         """Each query's candidates (``results[i]``, query i's descriptors ``qcoef[i]``: (Q, K,
-        3) complex128), re-ordered and re-ranked, the stage's columns filled in."""
+        3) complex128), re-ordered and re-ranked, the stage's columns filled in; ``matching``:
+        the exact search's ``direction``, ``mirror`` and ``weights``."""
         ...
 
 
@@ -70,7 +76,12 @@ class ElasticStage:
         return None if top is None else max(int(top), int(self.depth))
 
     def reorder(
-        self, index: Any, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]
+        self,
+        index: Any,
+        qcoef: np.ndarray,
+        results: Sequence[Sequence[RankedMatch]],
+        *,
+        matching: Mapping[str, Any] | None = None,
     ) -> list[list[RankedMatch]]:
         rigid = [
             {
@@ -83,7 +94,7 @@ class ElasticStage:
         ]
         rows = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
         out = []
-        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid)):
+        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid, matching=matching)):
             if terms is None:
                 out.append([])
                 continue
@@ -99,13 +110,20 @@ class ElasticStage:
 
 
 def fused_candidates(
-    index: Any, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid: Sequence[dict]
+    index: Any,
+    qcoef: np.ndarray,
+    rows: Sequence[np.ndarray],
+    rigid: Sequence[dict],
+    *,
+    matching: Mapping[str, Any] | None = None,
 ) -> list[FusedDistances | None]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
     optimum ``rigid[i]`` (``distance``, ``shift``, ``reversed``, ``mirrored`` arrays), the
     batch's rows read once (a scattered read costs about as much for one row as for many);
-    the rows' statistics stored by the index (``statistics_at``) or computed."""
+    the rows' statistics stored by the index (``statistics_at``) or computed; ``matching``:
+    the exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no
+    mirror, uniform)."""
     from ..matching.fused import fused_rows
     from ..matching.statistics import curve_statistics
 
@@ -130,6 +148,7 @@ def fused_candidates(
                 index.samples,
                 query_statistics=mine[qi],
                 row_statistics=statistics[at],
+                **(matching or {}),
             )  # fmt: skip
         )
     return out
