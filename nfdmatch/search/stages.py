@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Optional, Protocol
 
 import numpy as np
 
@@ -26,6 +26,13 @@ if TYPE_CHECKING:
     from .engine import BestRows
 
 __all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates", "fused_best_rows"]
+
+#: each query's exact candidates, ranked, as a stage receives them
+Candidates = Sequence[Sequence[RankedMatch]]
+#: each query's answer, as a stage gives it back
+Answers = list[list[RankedMatch]]
+#: the exact search's ``direction``, ``mirror`` and ``weights`` (None: invariant, no mirror, uniform)
+Matching = Optional[Mapping[str, Any]]
 
 #: the columns the elastic stage adds after ``distance``
 ELASTIC_COLUMNS = ("elastic", "fused")
@@ -43,14 +50,7 @@ class Stage(Protocol):
         """How many exact nearest rows a query needs for an answer of ``top`` rows."""
         ...
 
-    def reorder(
-        self,
-        index: Any,
-        qcoef: np.ndarray,
-        results: Sequence[Sequence[RankedMatch]],
-        *,
-        matching: Mapping[str, Any] | None = None,
-    ) -> list[list[RankedMatch]]:
+    def reorder(self, index: Any, qcoef: np.ndarray, results: Candidates, *, matching: Matching = None) -> Answers:
         """Each query's candidates (``results[i]``, query i's descriptors ``qcoef[i]``: (Q, K,
         3) complex128), re-ordered and re-ranked, the stage's columns filled in; ``matching``:
         the exact search's ``direction``, ``mirror`` and ``weights``."""
@@ -75,14 +75,7 @@ class ElasticStage:
     def candidates(self, top: int | None) -> int | None:
         return None if top is None else max(int(top), int(self.depth))
 
-    def reorder(
-        self,
-        index: Any,
-        qcoef: np.ndarray,
-        results: Sequence[Sequence[RankedMatch]],
-        *,
-        matching: Mapping[str, Any] | None = None,
-    ) -> list[list[RankedMatch]]:
+    def reorder(self, index: Any, qcoef: np.ndarray, results: Candidates, *, matching: Matching = None) -> Answers:
         rigid = [
             {
                 "distance": np.array([m.distance for m in matches], dtype=np.float64),
@@ -115,7 +108,7 @@ def fused_candidates(
     rows: Sequence[np.ndarray],
     rigid: Sequence[dict],
     *,
-    matching: Mapping[str, Any] | None = None,
+    matching: Matching = None,
 ) -> list[FusedDistances | None]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
