@@ -370,3 +370,39 @@ def test_an_elastic_graph_is_built_verified_and_diffused_over(tmp_path, rng):
     assert code == 2 and "needs a graph of fused distances" in err and not out
     code, out, err = run_cli("index", "build", "--index", index, "--elastic")
     assert code == 2 and "--elastic needs --graph" in err
+
+
+def test_a_graph_of_an_older_fused_distance_is_named_and_computed_afresh(tmp_path, rng):
+    """A graph stamped with another fused distance's version (one written before the elastic
+    term took two poses carries none: version 1) is named by query --rerank on stderr, and a
+    plain `index build` rerun computes it afresh, once."""
+    import h5py
+    from conftest import run_cli
+    from nfdmatch.matching.fused import FUSED_VERSION
+
+    folder, curves = _family_folder(tmp_path, rng, count=3, members=5)
+    index = str(tmp_path / "x.h5")
+    assert run_cli("index", "build", str(folder), "--index", index, "--graph", "8", "--elastic")[0] == 0
+    code, out, err = run_cli("index", "info", "--index", index, "--format", "json")
+    assert json.loads(out)["graph_fused_version"] == FUSED_VERSION
+    with open_index(index) as idx:
+        lists = idx.graph_reader()(np.arange(len(curves)))
+    with h5py.File(index, "r+") as h5:
+        del h5["graph"].attrs["fused_version"]
+    with open_index(index) as idx:
+        assert idx.graph_fused_version() == 1
+    files = sorted(str(p) for p in folder.iterdir())
+    code, out, err = run_cli("query", files[0], "--index", index, "--rerank", "--top", "3")
+    assert code == 0 and out
+    assert "older definition (version 1" in err and "index build --index" in err
+    code, out, err = run_cli("index", "build", "--index", index)
+    assert code == 0 and "computed afresh" in err, err
+    with open_index(index) as idx:
+        assert idx.graph_fused_version() == FUSED_VERSION
+        again = idx.graph_reader()(np.arange(len(curves)))
+    assert np.array_equal(again[0], lists[0]) and np.allclose(again[1], lists[1])
+    inode = os.stat(index).st_ino
+    code, out, err = run_cli("index", "build", "--index", index)
+    assert code == 0 and "computed afresh" not in err and os.stat(index).st_ino == inode
+    code, out, err = run_cli("query", files[0], "--index", index, "--rerank", "--top", "3")
+    assert code == 0 and "older definition" not in err

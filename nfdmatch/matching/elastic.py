@@ -15,12 +15,13 @@ A pair is compared at the rigid optimum's start shift and direction (the exact s
 pose: never searched twice) and, when the search is invariant to the direction, also at
 the best rigid pose of the other direction (:func:`elastic_distances`: the lesser of the
 two; a nearly symmetric shape bends best into its mirror-like pose as often as not): the
-query sampled at ``-s/2``, the row at ``+s/2`` (so the distance is symmetric), then a banded (``|i - j| <= BAND``) symmetric dynamic programme over
-the correspondence of the two signatures, L1 costs, diagonal steps weighted twice, each
-step's cost the mean of its two cells', leaving and closing at (0, 0) diagonally (so a
-closed path walked backwards is a path of the same cost: reversed pairs are symmetric
-too), the total over 2N. Mirrored (``--mirror``) rows are reflected first; the ``n`` components change
-sign under a reflection, so a mirror image is not at 0 unless asked for.
+query sampled at ``-s/2``, the row at ``+s/2`` (so the distance is symmetric), then a
+banded (``|i - j| <= BAND``) symmetric dynamic programme over the correspondence of the two
+signatures, L1 costs, diagonal steps weighted twice, each step's cost the mean of its two
+cells', leaving and closing at (0, 0) diagonally (so a closed path walked backwards is a
+path of the same cost: reversed pairs are symmetric too), the total over 2N. Mirrored
+(``--mirror``) rows are reflected first; the ``n`` components change sign under a
+reflection, so a mirror image is not at 0 unless asked for.
 """
 
 from __future__ import annotations

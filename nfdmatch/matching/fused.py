@@ -38,11 +38,18 @@ __all__ = [
     "ELASTIC_QUANTILES",
     "STATISTICS_QUANTILES",
     "TERMS",
+    "FUSED_VERSION",
     "require_exact",
 ]
 
 #: the terms summed, in this order
 TERMS = ("rigid", "elastic", "statistics")
+#: which fused distance this is, stamped on a graph of fused distances (``/graph``
+#: attribute ``fused_version``; docs/index-format.md): 1, the elastic term at the rigid
+#: optimum's pose (turn 4's second session; a graph without the attribute); 2, at the
+#: lesser of both directions' best poses, with the quantile tables below. A graph of
+#: another version is rebuilt by ``index build`` and named by ``query --rerank``.
+FUSED_VERSION = 2
 #: 17 quantiles (0, 1/16, ..., 1) of each term over the pooled development pairs
 RIGID_QUANTILES = (
     0.0, 0.0706, 0.1037, 0.1283, 0.1573, 0.1872, 0.2205, 0.2582, 0.2912, 0.3261, 0.3644, 0.4074, 0.4481,
