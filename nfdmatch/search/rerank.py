@@ -225,9 +225,10 @@ def rerank_index(
         whose PageRank reaches it most (:meth:`GraphWalk.reverse_pagerank`), each with its
         exact distance; no exact top-M search) or ``"exact"`` (the query's exact top ``depth``: ~4x
         the time of a batch at 100,000 curves, docs/rerank.md). On a graph of fused distances
-        (``index build --graph K --elastic``) always ``"exact"`` plus the rows of the walks,
-        each candidate given its fused distance (the elastic stage's), the matches their
-        ``elastic`` and ``fused``.
+        (``index build --graph K --elastic``): the query's exact ``max(3 top, 30)`` nearest (the
+        exact nearest a stored row's list is cut from; ``"exact"``: its top ``depth``) plus
+        the rows of its walks, each candidate given its fused distance (the elastic stage's),
+        the matches their ``elastic`` and ``fused``.
 
     Returns
     -------
@@ -260,9 +261,12 @@ def rerank_index(
     qcoef = query_descriptors(index, queries)
     fused = getattr(index, "graph_distance", lambda: "exact")() == "fused"
     if candidates == "exact" or fused:
+        # a fused graph's walk starts from the exact nearest a stored row's list is cut from
+        nearest = depth if candidates == "exact" else max(WALK_NEAREST * top, FUSED_CANDIDATES, walk.k)
         found, stats, vectors = _exact_candidates(
-            index, walk, queries, qcoef, depth, exclude_self, is_self, fused, progress=progress, threads=threads
-        )
+            index, walk, queries, qcoef, (nearest, depth), exclude_self, is_self, fused, progress=progress,
+            threads=threads,
+        )  # fmt: skip
     else:
         found, stats, pushed = _walk_candidates(
             index, walk, queries, qcoef, top, depth, exclude_self, is_self, progress=progress, threads=threads
@@ -332,17 +336,18 @@ def _self_flags(index, queries, tops, exclude_self: bool, is_self) -> list[np.nd
 
 
 def _exact_candidates(
-    index, walk: GraphWalk, queries, qcoef, depth, exclude_self, is_self, fused, *, progress, threads
+    index, walk: GraphWalk, queries, qcoef, depths, exclude_self, is_self, fused, *, progress, threads
 ):
     """``(found, stats, vectors)`` for ``candidates="exact"`` and on a fused graph: each
-    query's exact top ``depth``; on a graph of fused distances each given its fused distance
-    (the elastic stage's), which it joins the graph by, and the rows of its walks added
-    (:func:`_walk_rows`, their fused distances too); ``vectors`` every candidate's PageRank,
-    once for the batch."""
+    query's exact top ``depths[0]`` (its walks: ``depths[1]``); on a graph of fused
+    distances each given its fused distance (the elastic stage's), which it joins the graph
+    by, and the rows of its walks added (:func:`_walk_rows`, their fused distances too);
+    ``vectors`` every candidate's PageRank, once for the batch."""
     from .index_search import rank_rows, search_rows
 
-    found, stats = search_rows(index, qcoef, Cascade(index.samples), top=depth, progress=progress, threads=threads)
-    rank_rows(index, found, depth)
+    nearest, depth = depths
+    found, stats = search_rows(index, qcoef, Cascade(index.samples), top=nearest, progress=progress, threads=threads)
+    rank_rows(index, found, nearest)
     if fused:
         fused_best_rows(index, qcoef, found)
     union = _union(found)
