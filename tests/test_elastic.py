@@ -342,3 +342,33 @@ def test_an_elastic_graph_is_built_verified_and_diffused_over(tmp_path, rng):
     assert code == 2 and "needs a graph of fused distances" in err and not out
     code, out, err = run_cli("index", "build", "--index", index, "--elastic")
     assert code == 2 and "--elastic needs --graph" in err
+
+
+def test_fused_graph_lists_are_the_same_in_any_blocks_and_over_worker_processes(rng):
+    """The fused lists of a build (blocks in the search table's order, over its --jobs
+    processes) are those of the straightforward loop: each row alone, in row order, here."""
+    from nfdmatch.search.engine import TIE
+    from nfdmatch.search.graph import fused_lists
+
+    curves = _families(rng, count=5, members=8)
+    C = np.asarray(_coefficients(curves), dtype=np.complex128)
+    S = curve_statistics(C)
+    N, m, k = len(C), 9, 4
+    ids = [f"c{int(i):03d}" for i in rng.permutation(N)]
+    candidates = np.array([rng.choice(np.delete(np.arange(N), i), m, replace=False) for i in range(N)])
+    candidates[3, 5:] = -1  # a short list, padded
+    candidates[11, :] = -1  # no candidates at all
+    expected_nb, expected_d = np.full((N, k), -1), np.full((N, k), np.inf)
+    for i in range(N):
+        found = candidates[i][candidates[i] >= 0]
+        if not len(found):
+            continue
+        rigid = exact_search(C[i], C[found], 128)
+        fused = fuse(rigid["distance"], elastic_rows(C[i], C[found], rigid["shift"], rigid["reversed"],
+                     rigid["mirrored"], 128), statistics_distance(S[i], S[found]))  # fmt: skip
+        order = sorted(range(len(found)), key=lambda j: (np.round(fused[j] / TIE), ids[found[j]]))[:k]
+        expected_nb[i, : len(order)], expected_d[i, : len(order)] = found[order], fused[order]
+    blocks = np.array_split(rng.permutation(N), 6)
+    for how in ({}, {"blocks": blocks}, {"blocks": blocks, "processes": 2}):
+        nb, d = fused_lists(lambda r: C[r], lambda r: S[r], ids, candidates, k, 128, **how)
+        assert np.array_equal(nb, expected_nb) and np.array_equal(d, expected_d), how

@@ -109,7 +109,7 @@ def write_graph(
             progress=progress,
         )
         stats.kept = len(plan.lists.check) - stats.updated
-    return store_graph(h5, plan)
+    return store_graph(h5, plan, processes=processes, close_fds=[fd for fd in close_fds if fd is not None])
 
 
 def plan_graph(h5: h5py.File, old: Index | None, k: int | None, *, reuse: bool) -> GraphPlan | None:
@@ -187,14 +187,21 @@ def blocks_to_search(plan: GraphPlan, threads: int | None = None) -> list[np.nda
     return blocks
 
 
-def store_graph(h5: h5py.File, plan: GraphPlan) -> GraphStats:
+def store_graph(
+    h5: h5py.File, plan: GraphPlan, *, processes: int = 1, close_fds: Sequence[int] = ()
+) -> GraphStats:  # fmt: skip
     """Write the lists of ``plan`` (complete) as ``/graph`` of the new index file ``h5``;
     returns its stats, their time taken. A fused graph's lists of exact candidates (searched
-    here or elsewhere) are cut to its rows of least fused distance first."""
+    here or elsewhere) are cut to its rows of least fused distance first, on ``processes``
+    forked workers closing ``close_fds`` (:func:`~nfdmatch.search.graph.fused_lists`)."""
     if plan.distance == "fused":
+        # in the search table's order when there is one: a block's rows then share their
+        # candidates (a family sits in a few cells), so each block reads fewer of them
+        blocks = None if plan.table is None else graph_blocks(plan.table, np.ones(len(plan.ids), dtype=bool))
         plan.lists.neighbour, plan.lists.distance = fused_lists(
-            plan.read_coefficients, plan.read_statistics, plan.ids, plan.lists.neighbour, plan.final_k, plan.samples
-        )
+            plan.read_coefficients, plan.read_statistics, plan.ids, plan.lists.neighbour, plan.final_k, plan.samples,
+            blocks=blocks, processes=processes, close_fds=close_fds,
+        )  # fmt: skip
         plan.k = plan.stats.k = plan.final_k
     _write_group(h5, plan.k, plan.lists.neighbour, plan.lists.distance, plan.distance)
     plan.stats.seconds = time.perf_counter() - plan.t0
