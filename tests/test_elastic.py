@@ -16,8 +16,8 @@ import oracle as o
 from nfdmatch import Curve, build_index, open_index
 from nfdmatch.descriptors import descriptors_batch
 from nfdmatch.matching import NUMPY, exact_search
-from nfdmatch.matching.elastic import elastic_reference, elastic_rows, posed_rows
-from nfdmatch.matching.fused import ELASTIC_QUANTILES, RIGID_QUANTILES, fuse, fused_distance
+from nfdmatch.matching.elastic import elastic_distances, elastic_reference, elastic_rows, posed_rows
+from nfdmatch.matching.fused import ELASTIC_QUANTILES, RIGID_QUANTILES, fuse, fused_distance, fused_rows
 from nfdmatch.matching.kernels import choose
 from nfdmatch.matching.statistics import LENGTH, curve_statistics, statistics_distance
 from nfdmatch.search import rank_curves
@@ -90,6 +90,34 @@ def test_a_reposed_resampled_restarted_copy_is_at_about_zero(seed, reverse):
     assert same.elastic[0] < 0.25 * different.elastic[0]
     assert same.fused[0] < 0.1
     assert same.fused[0] < 0.25 * different.fused[0]
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), planar=st.booleans(), mirror=st.booleans())
+def test_the_elastic_distance_is_the_lesser_of_both_directions_best_poses(seed, planar, mirror):
+    """At the rigid optimum and at the other direction's best pose (searched as the rigid
+    one): the lesser, symmetric in the pair; a search strict in direction keeps one pose."""
+    rng = np.random.default_rng(seed)
+    curves = [o.random_smooth_curve(rng, 300, n_harmonics=int(rng.integers(2, 9))) for _ in range(5)]
+    if planar:
+        for c in curves:
+            c[:, 2] = 0.0
+    C = _coefficients(curves)
+    rigid = exact_search(C[0], C, 128, mirror=mirror)
+    at_rigid = elastic_rows(C[0], C, rigid["shift"], rigid["reversed"], rigid["mirrored"], 128)
+    got = elastic_distances(C[0], C, rigid, 128, mirror=mirror)
+    other_way = np.where(rigid["reversed"][:, None, None], C, np.conj(C))
+    other = exact_search(C[0], other_way, 128, direction="strict", mirror=mirror)
+    at_other = elastic_rows(C[0], other_way, other["shift"], np.zeros(len(C), bool), other["mirrored"], 128)
+    assert np.array_equal(got, np.minimum(at_rigid, at_other))
+    for r in range(1, len(C)):
+        back = exact_search(C[r], C[:1], 128, mirror=mirror)
+        assert elastic_distances(C[r], C[:1], back, 128, mirror=mirror)[0] == pytest.approx(got[r], rel=1e-6, abs=1e-9)
+    strict = exact_search(C[0], C, 128, direction="strict", mirror=mirror)
+    assert np.array_equal(
+        elastic_distances(C[0], C, strict, 128, direction="strict", mirror=mirror),
+        elastic_rows(C[0], C, strict["shift"], strict["reversed"], strict["mirrored"], 128),
+    )
 
 
 def test_the_distance_is_symmetric_and_zero_for_the_same_curve(rng):
@@ -344,6 +372,42 @@ def test_an_elastic_graph_is_built_verified_and_diffused_over(tmp_path, rng):
     assert code == 2 and "--elastic needs --graph" in err
 
 
+def test_a_graph_of_an_older_fused_distance_is_named_and_computed_afresh(tmp_path, rng):
+    """A graph stamped with another fused distance's version (one written before the elastic
+    term took two poses carries none: version 1) is named by query --rerank on stderr, and a
+    plain `index build` rerun computes it afresh, once."""
+    import h5py
+    from conftest import run_cli
+    from nfdmatch.matching.fused import FUSED_VERSION
+
+    folder, curves = _family_folder(tmp_path, rng, count=3, members=5)
+    index = str(tmp_path / "x.h5")
+    assert run_cli("index", "build", str(folder), "--index", index, "--graph", "8", "--elastic")[0] == 0
+    code, out, err = run_cli("index", "info", "--index", index, "--format", "json")
+    assert json.loads(out)["graph_fused_version"] == FUSED_VERSION
+    with open_index(index) as idx:
+        lists = idx.graph_reader()(np.arange(len(curves)))
+    with h5py.File(index, "r+") as h5:
+        del h5["graph"].attrs["fused_version"]
+    with open_index(index) as idx:
+        assert idx.graph_fused_version() == 1
+    files = sorted(str(p) for p in folder.iterdir())
+    code, out, err = run_cli("query", files[0], "--index", index, "--rerank", "--top", "3")
+    assert code == 0 and out
+    assert "older definition (version 1" in err and "index build --index" in err
+    code, out, err = run_cli("index", "build", "--index", index)
+    assert code == 0 and "computed afresh" in err, err
+    with open_index(index) as idx:
+        assert idx.graph_fused_version() == FUSED_VERSION
+        again = idx.graph_reader()(np.arange(len(curves)))
+    assert np.array_equal(again[0], lists[0]) and np.allclose(again[1], lists[1])
+    inode = os.stat(index).st_ino
+    code, out, err = run_cli("index", "build", "--index", index)
+    assert code == 0 and "computed afresh" not in err and os.stat(index).st_ino == inode
+    code, out, err = run_cli("query", files[0], "--index", index, "--rerank", "--top", "3")
+    assert code == 0 and "older definition" not in err
+
+
 def test_fused_graph_lists_are_the_same_in_any_blocks_and_over_worker_processes(rng):
     """The fused lists of a build (blocks in the search table's order, over its --jobs
     processes) are those of the straightforward loop: each row alone, in row order, here."""
@@ -364,8 +428,7 @@ def test_fused_graph_lists_are_the_same_in_any_blocks_and_over_worker_processes(
         if not len(found):
             continue
         rigid = exact_search(C[i], C[found], 128)
-        fused = fuse(rigid["distance"], elastic_rows(C[i], C[found], rigid["shift"], rigid["reversed"],
-                     rigid["mirrored"], 128), statistics_distance(S[i], S[found]))  # fmt: skip
+        fused = fused_rows(C[i], C[found], rigid, 128, query_statistics=S[i], row_statistics=S[found]).fused
         order = sorted(range(len(found)), key=lambda j: (np.round(fused[j] / TIE), ids[found[j]]))[:k]
         expected_nb[i, : len(order)], expected_d[i, : len(order)] = found[order], fused[order]
     blocks = np.array_split(rng.permutation(N), 6)

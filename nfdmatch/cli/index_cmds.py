@@ -531,6 +531,8 @@ def index_info(index_path: str, output_format: str | None, output: str | None) -
         info["objects"] = len(idx.object_ids())  # meshes indexed as objects (docs/objects.md)
         if info["graph"]:
             info["graph_distance"] = idx.graph_distance()
+            if idx.graph_fused_version() is not None:  # the fused distance's definition (docs/elastic.md)
+                info["graph_fused_version"] = idx.graph_fused_version()
         if idx.excluded():  # left out of the sources' walk by `index remove`
             info["excluded"] = idx.excluded()
     if output_format == "json":
@@ -555,6 +557,7 @@ def index_info(index_path: str, output_format: str | None, output: str | None) -
             "graph",
             "objects",
             *(["graph_distance"] if "graph_distance" in info else []),
+            *(["graph_fused_version"] if "graph_fused_version" in info else []),
             "created",
             "updated",
             "size_bytes",

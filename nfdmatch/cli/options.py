@@ -686,7 +686,7 @@ def rerank_options(command: Callable[..., Any]) -> Callable[..., Any]:
             type=click.Choice(RERANK_CANDIDATES),
             default=None,
             show_default=DEFAULT_RERANK_CANDIDATES,
-            help="With --rerank: walk: the query's exact nearest (--top, at least 8), the M curves its "
+            help="With --rerank: walk: the query's exact nearest (3 x --top, at least 8), the M curves its "
             "PageRank over the graph reaches most and the M/2 whose PageRank reaches it most; exact: its "
             "exact top M (~4x the time of a batch at 100,000 curves).",
         ),

@@ -141,7 +141,7 @@ def answer_queries(
     (:func:`search_queries`), after the notes on an old index and the options checked
     against it; ``cluster_at``: --scheduler, its timeout, --ranges."""
     scheduler, _, ranges = cluster_at
-    note_old_format(idx, batch.exhaustive, batch.stage)
+    note_old_format(idx, batch.exhaustive, batch.stage, rerank=batch.rerank is not None)
     check_stage_options(batch, scheduler, idx)
     inputs = read_inputs(batch.queries, glob=batch.listing.glob, input_format=batch.input_format)
     if ranges is not None and not scheduler:
@@ -267,11 +267,26 @@ def row_columns(details: bool, rerank: Rerank | None, stage: Stage | None = None
     return columns
 
 
-def note_old_format(idx: Index, exhaustive: bool, stage: Stage | None = None) -> None:
+def note_old_format(idx: Index, exhaustive: bool, stage: Stage | None = None, *, rerank: bool = False) -> None:
     """A note that a format-1 index (no search cells) bounds every row for each query, that
-    an index before format 3 has its statistics computed on read by the elastic stage, and
+    an index before format 3 has its statistics computed on read by the elastic stage, that
+    a graph of fused distances of an older definition is diffused over by ``--rerank``, and
     that an older file (not ``checked_metadata``) is read whole at each open."""
     from ..index import FORMAT_VERSION
+    from ..matching.fused import FUSED_VERSION
+
+    from ..errors import IndexFormatError
+
+    try:
+        stored = idx.graph_fused_version() if rerank else None
+    except IndexFormatError:  # a damaged graph: --rerank says so when it reads it
+        stored = None
+    if stored is not None and stored != FUSED_VERSION:
+        note(
+            f"{idx.path}'s graph holds fused distances of an older definition (version {stored}; this "
+            f"nfdmatch computes version {FUSED_VERSION}, docs/elastic.md): --rerank diffuses over them, the "
+            f"query's candidates given today's; `nfdmatch index build --index {idx.path}` computes it afresh"
+        )
 
     if idx.format_version < 3 and stage is not None:
         note(

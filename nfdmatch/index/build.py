@@ -117,7 +117,7 @@ from .plan import (
 )
 from .pool import run_tasks
 from .reader import Index
-from .graph import GraphStats, asked_graph, graph_changes, graph_distance, old_graph_k
+from .graph import GraphStats, asked_graph, graph_changes, graph_distance, old_graph_k, stale_fused_graph
 from .schema import FORMAT_VERSION, open_checked, Problem, default_index_path
 from .writer import remove_stale_temps
 
@@ -406,6 +406,14 @@ def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str,
     if stale:
         report.notices.append(
             f"removed {len(stale)} temporary file(s) left by an interrupted build: {', '.join(stale)}"
+        )
+    stale = stale_fused_graph(old)
+    if stale is not None and asked_graph(old, graph) == (old_graph_k(old), "fused"):
+        from ..matching.fused import FUSED_VERSION
+
+        report.notices.append(
+            f"the graph's fused distances are of an older definition (version {stale}): computed afresh "
+            f"(version {FUSED_VERSION}, docs/elastic.md)"
         )
     if graph is not None and old is not None:
         k, distance = asked_graph(old, graph)

@@ -37,6 +37,8 @@ __all__ = [
     "read_reverse_rows",
     "reverse_of",
     "graph_changes",
+    "fused_version",
+    "stale_fused_graph",
     "graph_k",
     "check_lists",
     "GraphStats",
@@ -235,6 +237,30 @@ def graph_distance(index: Index) -> str:
     return group_distance(index._h5["graph"])
 
 
+def fused_version(index: Index) -> int | None:
+    """The version of the fused distance (:data:`~nfdmatch.matching.fused.FUSED_VERSION`)
+    an open index's graph holds: None without a graph of fused distances; 1 for one written
+    before the attribute was."""
+    if graph_distance(index) != "fused":
+        return None
+    try:
+        return int(index._h5["graph"].attrs.get("fused_version", 1))
+    except (KeyError, TypeError, ValueError, OSError):  # a damaged attribute: as the oldest
+        return 1
+
+
+def stale_fused_graph(index: Index | None) -> int | None:
+    """The version of the fused distance of an index's graph when it is not this
+    nfdmatch's (its lists would rank by another distance than the query's); else None."""
+    from ..matching.fused import FUSED_VERSION
+
+    try:
+        version = fused_version(index) if index is not None else None
+    except (KeyError, TypeError, ValueError, OSError):  # a damaged group: as if there were none
+        return None
+    return version if version is not None and version != FUSED_VERSION else None
+
+
 def group_distance(g: h5py.Group) -> str:
     """What a ``/graph`` group's distances are, by its attribute ``distance`` (absent or
     unknown: ``"exact"``)."""
@@ -255,11 +281,17 @@ def asked_graph(old: Index | None, graph: int | GraphSpec | None) -> tuple[int, 
 def graph_changes(old: Index | None, graph: int | GraphSpec | None) -> bool:
     """True when a build asked for ``graph`` (as :func:`asked_graph` reads it) must rewrite
     an index that is otherwise up to date (a graph asked for that it lacks or has with
-    another K or distance, or one to drop)."""
+    another K or distance, or one to drop; a graph of fused distances of another version
+    than this nfdmatch's, also when no graph was asked for: it is kept, so computed afresh)."""
+    stale = stale_fused_graph(old) is not None
     if graph is None:
-        return False
+        return stale  # the graph is kept as it is: of today's fused distance
     k, distance = asked_graph(old, graph)
-    return k != old_graph_k(old) or (k > 0 and distance != graph_distance(old))
+    return (
+        k != old_graph_k(old)
+        or (k > 0 and distance != graph_distance(old))
+        or (k > 0 and distance == "fused" and stale)
+    )
 
 
 def reverse_of(neighbour: NDArray[np.int64], N: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:

@@ -260,6 +260,10 @@ def _write_group(h5, k: int, neighbour, distance, kind: str = "exact") -> None:
     g.attrs["k"] = np.int64(k)
     if kind != "exact":
         set_text(g.attrs, "distance", kind)
+    if kind == "fused":
+        from ..matching.fused import FUSED_VERSION
+
+        g.attrs["fused_version"] = np.int64(FUSED_VERSION)
     set_text(g.attrs, "method", "exact")
     set_text(g.attrs, "direction", "invariant")
     g.attrs["mirror"] = np.int64(0)

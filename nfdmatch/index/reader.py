@@ -20,7 +20,7 @@ from ..search.knn import SearchFace
 from ..search.table import SearchTable
 from .arrays import first_nonfinite, read_runs, unique_rows
 from .changes import read_changes
-from .graph import graph_distance, graph_k, read_graph_rows, read_reverse_rows
+from .graph import fused_version, graph_distance, graph_k, read_graph_rows, read_reverse_rows
 from ..names import decode_name
 from .paths import index_folder, openable
 from .schema import (
@@ -590,6 +590,12 @@ class Index(SearchFace):
         """What the stored graph's distances are: ``"exact"`` (also without a graph) or
         ``"fused"`` (the elastic stage's: ``index build --graph K --elastic``)."""
         return graph_distance(self)
+
+    def graph_fused_version(self) -> int | None:
+        """The version of the fused distance the stored graph holds
+        (:data:`~nfdmatch.matching.fused.FUSED_VERSION`); None for a graph of exact distances
+        or none."""
+        return self._read(lambda: fused_version(self), "/graph")
 
     def graph_reader(self) -> Callable[[Any], tuple[np.ndarray, np.ndarray]] | None:
         """``rows -> (neighbour (m, K) int64, distance (m, K) float64)`` of the stored graph,

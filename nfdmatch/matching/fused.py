@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .elastic import elastic_rows
+from .common import INVARIANT
+from .elastic import elastic_distances
 from .kernels import Kernels
 from .statistics import curve_statistics, statistics_distance
 
@@ -37,19 +38,26 @@ __all__ = [
     "ELASTIC_QUANTILES",
     "STATISTICS_QUANTILES",
     "TERMS",
+    "FUSED_VERSION",
     "require_exact",
 ]
 
 #: the terms summed, in this order
 TERMS = ("rigid", "elastic", "statistics")
+#: which fused distance this is, stamped on a graph of fused distances (``/graph``
+#: attribute ``fused_version``; docs/index-format.md): 1, the elastic term at the rigid
+#: optimum's pose (turn 4's second session; a graph without the attribute); 2, at the
+#: lesser of both directions' best poses, with the quantile tables below. A graph of
+#: another version is rebuilt by ``index build`` and named by ``query --rerank``.
+FUSED_VERSION = 2
 #: 17 quantiles (0, 1/16, ..., 1) of each term over the pooled development pairs
 RIGID_QUANTILES = (
     0.0, 0.0706, 0.1037, 0.1283, 0.1573, 0.1872, 0.2205, 0.2582, 0.2912, 0.3261, 0.3644, 0.4074, 0.4481,
     0.4911, 0.5563, 0.6637, 1.0382,
 )  # fmt: skip
 ELASTIC_QUANTILES = (
-    0.0, 0.9792, 1.4751, 1.8587, 2.1199, 2.3575, 2.5752, 2.7724, 2.9539, 3.1455, 3.3479, 3.5685, 3.8169,
-    4.0665, 4.3102, 4.7036, 7.7741,
+    0.0, 0.9695, 1.4643, 1.8373, 2.0992, 2.3341, 2.5507, 2.7482, 2.9258, 3.1211, 3.3232, 3.5343, 3.7845,
+    4.0386, 4.2732, 4.6705, 7.7741,
 )  # fmt: skip
 STATISTICS_QUANTILES = (
     0.0, 1.7335, 2.4573, 3.0831, 3.6837, 4.2005, 4.7502, 5.2919, 5.8266, 6.3109, 6.8421, 7.3988, 8.0112,
@@ -96,6 +104,9 @@ def fused_rows(
     *,
     query_statistics: np.ndarray | None = None,
     row_statistics: np.ndarray | None = None,
+    direction: str = INVARIANT,
+    mirror: bool = False,
+    weights: ArrayLike | None = None,
     kernels: Kernels | None = None,
 ) -> FusedDistances:
     """The fused distances of one query to many rows.
@@ -103,14 +114,18 @@ def fused_rows(
     A : (K, 3) complex, the query's half-band; B : (M, K, 3) complex, the rows'.
     rigid : the exact optimum of each row (``exact_search``'s dict, or any mapping with
         ``distance``, ``shift``, ``reversed``, ``mirrored`` as (M,) arrays): the elastic
-        distance is taken at its pose.
+        distance is taken at its pose (and the other direction's,
+        :func:`~.elastic.elastic_distances`).
+    direction, mirror, weights : the exact search's.
     samples : n of the descriptors.
     query_statistics : (LENGTH,) and row_statistics : (M, LENGTH) float, when stored; else
         computed from ``A`` and ``B`` (:func:`~.statistics.curve_statistics`).
     """
     B = np.asarray(B)
     distance = np.asarray(rigid["distance"], dtype=np.float64)
-    elastic = elastic_rows(A, B, rigid["shift"], rigid["reversed"], rigid["mirrored"], samples, kernels=kernels)
+    elastic = elastic_distances(
+        A, B, rigid, samples, direction=direction, mirror=mirror, weights=weights, kernels=kernels
+    )
     mine = curve_statistics(A) if query_statistics is None else query_statistics
     theirs = curve_statistics(B) if row_statistics is None else row_statistics
     statistics = statistics_distance(mine, theirs) if len(B) else np.zeros(0)
@@ -136,4 +151,8 @@ def fused_distance(a: Any, b: Any, **parameters: Any) -> tuple[Match, FusedDista
         "reversed": np.array([match.reversed]),
         "mirrored": np.array([match.mirrored]),
     }
-    return match, fused_rows(da.coefficients, db.coefficients[None], rigid, da.samples)
+    terms = fused_rows(
+        da.coefficients, db.coefficients[None], rigid, da.samples, direction=p.direction, mirror=p.mirror,
+        weights=p.weights,
+    )  # fmt: skip
+    return match, terms

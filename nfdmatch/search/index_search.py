@@ -151,13 +151,12 @@ def search_index(
     """
     top = k_or_top(k, top, "search_index")
     check_search_parameters(top, max_distance, method)
-    if stage is not None:
-        require_exact(method)
     if weights is not None and prune:
         raise ParameterError("pruning uses unweighted bounds: pass prune=False with weights")
     t0 = time.perf_counter()
     wanted = top
     if stage is not None:
+        require_exact(method)
         top = stage.candidates(top)
     asked = top
     if exclude_self and top is not None:
@@ -172,7 +171,8 @@ def search_index(
     if exclude_self:
         results = without_self(index, queries, results, asked)
     if stage is not None:
-        results = [found[:wanted] for found in stage.reorder(index, qcoef, results)]
+        matching = {"direction": direction, "mirror": mirror, "weights": weights}
+        results = [found[:wanted] for found in stage.reorder(index, qcoef, results, matching=matching)]
     stats.seconds = time.perf_counter() - t0
     return results, stats
 

@@ -161,7 +161,8 @@ def _upper_rows(batch, search, p: MatchParameters, task, statistics=None) -> np.
             stop = min(start + BATCH_ROWS, N)
             terms = fused_rows(
                 batch.coefficients[i], batch.coefficients[start:stop], r, p.samples,
-                query_statistics=statistics[i], row_statistics=statistics[start:stop],
+                query_statistics=statistics[i], row_statistics=statistics[start:stop], direction=p.direction,
+                mirror=p.mirror, weights=p.weights,
             )  # fmt: skip
             out.append(terms.fused)
     return np.concatenate(out) if out else np.zeros(0)

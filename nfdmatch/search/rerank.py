@@ -61,6 +61,7 @@ __all__ = [
     "ALPHA",
     "MIX",
     "SCORE_FLOOR",
+    "WALK_NEAREST",
     "MIN_DEPTH",
     "MATRIX_TOLERANCE",
     "DEFAULT_DEPTH",
@@ -80,6 +81,13 @@ MIX = 0.2
 #: same top 40 at 84.9% of the mesh sections' places); with the floor 98.6%, and the
 #: bull's-eye of every development collection within 0.004 (docs/rerank.md)
 SCORE_FLOOR = 0.05
+#: a walk's candidates start from the query's exact ``WALK_NEAREST x top`` nearest. Below the
+#: score floor the matrix orders by exact distance, so the tail of its top ``top`` comes from
+#: the exact top ``2 top``; the third ``top`` holds the scored rows near in distance that
+#: neither walk reaches. The same top 40 as ``matrix --rerank`` on the psb cut loops (spread
+#: classes, low cosines) at 95.5% / 98.8% / 99.9% of the places for 1 / 2 / 3, for ~1.15x
+#: the batch of 1 (docs/rerank.md)
+WALK_NEAREST = 3
 #: a query's candidates (--rerank-depth): at least, and by default (defined with the CLI's defaults)
 MIN_DEPTH, DEFAULT_DEPTH = MIN_RERANK_DEPTH, DEFAULT_RERANK_DEPTH
 #: ``query --rerank`` of a stored curve with ``exclude_self`` against ``matrix --rerank`` (given
@@ -212,7 +220,7 @@ def rerank_index(
         query in the graph (its stored row and PageRank) and is left out of the results;
         the scores are then ``matrix --rerank``'s within :data:`MATRIX_TOLERANCE`.
     progress, threads : as in :func:`~nfdmatch.search.search_index`.
-    candidates : ``"walk"`` (the default: the query's exact ``max(top, 8)`` nearest, the
+    candidates : ``"walk"`` (the default: the query's exact ``max(3 top, 8)`` nearest, the
         ``depth`` stored rows of largest mass in its first-step PageRank and the ``depth // 2``
         whose PageRank reaches it most (:meth:`GraphWalk.reverse_pagerank`), each with its
         exact distance; no exact top-M search) or ``"exact"`` (the query's exact top ``depth``: ~4x
@@ -350,13 +358,13 @@ def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude
     """``(found, stats, vectors)`` for ``candidates="walk"``: each query's candidates as a
     :class:`~nfdmatch.search.engine.BestRows` ranked as the search ranks its rows (exact
     distance, ties by id: :func:`~nfdmatch.search.index_search.rank_rows`): its exact
-    ``max(top, k)`` nearest (one more with ``exclude_self``: its own curve) and the rows of
+    ``max(WALK_NEAREST top, k)`` nearest (one more with ``exclude_self``: its own curve) and the rows of
     its walk (:func:`_walk_rows`), each with its exact distance; ``vectors`` the
     :class:`_Vectors` pushed on the way (of every query's k nearest). (qcoef: (Q, K, 3)
     complex128, the queries' descriptors.)"""
     from .index_search import rank_rows, search_rows
 
-    first = max(top, walk.k) + (1 if exclude_self else 0)
+    first = max(WALK_NEAREST * top, walk.k) + (1 if exclude_self else 0)
     cascade = Cascade(index.samples)  # the exact distance, invariant to direction, no mirror
     near, stats = search_rows(index, qcoef, cascade, top=first, progress=progress, threads=threads)
     rank_rows(index, near, first)

@@ -10,9 +10,9 @@ search. The stage of this module: :class:`ElasticStage` (``--elastic``; docs/ela
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Optional, Protocol
 
 import numpy as np
 
@@ -26,6 +26,13 @@ if TYPE_CHECKING:
     from .engine import BestRows
 
 __all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates", "fused_best_rows"]
+
+#: each query's exact candidates, ranked, as a stage receives them
+Candidates = Sequence[Sequence[RankedMatch]]
+#: each query's answer, as a stage gives it back
+Answers = list[list[RankedMatch]]
+#: the exact search's ``direction``, ``mirror`` and ``weights`` (None: invariant, no mirror, uniform)
+Matching = Optional[Mapping[str, Any]]
 
 #: the columns the elastic stage adds after ``distance``
 ELASTIC_COLUMNS = ("elastic", "fused")
@@ -43,11 +50,10 @@ class Stage(Protocol):
         """How many exact nearest rows a query needs for an answer of ``top`` rows."""
         ...
 
-    def reorder(
-        self, index: Any, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]
-    ) -> list[list[RankedMatch]]:
+    def reorder(self, index: Any, qcoef: np.ndarray, results: Candidates, *, matching: Matching = None) -> Answers:
         """Each query's candidates (``results[i]``, query i's descriptors ``qcoef[i]``: (Q, K,
-        3) complex128), re-ordered and re-ranked, the stage's columns filled in."""
+        3) complex128), re-ordered and re-ranked, the stage's columns filled in; ``matching``:
+        the exact search's ``direction``, ``mirror`` and ``weights``."""
         ...
 
 
@@ -69,9 +75,7 @@ class ElasticStage:
     def candidates(self, top: int | None) -> int | None:
         return None if top is None else max(int(top), int(self.depth))
 
-    def reorder(
-        self, index: Any, qcoef: np.ndarray, results: Sequence[Sequence[RankedMatch]]
-    ) -> list[list[RankedMatch]]:
+    def reorder(self, index: Any, qcoef: np.ndarray, results: Candidates, *, matching: Matching = None) -> Answers:
         rigid = [
             {
                 "distance": np.array([m.distance for m in matches], dtype=np.float64),
@@ -83,7 +87,7 @@ class ElasticStage:
         ]
         rows = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
         out = []
-        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid)):
+        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid, matching=matching)):
             if terms is None:
                 out.append([])
                 continue
@@ -99,13 +103,20 @@ class ElasticStage:
 
 
 def fused_candidates(
-    index: Any, qcoef: np.ndarray, rows: Sequence[np.ndarray], rigid: Sequence[dict]
+    index: Any,
+    qcoef: np.ndarray,
+    rows: Sequence[np.ndarray],
+    rigid: Sequence[dict],
+    *,
+    matching: Matching = None,
 ) -> list[FusedDistances | None]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
     optimum ``rigid[i]`` (``distance``, ``shift``, ``reversed``, ``mirrored`` arrays), the
     batch's rows read once (a scattered read costs about as much for one row as for many);
-    the rows' statistics stored by the index (``statistics_at``) or computed."""
+    the rows' statistics stored by the index (``statistics_at``) or computed; ``matching``:
+    the exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no
+    mirror, uniform)."""
     from ..matching.fused import fused_rows
     from ..matching.statistics import curve_statistics
 
@@ -130,6 +141,7 @@ def fused_candidates(
                 index.samples,
                 query_statistics=mine[qi],
                 row_statistics=statistics[at],
+                **(matching or {}),
             )  # fmt: skip
         )
     return out
