@@ -4,6 +4,7 @@ and all-against-all, each next to the issue's starting commit where it exists.
     .venv/bin/python benchmarks/bench_selfjoin.py                 # 100,000 family curves
     .venv/bin/python benchmarks/bench_selfjoin.py --curves 20000  # a quicker run
     .venv/bin/python benchmarks/bench_selfjoin.py --skip-base     # this tree only
+    .venv/bin/python benchmarks/bench_selfjoin.py --elastic       # --graph 10 against --graph 10 --elastic
 
 Prints a markdown table:
 
@@ -22,6 +23,11 @@ Prints a markdown table:
   the join yet), ``matrix`` of the same curves to a CSV file (and whether the two trees'
   files are identical), and the self-join's 40 nearest others (``nearest_others``) in
   this tree. ``--curves 0`` gives these rows alone.
+
+``--elastic`` gives instead the issue "Similarity that bends"'s rows: ``index build --graph K``
+and ``index build --graph K --elastic`` (docs/elastic.md) added in turn to copies of the same
+built index of N family curves, this tree only: wall time, the graph's seconds (the build's
+JSON summary) and its share, peak memory, and the elastic build's ratio to the exact one.
 
 Timings are wall-clock on whatever else the machine runs: the two trees run one after the
 other in the same invocation.
@@ -136,6 +142,41 @@ def adjusted_rand(a: np.ndarray, b: np.ndarray) -> float:
     return float((index - expected) / (top - expected)) if top != expected else 1.0
 
 
+def elastic_graph_rows(work: str, py: list, curves: int, k: int) -> None:
+    """``index build --graph k`` and ``--graph k --elastic`` added in turn to copies of one
+    built index of ``curves`` family curves; prints their table."""
+    import json
+
+    folder = os.path.join(work, f"families-{curves}")
+    generate(folder, curves // MEMBERS)
+    plain = os.path.join(work, f"plain-{curves}.h5")
+    if not os.path.exists(plain):
+        seconds, mb, _ = timed(py + ["index", "build", folder, "--index", plain, "-q"], tree_env(ROOT))
+        print(f"index build of {curves:,} family curves (no graph): {seconds:.1f} s, {mb:.0f} MB", flush=True)
+    rows, walls = [], {}
+    for label, extra in ((f"--graph {k}", []), (f"--graph {k} --elastic", ["--elastic"])):
+        target = os.path.join(work, f"graph-{curves}{'-elastic' if extra else ''}.h5")
+        shutil.copy(plain, target)
+        cmd = ["index", "build", folder, "--index", target, "--graph", str(k)] + extra + ["--format", "json", "-q"]
+        seconds, mb, proc = timed(py + cmd, tree_env(ROOT))
+        graph = json.loads(proc.stdout.splitlines()[-1])["graph"]
+        walls[label] = seconds
+        rows.append(
+            (
+                f"`index build --graph {k}{' --elastic' if extra else ''}`, {curves:,} family curves",
+                f"{seconds:.1f} s",
+                f"the graph {graph['seconds']:.1f} s ({graph['seconds'] / seconds:.0%}) on {graph['processes']} "
+                f"processes, {mb:.0f} MB peak",
+            )
+        )
+        print(" | ".join(rows[-1]), flush=True)
+    ratio = walls[f"--graph {k} --elastic"] / walls[f"--graph {k}"]
+    rows.append(("`--elastic` against the exact graph, the same run", f"{ratio:.2f}x", ""))
+    print("| measure | wall | note |\n|---|---:|---|")
+    for r in rows:
+        print("| " + " | ".join(r) + " |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument(
@@ -145,12 +186,22 @@ def main():
     ap.add_argument("--graph", type=int, default=10, help="K of index build --graph")
     ap.add_argument("--max-distance", type=float, default=0.05, help="D of pairs and groups")
     ap.add_argument("--skip-base", action="store_true", help="this tree only")
+    ap.add_argument(
+        "--elastic", action="store_true", help="only index build --graph K against --graph K --elastic (this tree)"
+    )
     ap.add_argument("--work", default=None, help="folder for the data (default: a temporary one, removed)")
     args = ap.parse_args()
     work = os.path.abspath(args.work or tempfile.mkdtemp(prefix="bench-selfjoin-"))
     os.makedirs(work, exist_ok=True)
     os.chdir(work)  # the commands run here: not in a source tree
     py = [sys.executable, "-m", "nfdmatch"]
+    if args.elastic:
+        try:
+            elastic_graph_rows(work, py, args.curves, args.graph)
+        finally:
+            if args.work is None:
+                shutil.rmtree(work, ignore_errors=True)
+        return
     trees = [("this tree", ROOT)] + ([] if args.skip_base else [(BASE, base_tree(work))])
     rows = []
     try:

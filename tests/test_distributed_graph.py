@@ -89,6 +89,20 @@ def test_a_cluster_graph_is_the_local_graph_byte_for_byte_fresh_and_incremental(
         assert idx.n_curves == 246 and idx.graph_k() == 8
 
 
+def test_a_cluster_graph_of_fused_distances_is_the_local_one(cluster, library):
+    """--graph K --elastic on the cluster: the exact candidates searched by the workers, the
+    fused lists computed in the building process from the reopened file (it had no reader of
+    the rows left: a TypeError before), the same bytes as a local build's over 2 processes."""
+    from nfdmatch.index.graph import GraphSpec
+
+    local, remote = library.parent / "local.h5", library.parent / "remote.h5"
+    build_index([library], local, jobs=2, graph=GraphSpec(8, "fused"))
+    rr = cluster.build_index([library], remote, graph=GraphSpec(8, "fused"))
+    assert _graph_bytes(local) == _graph_bytes(remote)
+    assert rr.graph.distance == "fused" and rr.graph.scheduler == cluster.address
+    assert _no_temp_files(library.parent)
+
+
 def _open_paths():
     """Run on a worker: the index files its search tasks hold open."""
     from nfdmatch.distributed import search_tasks

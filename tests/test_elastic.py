@@ -17,7 +17,7 @@ from nfdmatch import Curve, build_index, open_index
 from nfdmatch.descriptors import descriptors_batch
 from nfdmatch.matching import NUMPY, exact_search
 from nfdmatch.matching.elastic import elastic_distances, elastic_reference, elastic_rows, posed_rows
-from nfdmatch.matching.fused import ELASTIC_QUANTILES, RIGID_QUANTILES, fuse, fused_distance
+from nfdmatch.matching.fused import ELASTIC_QUANTILES, RIGID_QUANTILES, fuse, fused_distance, fused_rows
 from nfdmatch.matching.kernels import choose
 from nfdmatch.matching.statistics import LENGTH, curve_statistics, statistics_distance
 from nfdmatch.search import rank_curves
@@ -406,3 +406,32 @@ def test_a_graph_of_an_older_fused_distance_is_named_and_computed_afresh(tmp_pat
     assert code == 0 and "computed afresh" not in err and os.stat(index).st_ino == inode
     code, out, err = run_cli("query", files[0], "--index", index, "--rerank", "--top", "3")
     assert code == 0 and "older definition" not in err
+
+
+def test_fused_graph_lists_are_the_same_in_any_blocks_and_over_worker_processes(rng):
+    """The fused lists of a build (blocks in the search table's order, over its --jobs
+    processes) are those of the straightforward loop: each row alone, in row order, here."""
+    from nfdmatch.search.engine import TIE
+    from nfdmatch.search.graph import fused_lists
+
+    curves = _families(rng, count=5, members=8)
+    C = np.asarray(_coefficients(curves), dtype=np.complex128)
+    S = curve_statistics(C)
+    N, m, k = len(C), 9, 4
+    ids = [f"c{int(i):03d}" for i in rng.permutation(N)]
+    candidates = np.array([rng.choice(np.delete(np.arange(N), i), m, replace=False) for i in range(N)])
+    candidates[3, 5:] = -1  # a short list, padded
+    candidates[11, :] = -1  # no candidates at all
+    expected_nb, expected_d = np.full((N, k), -1), np.full((N, k), np.inf)
+    for i in range(N):
+        found = candidates[i][candidates[i] >= 0]
+        if not len(found):
+            continue
+        rigid = exact_search(C[i], C[found], 128)
+        fused = fused_rows(C[i], C[found], rigid, 128, query_statistics=S[i], row_statistics=S[found]).fused
+        order = sorted(range(len(found)), key=lambda j: (np.round(fused[j] / TIE), ids[found[j]]))[:k]
+        expected_nb[i, : len(order)], expected_d[i, : len(order)] = found[order], fused[order]
+    blocks = np.array_split(rng.permutation(N), 6)
+    for how in ({}, {"blocks": blocks}, {"blocks": blocks, "processes": 2}):
+        nb, d = fused_lists(lambda r: C[r], lambda r: S[r], ids, candidates, k, 128, **how)
+        assert np.array_equal(nb, expected_nb) and np.array_equal(d, expected_d), how

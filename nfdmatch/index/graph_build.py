@@ -109,7 +109,7 @@ def write_graph(
             progress=progress,
         )
         stats.kept = len(plan.lists.check) - stats.updated
-    return store_graph(h5, plan)
+    return store_graph(h5, plan, processes=processes, close_fds=[fd for fd in close_fds if fd is not None])
 
 
 def plan_graph(h5: h5py.File, old: Index | None, k: int | None, *, reuse: bool) -> GraphPlan | None:
@@ -141,14 +141,7 @@ def plan_graph(h5: h5py.File, old: Index | None, k: int | None, *, reuse: bool) 
     plan.lists = GraphLists(neighbour, distance, todo, check, np.flatnonzero(fresh))
     if not N:
         return plan
-    coefficients = curves["coefficients"][...] if N <= IN_MEMORY_ROWS else None
-
-    def read_coefficients(rows):
-        rows = np.asarray(rows, dtype=np.int64)
-        if coefficients is not None:
-            return coefficients[rows]
-        uniq, inverse = unique_rows(rows)
-        return curves["coefficients"][uniq][inverse]
+    read_coefficients = _coefficient_reader(h5)
 
     def fail(message):
         raise IndexFormatError(f"corrupted nfdmatch index being written: {message}")
@@ -187,18 +180,44 @@ def blocks_to_search(plan: GraphPlan, threads: int | None = None) -> list[np.nda
     return blocks
 
 
-def store_graph(h5: h5py.File, plan: GraphPlan) -> GraphStats:
+def store_graph(
+    h5: h5py.File, plan: GraphPlan, *, processes: int = 1, close_fds: Sequence[int] = ()
+) -> GraphStats:  # fmt: skip
     """Write the lists of ``plan`` (complete) as ``/graph`` of the new index file ``h5``;
     returns its stats, their time taken. A fused graph's lists of exact candidates (searched
-    here or elsewhere) are cut to its rows of least fused distance first."""
+    here or elsewhere) are cut to its rows of least fused distance first, on ``processes``
+    forked workers closing ``close_fds`` (:func:`~nfdmatch.search.graph.fused_lists`)."""
     if plan.distance == "fused":
+        # in the search table's order when there is one: a block's rows then share their
+        # candidates (a family sits in a few cells), so each block reads fewer of them
+        blocks = None if plan.table is None else graph_blocks(plan.table, np.ones(len(plan.ids), dtype=bool))
+        # a graph searched elsewhere comes back to a reopened file: its rows are read from it
+        read_coefficients = plan.read_coefficients if plan.read_coefficients is not None else _coefficient_reader(h5)
         plan.lists.neighbour, plan.lists.distance = fused_lists(
-            plan.read_coefficients, plan.read_statistics, plan.ids, plan.lists.neighbour, plan.final_k, plan.samples
-        )
+            read_coefficients, plan.read_statistics, plan.ids, plan.lists.neighbour, plan.final_k, plan.samples,
+            blocks=blocks, processes=processes, close_fds=close_fds,
+        )  # fmt: skip
         plan.k = plan.stats.k = plan.final_k
     _write_group(h5, plan.k, plan.lists.neighbour, plan.lists.distance, plan.distance)
     plan.stats.seconds = time.perf_counter() - plan.t0
     return plan.stats
+
+
+def _coefficient_reader(h5: h5py.File):
+    """``rows -> their (m, K, 3) descriptors`` from the new index file ``h5`` (the array held
+    whole up to :data:`~nfdmatch.index.graph.IN_MEMORY_ROWS` rows; beyond, each call reads
+    its distinct rows)."""
+    dataset = h5["curves"]["coefficients"]
+    coefficients = dataset[...] if dataset.shape[0] <= IN_MEMORY_ROWS else None
+
+    def read_coefficients(rows):
+        rows = np.asarray(rows, dtype=np.int64)
+        if coefficients is not None:
+            return coefficients[rows]
+        uniq, inverse = unique_rows(rows)
+        return dataset[uniq][inverse]
+
+    return read_coefficients
 
 
 def _keep_old_lists(h5, old, k: int, reuse: bool, neighbour, distance):

@@ -203,41 +203,92 @@ def _ordered(i, rows, d, ids, k):
 
 def fused_lists(
     read_coefficients: RowReader, read_statistics: RowReader, ids: Sequence[str], candidates: np.ndarray, k: int,
-    samples: int,
+    samples: int, *, blocks: Sequence[np.ndarray] | None = None, processes: int = 1, close_fds: Sequence[int] = (),
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """A fused graph's lists (``index build --graph K --elastic``): of each row's candidates
     (``candidates``: (N, m) int64, its exact m nearest, -1 padded), the ``k`` of least fused
     distance (:func:`nfdmatch.matching.fused.fused_rows`, at each pair's exact optimum), ties
     within ``TIE`` by id. ``read_coefficients(rows)``, ``read_statistics(rows)``: the rows'
     descriptors and shape statistics; ``ids``: every row's id. Returns ``(neighbour (N, k)
-    int64, distance (N, k) float64)``, -1 and inf padded."""
-    from ..matching.exact import exact_search
-    from ..matching.fused import fused_rows
+    int64, distance (N, k) float64)``, -1 and inf padded.
 
+    ``blocks``: the rows, in the blocks they are computed in (default: in row order, in
+    blocks of :data:`_BLOCK_ROWS`); a block reads its rows' candidates once, so blocks of
+    rows whose candidates are shared (the search table's order, :func:`graph_blocks`) read
+    fewer. ``processes`` > 1: the blocks are computed by that many forked workers
+    (:func:`~nfdmatch.search.workers.run_tasks`; this process reads each block's rows for
+    them), each closing ``close_fds``. The lists are the same either way: each row's is
+    computed from its own candidates alone."""
     N = len(candidates)
     neighbour = np.full((N, k), -1, dtype=np.int64)
     distance = np.full((N, k), np.inf)
-    for a in range(0, N, _BLOCK_ROWS):
-        b = min(N, a + _BLOCK_ROWS)
-        rows = np.arange(a, b)
-        mine = np.asarray(read_coefficients(rows), dtype=np.complex128)
-        mine_statistics = read_statistics(rows)
-        block = candidates[a:b]
-        every = np.unique(block[block >= 0])
-        theirs = np.asarray(read_coefficients(every), dtype=np.complex128)
-        their_statistics = read_statistics(every)
-        for i in range(b - a):
-            found = block[i][block[i] >= 0]
-            if not len(found):
-                continue
-            at = np.searchsorted(every, found)
-            rigid = exact_search(mine[i], theirs[at], samples)
-            terms = fused_rows(
-                mine[i], theirs[at], rigid, samples, query_statistics=mine_statistics[i],
-                row_statistics=their_statistics[at],
-            )  # fmt: skip
-            key = np.round(terms.fused / TIE)
-            order = sorted(range(len(found)), key=lambda j: (key[j], ids[found[j]]))[:k]
-            neighbour[a + i, : len(order)] = found[order]
-            distance[a + i, : len(order)] = terms.fused[order]
+    if blocks is None:
+        blocks = [np.arange(a, min(N, a + _BLOCK_ROWS)) for a in range(0, N, _BLOCK_ROWS)]
+
+    def store(number, got):
+        rows, nb, d = got
+        neighbour[rows], distance[rows] = nb, d
+
+    run_tasks(
+        _FusedBlocks(blocks, candidates, read_coefficients, read_statistics),
+        lambda task, threads: _fused_block(task, ids, k, samples),
+        store,
+        processes,
+        close_fds=close_fds,
+    )
     return neighbour, distance
+
+
+class _FusedBlocks:
+    """The blocks of a fused graph's rows, each with what its lists are computed from, read
+    when asked for (in this process: a worker never reads the index): ``(rows, their
+    candidates, the rows' descriptors and statistics, the distinct candidates (sorted), their
+    descriptors and statistics)``."""
+
+    def __init__(self, blocks, candidates, read_coefficients, read_statistics):
+        self.blocks, self.candidates = blocks, candidates
+        self.read_coefficients, self.read_statistics = read_coefficients, read_statistics
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def __getitem__(self, number: int):
+        rows = np.asarray(self.blocks[number], dtype=np.int64)
+        block = self.candidates[rows]
+        every = np.unique(block[block >= 0])
+        return (
+            rows,
+            block,
+            np.asarray(self.read_coefficients(rows), dtype=np.complex128),
+            self.read_statistics(rows),
+            every,
+            np.asarray(self.read_coefficients(every), dtype=np.complex128),
+            self.read_statistics(every),
+        )
+
+
+def _fused_block(task, ids: Sequence[str], k: int, samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, neighbour (m, k), distance (m, k))``: the fused lists of one block of
+    :class:`_FusedBlocks`, each row's from one exact search and one fused call over its
+    candidates."""
+    from ..matching.exact import exact_search
+    from ..matching.fused import fused_rows
+
+    rows, block, mine, mine_statistics, every, theirs, their_statistics = task
+    neighbour = np.full((len(rows), k), -1, dtype=np.int64)
+    distance = np.full((len(rows), k), np.inf)
+    for i in range(len(rows)):
+        found = block[i][block[i] >= 0]
+        if not len(found):
+            continue
+        at = np.searchsorted(every, found)
+        rigid = exact_search(mine[i], theirs[at], samples)
+        terms = fused_rows(
+            mine[i], theirs[at], rigid, samples, query_statistics=mine_statistics[i],
+            row_statistics=their_statistics[at],
+        )  # fmt: skip
+        key = np.round(terms.fused / TIE)
+        order = sorted(range(len(found)), key=lambda j: (key[j], ids[found[j]]))[:k]
+        neighbour[i, : len(order)] = found[order]
+        distance[i, : len(order)] = terms.fused[order]
+    return rows, neighbour, distance
