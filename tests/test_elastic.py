@@ -41,6 +41,16 @@ def _coefficients(curves):
     return descriptors_batch(curves).coefficients
 
 
+def _random_coefficients(seed, count, planar):
+    """The descriptors of ``count`` random smooth curves (in the plane z = 0 when ``planar``)."""
+    rng = np.random.default_rng(seed)
+    curves = [o.random_smooth_curve(rng, 300, n_harmonics=int(rng.integers(2, 9))) for _ in range(count)]
+    if planar:
+        for c in curves:
+            c[:, 2] = 0.0
+    return _coefficients(curves)
+
+
 def _copy(points, rng, *, reverse=False):
     """A re-posed, re-scaled, resampled, start-shifted (and maybe reversed) copy."""
     q = o.resample_polyline(points, int(rng.integers(150, 700)), rng)
@@ -54,12 +64,7 @@ def _copy(points, rng, *, reverse=False):
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1), mirror=st.booleans(), planar=st.booleans())
 def test_compiled_kernel_equals_the_numpy_reference(seed, mirror, planar):
-    rng = np.random.default_rng(seed)
-    curves = [o.random_smooth_curve(rng, 300, n_harmonics=int(rng.integers(2, 9))) for _ in range(4)]
-    if planar:
-        for c in curves:
-            c[:, 2] = 0.0
-    C = _coefficients(curves)
+    C = _random_coefficients(seed, 4, planar)
     rigid = exact_search(C[0], C, 128, mirror=mirror)
     reference = np.array(
         [
@@ -97,12 +102,7 @@ def test_a_reposed_resampled_restarted_copy_is_at_about_zero(seed, reverse):
 def test_the_elastic_distance_is_the_lesser_of_both_directions_best_poses(seed, planar, mirror):
     """At the rigid optimum and at the other direction's best pose (searched as the rigid
     one): the lesser, symmetric in the pair; a search strict in direction keeps one pose."""
-    rng = np.random.default_rng(seed)
-    curves = [o.random_smooth_curve(rng, 300, n_harmonics=int(rng.integers(2, 9))) for _ in range(5)]
-    if planar:
-        for c in curves:
-            c[:, 2] = 0.0
-    C = _coefficients(curves)
+    C = _random_coefficients(seed, 5, planar)
     rigid = exact_search(C[0], C, 128, mirror=mirror)
     at_rigid = elastic_rows(C[0], C, rigid["shift"], rigid["reversed"], rigid["mirrored"], 128)
     got = elastic_distances(C[0], C, rigid, 128, mirror=mirror)
