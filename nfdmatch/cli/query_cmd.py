@@ -272,10 +272,9 @@ def note_old_format(idx: Index, exhaustive: bool, stage: Stage | None = None, *,
     an index before format 3 has its statistics computed on read by the elastic stage, that
     a graph of fused distances of an older definition is diffused over by ``--rerank``, and
     that an older file (not ``checked_metadata``) is read whole at each open."""
+    from ..errors import IndexFormatError
     from ..index import FORMAT_VERSION
     from ..matching.fused import FUSED_VERSION
-
-    from ..errors import IndexFormatError
 
     try:
         stored = idx.graph_fused_version() if rerank else None

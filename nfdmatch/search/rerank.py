@@ -260,18 +260,16 @@ def rerank_index(
     walk = GraphWalk(reader, N, SCALE_NEIGHBOURS, ALPHA, reverse)
     qcoef = query_descriptors(index, queries)
     fused = getattr(index, "graph_distance", lambda: "exact")() == "fused"
-    if candidates == "exact" or fused:
-        # a fused graph's walk starts from the exact nearest a stored row's list is cut from
-        nearest = depth if candidates == "exact" else max(WALK_NEAREST * top, FUSED_CANDIDATES, walk.k)
-        found, stats, vectors = _exact_candidates(
-            index, walk, queries, qcoef, (nearest, depth), exclude_self, is_self, fused, progress=progress,
-            threads=threads,
-        )  # fmt: skip
-    else:
-        found, stats, pushed = _walk_candidates(
-            index, walk, queries, qcoef, top, depth, exclude_self, is_self, progress=progress, threads=threads
-        )
-        vectors = pushed.with_rows(walk, _union(found))  # only the rows not pushed to find them
+    if candidates == "exact":
+        nearest = depth
+    elif fused:  # the walk starts from the exact nearest a stored row's fused list is cut from
+        nearest = max(WALK_NEAREST * top, FUSED_CANDIDATES, walk.k)
+    else:  # one more with exclude_self: its own curve
+        nearest = max(WALK_NEAREST * top, walk.k) + (1 if exclude_self else 0)
+    found, stats, vectors = _candidates(
+        index, walk, queries, qcoef, (nearest, depth), exclude_self, is_self, fused, candidates == "walk" or fused,
+        progress=progress, threads=threads,
+    )  # fmt: skip
     merged = _self_flags(index, queries, found, exclude_self, is_self)
     results = _answers(index, walk, vectors, found, merged, top)
     stats.seconds = time.perf_counter() - t0
@@ -335,49 +333,32 @@ def _self_flags(index, queries, tops, exclude_self: bool, is_self) -> list[np.nd
     ]
 
 
-def _exact_candidates(
-    index, walk: GraphWalk, queries, qcoef, depths, exclude_self, is_self, fused, *, progress, threads
+def _candidates(
+    index, walk: GraphWalk, queries, qcoef, depths, exclude_self, is_self, fused, walks: bool, *, progress, threads
 ):
-    """``(found, stats, vectors)`` for ``candidates="exact"`` and on a fused graph: each
-    query's exact top ``depths[0]`` (its walks: ``depths[1]``); on a graph of fused
-    distances each given its fused distance (the elastic stage's), which it joins the graph
-    by, and the rows of its walks added (:func:`_walk_rows`, their fused distances too);
-    ``vectors`` every candidate's PageRank, once for the batch."""
+    """``(found, stats, vectors)``: each query's candidates as a
+    :class:`~nfdmatch.search.engine.BestRows` ranked as the search ranks its rows (exact
+    distance, ties by id: :func:`~nfdmatch.search.index_search.rank_rows`): its exact top
+    ``depths[0]``, on a graph of fused distances each given its fused distance (the elastic
+    stage's, which it joins the graph by), and with ``walks`` the rows of its walks added
+    (:func:`_walk_rows`, ``depths[1]`` of them forward; their distances as the graph's);
+    ``vectors`` every candidate's PageRank, once for the batch. (qcoef: (Q, K, 3)
+    complex128, the queries' descriptors.)"""
     from .index_search import rank_rows, search_rows
 
     nearest, depth = depths
+    # the exact distance, invariant to direction, no mirror
     found, stats = search_rows(index, qcoef, Cascade(index.samples), top=nearest, progress=progress, threads=threads)
     rank_rows(index, found, nearest)
     if fused:
         fused_best_rows(index, qcoef, found)
     union = _union(found)
     vectors = _Vectors(union, *walk.pagerank(union))
-    if fused:
+    if walks:
         more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
-        stats.exact += _add_rows(index, qcoef, found, more, fused=True)
-        vectors = vectors.with_rows(walk, _union(found))
+        stats.exact += _add_rows(index, qcoef, found, more, fused=fused)
+        vectors = vectors.with_rows(walk, _union(found))  # only the rows not pushed to find them
     return found, stats, vectors
-
-
-def _walk_candidates(index, walk: GraphWalk, queries, qcoef, top, depth, exclude_self, is_self, *, progress, threads):
-    """``(found, stats, vectors)`` for ``candidates="walk"``: each query's candidates as a
-    :class:`~nfdmatch.search.engine.BestRows` ranked as the search ranks its rows (exact
-    distance, ties by id: :func:`~nfdmatch.search.index_search.rank_rows`): its exact
-    ``max(WALK_NEAREST top, k)`` nearest (one more with ``exclude_self``: its own curve) and the rows of
-    its walk (:func:`_walk_rows`), each with its exact distance; ``vectors`` the
-    :class:`_Vectors` pushed on the way (of every query's k nearest). (qcoef: (Q, K, 3)
-    complex128, the queries' descriptors.)"""
-    from .index_search import rank_rows, search_rows
-
-    first = max(WALK_NEAREST * top, walk.k) + (1 if exclude_self else 0)
-    cascade = Cascade(index.samples)  # the exact distance, invariant to direction, no mirror
-    near, stats = search_rows(index, qcoef, cascade, top=first, progress=progress, threads=threads)
-    rank_rows(index, near, first)
-    union = _union(near)
-    vectors = _Vectors(union, *walk.pagerank(union))
-    more = _walk_rows(index, walk, queries, near, vectors, depth, exclude_self, is_self)
-    stats.exact += _add_rows(index, qcoef, near, more, fused=False)
-    return near, stats, vectors
 
 
 def _walk_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth, exclude_self, is_self) -> list:
