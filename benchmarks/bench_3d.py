@@ -51,6 +51,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 from bending_families import families  # noqa: E402
 
 from nfdmatch import Curve, read_curves  # noqa: E402
+from nfdmatch import distance as nfdmatch_distance  # noqa: E402
 from nfdmatch.descriptors import descriptors_batch, resample  # noqa: E402
 from nfdmatch.matching import exact_search  # noqa: E402
 from nfdmatch.matching.elastic import elastic_distances, elastic_rows  # noqa: E402
@@ -282,15 +283,54 @@ def run_collection(name, curves, labels, depth, depths, diffusion=False, rerank=
 
 
 def knots_check(data):
-    """Each knotess control polygon against the smooth knots with --elastic: top-1."""
+    """Each knotess control polygon, and re-posed, resampled, noisy copies of each smooth
+    knot (:func:`knot_copy`), against the smooth knots, plain and with --elastic: top-1 (a
+    hit: the knot itself or one of the same shape, as a link's two identical circles)."""
     names = sorted(f for f in os.listdir(os.path.join(data, "knotess_smooth")) if f.endswith(".csv"))
     smooth = _folder(os.path.join(data, "knotess_smooth"), names)
     control = _folder(os.path.join(data, "knotess_control"), names)
     memory = MemoryIndex(smooth)
+    smooth_id = {os.path.basename(c.id): c.id for c in smooth}
     for label, stage in (("plain", None), ("--elastic", ElasticStage())):
         found, _ = search_index(memory, control, top=1, stage=stage)
-        hits = sum(os.path.basename(f[0].id) == os.path.basename(q.id) for f, q in zip(found, control))
+        hits = sum(_same_knot(memory, f[0].id, smooth_id[os.path.basename(q.id)]) for f, q in zip(found, control))
         print(f"  knots control -> smooth, {label:10} top-1 {hits} / {len(control)}")
+    for noise in (0.005, 0.01, 0.02):
+        copies = [knot_copy(np.random.default_rng(seed), c, noise) for seed, c in enumerate(smooth)]
+        for label, stage in (("plain", None), ("--elastic", ElasticStage())):
+            found, _ = search_index(memory, copies, top=1, stage=stage)
+            hits = sum(_same_knot(memory, f[0].id, q.id) for f, q in zip(found, copies))
+            print(f"  knot copies (noise {noise:.3f}) -> smooth, {label:10} top-1 {hits} / {len(copies)}")
+
+
+def knot_copy(rng, knot, noise: float):
+    """A copy of a curve as another program would store it: resampled at 60-400 vertices
+    spaced unevenly along the arc length, noise of ``noise`` x its RMS radius, rotated,
+    scaled, moved, started elsewhere and, half the time, reversed."""
+    from bench_search import _rotations
+
+    points = np.asarray(knot.points, dtype=np.float64)
+    closed = np.vstack([points, points[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    vertices = int(rng.integers(60, 401))
+    steps = rng.uniform(0.5, 1.5, vertices)
+    at = np.concatenate([[0.0], np.cumsum(steps)[:-1]]) / steps.sum() * arc[-1]
+    copy = np.stack([np.interp(at, arc, closed[:, d]) for d in range(3)], axis=1)
+    rms = np.sqrt(((copy - copy.mean(axis=0)) ** 2).sum(axis=1).mean())
+    copy += rng.normal(size=copy.shape) * noise * rms
+    copy = np.roll(copy, int(rng.integers(vertices)), axis=0)
+    if rng.random() < 0.5:
+        copy = copy[::-1]
+    copy = copy @ _rotations(rng, 1)[0].T * np.exp(rng.uniform(np.log(0.1), np.log(10.0))) + rng.uniform(-100, 100, 3)
+    return Curve(copy, id=knot.id)
+
+
+def _same_knot(memory, found: str, wanted: str) -> bool:
+    """The copy found its own knot, or one of the same shape (a link's identical components)."""
+    if os.path.basename(found) == os.path.basename(wanted):
+        return True
+    pair = [c for c in memory.curves if c.id in (found, wanted)]
+    return len(pair) == 2 and nfdmatch_distance(pair[0], pair[1]).distance < 1e-3
 
 
 def kernel_timing():
