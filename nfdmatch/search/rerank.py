@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -350,14 +351,15 @@ def _candidates(
     # the exact distance, invariant to direction, no mirror
     found, stats = search_rows(index, qcoef, Cascade(index.samples), top=nearest, progress=progress, threads=threads)
     rank_rows(index, found, nearest)
-    if fused:
-        fused_best_rows(index, qcoef, found)
     union = _union(found)
-    vectors = _Vectors(union, *walk.pagerank(union))
+    push = partial(walk.pagerank, union)  # the candidates' PageRank needs none of their distances
+    (pushed,) = fused_best_rows(index, qcoef, found, alongside=[push]) if fused else (push(),)
+    vectors = _Vectors(union, *pushed)
     if walks:
         more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
-        stats.exact += _add_rows(index, qcoef, found, more, fused=fused)
-        vectors = vectors.with_rows(walk, _union(found))  # only the rows not pushed to find them
+        pushed_more = partial(vectors.with_rows, walk, _union(more))  # only the rows not pushed to find them
+        computed, vectors = _add_rows(index, qcoef, found, more, fused, pushed_more)
+        stats.exact += computed
     return found, stats, vectors
 
 
@@ -408,24 +410,25 @@ def _walk_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth
     return more
 
 
-def _add_rows(index, qcoef, found, more, fused: bool) -> int:
+def _add_rows(index, qcoef, found, more, fused: bool, alongside: Callable[[], Any]) -> tuple[int, Any]:
     """Merge each query's rows ``more[i]`` (:func:`_walk_rows`) into its candidates
     ``found[i]``, each given its exact distance (computed alone, as the search computes the
     rows it found) and, on a fused graph, its fused distance (:func:`fused_best_rows`); each
     list ranked again: by distance, ties by id (fused: ties by exact distance, then as
-    found). Returns how many exact distances it computed."""
+    found). ``alongside``: a call that needs none of these distances, run on the threads
+    with the fused ones. Returns how many exact distances it computed, and what
+    ``alongside`` returned."""
     from .index_search import rank_rows, recompute_reported
 
     cascade = Cascade(index.samples)
     added = _union(more)
     if not len(added):
-        return 0
+        return 0, alongside()
     recompute_reported(
         _Read(index, added), qcoef, more, cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
         weights=None,
     )  # fmt: skip
-    if fused:
-        fused_best_rows(index, qcoef, more)
+    (theirs,) = fused_best_rows(index, qcoef, more, alongside=[alongside]) if fused else (alongside(),)
     for tk, extra in zip(found, more):
         tk.rows, tk.dist = np.concatenate([tk.rows, extra.rows]), np.concatenate([tk.dist, extra.dist])
         tk.extra = {key: np.concatenate([v, extra.extra.get(key, v[:0])]) for key, v in tk.extra.items()}
@@ -435,7 +438,7 @@ def _add_rows(index, qcoef, found, more, fused: bool) -> int:
             tk.extra = {key: v[order] for key, v in tk.extra.items()}
     if not fused:
         rank_rows(index, found)
-    return sum(len(extra.rows) for extra in more)
+    return sum(len(extra.rows) for extra in more), theirs
 
 
 def _add_reaching(walk: GraphWalk, near, more, backwards, count: int) -> None:

@@ -10,8 +10,9 @@ search. The stage of this module: :class:`ElasticStage` (``--elastic``; docs/ela
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING, Any, Optional, Protocol
 
 import numpy as np
@@ -87,7 +88,7 @@ class ElasticStage:
         ]
         rows = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
         out = []
-        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid, matching=matching)):
+        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid, matching=matching)[0]):
             if terms is None:
                 out.append([])
                 continue
@@ -109,54 +110,68 @@ def fused_candidates(
     rigid: Sequence[dict],
     *,
     matching: Matching = None,
-) -> list[FusedDistances | None]:
+    alongside: Sequence[Callable[[], Any]] = (),
+) -> tuple[list[FusedDistances | None], list]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
     optimum ``rigid[i]`` (``distance``, ``shift``, ``reversed``, ``mirrored`` arrays), the
     batch's rows read once (a scattered read costs about as much for one row as for many);
     the rows' statistics stored by the index (``statistics_at``) or computed; ``matching``:
     the exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no
-    mirror, uniform)."""
+    mirror, uniform).
+
+    The queries are spread over the kernels' threads, each query's rows on one thread
+    (:func:`~nfdmatch.matching._threads.run_spread`; a row's distance is computed alone, so
+    the digits do not depend on the threads), with the calls ``alongside`` (no argument;
+    started first: work that needs none of these distances, e.g. a PageRank push).
+
+    Returns ``(distances, theirs)``: the queries' distances, and the results of ``alongside``
+    in order."""
+    from ..matching._threads import run_spread
+    from ..matching.elastic import ELASTIC_THREAD_ROWS
     from ..matching.fused import fused_rows
+    from ..matching.kernels import current
     from ..matching.statistics import curve_statistics
 
-    if not any(len(r) for r in rows):
-        return [None for _ in rows]
-    every = np.unique(np.concatenate(rows))
-    coefficients = index.coefficients_at(every)
-    stored = getattr(index, "statistics_at", None)
-    statistics = stored(every) if stored is not None else curve_statistics(coefficients)
-    mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
-    out: list[FusedDistances | None] = []
-    for qi, found in enumerate(rows):
-        if not len(found):
-            out.append(None)
-            continue
-        at = np.searchsorted(every, found)
-        out.append(
-            fused_rows(
-                qcoef[qi],
-                coefficients[at],
-                rigid[qi],
-                index.samples,
-                query_statistics=mine[qi],
-                row_statistics=statistics[at],
-                **(matching or {}),
-            )  # fmt: skip
-        )
-    return out
+    calls: list[Callable[[], Any]] = list(alongside)
+    total = sum(len(r) for r in rows)
+    if total:
+        every = np.unique(np.concatenate(rows))
+        coefficients = index.coefficients_at(every)
+        stored = getattr(index, "statistics_at", None)
+        statistics = stored(every) if stored is not None else curve_statistics(coefficients)
+        mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+
+    def one(qi: int) -> FusedDistances | None:
+        if not len(rows[qi]):
+            return None
+        at = np.searchsorted(every, rows[qi])
+        return fused_rows(
+            qcoef[qi], coefficients[at], rigid[qi], index.samples, query_statistics=mine[qi],
+            row_statistics=statistics[at], **(matching or {}),
+        )  # fmt: skip
+
+    calls += [partial(one, qi) for qi in range(len(rows))] if total else []
+    done = run_spread(calls, current().workers(total, ELASTIC_THREAD_ROWS) if len(calls) > 1 else 1)
+    theirs, distances = done[: len(alongside)], done[len(alongside) :]
+    return (distances if total else [None for _ in rows]), theirs
 
 
-def fused_best_rows(index: Any, qcoef: np.ndarray, found: Sequence[BestRows]) -> None:
+def fused_best_rows(
+    index: Any, qcoef: np.ndarray, found: Sequence[BestRows], alongside: Sequence[Callable[[], Any]] = ()
+) -> list:
     """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
     distances) given their fused distances instead (the exact ones kept in ``extra["exact"]``,
-    the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then id."""
+    the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then
+    id. ``alongside``: calls run on the threads with the distances (:func:`fused_candidates`);
+    returns their results, in order."""
     rigid = [
         {"distance": tk.dist, "shift": tk.extra["shift"], "reversed": tk.extra["reversed"],
          "mirrored": tk.extra["mirrored"]}
         for tk in found
     ]  # fmt: skip
-    for tk, terms in zip(found, fused_candidates(index, qcoef, [tk.rows for tk in found], rigid)):
+    every, theirs = fused_candidates(index, qcoef, [tk.rows for tk in found], rigid, alongside=alongside)
+    for tk, terms in zip(found, every):
         if terms is None:
             continue
         # by fused distance (within TIE), then exact distance, then id (the rows come ranked
@@ -165,3 +180,4 @@ def fused_best_rows(index: Any, qcoef: np.ndarray, found: Sequence[BestRows]) ->
         extra = {**tk.extra, "exact": tk.dist, "elastic": terms.elastic}
         tk.rows, tk.dist = tk.rows[order], terms.fused[order]
         tk.extra = {key: v[order] for key, v in extra.items()}
+    return theirs
