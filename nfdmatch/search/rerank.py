@@ -46,7 +46,7 @@ from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
 from .index_search import UNSET, k_or_top
 from .selfmatch import self_rule
-from .stages import fused_best_rows
+from .stages import fused_best_rows, fused_terms, fused_threads, rank_by_fused, rigid_of
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -342,7 +342,7 @@ def _candidates(
     distance, ties by id: :func:`~nfdmatch.search.index_search.rank_rows`): its exact top
     ``depths[0]``, on a graph of fused distances each given its fused distance (the elastic
     stage's, which it joins the graph by), and with ``walks`` the rows of its walks added
-    (:func:`_walk_rows`, ``depths[1]`` of them forward; their distances as the graph's);
+    (:func:`_add_walk_rows`, ``depths[1]`` of them forward; their distances as the graph's);
     ``vectors`` every candidate's PageRank, once for the batch. (qcoef: (Q, K, 3)
     complex128, the queries' descriptors.)"""
     from .index_search import rank_rows, search_rows
@@ -356,28 +356,47 @@ def _candidates(
     (pushed,) = fused_best_rows(index, qcoef, found, alongside=[push]) if fused else (push(),)
     vectors = _Vectors(union, *pushed)
     if walks:
-        more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
-        pushed_more = partial(vectors.with_rows, walk, _union(more))  # only the rows not pushed to find them
-        computed, vectors = _add_rows(index, qcoef, found, more, fused, pushed_more)
+        forward, backwards = _forward_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
+        computed, vectors = _add_walk_rows(index, walk, qcoef, found, vectors, (forward, backwards), depth, fused)
         stats.exact += computed
     return found, stats, vectors
 
 
-def _walk_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth, exclude_self, is_self) -> list:
-    """Per query, a :class:`~nfdmatch.search.engine.BestRows` of the rows its walk adds to its
-    candidates ``near[i]`` (ranked; distances as the graph's: exact or fused): the ``depth``
-    stored rows other than itself of largest mass in its PageRank (a stored query's: its
-    row's; any other: from its first step, as in :func:`_query_scores`) and the ``depth //
-    2`` whose PageRank reaches it most (:func:`_add_reaching`), ties by row; only ``rows``
-    set. ``vectors``: the PageRank of every row of ``near``."""
+def _add_walk_rows(index, walk: GraphWalk, qcoef, found, vectors: "_Vectors", walked, depth: int, fused: bool):
+    """Merge into each query's candidates ``found[i]`` the rows of its walks, ``walked``: the
+    rows its walk forward adds and where its walk backwards starts (:func:`_forward_rows`);
+    the walk backwards adds the ``depth // 2`` rows whose PageRank reaches it most
+    (:func:`_reaching_rows`). Each row is given its exact distance and, on a fused graph, its
+    fused distance (:func:`_measure`); each list ranked again (:func:`_merge_rows`).
+    Returns how many exact distances it computed, and ``vectors`` with the PageRank of the
+    rows added.
+
+    The walk backwards (numpy) runs on the threads with the distances of the rows forward
+    (compiled kernels), the PageRank of the rows added with the distances of the rows
+    backwards: each row's distances are computed alone, the same digits as all at once."""
+    forward, backwards = walked
+    reached = _measure(index, qcoef, forward, fused, partial(_walk_backwards, walk, backwards))
+    backward = _reaching_rows(found, forward, backwards, reached, depth // 2)
+    added = sorted_unique(np.concatenate([_union(forward), _union(backward)]))
+    vectors = _measure(index, qcoef, backward, fused, partial(vectors.with_rows, walk, added))
+    more = [_joined_rows(ahead, behind, fused) for ahead, behind in zip(forward, backward)]
+    _merge_rows(index, found, more, fused)
+    return sum(len(extra.rows) for extra in more), vectors
+
+
+def _forward_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth, exclude_self, is_self):
+    """``(forward, backwards)``: per query, a :class:`~nfdmatch.search.engine.BestRows` of the
+    rows its walk forward adds to its candidates ``near[i]`` (:func:`_unmeasured`): the
+    ``depth`` stored rows other than itself of largest mass in its PageRank (a stored
+    query's: its row's; any other: from its first step, as in :func:`_query_scores`), ties by
+    row; and per query with candidates ``(query, (node, residual), left out)``: where its walk
+    backwards starts (:func:`_walk_backwards`). ``vectors``: the PageRank of every row of
+    ``near``."""
     N, alpha = walk.N, walk.alpha
-    more = []
-    backwards = []  # per query with candidates: (query, where its walk backwards starts, the node left out)
+    forward, backwards = [], []
     for qi, (tk, merged) in enumerate(zip(near, _self_flags(index, queries, near, exclude_self, is_self))):
         rows, qd = tk.rows, tk.dist
-        extra = BestRows(None, None)
-        more.append(extra)
-        extra.rows = np.zeros(0, np.int64)
+        forward.append(_unmeasured(np.zeros(0, np.int64)))
         if not len(rows):
             continue
         if merged.any():
@@ -398,37 +417,102 @@ def _walk_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth
         other = node != exclude
         node, mass = node[other], mass[other]
         picked = node[np.lexsort((node, -mass))[:depth]]
-        extra.rows = sorted_unique(picked[~np.isin(picked, rows)])
+        forward[-1] = _unmeasured(sorted_unique(picked[~np.isin(picked, rows)]))
         backwards.append((qi, start, exclude))
-    _add_reaching(walk, near, more, backwards, depth // 2)
-    for extra in more:
-        extra.dist = np.zeros(len(extra.rows))
-        extra.extra = {
-            key: np.full(len(extra.rows), -1 if key == "position" else 0, dtype=v.dtype)
-            for key, v in extra.extra.items()
-        }
-    return more
+    return forward, backwards
 
 
-def _add_rows(index, qcoef, found, more, fused: bool, alongside: Callable[[], Any]) -> tuple[int, Any]:
-    """Merge each query's rows ``more[i]`` (:func:`_walk_rows`) into its candidates
-    ``found[i]``, each given its exact distance (computed alone, as the search computes the
-    rows it found) and, on a fused graph, its fused distance (:func:`fused_best_rows`); each
-    list ranked again: by distance, ties by id (fused: ties by exact distance, then as
-    found). ``alongside``: a call that needs none of these distances, run on the threads
-    with the fused ones. Returns how many exact distances it computed, and what
-    ``alongside`` returned."""
-    from .index_search import rank_rows, recompute_reported
+def _unmeasured(rows: np.ndarray) -> BestRows:
+    """A :class:`~nfdmatch.search.engine.BestRows` of ``rows`` (ascending) whose distances are
+    not computed yet (:func:`_measure`): zeros, no position in a search table (-1)."""
+    tk = BestRows(None, None)
+    tk.rows, tk.dist = rows, np.zeros(len(rows))
+    tk.extra = {key: np.full(len(rows), -1 if key == "position" else 0, dtype=v.dtype) for key, v in tk.extra.items()}
+    return tk
 
-    cascade = Cascade(index.samples)
-    added = _union(more)
-    if not len(added):
-        return 0, alongside()
-    recompute_reported(
-        _Read(index, added), qcoef, more, cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
-        weights=None,
-    )  # fmt: skip
-    (theirs,) = fused_best_rows(index, qcoef, more, alongside=[alongside]) if fused else (alongside(),)
+
+def _measure(index, qcoef, parts, fused: bool, alongside: Callable[[], Any]) -> Any:
+    """Give each query's rows ``parts[i]`` (:func:`_unmeasured`) their exact distance
+    (computed alone, as the search computes the rows it found:
+    :func:`~nfdmatch.search.index_search.recompute_reported`; rows then ascending) and, on a
+    fused graph, their fused distance (ranked by it: :func:`rank_by_fused`); each query's
+    on one of the kernels' threads (:func:`~nfdmatch.matching._threads.run_spread`), the
+    call ``alongside`` (which needs none of them) started first. Returns what it returned."""
+    from ..matching._threads import run_spread
+    from ..matching.kernels import current
+    from .index_search import recompute_reported
+
+    total = sum(len(tk.rows) for tk in parts)
+    if not total:
+        return alongside()
+    read, cascade = _Read(index, _union(parts)), Cascade(index.samples)
+    terms = fused_terms(index, qcoef, [tk.rows for tk in parts]) if fused else None
+
+    def one(qi: int) -> None:
+        tk = parts[qi]
+        if len(tk.rows):
+            recompute_reported(
+                read, qcoef[qi : qi + 1], [tk], cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
+                weights=None,
+            )  # fmt: skip
+            if terms is not None:
+                rank_by_fused(tk, terms(qi, tk.rows, rigid_of(tk)))
+
+    threads = fused_threads(total) if fused else current().workers(total)
+    return run_spread([alongside, *(partial(one, qi) for qi in range(len(parts)))], threads)[0]
+
+
+def _walk_backwards(walk: GraphWalk, backwards):
+    """The walks backwards of the batch's queries (``backwards``: ``(query, (node, residual),
+    left out)`` per query with candidates) at once, by :meth:`GraphWalk.reverse_pagerank`:
+    ``(query, row, mass)`` sorted by (query, row); None when no query has candidates."""
+    if not backwards:
+        return None
+    owner = np.concatenate([np.full(len(start[0]), qi, np.int64) for qi, start, _ in backwards])
+    node = np.concatenate([start[0] for _, start, _ in backwards])
+    residual = np.concatenate([start[1] for _, start, _ in backwards])
+    return walk.reverse_pagerank(owner, node, residual)
+
+
+def _reaching_rows(near, forward, backwards, reached, count: int) -> list[BestRows]:
+    """Per query, a :class:`~nfdmatch.search.engine.BestRows` (:func:`_unmeasured`) of the
+    ``count`` rows whose own walks reach it most (``reached``: :func:`_walk_backwards`), other
+    than its nearest (``near[i].rows``), the rows its walk forward adds (``forward[i].rows``)
+    and the node left out; ties by row. Such a row's PageRank overlaps the query's though
+    the query's walk hardly reaches it (docs/rerank.md, "Depth")."""
+    backward = [_unmeasured(np.zeros(0, np.int64)) for _ in near]
+    if reached is None or count < 1:
+        return backward
+    src, reached_rows, mass = reached
+    bounds = np.searchsorted(src, np.arange(len(near) + 1))
+    for qi, _, exclude in backwards:
+        rows, their = reached_rows[bounds[qi] : bounds[qi + 1]], mass[bounds[qi] : bounds[qi + 1]]
+        new = (rows != exclude) & ~np.isin(rows, near[qi].rows) & ~np.isin(rows, forward[qi].rows)
+        rows, their = rows[new], their[new]
+        backward[qi] = _unmeasured(sorted_unique(rows[np.lexsort((rows, -their))[:count]]))
+    return backward
+
+
+def _joined_rows(ahead: BestRows, behind: BestRows, fused: bool) -> BestRows:
+    """One query's walk rows, forward and backwards (disjoint, each measured: :func:`_measure`),
+    as one :class:`~nfdmatch.search.engine.BestRows` ordered as measuring them together orders
+    them: by row; on a fused graph by fused distance (within TIE), exact distance, then row."""
+    if not len(behind.rows) or not len(ahead.rows):
+        return ahead if len(ahead.rows) else behind
+    rows, dist = np.concatenate([ahead.rows, behind.rows]), np.concatenate([ahead.dist, behind.dist])
+    extra = {key: np.concatenate([v, behind.extra[key]]) for key, v in ahead.extra.items()}
+    order = np.lexsort((rows, extra["exact"], np.round(dist / TIE))) if fused else np.argsort(rows)
+    joined = BestRows(None, None)
+    joined.rows, joined.dist, joined.extra = rows[order], dist[order], {key: v[order] for key, v in extra.items()}
+    return joined
+
+
+def _merge_rows(index, found, more, fused: bool) -> None:
+    """Merge each query's measured walk rows ``more[i]`` into its candidates ``found[i]``,
+    each list ranked again: by distance, ties by id (fused: ties by exact distance, then as
+    found)."""
+    from .index_search import rank_rows
+
     for tk, extra in zip(found, more):
         tk.rows, tk.dist = np.concatenate([tk.rows, extra.rows]), np.concatenate([tk.dist, extra.dist])
         tk.extra = {key: np.concatenate([v, extra.extra.get(key, v[:0])]) for key, v in tk.extra.items()}
@@ -438,28 +522,6 @@ def _add_rows(index, qcoef, found, more, fused: bool, alongside: Callable[[], An
             tk.extra = {key: v[order] for key, v in tk.extra.items()}
     if not fused:
         rank_rows(index, found)
-    return sum(len(extra.rows) for extra in more), theirs
-
-
-def _add_reaching(walk: GraphWalk, near, more, backwards, count: int) -> None:
-    """Add to each query's walk rows (``more[i].rows``) the ``count`` rows whose own walks
-    reach it most (its column of the PageRank matrix, by :meth:`GraphWalk.reverse_pagerank`
-    for the whole batch), other than its nearest (``near[i].rows``), the rows already added
-    and the node left out; ties by row. Such a row's PageRank overlaps the query's though the
-    query's walk hardly reaches it (docs/rerank.md, "Depth"). ``backwards``: ``(query, (node,
-    residual), left out)`` per query with candidates."""
-    if not backwards or count < 1:
-        return
-    owner = np.concatenate([np.full(len(start[0]), qi, np.int64) for qi, start, _ in backwards])
-    node = np.concatenate([start[0] for _, start, _ in backwards])
-    residual = np.concatenate([start[1] for _, start, _ in backwards])
-    src, reached, mass = walk.reverse_pagerank(owner, node, residual)
-    bounds = np.searchsorted(src, np.arange(len(near) + 1))
-    for qi, _, exclude in backwards:
-        rows, their = reached[bounds[qi] : bounds[qi + 1]], mass[bounds[qi] : bounds[qi + 1]]
-        new = (rows != exclude) & ~np.isin(rows, near[qi].rows) & ~np.isin(rows, more[qi].rows)
-        rows, their = rows[new], their[new]
-        more[qi].rows = sorted_unique(np.concatenate([more[qi].rows, rows[np.lexsort((rows, -their))[:count]]]))
 
 
 class _Read:

@@ -26,7 +26,17 @@ if TYPE_CHECKING:
     from ..matching.fused import FusedDistances
     from .engine import BestRows
 
-__all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates", "fused_best_rows"]
+__all__ = [
+    "Stage",
+    "ElasticStage",
+    "ELASTIC_COLUMNS",
+    "fused_terms",
+    "fused_candidates",
+    "fused_threads",
+    "fused_best_rows",
+    "rank_by_fused",
+    "rigid_of",
+]
 
 #: each query's exact candidates, ranked, as a stage receives them
 Candidates = Sequence[Sequence[RankedMatch]]
@@ -103,22 +113,54 @@ class ElasticStage:
         return out
 
 
+def fused_terms(
+    index: Any, qcoef: np.ndarray, rows: Sequence[np.ndarray], *, matching: Matching = None
+) -> Callable[[int, np.ndarray, Mapping[str, np.ndarray]], FusedDistances]:
+    """``terms(query, its_rows, rigid)``: the fused distances
+    (:class:`~nfdmatch.matching.fused.FusedDistances`) of query ``query`` (descriptors
+    ``qcoef[query]``: (Q, K, 3) complex128) to ``its_rows`` (int64, among ``rows[query]``, any
+    order) at their exact optimum ``rigid`` (``distance``, ``shift``, ``reversed``,
+    ``mirrored`` arrays in the order of ``its_rows``). Every row of ``rows`` is read now, once
+    for the batch (a scattered read costs about as much for one row as for many), with its
+    statistics as the index stores them (``statistics_at``) or computed; ``matching``: the
+    exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no mirror,
+    uniform). The function may be called from any thread (a row's distances are computed
+    alone: the same digits on any thread, in any batch)."""
+    from ..matching.fused import fused_rows
+    from ..matching.statistics import curve_statistics
+
+    every = np.unique(np.concatenate(rows)) if len(rows) else np.zeros(0, np.int64)
+    coefficients = index.coefficients_at(every) if len(every) else None
+    stored = getattr(index, "statistics_at", None)
+    if coefficients is None:
+        statistics = None
+    else:
+        statistics = stored(every) if stored is not None else curve_statistics(coefficients)
+    mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+
+    def terms(query: int, its_rows: np.ndarray, rigid: Mapping[str, np.ndarray]) -> FusedDistances:
+        at = np.searchsorted(every, its_rows)
+        return fused_rows(
+            qcoef[query], coefficients[at], dict(rigid), index.samples, query_statistics=mine[query],  # type: ignore[index]
+            row_statistics=statistics[at], **(matching or {}),  # type: ignore[index]
+        )  # fmt: skip
+
+    return terms
+
+
 def fused_candidates(
     index: Any,
     qcoef: np.ndarray,
     rows: Sequence[np.ndarray],
-    rigid: Sequence[dict],
+    rigid: Sequence[Mapping[str, np.ndarray]],
     *,
     matching: Matching = None,
     alongside: Sequence[Callable[[], Any]] = (),
 ) -> tuple[list[FusedDistances | None], list]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
-    optimum ``rigid[i]`` (``distance``, ``shift``, ``reversed``, ``mirrored`` arrays), the
-    batch's rows read once (a scattered read costs about as much for one row as for many);
-    the rows' statistics stored by the index (``statistics_at``) or computed; ``matching``:
-    the exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no
-    mirror, uniform).
+    optimum ``rigid[i]`` (:func:`fused_terms`, the batch's rows read once; ``matching`` as
+    there).
 
     The queries are spread over the kernels' threads, each query's rows on one thread
     (:func:`~nfdmatch.matching._threads.run_spread`; a row's distance is computed alone, so
@@ -128,56 +170,56 @@ def fused_candidates(
     Returns ``(distances, theirs)``: the queries' distances, and the results of ``alongside``
     in order."""
     from ..matching._threads import run_spread
-    from ..matching.elastic import ELASTIC_THREAD_ROWS
-    from ..matching.fused import fused_rows
-    from ..matching.kernels import current
-    from ..matching.statistics import curve_statistics
 
-    calls: list[Callable[[], Any]] = list(alongside)
     total = sum(len(r) for r in rows)
-    if total:
-        every = np.unique(np.concatenate(rows))
-        coefficients = index.coefficients_at(every)
-        stored = getattr(index, "statistics_at", None)
-        statistics = stored(every) if stored is not None else curve_statistics(coefficients)
-        mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+    terms = fused_terms(index, qcoef, rows, matching=matching) if total else None
 
     def one(qi: int) -> FusedDistances | None:
-        if not len(rows[qi]):
-            return None
-        at = np.searchsorted(every, rows[qi])
-        return fused_rows(
-            qcoef[qi], coefficients[at], rigid[qi], index.samples, query_statistics=mine[qi],
-            row_statistics=statistics[at], **(matching or {}),
-        )  # fmt: skip
+        return terms(qi, rows[qi], rigid[qi]) if terms is not None and len(rows[qi]) else None
 
-    calls += [partial(one, qi) for qi in range(len(rows))] if total else []
-    done = run_spread(calls, current().workers(total, ELASTIC_THREAD_ROWS) if len(calls) > 1 else 1)
-    theirs, distances = done[: len(alongside)], done[len(alongside) :]
-    return (distances if total else [None for _ in rows]), theirs
+    calls = [*alongside, *(partial(one, qi) for qi in range(len(rows)))]
+    done = run_spread(calls, fused_threads(total))
+    return done[len(alongside) :], done[: len(alongside)]
+
+
+def fused_threads(rows: int) -> int:
+    """The threads the fused distances of ``rows`` rows in all are spread over (the process's
+    kernels': :meth:`~nfdmatch.matching.kernels.Kernels.workers`)."""
+    from ..matching.elastic import ELASTIC_THREAD_ROWS
+    from ..matching.kernels import current
+
+    return current().workers(rows, ELASTIC_THREAD_ROWS)
+
+
+def rigid_of(found: BestRows) -> dict[str, np.ndarray]:
+    """The exact optimum of a query's candidates (a :class:`~nfdmatch.search.engine.BestRows`
+    with exact distances), as :func:`fused_terms` takes it."""
+    keys = ("shift", "reversed", "mirrored")
+    return {"distance": found.dist, **{key: found.extra[key] for key in keys}}
+
+
+def rank_by_fused(found: BestRows, terms: FusedDistances) -> None:
+    """A query's candidates (a :class:`~nfdmatch.search.engine.BestRows` ranked by exact
+    distance, then id) given their fused distances ``terms`` instead (the exact ones kept in
+    ``extra["exact"]``, the elastic ones in ``extra["elastic"]``) and ranked by them: by
+    fused distance (within TIE), then exact distance, then as they came (the sort is
+    stable)."""
+    order = np.lexsort((found.dist, np.round(terms.fused / TIE)))
+    extra = {**found.extra, "exact": found.dist, "elastic": terms.elastic}
+    found.rows, found.dist = found.rows[order], terms.fused[order]
+    found.extra = {key: v[order] for key, v in extra.items()}
 
 
 def fused_best_rows(
     index: Any, qcoef: np.ndarray, found: Sequence[BestRows], alongside: Sequence[Callable[[], Any]] = ()
 ) -> list:
     """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
-    distances) given their fused distances instead (the exact ones kept in ``extra["exact"]``,
-    the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then
-    id. ``alongside``: calls run on the threads with the distances (:func:`fused_candidates`);
+    distances) given their fused distances and ranked by them (:func:`rank_by_fused`).
+    ``alongside``: calls run on the threads with the distances (:func:`fused_candidates`);
     returns their results, in order."""
-    rigid = [
-        {"distance": tk.dist, "shift": tk.extra["shift"], "reversed": tk.extra["reversed"],
-         "mirrored": tk.extra["mirrored"]}
-        for tk in found
-    ]  # fmt: skip
+    rigid = [rigid_of(tk) for tk in found]
     every, theirs = fused_candidates(index, qcoef, [tk.rows for tk in found], rigid, alongside=alongside)
     for tk, terms in zip(found, every):
-        if terms is None:
-            continue
-        # by fused distance (within TIE), then exact distance, then id (the rows come ranked
-        # by exact distance, then id, and the sort is stable)
-        order = np.lexsort((tk.dist, np.round(terms.fused / TIE)))
-        extra = {**tk.extra, "exact": tk.dist, "elastic": terms.elastic}
-        tk.rows, tk.dist = tk.rows[order], terms.fused[order]
-        tk.extra = {key: v[order] for key, v in extra.items()}
+        if terms is not None:
+            rank_by_fused(tk, terms)
     return theirs
