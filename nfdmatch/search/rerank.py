@@ -46,7 +46,7 @@ from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
 from .index_search import UNSET, k_or_top
 from .selfmatch import self_rule
-from .stages import fused_best_rows, fused_terms, fused_threads, rank_by_fused, rigid_of
+from .stages import fused_terms, fused_threads, rank_by_fused, rigid_of
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -321,6 +321,15 @@ def _union(tops) -> np.ndarray:
     return sorted_unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
 
 
+def _positions(tops, rows) -> np.ndarray:
+    """Where the search table holds each of ``rows`` (ascending, unique, every one found by a
+    query of ``tops``): the ``extra["position"]`` the search gave it."""
+    found = np.concatenate([tk.rows for tk in tops])
+    positions = np.concatenate([tk.extra["position"] for tk in tops])
+    order = np.argsort(found, kind="stable")
+    return positions[order][np.searchsorted(found[order], rows)]
+
+
 def _self_flags(index, queries, tops, exclude_self: bool, is_self) -> list[np.ndarray]:
     """Per query, (m,) bool: which of its rows in ``tops`` are its own stored curve (under
     ``exclude_self``; none otherwise)."""
@@ -345,16 +354,20 @@ def _candidates(
     (:func:`_add_walk_rows`, ``depths[1]`` of them forward; their distances as the graph's);
     ``vectors`` every candidate's PageRank, once for the batch. (qcoef: (Q, K, 3)
     complex128, the queries' descriptors.)"""
-    from .index_search import rank_rows, search_rows
+    from .index_search import found_rows
 
     nearest, depth = depths
-    # the exact distance, invariant to direction, no mirror
-    found, stats = search_rows(index, qcoef, Cascade(index.samples), top=nearest, progress=progress, threads=threads)
-    rank_rows(index, found, nearest)
+    # the exact distance, invariant to direction, no mirror; the rows' figures computed on the
+    # threads (_measure) with their PageRank, which needs none of them: the rows found, with
+    # any tied past the nearest (a source's PageRank does not depend on the others pushed)
+    found, stats, table = found_rows(
+        index, qcoef, Cascade(index.samples), top=nearest, progress=progress, threads=threads
+    )  # fmt: skip
     union = _union(found)
-    push = partial(walk.pagerank, union)  # the candidates' PageRank needs none of their distances
-    (pushed,) = fused_best_rows(index, qcoef, found, alongside=[push]) if fused else (push(),)
-    vectors = _Vectors(union, *pushed)
+    read = _Read(index, union, table, _positions(found, union))
+    push = partial(walk.pagerank, union)
+    pushed = _measure(index, qcoef, found, fused, _beside(push, fused), read=read, ranked=nearest)
+    vectors = _Vectors(union, *(pushed if fused else push()))
     if walks:
         forward, backwards = _forward_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
         computed, vectors = _add_walk_rows(index, walk, qcoef, found, vectors, (forward, backwards), depth, fused)
@@ -378,7 +391,9 @@ def _add_walk_rows(index, walk: GraphWalk, qcoef, found, vectors: "_Vectors", wa
     reached = _measure(index, qcoef, forward, fused, partial(_walk_backwards, walk, backwards))
     backward = _reaching_rows(found, forward, backwards, reached, depth // 2)
     added = sorted_unique(np.concatenate([_union(forward), _union(backward)]))
-    vectors = _measure(index, qcoef, backward, fused, partial(vectors.with_rows, walk, added))
+    push = partial(vectors.with_rows, walk, added)
+    measured = _measure(index, qcoef, backward, fused, _beside(push, fused))
+    vectors = measured if fused else push()
     more = [_joined_rows(ahead, behind, fused) for ahead, behind in zip(forward, backward)]
     _merge_rows(index, found, more, fused)
     return sum(len(extra.rows) for extra in more), vectors
@@ -422,6 +437,14 @@ def _forward_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", de
     return forward, backwards
 
 
+def _beside(push: Callable[[], Any], fused: bool) -> Callable[[], Any] | None:
+    """A PageRank push to run on the threads with a batch's distances (:func:`_measure`): on a
+    graph of fused distances, which cost about as much as the push; None on an exact graph,
+    whose few exact distances would leave the push one thread of its own: it runs after,
+    over the threads."""
+    return push if fused else None
+
+
 def _unmeasured(rows: np.ndarray) -> BestRows:
     """A :class:`~nfdmatch.search.engine.BestRows` of ``rows`` (ascending) whose distances are
     not computed yet (:func:`_measure`): zeros, no position in a search table (-1)."""
@@ -431,21 +454,25 @@ def _unmeasured(rows: np.ndarray) -> BestRows:
     return tk
 
 
-def _measure(index, qcoef, parts, fused: bool, alongside: Callable[[], Any]) -> Any:
-    """Give each query's rows ``parts[i]`` (:func:`_unmeasured`) their exact distance
-    (computed alone, as the search computes the rows it found:
-    :func:`~nfdmatch.search.index_search.recompute_reported`; rows then ascending) and, on a
-    fused graph, their fused distance (ranked by it: :func:`rank_by_fused`); each query's
-    on one of the kernels' threads (:func:`~nfdmatch.matching._threads.run_spread`), the
-    call ``alongside`` (which needs none of them) started first. Returns what it returned."""
+def _measure(index, qcoef, parts, fused: bool, alongside: Callable[[], Any] | None, *, read=None, ranked=None) -> Any:
+    """Give each query's rows ``parts[i]`` (:func:`_unmeasured`, or as the search found them)
+    their exact distance (computed alone, as the search computes the rows it found:
+    :func:`~nfdmatch.search.index_search.recompute_reported`, descriptors from ``read``, a
+    :class:`_Read` of every row, made here when None; rows then ascending), with ``ranked``
+    ranked as the search ranks its rows and cut to that many
+    (:func:`~nfdmatch.search.index_search.rank_rows`) and, on a fused graph, their fused
+    distance (ranked by it: :func:`rank_by_fused`); each query's on one of the kernels'
+    threads (:func:`~nfdmatch.matching._threads.run_spread`), the call ``alongside`` (which
+    needs none of them; None: no call) started first. Returns what it returned."""
     from ..matching._threads import run_spread
     from ..matching.kernels import current
-    from .index_search import recompute_reported
+    from .index_search import rank_rows, recompute_reported
 
     total = sum(len(tk.rows) for tk in parts)
+    alongside = alongside or _nothing
     if not total:
         return alongside()
-    read, cascade = _Read(index, _union(parts)), Cascade(index.samples)
+    read, cascade = read or _Read(index, _union(parts)), Cascade(index.samples)
     terms = fused_terms(index, qcoef, [tk.rows for tk in parts]) if fused else None
 
     def one(qi: int) -> None:
@@ -455,11 +482,17 @@ def _measure(index, qcoef, parts, fused: bool, alongside: Callable[[], Any]) -> 
                 read, qcoef[qi : qi + 1], [tk], cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
                 weights=None,
             )  # fmt: skip
+            if ranked is not None:
+                rank_rows(index, [tk], ranked)  # (reads ids only for tied distances)
             if terms is not None:
                 rank_by_fused(tk, terms(qi, tk.rows, rigid_of(tk)))
 
     threads = fused_threads(total) if fused else current().workers(total)
     return run_spread([alongside, *(partial(one, qi) for qi in range(len(parts)))], threads)[0]
+
+
+def _nothing() -> None:
+    """No work (:func:`_measure` without a call alongside)."""
 
 
 def _walk_backwards(walk: GraphWalk, backwards):
@@ -525,13 +558,17 @@ def _merge_rows(index, found, more, fused: bool) -> None:
 
 
 class _Read:
-    """The descriptors of the batch's candidates ``rows`` (ascending, unique), read from the
-    index in one read, served as :meth:`Index.coefficients_at` would (one read per query cost
-    ~5 ms each at 100,000 curves)."""
+    """The descriptors of the batch's candidates ``rows`` (ascending, unique), read in one
+    read, served as :meth:`Index.coefficients_at` would (one read per query cost ~5 ms each
+    at 100,000 curves): from the search's ``table`` at the rows' ``positions`` when it holds
+    them all (as :func:`~nfdmatch.search.index_search.recompute_reported` reads them), else
+    from the index. Read here, on the calling thread (a table reads what it does not hold
+    yet); then served to any thread."""
 
-    def __init__(self, index, rows):
+    def __init__(self, index, rows, table=None, positions=None):
         self.samples, self.rows = index.samples, rows
-        self.coef = index.coefficients_at(rows)
+        from_table = table is not None and positions is not None and len(rows) and positions.min() >= 0
+        self.coef = table.coefficients_at_positions(positions) if from_table else index.coefficients_at(rows)
 
     def coefficients_at(self, rows):
         return self.coef[np.searchsorted(self.rows, rows)]

@@ -33,7 +33,6 @@ __all__ = [
     "fused_terms",
     "fused_candidates",
     "fused_threads",
-    "fused_best_rows",
     "rank_by_fused",
     "rigid_of",
 ]
@@ -98,7 +97,7 @@ class ElasticStage:
         ]
         rows = [np.array([m.row for m in matches], dtype=np.int64) for matches in results]
         out = []
-        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid, matching=matching)[0]):
+        for matches, terms in zip(results, fused_candidates(index, qcoef, rows, rigid, matching=matching)):
             if terms is None:
                 out.append([])
                 continue
@@ -155,20 +154,13 @@ def fused_candidates(
     rigid: Sequence[Mapping[str, np.ndarray]],
     *,
     matching: Matching = None,
-    alongside: Sequence[Callable[[], Any]] = (),
-) -> tuple[list[FusedDistances | None], list]:
+) -> list[FusedDistances | None]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
     optimum ``rigid[i]`` (:func:`fused_terms`, the batch's rows read once; ``matching`` as
-    there).
-
-    The queries are spread over the kernels' threads, each query's rows on one thread
+    there). The queries are spread over the kernels' threads, each query's rows on one thread
     (:func:`~nfdmatch.matching._threads.run_spread`; a row's distance is computed alone, so
-    the digits do not depend on the threads), with the calls ``alongside`` (no argument;
-    started first: work that needs none of these distances, e.g. a PageRank push).
-
-    Returns ``(distances, theirs)``: the queries' distances, and the results of ``alongside``
-    in order."""
+    the digits do not depend on the threads)."""
     from ..matching._threads import run_spread
 
     total = sum(len(r) for r in rows)
@@ -177,9 +169,7 @@ def fused_candidates(
     def one(qi: int) -> FusedDistances | None:
         return terms(qi, rows[qi], rigid[qi]) if terms is not None and len(rows[qi]) else None
 
-    calls = [*alongside, *(partial(one, qi) for qi in range(len(rows)))]
-    done = run_spread(calls, fused_threads(total))
-    return done[len(alongside) :], done[: len(alongside)]
+    return run_spread([partial(one, qi) for qi in range(len(rows))], fused_threads(total))
 
 
 def fused_threads(rows: int) -> int:
@@ -208,18 +198,3 @@ def rank_by_fused(found: BestRows, terms: FusedDistances) -> None:
     extra = {**found.extra, "exact": found.dist, "elastic": terms.elastic}
     found.rows, found.dist = found.rows[order], terms.fused[order]
     found.extra = {key: v[order] for key, v in extra.items()}
-
-
-def fused_best_rows(
-    index: Any, qcoef: np.ndarray, found: Sequence[BestRows], alongside: Sequence[Callable[[], Any]] = ()
-) -> list:
-    """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
-    distances) given their fused distances and ranked by them (:func:`rank_by_fused`).
-    ``alongside``: calls run on the threads with the distances (:func:`fused_candidates`);
-    returns their results, in order."""
-    rigid = [rigid_of(tk) for tk in found]
-    every, theirs = fused_candidates(index, qcoef, [tk.rows for tk in found], rigid, alongside=alongside)
-    for tk, terms in zip(found, every):
-        if terms is not None:
-            rank_by_fused(tk, terms)
-    return theirs
