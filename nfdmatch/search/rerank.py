@@ -282,12 +282,12 @@ def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: in
     its candidates (a ranked :class:`~nfdmatch.search.engine.BestRows`), ``merged`` which of
     them are its own stored curve (left out); scores closer than ``_SCORE_TIE`` are ties,
     ordered as the candidates are (exact distance, then id)."""
-    picks, dense = [], np.zeros(walk.N + 1)
+    picks, work = [], (np.zeros(walk.N + 1), np.zeros(walk.N + 1, dtype=bool))
     for tk, mine in zip(found, merged):
         if not len(tk.rows):
             picks.append((np.zeros(0, np.int64), None))
             continue
-        scores = _query_scores(walk, vectors, tk.rows, tk.dist, mine, dense)
+        scores = _query_scores(walk, vectors, tk.rows, tk.dist, mine, work)
         kept = np.flatnonzero(~mine)
         order = kept[np.lexsort((kept, -np.round(scores[kept] / _SCORE_TIE)))][:top]
         picks.append((order, scores))
@@ -295,21 +295,29 @@ def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: in
     ids = index.ids_at(np.concatenate(reported)) if reported else []
     results, at = [], 0
     for tk, (order, scores) in zip(found, picks):
+        fused = "exact" in tk.extra  # then dist is the fused distance
+        # each column as Python values at once (a numpy scalar per field cost ~4 us a match)
+        picked = {key: v[order].tolist() for key, v in tk.extra.items()}
+        dist, rows, score = (
+            tk.dist[order].tolist(),
+            tk.rows[order].tolist(),
+            scores[order].tolist() if len(order) else [],
+        )
         results.append(
             [
                 RankedMatch(
-                    rank=rank,
-                    id=ids[at + rank - 1],
-                    distance=float(tk.extra["exact"][i] if "exact" in tk.extra else tk.dist[i]),
-                    shift=float(tk.extra["shift"][i]),
-                    reversed=bool(tk.extra["reversed"][i]),
-                    mirrored=bool(tk.extra["mirrored"][i]),
-                    row=int(tk.rows[i]),
-                    score=float(scores[i]),
-                    elastic=float(tk.extra["elastic"][i]) if "elastic" in tk.extra else None,
-                    fused=float(tk.dist[i]) if "exact" in tk.extra else None,
+                    rank=n + 1,
+                    id=ids[at + n],
+                    distance=picked["exact"][n] if fused else dist[n],
+                    shift=picked["shift"][n],
+                    reversed=picked["reversed"][n],
+                    mirrored=picked["mirrored"][n],
+                    row=rows[n],
+                    score=score[n],
+                    elastic=picked["elastic"][n] if "elastic" in picked else None,
+                    fused=dist[n] if fused else None,
                 )
-                for rank, i in enumerate(order.tolist(), start=1)
+                for n in range(len(order))
             ]
         )
         at += len(order)
@@ -639,7 +647,7 @@ class _Vectors:
         lengths = b - a
         owner = np.repeat(np.arange(len(rows)), lengths)
         first = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-        at = np.arange(lengths.sum()) - np.repeat(first, lengths) + np.repeat(a, lengths)
+        at = np.arange(lengths.sum()) + np.repeat(a - first, lengths)
         return owner, self.node[at], self.value[at]
 
     def norms(self, rows):
@@ -662,17 +670,17 @@ class _Vectors:
         return _Vectors(union[order], offsets.astype(np.int64), nodes[at], values[at])
 
 
-def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -> np.ndarray:
+def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, work) -> np.ndarray:
     """Scores of one query's candidates ``rows`` (exact distances ``qd``, ascending; ``merged``:
-    the candidates that are the query's own stored curve, whose score is NaN). ``dense``:
-    (N + 1,) zeros, a work array (left zero)."""
+    the candidates that are the query's own stored curve, whose score is NaN). ``work``:
+    ``(dense, entered)``, (N + 1,) float64 zeros and bool False, work arrays (left so)."""
     N, alpha = walk.N, walk.alpha
+    dense, entered = work
     out = np.full(len(rows), np.nan)
     keep = np.flatnonzero(~merged)
     if not len(keep):
         return out
     cand = rows[keep]
-    s_cand = walk.scales(cand)
     owner, node, value = vectors.entries(cand)
     back = np.zeros(len(keep))  # the candidates' own PageRank at the query (first order)
     if merged.any():
@@ -680,7 +688,7 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
         self_row = rows[np.flatnonzero(merged)[0]]
         _, q_node, q_val = vectors.entries(np.array([self_row]))
         dense[q_node] = q_val
-        s_q = walk.scales([self_row])[0]
+        s_q, s_cand = walk.scales([self_row])[0], walk.scales(cand)
     else:
         # the query joins the graph as node N: its k nearest (exact), and the candidates
         # whose k nearest it enters (their lists and scales change while it is there)
@@ -692,7 +700,11 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
         # first order: a candidate's walk reaches the query through the rows it entered
         to_q = (prob * (targets == N)).sum(axis=1)
         dense[into] = alpha * to_q
-        back = np.bincount(owner, weights=dense[node] * value, minlength=len(cand))
+        # summed over the entries at those rows alone: the others add +0.0, which changes no sum
+        entered[into] = True
+        at_into = np.flatnonzero(entered[node])
+        entered[into] = False
+        back = np.bincount(owner[at_into], weights=dense[node[at_into]] * value[at_into], minlength=len(cand))
         dense[into] = 0.0
         # the query's PageRank from its first step: pi_q = ((1 - alpha) e_q + alpha sum_v P_qv
         # pi_v) / (1 - alpha P_qq), each neighbour's pi_v its stored vector plus its mass at q
