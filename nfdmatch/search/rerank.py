@@ -46,7 +46,7 @@ from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
 from .index_search import UNSET, k_or_top
 from .selfmatch import self_rule
-from .stages import fused_terms, fused_threads, rank_by_fused, rigid_of
+from .stages import fused_terms, statistics_of_queries, fused_threads, rank_by_fused, rigid_of
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -374,21 +374,24 @@ def _candidates(
     union = _union(found)
     read = _Read(index, union, table, _positions(found, union))
     push = partial(walk.pagerank, union)
-    pushed = _measure(index, qcoef, found, fused, _beside(push, fused), read=read, ranked=nearest)
+    # on a fused graph, each batch's fused distances (the queries' statistics computed once)
+    terms_of = partial(fused_terms, query_statistics=statistics_of_queries(qcoef)) if fused else None
+    pushed = _measure(index, qcoef, found, terms_of, _beside(push, fused), read=read, ranked=nearest)
     vectors = _Vectors(union, *(pushed if fused else push()))
     if walks:
         forward, backwards = _forward_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
-        computed, vectors = _add_walk_rows(index, walk, qcoef, found, vectors, (forward, backwards), depth, fused)
+        computed, vectors = _add_walk_rows(index, walk, qcoef, found, vectors, (forward, backwards), depth, terms_of)
         stats.exact += computed
     return found, stats, vectors
 
 
-def _add_walk_rows(index, walk: GraphWalk, qcoef, found, vectors: "_Vectors", walked, depth: int, fused: bool):
+def _add_walk_rows(index, walk: GraphWalk, qcoef, found, vectors: "_Vectors", walked, depth: int, terms_of):
     """Merge into each query's candidates ``found[i]`` the rows of its walks, ``walked``: the
     rows its walk forward adds and where its walk backwards starts (:func:`_forward_rows`);
     the walk backwards adds the ``depth // 2`` rows whose PageRank reaches it most
-    (:func:`_reaching_rows`). Each row is given its exact distance and, on a fused graph, its
-    fused distance (:func:`_measure`); each list ranked again (:func:`_merge_rows`).
+    (:func:`_reaching_rows`). Each row is given its exact distance and, on a fused graph
+    (``terms_of`` not None: as :func:`_measure` takes it), its fused distance; each list
+    ranked again (:func:`_merge_rows`).
     Returns how many exact distances it computed, and ``vectors`` with the PageRank of the
     rows added.
 
@@ -396,11 +399,12 @@ def _add_walk_rows(index, walk: GraphWalk, qcoef, found, vectors: "_Vectors", wa
     (compiled kernels), the PageRank of the rows added with the distances of the rows
     backwards: each row's distances are computed alone, the same digits as all at once."""
     forward, backwards = walked
-    reached = _measure(index, qcoef, forward, fused, partial(_walk_backwards, walk, backwards))
+    fused = terms_of is not None
+    reached = _measure(index, qcoef, forward, terms_of, partial(_walk_backwards, walk, backwards))
     backward = _reaching_rows(found, forward, backwards, reached, depth // 2)
     added = sorted_unique(np.concatenate([_union(forward), _union(backward)]))
     push = partial(vectors.with_rows, walk, added)
-    measured = _measure(index, qcoef, backward, fused, _beside(push, fused))
+    measured = _measure(index, qcoef, backward, terms_of, _beside(push, fused))
     vectors = measured if fused else push()
     more = [_joined_rows(ahead, behind, fused) for ahead, behind in zip(forward, backward)]
     _merge_rows(index, found, more, fused)
@@ -462,14 +466,15 @@ def _unmeasured(rows: np.ndarray) -> BestRows:
     return tk
 
 
-def _measure(index, qcoef, parts, fused: bool, alongside: Callable[[], Any] | None, *, read=None, ranked=None) -> Any:
+def _measure(index, qcoef, parts, terms_of, alongside: Callable[[], Any] | None, *, read=None, ranked=None) -> Any:
     """Give each query's rows ``parts[i]`` (:func:`_unmeasured`, or as the search found them)
     their exact distance (computed alone, as the search computes the rows it found:
     :func:`~nfdmatch.search.index_search.recompute_reported`, descriptors from ``read``, a
     :class:`_Read` of every row, made here when None; rows then ascending), with ``ranked``
     ranked as the search ranks its rows and cut to that many
     (:func:`~nfdmatch.search.index_search.rank_rows`) and, on a fused graph, their fused
-    distance (ranked by it: :func:`rank_by_fused`); each query's on one of the kernels'
+    distance (ranked by it: :func:`rank_by_fused`; ``terms_of``: :func:`fused_terms` with the
+    queries' statistics, None on an exact graph); each query's on one of the kernels'
     threads (:func:`~nfdmatch.matching._threads.run_spread`), the call ``alongside`` (which
     needs none of them; None: no call) started first. Returns what it returned."""
     from ..matching._threads import run_spread
@@ -481,7 +486,7 @@ def _measure(index, qcoef, parts, fused: bool, alongside: Callable[[], Any] | No
     if not total:
         return alongside()
     read, cascade = read or _Read(index, _union(parts)), Cascade(index.samples)
-    terms = fused_terms(index, qcoef, [tk.rows for tk in parts]) if fused else None
+    terms = terms_of(index, qcoef, [tk.rows for tk in parts]) if terms_of is not None else None
 
     def one(qi: int) -> None:
         tk = parts[qi]
@@ -495,7 +500,7 @@ def _measure(index, qcoef, parts, fused: bool, alongside: Callable[[], Any] | No
             if terms is not None:
                 rank_by_fused(tk, terms(qi, tk.rows, rigid_of(tk)))
 
-    threads = fused_threads(total) if fused else current().workers(total)
+    threads = fused_threads(total) if terms is not None else current().workers(total)
     return run_spread([alongside, *(partial(one, qi) for qi in range(len(parts)))], threads)[0]
 
 

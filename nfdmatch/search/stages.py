@@ -31,6 +31,7 @@ __all__ = [
     "ElasticStage",
     "ELASTIC_COLUMNS",
     "fused_terms",
+    "statistics_of_queries",
     "fused_candidates",
     "fused_threads",
     "rank_by_fused",
@@ -113,7 +114,12 @@ class ElasticStage:
 
 
 def fused_terms(
-    index: Any, qcoef: np.ndarray, rows: Sequence[np.ndarray], *, matching: Matching = None
+    index: Any,
+    qcoef: np.ndarray,
+    rows: Sequence[np.ndarray],
+    *,
+    matching: Matching = None,
+    query_statistics: np.ndarray | None = None,
 ) -> Callable[[int, np.ndarray, Mapping[str, np.ndarray]], FusedDistances]:
     """``terms(query, its_rows, rigid)``: the fused distances
     (:class:`~nfdmatch.matching.fused.FusedDistances`) of query ``query`` (descriptors
@@ -123,8 +129,10 @@ def fused_terms(
     for the batch (a scattered read costs about as much for one row as for many), with its
     statistics as the index stores them (``statistics_at``) or computed; ``matching``: the
     exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no mirror,
-    uniform). The function may be called from any thread (a row's distances are computed
-    alone: the same digits on any thread, in any batch)."""
+    uniform); ``query_statistics``: (Q, LENGTH) the queries' statistics when a caller has them
+    (:func:`statistics_of_queries`), else computed here. The function may be called from any
+    thread (a row's distances are computed alone: the same digits on any thread, in any
+    batch)."""
     from ..matching.fused import fused_rows
     from ..matching.statistics import curve_statistics
 
@@ -135,7 +143,7 @@ def fused_terms(
         statistics = None
     else:
         statistics = stored(every) if stored is not None else curve_statistics(coefficients)
-    mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
+    mine = query_statistics if query_statistics is not None else statistics_of_queries(qcoef)
 
     def terms(query: int, its_rows: np.ndarray, rigid: Mapping[str, np.ndarray]) -> FusedDistances:
         at = np.searchsorted(every, its_rows)
@@ -145,6 +153,15 @@ def fused_terms(
         )  # fmt: skip
 
     return terms
+
+
+def statistics_of_queries(qcoef: np.ndarray) -> np.ndarray:
+    """(Q, LENGTH) float: the pose-free statistics of each query (descriptors ``qcoef``: (Q,
+    K, 3) complex128), the fused distance's third term
+    (:func:`~nfdmatch.matching.statistics.curve_statistics`)."""
+    from ..matching.statistics import curve_statistics
+
+    return curve_statistics(qcoef).reshape(len(qcoef), -1)
 
 
 def fused_candidates(
