@@ -438,9 +438,10 @@ def test_fused_graph_lists_are_the_same_in_any_blocks_and_over_worker_processes(
 
 
 def test_a_fused_graphs_batch_over_threads_answers_as_each_query_alone(tmp_path, rng, monkeypatch):
-    """query --rerank on a fused graph spreads its queries' fused distances over threads, a
-    PageRank push alongside (as on 4 cores here): the batch gives every query the answer it
-    gets alone and on one thread, to the digit, with and without exclude_self."""
+    """query --rerank on a fused graph spreads its queries' fused distances over threads (as
+    on 4 cores here), a batch's PageRank push beside them, a single query's after them: the
+    batch gives every query the answer it gets alone and on one thread, to the digit, with
+    and without exclude_self."""
     from nfdmatch.index.graph import GraphSpec
     from nfdmatch.matching import _threads
     from nfdmatch.matching import kernels as kernels_module
@@ -454,7 +455,7 @@ def test_a_fused_graphs_batch_over_threads_answers_as_each_query_alone(tmp_path,
         _threads, "run_spread", lambda calls, threads: spread.append(threads) or run_spread(calls, threads)
     )
     monkeypatch.setattr(kernels_module, "cpu_count", lambda: 4)
-    queries = curves[::3]
+    queries = curves  # the batch's fused distances: ~23 a source pushed, so the push runs beside them
     limit = kernels_module._call_threads
     with open_index(str(tmp_path / "f.h5")) as idx:
         for exclude_self in (False, True):

@@ -99,6 +99,11 @@ MIN_DEPTH, DEFAULT_DEPTH = MIN_RERANK_DEPTH, DEFAULT_RERANK_DEPTH
 MATRIX_TOLERANCE = 1e-3
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
+#: fused distances per source from which a PageRank push runs beside them (:func:`_beside`):
+#: a row's fused distance costs ~50 us, a source's push ~100 us (100,000 curves) to ~650 us
+#: (1,400 in families of 20); beside fewer the push, left one thread, took longest (one query
+#: of the 1,400: 150 ms against 117 ms with the push after, over both threads)
+_BESIDE_ROWS = 8
 #: where a query's candidates come from (``rerank_index(candidates=...)``): ``"walk"`` (the
 #: default) its exact k nearest, the M stored rows of largest personalised-PageRank mass from
 #: its first step and the M / 2 whose own PageRank reaches it most, each given its exact
@@ -374,10 +379,11 @@ def _candidates(
     union = _union(found)
     read = _Read(index, union, table, _positions(found, union))
     push = partial(walk.pagerank, union)
+    beside = _beside(push, fused, len(union), sum(len(tk.rows) for tk in found))
     # on a fused graph, each batch's fused distances (the queries' statistics computed once)
     terms_of = partial(fused_terms, query_statistics=statistics_of_queries(qcoef)) if fused else None
-    pushed = _measure(index, qcoef, found, terms_of, _beside(push, fused), read=read, ranked=nearest)
-    vectors = _Vectors(union, *(pushed if fused else push()))
+    pushed = _measure(index, qcoef, found, terms_of, beside, read=read, ranked=nearest)
+    vectors = _Vectors(union, *(pushed if beside else push()))
     if walks:
         forward, backwards = _forward_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
         computed, vectors = _add_walk_rows(index, walk, qcoef, found, vectors, (forward, backwards), depth, terms_of)
@@ -403,9 +409,10 @@ def _add_walk_rows(index, walk: GraphWalk, qcoef, found, vectors: "_Vectors", wa
     reached = _measure(index, qcoef, forward, terms_of, partial(_walk_backwards, walk, backwards))
     backward = _reaching_rows(found, forward, backwards, reached, depth // 2)
     added = sorted_unique(np.concatenate([_union(forward), _union(backward)]))
-    push = partial(vectors.with_rows, walk, added)
-    measured = _measure(index, qcoef, backward, terms_of, _beside(push, fused))
-    vectors = measured if fused else push()
+    push, sources = partial(vectors.with_rows, walk, added), len(added) - int(np.isin(added, vectors.union).sum())
+    beside = _beside(push, fused, sources, sum(len(tk.rows) for tk in backward))
+    measured = _measure(index, qcoef, backward, terms_of, beside)
+    vectors = measured if beside else push()
     more = [_joined_rows(ahead, behind, fused) for ahead, behind in zip(forward, backward)]
     _merge_rows(index, found, more, fused)
     return sum(len(extra.rows) for extra in more), vectors
@@ -449,12 +456,13 @@ def _forward_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", de
     return forward, backwards
 
 
-def _beside(push: Callable[[], Any], fused: bool) -> Callable[[], Any] | None:
-    """A PageRank push to run on the threads with a batch's distances (:func:`_measure`): on a
-    graph of fused distances, which cost about as much as the push; None on an exact graph,
-    whose few exact distances would leave the push one thread of its own: it runs after,
-    over the threads."""
-    return push if fused else None
+def _beside(push: Callable[[], Any], fused: bool, sources: int, rows: int) -> Callable[[], Any] | None:
+    """A PageRank push of ``sources`` sources to run on the threads with a batch's distances
+    to ``rows`` rows in all (:func:`_measure`), or None: it runs after them, over the threads
+    (beside them it has one). Beside a fused graph's distances when they are at least
+    :data:`_BESIDE_ROWS` per source, so cost about as much as the push (200 queries of 1,400
+    curves: 17 a source; one query: ~1); never beside an exact graph's few exact distances."""
+    return push if fused and rows >= _BESIDE_ROWS * sources else None
 
 
 def _unmeasured(rows: np.ndarray) -> BestRows:
