@@ -46,7 +46,7 @@ from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
 from .index_search import UNSET, k_or_top
 from .selfmatch import self_rule
-from .stages import fused_terms, statistics_of_queries, fused_threads, rank_by_fused, rigid_of
+from .stages import fused_terms, fused_threads, rank_by_fused, rigid_of, statistics_of_queries
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
