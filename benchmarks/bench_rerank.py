@@ -4,6 +4,7 @@
                                       [--skip-methods]
     python benchmarks/bench_rerank.py --index I.h5 [--queries FILE --batch 100]
     python benchmarks/bench_rerank.py --self-batch 1400
+    python benchmarks/bench_rerank.py --graph-batch [--compare ../other-checkout] [--work DIR] [--pairs 3]
 
 Prints, from the repository root:
 
@@ -21,7 +22,15 @@ Prints, from the repository root:
    and with walk candidates, each with the seconds of its PageRank push (issue 23);
 4. with ``--self-batch N``: the held-out benchmark's shape (issue 23's "time for 1,400
    queries"): N generated curves in families of 20, every one a query in one batch,
-   ``--top 40``, plain against ``--rerank``, as CLI processes in turn and in the library.
+   ``--top 40``, plain against ``--rerank``, as CLI processes in turn and in the library;
+5. with ``--graph-batch``: the library's batch on both kinds of graph (issue 23's goal for
+   the fused graph: ``rerank_index`` at most 4x the plain ``search_index``): 1,400 bending
+   curves (70 families of 20, benchmarks/bending_families.py), indexed with ``--graph 10``
+   and with ``--graph 10 --elastic``; 200 of them as one batch, ``--top 40``: plain, the
+   exact graph's ``--rerank``, the fused graph's, in turn, each round's ratios to its own
+   plain. With ``--compare TREE`` the same in processes of that checkout (its
+   ``.venv/bin/python``), the two in turn, and whether both give the same answers (every
+   id, distance and score to the digit).
 
 Collections: Kimia-99 (9 classes x 11; same-class hits at ranks 1..10 and bull's-eye, the
 same-class hits in the top 22, query included, as a fraction of 11); knotess control ->
@@ -45,8 +54,11 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+#: the checkout whose nfdmatch is measured: this one, or (``--graph-batch --compare``'s
+#: processes) the one the variable names
+TREE = os.environ.get("NFDMATCH_BENCH_TREE") or os.path.dirname(HERE)
 sys.path.insert(0, HERE)
-sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, TREE)
 
 from nfdmatch import Curve, read_curves, write_curves  # noqa: E402
 from nfdmatch.descriptors import descriptors_batch  # noqa: E402
@@ -488,6 +500,87 @@ def self_batch_timing(curves=1400, members=20, runs=5):
         shutil.rmtree(work, ignore_errors=True)
 
 
+GRAPH_BATCH = {"curves": (70, 20, 2), "queries": 200, "top": 40}
+
+
+def graph_batch_timing(work=None, compare=None, pairs=3, rounds=3):
+    """Item 5 of the module's docstring: this checkout's processes and ``compare``'s in turn,
+    ``pairs`` times, each process ``rounds`` rounds of plain, exact-graph ``--rerank`` and
+    fused-graph ``--rerank`` (:func:`graph_batch_child`); the medians of the seconds and of
+    each round's ratios to its plain. ``work``: where the curves and the two indexes are
+    (made there when missing, by this checkout)."""
+    import json
+    import statistics
+    import subprocess
+
+    from bending_families import families
+    from nfdmatch import Curve, build_index, write_curves
+    from nfdmatch.index.graph import GraphSpec
+
+    work = work or tempfile.mkdtemp(prefix="bench-rerank-graphs-")
+    folder = os.path.join(work, "curves")
+    if not os.path.exists(os.path.join(work, "fused.h5")):
+        os.makedirs(folder, exist_ok=True)
+        points, _ = families(np.random.default_rng(7), *GRAPH_BATCH["curves"])
+        for part in range(7):
+            batch = [Curve(p, id=f"c{part}-{i}") for i, p in enumerate(points[part::7])]
+            write_curves(os.path.join(folder, f"p{part}.obj"), batch)
+        build_index([folder], os.path.join(work, "exact.h5"), graph=10)
+        build_index([folder], os.path.join(work, "fused.h5"), graph=GraphSpec(10, "fused"))
+    trees = {"this": os.path.dirname(HERE)} | ({"compare": os.path.abspath(compare)} if compare else {})
+    runs = {name: [] for name in trees}
+    for pair in range(pairs):
+        for name in trees if pair % 2 == 0 else list(trees)[::-1]:
+            tree = trees[name]
+            python = os.path.join(tree, ".venv", "bin", "python")
+            command = [python if os.path.exists(python) else sys.executable, os.path.abspath(__file__)]
+            command += ["--graph-batch-child", work, "--rounds", str(rounds)]
+            env = dict(os.environ, NFDMATCH_BENCH_TREE=tree)
+            out = subprocess.run(command, capture_output=True, text=True, check=True, env=env).stdout
+            runs[name].append(json.loads(out.splitlines()[-1]))
+    q, (count, members, _) = GRAPH_BATCH["queries"], GRAPH_BATCH["curves"]
+    print(f"\n## {q} of {count * members} bending curves as one batch, --top {GRAPH_BATCH['top']}, the library")
+    print(f"({pairs} processes per checkout in turn, {rounds} rounds each; medians; ratios per round to its plain)")
+    for name, tree in trees.items():
+        rows = [r for run in runs[name] for r in run["rounds"]]
+        median = {key: statistics.median(r[key] for r in rows) for key in rows[0]}
+        ratio = {key: statistics.median(r[key] / r["plain"] for r in rows) for key in ("exact", "fused")}
+        print(
+            f"{name:8} {tree}: plain {median['plain']:.2f} s, --rerank exact graph {median['exact']:.2f} s "
+            f"({ratio['exact']:.2f}x), fused graph {median['fused']:.2f} s ({ratio['fused']:.2f}x)"
+        )
+    if compare:
+        same = {run["answers"] for name in trees for run in runs[name]}
+        print(
+            f"the same answers (ids, distances, scores to the digit) in both checkouts: {'yes' if len(same) == 1 else 'NO'}"
+        )
+
+
+def graph_batch_child(work, rounds):
+    """One process of :func:`graph_batch_timing`: prints one JSON line, ``{"rounds": [{plain,
+    exact, fused seconds}], "answers": sha256 of the three answers (every id and figure)}``."""
+    import hashlib
+    import json
+
+    from nfdmatch.index import open_index
+    from nfdmatch.search import search_index
+    from nfdmatch.search.rerank import rerank_index
+
+    queries = read_curves(os.path.join(work, "curves", "p2.obj"))[: GRAPH_BATCH["queries"]]
+    top = GRAPH_BATCH["top"]
+    with open_index(os.path.join(work, "exact.h5")) as exact, open_index(os.path.join(work, "fused.h5")) as fused:
+        runs = {
+            "plain": lambda: search_index(exact, queries, k=top)[0],
+            "exact": lambda: rerank_index(exact, queries, k=top)[0],
+            "fused": lambda: rerank_index(fused, queries, k=top)[0],
+        }
+        answers = {key: run() for key, run in runs.items()}  # the first call of each: not timed
+        timed = [{key: _time(run) for key, run in runs.items()} for _ in range(rounds)]
+    # a RankedMatch's repr holds every field, each float to the digit (repr: the shortest exact)
+    digest = hashlib.sha256(repr(answers).encode()).hexdigest()
+    print(json.dumps({"rounds": timed, "answers": digest}))
+
+
 def _time(fn):
     t = time.perf_counter()
     fn()
@@ -518,7 +611,25 @@ def main():
         help="only the held-out benchmark's shape: N generated curves in families of 20, every one a query, "
         "--top 40, plain against --rerank (the CLI and the library)",
     )
+    ap.add_argument(
+        "--graph-batch",
+        action="store_true",
+        help="only the library's batch of 200 on an exact and a fused graph of 1,400 bending curves, ratios to plain",
+    )
+    ap.add_argument(
+        "--compare", metavar="TREE", help="with --graph-batch: also this checkout, in turn, the same answers?"
+    )
+    ap.add_argument("--work", help="with --graph-batch: the curves and indexes here (made when missing)")
+    ap.add_argument("--pairs", type=int, default=3, help="with --graph-batch: processes per checkout (default 3)")
+    ap.add_argument("--rounds", type=int, default=3, help="with --graph-batch: rounds per process (default 3)")
+    ap.add_argument("--graph-batch-child", metavar="WORK", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.graph_batch_child:
+        graph_batch_child(args.graph_batch_child, args.rounds)
+        return
+    if args.graph_batch:
+        graph_batch_timing(args.work, args.compare, args.pairs, args.rounds)
+        return
     if args.self_batch:
         self_batch_timing(args.self_batch)
         return

@@ -285,6 +285,75 @@ def test_run_all_returns_in_order_and_raises_only_once_every_call_is_done():
         assert finished.is_set()
 
 
+def test_run_spread_returns_in_order_on_at_most_its_threads_never_the_callers():
+    """run_spread (the fused distances per query, a push alongside): each call once, the
+    results in order; with 2 threads never more than 2 calls at once and none on the calling
+    thread (where a kernel call would split its rows over the busy pool); one thread: on the
+    calling thread; a call's exception raised once every call is done."""
+    import threading
+    import time
+
+    from nfdmatch.matching._threads import run_spread
+
+    assert run_spread([], 2) == [] and run_spread([lambda: 1], 2) == [1]
+    lock, running, most, where = threading.Lock(), [0], [0], []
+
+    def call(i):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+            where.append(threading.current_thread())
+        time.sleep(0.01 * (i % 3))
+        with lock:
+            running[0] -= 1
+        return i * i
+
+    calls = [lambda i=i: call(i) for i in range(12)]
+    assert run_spread(calls, 2) == [i * i for i in range(12)]
+    assert most[0] == 2 and len(where) == 12 and threading.current_thread() not in where
+    where.clear()
+    assert run_spread(calls[:3], 1) == [0, 1, 4] and set(where) == {threading.current_thread()}
+    finished = threading.Event()
+
+    def slow():
+        time.sleep(0.2)
+        finished.set()
+
+    def fails():
+        raise ValueError("a call that fails")
+
+    with pytest.raises(ValueError):
+        run_spread([fails, slow, lambda: 1], 2)
+    assert finished.is_set()
+
+
+def test_the_walk_backwards_reads_each_rows_stored_in_edges_once():
+    """With the index's in-edges (GraphWalk(reverse=)), a walk backwards asks for each row's
+    once however many rounds push it, and again for none in a second walk on the same
+    GraphWalk; the same doubles as the lists turned round in memory (no reader)."""
+    from nfdmatch.index.graph import reverse_of
+
+    rng = np.random.default_rng(5)
+    nb, d = local_graph(rng, 600, 10, window=25)
+    start, source = reverse_of(nb[:, :8], len(nb))
+    asked = []
+
+    def in_edges(rows):
+        asked.extend(rows.tolist())
+        return start[rows + 1] - start[rows], np.concatenate([source[start[r] : start[r + 1]] for r in rows])
+
+    owner = np.array([0, 1, 1, 2])
+    node, residual = np.array([7, 300, 310, 599]), np.array([1.0, 0.3, 0.2, 1.0])
+    stored = GraphWalk(reader_of(nb, d), len(nb), 8, 0.8, in_edges)
+    got = stored.reverse_pagerank(owner, node, residual)
+    assert len(asked) == len(set(asked)) > 100  # pushed in many rounds, each row asked for once
+    again = stored.reverse_pagerank(owner[::-1], node[::-1], residual[::-1])
+    assert len(asked) == len(set(asked))
+    in_memory = GraphWalk(reader_of(nb, d), len(nb), 8, 0.8)
+    assert_same_doubles(got, in_memory.reverse_pagerank(owner, node, residual))
+    assert_same_doubles(again, in_memory.reverse_pagerank(owner[::-1], node[::-1], residual[::-1]))
+
+
 def test_the_kernels_choose_the_push():
     from nfdmatch.matching import aot
 

@@ -435,3 +435,39 @@ def test_fused_graph_lists_are_the_same_in_any_blocks_and_over_worker_processes(
     for how in ({}, {"blocks": blocks}, {"blocks": blocks, "processes": 2}):
         nb, d = fused_lists(lambda r: C[r], lambda r: S[r], ids, candidates, k, 128, **how)
         assert np.array_equal(nb, expected_nb) and np.array_equal(d, expected_d), how
+
+
+def test_a_fused_graphs_batch_over_threads_answers_as_each_query_alone(tmp_path, rng, monkeypatch):
+    """query --rerank on a fused graph spreads its queries' fused distances over threads (as
+    on 4 cores here), a batch's PageRank push beside them, a single query's after them: the
+    batch gives every query the answer it gets alone and on one thread, to the digit, with
+    and without exclude_self."""
+    from nfdmatch.index.graph import GraphSpec
+    from nfdmatch.matching import _threads
+    from nfdmatch.matching import kernels as kernels_module
+    from nfdmatch.search.rerank import rerank_index
+
+    folder, curves = _family_folder(tmp_path, rng)
+    build_index([str(folder)], str(tmp_path / "f.h5"), graph=GraphSpec(8, "fused"))
+    spread = []
+    run_spread = _threads.run_spread
+    monkeypatch.setattr(
+        _threads, "run_spread", lambda calls, threads: spread.append(threads) or run_spread(calls, threads)
+    )
+    monkeypatch.setattr(kernels_module, "cpu_count", lambda: 4)
+    queries = curves  # the batch's fused distances: ~23 a source pushed, so the push runs beside them
+    limit = kernels_module._call_threads
+    with open_index(str(tmp_path / "f.h5")) as idx:
+        for exclude_self in (False, True):
+            batch, _ = rerank_index(idx, queries, k=10, exclude_self=exclude_self)
+            assert max(spread) > 1
+            alone = [rerank_index(idx, [q], k=10, exclude_self=exclude_self)[0][0] for q in queries]
+            try:
+                kernels_module.set_call_threads(1)
+                spread.clear()
+                one_thread, _ = rerank_index(idx, queries, k=10, exclude_self=exclude_self)
+                assert max(spread) == 1
+            finally:
+                kernels_module.set_call_threads(limit)
+            assert batch == alone == one_thread
+            assert all(m.fused is not None for r in batch for m in r)

@@ -10,7 +10,7 @@ import threading
 
 import numpy as np
 
-__all__ = ["exact_rows", "grid_bound_rows", "run_all", "split_rows", "shutdown"]
+__all__ = ["exact_rows", "grid_bound_rows", "run_all", "run_spread", "split_rows", "shutdown"]
 
 
 def exact_rows(kernel, A, Aw, w, B, D, basis, quarter, n, mirror, C, refine, refine_limit, workers, prune=True):
@@ -85,6 +85,38 @@ def run_all(calls) -> list:
     finally:
         wait(futures)
     return [first] + [future.result() for future in futures]
+
+
+def run_spread(calls, threads: int) -> list:
+    """Every one of ``calls`` (callables of no argument) on ``threads`` of the pool's threads,
+    each thread taking the next call, in order, once done with its last: calls of unequal
+    lengths share the threads. Returns their results, in order, once all are done (a call's
+    exception is raised then). ``threads`` <= 1: one after the other on the calling thread.
+
+    None runs on the calling thread: off the main thread a kernel call does not split its
+    own rows (:meth:`~.kernels.Kernels.workers`), so no call waits for a pool busy with the
+    others, and each thread computes one call at a time."""
+    if threads <= 1 or len(calls) <= 1:
+        return [call() for call in calls]
+    from concurrent.futures import wait
+
+    results: list = [None] * len(calls)
+    pending = iter(range(len(calls)))
+    taking = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with taking:
+                at = next(pending, None)
+            if at is None:
+                return
+            results[at] = calls[at]()
+
+    futures = [_pool(threads).submit(work) for _ in range(min(threads, len(calls)))]
+    wait(futures)
+    for future in futures:
+        future.result()  # raises a call's exception
+    return results
 
 
 def _pool(threads: int):

@@ -150,6 +150,10 @@ class GraphWalk:
         self._overlaid = False
         self._slots = []  # the compiled push's work arrays, one per thread: (N + 1,) int64
         self._reverse: tuple[np.ndarray, np.ndarray] | None = None
+        # the in-edges read from the index so far (:meth:`_read_in_edges`)
+        self._in_first: np.ndarray | None = None
+        self._in_count = _NO_NODES
+        self._in_source = _NO_NODES
         self.rows_read = 0
 
     # -- rows
@@ -251,14 +255,33 @@ class GraphWalk:
 
     def in_edges(self, rows: np.ndarray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """``(count, source)``: the stored rows whose lists name each of ``rows`` (count (m,)),
-        concatenated in that order; read from the index when it stores them, else from
-        :meth:`reverse_lists`."""
-        if self.reverse is not None:
-            return self.reverse(rows)
-        start, source = self.reverse_lists()
-        counts = start[rows + 1] - start[rows]
-        at = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(start[rows], counts)
+        concatenated in that order; read from the index when it stores them (each row's
+        once per walk: :meth:`_read_in_edges`), else from :meth:`reverse_lists`."""
+        if self.reverse is None:
+            start, source = self.reverse_lists()
+            first, counts = start[rows], start[rows + 1] - start[rows]
+        else:
+            self._read_in_edges(rows)
+            first, counts, source = self._in_first[rows], self._in_count[rows], self._in_source
+        at = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(first, counts)
         return counts, source[at]
+
+    def _read_in_edges(self, rows: np.ndarray) -> None:
+        """Read from the index the in-edges of the ``rows`` not read yet, kept: a walk
+        backwards pushes a row in many of its rounds (on 200 queries of 1,400 curves, 262,000
+        rows asked for in 37 rounds were 1,400 rows; reading each round's cost a third of the
+        walk). Row v's sources are ``_in_source[_in_first[v]:][:_in_count[v]]``."""
+        if self._in_first is None:
+            self._in_first = np.full(self.N + 1, -1, dtype=np.int64)
+            self._in_count = np.zeros(self.N + 1, dtype=np.int64)
+        missing = rows[self._in_first[rows] < 0]
+        if not len(missing):
+            return
+        missing = sorted_unique(missing)
+        counts, source = self.reverse(missing)  # type: ignore[misc]
+        self._in_first[missing] = len(self._in_source) + np.cumsum(counts) - counts
+        self._in_count[missing] = counts
+        self._in_source = np.concatenate([self._in_source, source])
 
     def reverse_pagerank(
         self, owner: np.ndarray, node: np.ndarray, residual: np.ndarray, tolerance: float = REVERSE_TOLERANCE

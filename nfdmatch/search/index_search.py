@@ -205,6 +205,34 @@ def search_rows(
     (:func:`recompute_reported`); ``stats.seconds`` is left 0. ``cascade``: what is computed
     (the method, direction, mirror, truncation); the other arguments as for
     :func:`search_index`, checked there."""
+    tops, stats, table = found_rows(
+        index, qcoef, cascade, top=top, max_distance=max_distance, prune=prune, progress=progress, weights=weights,
+        threads=threads,
+    )  # fmt: skip
+    recompute_reported(
+        index, qcoef, tops, cascade.distance, direction=cascade.direction, mirror=cascade.mirror, weights=weights,
+        tables=table,
+    )  # fmt: skip
+    return tops, stats
+
+
+def found_rows(
+    index: Any,
+    qcoef: np.ndarray,
+    cascade: Cascade,
+    *,
+    top: int | None,
+    max_distance: float | None = None,
+    prune: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+    weights: ArrayLike | None = None,
+    threads: int | None = None,
+) -> tuple[list[BestRows], SearchStats, Any]:
+    """:func:`search_rows` but for its last step: ``(tops, stats, table)``, the rows found with
+    their figures as the search left them (they depend on when it met each row), for a
+    caller that computes them with :func:`recompute_reported` itself (``query --rerank``: on
+    its threads, with other work); ``table``: the search table that holds the rows'
+    descriptors (their ``extra["position"]``), or None."""
     tops = [BestRows(top, max_distance) for _ in range(len(qcoef))]
     stats = SearchStats(queries=len(qcoef), rows=index.n_curves, pruned=prune)
     table = None
@@ -212,12 +240,8 @@ def search_rows(
         stats.exact = _exhaustive(index, qcoef, tops, cascade, weights, progress)
     elif index.n_curves and len(qcoef):
         table = _pruned(index, qcoef, tops, cascade, stats, threads, progress)
-    recompute_reported(
-        index, qcoef, tops, cascade.distance, direction=cascade.direction, mirror=cascade.mirror, weights=weights,
-        tables=table,
-    )  # fmt: skip
     stats.kernels = current_kernels().describe()
-    return tops, stats
+    return tops, stats, table
 
 
 def _exhaustive(index, qcoef, tops, cascade: Cascade, weights, progress) -> int:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -45,7 +46,7 @@ from .diffusion import GraphWalk, row_scales, sorted_unique, sum_by_key
 from .engine import TIE, BestRows, Cascade
 from .index_search import UNSET, k_or_top
 from .selfmatch import self_rule
-from .stages import fused_best_rows
+from .stages import fused_terms, fused_threads, rank_by_fused, rigid_of, statistics_of_queries
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -98,6 +99,11 @@ MIN_DEPTH, DEFAULT_DEPTH = MIN_RERANK_DEPTH, DEFAULT_RERANK_DEPTH
 MATRIX_TOLERANCE = 1e-3
 #: scores closer than this are ties, ordered by exact distance then id
 _SCORE_TIE = 1e-12
+#: fused distances per source from which a PageRank push runs beside them (:func:`_beside`):
+#: a row's fused distance costs ~50 us, a source's push ~100 us (100,000 curves) to ~650 us
+#: (1,400 in families of 20); beside fewer the push, left one thread, took longest (one query
+#: of the 1,400: 150 ms against 117 ms with the push after, over both threads)
+_BESIDE_ROWS = 8
 #: where a query's candidates come from (``rerank_index(candidates=...)``): ``"walk"`` (the
 #: default) its exact k nearest, the M stored rows of largest personalised-PageRank mass from
 #: its first step and the M / 2 whose own PageRank reaches it most, each given its exact
@@ -281,12 +287,12 @@ def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: in
     its candidates (a ranked :class:`~nfdmatch.search.engine.BestRows`), ``merged`` which of
     them are its own stored curve (left out); scores closer than ``_SCORE_TIE`` are ties,
     ordered as the candidates are (exact distance, then id)."""
-    picks, dense = [], np.zeros(walk.N + 1)
+    picks, work = [], (np.zeros(walk.N + 1), np.zeros(walk.N + 1, dtype=bool))
     for tk, mine in zip(found, merged):
         if not len(tk.rows):
             picks.append((np.zeros(0, np.int64), None))
             continue
-        scores = _query_scores(walk, vectors, tk.rows, tk.dist, mine, dense)
+        scores = _query_scores(walk, vectors, tk.rows, tk.dist, mine, work)
         kept = np.flatnonzero(~mine)
         order = kept[np.lexsort((kept, -np.round(scores[kept] / _SCORE_TIE)))][:top]
         picks.append((order, scores))
@@ -294,21 +300,29 @@ def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: in
     ids = index.ids_at(np.concatenate(reported)) if reported else []
     results, at = [], 0
     for tk, (order, scores) in zip(found, picks):
+        fused = "exact" in tk.extra  # then dist is the fused distance
+        # each column as Python values at once (a numpy scalar per field cost ~4 us a match)
+        picked = {key: v[order].tolist() for key, v in tk.extra.items()}
+        dist, rows, score = (
+            tk.dist[order].tolist(),
+            tk.rows[order].tolist(),
+            scores[order].tolist() if len(order) else [],
+        )
         results.append(
             [
                 RankedMatch(
-                    rank=rank,
-                    id=ids[at + rank - 1],
-                    distance=float(tk.extra["exact"][i] if "exact" in tk.extra else tk.dist[i]),
-                    shift=float(tk.extra["shift"][i]),
-                    reversed=bool(tk.extra["reversed"][i]),
-                    mirrored=bool(tk.extra["mirrored"][i]),
-                    row=int(tk.rows[i]),
-                    score=float(scores[i]),
-                    elastic=float(tk.extra["elastic"][i]) if "elastic" in tk.extra else None,
-                    fused=float(tk.dist[i]) if "exact" in tk.extra else None,
+                    rank=n + 1,
+                    id=ids[at + n],
+                    distance=picked["exact"][n] if fused else dist[n],
+                    shift=picked["shift"][n],
+                    reversed=picked["reversed"][n],
+                    mirrored=picked["mirrored"][n],
+                    row=rows[n],
+                    score=score[n],
+                    elastic=picked["elastic"][n] if "elastic" in picked else None,
+                    fused=dist[n] if fused else None,
                 )
-                for rank, i in enumerate(order.tolist(), start=1)
+                for n in range(len(order))
             ]
         )
         at += len(order)
@@ -318,6 +332,15 @@ def _answers(index, walk: GraphWalk, vectors: "_Vectors", found, merged, top: in
 def _union(tops) -> np.ndarray:
     """Every row of the :class:`~nfdmatch.search.engine.BestRows` ``tops``, ascending and unique."""
     return sorted_unique(np.concatenate([tk.rows for tk in tops])) if tops else np.zeros(0, np.int64)
+
+
+def _positions(tops, rows) -> np.ndarray:
+    """Where the search table holds each of ``rows`` (ascending, unique, every one found by a
+    query of ``tops``): the ``extra["position"]`` the search gave it."""
+    found = np.concatenate([tk.rows for tk in tops])
+    positions = np.concatenate([tk.extra["position"] for tk in tops])
+    order = np.argsort(found, kind="stable")
+    return positions[order][np.searchsorted(found[order], rows)]
 
 
 def _self_flags(index, queries, tops, exclude_self: bool, is_self) -> list[np.ndarray]:
@@ -341,41 +364,73 @@ def _candidates(
     distance, ties by id: :func:`~nfdmatch.search.index_search.rank_rows`): its exact top
     ``depths[0]``, on a graph of fused distances each given its fused distance (the elastic
     stage's, which it joins the graph by), and with ``walks`` the rows of its walks added
-    (:func:`_walk_rows`, ``depths[1]`` of them forward; their distances as the graph's);
+    (:func:`_add_walk_rows`, ``depths[1]`` of them forward; their distances as the graph's);
     ``vectors`` every candidate's PageRank, once for the batch. (qcoef: (Q, K, 3)
     complex128, the queries' descriptors.)"""
-    from .index_search import rank_rows, search_rows
+    from .index_search import found_rows
 
     nearest, depth = depths
-    # the exact distance, invariant to direction, no mirror
-    found, stats = search_rows(index, qcoef, Cascade(index.samples), top=nearest, progress=progress, threads=threads)
-    rank_rows(index, found, nearest)
-    if fused:
-        fused_best_rows(index, qcoef, found)
+    # the exact distance, invariant to direction, no mirror; the rows' figures computed on the
+    # threads (_measure) with their PageRank, which needs none of them: the rows found, with
+    # any tied past the nearest (a source's PageRank does not depend on the others pushed)
+    found, stats, table = found_rows(
+        index, qcoef, Cascade(index.samples), top=nearest, progress=progress, threads=threads
+    )  # fmt: skip
     union = _union(found)
-    vectors = _Vectors(union, *walk.pagerank(union))
+    read = _Read(index, union, table, _positions(found, union))
+    push = partial(walk.pagerank, union)
+    beside = _beside(push, fused, len(union), sum(len(tk.rows) for tk in found))
+    # on a fused graph, each batch's fused distances (the queries' statistics computed once)
+    terms_of = partial(fused_terms, query_statistics=statistics_of_queries(qcoef)) if fused else None
+    pushed = _measure(index, qcoef, found, terms_of, beside, read=read, ranked=nearest)
+    vectors = _Vectors(union, *(pushed if beside else push()))
     if walks:
-        more = _walk_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
-        stats.exact += _add_rows(index, qcoef, found, more, fused=fused)
-        vectors = vectors.with_rows(walk, _union(found))  # only the rows not pushed to find them
+        forward, backwards = _forward_rows(index, walk, queries, found, vectors, depth, exclude_self, is_self)
+        computed, vectors = _add_walk_rows(index, walk, qcoef, found, vectors, (forward, backwards), depth, terms_of)
+        stats.exact += computed
     return found, stats, vectors
 
 
-def _walk_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth, exclude_self, is_self) -> list:
-    """Per query, a :class:`~nfdmatch.search.engine.BestRows` of the rows its walk adds to its
-    candidates ``near[i]`` (ranked; distances as the graph's: exact or fused): the ``depth``
-    stored rows other than itself of largest mass in its PageRank (a stored query's: its
-    row's; any other: from its first step, as in :func:`_query_scores`) and the ``depth //
-    2`` whose PageRank reaches it most (:func:`_add_reaching`), ties by row; only ``rows``
-    set. ``vectors``: the PageRank of every row of ``near``."""
+def _add_walk_rows(index, walk: GraphWalk, qcoef, found, vectors: "_Vectors", walked, depth: int, terms_of):
+    """Merge into each query's candidates ``found[i]`` the rows of its walks, ``walked``: the
+    rows its walk forward adds and where its walk backwards starts (:func:`_forward_rows`);
+    the walk backwards adds the ``depth // 2`` rows whose PageRank reaches it most
+    (:func:`_reaching_rows`). Each row is given its exact distance and, on a fused graph
+    (``terms_of`` not None: as :func:`_measure` takes it), its fused distance; each list
+    ranked again (:func:`_merge_rows`).
+    Returns how many exact distances it computed, and ``vectors`` with the PageRank of the
+    rows added.
+
+    The walk backwards (numpy) runs on the threads with the distances of the rows forward
+    (compiled kernels), the PageRank of the rows added with the distances of the rows
+    backwards: each row's distances are computed alone, the same digits as all at once."""
+    forward, backwards = walked
+    fused = terms_of is not None
+    reached = _measure(index, qcoef, forward, terms_of, partial(_walk_backwards, walk, backwards))
+    backward = _reaching_rows(found, forward, backwards, reached, depth // 2)
+    added = sorted_unique(np.concatenate([_union(forward), _union(backward)]))
+    push, sources = partial(vectors.with_rows, walk, added), len(added) - int(np.isin(added, vectors.union).sum())
+    beside = _beside(push, fused, sources, sum(len(tk.rows) for tk in backward))
+    measured = _measure(index, qcoef, backward, terms_of, beside)
+    vectors = measured if beside else push()
+    more = [_joined_rows(ahead, behind, fused) for ahead, behind in zip(forward, backward)]
+    _merge_rows(index, found, more, fused)
+    return sum(len(extra.rows) for extra in more), vectors
+
+
+def _forward_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth, exclude_self, is_self):
+    """``(forward, backwards)``: per query, a :class:`~nfdmatch.search.engine.BestRows` of the
+    rows its walk forward adds to its candidates ``near[i]`` (:func:`_unmeasured`): the
+    ``depth`` stored rows other than itself of largest mass in its PageRank (a stored
+    query's: its row's; any other: from its first step, as in :func:`_query_scores`), ties by
+    row; and per query with candidates ``(query, (node, residual), left out)``: where its walk
+    backwards starts (:func:`_walk_backwards`). ``vectors``: the PageRank of every row of
+    ``near``."""
     N, alpha = walk.N, walk.alpha
-    more = []
-    backwards = []  # per query with candidates: (query, where its walk backwards starts, the node left out)
+    forward, backwards = [], []
     for qi, (tk, merged) in enumerate(zip(near, _self_flags(index, queries, near, exclude_self, is_self))):
         rows, qd = tk.rows, tk.dist
-        extra = BestRows(None, None)
-        more.append(extra)
-        extra.rows = np.zeros(0, np.int64)
+        forward.append(_unmeasured(np.zeros(0, np.int64)))
         if not len(rows):
             continue
         if merged.any():
@@ -396,36 +451,122 @@ def _walk_rows(index, walk: GraphWalk, queries, near, vectors: "_Vectors", depth
         other = node != exclude
         node, mass = node[other], mass[other]
         picked = node[np.lexsort((node, -mass))[:depth]]
-        extra.rows = sorted_unique(picked[~np.isin(picked, rows)])
+        forward[-1] = _unmeasured(sorted_unique(picked[~np.isin(picked, rows)]))
         backwards.append((qi, start, exclude))
-    _add_reaching(walk, near, more, backwards, depth // 2)
-    for extra in more:
-        extra.dist = np.zeros(len(extra.rows))
-        extra.extra = {
-            key: np.full(len(extra.rows), -1 if key == "position" else 0, dtype=v.dtype)
-            for key, v in extra.extra.items()
-        }
-    return more
+    return forward, backwards
 
 
-def _add_rows(index, qcoef, found, more, fused: bool) -> int:
-    """Merge each query's rows ``more[i]`` (:func:`_walk_rows`) into its candidates
-    ``found[i]``, each given its exact distance (computed alone, as the search computes the
-    rows it found) and, on a fused graph, its fused distance (:func:`fused_best_rows`); each
-    list ranked again: by distance, ties by id (fused: ties by exact distance, then as
-    found). Returns how many exact distances it computed."""
+def _beside(push: Callable[[], Any], fused: bool, sources: int, rows: int) -> Callable[[], Any] | None:
+    """A PageRank push of ``sources`` sources to run on the threads with a batch's distances
+    to ``rows`` rows in all (:func:`_measure`), or None: it runs after them, over the threads
+    (beside them it has one). Beside a fused graph's distances when they are at least
+    :data:`_BESIDE_ROWS` per source, so cost about as much as the push (200 queries of 1,400
+    curves: 17 a source; one query: ~1); never beside an exact graph's few exact distances."""
+    return push if fused and rows >= _BESIDE_ROWS * sources else None
+
+
+def _unmeasured(rows: np.ndarray) -> BestRows:
+    """A :class:`~nfdmatch.search.engine.BestRows` of ``rows`` (ascending) whose distances are
+    not computed yet (:func:`_measure`): zeros, no position in a search table (-1)."""
+    tk = BestRows(None, None)
+    tk.rows, tk.dist = rows, np.zeros(len(rows))
+    tk.extra = {key: np.full(len(rows), -1 if key == "position" else 0, dtype=v.dtype) for key, v in tk.extra.items()}
+    return tk
+
+
+def _measure(index, qcoef, parts, terms_of, alongside: Callable[[], Any] | None, *, read=None, ranked=None) -> Any:
+    """Give each query's rows ``parts[i]`` (:func:`_unmeasured`, or as the search found them)
+    their exact distance (computed alone, as the search computes the rows it found:
+    :func:`~nfdmatch.search.index_search.recompute_reported`, descriptors from ``read``, a
+    :class:`_Read` of every row, made here when None; rows then ascending), with ``ranked``
+    ranked as the search ranks its rows and cut to that many
+    (:func:`~nfdmatch.search.index_search.rank_rows`) and, on a fused graph, their fused
+    distance (ranked by it: :func:`rank_by_fused`; ``terms_of``: :func:`fused_terms` with the
+    queries' statistics, None on an exact graph); each query's on one of the kernels'
+    threads (:func:`~nfdmatch.matching._threads.run_spread`), the call ``alongside`` (which
+    needs none of them; None: no call) started first. Returns what it returned."""
+    from ..matching._threads import run_spread
+    from ..matching.kernels import current
     from .index_search import rank_rows, recompute_reported
 
-    cascade = Cascade(index.samples)
-    added = _union(more)
-    if not len(added):
-        return 0
-    recompute_reported(
-        _Read(index, added), qcoef, more, cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
-        weights=None,
-    )  # fmt: skip
-    if fused:
-        fused_best_rows(index, qcoef, more)
+    total = sum(len(tk.rows) for tk in parts)
+    alongside = alongside or _nothing
+    if not total:
+        return alongside()
+    read, cascade = read or _Read(index, _union(parts)), Cascade(index.samples)
+    terms = terms_of(index, qcoef, [tk.rows for tk in parts]) if terms_of is not None else None
+
+    def one(qi: int) -> None:
+        tk = parts[qi]
+        if len(tk.rows):
+            recompute_reported(
+                read, qcoef[qi : qi + 1], [tk], cascade.distance, direction=cascade.direction, mirror=cascade.mirror,
+                weights=None,
+            )  # fmt: skip
+            if ranked is not None:
+                rank_rows(index, [tk], ranked)  # (reads ids only for tied distances)
+            if terms is not None:
+                rank_by_fused(tk, terms(qi, tk.rows, rigid_of(tk)))
+
+    threads = fused_threads(total) if terms is not None else current().workers(total)
+    return run_spread([alongside, *(partial(one, qi) for qi in range(len(parts)))], threads)[0]
+
+
+def _nothing() -> None:
+    """No work (:func:`_measure` without a call alongside)."""
+
+
+def _walk_backwards(walk: GraphWalk, backwards):
+    """The walks backwards of the batch's queries (``backwards``: ``(query, (node, residual),
+    left out)`` per query with candidates) at once, by :meth:`GraphWalk.reverse_pagerank`:
+    ``(query, row, mass)`` sorted by (query, row); None when no query has candidates."""
+    if not backwards:
+        return None
+    owner = np.concatenate([np.full(len(start[0]), qi, np.int64) for qi, start, _ in backwards])
+    node = np.concatenate([start[0] for _, start, _ in backwards])
+    residual = np.concatenate([start[1] for _, start, _ in backwards])
+    return walk.reverse_pagerank(owner, node, residual)
+
+
+def _reaching_rows(near, forward, backwards, reached, count: int) -> list[BestRows]:
+    """Per query, a :class:`~nfdmatch.search.engine.BestRows` (:func:`_unmeasured`) of the
+    ``count`` rows whose own walks reach it most (``reached``: :func:`_walk_backwards`), other
+    than its nearest (``near[i].rows``), the rows its walk forward adds (``forward[i].rows``)
+    and the node left out; ties by row. Such a row's PageRank overlaps the query's though
+    the query's walk hardly reaches it (docs/rerank.md, "Depth")."""
+    backward = [_unmeasured(np.zeros(0, np.int64)) for _ in near]
+    if reached is None or count < 1:
+        return backward
+    src, reached_rows, mass = reached
+    bounds = np.searchsorted(src, np.arange(len(near) + 1))
+    for qi, _, exclude in backwards:
+        rows, their = reached_rows[bounds[qi] : bounds[qi + 1]], mass[bounds[qi] : bounds[qi + 1]]
+        new = (rows != exclude) & ~np.isin(rows, near[qi].rows) & ~np.isin(rows, forward[qi].rows)
+        rows, their = rows[new], their[new]
+        backward[qi] = _unmeasured(sorted_unique(rows[np.lexsort((rows, -their))[:count]]))
+    return backward
+
+
+def _joined_rows(ahead: BestRows, behind: BestRows, fused: bool) -> BestRows:
+    """One query's walk rows, forward and backwards (disjoint, each measured: :func:`_measure`),
+    as one :class:`~nfdmatch.search.engine.BestRows` ordered as measuring them together orders
+    them: by row; on a fused graph by fused distance (within TIE), exact distance, then row."""
+    if not len(behind.rows) or not len(ahead.rows):
+        return ahead if len(ahead.rows) else behind
+    rows, dist = np.concatenate([ahead.rows, behind.rows]), np.concatenate([ahead.dist, behind.dist])
+    extra = {key: np.concatenate([v, behind.extra[key]]) for key, v in ahead.extra.items()}
+    order = np.lexsort((rows, extra["exact"], np.round(dist / TIE))) if fused else np.argsort(rows)
+    joined = BestRows(None, None)
+    joined.rows, joined.dist, joined.extra = rows[order], dist[order], {key: v[order] for key, v in extra.items()}
+    return joined
+
+
+def _merge_rows(index, found, more, fused: bool) -> None:
+    """Merge each query's measured walk rows ``more[i]`` into its candidates ``found[i]``,
+    each list ranked again: by distance, ties by id (fused: ties by exact distance, then as
+    found)."""
+    from .index_search import rank_rows
+
     for tk, extra in zip(found, more):
         tk.rows, tk.dist = np.concatenate([tk.rows, extra.rows]), np.concatenate([tk.dist, extra.dist])
         tk.extra = {key: np.concatenate([v, extra.extra.get(key, v[:0])]) for key, v in tk.extra.items()}
@@ -435,38 +576,20 @@ def _add_rows(index, qcoef, found, more, fused: bool) -> int:
             tk.extra = {key: v[order] for key, v in tk.extra.items()}
     if not fused:
         rank_rows(index, found)
-    return sum(len(extra.rows) for extra in more)
-
-
-def _add_reaching(walk: GraphWalk, near, more, backwards, count: int) -> None:
-    """Add to each query's walk rows (``more[i].rows``) the ``count`` rows whose own walks
-    reach it most (its column of the PageRank matrix, by :meth:`GraphWalk.reverse_pagerank`
-    for the whole batch), other than its nearest (``near[i].rows``), the rows already added
-    and the node left out; ties by row. Such a row's PageRank overlaps the query's though the
-    query's walk hardly reaches it (docs/rerank.md, "Depth"). ``backwards``: ``(query, (node,
-    residual), left out)`` per query with candidates."""
-    if not backwards or count < 1:
-        return
-    owner = np.concatenate([np.full(len(start[0]), qi, np.int64) for qi, start, _ in backwards])
-    node = np.concatenate([start[0] for _, start, _ in backwards])
-    residual = np.concatenate([start[1] for _, start, _ in backwards])
-    src, reached, mass = walk.reverse_pagerank(owner, node, residual)
-    bounds = np.searchsorted(src, np.arange(len(near) + 1))
-    for qi, _, exclude in backwards:
-        rows, their = reached[bounds[qi] : bounds[qi + 1]], mass[bounds[qi] : bounds[qi + 1]]
-        new = (rows != exclude) & ~np.isin(rows, near[qi].rows) & ~np.isin(rows, more[qi].rows)
-        rows, their = rows[new], their[new]
-        more[qi].rows = sorted_unique(np.concatenate([more[qi].rows, rows[np.lexsort((rows, -their))[:count]]]))
 
 
 class _Read:
-    """The descriptors of the batch's candidates ``rows`` (ascending, unique), read from the
-    index in one read, served as :meth:`Index.coefficients_at` would (one read per query cost
-    ~5 ms each at 100,000 curves)."""
+    """The descriptors of the batch's candidates ``rows`` (ascending, unique), read in one
+    read, served as :meth:`Index.coefficients_at` would (one read per query cost ~5 ms each
+    at 100,000 curves): from the search's ``table`` at the rows' ``positions`` when it holds
+    them all (as :func:`~nfdmatch.search.index_search.recompute_reported` reads them), else
+    from the index. Read here, on the calling thread (a table reads what it does not hold
+    yet); then served to any thread."""
 
-    def __init__(self, index, rows):
+    def __init__(self, index, rows, table=None, positions=None):
         self.samples, self.rows = index.samples, rows
-        self.coef = index.coefficients_at(rows)
+        from_table = table is not None and positions is not None and len(rows) and positions.min() >= 0
+        self.coef = table.coefficients_at_positions(positions) if from_table else index.coefficients_at(rows)
 
     def coefficients_at(self, rows):
         return self.coef[np.searchsorted(self.rows, rows)]
@@ -537,7 +660,7 @@ class _Vectors:
         lengths = b - a
         owner = np.repeat(np.arange(len(rows)), lengths)
         first = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-        at = np.arange(lengths.sum()) - np.repeat(first, lengths) + np.repeat(a, lengths)
+        at = np.arange(lengths.sum()) + np.repeat(a - first, lengths)
         return owner, self.node[at], self.value[at]
 
     def norms(self, rows):
@@ -560,17 +683,17 @@ class _Vectors:
         return _Vectors(union[order], offsets.astype(np.int64), nodes[at], values[at])
 
 
-def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -> np.ndarray:
+def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, work) -> np.ndarray:
     """Scores of one query's candidates ``rows`` (exact distances ``qd``, ascending; ``merged``:
-    the candidates that are the query's own stored curve, whose score is NaN). ``dense``:
-    (N + 1,) zeros, a work array (left zero)."""
+    the candidates that are the query's own stored curve, whose score is NaN). ``work``:
+    ``(dense, entered)``, (N + 1,) float64 zeros and bool False, work arrays (left so)."""
     N, alpha = walk.N, walk.alpha
+    dense, entered = work
     out = np.full(len(rows), np.nan)
     keep = np.flatnonzero(~merged)
     if not len(keep):
         return out
     cand = rows[keep]
-    s_cand = walk.scales(cand)
     owner, node, value = vectors.entries(cand)
     back = np.zeros(len(keep))  # the candidates' own PageRank at the query (first order)
     if merged.any():
@@ -578,7 +701,7 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
         self_row = rows[np.flatnonzero(merged)[0]]
         _, q_node, q_val = vectors.entries(np.array([self_row]))
         dense[q_node] = q_val
-        s_q = walk.scales([self_row])[0]
+        s_q, s_cand = walk.scales([self_row])[0], walk.scales(cand)
     else:
         # the query joins the graph as node N: its k nearest (exact), and the candidates
         # whose k nearest it enters (their lists and scales change while it is there)
@@ -590,7 +713,11 @@ def _query_scores(walk: GraphWalk, vectors: _Vectors, rows, qd, merged, dense) -
         # first order: a candidate's walk reaches the query through the rows it entered
         to_q = (prob * (targets == N)).sum(axis=1)
         dense[into] = alpha * to_q
-        back = np.bincount(owner, weights=dense[node] * value, minlength=len(cand))
+        # summed over the entries at those rows alone: the others add +0.0, which changes no sum
+        entered[into] = True
+        at_into = np.flatnonzero(entered[node])
+        entered[into] = False
+        back = np.bincount(owner[at_into], weights=dense[node[at_into]] * value[at_into], minlength=len(cand))
         dense[into] = 0.0
         # the query's PageRank from its first step: pi_q = ((1 - alpha) e_q + alpha sum_v P_qv
         # pi_v) / (1 - alpha P_qq), each neighbour's pi_v its stored vector plus its mass at q

@@ -10,8 +10,9 @@ search. The stage of this module: :class:`ElasticStage` (``--elastic``; docs/ela
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING, Any, Optional, Protocol
 
 import numpy as np
@@ -25,7 +26,17 @@ if TYPE_CHECKING:
     from ..matching.fused import FusedDistances
     from .engine import BestRows
 
-__all__ = ["Stage", "ElasticStage", "ELASTIC_COLUMNS", "fused_candidates", "fused_best_rows"]
+__all__ = [
+    "Stage",
+    "ElasticStage",
+    "ELASTIC_COLUMNS",
+    "fused_terms",
+    "statistics_of_queries",
+    "fused_candidates",
+    "fused_threads",
+    "rank_by_fused",
+    "rigid_of",
+]
 
 #: each query's exact candidates, ranked, as a stage receives them
 Candidates = Sequence[Sequence[RankedMatch]]
@@ -102,66 +113,105 @@ class ElasticStage:
         return out
 
 
+def fused_terms(
+    index: Any,
+    qcoef: np.ndarray,
+    rows: Sequence[np.ndarray],
+    *,
+    matching: Matching = None,
+    query_statistics: np.ndarray | None = None,
+) -> Callable[[int, np.ndarray, Mapping[str, np.ndarray]], FusedDistances]:
+    """``terms(query, its_rows, rigid)``: the fused distances
+    (:class:`~nfdmatch.matching.fused.FusedDistances`) of query ``query`` (descriptors
+    ``qcoef[query]``: (Q, K, 3) complex128) to ``its_rows`` (int64, among ``rows[query]``, any
+    order) at their exact optimum ``rigid`` (``distance``, ``shift``, ``reversed``,
+    ``mirrored`` arrays in the order of ``its_rows``). Every row of ``rows`` is read now, once
+    for the batch (a scattered read costs about as much for one row as for many), with its
+    statistics as the index stores them (``statistics_at``) or computed; ``matching``: the
+    exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no mirror,
+    uniform); ``query_statistics``: (Q, LENGTH) the queries' statistics when a caller has them
+    (:func:`statistics_of_queries`), else computed here. The function may be called from any
+    thread (a row's distances are computed alone: the same digits on any thread, in any
+    batch)."""
+    from ..matching.fused import fused_rows
+    from ..matching.statistics import curve_statistics
+
+    every = np.unique(np.concatenate(rows)) if len(rows) else np.zeros(0, np.int64)
+    coefficients = index.coefficients_at(every) if len(every) else None
+    stored = getattr(index, "statistics_at", None)
+    if coefficients is None:
+        statistics = None
+    else:
+        statistics = stored(every) if stored is not None else curve_statistics(coefficients)
+    mine = query_statistics if query_statistics is not None else statistics_of_queries(qcoef)
+
+    def terms(query: int, its_rows: np.ndarray, rigid: Mapping[str, np.ndarray]) -> FusedDistances:
+        at = np.searchsorted(every, its_rows)
+        return fused_rows(
+            qcoef[query], coefficients[at], dict(rigid), index.samples, query_statistics=mine[query],  # type: ignore[index]
+            row_statistics=statistics[at], **(matching or {}),  # type: ignore[index]
+        )  # fmt: skip
+
+    return terms
+
+
+def statistics_of_queries(qcoef: np.ndarray) -> np.ndarray:
+    """(Q, LENGTH) float: the pose-free statistics of each query (descriptors ``qcoef``: (Q,
+    K, 3) complex128), the fused distance's third term
+    (:func:`~nfdmatch.matching.statistics.curve_statistics`)."""
+    from ..matching.statistics import curve_statistics
+
+    return curve_statistics(qcoef).reshape(len(qcoef), -1)
+
+
 def fused_candidates(
     index: Any,
     qcoef: np.ndarray,
     rows: Sequence[np.ndarray],
-    rigid: Sequence[dict],
+    rigid: Sequence[Mapping[str, np.ndarray]],
     *,
     matching: Matching = None,
 ) -> list[FusedDistances | None]:
     """The fused distances (:class:`~nfdmatch.matching.fused.FusedDistances`, None for a query
     without candidates) of each query to its candidate ``rows[i]`` (int64), at their exact
-    optimum ``rigid[i]`` (``distance``, ``shift``, ``reversed``, ``mirrored`` arrays), the
-    batch's rows read once (a scattered read costs about as much for one row as for many);
-    the rows' statistics stored by the index (``statistics_at``) or computed; ``matching``:
-    the exact search's ``direction``, ``mirror`` and ``weights`` (default: invariant, no
-    mirror, uniform)."""
-    from ..matching.fused import fused_rows
-    from ..matching.statistics import curve_statistics
+    optimum ``rigid[i]`` (:func:`fused_terms`, the batch's rows read once; ``matching`` as
+    there). The queries are spread over the kernels' threads, each query's rows on one thread
+    (:func:`~nfdmatch.matching._threads.run_spread`; a row's distance is computed alone, so
+    the digits do not depend on the threads)."""
+    from ..matching._threads import run_spread
 
-    if not any(len(r) for r in rows):
-        return [None for _ in rows]
-    every = np.unique(np.concatenate(rows))
-    coefficients = index.coefficients_at(every)
-    stored = getattr(index, "statistics_at", None)
-    statistics = stored(every) if stored is not None else curve_statistics(coefficients)
-    mine = curve_statistics(qcoef).reshape(len(qcoef), -1)
-    out: list[FusedDistances | None] = []
-    for qi, found in enumerate(rows):
-        if not len(found):
-            out.append(None)
-            continue
-        at = np.searchsorted(every, found)
-        out.append(
-            fused_rows(
-                qcoef[qi],
-                coefficients[at],
-                rigid[qi],
-                index.samples,
-                query_statistics=mine[qi],
-                row_statistics=statistics[at],
-                **(matching or {}),
-            )  # fmt: skip
-        )
-    return out
+    total = sum(len(r) for r in rows)
+    terms = fused_terms(index, qcoef, rows, matching=matching) if total else None
+
+    def one(qi: int) -> FusedDistances | None:
+        return terms(qi, rows[qi], rigid[qi]) if terms is not None and len(rows[qi]) else None
+
+    return run_spread([partial(one, qi) for qi in range(len(rows))], fused_threads(total))
 
 
-def fused_best_rows(index: Any, qcoef: np.ndarray, found: Sequence[BestRows]) -> None:
-    """Each query's candidates (ranked :class:`~nfdmatch.search.engine.BestRows`, exact
-    distances) given their fused distances instead (the exact ones kept in ``extra["exact"]``,
-    the elastic ones in ``extra["elastic"]``) and ranked by them, ties by exact distance then id."""
-    rigid = [
-        {"distance": tk.dist, "shift": tk.extra["shift"], "reversed": tk.extra["reversed"],
-         "mirrored": tk.extra["mirrored"]}
-        for tk in found
-    ]  # fmt: skip
-    for tk, terms in zip(found, fused_candidates(index, qcoef, [tk.rows for tk in found], rigid)):
-        if terms is None:
-            continue
-        # by fused distance (within TIE), then exact distance, then id (the rows come ranked
-        # by exact distance, then id, and the sort is stable)
-        order = np.lexsort((tk.dist, np.round(terms.fused / TIE)))
-        extra = {**tk.extra, "exact": tk.dist, "elastic": terms.elastic}
-        tk.rows, tk.dist = tk.rows[order], terms.fused[order]
-        tk.extra = {key: v[order] for key, v in extra.items()}
+def fused_threads(rows: int) -> int:
+    """The threads the fused distances of ``rows`` rows in all are spread over (the process's
+    kernels': :meth:`~nfdmatch.matching.kernels.Kernels.workers`)."""
+    from ..matching.elastic import ELASTIC_THREAD_ROWS
+    from ..matching.kernels import current
+
+    return current().workers(rows, ELASTIC_THREAD_ROWS)
+
+
+def rigid_of(found: BestRows) -> dict[str, np.ndarray]:
+    """The exact optimum of a query's candidates (a :class:`~nfdmatch.search.engine.BestRows`
+    with exact distances), as :func:`fused_terms` takes it."""
+    keys = ("shift", "reversed", "mirrored")
+    return {"distance": found.dist, **{key: found.extra[key] for key in keys}}
+
+
+def rank_by_fused(found: BestRows, terms: FusedDistances) -> None:
+    """A query's candidates (a :class:`~nfdmatch.search.engine.BestRows` ranked by exact
+    distance, then id) given their fused distances ``terms`` instead (the exact ones kept in
+    ``extra["exact"]``, the elastic ones in ``extra["elastic"]``) and ranked by them: by
+    fused distance (within TIE), then exact distance, then as they came (the sort is
+    stable)."""
+    order = np.lexsort((found.dist, np.round(terms.fused / TIE)))
+    extra = {**found.extra, "exact": found.dist, "elastic": terms.elastic}
+    found.rows, found.dist = found.rows[order], terms.fused[order]
+    found.extra = {key: v[order] for key, v in extra.items()}
