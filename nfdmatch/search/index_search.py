@@ -193,22 +193,17 @@ def search_rows(
     cascade: Cascade,
     *,
     top: int | None,
-    max_distance: float | None = None,
-    prune: bool = True,
-    progress: Callable[[int, int], None] | None = None,
     weights: ArrayLike | None = None,
-    threads: int | None = None,
+    **options: Any,
 ) -> tuple[list[BestRows], SearchStats]:
     """:func:`search_index`'s search, its answer as rows: ``(tops, stats)``, ``tops[i]`` the
     :class:`~nfdmatch.search.engine.BestRows` of query i (descriptors ``qcoef[i]``, (K, 3)
     complex128) in no particular order, every row's figures computed alone
     (:func:`recompute_reported`); ``stats.seconds`` is left 0. ``cascade``: what is computed
-    (the method, direction, mirror, truncation); the other arguments as for
+    (the method, direction, mirror, truncation); ``options``: :func:`found_rows`'
+    (``max_distance``, ``prune``, ``progress``, ``threads``); all as for
     :func:`search_index`, checked there."""
-    tops, stats, table = found_rows(
-        index, qcoef, cascade, top=top, max_distance=max_distance, prune=prune, progress=progress, weights=weights,
-        threads=threads,
-    )  # fmt: skip
+    tops, stats, table = found_rows(index, qcoef, cascade, top=top, weights=weights, **options)
     recompute_reported(
         index, qcoef, tops, cascade.distance, direction=cascade.direction, mirror=cascade.mirror, weights=weights,
         tables=table,
