@@ -181,7 +181,7 @@ def rerank_rows(curves, labels, depth):
             build_index([folder], index, graph=graph)
             with open_index(index) as idx:
                 t = time.perf_counter()
-                found, _ = rerank_index(idx, stored, top=min(40, len(curves) - 1), exclude_self=True)
+                found, _ = rerank_index(idx, stored, k=min(40, len(curves) - 1), exclude_self=True)
                 seconds = time.perf_counter() - t
                 position = {os.path.basename(c.id): n for n, c in enumerate(stored)}
                 order = np.array([[position[os.path.basename(m.id)] for m in f] for f in found])
@@ -244,14 +244,14 @@ def run_collection(name, curves, labels, depth, depths, diffusion=False, rerank=
     N = len(curves)
     memory = MemoryIndex(curves)
     t = time.perf_counter()
-    plain, _ = search_index(memory, curves, top=N - 1, exclude_self=True)
+    plain, _ = search_index(memory, curves, k=N - 1, exclude_self=True)
     plain_s = time.perf_counter() - t
     rows = [("plain (exact rigid)", scores(_order_of(plain, ids), labels, depth), plain_s)]
     for M in depths:
         m = N - 1 if M == "all" else int(M)
         t = time.perf_counter()
         top = min(40, N - 1)
-        found, _ = search_index(memory, curves, top=top, exclude_self=True, stage=ElasticStage(depth=m))
+        found, _ = search_index(memory, curves, k=top, exclude_self=True, stage=ElasticStage(depth=m))
         seconds = time.perf_counter() - t
         order = _order_of(found, ids)  # the first 40: every score here reads at most 22
         rows.append((f"--elastic --elastic-depth {M}", scores(order, labels, depth), seconds))
@@ -292,13 +292,13 @@ def knots_check(data):
     memory = MemoryIndex(smooth)
     smooth_id = {os.path.basename(c.id): c.id for c in smooth}
     for label, stage in (("plain", None), ("--elastic", ElasticStage())):
-        found, _ = search_index(memory, control, top=1, stage=stage)
+        found, _ = search_index(memory, control, k=1, stage=stage)
         hits = sum(_same_knot(memory, f[0].id, smooth_id[os.path.basename(q.id)]) for f, q in zip(found, control))
         print(f"  knots control -> smooth, {label:10} top-1 {hits} / {len(control)}")
     for noise in (0.005, 0.01, 0.02):
         copies = [knot_copy(np.random.default_rng(seed), c, noise) for seed, c in enumerate(smooth)]
         for label, stage in (("plain", None), ("--elastic", ElasticStage())):
-            found, _ = search_index(memory, copies, top=1, stage=stage)
+            found, _ = search_index(memory, copies, k=1, stage=stage)
             hits = sum(_same_knot(memory, f[0].id, q.id) for f, q in zip(found, copies))
             print(f"  knot copies (noise {noise:.3f}) -> smooth, {label:10} top-1 {hits} / {len(copies)}")
 
@@ -422,11 +422,11 @@ def elastic_graph_timing(curves: int, work: str | None = None):
             total = time.perf_counter() - t
             with open_index(path) as idx:
                 picked = [read_curves(q)[0] if isinstance(q, str) else q for q in queries[:20]]
-                rerank_index(idx, picked[:1], top=10)
+                rerank_index(idx, picked[:1], k=10)
                 seconds = []
                 for q in picked:
                     t = time.perf_counter()
-                    rerank_index(idx, [q], top=10)
+                    rerank_index(idx, [q], k=10)
                     seconds.append(time.perf_counter() - t)
             print(
                 f"  index build {label:22} {total:7.1f} s (graph {report.graph.seconds:6.1f} s);"

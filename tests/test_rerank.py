@@ -285,7 +285,7 @@ def test_query_rerank_finds_the_top_40_of_matrix_rerank(tmp_path, rng, monkeypat
     walk forward + 50 backward): for every stored curve, --top 40 of query --rerank holds the
     top 40 of matrix --rerank (issue 33: >= 99% of the entries). The rows whose own walks
     reach the query and its exact 3 x 40 nearest are what makes it so: without them, fewer."""
-    from nfdmatch.search import rerank
+    from nfdmatch.search import rerank, rerank_candidates
 
     curves, _ = family_curves(rng, families=30, members=15, spread=0.2)
     stored, ids, D, S = _graph_and_matrix(tmp_path, curves, 3)
@@ -300,7 +300,7 @@ def test_query_rerank_finds_the_top_40_of_matrix_rerank(tmp_path, rng, monkeypat
         return np.mean([len(w & {position[m.id] for m in r}) / 40 for w, r in zip(want, results)])
 
     assert shared() >= 0.99  # measured 99.9%
-    monkeypatch.setattr(rerank, "_walk_backwards", lambda *args: None)  # no rows backwards
+    monkeypatch.setattr(rerank_candidates, "walk_backwards", lambda *args: None)  # no rows backwards
     monkeypatch.setattr(rerank, "WALK_NEAREST", 1)
     assert shared() < 0.98  # 96.2%
 
