@@ -259,16 +259,12 @@ def test_pagerank_splits_a_block_over_the_threads_of_a_kernel_call(kind, monkeyp
         kernels_module.set_call_threads(limit)
 
 
-def test_run_all_returns_in_order_and_raises_only_once_every_call_is_done():
-    """The threaded push's barrier: no call runs on once run_all has returned or raised (the
-    walk then writes the rows the kernels read)."""
+def _slow_and_failing_calls():
+    """``(finished, slow, fails)``: a call that sets the event ``finished`` after 0.2 s, and one
+    that raises ValueError at once (a barrier must wait for the first before raising)."""
     import threading
     import time
 
-    from nfdmatch.matching._threads import run_all
-
-    assert run_all([]) == [] and run_all([lambda: 1]) == [1]
-    assert run_all([lambda: 1, lambda: 2, lambda: 3]) == [1, 2, 3]
     finished = threading.Event()
 
     def slow():
@@ -278,6 +274,18 @@ def test_run_all_returns_in_order_and_raises_only_once_every_call_is_done():
     def fails():
         raise ValueError("a call that fails")
 
+    return finished, slow, fails
+
+
+def test_run_all_returns_in_order_and_raises_only_once_every_call_is_done():
+    """The threaded push's barrier: no call runs on once run_all has returned or raised (the
+    walk then writes the rows the kernels read)."""
+
+    from nfdmatch.matching._threads import run_all
+
+    assert run_all([]) == [] and run_all([lambda: 1]) == [1]
+    assert run_all([lambda: 1, lambda: 2, lambda: 3]) == [1, 2, 3]
+    finished, slow, fails = _slow_and_failing_calls()
     for calls in ([fails, slow], [slow, fails]):  # on the calling thread, on the pool
         finished.clear()
         with pytest.raises(ValueError):
@@ -313,15 +321,7 @@ def test_run_spread_returns_in_order_on_at_most_its_threads_never_the_callers():
     assert most[0] == 2 and len(where) == 12 and threading.current_thread() not in where
     where.clear()
     assert run_spread(calls[:3], 1) == [0, 1, 4] and set(where) == {threading.current_thread()}
-    finished = threading.Event()
-
-    def slow():
-        time.sleep(0.2)
-        finished.set()
-
-    def fails():
-        raise ValueError("a call that fails")
-
+    finished, slow, fails = _slow_and_failing_calls()
     with pytest.raises(ValueError):
         run_spread([fails, slow, lambda: 1], 2)
     assert finished.is_set()
