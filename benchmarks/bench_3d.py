@@ -436,7 +436,7 @@ def elastic_graph_timing(curves: int, work: str | None = None):
 
 def constants(cols):
     """The fused distance's constants from the pooled development pairs."""
-    from nfdmatch.matching.statistics import BLOCK_SIZES, BLOCKS
+    from nfdmatch.matching.statistics import BLOCK_SCALES, BLOCK_SIZES, BLOCKS
 
     T, E, S, blocks = [], [], [], {b: [] for b in BLOCKS}
     for name, (curves, _, _) in cols.items():
@@ -455,7 +455,8 @@ def constants(cols):
             blocks[b].append(np.abs(X[:, None] - X[None]).sum(2)[upper])
             at += n
         S.append(np.concatenate([statistics_distance(st[i], st[i + 1 :]) for i in range(len(C))]))
-    print("BLOCK_SCALES =", tuple(round(float(np.median(np.concatenate(blocks[b]))), 4) for b in BLOCKS))
+    recomputed = tuple(round(float(np.median(np.concatenate(blocks[b]))), 4) for b in BLOCKS)
+    print("BLOCK_SCALES =", recomputed, "(recomputed; statistics.py ships the frozen", BLOCK_SCALES, ")")
     levels = np.linspace(0, 1, 17)
     for name, values in (("RIGID", T), ("ELASTIC", E), ("STATISTICS", S)):
         print(f"{name}_QUANTILES =", tuple(round(float(v), 4) for v in np.quantile(np.concatenate(values), levels)))
