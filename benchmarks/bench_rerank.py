@@ -4,7 +4,7 @@
                                       [--skip-methods]
     python benchmarks/bench_rerank.py --index I.h5 [--queries FILE --batch 100]
     python benchmarks/bench_rerank.py --self-batch 1400
-    python benchmarks/bench_rerank.py --graph-batch [--compare ../other-checkout] [--work DIR] [--pairs 3]
+    python benchmarks/bench_rerank.py --graph-batch [--compare ../other-checkout] [--work DIR] [--pairs 3] [--families 500]
 
 Prints, from the repository root:
 
@@ -503,12 +503,13 @@ def self_batch_timing(curves=1400, members=20, runs=5):
 GRAPH_BATCH = {"curves": (70, 20, 2), "queries": 200, "top": 40}
 
 
-def graph_batch_timing(work=None, compare=None, pairs=3, rounds=3):
+def graph_batch_timing(work=None, compare=None, pairs=3, rounds=3, families_count=None):
     """Item 5 of the module's docstring: this checkout's processes and ``compare``'s in turn,
     ``pairs`` times, each process ``rounds`` rounds of plain, exact-graph ``--rerank`` and
     fused-graph ``--rerank`` (:func:`graph_batch_child`); the medians of the seconds and of
     each round's ratios to its plain. ``work``: where the curves and the two indexes are
-    (made there when missing, by this checkout)."""
+    (made there when missing, by this checkout); ``families_count``: that many families of 20
+    instead of 70 (500: the 10,000 bending curves whose walks spread, docs/rerank.md)."""
     import json
     import statistics
     import subprocess
@@ -521,7 +522,8 @@ def graph_batch_timing(work=None, compare=None, pairs=3, rounds=3):
     folder = os.path.join(work, "curves")
     if not os.path.exists(os.path.join(work, "fused.h5")):
         os.makedirs(folder, exist_ok=True)
-        points, _ = families(np.random.default_rng(7), *GRAPH_BATCH["curves"])
+        count, members, dimension = GRAPH_BATCH["curves"]
+        points, _ = families(np.random.default_rng(7), families_count or count, members, dimension)
         for part in range(7):
             batch = [Curve(p, id=f"c{part}-{i}") for i, p in enumerate(points[part::7])]
             write_curves(os.path.join(folder, f"p{part}.obj"), batch)
@@ -538,8 +540,8 @@ def graph_batch_timing(work=None, compare=None, pairs=3, rounds=3):
             env = dict(os.environ, NFDMATCH_BENCH_TREE=tree)
             out = subprocess.run(command, capture_output=True, text=True, check=True, env=env).stdout
             runs[name].append(json.loads(out.splitlines()[-1]))
-    q, (count, members, _) = GRAPH_BATCH["queries"], GRAPH_BATCH["curves"]
-    print(f"\n## {q} of {count * members} bending curves as one batch, --top {GRAPH_BATCH['top']}, the library")
+    q, stored = GRAPH_BATCH["queries"], sum(len(read_curves(os.path.join(folder, f))) for f in os.listdir(folder))
+    print(f"\n## {q} of {stored} bending curves as one batch, --top {GRAPH_BATCH['top']}, the library")
     print(f"({pairs} processes per checkout in turn, {rounds} rounds each; medians; ratios per round to its plain)")
     for name, tree in trees.items():
         rows = [r for run in runs[name] for r in run["rounds"]]
@@ -622,13 +624,18 @@ def main():
     ap.add_argument("--work", help="with --graph-batch: the curves and indexes here (made when missing)")
     ap.add_argument("--pairs", type=int, default=3, help="with --graph-batch: processes per checkout (default 3)")
     ap.add_argument("--rounds", type=int, default=3, help="with --graph-batch: rounds per process (default 3)")
+    ap.add_argument(
+        "--families",
+        type=int,
+        help="with --graph-batch: families of 20 to make (default 70; 500: a graph whose walks spread)",
+    )
     ap.add_argument("--graph-batch-child", metavar="WORK", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.graph_batch_child:
         graph_batch_child(args.graph_batch_child, args.rounds)
         return
     if args.graph_batch:
-        graph_batch_timing(args.work, args.compare, args.pairs, args.rounds)
+        graph_batch_timing(args.work, args.compare, args.pairs, args.rounds, args.families)
         return
     if args.self_batch:
         self_batch_timing(args.self_batch)
