@@ -104,21 +104,23 @@ def fork_map(
     gc.collect()
     gc.freeze()
     old = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
-    try:
-        for _ in range(max(1, min(workers, len(tasks)))):
-            mine, theirs = Pipe()
-            pid = os.fork()
-            if pid == 0:  # the worker: the parent's ends of its siblings' pipes are not its own
-                for conn in (mine, *running):
-                    conn.close()
-                _serve(theirs, work, close_fds)
-            theirs.close()
-            running[mine] = [pid, None]
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-        gc.unfreeze()
     lost: list[int] = []
+    finished = False
     try:
+        try:
+            for _ in range(max(1, min(workers, len(tasks)))):
+                mine, theirs = Pipe()
+                pid = os.fork()
+                if pid == 0:  # the worker: the parent's ends of its siblings' pipes are not its own
+                    for conn in (mine, *running):
+                        conn.close()
+                    _serve(theirs, work, close_fds)
+                theirs.close()
+                running[mine] = [pid, None]
+        finally:
+            gc.unfreeze()
+            # a signal held meanwhile raises here: in the try that stops the workers
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
         for conn, state in running.items():
             _give(conn, state, pending, tasks)
         while any(state[1] is not None for state in running.values()):
@@ -135,9 +137,13 @@ def fork_map(
                 state[1] = None
                 collect(number, result)
                 _give(conn, state, pending, tasks)
+        finished = True
         return sorted(lost + pending)
     finally:
-        _stop(running)
+        # done: the workers wait for a task and go when told; on any other way out (Ctrl-C,
+        # SIGTERM, a failed task) they are busy with tasks nobody wants: killed at once, as
+        # a command has a moment to clean up before its watchdog kills it (cli/start.py)
+        _stop(running, at_once=not finished)
 
 
 def _give(conn, state: list, pending: list, tasks: Sequence) -> None:
@@ -152,14 +158,18 @@ def _give(conn, state: list, pending: list, tasks: Sequence) -> None:
         state[1] = number
 
 
-def _stop(running: dict) -> None:
-    """End the workers: asked first, killed when they do not go within a second."""
-    for conn in running:
+def _stop(running: dict, at_once: bool = False) -> None:
+    """End the workers: asked first, killed when they do not go within a second; killed
+    at once when ``at_once``. Every one is waited for (no zombie is left)."""
+    for conn, (pid, _) in running.items():
         try:
-            conn.send(None)
+            if at_once:
+                os.kill(pid, signal.SIGKILL)
+            else:
+                conn.send(None)
         except OSError:
             pass
-    deadline = time.monotonic() + 1.0
+    deadline = time.monotonic() + (0.0 if at_once else 1.0)
     for conn, (pid, _) in running.items():
         while True:
             try:
