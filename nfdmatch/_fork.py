@@ -21,6 +21,9 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
+from typing import cast
+
+from .errors import WorkerError
 
 __all__ = ["can_fork", "fork_map", "SIGNALS"]
 
@@ -72,12 +75,18 @@ def _serve(conn, work: Callable, close_fds) -> None:
             number, task = msg
             try:
                 conn.send((number, True, work(task)))
-            except Exception:
-                conn.send((number, False, traceback.format_exc()))
+            except Exception as exc:
+                conn.send((number, False, (_one_line(exc), traceback.format_exc())))
     except (EOFError, OSError):  # the parent went away: nothing to report to
         pass
     finally:
         os._exit(0)
+
+
+def _one_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` (or the type alone)."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
 
 
 def fork_map(
@@ -90,8 +99,10 @@ def fork_map(
     ``work`` and what it reads are the parent's as of the call (the workers are forked
     here); a task and a result must pickle. Returns the numbers of the tasks no worker
     finished because workers died (killed, out of memory): the caller computes them another
-    way. An exception in ``work`` is raised here as :class:`RuntimeError` with the worker's
-    traceback; the workers are stopped on every way out (also KeyboardInterrupt).
+    way. An exception in ``work`` is raised here as :class:`~nfdmatch.errors.WorkerError`
+    (a ``RuntimeError``), its message one line naming the worker's exception, its
+    ``detail`` the worker's traceback; the workers are stopped on every way out (also
+    KeyboardInterrupt).
     """
     from multiprocessing.connection import Pipe, wait
 
@@ -133,7 +144,8 @@ def fork_map(
                     state[1] = None
                     continue
                 if not ok:
-                    raise RuntimeError(f"a worker process failed:\n{result}")
+                    summary, detail = cast("tuple[str, str]", result)  # what _serve sends for a task that raised
+                    raise WorkerError.failed_task(summary, detail)
                 state[1] = None
                 collect(number, result)
                 _give(conn, state, pending, tasks)

@@ -11,6 +11,7 @@ import threading
 import numpy as np
 
 from nfdmatch._fork import can_fork, fork_map
+from nfdmatch.errors import WorkerError
 
 
 def check_every_task_is_computed_once_in_a_worker_and_collected_here(folder):
@@ -45,8 +46,9 @@ def check_a_failing_task_raises_here_with_the_workers_traceback(folder):
 
     try:
         fork_map(work, list(range(5)), 2, lambda i, r: None)
-    except RuntimeError as exc:
-        assert "no good: 2" in str(exc) and "Traceback" in str(exc)
+    except WorkerError as exc:  # a RuntimeError, and an NfdError: the CLI says it in one line
+        assert str(exc) == "a worker process failed: ValueError: no good: 2"
+        assert "Traceback" in exc.detail and "no good: 2" in exc.detail
     else:
         raise AssertionError("no error")
     assert can_fork()  # nothing left running here

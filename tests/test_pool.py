@@ -367,10 +367,11 @@ def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, g
     assert not any(_alive(pid) for pid in workers)  # no worker outlives the build
 
 
-# a build whose graph workers (forked by the command: nfdmatch._fork) never finish a block:
-# the first says "ready" on stderr; the command itself (the watchdog's child) searches as usual
-GRAPH_HANG = """
-import os, sys, time
+# a build whose graph workers (forked by the command: nfdmatch._fork) never finish a block
+# (or fail: {action}): the first says "ready" on stderr; the command itself (the watchdog's
+# child) searches as usual
+GRAPH_WORKERS = """
+import os, time
 from nfdmatch.search import graph
 
 graph._BLOCK_ROWS = 4  # many blocks: every worker busy
@@ -379,8 +380,8 @@ real = graph.{stage}
 
 def hang(*args):
     if os.getppid() != watchdog:  # a worker of the command
-        print("ready", file=sys.stderr, flush=True)
-        time.sleep(3600)
+        os.write(2, b"ready\\n")  # one write: two workers' lines never mix
+        {action}
     return real(*args)
 
 graph.{stage} = hang
@@ -406,7 +407,12 @@ def test_signal_stops_a_build_while_workers_search_the_graph(folder, tmp_path, s
     build_index([str(folder)], index, jobs=1, graph=8)
     before = index.read_bytes()
     args = ["index", "build", str(folder), "--index", str(index), "--graph", "8", "--jobs", "2", "--rebuild"]
-    proc = _start(GRAPH_HANG.format(stage=stage), tmp_path, *args, *(["--elastic"] if elastic else []))
+    proc = _start(
+        GRAPH_WORKERS.format(stage=stage, action="time.sleep(3600)"),
+        tmp_path,
+        *args,
+        *(["--elastic"] if elastic else []),
+    )
     got, out, err = _finish(proc, "ready", sig, group)
     assert got == code, err
     assert out == ""
@@ -415,6 +421,35 @@ def test_signal_stops_a_build_while_workers_search_the_graph(folder, tmp_path, s
     assert index.read_bytes() == before
     assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "program.py", "src"]
     assert _none_left(proc.pid)  # no worker outlives the build
+
+
+@linux
+@pytest.mark.parametrize(
+    "elastic, stage", [(False, "nearest_others"), (True, "_fused_block")], ids=["graph", "graph-elastic"]
+)
+def test_a_graph_worker_that_fails_is_one_line_and_keeps_the_index(folder, tmp_path, elastic, stage):
+    """A block of the graph's search raising in a forked worker (here MemoryError): one
+    line naming it, exit 2, no traceback, the old index as it was, no temporary file and no
+    worker left (it was "cannot write the index: a worker process failed:" and nothing more)."""
+    from test_signals import LIMIT, _none_left, _start
+
+    _write_folder(folder, 24)
+    index = tmp_path / "idx.h5"
+    build_index([str(folder)], index, jobs=1, graph=8)
+    before = index.read_bytes()
+    args = ["index", "build", str(folder), "--index", str(index), "--graph", "8", "--jobs", "2", "--rebuild"]
+    action = "raise MemoryError('no room for the lists')"
+    proc = _start(
+        GRAPH_WORKERS.format(stage=stage, action=action), tmp_path, *args, *(["--elastic"] if elastic else [])
+    )
+    out, err = proc.communicate(timeout=LIMIT)
+    assert proc.returncode == 2, err
+    assert out == ""
+    lines = [line for line in err.splitlines() if line != "ready"]
+    assert lines == ["Error: a worker process failed: MemoryError: no room for the lists"], err
+    assert index.read_bytes() == before
+    assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "program.py", "src"]
+    assert _none_left(proc.pid)
 
 
 @linux
