@@ -99,10 +99,10 @@ def fork_map(
     ``work`` and what it reads are the parent's as of the call (the workers are forked
     here); a task and a result must pickle. Returns the numbers of the tasks no worker
     finished because workers died (killed, out of memory): the caller computes them another
-    way. An exception in ``work`` is raised here as :class:`~nfdmatch.errors.WorkerError`
-    (a ``RuntimeError``), its message one line naming the worker's exception, its
-    ``detail`` the worker's traceback; the workers are stopped on every way out (also
-    KeyboardInterrupt).
+    way (all of them when not one worker could be forked). An exception in ``work`` is
+    raised here as :class:`~nfdmatch.errors.WorkerError` (a ``RuntimeError``), its message
+    one line naming the worker's exception, its ``detail`` the worker's traceback; the
+    workers are stopped on every way out (also KeyboardInterrupt).
     """
     from multiprocessing.connection import Pipe, wait
 
@@ -121,7 +121,12 @@ def fork_map(
         try:
             for _ in range(max(1, min(workers, len(tasks)))):
                 mine, theirs = Pipe()
-                pid = os.fork()
+                try:
+                    pid = os.fork()
+                except OSError:  # no more processes (ulimit -u, memory): those forked do the work
+                    mine.close()
+                    theirs.close()
+                    break
                 if pid == 0:  # the worker: the parent's ends of its siblings' pipes are not its own
                     for conn in (mine, *running):
                         conn.close()
