@@ -180,3 +180,20 @@ def test_a_signal_before_the_handlers_exist_is_held_for_them(tmp_path, sig, code
     proc = _start(SLOW_FIRST_IMPORT, tmp_path, "--help")
     got, out, err = _finish(proc, "importing", sig, group)
     assert (got, out, err) == (code, "", f"Error: {words}\n")
+
+
+@linux
+def test_a_command_killed_by_sigkill_is_mirrored_without_a_traceback(tmp_path):
+    """The OOM killer (or `kill -9` of the command's process): the program dies of SIGKILL
+    as its command did, nothing more on stderr (it was an OSError traceback of the
+    watchdog's, which cannot set a handler for SIGKILL, and exit 1)."""
+    proc = _start(STUCK.format(hang=HANG), tmp_path, "stuck", "sleep")
+    assert proc.stderr.readline() == "ready\n", proc.communicate()
+    command = int(open(f"/proc/{proc.pid}/task/{proc.pid}/children").read().split()[0])
+    os.kill(command, signal.SIGKILL)
+    try:
+        out, err = proc.communicate(timeout=LIMIT)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail("the program did not end with its command")
+    assert (proc.returncode, out, err) == (-signal.SIGKILL, "", "")
