@@ -197,3 +197,21 @@ def test_a_command_killed_by_sigkill_is_mirrored_without_a_traceback(tmp_path):
         os.killpg(proc.pid, signal.SIGKILL)
         pytest.fail("the program did not end with its command")
     assert (proc.returncode, out, err) == (-signal.SIGKILL, "", "")
+
+
+@linux
+def test_kill_9_of_the_program_ends_its_command(tmp_path):
+    """`kill -9 PID` of the program (the watchdog's pid): its command dies too, as a program
+    of one process would (it ran on, orphaned, holding a build's lock until it replaced the
+    index), and its own children (a build's workers) follow it."""
+    proc = _start(STUCK.format(hang=HANG), tmp_path, "stuck", "sleep")
+    assert proc.stderr.readline() == "ready\n", proc.communicate()
+    command = int(open(f"/proc/{proc.pid}/task/{proc.pid}/children").read().split()[0])
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(LIMIT)
+    deadline = time.monotonic() + 10
+    while not _none_left(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not _none_left(proc.pid):
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail(f"the command {command} outlived its program")
