@@ -21,6 +21,9 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
+from typing import cast
+
+from .errors import WorkerError
 
 __all__ = ["can_fork", "fork_map", "SIGNALS"]
 
@@ -72,12 +75,18 @@ def _serve(conn, work: Callable, close_fds) -> None:
             number, task = msg
             try:
                 conn.send((number, True, work(task)))
-            except Exception:
-                conn.send((number, False, traceback.format_exc()))
+            except Exception as exc:
+                conn.send((number, False, (_one_line(exc), traceback.format_exc())))
     except (EOFError, OSError):  # the parent went away: nothing to report to
         pass
     finally:
         os._exit(0)
+
+
+def _one_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` (or the type alone)."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
 
 
 def fork_map(
@@ -90,8 +99,10 @@ def fork_map(
     ``work`` and what it reads are the parent's as of the call (the workers are forked
     here); a task and a result must pickle. Returns the numbers of the tasks no worker
     finished because workers died (killed, out of memory): the caller computes them another
-    way. An exception in ``work`` is raised here as :class:`RuntimeError` with the worker's
-    traceback; the workers are stopped on every way out (also KeyboardInterrupt).
+    way (all of them when not one worker could be forked). An exception in ``work`` is
+    raised here as :class:`~nfdmatch.errors.WorkerError` (a ``RuntimeError``), its message
+    one line naming the worker's exception, its ``detail`` the worker's traceback; the
+    workers are stopped on every way out (also KeyboardInterrupt).
     """
     from multiprocessing.connection import Pipe, wait
 
@@ -104,21 +115,28 @@ def fork_map(
     gc.collect()
     gc.freeze()
     old = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
-    try:
-        for _ in range(max(1, min(workers, len(tasks)))):
-            mine, theirs = Pipe()
-            pid = os.fork()
-            if pid == 0:  # the worker: the parent's ends of its siblings' pipes are not its own
-                for conn in (mine, *running):
-                    conn.close()
-                _serve(theirs, work, close_fds)
-            theirs.close()
-            running[mine] = [pid, None]
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-        gc.unfreeze()
     lost: list[int] = []
+    finished = False
     try:
+        try:
+            for _ in range(max(1, min(workers, len(tasks)))):
+                mine, theirs = Pipe()
+                try:
+                    pid = os.fork()
+                except OSError:  # no more processes (ulimit -u, memory): those forked do the work
+                    mine.close()
+                    theirs.close()
+                    break
+                if pid == 0:  # the worker: the parent's ends of its siblings' pipes are not its own
+                    for conn in (mine, *running):
+                        conn.close()
+                    _serve(theirs, work, close_fds)
+                theirs.close()
+                running[mine] = [pid, None]
+        finally:
+            gc.unfreeze()
+            # a signal held meanwhile raises here: in the try that stops the workers
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
         for conn, state in running.items():
             _give(conn, state, pending, tasks)
         while any(state[1] is not None for state in running.values()):
@@ -131,13 +149,18 @@ def fork_map(
                     state[1] = None
                     continue
                 if not ok:
-                    raise RuntimeError(f"a worker process failed:\n{result}")
+                    summary, detail = cast("tuple[str, str]", result)  # what _serve sends for a task that raised
+                    raise WorkerError.failed_task(summary, detail)
                 state[1] = None
                 collect(number, result)
                 _give(conn, state, pending, tasks)
+        finished = True
         return sorted(lost + pending)
     finally:
-        _stop(running)
+        # done: the workers wait for a task and go when told; on any other way out (Ctrl-C,
+        # SIGTERM, a failed task) they are busy with tasks nobody wants: killed at once, as
+        # a command has a moment to clean up before its watchdog kills it (cli/start.py)
+        _stop(running, at_once=not finished)
 
 
 def _give(conn, state: list, pending: list, tasks: Sequence) -> None:
@@ -152,14 +175,18 @@ def _give(conn, state: list, pending: list, tasks: Sequence) -> None:
         state[1] = number
 
 
-def _stop(running: dict) -> None:
-    """End the workers: asked first, killed when they do not go within a second."""
-    for conn in running:
+def _stop(running: dict, at_once: bool = False) -> None:
+    """End the workers: asked first, killed when they do not go within a second; killed
+    at once when ``at_once``. Every one is waited for (no zombie is left)."""
+    for conn, (pid, _) in running.items():
         try:
-            conn.send(None)
+            if at_once:
+                os.kill(pid, signal.SIGKILL)
+            else:
+                conn.send(None)
         except OSError:
             pass
-    deadline = time.monotonic() + 1.0
+    deadline = time.monotonic() + (0.0 if at_once else 1.0)
     for conn, (pid, _) in running.items():
         while True:
             try:

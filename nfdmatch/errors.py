@@ -161,7 +161,18 @@ class ShrinkRefusedError(NfdError, ValueError):
 
 class WorkerError(NfdError, RuntimeError):
     """A build's worker processes kept dying for no file's fault (memory exhausted, killed
-    from outside): the build stops without writing, so the index keeps every curve it had."""
+    from outside): the build stops without writing, so the index keeps every curve it had.
+    Also a task that raised in a forked worker (the graph's search, a distance matrix):
+    ``detail`` is then the worker's traceback."""
+
+    detail: str = ""
+
+    @classmethod
+    def failed_task(cls, summary: str, detail: str) -> WorkerError:
+        """A task of a forked worker raised: its one-line ``summary``, its traceback ``detail``."""
+        exc = cls(f"a worker process failed: {summary}")
+        exc.detail = detail
+        return exc
 
 
 class ParameterError(NfdError, ValueError):

@@ -11,6 +11,7 @@ import threading
 import numpy as np
 
 from nfdmatch._fork import can_fork, fork_map
+from nfdmatch.errors import WorkerError
 
 
 def check_every_task_is_computed_once_in_a_worker_and_collected_here(folder):
@@ -45,11 +46,43 @@ def check_a_failing_task_raises_here_with_the_workers_traceback(folder):
 
     try:
         fork_map(work, list(range(5)), 2, lambda i, r: None)
-    except RuntimeError as exc:
-        assert "no good: 2" in str(exc) and "Traceback" in str(exc)
+    except WorkerError as exc:  # a RuntimeError, and an NfdError: the CLI says it in one line
+        assert str(exc) == "a worker process failed: ValueError: no good: 2"
+        assert "Traceback" in exc.detail and "no good: 2" in exc.detail
     else:
         raise AssertionError("no error")
     assert can_fork()  # nothing left running here
+
+
+def check_a_fork_that_fails_leaves_the_tasks_to_the_workers_forked_or_to_the_caller(folder):
+    """A fork refused (EAGAIN: ``ulimit -u``, memory) is no error: the workers forked
+    before it do every task, and with none forked every task goes back to the caller."""
+    import errno
+
+    real, forks = os.fork, []
+
+    def fork(allowed):
+        def fork():
+            forks.append(1)
+            if len(forks) > allowed:
+                raise BlockingIOError(errno.EAGAIN, os.strerror(errno.EAGAIN))
+            return real()
+
+        return fork
+
+    for allowed in (1, 0):
+        forks.clear()
+        os.fork = fork(allowed)
+        got = {}
+        try:
+            lost = fork_map(lambda x: x * x, list(range(10)), 3, lambda i, r: got.setdefault(i, r))
+        finally:
+            os.fork = real
+        if allowed:
+            assert (lost, got) == ([], {i: i * i for i in range(10)})
+        else:
+            assert (lost, got) == (list(range(10)), {})
+    assert can_fork()
 
 
 def check_a_worker_closes_the_descriptors_it_must_not_keep(folder):

@@ -367,6 +367,91 @@ def test_signal_stops_a_build_cleanly(folder, tmp_path, sig, code, word, jobs, g
     assert not any(_alive(pid) for pid in workers)  # no worker outlives the build
 
 
+# a build whose graph workers (forked by the command: nfdmatch._fork) never finish a block
+# (or fail: {action}): the first says "ready" on stderr; the command itself (the watchdog's
+# child) searches as usual
+GRAPH_WORKERS = """
+import os, time
+from nfdmatch.search import graph
+
+graph._BLOCK_ROWS = 4  # many blocks: every worker busy
+watchdog = os.getpid()  # the program's first process (nfdmatch.cli.start): the command is its child
+real = graph.{stage}
+
+def hang(*args):
+    if os.getppid() != watchdog:  # a worker of the command
+        os.write(2, b"ready\\n")  # one write: two workers' lines never mix
+        {action}
+    return real(*args)
+
+graph.{stage} = hang
+from nfdmatch.cli.start import run
+run()
+"""
+
+
+@linux
+@pytest.mark.parametrize(
+    "elastic, stage", [(False, "nearest_others"), (True, "_fused_block")], ids=["graph", "graph-elastic"]
+)
+@pytest.mark.parametrize("sig, code, word, group", [(*_INT, True), (*_TERM, False)], ids=["SIGINT-group", "SIGTERM"])
+def test_signal_stops_a_build_while_workers_search_the_graph(folder, tmp_path, sig, code, word, group, elastic, stage):
+    """Ctrl-C / SIGTERM while forked workers are inside a block of the graph's search (or
+    of its fused lists, --elastic): they are stopped at once, so that the command cleans up
+    itself (exit 130 / 143, its one line, no temporary file) within its watchdog's grace
+    rather than being killed with its temporary file left behind."""
+    from test_signals import _finish, _none_left, _start
+
+    _write_folder(folder, 24)
+    index = tmp_path / "idx.h5"
+    build_index([str(folder)], index, jobs=1, graph=8)
+    before = index.read_bytes()
+    args = ["index", "build", str(folder), "--index", str(index), "--graph", "8", "--jobs", "2", "--rebuild"]
+    proc = _start(
+        GRAPH_WORKERS.format(stage=stage, action="time.sleep(3600)"),
+        tmp_path,
+        *args,
+        *(["--elastic"] if elastic else []),
+    )
+    got, out, err = _finish(proc, "ready", sig, group)
+    assert got == code, err
+    assert out == ""
+    assert err.strip().splitlines()[-1] == f"Error: {word}", err  # not "... did not stop within 0.8 s; killed"
+    assert "Traceback" not in err
+    assert index.read_bytes() == before
+    assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "program.py", "src"]
+    assert _none_left(proc.pid)  # no worker outlives the build
+
+
+@linux
+@pytest.mark.parametrize(
+    "elastic, stage", [(False, "nearest_others"), (True, "_fused_block")], ids=["graph", "graph-elastic"]
+)
+def test_a_graph_worker_that_fails_is_one_line_and_keeps_the_index(folder, tmp_path, elastic, stage):
+    """A block of the graph's search raising in a forked worker (here MemoryError): one
+    line naming it, exit 2, no traceback, the old index as it was, no temporary file and no
+    worker left (it was "cannot write the index: a worker process failed:" and nothing more)."""
+    from test_signals import LIMIT, _none_left, _start
+
+    _write_folder(folder, 24)
+    index = tmp_path / "idx.h5"
+    build_index([str(folder)], index, jobs=1, graph=8)
+    before = index.read_bytes()
+    args = ["index", "build", str(folder), "--index", str(index), "--graph", "8", "--jobs", "2", "--rebuild"]
+    action = "raise MemoryError('no room for the lists')"
+    proc = _start(
+        GRAPH_WORKERS.format(stage=stage, action=action), tmp_path, *args, *(["--elastic"] if elastic else [])
+    )
+    out, err = proc.communicate(timeout=LIMIT)
+    assert proc.returncode == 2, err
+    assert out == ""
+    lines = [line for line in err.splitlines() if line != "ready"]
+    assert lines == ["Error: a worker process failed: MemoryError: no room for the lists"], err
+    assert index.read_bytes() == before
+    assert sorted(os.listdir(tmp_path)) == ["idx.h5", "idx.h5.lock", "program.py", "src"]
+    assert _none_left(proc.pid)
+
+
 @linux
 def test_workers_of_a_fork_server_see_the_environment_of_now(folder, tmp_path, monkeypatch):
     """With other threads alive, workers come from a fork server, whose environment is that

@@ -147,7 +147,13 @@ def test_graph_kept_by_a_build_without_the_option_and_dropped_with_zero(tmp_path
     nb, dist, _ = graph_of(index)
     assert (nb[:, 11:] == -1).all() and np.isinf(dist[:, 11:]).all() and (nb[:, :11] >= 0).all()
     assert not build_index([tmp_path / "c"], index, jobs=1).written  # nothing changed
-    assert build_index([tmp_path / "c"], index, jobs=1, graph=0).written
+    # another K, or none, is said (as another kind of distance is)
+    report = build_index([tmp_path / "c"], index, jobs=1, graph=8)
+    assert report.notices == ["the neighbour graph changes from 20 to 8 neighbours: every row is searched again"]
+    assert report.graph.k == 8 and report.graph.searched == 12
+    assert build_index([tmp_path / "c"], index, jobs=1, graph=8).notices == []
+    report = build_index([tmp_path / "c"], index, jobs=1, graph=0)
+    assert report.written and report.notices == ["the neighbour graph (8 neighbours) is dropped"]
     with h5py.File(index, "r") as f:
         assert "graph" not in f
 

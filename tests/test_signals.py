@@ -180,3 +180,38 @@ def test_a_signal_before_the_handlers_exist_is_held_for_them(tmp_path, sig, code
     proc = _start(SLOW_FIRST_IMPORT, tmp_path, "--help")
     got, out, err = _finish(proc, "importing", sig, group)
     assert (got, out, err) == (code, "", f"Error: {words}\n")
+
+
+@linux
+def test_a_command_killed_by_sigkill_is_mirrored_without_a_traceback(tmp_path):
+    """The OOM killer (or `kill -9` of the command's process): the program dies of SIGKILL
+    as its command did, nothing more on stderr (it was an OSError traceback of the
+    watchdog's, which cannot set a handler for SIGKILL, and exit 1)."""
+    proc = _start(STUCK.format(hang=HANG), tmp_path, "stuck", "sleep")
+    assert proc.stderr.readline() == "ready\n", proc.communicate()
+    command = int(open(f"/proc/{proc.pid}/task/{proc.pid}/children").read().split()[0])
+    os.kill(command, signal.SIGKILL)
+    try:
+        out, err = proc.communicate(timeout=LIMIT)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail("the program did not end with its command")
+    assert (proc.returncode, out, err) == (-signal.SIGKILL, "", "")
+
+
+@linux
+def test_kill_9_of_the_program_ends_its_command(tmp_path):
+    """`kill -9 PID` of the program (the watchdog's pid): its command dies too, as a program
+    of one process would (it ran on, orphaned, holding a build's lock until it replaced the
+    index), and its own children (a build's workers) follow it."""
+    proc = _start(STUCK.format(hang=HANG), tmp_path, "stuck", "sleep")
+    assert proc.stderr.readline() == "ready\n", proc.communicate()
+    command = int(open(f"/proc/{proc.pid}/task/{proc.pid}/children").read().split()[0])
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(LIMIT)
+    deadline = time.monotonic() + 10
+    while not _none_left(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not _none_left(proc.pid):
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail(f"the command {command} outlived its program")

@@ -13,6 +13,8 @@ up and exit as usual (130 / 143, one line: ``cli/options.py``); a command still 
 is killed (SIGKILL) and the watchdog exits 130 / 143 with one line. What such a command
 leaves is what ``kill -9`` leaves: its temporary index file (removed by the next build into
 that index, docs/index-format.md) and its lock (released by the kernel at its death).
+``kill -9`` of the watchdog (the program's pid) kills the command with it (Linux:
+:func:`_die_with`), as it would a program of one process.
 
 Until a command runs (imports, argument parsing) a signal ends the process at once with
 that one line and exit code: nothing is held yet. While a command runs, the first signal
@@ -63,8 +65,9 @@ def _mirror(status: int) -> None:
     """Exit as the command did: its code, or killed by the same signal."""
     if os.WIFSIGNALED(status):
         sig = os.WTERMSIG(status)
-        signal.signal(sig, signal.SIG_DFL)
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, [sig])
+        if sig not in (signal.SIGKILL, signal.SIGSTOP):  # those two have no handler to reset
+            signal.signal(sig, signal.SIG_DFL)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, [sig])
         os.kill(os.getpid(), sig)
         os._exit(128 + sig)
     os._exit(os.WEXITSTATUS(status) if os.WIFEXITED(status) else 1)
@@ -105,6 +108,26 @@ def _watch(pid: int) -> None:
             deadline = now + GRACE
 
 
+def _die_with(watchdog: int) -> None:
+    """The command's side: killed (SIGKILL) when its watchdog dies, which only SIGKILL does
+    (``kill -9`` of the program's pid, the watchdog's): the program then ends as a program
+    of one process would, never leaving its command running on, orphaned, with an index's
+    lock held, to replace that index later. Linux (``prctl(PR_SET_PDEATHSIG)``) only."""
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        if ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0) != 0:  # PR_SET_PDEATHSIG
+            return
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != watchdog:  # it died before the call
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 def run() -> None:
     """The console script ``nfdmatch`` and ``python -m nfdmatch``."""
     watchdog = hasattr(os, "fork") and hasattr(signal, "sigtimedwait") and not os.environ.get("NFDMATCH_NO_WATCHDOG")
@@ -113,9 +136,11 @@ def run() -> None:
         # watchdog for good, in the command until its handlers are set
         signal.pthread_sigmask(signal.SIG_BLOCK, heeded(WAITED))
         child_handler = signal.signal(signal.SIGCHLD, signal.SIG_DFL)  # ignored: no status to wait for
+        parent = os.getpid()
         pid = os.fork()
         if pid:
             _watch(pid)
+        _die_with(parent)
         signal.signal(signal.SIGCHLD, child_handler)
     signals.program = True
     install()

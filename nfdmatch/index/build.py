@@ -417,7 +417,14 @@ def _needs_write(old, plan: Plan, recorded, new_sources, graph, real_index: str,
         )
     if graph is not None and old is not None:
         k, distance = asked_graph(old, graph)
-        if k and old_graph_k(old) and distance != graph_distance(old):
+        old_k = old_graph_k(old)
+        if old_k and k != old_k:
+            report.notices.append(
+                f"the neighbour graph changes from {old_k} to {k} neighbours: every row is searched again"
+                if k
+                else f"the neighbour graph ({old_k} neighbours) is dropped"
+            )
+        if k and old_k and distance != graph_distance(old):
             how = "give --elastic to keep it" if distance == "exact" else "without --elastic it is exact again"
             report.notices.append(
                 f"the neighbour graph changes from {graph_distance(old)} to {distance} distances ({how})"
