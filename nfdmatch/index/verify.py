@@ -28,7 +28,7 @@ from .objects_group import read_objects
 from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
 from .heap import check_string_rows
-from .schema import FILE_FIELDS, _SHA, STR, curve_layout, text_attr
+from .schema import _FILE_DTYPES, FILE_FIELDS, STR, curve_layout, text_attr
 
 if TYPE_CHECKING:
     import os
@@ -167,7 +167,7 @@ def verify_index(path: str | os.PathLike[str]) -> VerifyReport:
 def _expected_dtypes(K: int) -> dict:
     """Dataset -> what docs/index-format.md says it holds: a numpy dtype, or ``"string"``
     (variable-length UTF-8)."""
-    files = dict(zip(FILE_FIELDS, (STR, np.int64, np.int64, _SHA, np.uint8, STR, np.int64, np.int64), strict=True))
+    files = dict(zip(FILE_FIELDS, _FILE_DTYPES, strict=True))
     out = {f"/files/{name}": dtype for name, dtype in files.items()}
     out.update({f"/curves/{name}": dtype for name, (dtype, _) in curve_layout(K).items()})
     # the /search table of docs/index-format.md
