@@ -488,3 +488,21 @@ def test_a_fused_graphs_batch_over_threads_answers_as_each_query_alone(tmp_path,
                 kernels_module.set_call_threads(limit)
             assert batch == alone == one_thread
             assert all(m.fused is not None for r in batch for m in r)
+
+
+def test_a_fused_graph_of_too_few_neighbours_is_rebuilt_fused(tmp_path, rng):
+    """The advice for a graph of fewer than 8 neighbours keeps --elastic when the graph holds
+    fused distances (the rebuild it gave, without it, would have made an exact graph)."""
+    from conftest import run_cli
+
+    folder, _ = _family_folder(tmp_path, rng, count=2, members=3)
+    query = str(folder / "f0-0.csv")
+    for extra, advice in (([], "--graph 8"), (["--elastic"], "--graph 8 --elastic")):
+        index = str(tmp_path / f"x{len(extra)}.h5")
+        assert run_cli("index", "build", str(folder), "--index", index, "--graph", "4", *extra)[0] == 0
+        code, out, err = run_cli("query", query, "--index", index, "--rerank", *extra)
+        assert (code, out) == (2, "")
+        assert err == (
+            f"Error: {index}: the index's graph holds 4 neighbours per curve; --rerank needs at least 8: "
+            f"rebuild it with `nfdmatch index build ... --index {index} {advice}` or more\n"
+        )

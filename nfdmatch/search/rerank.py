@@ -338,10 +338,12 @@ def _checked_graph(index, top: int, depth: int):
         )
     stored_k = index.graph_k()
     if stored_k < SCALE_NEIGHBOURS:
+        # the rebuild keeps what the graph's distances are: a fused graph stays fused
+        fused = " --elastic" if getattr(index, "graph_distance", lambda: "exact")() == "fused" else ""
         raise IndexFormatError(
             f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
             f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
-            f"--graph {SCALE_NEIGHBOURS}` or more",
+            f"--graph {SCALE_NEIGHBOURS}{fused}` or more",
             path=index.path,
         )
     return reader
