@@ -563,3 +563,19 @@ def test_rerank_on_an_index_of_no_curves_answers_nothing_as_a_plain_query(tmp_pa
         assert idx.graph_distance() == ("fused" if elastic else "exact")
         results, _ = rerank_index(idx, random_curves(rng, 2))
         assert results == [[], []]
+
+
+def test_rerank_of_no_queries_answers_none(tmp_path, rng):
+    """rerank_index(idx, []) raised numpy's "need at least one array to concatenate" (a fused
+    graph: "cannot reshape array of size 0"); it answers no queries, as search_index does.
+    The arguments and the graph are still checked."""
+    write_parts(tmp_path / "c", random_curves(rng, 10), 1)
+    for graph in ([], ["--elastic"]):
+        index = tmp_path / f"i{len(graph)}.h5"
+        assert run("index", "build", tmp_path / "c", "--index", index, "-q", "--graph", "8", *graph)[0] == 0
+        with open_index(index) as idx:
+            for candidates in ("walk", "exact"):
+                results, stats = rerank_index(idx, [], candidates=candidates)
+                assert results == [] and stats.queries == 0 and stats.exact == 0
+            with pytest.raises(ParameterError, match="at least 100"):
+                rerank_index(idx, [], depth=50)

@@ -253,6 +253,10 @@ def rerank_index(
     if candidates not in CANDIDATES:
         raise ParameterError(f"candidates must be one of {', '.join(CANDIDATES)}, got {candidates!r}")
     reader = _checked_graph(index, top, depth)
+    if not len(queries):  # nothing to rank: no search, no walk (as search_index answers no queries)
+        from .index_search import SearchStats
+
+        return [], SearchStats(rows=index.n_curves, seconds=time.perf_counter() - t0)
     is_self = self_rule(getattr(index, "locate", None))
     N = index.n_curves
     reverse = getattr(index, "graph_reverse_reader", lambda: None)()
