@@ -246,6 +246,23 @@ def test_index_search_elastic_matches_rank_curves_and_checks_its_options(tmp_pat
             idx.search(str(folder / "f1-0.csv"), k=3, elastic_depth=8)
 
 
+def test_an_elastic_depth_that_is_not_a_positive_integer_is_refused(tmp_path, rng):
+    """Index.search(elastic_depth=2.5) searched to depth 2 (int() of the value); "10" and
+    True were taken as 10 and 1; NaN or a list raised a bare ValueError/TypeError."""
+    from nfdmatch.errors import ParameterError
+
+    folder, _ = _family_folder(tmp_path, rng, count=2, members=3)
+    build_index([str(folder)], str(tmp_path / "x.h5"))
+    with open_index(str(tmp_path / "x.h5")) as idx:
+        for depth in (2.5, 10.0, "10", True, float("nan"), [3], 0, -1):
+            with pytest.raises(ParameterError, match="elastic depth must be an integer of at least 1"):
+                idx.search(str(folder / "f1-0.csv"), k=3, elastic=True, elastic_depth=depth)
+            with pytest.raises(ParameterError, match="elastic depth must be an integer of at least 1"):
+                ElasticStage(depth=depth)
+        assert len(idx.search(str(folder / "f1-0.csv"), k=3, elastic=True, elastic_depth=np.int64(4))[0]) == 3
+    assert ElasticStage(depth=np.int64(7)).candidates(3) == 7
+
+
 def test_query_elastic_cli(tmp_path, rng):
     from conftest import run_cli
 
@@ -471,3 +488,21 @@ def test_a_fused_graphs_batch_over_threads_answers_as_each_query_alone(tmp_path,
                 kernels_module.set_call_threads(limit)
             assert batch == alone == one_thread
             assert all(m.fused is not None for r in batch for m in r)
+
+
+def test_a_fused_graph_of_too_few_neighbours_is_rebuilt_fused(tmp_path, rng):
+    """The advice for a graph of fewer than 8 neighbours keeps --elastic when the graph holds
+    fused distances (the rebuild it gave, without it, would have made an exact graph)."""
+    from conftest import run_cli
+
+    folder, _ = _family_folder(tmp_path, rng, count=2, members=3)
+    query = str(folder / "f0-0.csv")
+    for extra, advice in (([], "--graph 8"), (["--elastic"], "--graph 8 --elastic")):
+        index = str(tmp_path / f"x{len(extra)}.h5")
+        assert run_cli("index", "build", str(folder), "--index", index, "--graph", "4", *extra)[0] == 0
+        code, out, err = run_cli("query", query, "--index", index, "--rerank", *extra)
+        assert (code, out) == (2, "")
+        assert err == (
+            f"Error: {index}: the index's graph holds 4 neighbours per curve; --rerank needs at least 8: "
+            f"rebuild it with `nfdmatch index build ... --index {index} {advice}` or more\n"
+        )

@@ -190,3 +190,31 @@ def test_cli_verify_names_a_bad_graph_row(index_copy):
     result = CliRunner().invoke(main, ["index", "verify", "--index", str(index_copy)], catch_exceptions=False)
     assert result.exit_code == 1
     assert result.stdout == "bad\t/graph/distance\t6\ta negative distance, 1 rows\n"
+
+
+@pytest.mark.parametrize(
+    "name, dtype, stored",
+    [
+        ("neighbour", np.float64, "float64"),
+        ("distance", np.float32, "float32"),
+        ("reverse_source", np.int32, "int32"),
+        ("neighbour", h5py.string_dtype("utf-8"), "variable-length utf-8 string"),
+    ],
+    ids=["neighbour-float", "distance-float32", "reverse-int32", "neighbour-strings"],
+)
+def test_verify_checks_the_types_of_the_graph_datasets(index_copy, name, dtype, stored):
+    """A /graph dataset of another type (its values converted: they would pass every list
+    check) is a finding of `index verify`, as any other dataset of the wrong type is."""
+    with h5py.File(index_copy, "a") as f:
+        values = f[f"graph/{name}"][...]
+        del f[f"graph/{name}"]
+        if h5py.check_string_dtype(np.dtype(dtype)) is not None:  # the numbers as text (HDF5 filters no strings)
+            f["graph"].create_dataset(name, data=values.astype(str).astype(object), dtype=dtype)
+        else:
+            f["graph"].create_dataset(name, data=values.astype(dtype), chunks=True, fletcher32=True)
+    want = "int64" if name != "distance" else "float64"
+    assert _findings(index_copy) == [(f"/graph/{name}", "", f"stored as {stored}; the format says {want}")]
+    result = CliRunner().invoke(main, ["index", "verify", "--index", str(index_copy)], catch_exceptions=False)
+    assert result.exit_code == 1, result.output
+    assert result.stdout == f"bad\t/graph/{name}\t\tstored as {stored}; the format says {want}\n"
+    assert result.stderr.startswith(f"Error: {index_copy}: 1 problem found") and "Traceback" not in result.stderr

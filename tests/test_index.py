@@ -1130,3 +1130,28 @@ def test_scattered_runs_of_strings_read_in_one_call_give_each_run_in_order(tmp_p
         got = read_runs(f["id"], runs)
         assert got == [v for a, b in runs for v in values[a:b]]
         assert read_runs(f["id"], [(10, 12)]) == values[10:12]
+
+
+def test_one_harmonic_indexes_with_a_zero_third_block_value(tmp_path):
+    """-k 1: the blocks side by side are a 3x2 matrix, two singular values; the bound features
+    (``inv_block``, 3 of them) got two, and every file failed ("cannot reshape array of size
+    2 into shape (1,3)"). Its third value is 0; nothing stored is NaN."""
+    from conftest import ROOT, run_cli
+
+    C = descriptors(random_smooth_curve(np.random.default_rng(3), 300, 4), harmonics=1).coefficients
+    block = invariants(C)["block"]
+    assert block.shape == (3,) and block[2] == 0 and np.isfinite(block).all()
+    library, index = os.path.join(ROOT, "sample_curves", "library"), str(tmp_path / "k1.h5")
+    code, out, err = run_cli("index", "build", library, "--index", index, "-k", "1", "--graph", "8", "--elastic")
+    assert code == 0 and "Error" not in err, err
+    assert run_cli("index", "verify", "--index", index)[0] == 0
+    with h5py.File(index, "r") as f:
+        assert f["curves/inv_block"].shape == (24, 3) and not f["curves/inv_block"][:, 2].any()
+        floats = [
+            f[name][...] for name in ("curves/inv_block", "curves/statistics", "search/features", "graph/distance")
+        ]
+    assert all(np.isfinite(values).all() for values in floats)
+    query = os.path.join(ROOT, "sample_curves", "queries", "trefoil-posed.obj")
+    for extra in ([], ["--elastic"], ["--rerank"]):
+        code, out, err = run_cli("query", query, "--index", index, "--top", "3", *extra)
+        assert code == 0 and err == "" and len(out.splitlines()) == 4 and "nan" not in out, (extra, err)

@@ -560,6 +560,20 @@ def _retype(path, dataset, dtype):
         create_checked(f[group], name, data.astype(dtype))
 
 
+def _as_text(path, dataset, first="n/a"):
+    """Store ``dataset`` again as variable-length strings: the text of its numbers, the
+    first one replaced by ``first`` (a hand edit, or a writer that stored numbers as text)."""
+    from nfdmatch.index.schema import STR
+
+    with h5py.File(path, "r+") as f:
+        data = f[dataset][...]
+        text = data.astype(str).astype(object)
+        text.reshape(-1)[0] = first
+        group, name = dataset.rsplit("/", 1)
+        del f[dataset]
+        f[group].create_dataset(name, data=text, dtype=STR)
+
+
 def _rewrite_strings(path, dataset, values):
     """Replace the strings of ``dataset`` and recompute their CRC-32 blocks (a consistent hand edit)."""
     from nfdmatch.index.schema import STR, block_crcs
@@ -617,3 +631,17 @@ def test_verify_refuses_ids_that_leave_the_index_folder_or_differ_from_the_file_
     assert result.exit_code == 1
     assert "bad\t/files/path\t0\trelative paths that lead out of the index's folder (..)" in result.stdout
     assert "/curves/id" not in result.stdout
+
+
+@pytest.mark.parametrize("dataset", ["curves/statistics", "curves/inv_sv", "files/curve_count", "search/features"])
+def test_strings_where_numbers_are_stored_are_a_corrupt_index(index_copy, dataset):
+    """Numbers stored as text were parsed by the readers (a text that is no number: a
+    traceback from verify, query --elastic and Index.search): a corrupt index, on open."""
+    _as_text(index_copy, dataset)
+    message = f"Error: {index_copy}: corrupted nfdmatch index: /{dataset} holds strings, not numbers\n"
+    for args in (("index", "verify"), ("query", QUERY, "--elastic"), ("query", QUERY)):
+        result = _cli(*args, "--index", str(index_copy))
+        assert (result.exit_code, result.stdout, result.stderr) == (2, "", message), args
+    with pytest.raises(IndexFormatError, match=f"/{dataset} holds strings, not numbers"):
+        with open_index(index_copy) as idx:
+            idx.search(QUERY, k=3, elastic=True)

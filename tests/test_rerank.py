@@ -546,3 +546,42 @@ def test_the_graph_stores_its_lists_turned_round_and_the_walk_backwards_reads_th
         ds[0] = (int(ds[0]) + 1) % len(neighbour)
     code, out, err = run_cli("index", "verify", "--index", str(index))
     assert code == 1 and "reverse_source" in out + err and "turned round" in out + err
+
+
+@pytest.mark.parametrize("elastic", [False, True])
+def test_rerank_on_an_index_of_no_curves_answers_nothing_as_a_plain_query(tmp_path, rng, elastic):
+    """A graph of fused distances over no curves: query --rerank raised KeyError 'exact' (a
+    traceback); it answers nothing, as the plain query does (exit 1, the header only)."""
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "bad.csv").write_text("x,y,z\n")  # fails: the index holds no curve
+    index = tmp_path / "i.h5"
+    graph = ["--graph", "8", "--elastic"] if elastic else ["--graph", "8"]
+    assert run_cli("index", "build", tmp_path / "c", "--index", index, "--jobs", "1", "-q", *graph)[0] == 3
+    write_parts(tmp_path / "q", random_curves(rng, 2), 1)
+    query = tmp_path / "q" / "part-00.obj"
+    plain = run_cli("query", query, "--index", index)
+    assert plain == (1, "query,rank,match,distance\n", "")
+    header = "query,rank,match,distance,score" + (",elastic,fused" if elastic else "") + "\n"
+    for extra in (["--rerank"], ["--rerank", "--exclude-self"], ["--rerank", "--rerank-candidates", "exact"]):
+        got = run_cli("query", query, "--index", index, *extra, *(["--elastic"] if elastic else []))
+        assert got == (1, header, ""), extra
+    with open_index(index) as idx:
+        assert idx.graph_distance() == ("fused" if elastic else "exact")
+        results, _ = rerank_index(idx, random_curves(rng, 2))
+        assert results == [[], []]
+
+
+def test_rerank_of_no_queries_answers_none(tmp_path, rng):
+    """rerank_index(idx, []) raised numpy's "need at least one array to concatenate" (a fused
+    graph: "cannot reshape array of size 0"); it answers no queries, as search_index does.
+    The arguments and the graph are still checked."""
+    write_parts(tmp_path / "c", random_curves(rng, 10), 1)
+    for graph in ([], ["--elastic"]):
+        index = tmp_path / f"i{len(graph)}.h5"
+        assert run("index", "build", tmp_path / "c", "--index", index, "-q", "--graph", "8", *graph)[0] == 0
+        with open_index(index) as idx:
+            for candidates in ("walk", "exact"):
+                results, stats = rerank_index(idx, [], candidates=candidates)
+                assert results == [] and stats.queries == 0 and stats.exact == 0
+            with pytest.raises(ParameterError, match="at least 100"):
+                rerank_index(idx, [], depth=50)

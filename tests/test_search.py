@@ -491,3 +491,16 @@ def test_the_recomputation_in_small_passes_gives_the_same_answers(rng, monkeypat
     assert [[(r.id, r.distance, r.shift) for r in q] for q in small] == [
         [(r.id, r.distance, r.shift) for r in q] for q in whole
     ]
+
+
+def test_a_memory_index_of_no_curves_answers_nothing(rng):
+    """MemoryIndex([]) raised numpy's "cannot reshape array of size 0 into shape (0,newaxis)";
+    it answers every query with nothing, as an index file of no curves does."""
+    query = _family_curves(rng, 1, 1, 0.0)[0]
+    empty = MemoryIndex([])
+    assert len(empty) == 0
+    assert empty.search(query, k=3) == [[]]
+    assert empty.search(query, k=3, elastic=True) == [[]]
+    assert empty.search(query, k=None, max_distance=1.0) == [[]]
+    distances, rows = empty.search(query, k=2, arrays=True)
+    assert np.array_equal(distances, [[np.inf, np.inf]]) and np.array_equal(rows, [[-1, -1]])

@@ -16,7 +16,7 @@ from ..descriptors import validate_parameters
 from ..errors import ParameterError, ReadError
 from ..matching.statistics import LENGTH as STATISTICS_LENGTH
 from .heap import check_every_collection
-from .search_layout import check_search_group
+from .search_layout import check_search_group, not_numbers
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -35,6 +35,8 @@ _SHA = "S64"
 STATUS = {0: "ok", 1: "failed"}
 
 FILE_FIELDS = ("path", "size", "mtime_ns", "sha256", "status", "error", "curve_start", "curve_count")
+#: the type of each /files dataset, in the order of FILE_FIELDS
+_FILE_DTYPES = (STR, np.int64, np.int64, _SHA, np.uint8, STR, np.int64, np.int64)
 
 # --------------------------------------------------------------------------- integrity
 #: root attribute ``checksums``: every dataset has HDF5's Fletcher-32 filter, every string
@@ -466,7 +468,8 @@ def _root_attributes(attrs) -> dict:
 
 
 def _shaped_dataset(h5, group: str, name: str, tail: tuple, file_size: int, checksums: bool):
-    """The stored dataset ``/group/name`` if its shape is ``(rows, *tail)``; raises Problem."""
+    """The stored dataset ``/group/name`` if its shape is ``(rows, *tail)`` and, where the
+    format stores numbers in it (:func:`layout_dtype`), it holds numbers; raises Problem."""
     obj = stored_dataset(h5, f"{group}/{name}", file_size, checksums)
     if len(obj.shape) != 1 + len(tail) or tuple(obj.shape[1:]) != tail:
         raise Problem(
@@ -474,7 +477,21 @@ def _shaped_dataset(h5, group: str, name: str, tail: tuple, file_size: int, chec
             f"corrupted nfdmatch index: /{group}/{name} has shape {obj.shape}, "
             f"expected (rows, {', '.join(map(str, tail))})".replace(", )", ")"),
         )
+    want = layout_dtype(group, name)
+    problem = not_numbers(obj, f"/{group}/{name}") if want is not STR and np.dtype(want).kind != "S" else None
+    if problem:
+        raise Problem("corrupt", f"corrupted nfdmatch index: {problem}")
     return obj
+
+
+def layout_dtype(group: str, name: str) -> Any:
+    """The type docs/index-format.md gives dataset ``/group/name`` of ``/files`` or ``/curves``
+    (a numpy dtype, or :data:`STR`); ``*_crc32`` companions: uint32."""
+    if name.endswith("_crc32"):
+        return np.uint32
+    if group == "files":
+        return dict(zip(FILE_FIELDS, _FILE_DTYPES, strict=True))[name]
+    return curve_layout(1)[name][0]
 
 
 def _tables(dataset, harmonics: int, checksums: bool, version: int = FORMAT_VERSION) -> tuple[dict, dict]:

@@ -11,7 +11,22 @@ if TYPE_CHECKING:
     import h5py
     from collections.abc import Callable
 
-__all__ = ["SEARCH_DATASETS", "check_search_group"]
+__all__ = ["SEARCH_DATASETS", "NUMBER_KINDS", "check_search_group", "not_numbers"]
+
+#: the kinds of stored type a reader converts to the numbers the format stores (bool,
+#: integers, floats, complex, of any width or byte order: ``index verify`` names a type that
+#: differs from the format's); strings, compounds and opaque bytes are not numbers
+NUMBER_KINDS = "biufc"
+
+
+def not_numbers(ds: Any, where: str) -> str | None:
+    """Why dataset ``ds`` (at ``where``), where the format stores numbers, holds none (a string
+    type: a reader would parse its text, and fail on text that is not a number), or None."""
+    kind = ds.dtype.kind
+    if kind in NUMBER_KINDS:
+        return None
+    what = "strings" if kind in "OSU" else f"values of type {ds.dtype}"
+    return f"{where} holds {what}, not numbers"
 
 
 #: /search datasets: name -> (dtype, shape as a function of N rows, C cells, D feature columns)
@@ -49,6 +64,9 @@ def check_search_group(h5: h5py.File, N: int, harmonics: int, get: Callable[[str
             return f"missing dataset /search/{name}"
         if tuple(ds.shape) != shape(N, C, D):
             return f"/search/{name} has shape {ds.shape}, expected {shape(N, C, D)}"
+        problem = not_numbers(ds, f"/search/{name}")
+        if problem:
+            return problem
     coefficients = get("coefficients")
     want = (N, harmonics, 3)
     if (

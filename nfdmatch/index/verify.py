@@ -28,7 +28,7 @@ from .objects_group import read_objects
 from .paths import curve_ids
 from .schema import CRC_ROWS, STRING_DATASETS, Problem, _short, block_crcs, open_checked, stored_dataset
 from .heap import check_string_rows
-from .schema import FILE_FIELDS, _SHA, STR, curve_layout, text_attr
+from .schema import _FILE_DTYPES, FILE_FIELDS, STR, curve_layout, text_attr
 
 if TYPE_CHECKING:
     import os
@@ -167,7 +167,7 @@ def verify_index(path: str | os.PathLike[str]) -> VerifyReport:
 def _expected_dtypes(K: int) -> dict:
     """Dataset -> what docs/index-format.md says it holds: a numpy dtype, or ``"string"``
     (variable-length UTF-8)."""
-    files = dict(zip(FILE_FIELDS, (STR, np.int64, np.int64, _SHA, np.uint8, STR, np.int64, np.int64), strict=True))
+    files = dict(zip(FILE_FIELDS, _FILE_DTYPES, strict=True))
     out = {f"/files/{name}": dtype for name, dtype in files.items()}
     out.update({f"/curves/{name}": dtype for name, (dtype, _) in curve_layout(K).items()})
     # the /search table of docs/index-format.md
@@ -198,8 +198,6 @@ def _dtype_text(dtype) -> str:
 
 def _check_dtypes(groups, K: int, report) -> None:
     """Every dataset's stored type against docs/index-format.md (any byte order: HDF5 converts)."""
-    import h5py
-
     expected = _expected_dtypes(K)
     for group, datasets in groups.items():
         for name, ds in datasets.items():
@@ -207,19 +205,27 @@ def _check_dtypes(groups, K: int, report) -> None:
             want = expected.get(full)
             if want is None:
                 continue
-            got = ds.dtype
-            if want == "string":
-                info = h5py.check_string_dtype(got)
-                ok = info is not None and info.length is None and info.encoding == "utf-8"
-                shown = "a variable-length UTF-8 string"
-            elif want.kind == "S":  # fixed-length ASCII (h5py marks it as a string type)
-                ok = got.kind == "S" and got.itemsize == want.itemsize
-                shown = f"a {want.itemsize}-byte ASCII string"
-            else:
-                ok = h5py.check_string_dtype(got) is None and got.newbyteorder("=") == want.newbyteorder("=")
-                shown = str(want)
-            if not ok:
-                report.findings.append(Finding(full, "", f"stored as {_dtype_text(got)}; the format says {shown}"))
+            problem = _dtype_problem(ds.dtype, want)
+            if problem:
+                report.findings.append(Finding(full, "", problem))
+
+
+def _dtype_problem(got, want) -> str | None:
+    """Why a dataset stored as ``got`` is not of the type ``want`` (a numpy dtype, or
+    ``"string"``: variable-length UTF-8) docs/index-format.md gives it, or None."""
+    import h5py
+
+    if want == "string":
+        info = h5py.check_string_dtype(got)
+        ok = info is not None and info.length is None and info.encoding == "utf-8"
+        shown = "a variable-length UTF-8 string"
+    elif want.kind == "S":  # fixed-length ASCII (h5py marks it as a string type)
+        ok = got.kind == "S" and got.itemsize == want.itemsize
+        shown = f"a {want.itemsize}-byte ASCII string"
+    else:
+        ok = h5py.check_string_dtype(got) is None and got.newbyteorder("=") == want.newbyteorder("=")
+        shown = str(want)
+    return None if ok else f"stored as {_dtype_text(got)}; the format says {shown}"
 
 
 def _escapes(path: str) -> bool:
@@ -460,7 +466,7 @@ def _verify_objects(h5, meta, report) -> None:
 
 
 def _verify_graph(h5, meta, report) -> None:
-    """``/graph``, when the index has one: how it is stored, its checksums (every chunk
+    """``/graph``, when the index has one: how it is stored, its types, its checksums (every chunk
     read), every list valid (:func:`~.graph.list_problems`), and the lists consistent with
     each other (docs/index-format.md, "/graph")."""
     g = h5.get("graph")
@@ -475,11 +481,14 @@ def _verify_graph(h5, meta, report) -> None:
     datasets = {}
     for name in ("neighbour", "distance"):
         try:
-            datasets[name] = stored_dataset(h5, f"graph/{name}", file_size, attr == GRAPH_CHECKSUMS)
+            ds = stored_dataset(h5, f"graph/{name}", file_size, attr == GRAPH_CHECKSUMS)
         except Problem as exc:
             report.findings.append(
                 Finding(f"/graph/{name}", "", exc.message.removeprefix("corrupted nfdmatch index: "))
             )
+            continue
+        if _graph_type_found(ds, name, report):
+            datasets[name] = ds
     if len(datasets) < 2:
         return
     nb_ds, d_ds = datasets["neighbour"], datasets["distance"]
@@ -530,6 +539,25 @@ def _verify_graph(h5, meta, report) -> None:
         )
 
 
+#: each /graph dataset's type (docs/index-format.md, "/graph")
+_GRAPH_TYPES = {
+    "neighbour": np.dtype(np.int64),
+    "distance": np.dtype(np.float64),
+    "reverse_start": np.dtype(np.int64),
+    "reverse_source": np.dtype(np.int64),
+}
+
+
+def _graph_type_found(ds, name: str, report) -> bool:
+    """True when ``/graph/<name>`` is stored with the type the format gives it; else a
+    finding says what it is (its values are then not read: a string or another kind of
+    number converted to the right one would pass for a list)."""
+    problem = _dtype_problem(ds.dtype, _GRAPH_TYPES[name])
+    if problem:
+        report.findings.append(Finding(f"/graph/{name}", "", problem))
+    return problem is None
+
+
 def _unreadable(exc: Exception) -> str:
     """What a failed read of stored values says: a Fletcher-32 mismatch, or why it failed."""
     text = _short(exc)
@@ -551,6 +579,8 @@ def _verify_reverse(h5, g, nb: np.ndarray, checksums: bool, report) -> None:
             report.findings.append(
                 Finding(f"/graph/{name}", "", exc.message.removeprefix("corrupted nfdmatch index: "))
             )
+            continue
+        if not _graph_type_found(ds, name, report):
             continue
         try:
             got[name] = np.asarray(ds[...], dtype=np.int64)

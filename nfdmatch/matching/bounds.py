@@ -27,7 +27,8 @@ def invariants(coefficients: np.ndarray, weights: ArrayLike | None = None) -> di
 
     Returns
     -------
-    ``{"norm": (..., K), "sv": (..., 2K), "block": (..., 3)}`` float64, scaled so that
+    ``{"norm": (..., K), "sv": (..., 2K), "block": (..., 3)}`` float64 (``block``: the three
+    singular values of all blocks side by side, (3, 2K); with K = 1 the third is 0), scaled so that
     the Euclidean distance between two curves' features is a lower bound of mu
     (docs/method.md, "Lower bounds": norms, Mirsky on each [Re A_k, Im A_k], and on all blocks).
     """
@@ -40,6 +41,8 @@ def invariants(coefficients: np.ndarray, weights: ArrayLike | None = None) -> di
     sv = _singular_values_3x2(C.real, C.imag) * root[:, None]  # (..., K, 2)
     wide = (blocks * np.sqrt(w)[:, None, None]).swapaxes(-3, -2).reshape(*C.shape[:-2], 3, 2 * K)
     block = np.linalg.svd(wide, compute_uv=False) * np.sqrt(2.0)
+    if block.shape[-1] < 3:  # K = 1: a 3x2 matrix has two singular values, the third is 0
+        block = np.concatenate([block, np.zeros((*block.shape[:-1], 3 - block.shape[-1]))], axis=-1)
     return {"norm": norm, "sv": sv.reshape(*C.shape[:-2], 2 * K), "block": block}
 
 

@@ -253,6 +253,10 @@ def rerank_index(
     if candidates not in CANDIDATES:
         raise ParameterError(f"candidates must be one of {', '.join(CANDIDATES)}, got {candidates!r}")
     reader = _checked_graph(index, top, depth)
+    if not len(queries):  # nothing to rank: no search, no walk (as search_index answers no queries)
+        from .index_search import SearchStats
+
+        return [], SearchStats(rows=index.n_curves, seconds=time.perf_counter() - t0)
     is_self = self_rule(getattr(index, "locate", None))
     N = index.n_curves
     reverse = getattr(index, "graph_reverse_reader", lambda: None)()
@@ -338,10 +342,12 @@ def _checked_graph(index, top: int, depth: int):
         )
     stored_k = index.graph_k()
     if stored_k < SCALE_NEIGHBOURS:
+        # the rebuild keeps what the graph's distances are: a fused graph stays fused
+        fused = " --elastic" if getattr(index, "graph_distance", lambda: "exact")() == "fused" else ""
         raise IndexFormatError(
             f"the index's graph holds {stored_k} neighbours per curve; --rerank needs at least "
             f"{SCALE_NEIGHBOURS}: rebuild it with `nfdmatch index build ... --index {index.path} "
-            f"--graph {SCALE_NEIGHBOURS}` or more",
+            f"--graph {SCALE_NEIGHBOURS}{fused}` or more",
             path=index.path,
         )
     return reader

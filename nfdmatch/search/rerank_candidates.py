@@ -290,7 +290,7 @@ def _merge_rows(index, found, more, fused: bool) -> None:
     for tk, extra in zip(found, more):
         tk.rows, tk.dist = np.concatenate([tk.rows, extra.rows]), np.concatenate([tk.dist, extra.dist])
         tk.extra = {key: np.concatenate([v, extra.extra.get(key, v[:0])]) for key, v in tk.extra.items()}
-        if fused:
+        if fused and len(tk.rows):  # no candidates (an index of no curves): no fused columns to rank by
             order = np.lexsort((tk.extra["exact"], np.round(tk.dist / TIE)))
             tk.rows, tk.dist = tk.rows[order], tk.dist[order]
             tk.extra = {key: v[order] for key, v in tk.extra.items()}

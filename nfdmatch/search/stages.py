@@ -73,15 +73,17 @@ class ElasticStage:
     """The exact top ``depth`` of a query ordered by the fused distance (rigid, elastic and
     pose-free statistics: :mod:`nfdmatch.matching.fused`); ties by exact distance, then id.
 
-    depth : the exact candidates re-ordered (``--elastic-depth``)."""
+    depth : the exact candidates re-ordered (``--elastic-depth``): an integer, at least 1
+        (anything else is a :class:`~nfdmatch.errors.ParameterError`)."""
 
     depth: int = DEFAULT_ELASTIC_DEPTH
     name: str = "elastic"
     columns: tuple[str, ...] = ELASTIC_COLUMNS
 
     def __post_init__(self):
-        if int(self.depth) < 1:
-            raise ParameterError(f"the elastic depth must be at least 1, got {self.depth}")
+        depth = self.depth
+        if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 1:
+            raise ParameterError(f"the elastic depth must be an integer of at least 1, got {depth!r}")
 
     def candidates(self, top: int | None) -> int | None:
         return None if top is None else max(int(top), int(self.depth))
