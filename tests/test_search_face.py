@@ -86,6 +86,15 @@ def test_arrays_are_faiss_shaped_and_padded(small):
     assert [[m.id for m in found] for found in records] == [memory.ids[r] for r in rows]
 
 
+def test_arrays_of_the_elastic_stage_hold_the_fused_distance_they_are_sorted_by(small):
+    curves, memory, _ = small
+    distances, rows = memory.search(curves[:3], k=6, elastic=True, arrays=True)
+    records = memory.search(curves[:3], k=6, elastic=True)
+    assert [[m.row for m in found] for found in records] == rows.tolist()
+    assert distances.tolist() == [[m.fused for m in found] for found in records]
+    assert (np.diff(distances, axis=1) >= 0).all()
+
+
 def test_exclude_self_by_id_and_the_records_carry_a_pose(small):
     curves, memory, _ = small
     queries = [Curve(curves[i], id=f"c{i}") for i in range(3)]

@@ -104,7 +104,8 @@ def search(
     arrays : return ``(distances, rows)`` instead of records, as faiss does: float64 and
         int64 arrays of shape (number of queries, k), each query's row sorted as the records
         are, padded with ``inf`` and ``-1`` where a query has fewer matches (``k`` None: as
-        wide as the longest answer). ``index.ids[rows[i, j]]`` names a match. No pose.
+        wide as the longest answer). ``index.ids[rows[i, j]]`` names a match. No pose. The
+        distances are those the rows are sorted by: exact, or fused with ``elastic``.
 
     Returns one list of :class:`~nfdmatch.records.RankedMatch` per query curve, sorted by
     distance then id (by the fused distance with ``elastic``), or the arrays.
@@ -169,13 +170,15 @@ class SearchFace:
 
 def as_arrays(results: Sequence[Sequence[RankedMatch]], k: int | None) -> tuple[np.ndarray, np.ndarray]:
     """``(distances, rows)`` of a search's records: (Q, width) float64 and int64, padded with
-    ``inf`` and ``-1`` (faiss's padding); width ``k``, or the longest answer's length."""
+    ``inf`` and ``-1`` (faiss's padding); width ``k``, or the longest answer's length. A
+    distance is what the records are sorted by: the fused one after the elastic stage (an
+    exact distance beside it would not be in order), else the exact one."""
     width = k if k is not None else max((len(found) for found in results), default=0)
     distances = np.full((len(results), width), np.inf)
     rows = np.full((len(results), width), -1, dtype=np.int64)
     for i, found in enumerate(results):
         n = min(width, len(found))
-        distances[i, :n] = [m.distance for m in found[:n]]
+        distances[i, :n] = [m.distance if m.fused is None else m.fused for m in found[:n]]
         rows[i, :n] = [m.row for m in found[:n]]
     return distances, rows
 
