@@ -571,6 +571,27 @@ def test_rerank_on_an_index_of_no_curves_answers_nothing_as_a_plain_query(tmp_pa
         assert results == [[], []]
 
 
+def test_rerank_takes_paths_and_arrays_as_search_does(tmp_path, rng):
+    """rerank_index read a path's characters as vertices ("vertices are not numbers"); it
+    takes what Index.search takes: a path is every curve of the file, an array one curve."""
+    from nfdmatch import read_curves
+
+    write_parts(tmp_path / "c", random_curves(rng, 12), 2)
+    index = tmp_path / "i.h5"
+    assert run("index", "build", tmp_path / "c", "--index", index, "-q", "--graph", "8")[0] == 0
+    path = sorted((tmp_path / "c").iterdir())[0]
+    curves = read_curves(path)
+    with open_index(index) as idx:
+        expected, _ = rerank_index(idx, curves, k=5)
+        for given in (str(path), path):
+            got, _ = rerank_index(idx, given, k=5)
+            assert [[(m.id, m.score) for m in found] for found in got] == [
+                [(m.id, m.score) for m in found] for found in expected
+            ]
+        (alone,), _ = rerank_index(idx, curves[0].points, k=5)
+        assert [(m.id, m.score) for m in alone] == [(m.id, m.score) for m in expected[0]]
+
+
 def test_rerank_of_no_queries_answers_none(tmp_path, rng):
     """rerank_index(idx, []) raised numpy's "need at least one array to concatenate" (a fused
     graph: "cannot reshape array of size 0"); it answers no queries, as search_index does.

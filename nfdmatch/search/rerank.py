@@ -49,7 +49,6 @@ from .selfmatch import self_rule
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
-    from ..curve import Curve
     from .index_search import SearchStats
 
 __all__ = [
@@ -197,7 +196,7 @@ def fused_graph_lists(
 
 def rerank_index(
     index: Any,
-    queries: Sequence[Curve],
+    queries: Any,
     *,
     k: int = 10,
     depth: int = DEFAULT_DEPTH,
@@ -212,7 +211,8 @@ def rerank_index(
     Parameters
     ----------
     index : an open :class:`nfdmatch.index.Index` with a graph (``index build --graph``).
-    queries : sequence of :class:`~nfdmatch.curve.Curve`.
+    queries : what :func:`~nfdmatch.search.knn.as_queries` takes (as ``Index.search``): one
+        or a sequence of :class:`~nfdmatch.curve.Curve`, (n, 3) arrays and paths.
     k : matches per query (at most ``depth``); ``top`` is its deprecated older name.
     depth : M, the query's candidates besides its nearest (see ``candidates``), >= 100.
     exclude_self : the query's own curve (:func:`~nfdmatch.search.knn.is_self`) is the
@@ -247,9 +247,11 @@ def rerank_index(
     gets the same scores alone as in any batch (each source's push is independent).
     """
     from .index_search import query_descriptors
+    from .knn import as_queries
 
     top = k_or_top(k, top, "rerank_index")
     t0 = time.perf_counter()
+    queries = as_queries(queries)
     if candidates not in CANDIDATES:
         raise ParameterError(f"candidates must be one of {', '.join(CANDIDATES)}, got {candidates!r}")
     reader = _checked_graph(index, top, depth)
