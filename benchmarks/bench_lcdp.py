@@ -2,7 +2,7 @@
 graph, against the full-matrix version, and what it costs next to ``query --rerank``
 (docs/elastic.md, "Not done yet": "Development evidence for the rigid graph's goal").
 
-    python benchmarks/bench_lcdp.py [--data ../shared/data] [--only bending,psb,large]
+    python benchmarks/bench_lcdp.py [--data ../shared/data] [--only bending,psb,foreign,large]
                                      [--tolerances 1e-4,1e-3,1e-2] [--large-families 500]
 
 A prototype, here only (no library change). The matrix version is
@@ -33,7 +33,8 @@ Collections: (1) 1,400 bending 2-D curves, ``families(default_rng(7), 70, 20, 2)
 such curves (``--large-families 500``), every 10th a query (``--large-every``). The matrix
 version's Q is computed row block by row block on the graph (exact, no pruning: the same
 arithmetic, checked against ``bench_3d.lcdp`` on the first two), its direct affinity from
-every exact distance of the queries' rows.
+every exact distance of the queries' rows. ``--only foreign``: Q.max() of the matrix
+version when the 1,400 share the index with foreign curves or with 12 copies of one curve.
 
 Prints per collection and tolerance: the top-40 set agreement with the matrix (share of
 entries, every stored curve a query) and the same place; top-1 and bull's-eye of both; the
@@ -509,10 +510,87 @@ def run(name: str, curves, labels, depth: int, tolerances, work: str, every: int
         )
 
 
+def dense_q(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``bench_3d.lcdp(D, sparse=10)``'s Q (before its scaling) and the direct affinity."""
+    X = D.copy()
+    np.fill_diagonal(X, np.inf)
+    s = np.sort(X, axis=1)[:, :GRAPH_K].mean(axis=1)
+    direct = np.exp(-(D**2) / np.maximum(s[:, None] * s[None, :], 1e-300))
+    np.fill_diagonal(direct, 1.0)
+    direct = (direct + direct.T) / 2
+    graph = np.zeros_like(D)
+    np.put_along_axis(graph, np.argsort(X, axis=1, kind="stable")[:, :GRAPH_K], 1.0, axis=1)
+    graph = np.maximum(graph, graph.T)
+    np.fill_diagonal(graph, 1.0)
+    P = direct * graph
+    P /= P.sum(axis=1, keepdims=True)
+    keep = np.argsort(-P, axis=1)[:, :KEEP]
+    Pk = np.zeros_like(P)
+    np.put_along_axis(Pk, keep, np.take_along_axis(P, keep, axis=1), axis=1)
+    Pk /= Pk.sum(axis=1, keepdims=True)
+    Q = P
+    for _ in range(STEPS):
+        Q = Pk @ Q @ Pk.T
+    return Q, direct
+
+
+def foreign(data: str):
+    """Q.max() against what an index may hold besides the 1,400 (matrix version): foreign
+    curves (a circle, an ellipse, a five-lobed star, the first psb cut loops) and 12 copies
+    of one curve (1e-8 apart, as a mesh's duplicate sections): Q.max() and where it is,
+    and the 1,400's rankings (among themselves) against those without."""
+    from bench_3d import scores
+
+    from nfdmatch.descriptors import descriptors_batch
+
+    curves, labels = bending(70)
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    lobes = 1 + 0.3 * np.cos(5 * t)
+    extra = [Curve(np.c_[np.cos(t), np.sin(t)]), Curve(np.c_[np.cos(t), 0.3 * np.sin(t)])]
+    extra.append(Curve(np.c_[np.cos(t) * lobes, np.sin(t) * lobes]))
+    folder = os.path.join(data, "psb_dev", "cutloop", "curves")
+    extra += [read_curves(os.path.join(folder, f))[0] for f in sorted(os.listdir(folder))[:3]]
+    C = descriptors_batch(curves + extra).coefficients
+    N = len(curves)
+    print("\n## Q.max() and the scale of the mix: the 1,400 with other curves (matrix version)", flush=True)
+    D0 = exact_rows(C, 128, np.arange(len(C)))
+    D0 = (D0 + D0.T) / 2
+    np.fill_diagonal(D0, 0.0)
+    rng = np.random.default_rng(1)
+    base = None
+    for what, m, copies in (("alone", 0, 0), ("+ 3 foreign", 3, 0), ("+ 6 foreign", 6, 0), ("+ 12 copies", 0, 12)):
+        M = N + m + copies
+        D = np.zeros((M, M))
+        D[: N + m, : N + m] = D0[: N + m, : N + m]
+        if copies:  # copies of row 0, 1e-8 apart from it and each other
+            D[N:, :N] = D0[0, :N]
+            D[:N, N:] = D0[:N, 0][:, None]
+            e = rng.uniform(0.5, 1.5, (copies + 1, copies + 1)) * 1e-8
+            near = np.r_[0, np.arange(N, M)]
+            D[np.ix_(near, near)] = (e + e.T) / 2
+            np.fill_diagonal(D, 0.0)
+        Q, direct = dense_q(D)
+        S = (1 - MIX) * Q / Q.max() + MIX * direct
+        order = np.empty((N, TOP), np.int64)
+        for i in range(N):
+            cols = np.delete(np.arange(N), i)
+            order[i] = ranked(S[i, cols], D[i, cols], cols, TOP)
+        base = order if base is None else base
+        sc = scores(order, labels, 40)
+        diag = np.diag(Q)[:N]
+        print(
+            f"  {what:12} Q.max() {Q.max():.4f} at row {Q.argmax() // M} (on the diagonal: "
+            f"{'yes' if np.isclose(np.diag(Q).max(), Q.max()) else 'no'}); the 1,400's diagonal median "
+            f"{np.median(diag) / Q.max():.2f} of it; their top-1 {sc[0]:.3f} bull's-eye {sc[1]:.3f}, top-40 sets "
+            f"as alone {np.mean([len(set(a) & set(b)) / TOP for a, b in zip(order, base)]):.2%}",
+            flush=True,
+        )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=os.path.join(os.path.dirname(HERE), "..", "shared", "data"))
-    parser.add_argument("--only", default="bending,psb", help="collections: bending, psb, large (comma-separated)")
+    parser.add_argument("--only", default="bending,psb", help="bending, psb, foreign, large (comma-separated)")
     parser.add_argument("--tolerances", default="1e-4,1e-3,1e-2")
     parser.add_argument("--large-every", type=int, default=10, help="in 'large', every n-th curve a query")
     parser.add_argument("--large-families", type=int, default=500, help="families of 20 in 'large'")
@@ -527,6 +605,8 @@ def main():
         if "psb" in only:
             curves, labels = psb_cutloops(os.path.join(args.data))
             run("psb_dev cut loops", curves, labels, 20, tolerances, os.path.join(work, "psb"))
+        if "foreign" in only:
+            foreign(args.data)
         if "large" in only:
             curves, labels = bending(args.large_families)
             name = f"bending 2-D, {args.large_families} x 20"
