@@ -111,23 +111,12 @@ def _order_of_matrix(D: np.ndarray) -> np.ndarray:
     return np.argsort(X, axis=1, kind="stable")[:, : len(D) - 1]
 
 
-def lcdp(
-    D: np.ndarray,
-    k: int = 8,
-    scale_k: int = 10,
-    iterations: int = 6,
-    sparse: int | None = None,
-    mix: float = 0.0,
-) -> np.ndarray:
-    """The locally constrained diffusion (Yang, Koknar-Tezel & Latecki 2009) of a full
-    distance matrix (a measurement for the next step, not the library's): affinity
-    exp(-d^2 / (s_i s_j)), s the mean distance to the 10 nearest others; self-affinity 1;
-    P row-normalised, P_k its k largest per row renormalised; Q <- P_k Q P_k^T from Q = P,
-    6 times. ``sparse=None`` is the prototype of docs/elastic.md (Q starts from the dense
-    affinity). ``sparse=m`` starts from the affinity of each curve's m nearest only
-    (symmetrised: what a stored graph holds), scales Q to a largest entry of 1 and mixes
-    ``mix`` of the direct affinity in, as ``MIX`` does for the PageRank. Returns the
-    similarity (N, N)."""
+def lcdp_parts(
+    D: np.ndarray, k: int = 8, scale_k: int = 10, iterations: int = 6, sparse: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The diffused similarity Q of :func:`lcdp` before any scaling, and the direct affinity
+    (both (N, N) float64): Q starts from the dense affinity, or (``sparse=m``) from that of
+    each curve's m nearest only, symmetrised, self 1."""
     X = D.astype(float).copy()
     np.fill_diagonal(X, np.inf)
     s = np.sort(X, axis=1)[:, :scale_k].mean(axis=1)
@@ -150,6 +139,27 @@ def lcdp(
     Q = P
     for _ in range(iterations):
         Q = Pk @ Q @ Pk.T
+    return Q, direct
+
+
+def lcdp(
+    D: np.ndarray,
+    k: int = 8,
+    scale_k: int = 10,
+    iterations: int = 6,
+    sparse: int | None = None,
+    mix: float = 0.0,
+) -> np.ndarray:
+    """The locally constrained diffusion (Yang, Koknar-Tezel & Latecki 2009) of a full
+    distance matrix (a measurement for the next step, not the library's): affinity
+    exp(-d^2 / (s_i s_j)), s the mean distance to the 10 nearest others; self-affinity 1;
+    P row-normalised, P_k its k largest per row renormalised; Q <- P_k Q P_k^T from Q = P,
+    6 times. ``sparse=None`` is the prototype of docs/elastic.md (Q starts from the dense
+    affinity). ``sparse=m`` starts from the affinity of each curve's m nearest only
+    (symmetrised: what a stored graph holds), scales Q to a largest entry of 1 and mixes
+    ``mix`` of the direct affinity in, as ``MIX`` does for the PageRank. Returns the
+    similarity (N, N)."""
+    Q, direct = lcdp_parts(D, k, scale_k, iterations, sparse)
     if not sparse:
         return Q
     return (1.0 - mix) * Q / Q.max() + mix * direct

@@ -61,7 +61,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))
 
-from bench_3d import lcdp  # noqa: E402
+from bench_3d import lcdp, lcdp_parts  # noqa: E402
 from bending_families import families  # noqa: E402
 
 from nfdmatch import Curve, build_index, open_index, read_curves, write_curves  # noqa: E402
@@ -512,26 +512,7 @@ def run(name: str, curves, labels, depth: int, tolerances, work: str, every: int
 
 def dense_q(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``bench_3d.lcdp(D, sparse=10)``'s Q (before its scaling) and the direct affinity."""
-    X = D.copy()
-    np.fill_diagonal(X, np.inf)
-    s = np.sort(X, axis=1)[:, :GRAPH_K].mean(axis=1)
-    direct = np.exp(-(D**2) / np.maximum(s[:, None] * s[None, :], 1e-300))
-    np.fill_diagonal(direct, 1.0)
-    direct = (direct + direct.T) / 2
-    graph = np.zeros_like(D)
-    np.put_along_axis(graph, np.argsort(X, axis=1, kind="stable")[:, :GRAPH_K], 1.0, axis=1)
-    graph = np.maximum(graph, graph.T)
-    np.fill_diagonal(graph, 1.0)
-    P = direct * graph
-    P /= P.sum(axis=1, keepdims=True)
-    keep = np.argsort(-P, axis=1)[:, :KEEP]
-    Pk = np.zeros_like(P)
-    np.put_along_axis(Pk, keep, np.take_along_axis(P, keep, axis=1), axis=1)
-    Pk /= Pk.sum(axis=1, keepdims=True)
-    Q = P
-    for _ in range(STEPS):
-        Q = Pk @ Q @ Pk.T
-    return Q, direct
+    return lcdp_parts(D, KEEP, GRAPH_K, STEPS, sparse=GRAPH_K)
 
 
 def foreign(data: str):
