@@ -124,33 +124,20 @@ class Browser:
 
     def click(self, selector: str) -> None:
         """Click the middle of the first element matching the CSS ``selector`` with the mouse
-        (scrolled into view first); the browser decides what is under the pointer. Pressed
-        again until the element has seen the click: on a loaded machine the page can still
-        be laying out when it reports itself loaded, and a click computed before that lands
-        elsewhere (a heading clicked in CI did not sort)."""
-        found = json.dumps(selector)
-        deadline = time.monotonic() + self.timeout
-        while True:
-            box = self.evaluate(
-                f"(function(){{var e=document.querySelector({found});if(!e)return null;"
-                "window.__devtoolsClicked=false;"
-                "e.addEventListener('click',function(){window.__devtoolsClicked=true},{once:true,capture:true});"
-                "e.scrollIntoView({block:'center'});var r=e.getBoundingClientRect();"
-                "return [r.left+r.width/2, r.top+r.height/2]})()"
-            )
-            if box is None:
-                raise DevToolsError(f"no element matches {selector!r}")
-            x, y = box
-            for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
-                event = {"type": kind, "x": x, "y": y, "button": "left" if kind != "mouseMoved" else "none"}
-                if kind != "mouseMoved":
-                    event["clickCount"] = 1
-                self.send("Input.dispatchMouseEvent", event)
-            if self.evaluate("window.__devtoolsClicked"):
-                return
-            if time.monotonic() > deadline:
-                raise DevToolsError(f"a click at the middle of {selector!r} ({x}, {y}) did not reach it")
-            time.sleep(0.05)
+        (scrolled into view first); the browser decides what is under the pointer."""
+        box = self.evaluate(
+            f"(function(){{var e=document.querySelector({json.dumps(selector)});if(!e)return null;"
+            "e.scrollIntoView({block:'center'});var r=e.getBoundingClientRect();"
+            "return [r.left+r.width/2, r.top+r.height/2]})()"
+        )
+        if box is None:
+            raise DevToolsError(f"no element matches {selector!r}")
+        x, y = box
+        for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
+            event = {"type": kind, "x": x, "y": y, "button": "left" if kind != "mouseMoved" else "none"}
+            if kind != "mouseMoved":
+                event["clickCount"] = 1
+            self.send("Input.dispatchMouseEvent", event)
 
     def type_text(self, text: str) -> None:
         """Type ``text`` into the focused element, as a keyboard would (the page sees input events)."""
