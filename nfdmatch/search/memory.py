@@ -75,11 +75,7 @@ class MemoryIndex(SearchFace):
         }
         self._rows = {
             "coefficients": batch.coefficients,
-            # no curves: (0, width) already (numpy infers no -1 from 0 values)
-            **{
-                f"inv_{k}": v.reshape(len(curves), -1) if len(curves) else v
-                for k, v in invariants(batch.coefficients).items()
-            },
+            **{f"inv_{k}": v for k, v in invariants(batch.coefficients).items()},  # (N, width) each
         }
         self.n_curves = len(curves)
         #: None: every row in one cell; else cells of about this many rows (as an index file)
