@@ -94,7 +94,8 @@ def signature(C, phase, offsets, oriented_area, basis_re, basis_im, points, tang
                 there = lo + step if part == 0 else lo + step - n
                 count = hi - lo
                 x0, y0, z0 = points[0, lo:hi], points[1, lo:hi], points[2, lo:hi]
-                x1, y1, z1 = points[0, there:there + count], points[1, there:there + count], points[2, there:there + count]
+                end = there + count
+                x1, y1, z1 = points[0, there:end], points[1, there:end], points[2, there:end]
                 along_part = along_row[lo:hi]
                 across_part = across_row[lo:hi]
                 if oriented:
