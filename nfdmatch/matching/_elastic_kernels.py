@@ -161,7 +161,7 @@ def banded_dtw(a, b, band, cost, total):
         part[:] = 0.0
         for f in range(F):
             here = a[f, lo:hi]
-            there = b[f, lo + shift:hi + shift]
+            there = b[f, lo + shift : hi + shift]
             for i in range(hi - lo):
                 part[i] += abs(here[i] - there[i])
     for i in range(n):
