@@ -98,26 +98,21 @@ def signature(C, phase, offsets, oriented_area, basis_re, basis_im, points, tang
                 x1, y1, z1 = points[0, there:end], points[1, there:end], points[2, there:end]
                 along_part = along_row[lo:hi]
                 across_part = across_row[lo:hi]
-                if oriented:
-                    f3, f4, f5 = frame[3, lo:hi], frame[4, lo:hi], frame[5, lo:hi]
-                    for i in range(count):
-                        x = x1[i] - x0[i]
-                        y = y1[i] - y0[i]
-                        z = z1[i] - z0[i]
-                        chord = np.sqrt(x * x + y * y + z * z)
-                        inverse = 1.0 / chord if chord > 0.0 else 0.0
-                        along_part[i] = (x * f3[i] + y * f4[i] + z * f5[i]) * inverse
+                # the chord along l (oriented) or, without a plane, its part off the tangent
+                first = 3 if oriented else 0
+                fx, fy, fz = frame[first, lo:hi], frame[first + 1, lo:hi], frame[first + 2, lo:hi]
+                for i in range(count):
+                    x = x1[i] - x0[i]
+                    y = y1[i] - y0[i]
+                    z = z1[i] - z0[i]
+                    chord = np.sqrt(x * x + y * y + z * z)
+                    inverse = 1.0 / chord if chord > 0.0 else 0.0
+                    dot = x * fx[i] + y * fy[i] + z * fz[i]
+                    if oriented:
+                        along_part[i] = dot * inverse
                         across_part[i] = (x * a0 + y * a1 + z * a2) * inverse
-                else:
-                    f0, f1, f2 = frame[0, lo:hi], frame[1, lo:hi], frame[2, lo:hi]
-                    for i in range(count):
-                        x = x1[i] - x0[i]
-                        y = y1[i] - y0[i]
-                        z = z1[i] - z0[i]
-                        chord = np.sqrt(x * x + y * y + z * z)
-                        inverse = 1.0 / chord if chord > 0.0 else 0.0
-                        projected = x * f0[i] + y * f1[i] + z * f2[i]
-                        rest = chord * chord - projected * projected
+                    else:
+                        rest = chord * chord - dot * dot
                         along_part[i] = np.sqrt(rest if rest > 0.0 else 0.0) * inverse
                         across_part[i] = 0.0
     for i in range(n):
