@@ -137,6 +137,36 @@ def test_pairs_new_on_an_index_without_the_record_is_a_clean_error(library):
     assert err.startswith("Error: ") and "--rebuild" in err
 
 
+@pytest.mark.parametrize(
+    "damage",
+    ["text", "float", "outside", "no rows", "a dataset"],
+)
+def test_a_malformed_changes_record_is_found_by_verify_and_refused_by_pairs_new(library, damage):
+    import h5py
+
+    _, index = library
+    with h5py.File(index, "a") as f:
+        rows = f["changes/rows"][...]
+        if damage == "a dataset":
+            del f["changes"]
+            f["changes"] = np.zeros(3)
+        else:
+            del f["changes/rows"]
+            if damage != "no rows":
+                value = {
+                    "text": rows.astype("S8"),
+                    "float": rows.astype(float),
+                    "outside": rows + 10_000,
+                }[damage]
+                f["changes/rows"] = value
+    code, out, err = run("index", "verify", "--index", index)
+    assert code == 1 and "/changes" in out and err.startswith("Error: ")
+    code, out, err = run("pairs", "--index", index, "--max-distance", "0.1", "--new")
+    assert code == 2 and out == ""
+    assert err.startswith("Error: ") and "corrupted nfdmatch index: /changes" in err
+    assert "Traceback" not in err
+
+
 def test_pairs_usage_errors(library, tmp_path):
     _, index = library
     code, out, err = run("pairs", "--index", index)

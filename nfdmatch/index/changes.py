@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
     from .reader import Index
 
-__all__ = ["write_changes", "read_changes"]
+__all__ = ["write_changes", "read_changes", "changes_rows", "changes_problem"]
 
 
 def write_changes(h5: h5py.File, runs: list[tuple[int, int]]) -> None:
@@ -39,22 +39,50 @@ def write_changes(h5: h5py.File, runs: list[tuple[int, int]]) -> None:
     create_checked(g, "rows", np.asarray(merged, dtype=np.int64).reshape(-1, 2), np.int64)
 
 
+def changes_rows(h5: h5py.File) -> np.ndarray | None:
+    """``/changes/rows`` of an open file as stored (any shape and type: :func:`changes_problem`
+    checks them), None when the file has no ``/changes``. Raises ValueError (what is wrong)
+    when ``/changes`` is not a group holding that dataset; h5py's OSError when unreadable."""
+    import h5py
+
+    g = h5.get("changes")
+    if g is None:
+        return None
+    if not isinstance(g, h5py.Group) or not isinstance(g.get("rows"), h5py.Dataset):
+        raise ValueError("/changes is not a group holding the dataset rows")
+    return np.asarray(g["rows"][...])
+
+
+def changes_problem(runs: np.ndarray, n_curves: int) -> str | None:
+    """What is wrong with ``/changes/rows`` as read (``runs``) for an index of ``n_curves``
+    rows, or None: it must be (R, 2) integer ``[start, stop)`` ranges within 0..N."""
+    if runs.ndim != 2 or runs.shape[1] != 2 or not np.issubdtype(runs.dtype, np.integer):
+        return f"/changes/rows is {runs.shape} of {runs.dtype}, not (R, 2) integer ranges"
+    if len(runs) and (runs.min() < 0 or runs.max() > n_curves or (runs[:, 1] < runs[:, 0]).any()):
+        return f"/changes/rows does not match /curves: a range outside 0..{n_curves}"
+    return None
+
+
 def read_changes(index: Index) -> NDArray[np.int64] | None:
     """The rows (int64, ascending) that the build which wrote an open
     :class:`~nfdmatch.index.Index` added or recomputed; None when the index does not record
     them. Raises IndexFormatError when the group is there but malformed."""
     h5 = index._h5
-    if h5 is None or "changes" not in h5 or "rows" not in h5["changes"]:
+    if h5 is None:
         return None
-    runs = index._read(lambda: np.asarray(h5["changes"]["rows"][...]), "/changes")
-    N = index.n_curves
-    if (
-        runs.ndim != 2
-        or runs.shape[1] != 2
-        or not np.issubdtype(runs.dtype, np.integer)
-        or (len(runs) and (runs.min() < 0 or runs.max() > N or (runs[:, 1] < runs[:, 0]).any()))
-    ):
-        raise IndexFormatError("corrupted nfdmatch index: /changes/rows does not match /curves", path=index.path)
+
+    def read():
+        try:
+            return changes_rows(h5), None
+        except ValueError as exc:  # malformed, as distinct from unreadable (index._read's)
+            return None, str(exc)
+
+    runs, problem = index._read(read, "/changes")
+    if runs is None and problem is None:
+        return None
+    problem = problem or changes_problem(runs, index.n_curves)
+    if problem:
+        raise IndexFormatError(f"corrupted nfdmatch index: {problem}", path=index.path)
     if not len(runs):
         return np.zeros(0, dtype=np.int64)
     return np.unique(np.concatenate([np.arange(a, b, dtype=np.int64) for a, b in runs]))

@@ -23,6 +23,7 @@ from ..errors import IndexFormatError
 from ..search.bounds import feature_split, squared_norms
 from ..matching import invariants
 from ..matching.statistics import curve_statistics
+from .changes import changes_problem, changes_rows
 from .graph import GRAPH_CHECKSUMS, NEIGHBOUR_PROBLEMS, group_distance, list_problems, reverse_of
 from .objects_group import read_objects
 from .paths import curve_ids
@@ -159,6 +160,7 @@ def verify_index(path: str | os.PathLike[str]) -> VerifyReport:
         _verify(h5, meta, files, report)
         _verify_graph(h5, meta, report)
         _verify_objects(h5, meta, report)
+        _verify_changes(h5, meta, report)
     finally:
         h5.close()
     return report
@@ -437,6 +439,24 @@ def _check_cells(values, row, split: int, report) -> None:
                     f"cells with members outside their radius (positions {_rows_text(bad)})",
                 )
             )
+
+
+# --------------------------------------------------------------------------- /changes
+
+
+def _verify_changes(h5, meta, report) -> None:
+    """``/changes``, when the index has it: the checks ``pairs --new`` makes of it."""
+    try:
+        runs = changes_rows(h5)
+    except ValueError as exc:
+        report.findings.append(Finding("/changes", "", str(exc).removeprefix("/changes ")))
+        return
+    except (OSError, TypeError) as exc:
+        report.findings.append(Finding("/changes/rows", "", _unreadable(exc)))
+        return
+    problem = None if runs is None else changes_problem(runs, meta["n_curves"])
+    if problem:
+        report.findings.append(Finding("/changes/rows", "", problem.removeprefix("/changes/rows ")))
 
 
 # --------------------------------------------------------------------------- /objects
