@@ -558,3 +558,30 @@ def test_list_file_is_not_written_when_a_mesh_failed(meshes, tmp_path):
         "extract", meshes / "cylinder.stl", bad, "-o", tmp_path / "c", "--sections", 3, "--list", listing
     )
     assert code == 3 and "bad.stl" in err and not listing.exists()
+
+
+def _write_off(path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """An OFF file with every coordinate in full (float64: PLY and STL would keep float32)."""
+    lines = [f"OFF\n{len(vertices)} {len(faces)} 0\n"]
+    lines += [" ".join(repr(float(x)) for x in p) + "\n" for p in vertices]
+    lines += ["3 " + " ".join(str(int(i)) for i in f) + "\n" for f in faces]
+    path.write_text("".join(lines))
+
+
+@pytest.mark.parametrize("scale, shift", [(1e150, 0.0), (1e-9, 0.0), (1.0, 1e12)])
+def test_a_mesh_far_from_unit_size_loads_and_cuts_as_the_unit_mesh(tmp_path, scale, shift):
+    """trimesh merges vertices at an absolute 1e-8 through int64: a mesh with coordinates
+    beyond ~1e11 collapsed into a few vertices (its sections open pieces), a mesh smaller
+    than ~1e-8 into one ("every face is degenerate"). Coordinates are kept as read."""
+    from nfdmatch.mesh import load_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    unshared = sphere.vertices[sphere.faces].reshape(-1, 3) * scale + shift  # as STL: merging needed
+    path = tmp_path / "sphere.off"
+    _write_off(path, unshared, np.arange(len(unshared)).reshape(-1, 3))
+    mesh = load_mesh(path)
+    assert (len(mesh.vertices), len(mesh.faces)) == (len(sphere.vertices), len(sphere.faces))
+    assert mesh.is_watertight
+    assert {tuple(p) for p in np.asarray(mesh.vertices)} == {tuple(p) for p in unshared}
+    result = extract_contours(path, sections=5)
+    assert len(result.contours) == 5 and result.notes == []
