@@ -585,3 +585,30 @@ def test_a_mesh_far_from_unit_size_loads_and_cuts_as_the_unit_mesh(tmp_path, sca
     assert {tuple(p) for p in np.asarray(mesh.vertices)} == {tuple(p) for p in unshared}
     result = extract_contours(path, sections=5)
     assert len(result.contours) == 5 and result.notes == []
+
+
+def test_a_mesh_near_1e210_gives_the_unit_mesh_contours_scaled_without_warnings(tmp_path):
+    """Loop perimeters (ordering) and signed areas (orientation) are squares of the
+    coordinates: beyond ~1e154 they overflowed, with numpy's RuntimeWarnings on stderr,
+    every perimeter infinite (loops ordered by position, not size) and the orientation
+    left as it came (the signed area NaN)."""
+    import warnings
+
+    small = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    big = trimesh.creation.icosphere(subdivisions=2, radius=2.0)
+    small.apply_translation([-3, 0, 0])
+    big.apply_translation([3, 0, 0])
+    big.invert()  # its faces wound inwards: its sections come clockwise
+    both = trimesh.util.concatenate([small, big])
+    scale = 2.0**700
+    for name, s in (("unit.off", 1.0), ("huge.off", scale)):
+        _write_off(tmp_path / name, np.asarray(both.vertices) * s, both.faces)
+    ref = extract_contours(tmp_path / "unit.off", sections=1, axis="z")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = extract_contours(tmp_path / "huge.off", sections=1, axis="z")
+    assert len(ref.contours) == len(result.contours) == 2 and result.notes == ref.notes == []
+    assert ref.contours[0].points[:, 0].min() > 0  # the big sphere's loop first
+    for mine, theirs in zip(result.contours, ref.contours):
+        np.testing.assert_array_equal(mine.points, theirs.points * scale)
+        assert signed_area(theirs.points, 2) > 0
