@@ -416,3 +416,28 @@ def test_an_object_whose_area_float64_cannot_hold_is_a_clear_error(scale, words)
     with pytest.raises(MeshError, match=f"cannot be stored: coordinates {words}") as info:
         cut_object(scaled, name="cone.off")
     assert str(info.value).startswith("cone.off: its surface area")
+
+
+def test_cli_a_partial_mesh_query_writes_no_output_file_and_lists_its_failures(parts, tmp_path):
+    """As for curves (README, exit 3): `-o` is not written, and the JSON failure record lists
+    the meshes that could not be read (it said `"failed": []` and `-o` was written)."""
+    index = str(tmp_path / "parts.h5")
+    runner = CliRunner()
+    assert runner.invoke(main, ["index", "build", str(parts), "--index", index, "-j", "1"]).exit_code == 0
+    bad = tmp_path / "bad.stl"
+    bad.write_text("solid x\nnonsense\n")
+    out = tmp_path / "answers.csv"
+    result = runner.invoke(main, ["query", str(parts / "torus.ply"), str(bad), "--index", index, "-o", str(out)])
+    assert result.exit_code == 3 and not out.exists(), result.output
+    assert f"{out} not written" in result.stderr
+    for fmt in ("jsonl", "json"):
+        args = ["query", str(bad), str(parts / "torus.ply"), "--index", index, "--top", "1", "--format", fmt]
+        result = runner.invoke(main, args)
+        assert result.exit_code == 3, result.output
+        if fmt == "jsonl":
+            *rows, last = [json.loads(line) for line in result.stdout.splitlines()]
+            assert [r["match"] for r in rows] == ["parts/torus.ply"]
+            assert last["exit"] == 3 and [f["input"] for f in last["failed"]] == [str(bad)]
+            assert last["failed"][0]["error"].startswith("not a triangle mesh")
+    result = runner.invoke(main, ["query", str(bad), "--index", index, "--format", "jsonl"])
+    assert result.exit_code == 2 and [f["input"] for f in json.loads(result.stdout)["failed"]] == [str(bad)]

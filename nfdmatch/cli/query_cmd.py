@@ -11,6 +11,7 @@ from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
     query_batch_options,
+    count_failures,
     note,
     error,
     finish,
@@ -213,6 +214,7 @@ def _query_objects(
     )  # fmt: skip
     for _, exc in failures:
         error(exc)
+    count_failures(len(failures), [exc for _, exc in failures])  # -o is not written; JSON lists them
     if len(failures) == len(meshes):
         raise NothingRead()
     spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
