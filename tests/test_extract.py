@@ -612,3 +612,21 @@ def test_a_mesh_near_1e210_gives_the_unit_mesh_contours_scaled_without_warnings(
     for mine, theirs in zip(result.contours, ref.contours):
         np.testing.assert_array_equal(mine.points, theirs.points * scale)
         assert signed_area(theirs.points, 2) > 0
+
+
+@pytest.mark.parametrize("fmt", ["json", "jsonl"])
+def test_cli_an_extract_that_writes_nothing_says_so_in_json(bad_files, tmp_path, fmt):
+    """README: with --format json or jsonl a command that cannot answer writes one JSON
+    object on stdout (a cron log of JSON lines gets a line from every run); extract's exit 2
+    wrote nothing on stdout."""
+    path = bad_files["text"][0]
+    code, out, err = run("extract", path, "-o", tmp_path / "out", "--format", fmt)
+    assert code == 2 and f"Error: {path}: " in err
+    record = json.loads(out)
+    assert record["exit"] == 2 and [f["input"] for f in record["failed"]] == [str(path)]
+    triangle = tmp_path / "triangle.off"
+    triangle.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")  # its sections are open pieces
+    code, out, err = run("extract", triangle, "-o", tmp_path / "out", "--format", fmt, "-q")
+    assert code == 2 and err == "Error: no closed contour in the mesh; nothing written\n"
+    assert json.loads(out) == {"error": "no closed contour in the mesh; nothing written", "exit": 2, "failed": []}
+    assert not (tmp_path / "out").exists()

@@ -10,8 +10,8 @@ import click
 
 from ..errors import NfdError
 from .options import (
-    EXIT_ERROR,
     EXIT_PARTIAL,
+    NothingRead,
     ROW_FORMATS,
     count_failures,
     detail,
@@ -126,7 +126,7 @@ def extract(
       nfdmatch extract parts/ -o contours/ --prune   # the folder then holds this run's contours
       nfdmatch index build contours/ --index parts.h5
     """
-    from ..errors import ParameterError
+    from ..errors import MeshError, ParameterError
     from ..mesh import find_mesh_files, write_contours
 
     if len(out_dir) > 1:
@@ -151,9 +151,9 @@ def extract(
         if refused:
             error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
             sys.exit(EXIT_PARTIAL)
-        if results:
-            error(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
-        sys.exit(EXIT_ERROR)
+        if results:  # Error: and, with --format json/jsonl, the JSON record (exit 2)
+            raise MeshError(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
+        raise NothingRead()  # each mesh named above
     written = write_contours(contours, out_dir, format=curve_format, force=force)
     _write_list(written, contours, list_file, list_format, output_format)
     pruned = _prune(out_dir, written, errors, refused) if prune else ""
