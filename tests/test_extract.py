@@ -630,3 +630,28 @@ def test_cli_an_extract_that_writes_nothing_says_so_in_json(bad_files, tmp_path,
     assert code == 2 and err == "Error: no closed contour in the mesh; nothing written\n"
     assert json.loads(out) == {"error": "no closed contour in the mesh; nothing written", "exit": 2, "failed": []}
     assert not (tmp_path / "out").exists()
+
+
+def test_a_gltf_that_is_not_json_or_misses_its_buffer_says_which(tmp_path):
+    """trimesh's resolver raised a bare FileNotFoundError: the messages were 'not a readable
+    triangle mesh: model.gltf' (a file that is not JSON) and '...: data.bin' (a buffer file
+    missing)."""
+    garbage = tmp_path / "garbage.gltf"
+    garbage.write_text("{not json")
+    with pytest.raises(MeshError, match=r"garbage.gltf: not a readable triangle mesh: not JSON \(Expecting"):
+        extract_contours(garbage, sections=2)
+    gltf = {
+        "asset": {"version": "2.0"},
+        "buffers": [{"uri": "data.bin", "byteLength": 36}],
+        "bufferViews": [{"buffer": 0, "byteLength": 36}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+        "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}],
+    }
+    missing = tmp_path / "part.gltf"
+    missing.write_text(json.dumps(gltf))
+    with pytest.raises(
+        MeshError, match="part.gltf: not a readable triangle mesh: a file it refers to is missing: data.bin"
+    ):
+        extract_contours(missing, sections=2)

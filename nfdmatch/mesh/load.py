@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import json
 import logging
 import os
 from collections.abc import Iterable
@@ -126,6 +127,11 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
         raise
     except MemoryError:
         raise MeshError("not a triangle mesh: out of memory while reading it", path=p) from None
+    except FileNotFoundError as exc:  # trimesh's resolver: no errno, the name it looked for
+        if isinstance(exc.__context__, json.JSONDecodeError):  # a .gltf that is not JSON
+            raise MeshError(f"not a readable triangle mesh: not JSON ({exc.__context__})", path=p) from None
+        missing = exc.filename or (exc.args[-1] if exc.args else "?")
+        raise MeshError(f"not a readable triangle mesh: a file it refers to is missing: {missing}", path=p) from None
     except Exception as exc:  # trimesh raises ValueError, KeyError, IndexError, struct.error, ...
         said = str(exc).strip() or type(exc).__name__
         raise MeshError(f"not a readable triangle mesh: {said}", path=p) from None
