@@ -441,3 +441,18 @@ def test_cli_a_partial_mesh_query_writes_no_output_file_and_lists_its_failures(p
             assert last["failed"][0]["error"].startswith("not a triangle mesh")
     result = runner.invoke(main, ["query", str(bad), "--index", index, "--format", "jsonl"])
     assert result.exit_code == 2 and [f["input"] for f in json.loads(result.stdout)["failed"]] == [str(bad)]
+
+
+def test_cli_a_query_mesh_named_twice_is_answered_once(parts, tmp_path):
+    """As a curve query's files: a mesh given twice (however its path is spelled, or also
+    found in a folder given) is one query (its rows were repeated, and it was cut twice)."""
+    index = str(tmp_path / "parts.h5")
+    runner = CliRunner()
+    assert runner.invoke(main, ["index", "build", str(parts), "--index", index, "-j", "1"]).exit_code == 0
+    torus = str(parts / "torus.ply")
+    again = os.path.join(str(parts), ".", "torus.ply")
+    args = ["query", torus, again, str(parts), "--index", index, "--top", "1", "--format", "csv"]
+    result = runner.invoke(main, args)
+    assert result.exit_code == 0, result.output
+    queries = [r["query"] for r in csv.DictReader(io.StringIO(result.stdout))]
+    assert sorted(queries) == sorted({torus, *(str(parts / n) for n in _shapes())})
