@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 import click
 
@@ -19,6 +19,7 @@ from .options import (
     finish,
     format_option,
     int_option,
+    json_failure,
     note,
     note_inputs,
     output_option,
@@ -149,8 +150,7 @@ def extract(
         count_failures(len(errors) + len(refused), errors + refused)  # exit 3 to come: --list is not written
     if not contours:
         if refused:
-            error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
-            sys.exit(EXIT_PARTIAL)
+            _exit_refused(refused, files)
         if results:  # Error: and, with --format json/jsonl, the JSON record (exit 2)
             raise MeshError(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
         raise NothingRead()  # each mesh named above
@@ -159,11 +159,19 @@ def extract(
     pruned = _prune(out_dir, written, errors, refused) if prune else ""
     meshes_with = len({c.mesh for c in contours})
     say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}{pruned}")
+    if refused and not errors:
+        _exit_refused(refused, files)
     if refused:
         error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
     finish(len(errors), len(files), "meshes")
-    if refused:
-        sys.exit(EXIT_PARTIAL)
+
+
+def _exit_refused(refused: list[OverwriteRefusedError], files: list[str]) -> NoReturn:
+    """Exit 3 for meshes refused (files in the way), with the JSON record of a partial run."""
+    message = f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)"
+    error(message)
+    json_failure(click.get_current_context(), message, EXIT_PARTIAL)
+    sys.exit(EXIT_PARTIAL)
 
 
 def _list_format(list_file: str | None, output_format: str | None) -> str | None:
