@@ -558,3 +558,100 @@ def test_list_file_is_not_written_when_a_mesh_failed(meshes, tmp_path):
         "extract", meshes / "cylinder.stl", bad, "-o", tmp_path / "c", "--sections", 3, "--list", listing
     )
     assert code == 3 and "bad.stl" in err and not listing.exists()
+
+
+def _write_off(path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """An OFF file with every coordinate in full (float64: PLY and STL would keep float32)."""
+    lines = [f"OFF\n{len(vertices)} {len(faces)} 0\n"]
+    lines += [" ".join(repr(float(x)) for x in p) + "\n" for p in vertices]
+    lines += ["3 " + " ".join(str(int(i)) for i in f) + "\n" for f in faces]
+    path.write_text("".join(lines))
+
+
+@pytest.mark.parametrize("scale, shift", [(1e150, 0.0), (1e-9, 0.0), (1.0, 1e12)])
+def test_a_mesh_far_from_unit_size_loads_and_cuts_as_the_unit_mesh(tmp_path, scale, shift):
+    """trimesh merges vertices at an absolute 1e-8 through int64: a mesh with coordinates
+    beyond ~1e11 collapsed into a few vertices (its sections open pieces), a mesh smaller
+    than ~1e-8 into one ("every face is degenerate"). Coordinates are kept as read."""
+    from nfdmatch.mesh import load_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    unshared = sphere.vertices[sphere.faces].reshape(-1, 3) * scale + shift  # as STL: merging needed
+    path = tmp_path / "sphere.off"
+    _write_off(path, unshared, np.arange(len(unshared)).reshape(-1, 3))
+    mesh = load_mesh(path)
+    assert (len(mesh.vertices), len(mesh.faces)) == (len(sphere.vertices), len(sphere.faces))
+    assert mesh.is_watertight
+    assert {tuple(p) for p in np.asarray(mesh.vertices)} == {tuple(p) for p in unshared}
+    result = extract_contours(path, sections=5)
+    assert len(result.contours) == 5 and result.notes == []
+
+
+def test_a_mesh_near_1e210_gives_the_unit_mesh_contours_scaled_without_warnings(tmp_path):
+    """Loop perimeters (ordering) and signed areas (orientation) are squares of the
+    coordinates: beyond ~1e154 they overflowed, with numpy's RuntimeWarnings on stderr,
+    every perimeter infinite (loops ordered by position, not size) and the orientation
+    left as it came (the signed area NaN)."""
+    import warnings
+
+    small = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    big = trimesh.creation.icosphere(subdivisions=2, radius=2.0)
+    small.apply_translation([-3, 0, 0])
+    big.apply_translation([3, 0, 0])
+    big.invert()  # its faces wound inwards: its sections come clockwise
+    both = trimesh.util.concatenate([small, big])
+    scale = 2.0**700
+    for name, s in (("unit.off", 1.0), ("huge.off", scale)):
+        _write_off(tmp_path / name, np.asarray(both.vertices) * s, both.faces)
+    ref = extract_contours(tmp_path / "unit.off", sections=1, axis="z")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = extract_contours(tmp_path / "huge.off", sections=1, axis="z")
+    assert len(ref.contours) == len(result.contours) == 2 and result.notes == ref.notes == []
+    assert ref.contours[0].points[:, 0].min() > 0  # the big sphere's loop first
+    for mine, theirs in zip(result.contours, ref.contours):
+        np.testing.assert_array_equal(mine.points, theirs.points * scale)
+        assert signed_area(theirs.points, 2) > 0
+
+
+@pytest.mark.parametrize("fmt", ["json", "jsonl"])
+def test_cli_an_extract_that_writes_nothing_says_so_in_json(bad_files, tmp_path, fmt):
+    """README: with --format json or jsonl a command that cannot answer writes one JSON
+    object on stdout (a cron log of JSON lines gets a line from every run); extract's exit 2
+    wrote nothing on stdout."""
+    path = bad_files["text"][0]
+    code, out, err = run("extract", path, "-o", tmp_path / "out", "--format", fmt)
+    assert code == 2 and f"Error: {path}: " in err
+    record = json.loads(out)
+    assert record["exit"] == 2 and [f["input"] for f in record["failed"]] == [str(path)]
+    triangle = tmp_path / "triangle.off"
+    triangle.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")  # its sections are open pieces
+    code, out, err = run("extract", triangle, "-o", tmp_path / "out", "--format", fmt, "-q")
+    assert code == 2 and err == "Error: no closed contour in the mesh; nothing written\n"
+    assert json.loads(out) == {"error": "no closed contour in the mesh; nothing written", "exit": 2, "failed": []}
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_gltf_that_is_not_json_or_misses_its_buffer_says_which(tmp_path):
+    """trimesh's resolver raised a bare FileNotFoundError: the messages were 'not a readable
+    triangle mesh: model.gltf' (a file that is not JSON) and '...: data.bin' (a buffer file
+    missing)."""
+    garbage = tmp_path / "garbage.gltf"
+    garbage.write_text("{not json")
+    with pytest.raises(MeshError, match=r"garbage.gltf: not a readable triangle mesh: not JSON \(Expecting"):
+        extract_contours(garbage, sections=2)
+    gltf = {
+        "asset": {"version": "2.0"},
+        "buffers": [{"uri": "data.bin", "byteLength": 36}],
+        "bufferViews": [{"buffer": 0, "byteLength": 36}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+        "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}],
+    }
+    missing = tmp_path / "part.gltf"
+    missing.write_text(json.dumps(gltf))
+    with pytest.raises(
+        MeshError, match="part.gltf: not a readable triangle mesh: a file it refers to is missing: data.bin"
+    ):
+        extract_contours(missing, sections=2)

@@ -190,3 +190,22 @@ def test_a_manifest_of_deeply_nested_brackets_is_a_note_and_extract_still_writes
     assert code == 0, err
     assert "cannot read the manifest (nested too deeply); nothing pruned by it" in err
     assert len(contours_of(out, "rod")) == 2 and len(read_manifest(out)[0]) == len(names(out)) - 1
+
+
+def test_a_partial_jsonl_run_with_a_file_in_the_way_ends_with_its_failure_record(parts, tmp_path):
+    """README: a partial jsonl run ends with the JSON record listing the failed inputs; with
+    only refused meshes (a file in the way) it ended without one, rows or none."""
+    out = tmp_path / "contours"
+    code, _, err = run("extract", parts / "rod.stl", "-o", out, "--sections", 1, "--axis", "z")
+    assert code == 0, err
+    (name,) = contours_of(out, "rod")
+    (out / name).write_text("v 0 0 0\n")
+    os.remove(out / MANIFEST)
+    for meshes, rows in (([parts / "rod.stl"], 0), ([parts / "rod.stl", parts / "ring.ply"], 2)):
+        args = ["extract", *meshes, "-o", out, "--sections", 1, "--axis", "z", "--format", "jsonl", "-q"]
+        code, stdout, err = run(*args)
+        assert code == 3 and f"1 of {len(meshes)} meshes not written" in err
+        *written, last = [json.loads(line) for line in stdout.splitlines()]
+        assert len(written) == rows and all(r["mesh"] == str(parts / "ring.ply") for r in written)
+        assert last["exit"] == 3 and [f["input"] for f in last["failed"]] == [str(out / name)]
+        assert (out / name).read_text() == "v 0 0 0\n"

@@ -364,3 +364,95 @@ def test_coarse_and_loop_bounds_never_exceed_the_object_distance(seed, n):
         exact = object_distances(query, objects, 64).distance[0]
         assert np.all(object_coarse_bounds(query, objects) <= exact + 1e-12)
         assert np.all(object_lower_bounds(query, objects)[0] <= exact + 1e-12)
+
+
+@pytest.mark.parametrize("scale", [2.0**330, 2.0**-330, 2.0**500, 2.0**-500])
+def test_an_object_far_from_unit_size_is_cut_as_the_unit_object(scale):
+    """The frame's moments are the 4th and 5th powers of the coordinates: beyond ~1e61 they
+    overflowed (a traceback, LinAlgError; numpy's warnings on stderr; or 'its area is zero'),
+    below ~1e-61 they vanished (an arbitrary frame). The cut of a mesh scaled by a power of
+    two (1e99, 1e-99, 1e150) is the unit mesh's cut, scaled, to the bit."""
+    from nfdmatch.mesh.objects import cut_object
+
+    unit = _shapes()["cone.obj"]
+    scaled = trimesh.Trimesh(np.asarray(unit.vertices) * scale, unit.faces, process=False)
+    ref, cut = cut_object(unit), cut_object(scaled)
+    assert len(cut.loops) == len(ref.loops) and cut.notes == ref.notes
+    np.testing.assert_array_equal(cut.axis, ref.axis)
+    np.testing.assert_array_equal(cut.level, ref.level)
+    np.testing.assert_array_equal(cut.measures, ref.measures)
+    np.testing.assert_array_equal(cut.profile, ref.profile)
+    np.testing.assert_array_equal(cut.frame, ref.frame * [[scale], [1], [1], [1]])
+    np.testing.assert_array_equal(cut.levels, ref.levels * scale)
+    assert cut.area == ref.area * scale**2
+    for mine, theirs in zip(cut.loops, ref.loops):
+        np.testing.assert_array_equal(mine, theirs * scale)
+
+
+def test_cli_a_huge_mesh_is_indexed_and_queried_without_traceback(parts, tmp_path):
+    unit = _shapes()["capsule.stl"]
+    big = parts / "big.off"
+    lines = [f"OFF\n{len(unit.vertices)} {len(unit.faces)} 0\n"]
+    lines += [" ".join(repr(float(x) * 1e150) for x in p) + "\n" for p in unit.vertices]
+    lines += ["3 " + " ".join(str(int(i)) for i in f) + "\n" for f in unit.faces]
+    big.write_text("".join(lines))
+    index = str(tmp_path / "parts.h5")
+    runner = CliRunner()
+    result = runner.invoke(main, ["index", "build", str(parts), "--index", index, "-j", "1"])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(main, ["query", str(big), "--index", index, "--top", "2", "--format", "csv"])
+    assert result.exit_code == 0 and result.stderr == "", result.output
+    rows = list(csv.DictReader(io.StringIO(result.stdout)))
+    assert {r["match"] for r in rows} == {"parts/big.off", "parts/capsule.stl"}
+
+
+@pytest.mark.parametrize("scale, words", [(1e300, "too large"), (1e-300, "too small")])
+def test_an_object_whose_area_float64_cannot_hold_is_a_clear_error(scale, words):
+    from nfdmatch.errors import MeshError
+    from nfdmatch.mesh.objects import cut_object
+
+    unit = _shapes()["cone.obj"]
+    scaled = trimesh.Trimesh(np.asarray(unit.vertices) * scale, unit.faces, process=False)
+    with pytest.raises(MeshError, match=f"cannot be stored: coordinates {words}") as info:
+        cut_object(scaled, name="cone.off")
+    assert str(info.value).startswith("cone.off: its surface area")
+
+
+def test_cli_a_partial_mesh_query_writes_no_output_file_and_lists_its_failures(parts, tmp_path):
+    """As for curves (README, exit 3): `-o` is not written, and the JSON failure record lists
+    the meshes that could not be read (it said `"failed": []` and `-o` was written)."""
+    index = str(tmp_path / "parts.h5")
+    runner = CliRunner()
+    assert runner.invoke(main, ["index", "build", str(parts), "--index", index, "-j", "1"]).exit_code == 0
+    bad = tmp_path / "bad.stl"
+    bad.write_text("solid x\nnonsense\n")
+    out = tmp_path / "answers.csv"
+    result = runner.invoke(main, ["query", str(parts / "torus.ply"), str(bad), "--index", index, "-o", str(out)])
+    assert result.exit_code == 3 and not out.exists(), result.output
+    assert f"{out} not written" in result.stderr
+    for fmt in ("jsonl", "json"):
+        args = ["query", str(bad), str(parts / "torus.ply"), "--index", index, "--top", "1", "--format", fmt]
+        result = runner.invoke(main, args)
+        assert result.exit_code == 3, result.output
+        if fmt == "jsonl":
+            *rows, last = [json.loads(line) for line in result.stdout.splitlines()]
+            assert [r["match"] for r in rows] == ["parts/torus.ply"]
+            assert last["exit"] == 3 and [f["input"] for f in last["failed"]] == [str(bad)]
+            assert last["failed"][0]["error"].startswith("not a triangle mesh")
+    result = runner.invoke(main, ["query", str(bad), "--index", index, "--format", "jsonl"])
+    assert result.exit_code == 2 and [f["input"] for f in json.loads(result.stdout)["failed"]] == [str(bad)]
+
+
+def test_cli_a_query_mesh_named_twice_is_answered_once(parts, tmp_path):
+    """As a curve query's files: a mesh given twice (however its path is spelled, or also
+    found in a folder given) is one query (its rows were repeated, and it was cut twice)."""
+    index = str(tmp_path / "parts.h5")
+    runner = CliRunner()
+    assert runner.invoke(main, ["index", "build", str(parts), "--index", index, "-j", "1"]).exit_code == 0
+    torus = str(parts / "torus.ply")
+    again = os.path.join(str(parts), ".", "torus.ply")
+    args = ["query", torus, again, str(parts), "--index", index, "--top", "1", "--format", "csv"]
+    result = runner.invoke(main, args)
+    assert result.exit_code == 0, result.output
+    queries = [r["query"] for r in csv.DictReader(io.StringIO(result.stdout))]
+    assert sorted(queries) == sorted({torus, *(str(parts / n) for n in _shapes())})

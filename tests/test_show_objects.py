@@ -150,3 +150,25 @@ def test_the_cli_refuses_a_mesh_query_it_cannot_draw(indexed, tmp_path):
     result = runner.invoke(main, ["show", query, "--index", curves, "-o", picture])
     assert result.exit_code == 2 and "no mesh objects" in result.stderr and "Traceback" not in result.stderr
     assert not os.path.exists(picture)
+
+
+def test_the_cli_writes_no_rows_file_when_a_query_mesh_fails(indexed, tmp_path):
+    """As `show` of curves and `query` (README, exit 3): neither the pictures nor the rows'
+    -o are written, and the JSON failure record lists the mesh (the rows file was written,
+    `"failed": []`)."""
+    import json
+
+    folder, index, query = indexed
+    bad = tmp_path / "bad.stl"
+    bad.write_text("solid x\nnonsense\n")
+    pattern, rows = str(tmp_path / "s-{stem}.png"), tmp_path / "rows.csv"
+    runner = CliRunner()
+    result = runner.invoke(main, ["show", query, str(bad), "--index", index, "-o", pattern, "-o", str(rows)])
+    assert result.exit_code == 3, result.output
+    assert not rows.exists() and f"{rows} not written" in result.stderr
+    assert not list(tmp_path.glob("s-*.png"))
+    args = ["show", query, str(bad), "--index", index, "-o", pattern, "--format", "jsonl"]
+    result = runner.invoke(main, args)
+    assert result.exit_code == 3, result.output
+    last = json.loads(result.stdout.splitlines()[-1])
+    assert last["exit"] == 3 and [f["input"] for f in last["failed"]] == [str(bad)]

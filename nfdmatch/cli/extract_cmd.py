@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 import click
 
 from ..errors import NfdError
 from .options import (
-    EXIT_ERROR,
     EXIT_PARTIAL,
+    NothingRead,
     ROW_FORMATS,
     count_failures,
     detail,
@@ -19,6 +19,7 @@ from .options import (
     finish,
     format_option,
     int_option,
+    json_failure,
     note,
     note_inputs,
     output_option,
@@ -126,7 +127,7 @@ def extract(
       nfdmatch extract parts/ -o contours/ --prune   # the folder then holds this run's contours
       nfdmatch index build contours/ --index parts.h5
     """
-    from ..errors import ParameterError
+    from ..errors import MeshError, ParameterError
     from ..mesh import find_mesh_files, write_contours
 
     if len(out_dir) > 1:
@@ -149,21 +150,28 @@ def extract(
         count_failures(len(errors) + len(refused), errors + refused)  # exit 3 to come: --list is not written
     if not contours:
         if refused:
-            error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
-            sys.exit(EXIT_PARTIAL)
-        if results:
-            error(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
-        sys.exit(EXIT_ERROR)
+            _exit_refused(refused, files)
+        if results:  # Error: and, with --format json/jsonl, the JSON record (exit 2)
+            raise MeshError(f"no closed contour in {'the mesh' if len(files) == 1 else 'any mesh'}; nothing written")
+        raise NothingRead()  # each mesh named above
     written = write_contours(contours, out_dir, format=curve_format, force=force)
     _write_list(written, contours, list_file, list_format, output_format)
     pruned = _prune(out_dir, written, errors, refused) if prune else ""
     meshes_with = len({c.mesh for c in contours})
     say(f"{len(written)} contours from {meshes_with} of {len(files)} meshes written to {out_dir}{pruned}")
+    if refused and not errors:
+        _exit_refused(refused, files)
     if refused:
         error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
     finish(len(errors), len(files), "meshes")
-    if refused:
-        sys.exit(EXIT_PARTIAL)
+
+
+def _exit_refused(refused: list[OverwriteRefusedError], files: list[str]) -> NoReturn:
+    """Exit 3 for meshes refused (files in the way), with the JSON record of a partial run."""
+    message = f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)"
+    error(message)
+    json_failure(click.get_current_context(), message, EXIT_PARTIAL)
+    sys.exit(EXIT_PARTIAL)
 
 
 def _list_format(list_file: str | None, output_format: str | None) -> str | None:

@@ -11,6 +11,7 @@ from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
 from .inputs import read_inputs
 from .options import (
     query_batch_options,
+    count_failures,
     note,
     error,
     finish,
@@ -156,20 +157,24 @@ def mesh_queries(idx: Index, queries: Iterable[str], glob: str | None, input_for
     import os
 
     from ..mesh.objects import is_mesh_file
-    from ..sources import find_curve_files
+    from ..sources import UniquePaths, find_curve_files
 
     if input_format is not None:
         return []
     has_objects = idx.object_rule() is not None
-    meshes, curves, in_folders = [], [], []
+    found, curves, in_folders = UniquePaths(), [], []  # a mesh given twice is one query
     for q in queries:
         if q != "-" and os.path.isdir(q) and has_objects:
             for f in find_curve_files([q], glob=glob, meshes=True):
-                (meshes if is_mesh_file(f) else in_folders).append(f)
+                if is_mesh_file(f):
+                    found.add(f)
+                else:
+                    in_folders.append(f)
         elif q != "-" and os.path.isfile(q) and is_mesh_file(q):
-            meshes.append(q)
+            found.add(q)
         else:
             curves.append(q)
+    meshes = found.paths
     if not meshes:
         return []
     if in_folders:
@@ -213,6 +218,7 @@ def _query_objects(
     )  # fmt: skip
     for _, exc in failures:
         error(exc)
+    count_failures(len(failures), [exc for _, exc in failures])  # -o is not written; JSON lists them
     if len(failures) == len(meshes):
         raise NothingRead()
     spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)

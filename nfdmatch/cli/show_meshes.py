@@ -9,7 +9,16 @@ from typing import TYPE_CHECKING
 
 import click
 
-from .options import NothingRead, error, finish, note, note_inputs, nothing_matched, refuse_input_as_output
+from .options import (
+    NothingRead,
+    count_failures,
+    error,
+    finish,
+    note,
+    note_inputs,
+    nothing_matched,
+    refuse_input_as_output,
+)
 from .output import path_speller, write_rows
 from .picture_files import check_pictures, not_written, picture_names, report_picture
 from .query_cmd import mesh_queries
@@ -101,6 +110,7 @@ def _drawn(
     )  # fmt: skip
     for _, exc in failures:
         error(exc)
+    count_failures(len(failures), [exc for _, exc in failures])  # -o is not written; JSON lists them
     if len(failures) == len(meshes):
         raise NothingRead()
     for message in notes:

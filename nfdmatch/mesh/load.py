@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import json
 import logging
 import os
 from collections.abc import Iterable
@@ -126,6 +127,11 @@ def load_mesh(path: str | os.PathLike[str]) -> trimesh.Trimesh:
         raise
     except MemoryError:
         raise MeshError("not a triangle mesh: out of memory while reading it", path=p) from None
+    except FileNotFoundError as exc:  # trimesh's resolver: no errno, the name it looked for
+        if isinstance(exc.__context__, json.JSONDecodeError):  # a .gltf that is not JSON
+            raise MeshError(f"not a readable triangle mesh: not JSON ({exc.__context__})", path=p) from None
+        missing = exc.filename or (exc.args[-1] if exc.args else "?")
+        raise MeshError(f"not a readable triangle mesh: a file it refers to is missing: {missing}", path=p) from None
     except Exception as exc:  # trimesh raises ValueError, KeyError, IndexError, struct.error, ...
         said = str(exc).strip() or type(exc).__name__
         raise MeshError(f"not a readable triangle mesh: {said}", path=p) from None
@@ -165,9 +171,12 @@ def _merged_mesh(parts, p: str):
     finite = np.isfinite(vertices).all(axis=1)
     usable = finite[faces].all(axis=1)
     faces = faces[usable]
+    scale = _merge_scale(vertices[faces])
     try:
         with np.errstate(all="ignore"):
-            mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=True, validate=False)
+            mesh = trimesh.Trimesh(vertices=vertices * scale, faces=faces, process=True, validate=False)
+            if scale != 1.0:  # a power of two: exact both ways
+                mesh.vertices = np.asarray(mesh.vertices) / scale
     except Exception as exc:
         raise MeshError(f"not a usable triangle mesh: {exc}", path=p) from None
     f = np.asarray(mesh.faces, dtype=np.int64)
@@ -179,6 +188,23 @@ def _merged_mesh(parts, p: str):
             "not a usable triangle mesh: every face is degenerate (repeated or non-finite vertices)", path=p
         )
     return mesh
+
+
+#: trimesh merges coincident vertices rounded to 1e-8 as int64: absolute, and overflowing
+#: beyond ~9e10. A mesh whose largest coordinate is outside this range is merged scaled by a
+#: power of two (exact): the large ones to just inside it, the small ones to [1, 2).
+_MERGE_RANGE = (2.0**-10, 2.0**36)
+
+
+def _merge_scale(corners: np.ndarray) -> float:
+    """The power of two the vertices (the faces' ``corners``) are merged scaled by: 1.0
+    when their largest coordinate is within :data:`_MERGE_RANGE`."""
+    largest = float(np.abs(corners).max()) if corners.size else 0.0
+    lo, hi = _MERGE_RANGE
+    if largest == 0.0 or lo <= largest <= hi:
+        return 1.0
+    exponent = int(np.frexp(largest)[1])  # largest = m 2^exponent, 0.5 <= m < 1
+    return float(np.ldexp(1.0, (36 if largest > hi else 1) - exponent))
 
 
 def _has_obj_lines(path: str) -> bool:

@@ -142,12 +142,26 @@ def is_mesh_file(path: str) -> bool:
         return False
 
 
-def _triangles(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+#: an object whose extent is outside this range is cut scaled by a power of two (exact): the
+#: frame's moments are the 4th and 5th powers of the coordinates and overflow (or vanish)
+#: beyond ~1e61 (below ~1e-61)
+_CUT_RANGE = (2.0**-100, 2.0**100)
+
+
+def _triangles(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The vertices (scaled), faces, the triangles' areas (scaled) and the power of two
+    the vertices were scaled by (1.0 unless the extent is outside :data:`_CUT_RANGE`)."""
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     tri = vertices[faces]
+    scale = 1.0
+    if tri.size:
+        extent = float((tri.max(axis=(0, 1)) - tri.min(axis=(0, 1))).max())
+        if extent > 0 and not _CUT_RANGE[0] <= extent <= _CUT_RANGE[1]:
+            scale = float(np.ldexp(1.0, -int(np.frexp(extent)[1])))  # extent in [0.5, 1)
+            vertices, tri = vertices * scale, tri * scale
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    return vertices, faces, area
+    return vertices, faces, area, scale
 
 
 def principal_frame(tri: np.ndarray, area: np.ndarray) -> np.ndarray:
@@ -281,18 +295,27 @@ def cut_object(
         mesh = load_mesh(mesh)
     else:
         where = name or "<mesh>"
-    vertices, faces, tri_area = _triangles(mesh)
+    vertices, faces, tri_area, scale = _triangles(mesh)  # computed scaled; results unscaled
     try:
         frame = principal_frame(vertices[faces], tri_area)
     except MeshError as exc:
         raise MeshError(exc.message, path=where) from None
     total = float(tri_area.sum())
+    area = total / scale / scale  # scale**2 itself may be out of range
+    if not (np.isfinite(area) and area > 0):
+        raise MeshError(
+            f"its surface area ({'above' if area > 0 else 'below'} float64's range) cannot be stored: "
+            f"coordinates too {'large' if area > 0 else 'small'}",
+            path=where,
+        )
     centroid, axes = frame[0], frame[1:]
     local = (vertices - centroid) @ axes.T  # the frame's coordinates
     edges = np.asarray(mesh.edges_unique, dtype=np.int64)
     face_edges = np.asarray(mesh.faces_unique_edges, dtype=np.int64)
     N = rule.sections
-    cut = ObjectCut(mesh=where, rule=rule, area=total, frame=frame, levels=np.zeros((3, N)))
+    cut = ObjectCut(
+        mesh=where, rule=rule, area=area, frame=np.vstack([centroid / scale, axes]), levels=np.zeros((3, N))
+    )
     loops, axis_of, level_of, measures = [], [], [], []
     profile = np.zeros((3, N, len(PROFILE_FEATURES)))
     notes: list[str] = []
@@ -300,14 +323,14 @@ def cut_object(
         height = local[:, a]
         face_h = height[faces]
         levels = area_quantile_levels(face_h, tri_area, N)
-        cut.levels[a] = levels
+        cut.levels[a] = levels / scale
         face_lo, face_hi = face_h.min(axis=1), face_h.max(axis=1)
         for i, t in enumerate(levels.tolist()):
             found = section_loops(local, faces, edges, face_edges, face_lo, face_hi, a, t, where, notes)
             kept = [c for c in found if len(c) >= rule.min_vertices]
             for k, c in enumerate(kept):
                 perimeter, rel_area, elongation, log_rel = _loop_measures(c, a, total)
-                loops.append(c @ axes + centroid)
+                loops.append((c @ axes + centroid) / scale)
                 axis_of.append(a)
                 level_of.append(i)
                 measures.append((log_rel, rel_area, elongation))
@@ -320,7 +343,7 @@ def cut_object(
         for c in boundary_loops(mesh, f"{where}: boundary", notes):
             if len(c) < rule.min_vertices:
                 continue
-            _, rel_area, elongation, log_rel = _loop_measures((c - centroid) @ axes.T, None, total)
+            _, rel_area, elongation, log_rel = _loop_measures((c * scale - centroid) @ axes.T, None, total)
             loops.append(np.array(c))
             axis_of.append(BOUNDARY_AXIS)
             level_of.append(0)

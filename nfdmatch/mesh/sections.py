@@ -230,7 +230,8 @@ def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str, notes
             f"{where}: {degenerate} degenerate loop{'s' if degenerate != 1 else ''} "
             "skipped (fewer than 3 distinct points)"
         )
-    lengths = [float(np.linalg.norm(np.diff(c, axis=0, append=c[:1]), axis=1).sum()) for c in out]
+    unit = _unit_scale(points)  # exact: beyond ~1e154 the squares would overflow
+    lengths = [float(np.linalg.norm(np.diff(c * unit, axis=0, append=c[:1] * unit), axis=1).sum()) for c in out]
     order = sorted(range(len(out)), key=lambda k: (-lengths[k], tuple(out[k].min(axis=0))))
     result = [out[k] for k in order]
     for c in result:
@@ -238,12 +239,22 @@ def _loops_to_points(segments: np.ndarray, points: np.ndarray, where: str, notes
     return result
 
 
+def _unit_scale(points: np.ndarray) -> float:
+    """The power of two that brings the largest finite coordinate of ``points`` into [0.5, 1)
+    (1.0 for none): scaling by it is exact, so lengths and areas compared after it compare
+    as the true ones do, without overflow."""
+    finite = np.abs(points[np.isfinite(points)])
+    largest = float(finite.max()) if finite.size else 0.0
+    return float(np.ldexp(1.0, -int(np.frexp(largest)[1]))) if largest > 0 else 1.0
+
+
 def _orient_ccw(loops: list[np.ndarray], a: int) -> list[np.ndarray]:
     """Reverse the loops that run clockwise seen from the positive end of axis ``a``."""
     i, j = (a + 1) % 3, (a + 2) % 3  # right-handed in-plane coordinates
     out = []
     for c in loops:
-        x, y = c[:, i], c[:, j]
+        unit = _unit_scale(c)  # exact: beyond ~1e154 the products would overflow
+        x, y = c[:, i] * unit, c[:, j] * unit
         area2 = float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
         if area2 < 0:
             c = c[::-1].copy()
