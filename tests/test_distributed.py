@@ -369,6 +369,33 @@ def test_an_unreachable_scheduler_is_an_error_after_the_timeout_not_a_hang(libra
     assert code == 2 and "--scheduler-timeout" in err
 
 
+def test_a_malformed_scheduler_address_is_one_line_and_no_traceback_at_exit(library, tmp_path):
+    # Dask's Client fails in its constructor without closing itself (an address without a
+    # port; a peer that answers garbage): its __del__ at interpreter exit then timed out on
+    # a stopped event loop and printed "Exception ignored in: Client.__del__" and a traceback
+    import subprocess
+
+    index = tmp_path / "i.h5"
+    build_index([str(library[0] / "single-0.csv"), str(library[0] / "single-1.csv")], str(index), jobs=1)
+    started = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-m", "nfdmatch", "pairs", "--index", str(index), "--max-distance", "0.1"]
+        + ["--scheduler", "no-port-here", "--scheduler-timeout", "1"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.startswith("Error: cannot reach the Dask scheduler at no-port-here")
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert time.monotonic() - started < 20  # not the 2 x timeout of a close on a dead loop
+    with pytest.raises(ClusterError, match="cannot reach the Dask scheduler at no-port-here"):
+        connect("no-port-here", 1)
+    from distributed import Client
+
+    assert not [c for c in list(Client._instances) if c.status not in ("closed", "running")]
+
+
 def test_bad_local_cluster_size_is_an_error(tmp_path, library):
     code, out, err = run("index", "build", library[0], "--index", tmp_path / "i.h5", "--scheduler", "local:zero")
     assert code == 2 and "local:N needs a number of workers N >= 1" in err and "Traceback" not in err

@@ -21,6 +21,24 @@ def _import_distributed():
     return distributed
 
 
+def _close_half_built(exc: BaseException, client_class: Any) -> None:
+    """Close the Client whose constructor raised ``exc``, now, while its event loop runs.
+
+    Dask closes it itself only on OSError; after another error (an address without a
+    port, a peer answering garbage) it stays "connecting", and its ``__del__`` at
+    interpreter exit waited on the stopped loop, then printed a traceback."""
+    tb = exc.__traceback__
+    while tb is not None:
+        half = tb.tb_frame.f_locals.get("self")
+        if isinstance(half, client_class):
+            try:
+                half.close(timeout=1)
+            except Exception:
+                pass
+            return
+        tb = tb.tb_next
+
+
 # --------------------------------------------------------------------------- connecting
 
 
@@ -102,6 +120,7 @@ def connect(scheduler: Any, timeout: float = DEFAULT_TIMEOUT) -> Cluster:
         try:
             client = Client(target, timeout=timeout, set_as_default=False)
         except Exception as exc:  # OSError / TimeoutError: nothing listening, wrong host
+            _close_half_built(exc, Client)
             if owned_cluster is not None:
                 owned_cluster.close()
             raise ClusterError(
