@@ -101,6 +101,8 @@ def test_reconstruct_multi_curve_file_points_and_normalized(folder, tmp_path):
 def test_reconstruct_errors(folder, tmp_path):
     code, out, err = run("reconstruct", folder / "other.vtp", "-k", 4, "-o", tmp_path / "x.csv")
     assert code == 2 and out == "" and "x.csv" in err and "exactly one curve" in err
+    # named as given, not as the temporary file the curves are written to first
+    assert err.startswith(f"Error: {tmp_path / 'x.csv'}: a CSV file holds exactly one curve") and ".tmp" not in err
     code, out, err = run("reconstruct", folder / "missing.csv", "-k", 4, "-o", tmp_path / "y.csv")
     assert code == 2 and "missing.csv" in err and "Traceback" not in err
     code, out, err = run("reconstruct", folder / "knot.csv", "-k", 70, "-n", 128, "-o", tmp_path / "z.csv")

@@ -300,8 +300,17 @@ def reconstruct(
         note_inputs([path])
     refuse_input_as_output(output)
     rebuilt = reconstruct_curves(curves, harmonics=harmonics, samples=samples, points=points, normalized=normalized)
+
+    def produce(temp: str) -> None:
+        try:
+            write_curves(temp, [r.curve for r in rebuilt], format=curve_format)
+        except NfdError as exc:  # named as OUT, not the temporary file beside it
+            if exc.path != str(temp):
+                raise
+            raise type(exc)(exc.message, path=output, line=exc.line, curve=exc.curve) from None
+
     try:
-        write_file(output, lambda temp: write_curves(temp, [r.curve for r in rebuilt], format=curve_format))
+        write_file(output, produce)
     except OSError as exc:
         if isinstance(exc, NfdError):
             raise
