@@ -242,3 +242,38 @@ def test_groups_chain_into_one_by_single_linkage(tmp_path, rng):
         ("c1", 1, 3, "c1"),
         ("c2", 1, 3, "c1"),
     ]
+
+
+def test_pairs_and_groups_write_file_names_not_the_index_ids(tmp_path, rng):
+    # an id is a file's name encoded (a backslash doubled, a byte that is not UTF-8 as \xNN):
+    # every column naming a curve (a, b, id, representative, members) writes the name itself,
+    # as query does: raw bytes in CSV, \udcNN in JSON
+    from click.testing import CliRunner
+
+    from nfdmatch.cli import main
+
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    pts = smooth_curve_samplings(rng, [80], n_harmonics=4)[0]
+    names = [b"back\\slash.csv", b"c\xff.csv", b"plain.csv"]
+    for name in names:
+        write_curves(os.path.join(str(folder), os.fsdecode(name)), pts)
+    index = tmp_path / "lib.h5"
+    build_index([folder], index, jobs=1)
+    expected = sorted(b"lib/" + name for name in names)  # ids relative to the index's folder
+
+    def stdout_of(*args):
+        result = CliRunner().invoke(main, [*args, "--index", str(index), "--max-distance", "0.01"])
+        assert result.exit_code == 0, result.stderr
+        return result.stdout_bytes
+
+    rows = stdout_of("pairs", "--format", "csv").splitlines()[1:]
+    assert sorted({field for row in rows for field in row.split(b",")[:2]}) == expected
+    rows = stdout_of("groups", "--format", "csv").splitlines()[1:]
+    assert sorted(row.split(b",")[0] for row in rows) == expected
+    assert {row.split(b",")[3] for row in rows} <= set(expected)
+    (group,) = json.loads(stdout_of("groups", "--format", "json"))
+    assert sorted(os.fsencode(m) for m in group["members"]) == expected
+    assert os.fsencode(group["representative"]) in expected
+    pairs = [json.loads(line) for line in stdout_of("pairs", "--format", "jsonl").splitlines()]
+    assert sorted({os.fsencode(p[c]) for p in pairs for c in "ab"}) == expected

@@ -100,7 +100,11 @@ def pairs(join: SelfJoin, new_only: bool, output_format: str | None, output: str
     found, stats = _joined(index_pairs, "pairs", join, new=new_only)
     _work(stats, f"{len(found)} pairs")
     write_rows(
-        [{"a": p.a, "b": p.b, "distance": p.distance} for p in found], ["a", "b", "distance"], output_format, output
+        [{"a": p.a, "b": p.b, "distance": p.distance} for p in found],
+        ["a", "b", "distance"],
+        output_format,
+        output,
+        names=("a", "b"),
     )
     nothing_matched(len(found), f"no pair at most {join.max_distance} apart")
 
@@ -130,12 +134,15 @@ def groups(join: SelfJoin, min_size: int, output_format: str | None, output: str
     members, stats = _joined(index_groups, "groups", join, min_size=min_size)
     _work(stats, f"{len({m.group for m in members})} groups")
     if resolve_format(output_format, output) == "json":
+        from ..names import decode_name  # the file names the ids encode, as write_rows writes them
+
         listed: dict[int, dict] = {}
         for m in members:
             g = listed.setdefault(
-                m.group, {"group": m.group, "size": m.size, "representative": m.representative, "members": []}
+                m.group,
+                {"group": m.group, "size": m.size, "representative": decode_name(m.representative), "members": []},
             )
-            g["members"].append(m.id)
+            g["members"].append(decode_name(m.id))
         deliver(json.dumps(list(listed.values()), indent=2) + "\n", output)
     else:
         write_rows(
@@ -143,6 +150,7 @@ def groups(join: SelfJoin, min_size: int, output_format: str | None, output: str
             ["id", "group", "size", "representative"],
             output_format,
             output,
+            names=("id", "representative"),
         )
     nothing_matched(len(members), "no group")
 
