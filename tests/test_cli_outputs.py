@@ -81,6 +81,30 @@ def test_index_export_npz_goes_to_a_pipe_as_bytes(index, tmp_path):
         assert data["coefficients"].shape[0] == 24
 
 
+def test_index_export_writes_the_file_column_as_the_name_as_index_ls_does(tmp_path):
+    # the index stores a file's name encoded (backslash doubled, a byte not UTF-8 as \xNN):
+    # the id column was written as the name, the file column as the encoded form
+    from click.testing import CliRunner
+
+    from nfdmatch.cli import main
+
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    names = [b"back\\slash.csv", b"c\xff.csv"]
+    for name in names:
+        shutil.copy(os.path.join(LIBRARY, "trefoil.csv"), os.path.join(str(folder), os.fsdecode(name)))
+    index = tmp_path / "lib.h5"
+    assert run("index", "build", folder, "--index", index, "--jobs", "1", "-q")[0] == 0
+    expected = sorted(b"lib/" + name for name in names)
+    out = CliRunner().invoke(main, ["index", "export", "--index", str(index)]).stdout_bytes
+    rows = [row.split(b",")[:2] for row in out.splitlines()[1:]]
+    assert sorted(row[0] for row in rows) == expected and all(row[0] == row[1] for row in rows)
+    out = CliRunner().invoke(main, ["index", "export", "--index", str(index), "--format", "jsonl"]).stdout_bytes
+    records = [json.loads(line) for line in out.splitlines()]
+    assert all(r["id"] == r["file"] for r in records)
+    assert sorted(os.fsencode(r["file"]) for r in records) == expected
+
+
 # --------------------------------------------------------------------------- items 5, 7: the extension picks the format
 
 

@@ -81,7 +81,7 @@ def index_export(index_path: str, output_format: str | None, output: str | None)
         )
     if fmt == "jsonl":
         columns = list(records[0]) if records else ["id"]
-        write_rows(records, columns, "jsonl", output)
+        write_rows(records, columns, "jsonl", output, names=("id", "file"))
         return
     flat = []
     for r in records:
@@ -93,7 +93,7 @@ def index_export(index_path: str, output_format: str | None, output: str | None)
                 row[f"k{f:+d}_{ax}_re"] = re
                 row[f"k{f:+d}_{ax}_im"] = im
         flat.append(row)
-    write_rows(flat, list(flat[0]) if flat else ["id"], "csv", output)
+    write_rows(flat, list(flat[0]) if flat else ["id"], "csv", output, names=("id", "file"))
 
 
 def _deliver_bytes(data: bytes, output: str | None) -> None:
