@@ -160,6 +160,27 @@ def test_matrix_rows_read_back_whatever_the_file_names(folder, tmp_path, fmt, se
     assert all(v == repr(float(v)) for r in rows[1:] for v in r[1:])
 
 
+def test_matrix_rows_name_the_files_not_their_ids(folder, tmp_path):
+    # a curve's id is its file name encoded (a backslash doubled, a byte not UTF-8 as \xNN);
+    # the rows write the name itself, as describe's id column: raw bytes in CSV, \udcNN in JSON
+    from click.testing import CliRunner
+
+    from nfdmatch.cli import main
+
+    names = tmp_path / "names"
+    names.mkdir()
+    raw = [b"back\\slash.csv", b"c\xff.csv"]
+    for name in raw:
+        shutil.copy(folder / "knot.csv", os.path.join(str(names), os.fsdecode(name)))
+    expected = sorted(os.fsencode(str(names)) + b"/" + name for name in raw)
+    out = CliRunner().invoke(main, ["matrix", str(names), "--format", "csv"]).stdout_bytes
+    lines = out.splitlines()
+    assert sorted(lines[0].split(b",")[1:]) == expected
+    assert sorted(line.split(b",")[0] for line in lines[1:]) == expected
+    out = CliRunner().invoke(main, ["matrix", str(names), "--format", "json"]).stdout_bytes
+    assert sorted(os.fsencode(i) for i in json.loads(out)["ids"]) == expected
+
+
 def test_matrix_json_tsv_picture_and_partial_failure(folder, tmp_path):
     (folder / "bad.csv").write_text("x,y,z\n1,2,3\n4,five,6\n")
     png = tmp_path / "m.png"

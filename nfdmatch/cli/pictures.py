@@ -391,7 +391,11 @@ def _reranked(distances: np.ndarray, ids: list[str], lists: np.ndarray | None = 
 
 def _matrix_text(ids: list[str], values: np.ndarray, fmt: str, rerank: bool) -> str:
     """The matrix as JSON (``ids`` and ``distances``, or ``scores`` with --rerank) or as
-    CSV/TSV rows (a header row of ids, then each curve's id and row)."""
+    CSV/TSV rows (a header row of ids, then each curve's id and row). The ids are written
+    as the file names they encode (:func:`~nfdmatch.names.decode_name`), as every row format does."""
+    from ..names import decode_name
+
+    ids = [decode_name(i) for i in ids]
     if fmt == "json":
         return json.dumps({"ids": ids, ("scores" if rerank else "distances"): values.tolist()}, indent=1) + "\n"
     # the entries are float reprs, which never need quoting: each row is joined directly
