@@ -61,6 +61,21 @@ def test_distance_text_and_json(curves):
     assert record["distance"] > 0.05 and np.array(record["rotation"]).shape == (3, 3)
 
 
+def test_distance_json_names_the_files_not_their_ids(curves, tmp_path):
+    # a curve's id is its file name encoded (a backslash doubled, a byte not UTF-8 as \xNN):
+    # "a" and "b" hold the names, as every row format does (\udcNN for such a byte)
+    import shutil
+
+    a = os.path.join(str(tmp_path), os.fsdecode(b"back\\slash.csv"))
+    b = os.path.join(str(tmp_path), os.fsdecode(b"c\xff.csv"))
+    shutil.copy(curves["a"], a)
+    shutil.copy(curves["a"], b)
+    code, out, err = run("distance", a, b, "--format", "json")
+    assert code == 0 and err == ""
+    record = json.loads(out)
+    assert (record["a"], record["b"]) == (a, b)
+
+
 def test_distance_options_change_the_result(curves):
     def dist(*extra):
         code, out, _ = run("distance", curves["a"], curves["a_posed"], "--format", "json", *extra)

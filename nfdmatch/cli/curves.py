@@ -86,7 +86,9 @@ def distance(
         m, stage = match_distance(a, b, **comparison.keywords()), {}
     record = {**m.to_dict(), **stage}
     if output_format == "json":
-        text = json.dumps({"a": a.id, "b": b.id, **record}, indent=2) + "\n"
+        from ..names import decode_name  # the file names the ids encode, as the row formats write them
+
+        text = json.dumps({"a": decode_name(a.id), "b": decode_name(b.id), **record}, indent=2) + "\n"
     else:
         text = "".join(
             f"{key}\t{value}\n"
