@@ -71,7 +71,7 @@ def read_changes(index: Index) -> NDArray[np.int64] | None:
     if h5 is None:
         return None
 
-    def read():
+    def read() -> tuple[np.ndarray | None, str | None]:
         try:
             return changes_rows(h5), None
         except ValueError as exc:  # malformed, as distinct from unreadable (index._read's)
