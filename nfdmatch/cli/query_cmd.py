@@ -187,15 +187,36 @@ def mesh_queries(idx: Index, queries: Iterable[str], glob: str | None, input_for
     return meshes
 
 
+def require_objects(idx: Index) -> None:
+    """Raise InputError unless the index holds mesh objects (what a mesh query ranks)."""
+    from ..errors import InputError
+
+    if idx.object_rule() is None:
+        raise InputError(
+            "the index holds no mesh objects: a mesh query ranks objects; build the index from meshes",
+            path=idx.path,
+        )
+
+
+def report_mesh_failures(failures: list, meshes: list[str]) -> None:
+    """Name each query mesh that failed (``failures``: (mesh, NfdError) pairs) and count it
+    as a failed input (``-o`` is then not written; the JSON record lists it); raise
+    NothingRead when every mesh failed."""
+    from .options import NothingRead
+
+    for _, exc in failures:
+        error(exc)
+    count_failures(len(failures), [exc for _, exc in failures])
+    if len(failures) == len(meshes):
+        raise NothingRead()
+
+
 def _query_objects(
     idx: Index, meshes: list[str], batch: QueryBatch, scheduler: str | None, output_format: str, output: str | None
 ) -> None:
     """Rank the index's objects for each query mesh (docs/objects.md): rows query, rank,
     match (the object's mesh), distance, curves (its contours that were the nearest of some
     query contour). Bad meshes are named and the others answered (exit 3)."""
-    from ..errors import InputError
-    from .options import NothingRead
-
     listing = batch.listing
     for name, on in (
         ("--rerank", batch.rerank is not None),
@@ -206,21 +227,13 @@ def _query_objects(
     ):
         if on:
             raise click.UsageError(f"{name} does not apply to a mesh query (it ranks objects)")
-    if idx.object_rule() is None:
-        raise InputError(
-            "the index holds no mesh objects: a mesh query ranks objects; build the index from meshes",
-            path=idx.path,
-        )
+    require_objects(idx)
     failures: list = []
     results = idx.search_objects(
         meshes, k=listing.top, max_distance=listing.max_distance, exclude_self=listing.exclude_self,
         failures=failures, prune=not batch.exhaustive,
     )  # fmt: skip
-    for _, exc in failures:
-        error(exc)
-    count_failures(len(failures), [exc for _, exc in failures])  # -o is not written; JSON lists them
-    if len(failures) == len(meshes):
-        raise NothingRead()
+    report_mesh_failures(failures, meshes)
     spell_query, spell_match = path_speller(listing.paths), path_speller(listing.paths, idx.locate)
     rows = [
         {

@@ -10,9 +10,6 @@ from typing import TYPE_CHECKING
 import click
 
 from .options import (
-    NothingRead,
-    count_failures,
-    error,
     finish,
     note,
     note_inputs,
@@ -21,7 +18,7 @@ from .options import (
 )
 from .output import path_speller, write_rows
 from .picture_files import check_pictures, not_written, picture_names, report_picture
-from .query_cmd import mesh_queries
+from .query_cmd import mesh_queries, report_mesh_failures, require_objects
 
 if TYPE_CHECKING:
     from ..index import Index
@@ -83,7 +80,6 @@ def _drawn(
 ) -> tuple[list, list[dict], list[str], list]:
     """``(drawn, rows, picture names, failures)`` of the query meshes against the open index:
     usage errors first, the pictures checked writable before the search."""
-    from ..errors import InputError
     from ..matching import DEFAULT_DIRECTION, DEFAULT_METHOD
     from ..show_objects import show_objects
 
@@ -94,10 +90,7 @@ def _drawn(
     ):
         if on:
             raise click.UsageError(f"{name} does not apply to a mesh query (it ranks objects)")
-    if idx.object_rule() is None:
-        raise InputError(
-            "the index holds no mesh objects: a mesh query ranks objects; build the index from meshes", path=idx.path
-        )
+    require_objects(idx)
     note_inputs(meshes)
     names = picture_names(picture, [SimpleNamespace(id=m) for m in meshes])
     check_pictures(names)
@@ -108,11 +101,7 @@ def _drawn(
         idx, meshes, k=drawing["top"], max_distance=drawing["max_distance"], exclude_self=drawing["exclude_self"],
         failures=failures,
     )  # fmt: skip
-    for _, exc in failures:
-        error(exc)
-    count_failures(len(failures), [exc for _, exc in failures])  # -o is not written; JSON lists them
-    if len(failures) == len(meshes):
-        raise NothingRead()
+    report_mesh_failures(failures, meshes)
     for message in notes:
         note(message)
     spell_query, spell_match = path_speller(drawing["paths"]), path_speller(drawing["paths"], idx.locate)
