@@ -201,6 +201,13 @@ def test_cli_query_errors_of_meshes(parts, tmp_path):
     build_index([str(parts / "ring.csv")], curves, jobs=1)
     result = runner.invoke(main, ["query", str(parts / "torus.ply"), "--index", curves])
     assert result.exit_code == 2 and "no mesh objects" in result.stderr
+    # ... asked with a folder of meshes only: the error says what the folder holds
+    meshes_only = tmp_path / "meshes"
+    meshes_only.mkdir()
+    (meshes_only / "torus.ply").write_bytes((parts / "torus.ply").read_bytes())
+    result = runner.invoke(main, ["query", str(meshes_only), "--index", curves])
+    assert result.exit_code == 2 and result.stdout == ""
+    assert "no curve files found (it holds 1 mesh file: a mesh query needs an index built from meshes" in result.stderr
 
 
 def test_frozen_v3_index_reads_forever(tmp_path):

@@ -159,7 +159,10 @@ def _read_inputs(
         try:
             found = find_curve_files([spec], glob=glob)
             if not found:
-                raise NoCurvesError("no curve files found" + (f" matching {glob!r}" if glob else ""), path=spec)
+                raise NoCurvesError(
+                    "no curve files found" + (f" matching {glob!r}" if glob else "") + _meshes_hint(spec, glob),
+                    path=spec,
+                )
         except NfdError as exc:
             total += 1
             errors.append(exc)
@@ -179,3 +182,19 @@ def _read_inputs(
         raise NothingRead()
     detail(f"read {len(curves)} curve{'' if len(curves) == 1 else 's'} from {total - len(errors)} of {total} inputs")
     return Inputs(curves, errors, total)
+
+
+def _meshes_hint(folder: str, glob: str | None) -> str:
+    """For a folder without curve files: what to do when it holds meshes (a mesh query
+    needs an index built from meshes; this index, or this command, takes curves)."""
+    from ..sources import find_curve_files
+
+    if not os.path.isdir(folder):
+        return ""
+    meshes = find_curve_files([folder], glob=glob, meshes=True)
+    if not meshes:
+        return ""
+    return (
+        f" (it holds {len(meshes)} mesh file{'s' if len(meshes) != 1 else ''}: a mesh query needs an index built "
+        "from meshes, `nfdmatch index build MESHES --index I`; or extract contours first, `nfdmatch extract`)"
+    )
