@@ -463,3 +463,28 @@ def test_cli_a_query_mesh_named_twice_is_answered_once(parts, tmp_path):
     assert result.exit_code == 0, result.output
     queries = [r["query"] for r in csv.DictReader(io.StringIO(result.stdout))]
     assert sorted(queries) == sorted({torus, *(str(parts / n) for n in _shapes())})
+
+
+def test_cli_a_fault_while_cutting_one_query_mesh_is_that_mesh_s_error(parts, tmp_path, monkeypatch):
+    """A fault that is not nfdmatch's own while cutting a query mesh (a bug, a library's
+    surprise) names that mesh, as a build does ("unexpected error"), and the other meshes
+    are answered (exit 3); before, the whole query ended in a traceback."""
+    import nfdmatch.mesh.objects as mesh_objects
+
+    index = str(tmp_path / "parts.h5")
+    runner = CliRunner()
+    assert runner.invoke(main, ["index", "build", str(parts), "--index", index, "-j", "1"]).exit_code == 0
+    original = mesh_objects.cut_object
+
+    def faulty(mesh, *args, name=None, **kwargs):
+        if name and name.endswith("torus.ply"):
+            raise RuntimeError("a fault inside the cut")
+        return original(mesh, *args, name=name, **kwargs)
+
+    monkeypatch.setattr(mesh_objects, "cut_object", faulty)
+    args = ["query", str(parts / "torus.ply"), str(parts / "cone.obj"), "--index", index, "--top", "1"]
+    result = runner.invoke(main, [*args, "--format", "csv"])
+    assert result.exit_code == 3, result.output
+    assert "torus.ply: unexpected error: RuntimeError: a fault inside the cut" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert [r["query"] for r in csv.DictReader(io.StringIO(result.stdout))] == [str(parts / "cone.obj")]

@@ -292,8 +292,10 @@ def _cut_queries(
 ) -> tuple[list[ObjectCut], dict[int, int]]:
     """The query meshes cut by ``rule`` over forked workers (each mesh alone: 0.1-0.5 s of
     numpy): ``(cuts, {query position: its cut's number})``; a mesh that cannot be cut goes
-    to ``failures`` (``(position, NfdError)``), or its error is raised when that is None."""
-    from ..errors import NfdError
+    to ``failures`` (``(position, NfdError)``), or its error is raised when that is None.
+    An error that is not nfdmatch's (a fault of the cutting itself) is that mesh's
+    MeshError "unexpected error", as a build reports it: one mesh does not end the query."""
+    from ..errors import MeshError, NfdError
     from ..mesh.objects import cut_object
 
     cut_of: dict = {}
@@ -303,6 +305,8 @@ def _cut_queries(
             return cut_object(meshes[task], rule, name=names[task])
         except NfdError as exc:
             return exc
+        except Exception as exc:
+            return MeshError(f"unexpected error: {type(exc).__name__}: {exc}", path=names[task])
 
     run_tasks(list(range(len(meshes))), cut, cut_of.__setitem__, processes)
     cuts, cut_at = [], {}
