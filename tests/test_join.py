@@ -275,3 +275,38 @@ def test_the_components_of_groups_are_those_of_a_union_find(n, edges):
     a = np.array([p[0] for p in pairs], dtype=np.int64)
     b = np.array([p[1] for p in pairs], dtype=np.int64)
     assert _components(n, a, b).tolist() == [find(x) for x in range(n)]
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, RuntimeError])
+def test_a_join_stopped_early_does_not_finish_the_steps_running(stop, monkeypatch):
+    """Ctrl-C (or a fault) while the join's steps run on threads: the steps running stop at
+    their next batch of exact distances instead of finishing (their pairs are thrown away;
+    `pairs` went on ~11 s after Ctrl-C, its CLI killed by the watchdog meanwhile)."""
+    from nfdmatch.search.join import _Join
+
+    rng = np.random.default_rng(3)
+    index = MemoryIndex(family_curves(rng, 8, 30, 0.3), rows_per_cell=10)
+    cascade = Cascade(index.samples, truncate=False)
+    stopped, calls, after = [], [], []
+    exact = _Join._exact
+
+    def counted(self, a, bs, thr):
+        calls.append(len(bs))
+        if stopped:
+            after.append(len(bs))
+        return exact(self, a, bs, thr)
+
+    def progress(done, total):
+        if done >= 1:
+            stopped.append(done)
+            raise stop("stop")
+
+    monkeypatch.setattr(_Join, "_exact", counted)
+    with pytest.raises(stop):
+        pairs_within(index.search_table(), index.coefficients_at, 10.0, cascade, threads=2, progress=progress)
+    assert len(after) <= 2, after  # at most one batch per thread began after the stop
+    began = len(calls)
+    stopped.clear()
+    calls.clear()
+    pairs_within(index.search_table(), index.coefficients_at, 10.0, cascade, threads=2)
+    assert began < len(calls) / 2, (began, len(calls))  # the join did not run to its end

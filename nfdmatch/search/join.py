@@ -138,6 +138,9 @@ class _Join:
         self.stats = JoinStats(rows=N, left=int(left.sum()), cells=len(col.start) - 1)
         self.stages = truncated_stages(col.coef.shape[1], col.coef.shape[1]) if cascade.truncate else []
         self.seeded = np.zeros(0, dtype=np.int64)  # keys a * N + b of the seed pairs, sorted
+        # set when the join ends early (Ctrl-C, a fault): the steps still running return at
+        # their next batch, their work thrown away (a step may take seconds)
+        self.stopping = threading.Event()
 
     # ------------------------------------------------------------------ distances
 
@@ -229,9 +232,13 @@ class _Join:
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(self.threads) as pool:
-                for i, _ in enumerate(pool.map(fn, items)):
-                    if done is not None:
-                        done(i)
+                try:
+                    for i, _ in enumerate(pool.map(fn, items)):
+                        if done is not None:
+                            done(i)
+                except BaseException:
+                    self.stopping.set()  # before the pool waits for the running steps
+                    raise
         else:
             for i, item in enumerate(items):
                 fn(item)
@@ -291,6 +298,8 @@ class _Join:
             return
         chunk = max(1, _MATRIX_ENTRIES // len(cand))
         for a0 in range(0, len(q), chunk):
+            if self.stopping.is_set():
+                return
             qa = q[a0 : a0 + chunk]
             L = row_lower_bounds_many(col.fq[qa], col.split, col.F[cand], col.sq[cand])
             self._count("bounded", L.size)
@@ -304,7 +313,7 @@ class _Join:
                 need[ii[done], jj[done]] = False
             for i, a in enumerate(qa):
                 js = np.flatnonzero(need[i])
-                if len(js):
+                if len(js) and not self.stopping.is_set():
                     self._pairs_of(int(a), cand[js], L[i, js])
 
     def _pairs_of(self, a: int, bs: np.ndarray, bound: np.ndarray) -> None:
@@ -345,7 +354,7 @@ class _Join:
             bound = np.maximum(bound, tb)
             order = np.argsort(bound, kind="stable")
             bs, bound = bs[order], bound[order]
-        while len(bs):
+        while len(bs) and not self.stopping.is_set():
             thr = np.maximum(tau[a], tau[bs])
             keep = bound <= margin(thr)
             bs, bound, thr = bs[keep], bound[keep], thr[keep]
