@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import os
+import time
 
 from ..errors import ParameterError
 from .cluster import Cluster
@@ -117,14 +118,18 @@ def connect(scheduler: Any, timeout: float = DEFAULT_TIMEOUT) -> Cluster:
             target = owned_cluster
         else:
             target = where
+        started = time.monotonic()
         try:
             client = Client(target, timeout=timeout, set_as_default=False)
         except Exception as exc:  # OSError / TimeoutError: nothing listening, wrong host
+            # "within" only when the timeout ran out: an address Dask cannot parse, or a
+            # peer answering garbage, fails at once
+            waited = f"within {timeout:g} s " if time.monotonic() - started >= 0.9 * timeout else ""
             _close_half_built(exc, Client)
             if owned_cluster is not None:
                 owned_cluster.close()
             raise ClusterError(
-                f"cannot reach the Dask scheduler at {where} within {timeout:g} s "
+                f"cannot reach the Dask scheduler at {where} {waited}"
                 f"({type(exc).__name__}: {first_line(exc)}); start one with "
                 f"`dask scheduler` or use --scheduler local:N"
             ) from None
