@@ -196,6 +196,13 @@ def _merged_mesh(parts, p: str):
 _MERGE_RANGE = (2.0**-10, 2.0**36)
 
 
+def unit_power(largest: float) -> float:
+    """The power of two that brings ``largest`` (> 0) into [0.5, 1); 1.0 for 0. Scaling
+    coordinates by it is exact, so what is computed after it (lengths, areas, moments) is
+    the true value scaled, without overflow or underflow."""
+    return float(np.ldexp(1.0, -int(np.frexp(largest)[1]))) if largest > 0 else 1.0
+
+
 def _merge_scale(corners: np.ndarray) -> float:
     """The power of two the vertices (the faces' ``corners``) are merged scaled by: 1.0
     when their largest coordinate is within :data:`_MERGE_RANGE`."""
@@ -203,8 +210,7 @@ def _merge_scale(corners: np.ndarray) -> float:
     lo, hi = _MERGE_RANGE
     if largest == 0.0 or lo <= largest <= hi:
         return 1.0
-    exponent = int(np.frexp(largest)[1])  # largest = m 2^exponent, 0.5 <= m < 1
-    return float(np.ldexp(1.0, (36 if largest > hi else 1) - exponent))
+    return unit_power(largest) * (2.0**36 if largest > hi else 2.0)
 
 
 def _has_obj_lines(path: str) -> bool:

@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import MeshError, ParameterError
 from ..sources import MESH_EXTENSIONS
 from .contours import Contour, ExtractResult
-from .load import load_mesh
+from .load import load_mesh, unit_power
 from .sections import boundary_loops, section_loops
 
 if TYPE_CHECKING:
@@ -158,7 +158,7 @@ def _triangles(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     if tri.size:
         extent = float((tri.max(axis=(0, 1)) - tri.min(axis=(0, 1))).max())
         if extent > 0 and not _CUT_RANGE[0] <= extent <= _CUT_RANGE[1]:
-            scale = float(np.ldexp(1.0, -int(np.frexp(extent)[1])))  # extent in [0.5, 1)
+            scale = unit_power(extent)  # extent in [0.5, 1)
             vertices, tri = vertices * scale, tri * scale
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     return vertices, faces, area, scale

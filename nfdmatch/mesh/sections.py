@@ -13,7 +13,7 @@ from .._graph import closed_loops
 from ..curve import clean_points
 from ..errors import CurveError, ParameterError
 from .contours import AXES, Contour, DEFAULT_SECTIONS, ExtractResult
-from .load import load_mesh
+from .load import load_mesh, unit_power
 
 if TYPE_CHECKING:
     import os
@@ -244,8 +244,7 @@ def _unit_scale(points: np.ndarray) -> float:
     (1.0 for none): scaling by it is exact, so lengths and areas compared after it compare
     as the true ones do, without overflow."""
     finite = np.abs(points[np.isfinite(points)])
-    largest = float(finite.max()) if finite.size else 0.0
-    return float(np.ldexp(1.0, -int(np.frexp(largest)[1]))) if largest > 0 else 1.0
+    return unit_power(float(finite.max()) if finite.size else 0.0)
 
 
 def _orient_ccw(loops: list[np.ndarray], a: int) -> list[np.ndarray]:
