@@ -162,13 +162,17 @@ def extract(
     if refused and not errors:
         _exit_refused(refused, files)
     if refused:
-        error(f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)")
+        error(_refused_text(refused, files))
     finish(len(errors), len(files), "meshes")
+
+
+def _refused_text(refused: list[OverwriteRefusedError], files: list[str]) -> str:
+    return f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)"
 
 
 def _exit_refused(refused: list[OverwriteRefusedError], files: list[str]) -> NoReturn:
     """Exit 3 for meshes refused (files in the way), with the JSON record of a partial run."""
-    message = f"{len(refused)} of {len(files)} meshes not written: files in the way (see above)"
+    message = _refused_text(refused, files)
     error(message)
     json_failure(click.get_current_context(), message, EXIT_PARTIAL)
     sys.exit(EXIT_PARTIAL)
